@@ -1,0 +1,1 @@
+"""dcuscope's pipeline framework: YAML configuration, pipeline building and running, the CLI."""

@@ -1,0 +1,13 @@
+"""Exceptions of the pipeline package: each names the file, key or element at fault."""
+
+
+class DcuscopeError(Exception):
+    """Base of every error a user can cause; the CLI prints it on one line and exits 2."""
+
+
+class ConfigError(DcuscopeError):
+    """The YAML configuration is malformed or names something that does not exist."""
+
+
+class PipelineError(DcuscopeError):
+    """The GStreamer pipeline could not be built or stopped with an error."""

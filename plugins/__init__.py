@@ -1,0 +1,25 @@
+"""dcuscope's GStreamer elements, one per module, registered in-process by :func:`register`.
+
+``gst-launch-1.0`` finds them through the Python plugin loader: see ``plugins/loader``.
+"""
+
+import importlib
+
+from pipeline.gst import Gst
+
+ELEMENT_MODULES = ("framestamp", "mux", "infer", "tiler", "convert", "osd")
+
+_registered = False
+
+
+def register() -> None:
+    """Register every element with GStreamer for this process (idempotent)."""
+    global _registered
+    if _registered:
+        return
+    for name in ELEMENT_MODULES:
+        module = importlib.import_module(f"plugins.{name}")
+        factory, rank, cls = module.__gstelementfactory__
+        if Gst.ElementFactory.find(factory) is None:
+            Gst.Element.register(None, factory, rank, cls.__gtype__)
+    _registered = True

@@ -1,0 +1,1 @@
+"""Pad-probe tracepoints on every element, the event buffer, trace files, statistics, exports."""
