@@ -5,7 +5,15 @@ here, so that ``gi.require_version`` is called exactly once and before any ``fro
 gi.repository import``.
 """
 
-import gi
+import ctypes
+import os
+
+# GStreamer links libunwind, which exports the C++ unwinding ABI (_Unwind_*). Once it is global,
+# a C++ exception inside onnxruntime or OpenCV unwinds through a mix of libunwind and libgcc_s
+# and aborts the process. Loading libgcc_s globally first keeps the unwinder consistent.
+ctypes.CDLL("libgcc_s.so.1", mode=os.RTLD_GLOBAL)
+
+import gi  # noqa: E402
 
 gi.require_version("Gst", "1.0")
 gi.require_version("GstBase", "1.0")

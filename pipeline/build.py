@@ -1,0 +1,56 @@
+"""Configuration -> a linked Gst.Pipeline: sources, the chain of stages, the sink."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import plugins
+from pipeline.config import PipelineConfig
+from pipeline.elements import make_stage_element
+from pipeline.errors import ConfigError, PipelineError
+from pipeline.gst import Gst
+from pipeline.sinks import build_sink
+from pipeline.sources import SourceBin
+from probes.events import CLOCKS
+
+
+@dataclass
+class BuiltPipeline:
+    pipeline: Gst.Pipeline
+    sources: list[SourceBin]
+    stages: list[Gst.Element]
+    sink: Gst.Bin
+
+
+def build_pipeline(config: PipelineConfig) -> BuiltPipeline:
+    """Build (not start) the pipeline of ``config``. ConfigError for bad stages, PipelineError else."""
+    plugins.register()
+    pipeline = Gst.Pipeline.new(config.node)
+    stages = [make_stage_element(config, stage) for stage in config.stages]
+    mux = stages[0] if stages[0].get_factory().get_name() == "mux" else None
+    if mux is None and len(config.sources) > 1:
+        raise config.document.error(("stages", 0), "with several sources the first stage must be a mux")
+
+    clock_id = CLOCKS[config.probes.clock]
+    sources = []
+    for index, source in enumerate(config.sources):
+        if mux is not None and source.width is None and source.height is None:
+            # Scale in the source's own streaming thread (native, parallel) so the mux
+            # can batch without copying; the result is the same as the mux scaling.
+            source.width, source.height = mux.get_property("width"), mux.get_property("height")
+        sources.append(SourceBin(source, index, clock_id))
+    sink = build_sink(config.sink)
+
+    for element in [*sources, *stages, sink]:
+        pipeline.add(element)
+    for source in sources:
+        target = mux.request_pad_simple("sink_%u") if mux is not None else stages[0].get_static_pad("sink")
+        if source.get_static_pad("src").link(target) != Gst.PadLinkReturn.OK:
+            raise PipelineError(f"cannot link {source.config.description} to {stages[0].get_name()}")
+    for a, b in zip(stages, [*stages[1:], sink]):
+        if not a.link(b):
+            raise ConfigError(
+                f"{config.file}:{config.document.line(('stages',))}: stages: {a.get_name()} cannot be linked to "
+                f"{b.get_name()} (their formats do not match: check the order of the stages)"
+            )
+    return BuiltPipeline(pipeline, sources, stages, sink)

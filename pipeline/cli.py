@@ -1,0 +1,112 @@
+"""The ``dcuscope`` command line."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from pipeline.errors import DcuscopeError
+
+DESCRIPTION = """\
+dcuscope: see where the time goes in multi-camera video-analytics pipelines.
+
+Pipelines are declared in YAML (see configs/) and run on real GStreamer with dcuscope's
+elements mux, infer, tiler, convert and osd; with --probes every element gets per-frame
+enter/exit tracepoints, written to a trace file and/or streamed to a relay.
+"""
+
+RUN_EPILOG = """\
+examples:
+  dcuscope run configs/vtest.yaml --num-frames 50
+  dcuscope run configs/quad.yaml --output out.mp4 --num-frames 100
+  dcuscope run configs/quad.yaml --probes --trace quad.jsonl --duration 20
+  dcuscope run configs/quad.yaml --probes --relay http://127.0.0.1:3000 --node DCU-1
+
+--output picks the sink from the path: NAME.mp4 writes H.264 video, a folder (or a path
+ending in /) writes numbered PNG frames. Ctrl-C ends the run cleanly (end-of-stream, so
+the MP4 is finalised); a second Ctrl-C aborts. Exit status: 0 done, 1 the pipeline failed,
+2 bad configuration or arguments.
+"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="dcuscope", description=DESCRIPTION,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    run = sub.add_parser("run", help="run a pipeline from a YAML configuration", description=RUN_EPILOG.split("\n")[0],
+                         epilog=RUN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    run.add_argument("config", type=Path, metavar="CONFIG", help="pipeline configuration (YAML)")
+    run.add_argument("--output", "-o", type=Path, metavar="PATH",
+                     help="write the osd's frames: NAME.mp4 (H.264) or a folder for PNG frames (overrides sink:)")
+    limit = run.add_mutually_exclusive_group()
+    limit.add_argument("--num-frames", "-n", type=_positive_int, metavar="N",
+                       help="stop cleanly after N frames reached the sink")
+    limit.add_argument("--duration", "-d", type=_positive_float, metavar="S", help="stop cleanly after S seconds")
+    run.add_argument("--node", metavar="NAME", help="name of this machine in traces and the relay (default: node: of the config, else DCU-1)")
+    run.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
+    probes = run.add_argument_group("probes")
+    probes.add_argument("--probes", action="store_true", help="put enter/exit tracepoints on every element")
+    probes.add_argument("--trace", type=Path, metavar="PATH", help="write probe events to this trace file (JSON Lines)")
+    probes.add_argument("--clock", choices=("realtime", "tai", "monotonic"),
+                        help="clock of the timestamps (default realtime, the clock PTP's phc2sys disciplines)")
+    probes.add_argument("--relay", metavar="URL", help="stream probe events to a relay, e.g. http://127.0.0.1:3000")
+    probes.add_argument("--token", metavar="TOKEN", help="token the relay asks for")
+    probes.add_argument("--clock-offset-ms", type=float, default=0.0, metavar="MS",
+                        help="TESTING AID: shift this node's clock by MS milliseconds, to check clock alignment")
+    run.set_defaults(func=_run)
+
+    _add_optional(sub, "probes.commands", ("add_stats_parser", "add_export_parser"))
+    _add_optional(sub, "relay.commands", ("add_relay_parser",))
+    return parser
+
+
+def _add_optional(sub, module_name: str, functions: tuple[str, ...]) -> None:
+    import importlib
+
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as exc:
+        if exc.name != module_name:
+            raise
+        return
+    for name in functions:
+        getattr(module, name)(sub)
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError("must be a positive integer")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError("must be positive")
+    return value
+
+
+def _run(args: argparse.Namespace) -> int:
+    from pipeline.session import run_session
+
+    return run_session(args)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except DcuscopeError as exc:
+        print(f"dcuscope: error: {exc}", file=sys.stderr)
+        return 1 if exc.__class__.__name__ == "PipelineError" else 2
+    except KeyboardInterrupt:
+        print("dcuscope: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

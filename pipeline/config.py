@@ -1,0 +1,304 @@
+"""The YAML pipeline configuration as typed objects.
+
+A configuration names its sources, the chain of stages they go through, and a sink::
+
+    node: DCU-1                     # optional: name of this machine in traces and the relay
+    sources:
+      - uri: ../assets/media/vtest.avi   # file path (relative to this file), file://, rtsp://, http://
+        loop: true                  # files: start again at the end
+        rate: 10                    # optional frames/s (videorate)
+        width: 960                  # optional size before the mux (videoscale)
+        height: 540
+      - test: ball                  # a videotestsrc pattern
+      - camera: /dev/video0         # a V4L2 device
+    stages:
+      - mux: {batch-size: 2, width: 1280, height: 720}
+      - infer: {threshold: 0.3}
+      - factory: identity           # any installed GStreamer element, by factory name
+        name: slow
+        properties: {sleep-time: 20000}
+      - queue: {}
+      - tiler: {rows: 1, columns: 2}
+      - convert: {format: RGBA}
+      - osd: {}
+    sink: {type: file, path: out.mp4}   # fake | file (MP4/H.264) | frames (numbered PNGs)
+    probes: {enabled: false, clock: realtime, trace: trace.jsonl}
+
+This module checks the structure (keys, types, files); :mod:`pipeline.elements` checks the
+stages against the installed GStreamer elements and their properties.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from fractions import Fraction
+from pathlib import Path
+from typing import Any
+
+from pipeline.yamlsource import Document, KeyPath, load_document
+
+STAGE_SHORTHANDS = ("mux", "infer", "tiler", "convert", "osd", "queue")
+"""Stage kinds written as ``- KIND: {properties}``; anything else is ``- factory: NAME``."""
+SINK_TYPES = ("fake", "file", "frames")
+CLOCK_NAMES = ("realtime", "tai", "monotonic")
+REMOTE_SCHEMES = ("rtsp://", "rtsps://", "http://", "https://", "udp://", "rtmp://", "srt://")
+
+
+@dataclass
+class SourceConfig:
+    kind: str
+    """``uri``, ``camera`` or ``test``."""
+    location: str
+    """A URI (local files as absolute ``file://``), a device path, or a test pattern name."""
+    loop: bool = False
+    """Files only: seek back to the start at the end, forever."""
+    rate: Fraction | None = None
+    """Frames per second forced with videorate; None keeps the stream's own rate."""
+    width: int | None = None
+    height: int | None = None
+    """Size forced before the mux; None keeps the stream's own (the mux scales to its size)."""
+    live: bool = False
+    """Test sources: produce frames in real time, like a camera."""
+
+    @property
+    def description(self) -> str:
+        return f"{self.kind}:{self.location}"
+
+
+@dataclass
+class StageConfig:
+    factory: str
+    """GStreamer element factory name (``mux``, ``infer``, ``identity``, ...)."""
+    name: str
+    """Element (and stage) name: the ``name`` given, else the factory, made unique with ``_N``."""
+    properties: dict[str, Any]
+    path: KeyPath
+    """Where the stage is in the YAML, for error messages."""
+
+
+@dataclass
+class SinkConfig:
+    kind: str = "fake"
+    path: Path | None = None
+    """``file``: the MP4 to write; ``frames``: a folder for numbered PNGs."""
+    sync: bool = False
+    """Render at the stream's pace (True) or as fast as the pipeline goes (False)."""
+    bitrate: int = 4000
+    """``file``: H.264 bitrate in kbit/s."""
+
+
+@dataclass
+class ProbesConfig:
+    enabled: bool = False
+    clock: str = "realtime"
+    trace: Path | None = None
+
+
+@dataclass
+class PipelineConfig:
+    file: Path
+    node: str
+    sources: list[SourceConfig]
+    stages: list[StageConfig]
+    sink: SinkConfig
+    probes: ProbesConfig
+    document: Document = field(repr=False)
+
+
+def load_config(file: str | Path) -> PipelineConfig:
+    """Read and check ``file``: raises ConfigError naming file:line and key path."""
+    file = Path(file)
+    doc = load_document(file)
+    return _Parser(doc).parse()
+
+
+class _Parser:
+    def __init__(self, doc: Document):
+        self.doc = doc
+        self.base = doc.file.resolve().parent
+
+    def parse(self) -> PipelineConfig:
+        top = self.mapping(self.doc.data, (), {"node", "sources", "stages", "sink", "probes", "name"})
+        if "sources" not in top:
+            raise self.doc.error((), "missing 'sources' (a list of uri:/camera:/test: entries)")
+        if "stages" not in top:
+            raise self.doc.error((), "missing 'stages' (the chain mux, infer, tiler, convert, osd)")
+        sources = [self.source(s, ("sources", i)) for i, s in enumerate(self.sequence(top["sources"], ("sources",)))]
+        if not sources:
+            raise self.doc.error(("sources",), "at least one source is needed")
+        stages = self.stages(self.sequence(top["stages"], ("stages",)))
+        return PipelineConfig(
+            file=self.doc.file,
+            node=self.text(top.get("node", "DCU-1"), ("node",)),
+            sources=sources,
+            stages=stages,
+            sink=self.sink(top.get("sink", {"type": "fake"})),
+            probes=self.probes(top.get("probes", {})),
+            document=self.doc,
+        )
+
+    # -- typed getters -------------------------------------------------------------------
+    def mapping(self, value: Any, path: KeyPath, allowed: set[str]) -> dict:
+        if not isinstance(value, dict):
+            raise self.doc.error(path, f"expected a mapping, got {_kind(value)}")
+        for key in value:
+            if key not in allowed:
+                raise self.doc.error(path + (key,), f"unknown key (expected one of: {', '.join(sorted(allowed))})")
+        return value
+
+    def sequence(self, value: Any, path: KeyPath) -> list:
+        if not isinstance(value, list):
+            raise self.doc.error(path, f"expected a list, got {_kind(value)}")
+        return value
+
+    def text(self, value: Any, path: KeyPath) -> str:
+        if not isinstance(value, str) or not value:
+            raise self.doc.error(path, f"expected text, got {_kind(value)}")
+        return value
+
+    def boolean(self, value: Any, path: KeyPath) -> bool:
+        if not isinstance(value, bool):
+            raise self.doc.error(path, f"expected true or false, got {_kind(value)}")
+        return value
+
+    def positive_int(self, value: Any, path: KeyPath) -> int:
+        if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+            raise self.doc.error(path, f"expected a positive integer, got {_kind(value)}")
+        return value
+
+    def rate(self, value: Any, path: KeyPath) -> Fraction:
+        try:
+            rate = Fraction(str(value)) if not isinstance(value, bool) else None
+        except (ValueError, ZeroDivisionError):
+            rate = None
+        if rate is None or rate <= 0:
+            raise self.doc.error(path, f"expected frames per second such as 30 or 30000/1001, got {value!r}")
+        return rate
+
+    def local_file(self, value: str, path: KeyPath, what: str) -> Path:
+        file = Path(value).expanduser()
+        file = file if file.is_absolute() else (self.base / file)
+        if not file.is_file():
+            raise self.doc.error(path, f"{what} not found: {file}")
+        return file.resolve()
+
+    # -- sections ------------------------------------------------------------------------
+    def source(self, value: Any, path: KeyPath) -> SourceConfig:
+        entry = self.mapping(value, path, {"uri", "camera", "test", "loop", "rate", "width", "height", "live"})
+        kinds = [k for k in ("uri", "camera", "test") if k in entry]
+        if len(kinds) != 1:
+            raise self.doc.error(path, "a source needs exactly one of uri:, camera:, test:")
+        kind = kinds[0]
+        location = self.text(entry[kind], path + (kind,))
+        if kind == "uri":
+            location = self.uri(location, path + (kind,))
+        elif kind == "camera" and not Path(location).exists():
+            raise self.doc.error(path + (kind,), f"camera device not found: {location}")
+        src = SourceConfig(kind=kind, location=location)
+        if "loop" in entry:
+            src.loop = self.boolean(entry["loop"], path + ("loop",))
+            if src.loop and not location.startswith("file://"):
+                raise self.doc.error(path + ("loop",), "only files can loop")
+        if "live" in entry:
+            src.live = self.boolean(entry["live"], path + ("live",))
+            if kind != "test":
+                raise self.doc.error(path + ("live",), "only test sources take live: (cameras and streams are live)")
+        if "rate" in entry:
+            src.rate = self.rate(entry["rate"], path + ("rate",))
+        for key in ("width", "height"):
+            if key in entry:
+                setattr(src, key, self.positive_int(entry[key], path + (key,)))
+        return src
+
+    def uri(self, value: str, path: KeyPath) -> str:
+        if value.startswith(REMOTE_SCHEMES):
+            return value
+        if value.startswith("file://"):
+            value = value[len("file://"):]
+        elif "://" in value:
+            raise self.doc.error(path, f"unsupported URI scheme in {value!r} (file, rtsp, http(s), udp, rtmp, srt)")
+        return self.local_file(value, path, "video file").as_uri()
+
+    def stages(self, entries: list) -> list[StageConfig]:
+        stages, seen = [], {}
+        for i, value in enumerate(entries):
+            path = ("stages", i)
+            if not isinstance(value, dict) or not value:
+                raise self.doc.error(path, f"expected '- KIND: {{properties}}' or '- factory: NAME', got {_kind(value)}")
+            if "factory" in value:
+                entry = self.mapping(value, path, {"factory", "name", "properties"})
+                factory = self.text(entry["factory"], path + ("factory",))
+                props_path = path + ("properties",)
+                props = entry.get("properties", {}) or {}
+                name = self.text(entry["name"], path + ("name",)) if "name" in entry else None
+            else:
+                if len(value) != 1:
+                    raise self.doc.error(path, "a stage is one '- KIND: {properties}' entry, or use factory:/name:/properties:")
+                (factory, props), = value.items()
+                if factory not in STAGE_SHORTHANDS:
+                    raise self.doc.error(path + (factory,),
+                                         f"unknown stage kind (expected one of: {', '.join(STAGE_SHORTHANDS)}; "
+                                         "other elements: '- factory: NAME')")
+                props_path = path + (factory,)
+                props = props or {}
+                name = props.pop("name", None) if isinstance(props, dict) else None
+            if not isinstance(props, dict):
+                raise self.doc.error(props_path, f"expected a mapping of properties, got {_kind(props)}")
+            name = name or factory
+            if name in seen:  # unique names, Savant-style: infer, infer_1, ...
+                seen[name] += 1
+                name = f"{name}_{seen[name]}"
+            else:
+                seen[name] = 0
+            stages.append(StageConfig(factory=factory, name=name, properties=dict(props), path=props_path))
+        if not stages:
+            raise self.doc.error(("stages",), "at least one stage is needed")
+        return stages
+
+    def sink(self, value: Any) -> SinkConfig:
+        path = ("sink",)
+        entry = self.mapping(value, path, {"type", "path", "sync", "bitrate"})
+        kind = self.text(entry.get("type", "fake"), path + ("type",))
+        if kind not in SINK_TYPES:
+            raise self.doc.error(path + ("type",), f"unknown sink type {kind!r} (expected one of: {', '.join(SINK_TYPES)})")
+        sink = SinkConfig(kind=kind)
+        if kind in ("file", "frames"):
+            if "path" not in entry:
+                raise self.doc.error(path, f"sink type {kind} needs a path:")
+            target = Path(self.text(entry["path"], path + ("path",))).expanduser()
+            sink.path = target if target.is_absolute() else Path.cwd() / target
+        if "sync" in entry:
+            sink.sync = self.boolean(entry["sync"], path + ("sync",))
+        if "bitrate" in entry:
+            sink.bitrate = self.positive_int(entry["bitrate"], path + ("bitrate",))
+        return sink
+
+    def probes(self, value: Any) -> ProbesConfig:
+        path = ("probes",)
+        entry = self.mapping(value, path, {"enabled", "clock", "trace"})
+        probes = ProbesConfig()
+        if "enabled" in entry:
+            probes.enabled = self.boolean(entry["enabled"], path + ("enabled",))
+        if "clock" in entry:
+            probes.clock = self.text(entry["clock"], path + ("clock",))
+            if probes.clock not in CLOCK_NAMES:
+                raise self.doc.error(path + ("clock",), f"unknown clock (expected one of: {', '.join(CLOCK_NAMES)})")
+        if "trace" in entry:
+            probes.trace = Path(self.text(entry["trace"], path + ("trace",)))
+        return probes
+
+
+def _kind(value: Any) -> str:
+    if value is None:
+        return "nothing"
+    if isinstance(value, bool):
+        return f"a boolean ({value})"
+    if isinstance(value, (int, float)):
+        return f"a number ({value})"
+    if isinstance(value, str):
+        return f"text ({value!r})"
+    if isinstance(value, list):
+        return "a list"
+    if isinstance(value, dict):
+        return "a mapping"
+    return type(value).__name__

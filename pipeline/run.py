@@ -1,0 +1,198 @@
+"""Running a built pipeline: main loop, bus, progress, limits, Ctrl-C -> EOS -> clean stop."""
+
+from __future__ import annotations
+
+import signal
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Callable, TextIO
+
+from pipeline.build import BuiltPipeline
+from pipeline.errors import PipelineError
+from pipeline.gst import GLib, Gst
+
+EOS_GRACE_S = 15.0
+"""How long to wait for EOS to drain the pipeline after a stop was asked for."""
+
+
+@dataclass
+class RunResult:
+    frames: int = 0
+    seconds: float = 0.0
+    interrupted: bool = False
+    dead_sources: dict[int, str] = field(default_factory=dict)
+
+    @property
+    def fps(self) -> float:
+        return self.frames / self.seconds if self.seconds > 0 else 0.0
+
+
+class Runner:
+    """Runs ``built`` until EOS, a frame or time limit, Ctrl-C, or an error.
+
+    A source that fails (dead camera, stream gone) is reported and dropped; the others go on.
+    Any other error stops the run with PipelineError.
+    """
+
+    def __init__(self, built: BuiltPipeline, num_frames: int | None = None, duration: float | None = None,
+                 progress: TextIO | None = sys.stderr, progress_every: float = 1.0):
+        self.built = built
+        self.num_frames = num_frames
+        self.duration = duration
+        self.progress = progress
+        self.progress_every = progress_every
+        self.result = RunResult()
+        self.on_progress: list[Callable[[RunResult], None]] = []
+        self._loop = GLib.MainLoop()
+        self._error: str | None = None
+        self._stop_asked_at: float | None = None
+        self._started = 0.0
+        self._last_report = (0.0, 0)
+
+    # -- public ----------------------------------------------------------------------------
+    def run(self) -> RunResult:
+        pipeline = self.built.pipeline
+        sink_pad = self.built.sink.get_static_pad("sink")
+        sink_pad.add_probe(Gst.PadProbeType.BUFFER, self._count_frame)
+        bus = pipeline.get_bus()
+        bus.add_signal_watch()
+        handler = bus.connect("message", self._on_message)
+        sigint = GLib.unix_signal_add(GLib.PRIORITY_HIGH, signal.SIGINT, self._on_sigint)
+        sigterm = GLib.unix_signal_add(GLib.PRIORITY_HIGH, signal.SIGTERM, self._on_sigint)
+        ticker = GLib.timeout_add(200, self._tick)
+        try:
+            if pipeline.set_state(Gst.State.PLAYING) == Gst.StateChangeReturn.FAILURE:
+                self._error = self._error or self._drain_error(bus) or "the pipeline could not start"
+            else:
+                self._started = time.monotonic()
+                self._loop.run()
+        finally:
+            GLib.source_remove(ticker)
+            GLib.source_remove(sigint)
+            GLib.source_remove(sigterm)
+            self.result.seconds = time.monotonic() - self._started if self._started else 0.0
+            pipeline.set_state(Gst.State.NULL)
+            bus.disconnect(handler)
+            bus.remove_signal_watch()
+            self._report(final=True)
+        if self._error:
+            raise PipelineError(self._error)
+        return self.result
+
+    def stop(self) -> None:
+        """Ask for a clean stop: EOS from every source, then wait for it to reach the sink."""
+        if self._stop_asked_at is not None:
+            return
+        self._stop_asked_at = time.monotonic()
+        for source in self.built.sources:
+            source.stop_looping()
+        self.built.pipeline.send_event(Gst.Event.new_eos())
+
+    # -- callbacks -------------------------------------------------------------------------
+    def _count_frame(self, _pad, _info):
+        if self.num_frames is not None and self.result.frames >= self.num_frames:
+            return Gst.PadProbeReturn.DROP  # frames still in flight after the limit
+        self.result.frames += 1
+        if self.num_frames is not None and self.result.frames == self.num_frames:
+            GLib.idle_add(self._stop_once)
+        return Gst.PadProbeReturn.OK
+
+    def _stop_once(self):
+        self.stop()
+        return False
+
+    def _on_sigint(self):
+        if self._stop_asked_at is None:
+            self.result.interrupted = True
+            self._say("\nstopping: sending end-of-stream (Ctrl-C again to abort)")
+            self.stop()
+        else:
+            self._say("\naborting")
+            self._loop.quit()
+        return True
+
+    def _tick(self):
+        now = time.monotonic()
+        if self.duration is not None and self._stop_asked_at is None and now - self._started >= self.duration:
+            self.stop()
+        if self._stop_asked_at is not None and now - self._stop_asked_at > EOS_GRACE_S:
+            self._say(f"\nend-of-stream did not reach the sink within {EOS_GRACE_S:.0f} s: stopping anyway")
+            self._loop.quit()
+        if now - self._last_report[0] >= self.progress_every:
+            self._report()
+        return True
+
+    def _on_message(self, _bus, message: Gst.Message):
+        if message.type == Gst.MessageType.EOS:
+            self._loop.quit()
+        elif message.type == Gst.MessageType.ERROR:
+            err, debug = message.parse_error()
+            source = self._source_of(message.src)
+            if source is not None and self._stop_asked_at is None and len(self._live_sources()) > 1:
+                self._drop_source(source, err.message)
+            else:
+                where = message.src.get_path_string() if message.src else "pipeline"
+                self._error = f"{where}: {err.message}" + (f" ({debug.splitlines()[0]})" if debug else "")
+                self._loop.quit()
+        elif message.type == Gst.MessageType.WARNING:
+            err, _debug = message.parse_warning()
+            self._say(f"\nwarning: {message.src.get_name() if message.src else 'pipeline'}: {err.message}")
+
+    # -- helpers ---------------------------------------------------------------------------
+    def _source_of(self, obj) -> object | None:
+        while obj is not None:
+            if obj in self.built.sources:
+                return obj
+            obj = obj.get_parent()
+        return None
+
+    def _live_sources(self):
+        return [s for s in self.built.sources if s.index not in self.result.dead_sources]
+
+    def _drop_source(self, source, reason: str) -> None:
+        """A camera or stream died: report it, end its stream into the mux, keep the rest running."""
+        self.result.dead_sources[source.index] = reason
+        self._say(f"\nsource {source.index} ({source.config.description}) failed: {reason}; the other sources go on")
+        source.stop_looping()
+        pad = source.get_static_pad("src").get_peer()
+
+        def retire():
+            source.set_locked_state(True)
+            source.set_state(Gst.State.NULL)
+            if pad is not None:
+                pad.send_event(Gst.Event.new_eos())
+            return False
+
+        GLib.idle_add(retire)
+
+    def _drain_error(self, bus: Gst.Bus) -> str | None:
+        msg = bus.pop_filtered(Gst.MessageType.ERROR)
+        if msg is None:
+            return None
+        err, _debug = msg.parse_error()
+        return f"{msg.src.get_path_string()}: {err.message}"
+
+    def _report(self, final: bool = False) -> None:
+        now = time.monotonic()
+        last_t, last_frames = self._last_report
+        self._last_report = (now, self.result.frames)
+        for callback in self.on_progress:
+            callback(self.result)
+        if self.progress is None or not self._started:
+            return
+        elapsed = now - self._started
+        rate = (self.result.frames - last_frames) / (now - last_t) if last_t and now > last_t else 0.0
+        if final:
+            line = f"{self.result.frames} frames in {elapsed:.1f} s ({self.result.frames / elapsed if elapsed else 0:.1f} fps)"
+        else:
+            target = f"/{self.num_frames}" if self.num_frames else ""
+            line = f"{elapsed:7.1f} s  frames {self.result.frames}{target}  {rate:5.1f} fps"
+        tty = self.progress.isatty()
+        self.progress.write(("\r" + line + ("\n" if final else "")) if tty else line + "\n")
+        self.progress.flush()
+
+    def _say(self, text: str) -> None:
+        if self.progress is not None:
+            self.progress.write(text + "\n")
+            self.progress.flush()

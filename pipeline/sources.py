@@ -1,0 +1,136 @@
+"""Source bins: a file, stream, camera or test pattern -> RGB frames stamped with their identity.
+
+    uridecodebin | v4l2src ! decodebin | videotestsrc
+        ! videoconvert ! videoscale ! [videorate] ! capsfilter(RGB[, size][, rate]) ! framestamp
+
+A looping file seeks back to its start at EOS; the EOS and the flush stay inside the bin and
+the bin's output running time goes on (pad offset), so the mux never sees the loop.
+"""
+
+from __future__ import annotations
+
+import threading
+
+from pipeline.config import SourceConfig
+from pipeline.errors import PipelineError
+from pipeline.gst import Gst
+
+
+class SourceBin(Gst.Bin):
+    """One camera/file of the pipeline, source id ``index``; its src pad gives stamped RGB frames."""
+
+    def __init__(self, config: SourceConfig, index: int, clock_id: int):
+        super().__init__(name=f"source{index}")
+        self.config = config
+        self.index = index
+        self.failed: str | None = None
+        self._stopping = False
+        self._loop_offset = 0
+
+        convert = _make("videoconvert", f"convert{index}")
+        scale = _make("videoscale", f"scale{index}")
+        caps = "video/x-raw,format=RGB"
+        if config.width and config.height:
+            caps += f",width={config.width},height={config.height}"
+        chain = [convert, scale]
+        if config.rate is not None:
+            chain.append(_make("videorate", f"rate{index}"))
+            caps += f",framerate={config.rate.numerator}/{config.rate.denominator}"
+        capsfilter = _make("capsfilter", f"caps{index}")
+        capsfilter.set_property("caps", Gst.Caps.from_string(caps))
+        self.stamp = _make("framestamp", f"src{index}")
+        self.stamp.set_property("source-id", index)
+        self.stamp.set_property("clock-id", clock_id)
+        chain += [capsfilter, self.stamp]
+        for element in chain:
+            self.add(element)
+        for a, b in zip(chain, chain[1:]):
+            a.link(b)
+        self._entry = convert.get_static_pad("sink")
+
+        self.origin = self._make_origin()
+        self.add(self.origin)
+        if config.kind == "uri":
+            self.origin.connect("pad-added", self._on_pad_added)
+        elif config.kind == "camera":
+            decode = _make("decodebin", f"decode{index}")
+            self.add(decode)
+            self.origin.link(decode)
+            decode.connect("pad-added", self._on_pad_added)
+        else:
+            self.origin.link(convert)
+
+        out = self.stamp.get_static_pad("src")
+        self.add_pad(Gst.GhostPad.new("src", out))
+        if config.loop:
+            out.add_probe(Gst.PadProbeType.EVENT_DOWNSTREAM | Gst.PadProbeType.EVENT_FLUSH, self._on_event)
+
+    def _make_origin(self) -> Gst.Element:
+        cfg = self.config
+        if cfg.kind == "uri":
+            element = _make("uridecodebin", f"decode{self.index}")
+            element.set_property("uri", cfg.location)
+        elif cfg.kind == "camera":
+            element = _make("v4l2src", f"camera{self.index}")
+            element.set_property("device", cfg.location)
+        else:
+            element = _make("videotestsrc", f"pattern{self.index}")
+            Gst.util_set_object_arg(element, "pattern", cfg.location)
+            element.set_property("is-live", cfg.live)
+        return element
+
+    def _on_pad_added(self, _element, pad: Gst.Pad) -> None:
+        caps = pad.get_current_caps() or pad.query_caps(None)
+        if caps.is_empty() or not caps.get_structure(0).get_name().startswith("video/"):
+            self._discard(pad)
+            return
+        if self._entry.is_linked():
+            self._discard(pad)  # a second video stream in the same file: the first one wins
+            return
+        result = pad.link(self._entry)
+        if result != Gst.PadLinkReturn.OK:
+            self.failed = f"cannot link the decoded video of {self.config.description}: {result.value_nick}"
+
+    def _discard(self, pad: Gst.Pad) -> None:
+        sink = _make("fakesink", None)
+        sink.set_property("sync", False)
+        sink.set_property("async", False)
+        self.add(sink)
+        sink.sync_state_with_parent()
+        pad.link(sink.get_static_pad("sink"))
+
+    # -- looping ---------------------------------------------------------------------------
+    def stop_looping(self) -> None:
+        """Let the next EOS through (the run is ending)."""
+        self._stopping = True
+
+    def _on_event(self, pad: Gst.Pad, info: Gst.PadProbeInfo):
+        event = info.get_event()
+        if self._stopping:
+            return Gst.PadProbeReturn.OK
+        if event.type in (Gst.EventType.FLUSH_START, Gst.EventType.FLUSH_STOP):
+            return Gst.PadProbeReturn.DROP  # our own seek's flush: nothing downstream to flush
+        if event.type == Gst.EventType.EOS:
+            ok, duration = self.origin.query_duration(Gst.Format.TIME)
+            if not ok or duration <= 0:
+                return Gst.PadProbeReturn.OK  # unknown length: cannot loop, end normally
+            self._loop_offset += duration
+            pad.set_offset(self._loop_offset)
+            threading.Thread(target=self._rewind, name=f"loop-{self.index}", daemon=True).start()
+            return Gst.PadProbeReturn.DROP
+        return Gst.PadProbeReturn.OK
+
+    def _rewind(self) -> None:
+        seek = Gst.Event.new_seek(1.0, Gst.Format.TIME, Gst.SeekFlags.FLUSH | Gst.SeekFlags.KEY_UNIT,
+                                  Gst.SeekType.SET, 0, Gst.SeekType.NONE, -1)
+        if not self._entry.push_event(seek):  # upstream, from the first converter's sink pad
+            self.failed = f"{self.config.description} cannot seek back to its start to loop"
+            self._stopping = True
+            self.stamp.get_static_pad("sink").send_event(Gst.Event.new_eos())
+
+
+def _make(factory: str, name: str | None) -> Gst.Element:
+    element = Gst.ElementFactory.make(factory, name)
+    if element is None:
+        raise PipelineError(f"GStreamer element {factory!r} is missing: is the setup complete? (make setup)")
+    return element

@@ -1,0 +1,200 @@
+"""mux: N camera streams -> one batch of frames (nvstreammux counterpart).
+
+Each request pad ``sink_%u`` takes RGB frames of any size; a batch takes, from every pad
+whose next frame is due (running time within one frame period of the earliest), one frame,
+scaled to ``width`` x ``height`` when it is not that size already. Frames that already have
+the batch size are not copied: the batch buffer shares their memory, one GstMemory per frame.
+A stream that reaches EOS drops out while the others go on. With live sources the batch is
+pushed after ``batched-push-timeout`` even if some cameras have nothing (a dead camera does
+not stall the others).
+
+    gst-launch-1.0 mux name=m batch-size=2 width=640 height=360 ! fakesink \\
+        videotestsrc num-buffers=30 ! video/x-raw,format=RGB ! m.sink_0 \\
+        videotestsrc num-buffers=30 pattern=ball ! video/x-raw,format=RGB ! m.sink_1
+"""
+
+import time
+
+import cv2
+import numpy as np
+
+from pipeline.gst import GObject, Gst, GstBase, GstVideo
+from plugins.frames import BATCH_TEMPLATE_CAPS, FrameId, batch_caps, read_frames, write_frames
+
+DEFAULT_BATCH_SIZE = 0  # 0: as many as there are sink pads
+DEFAULT_PUSH_TIMEOUT_US = 40000
+DEFAULT_WIDTH = 1280
+DEFAULT_HEIGHT = 720
+DEFAULT_LIVE_SOURCE = False
+
+SINK_CAPS = Gst.Caps.from_string("video/x-raw, format=(string)RGB")
+
+
+def due_pads(heads: list[tuple[int, int]], period_ns: int, limit: int) -> list[int]:
+    """Which streams go into the next batch.
+
+    ``heads``: (running time of the stream's next frame, stream index) for streams that have
+    one. The streams whose frame is due within one ``period_ns`` of the earliest, earliest
+    first, at most ``limit``.
+    """
+    if not heads:
+        return []
+    earliest = min(rt for rt, _ in heads)
+    due = sorted((rt, i) for rt, i in heads if period_ns <= 0 or rt < earliest + period_ns)
+    return [i for _, i in due[:limit]]
+
+
+class Mux(GstBase.Aggregator):
+    __gstmetadata__ = ("Stream muxer", "Video/Muxer", "Batches N video streams into one buffer of N frames",
+                       "dcuscope")
+    __gsttemplates__ = (
+        Gst.PadTemplate.new_with_gtype("sink_%u", Gst.PadDirection.SINK, Gst.PadPresence.REQUEST,
+                                       SINK_CAPS, GstBase.AggregatorPad.__gtype__),
+        Gst.PadTemplate.new_with_gtype("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS,
+                                       BATCH_TEMPLATE_CAPS, GstBase.AggregatorPad.__gtype__),
+    )
+    __gproperties__ = {
+        "batch-size": (int, "Batch size", "Most frames in a batch (0: the number of sink pads)",
+                       0, 1024, DEFAULT_BATCH_SIZE, GObject.ParamFlags.READWRITE),
+        "batched-push-timeout": (int, "Batched push timeout",
+                                 "Live sources: microseconds to wait for late cameras before a batch is pushed",
+                                 -1, 2**31 - 1, DEFAULT_PUSH_TIMEOUT_US, GObject.ParamFlags.READWRITE),
+        "width": (int, "Width", "Width of every frame of the batch", 16, 16384, DEFAULT_WIDTH,
+                  GObject.ParamFlags.READWRITE),
+        "height": (int, "Height", "Height of every frame of the batch", 16, 16384, DEFAULT_HEIGHT,
+                   GObject.ParamFlags.READWRITE),
+        "live-source": (bool, "Live source", "The sources are live: push batches on the timeout", DEFAULT_LIVE_SOURCE,
+                        GObject.ParamFlags.READWRITE),
+    }
+
+    def __init__(self):
+        super().__init__()
+        self.batch_size = DEFAULT_BATCH_SIZE
+        self.push_timeout_us = DEFAULT_PUSH_TIMEOUT_US
+        self.width, self.height = DEFAULT_WIDTH, DEFAULT_HEIGHT
+        self.live_source = DEFAULT_LIVE_SOURCE
+        self._infos: dict[str, GstVideo.VideoInfo] = {}
+        self._segments: dict[str, Gst.Segment] = {}  # AggregatorPad.segment is not readable from Python
+        self._counts: dict[str, int] = {}
+        self._caps_sent = False
+        self._apply_latency()
+
+    def do_get_property(self, prop):
+        return {"batch-size": lambda: self.batch_size, "batched-push-timeout": lambda: self.push_timeout_us,
+                "width": lambda: self.width, "height": lambda: self.height,
+                "live-source": lambda: self.live_source}[prop.name]()
+
+    def do_set_property(self, prop, value):
+        if prop.name == "batch-size":
+            self.batch_size = value
+        elif prop.name == "batched-push-timeout":
+            self.push_timeout_us = value
+            self._apply_latency()
+        elif prop.name == "width":
+            self.width = value
+        elif prop.name == "height":
+            self.height = value
+        elif prop.name == "live-source":
+            self.live_source = value
+            self._apply_latency()
+        else:
+            raise AttributeError(f"unknown property {prop.name}")
+
+    def _apply_latency(self):
+        # The aggregator's own latency is how long it waits for late pads in live mode.
+        self.set_property("latency", max(self.push_timeout_us, 0) * 1000)
+
+    def do_start(self):
+        self._caps_sent = False
+        self._counts.clear()
+        return True
+
+    def do_sink_event(self, aggpad, event):
+        if event.type == Gst.EventType.CAPS:
+            self._infos[aggpad.get_name()] = GstVideo.VideoInfo.new_from_caps(event.parse_caps())
+        elif event.type == Gst.EventType.SEGMENT:
+            self._segments[aggpad.get_name()] = event.parse_segment()
+        return GstBase.Aggregator.do_sink_event(self, aggpad, event)
+
+    def do_get_next_time(self):
+        return self.simple_get_next_time()
+
+    def _batch_limit(self) -> int:
+        return self.batch_size or max(len(self.sinkpads), 1)
+
+    def _period_ns(self) -> int:
+        rates = [i.fps_n / i.fps_d for i in self._infos.values() if i.fps_n > 0 and i.fps_d > 0]
+        return int(1e9 / max(rates)) if rates else 0
+
+    def _framerate(self) -> tuple[int, int] | None:
+        best = max(self._infos.values(), key=lambda i: i.fps_n / i.fps_d if i.fps_d else 0, default=None)
+        return (best.fps_n, best.fps_d) if best is not None and best.fps_n > 0 else None
+
+    def do_aggregate(self, timeout):
+        pads = list(self.sinkpads)
+        heads = []
+        for index, pad in enumerate(pads):
+            buf = pad.peek_buffer()
+            if buf is None:
+                continue
+            heads.append((self._running_time(pad, buf), index))
+        if not heads:
+            return Gst.FlowReturn.EOS if all(p.is_eos() for p in pads) else Gst.FlowReturn.OK
+
+        chosen = due_pads(heads, self._period_ns(), self._batch_limit())
+        if not self._caps_sent:
+            self.set_src_caps(batch_caps(self.width, self.height, self._batch_limit(), self._framerate()))
+            self._caps_sent = True
+
+        out = Gst.Buffer.new()
+        ids = []
+        for index in chosen:
+            pad = pads[index]
+            buf = pad.pop_buffer()
+            out.append_memory(self._frame_memory(pad, buf))
+            ids.extend(read_frames(buf) or [self._own_identity(pad)])
+        write_frames(out, ids)
+        out.pts = min(rt for rt, i in heads if i in chosen)
+        out.duration = self._period_ns() or Gst.CLOCK_TIME_NONE
+        return self.finish_buffer(out)
+
+    def _running_time(self, pad, buf: Gst.Buffer) -> int:
+        segment = self._segments.get(pad.get_name())
+        if segment is None or buf.pts == Gst.CLOCK_TIME_NONE or segment.format != Gst.Format.TIME:
+            return 0
+        rt = segment.to_running_time(Gst.Format.TIME, buf.pts)
+        return 0 if rt == Gst.CLOCK_TIME_NONE else rt
+
+    def _own_identity(self, pad) -> FrameId:
+        # Frames that arrive without identity (no framestamp upstream, e.g. gst-launch): the pad
+        # number is the source id and the arrival order the frame number.
+        name = pad.get_name()
+        count = self._counts.get(name, 0)
+        self._counts[name] = count + 1
+        return FrameId(int(name.rsplit("_", 1)[1]), count, time.clock_gettime_ns(time.CLOCK_REALTIME))
+
+    def _frame_memory(self, pad, buf: Gst.Buffer) -> Gst.Memory:
+        info = self._infos[pad.get_name()]
+        packed = info.stride[0] == info.width * 3
+        if info.width == self.width and info.height == self.height and packed:
+            return buf.peek_memory(0) if buf.n_memory() == 1 else buf.get_all_memory()
+        # Not the batch size (or padded rows): scale straight into a new frame memory.
+        mem = Gst.Allocator.find(None).alloc(self.width * self.height * 3, None)
+        ok_in, src = buf.map(Gst.MapFlags.READ)
+        ok_out, dst = mem.map(Gst.MapFlags.WRITE)
+        if not (ok_in and ok_out):
+            raise RuntimeError("mux: cannot map an input frame")
+        try:
+            rows = np.frombuffer(src.data, np.uint8, count=info.stride[0] * info.height).reshape(info.height, -1)
+            frame = rows[:, : info.width * 3].reshape(info.height, info.width, 3)
+            target = np.frombuffer(dst.data, np.uint8).reshape(self.height, self.width, 3)
+            cv2.resize(frame, (self.width, self.height), dst=target, interpolation=cv2.INTER_LINEAR)
+            del rows, frame, target
+        finally:
+            buf.unmap(src)
+            mem.unmap(dst)
+        return mem
+
+
+GObject.type_register(Mux)
+__gstelementfactory__ = ("mux", Gst.Rank.NONE, Mux)
