@@ -1,0 +1,127 @@
+"""The ``dcuscope stats`` and ``dcuscope export`` subcommands over trace files.
+
+``pipeline/cli.py`` wires them in::
+
+    add_stats_parser(subparsers); add_export_parser(subparsers)
+    args = parser.parse_args(); sys.exit(args.func(args))
+
+Each ``func`` returns the exit code: 0, or 2 after one ``dcuscope: error: ...`` line on stderr
+for a bad input (missing file, not a trace, unwritable output).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from contextlib import contextmanager
+
+from pipeline.errors import DcuscopeError
+from probes.export import perfetto_document, write_csv
+from probes.stats import stats_document
+from probes.tracefile import Trace, read_trace
+
+STAT_COLUMNS = ("count", "mean_ms", "p50_ms", "p95_ms", "p99_ms", "max_ms")
+
+
+def add_stats_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "stats", help="per-stage and per-frame delay statistics of trace files",
+        description="Per node: stage delays, gaps between stages and end-to-end frame delays "
+                    "(count, mean, p50, p95, p99, max in ms), frames/s per source, drops.",
+    )
+    p.add_argument("traces", nargs="+", metavar="TRACE", help="trace file(s) written by `dcuscope run`")
+    p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
+    p.set_defaults(func=run_stats)
+    return p
+
+
+def add_export_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser(
+        "export", help="convert trace files to Perfetto/Chrome trace JSON or CSV",
+        description="perfetto: Chrome Trace Event JSON for ui.perfetto.dev or chrome://tracing "
+                    "(a process per node, a track per stage and source, a slice per frame, flows "
+                    "following each frame; µs since the earliest event). csv: one row per frame "
+                    "per stage.",
+    )
+    # nargs="*": other inputs (the relay's --db/--session) may stand in for trace files.
+    p.add_argument("traces", nargs="*", metavar="TRACE", help="trace file(s) written by `dcuscope run`")
+    p.add_argument("--format", choices=("perfetto", "csv"), default="perfetto", help="output format (default perfetto)")
+    p.add_argument("-o", "--output", required=True, metavar="OUT", help="output file, - for stdout")
+    p.set_defaults(func=run_export)
+    return p
+
+
+def run_stats(args: argparse.Namespace) -> int:
+    with _user_errors() as failed:
+        traces = [read_trace(path) for path in args.traces]
+        doc = stats_document(traces)
+        if args.json:
+            print(json.dumps(doc, indent=2))
+        else:
+            print(format_stats(doc, traces), end="")
+    return 2 if failed else 0
+
+
+def run_export(args: argparse.Namespace) -> int:
+    with _user_errors() as failed:
+        if not args.traces:
+            raise DcuscopeError("export: give at least one TRACE file")
+        nodes = [(t.header, t.events) for t in (read_trace(path) for path in args.traces)]
+        with _open_output(args.output) as out:
+            if args.format == "csv":
+                write_csv(out, nodes)
+            else:
+                json.dump(perfetto_document(nodes), out, separators=(",", ":"), ensure_ascii=False)
+                out.write("\n")
+    return 2 if failed else 0
+
+
+@contextmanager
+def _user_errors():
+    """Turn a DcuscopeError into one stderr line; the yielded list is non-empty after one."""
+    failed: list[str] = []
+    try:
+        yield failed
+    except DcuscopeError as exc:
+        failed.append(str(exc))
+        print(f"dcuscope: error: {exc}", file=sys.stderr)
+
+
+@contextmanager
+def _open_output(path: str):
+    if path == "-":
+        yield sys.stdout
+        return
+    try:
+        out = open(path, "w", encoding="utf-8", newline="")
+    except OSError as exc:
+        raise DcuscopeError(f"{path}: cannot write output: {exc.strerror or exc}") from exc
+    with out:
+        yield out
+
+
+def format_stats(doc: dict, traces: list[Trace] | None = None) -> str:
+    """Readable aligned tables, one block per node: stages, gaps, frame, fps, drops."""
+    lines: list[str] = []
+    for i, (node, st) in enumerate(doc["nodes"].items()):
+        trace = traces[i] if traces and i < len(traces) else None
+        title = f"node {node}"
+        if trace is not None:
+            title += f"  ({trace.path}{'' if trace.complete else ', no end line: the run did not close the trace'})"
+        frames = st["frames"]
+        rows = [("stage " + k, v) for k, v in st["stages"].items()]
+        rows += [("gap " + k, v) for k, v in st["gaps"].items()]
+        rows.append(("frame (end to end)", st["frame"]))
+        width = max(len(name) for name, _ in rows)
+        lines.append(title)
+        lines.append("  " + " " * width + "".join(f"{c:>10}" for c in STAT_COLUMNS))
+        for name, s in rows:
+            cells = [f"{s['count']:>10}"] + [f"{'-' if s[c] is None else f'{s[c]:.3f}':>10}" for c in STAT_COLUMNS[1:]]
+            lines.append(f"  {name:<{width}}" + "".join(cells))
+        fps = "  ".join(f"src {k}: {v:.2f}" for k, v in st["fps"].items()) or "-"
+        lines.append(f"  frames/s       {fps}")
+        lines.append(f"  frames         {frames['complete']} complete, {frames['incomplete']} incomplete")
+        lines.append(f"  dropped events {st['dropped']}")
+        lines.append("")
+    return "\n".join(lines)
