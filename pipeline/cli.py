@@ -57,6 +57,15 @@ def build_parser() -> argparse.ArgumentParser:
                         help="TESTING AID: shift this node's clock by MS milliseconds, to check clock alignment")
     run.set_defaults(func=_run)
 
+    rtsp = sub.add_parser("serve-rtsp", help="serve video files as live RTSP streams on loopback (looped, real time)",
+                          description="Serve each CLIP at rtsp://HOST:PORT/camN (N from 0), looped forever, "
+                                      "re-encoded as H.264 in real time, until Ctrl-C.")
+    rtsp.add_argument("clips", type=Path, nargs="+", metavar="CLIP", help="video files")
+    rtsp.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    rtsp.add_argument("--port", type=int, default=8554, help="RTSP port (default 8554)")
+    rtsp.add_argument("--bitrate", type=_positive_int, default=2000, help="H.264 bitrate in kbit/s (default 2000)")
+    rtsp.set_defaults(func=_serve_rtsp)
+
     _add_optional(sub, "probes.commands", ("add_stats_parser", "add_export_parser"))
     _add_optional(sub, "relay.commands", ("add_relay_parser",))
     return parser
@@ -93,6 +102,13 @@ def _run(args: argparse.Namespace) -> int:
     from pipeline.session import run_session
 
     return run_session(args)
+
+
+def _serve_rtsp(args: argparse.Namespace) -> int:
+    from pipeline.rtsp import serve
+
+    serve(args.clips, host=args.host, port=args.port, bitrate=args.bitrate, announce=lambda line: print(line, flush=True))
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -78,9 +78,9 @@ def _check_and_set(doc, path, element: Gst.Element, pspec: GObject.ParamSpec, va
             raise doc.error(path, f"expected text, got {value!r}")
         element.set_property(name, str(value))
     elif vtype.is_a(GObject.TYPE_ENUM):
-        klass = pspec.enum_class
-        nicks = {v.value_nick: v.value for v in klass.values.values()} if hasattr(klass, "values") else {}
-        names = {v.value_name: v.value for v in klass.values.values()} if hasattr(klass, "values") else {}
+        members = type(pspec.default_value).__enum_values__.values()
+        nicks = {m.value_nick: int(m) for m in members}
+        names = {m.value_name: int(m) for m in members}
         if isinstance(value, str) and (value in nicks or value in names):
             element.set_property(name, nicks.get(value, names.get(value)))
         elif isinstance(value, int) and not isinstance(value, bool) and value in nicks.values():

@@ -18,10 +18,22 @@ import gi  # noqa: E402
 gi.require_version("Gst", "1.0")
 gi.require_version("GstBase", "1.0")
 gi.require_version("GstVideo", "1.0")
+gi.require_version("GstRtspServer", "1.0")
 
 from gi.repository import GLib, GObject, Gst, GstBase, GstVideo  # noqa: E402
 
 if not Gst.is_initialized():
     Gst.init(None)
 
+
+
+
+def _quiet_floating_warning(domain: str, level, message: str, *_user) -> None:
+    # PyGObject < 3.44 sinks the floating reference of elements written in Python, and
+    # gst_element_factory_create complains on every such element. Harmless; hide only that.
+    if "should be floating" not in message:
+        GLib.log_default_handler(domain, level, message, None)
+
+
+GLib.log_set_handler("GStreamer", GLib.LogLevelFlags.LEVEL_CRITICAL, _quiet_floating_warning, None)
 __all__ = ["GLib", "GObject", "Gst", "GstBase", "GstVideo"]

@@ -129,6 +129,8 @@ class Runner:
         elif message.type == Gst.MessageType.ERROR:
             err, debug = message.parse_error()
             source = self._source_of(message.src)
+            if source is not None and source.index in self.result.dead_sources:
+                return  # the aftershocks of a source already retired
             if source is not None and self._stop_asked_at is None and len(self._live_sources()) > 1:
                 self._drop_source(source, err.message)
             else:

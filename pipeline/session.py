@@ -47,7 +47,6 @@ def run_session(args: argparse.Namespace) -> int:
 
         probing = start_probes(built, config, relay=args.relay, token=args.token,
                                clock_offset_ns=int(args.clock_offset_ms * 1e6), progress=progress)
-        runner.on_progress.append(probing.on_progress)
     try:
         result = runner.run()
     finally:

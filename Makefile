@@ -1,0 +1,26 @@
+# dcuscope: the two commands a newcomer needs are `make demo` and `make test`.
+PY := .venv/bin/python
+DURATION ?=
+PORT ?= 3000
+
+.PHONY: setup demo test test-fast bench clean
+
+setup:
+	@scripts/setup.sh
+
+demo: setup
+	$(PY) -m pipeline.cli demo --port $(PORT) $(if $(DURATION),--duration $(DURATION))
+
+test: setup
+	$(PY) -m pytest -q
+
+test-fast: setup
+	$(PY) -m pytest -q -m "not slow"
+
+bench: setup
+	$(PY) benchmarks/bench_pipeline.py
+	$(PY) benchmarks/bench_elements.py
+	$(PY) benchmarks/bench_probes.py
+
+clean:
+	rm -rf .venv probes/_build ui/node_modules ui/static/vendor .pytest_cache

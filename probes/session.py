@@ -1,0 +1,83 @@
+"""Probes for one ``dcuscope run``: tracepoints on the built pipeline, shipped to a trace file
+and/or a relay, with a one-line summary at the end."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TextIO
+
+import numpy as np
+
+from pipeline.build import BuiltPipeline
+from pipeline.config import PipelineConfig
+from probes.events import Exporter, TraceHeader
+from probes.shipper import Shipper
+from probes.tracefile import TraceFileWriter
+from probes.tracer import Tracer, attach
+
+
+class _Shifted:
+    """Exporter wrapper that moves every timestamp by ``offset_ns``: the --clock-offset-ms
+    testing aid, so that a node can pretend its clock is off and the relay must notice."""
+
+    def __init__(self, inner: Exporter, offset_ns: int):
+        self.inner, self.offset_ns = inner, offset_ns
+
+    def start(self, header: TraceHeader) -> None:
+        header.started_ns += self.offset_ns
+        self.inner.start(header)
+
+    def write(self, events: np.ndarray) -> None:
+        shifted = events.copy()
+        shifted["ts"] += self.offset_ns
+        self.inner.write(shifted)
+
+    def close(self, dropped: int) -> None:
+        self.inner.close(dropped)
+
+
+@dataclass
+class ProbeSession:
+    tracer: Tracer
+    shipper: Shipper
+    trace: Path | None
+    progress: TextIO | None
+
+    def stop(self) -> None:
+        self.shipper.stop()
+        tracepoints = self.tracer.tracepoints
+        self.tracer.detach()
+        if self.progress is not None:
+            where = f"trace: {self.trace}" if self.trace else "events sent to the relay"
+            dropped = self.tracer.dropped
+            self.progress.write(f"probes: {self.shipper.shipped} events from {tracepoints} tracepoints "
+                                f"({self.tracer.backend}), {dropped} dropped; {where}\n")
+            for error in self.shipper.errors:
+                self.progress.write(f"probes: {error}\n")
+
+
+def default_trace_path(node: str) -> Path:
+    return Path.cwd() / f"{node}.trace.jsonl"
+
+
+def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None = None, token: str | None = None,
+                 clock_offset_ns: int = 0, progress: TextIO | None = None) -> ProbeSession:
+    """Attach tracepoints to every element of ``built`` (not yet playing) and start shipping."""
+    sources = {s.index: s.config.description for s in built.sources}
+    tracer = attach(built.pipeline, config.node, clock=config.probes.clock, sources=sources)
+    trace = config.probes.trace
+    if trace is None and relay is None:
+        trace = default_trace_path(config.node)
+    exporters: list[Exporter] = []
+    if trace is not None:
+        exporters.append(TraceFileWriter(trace))
+    if relay is not None:
+        from relay.client import RelayExporter
+
+        exporters.append(RelayExporter(relay, config.node, token=token, clock=config.probes.clock,
+                                       clock_offset_ns=clock_offset_ns))
+    if clock_offset_ns:
+        exporters = [_Shifted(e, clock_offset_ns) for e in exporters]
+    shipper = Shipper(tracer, exporters).start()
+    return ProbeSession(tracer, shipper, trace, progress)

@@ -1,0 +1,119 @@
+"""Configuration checking: every bad input is one line naming file:line and key path, exit 2."""
+
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import pytest
+
+from pipeline.config import load_config
+from pipeline.errors import ConfigError
+from tests.conftest import VTEST, run_cli
+
+GOOD = f"""\
+node: DCU-7
+sources:
+  - uri: {VTEST}
+    loop: true
+    rate: 5
+  - test: ball
+    live: true
+    width: 320
+    height: 240
+stages:
+  - mux: {{batch-size: 2, width: 320, height: 240}}
+  - infer: {{threshold: 0.4}}
+  - factory: identity
+    name: slow
+    properties: {{sleep-time: 1000}}
+  - queue: {{}}
+  - queue: {{}}
+sink: {{type: fake, sync: false}}
+probes: {{enabled: true, clock: tai}}
+"""
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "pipeline.yaml"
+    path.write_text(textwrap.dedent(text))
+    return path
+
+
+def test_good_config_is_typed(tmp_path):
+    cfg = load_config(write(tmp_path, GOOD))
+    assert cfg.node == "DCU-7"
+    assert [s.kind for s in cfg.sources] == ["uri", "test"]
+    assert cfg.sources[0].location == VTEST.as_uri() and cfg.sources[0].loop
+    assert cfg.sources[0].rate == 5 and cfg.sources[1].live and cfg.sources[1].width == 320
+    assert [s.name for s in cfg.stages] == ["mux", "infer", "slow", "queue", "queue_1"]
+    assert cfg.stages[2].factory == "identity" and cfg.stages[2].properties == {"sleep-time": 1000}
+    assert cfg.probes.enabled and cfg.probes.clock == "tai"
+
+
+def test_relative_paths_are_relative_to_the_config(tmp_path):
+    (tmp_path / "clips").mkdir()
+    clip = tmp_path / "clips" / "a.avi"
+    clip.write_bytes(VTEST.read_bytes()[:1000])
+    cfg = load_config(write(tmp_path, "sources: [{uri: clips/a.avi}]\nstages: [{queue: {}}]\n"))
+    assert cfg.sources[0].location == clip.resolve().as_uri()
+
+
+BAD = [
+    ("malformed yaml", "sources: [\n  - test: ball\nstages: {", ":2: malformed YAML"),
+    ("unknown top key", "sources: [{test: ball}]\nstages: [{queue: {}}]\nsinks: {}\n", ":3: sinks: unknown key"),
+    ("unknown source key", "sources:\n  - test: ball\n    colour: red\nstages: [{queue: {}}]\n",
+     ":3: sources[0].colour: unknown key"),
+    ("two kinds", "sources:\n  - test: ball\n    uri: x.mp4\nstages: [{queue: {}}]\n", ":2: sources[0]: a source needs exactly one"),
+    ("missing file", "sources:\n  - uri: nothere.mp4\nstages: [{queue: {}}]\n", ":2: sources[0].uri: video file not found"),
+    ("missing camera", "sources:\n  - camera: /dev/video99\nstages: [{queue: {}}]\n", ":2: sources[0].camera: camera device not found"),
+    ("bad rate", "sources:\n  - test: ball\n    rate: fast\nstages: [{queue: {}}]\n", ":3: sources[0].rate: expected frames per second"),
+    ("loop a stream", "sources:\n  - uri: rtsp://127.0.0.1:1/x\n    loop: true\nstages: [{queue: {}}]\n",
+     ":3: sources[0].loop: only files can loop"),
+    ("unknown stage kind", "sources: [{test: ball}]\nstages:\n  - mixer: {}\n", ":3: stages[0].mixer: unknown stage kind"),
+    ("unknown element", "sources: [{test: ball}]\nstages:\n  - factory: nosuchelement\n",
+     ":3: stages[0].factory: no GStreamer element named 'nosuchelement'"),
+    ("unknown property", "sources: [{test: ball}]\nstages:\n  - mux:\n      batch-sise: 2\n",
+     ":4: stages[0].mux.batch-sise: unknown property of mux"),
+    ("inserted element property", "sources: [{test: ball}]\nstages:\n  - factory: identity\n    properties: {sleep-tim: 1}\n",
+     ":4: stages[0].properties.sleep-tim: unknown property of identity"),
+    ("wrong type", "sources: [{test: ball}]\nstages:\n  - mux: {batch-size: two}\n",
+     ":3: stages[0].mux.batch-size: expected an integer, got 'two'"),
+    ("out of range", "sources: [{test: ball}]\nstages:\n  - infer: {threshold: 7}\n",
+     ":3: stages[0].infer.threshold: 7 is out of range"),
+    ("bad bool", "sources: [{test: ball}]\nstages:\n  - osd: {display-clock: 3}\n",
+     ":3: stages[0].osd.display-clock: expected true or false"),
+    ("missing model", "sources: [{test: ball}]\nstages:\n  - infer: {model: nothere.onnx}\n",
+     ":3: stages[0].infer.model: file not found"),
+    ("bad sink", "sources: [{test: ball}]\nstages: [{queue: {}}]\nsink: {type: screen}\n",
+     ":3: sink.type: unknown sink type 'screen'"),
+    ("sink without path", "sources: [{test: ball}]\nstages: [{queue: {}}]\nsink: {type: file}\n",
+     ":3: sink: sink type file needs a path"),
+    ("no mux for many", "sources: [{test: ball}, {test: snow}]\nstages: [{queue: {}}]\n",
+     ":2: stages[0]: with several sources the first stage must be a mux"),
+    ("bad enum", "sources: [{test: ball}]\nstages:\n  - factory: queue\n    properties: {leaky: sideways}\n",
+     ":4: stages[0].properties.leaky: expected one of: no, upstream, downstream"),
+]
+
+
+@pytest.mark.parametrize("name,text,expected", BAD, ids=[b[0] for b in BAD])
+def test_bad_config_exits_2_with_one_line(tmp_path, name, text, expected):
+    path = write(tmp_path, text)
+    result = run_cli("run", path, "--num-frames", "1", cwd=tmp_path, timeout=60)
+    assert result.returncode == 2, result.stderr
+    lines = [l for l in result.stderr.splitlines() if l.strip() and "CRITICAL" not in l]
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith(f"dcuscope: error: {path}"), lines[0]
+    assert expected in lines[0], lines[0]
+    assert "Traceback" not in result.stderr
+
+
+def test_missing_config_file(tmp_path):
+    result = run_cli("run", tmp_path / "nope.yaml", cwd=tmp_path, timeout=60)
+    assert result.returncode == 2
+    assert "no such configuration file" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_loading_reports_the_key_path_in_python(tmp_path):
+    with pytest.raises(ConfigError, match=r"pipeline.yaml:3: sources\[0\]\.rate"):
+        load_config(write(tmp_path, "sources:\n  - test: ball\n    rate: 0\nstages: [{queue: {}}]\n"))
