@@ -70,12 +70,15 @@ class Detections:
             labels=[label for p in parts for label in p.labels],
         )
 
-    def for_slot(self, slot: int) -> "Detections":
-        keep = self.slot == slot
+    def subset(self, keep: np.ndarray) -> "Detections":
+        """The detections where the boolean mask ``keep`` is set."""
         return Detections(
             slot=self.slot[keep], cls=self.cls[keep], score=self.score[keep],
-            boxes=self.boxes[keep], labels=[l for l, k in zip(self.labels, keep) if k],
+            boxes=self.boxes[keep], labels=[label for label, k in zip(self.labels, keep) if k],
         )
+
+    def for_slot(self, slot: int) -> "Detections":
+        return self.subset(self.slot == slot)
 
 
 def _array(type_name: str, values: Sequence, fmt: str = "{}") -> str:
