@@ -57,6 +57,15 @@ def build_parser() -> argparse.ArgumentParser:
                         help="TESTING AID: shift this node's clock by MS milliseconds, to check clock alignment")
     run.set_defaults(func=_run)
 
+    demo = sub.add_parser("demo", help="run a relay and two DCU pipelines with probes on the shipped clips",
+                          description="Start a relay on loopback and two DCU pipelines (DCU-1: 2 cameras, "
+                                      "CenterNet; DCU-2: 4 cameras, SSD) streaming probe events to it; print "
+                                      "the UI's URL and a status line every few seconds; Ctrl-C stops all.")
+    demo.add_argument("--port", type=int, default=3000, help="relay and UI port (default 3000)")
+    demo.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S seconds (default: Ctrl-C)")
+    demo.add_argument("--db", type=Path, help="SQLite file for the sessions (default ./dcuscope-demo.db)")
+    demo.set_defaults(func=_demo)
+
     rtsp = sub.add_parser("serve-rtsp", help="serve video files as live RTSP streams on loopback (looped, real time)",
                           description="Serve each CLIP at rtsp://HOST:PORT/camN (N from 0), looped forever, "
                                       "re-encoded as H.264 in real time, until Ctrl-C.")
@@ -102,6 +111,12 @@ def _run(args: argparse.Namespace) -> int:
     from pipeline.session import run_session
 
     return run_session(args)
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from pipeline.demo import run_demo
+
+    return run_demo(port=args.port, duration=args.duration, db=args.db)
 
 
 def _serve_rtsp(args: argparse.Namespace) -> int:
