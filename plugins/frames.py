@@ -220,6 +220,7 @@ def mapped_video(buf: Gst.Buffer, info: GstVideo.VideoInfo, write: bool = False)
     ok, mapinfo = buf.map(flags)
     if not ok:
         raise RuntimeError("cannot map video buffer")
+    raw = frame = None  # so that a failure below is reported, not masked by the cleanup
     try:
         stride, height, width = info.stride[0], info.height, info.width
         raw = np.frombuffer(mapinfo.data, np.uint8, count=stride * height).reshape(height, stride)

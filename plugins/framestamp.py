@@ -19,6 +19,7 @@ CAPS = Gst.Caps.new_any()
 
 
 class FrameStamp(GstBase.BaseTransform):
+    __gtype_name__ = "DcuscopeFrameStamp"
     __gstmetadata__ = (
         "Frame stamp", "Filter/Video", "Attaches (source, frame number, origin time) to each frame", "dcuscope",
     )

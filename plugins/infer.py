@@ -39,6 +39,7 @@ _ERROR_CODES = {
 
 
 class Infer(GstBase.BaseTransform):
+    __gtype_name__ = "DcuscopeInfer"
     __gstmetadata__ = (
         "Inference", "Filter/Analyzer/Video", "Detects objects in each frame of a batch with an ONNX model",
         "dcuscope",

@@ -45,6 +45,7 @@ def due_pads(heads: list[tuple[int, int]], period_ns: int, limit: int) -> list[i
 
 
 class Mux(GstBase.Aggregator):
+    __gtype_name__ = "DcuscopeMux"
     __gstmetadata__ = ("Stream muxer", "Video/Muxer", "Batches N video streams into one buffer of N frames",
                        "dcuscope")
     __gsttemplates__ = (
