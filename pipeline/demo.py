@@ -58,7 +58,7 @@ def _status_line(url: str) -> str:
             frame = stats.get("frame", {})
             fps = sum((stats.get("fps") or {}).values())
             mean = frame.get("mean_ms")
-            bottleneck = stats.get("bottleneck") or "-"
+            bottleneck = (stats.get("bottleneck") or {}).get("stage") or "-"
             parts.append(f"{name}: {fps:5.1f} fps, frame delay {mean:7.1f} ms, bottleneck {bottleneck}"
                          if mean is not None else f"{name}: waiting for frames")
         except OSError:

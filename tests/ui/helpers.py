@@ -1,0 +1,184 @@
+"""Helpers of the UI tests: a relay on a thread of its own, feeders (simulated or real nodes), Chromium.
+
+The relay is the real one (``relay.server.create_app``, aiohttp + python-socketio on 127.0.0.1)
+run on its own event loop in a background thread, with the stored-session routes of
+``relay.sessionapi`` added when ``create_app`` does not add them itself yet.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import subprocess
+import sys
+import threading
+import time
+import urllib.error
+import urllib.request
+from dataclasses import dataclass, field
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                 "--disable-component-update", "--disable-sync", "--no-first-run"]
+REAL_PIPELINES = (ROOT / "probes" / "session.py").is_file()
+"""Real ``dcuscope run --probes --relay`` nodes exist once probes/session.py does."""
+
+
+def env() -> dict:
+    e = dict(os.environ)
+    e["PYTHONPATH"] = str(ROOT) + os.pathsep + e.get("PYTHONPATH", "")
+    return e
+
+
+class RelayThread:
+    """The relay (HTTP API, /ui, /ingest, the page) on a background event loop; ``url`` once up."""
+
+    def __init__(self, db: Path, token: str | None = None, push_hz: float = 10.0) -> None:
+        from relay.server import create_app  # noqa: F401 - fail here, not in the thread, if missing
+
+        self._db, self._token, self._push_hz = db, token, push_hz
+        self._ready = threading.Event()
+        self._error: BaseException | None = None
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._stop: asyncio.Event | None = None
+        self.port = 0
+        self._thread = threading.Thread(target=self._main, name="ui-test-relay", daemon=True)
+        self._thread.start()
+        if not self._ready.wait(30) or self._error is not None:
+            raise RuntimeError(f"relay did not start: {self._error!r}")
+        self.url = f"http://127.0.0.1:{self.port}"
+
+    def _main(self) -> None:
+        asyncio.run(self._serve())
+
+    async def _serve(self) -> None:
+        from aiohttp import web
+
+        from relay.server import create_app
+        from relay.sessionapi import add_session_routes, has_session_routes
+
+        try:
+            app, relay = create_app(self._db, self._token, push_hz=self._push_hz)
+            if not has_session_routes(app):
+                add_session_routes(app, relay.state)
+            relay.storage.start(asyncio.get_running_loop())
+            runner = web.AppRunner(app, access_log=None, handle_signals=False)
+            await runner.setup()
+            site = web.TCPSite(runner, "127.0.0.1", 0)
+            await site.start()
+            relay.runner = runner
+            self.port = runner.addresses[0][1]
+            relay._task = asyncio.create_task(relay.ticker.run())
+            self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()
+        except BaseException as exc:  # noqa: BLE001 - reported to the constructor
+            self._error = exc
+            self._ready.set()
+            raise
+        self._ready.set()
+        try:
+            await self._stop.wait()
+        finally:
+            await relay.stop()
+
+    def stop(self) -> None:
+        if self._loop is not None and self._stop is not None:
+            self._loop.call_soon_threadsafe(self._stop.set)
+        self._thread.join(15)
+
+
+def get_json(url: str, token: str | None = None, timeout: float = 30):
+    req = urllib.request.Request(url)
+    if token:
+        req.add_header("Authorization", f"Bearer {token}")
+    with urllib.request.urlopen(req, timeout=timeout) as r:
+        return json.loads(r.read())
+
+
+def http_status(url: str) -> int:
+    try:
+        with urllib.request.urlopen(url, timeout=30) as r:
+            return r.status
+    except urllib.error.HTTPError as exc:
+        return exc.code
+
+
+def wait_for(predicate, timeout: float, interval: float = 0.2, what: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+# --- feeders: what sends probe events to the relay ------------------------------------------------
+
+@dataclass
+class Feeder:
+    """Node processes feeding a relay; ``kind`` is "sim" (relay.simnode) or "pipeline" (dcuscope run)."""
+
+    kind: str
+    nodes: list[str]
+    procs: list[subprocess.Popen] = field(default_factory=list)
+    outs: list[Path] = field(default_factory=list)
+
+    def wait(self, timeout: float = 120) -> None:
+        for p in self.procs:
+            out, err = p.communicate(timeout=timeout)
+            assert p.returncode == 0, f"{self.kind} node failed: {err.decode(errors='replace')[-3000:]}"
+
+    def stop(self) -> None:
+        for p in self.procs:
+            if p.poll() is None:
+                p.terminate()
+                try:
+                    p.wait(15)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait(5)
+
+
+def sim_nodes(url: str, tmp: Path, nodes: list[str], *, frames: int, sources: int, fps: float, paced: bool,
+              token: str | None = None, offsets_ns: list[int] | None = None, seed: int = 0) -> Feeder:
+    """``python -m relay.simnode`` per node, each writing the events it shipped to ``tmp/NODE.npz``."""
+    feeder = Feeder("sim", nodes)
+    for k, node in enumerate(nodes):
+        out = tmp / f"{node}.npz"
+        cmd = [sys.executable, "-m", "relay.simnode", "--relay", url, "--node", node, "--out", str(out),
+               "--frames", str(frames), "--sources", str(sources), "--fps", str(fps), "--seed", str(seed + k),
+               "--clock-offset-ns", str((offsets_ns or [0] * len(nodes))[k])]
+        if paced:
+            cmd.append("--paced")
+        if token:
+            cmd += ["--token", token]
+        feeder.procs.append(subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE))
+        feeder.outs.append(out)
+    return feeder
+
+
+DEMO_CONFIGS = ("configs/demo-dcu1.yaml", "configs/demo-dcu2.yaml")
+
+
+def pipeline_nodes(url: str, tmp: Path, nodes: list[str], *, configs: tuple[str, ...] = DEMO_CONFIGS,
+                   duration: float = 20.0, token: str | None = None) -> Feeder:
+    """``dcuscope run CONFIG --probes --relay URL --node NODE --duration S`` per node (real GStreamer):
+    by default the demo's two DCUs (CenterNet over two cameras, SSD over four with a queue)."""
+    feeder = Feeder("pipeline", nodes)
+    for node, config in zip(nodes, configs):
+        cmd = [sys.executable, "-m", "pipeline.cli", "run", config, "--probes", "--relay", url, "--node", node,
+               "--duration", str(duration), "--quiet", "--trace", str(tmp / f"{node}.jsonl")]
+        if token:
+            cmd += ["--token", token]
+        feeder.procs.append(subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE))
+        feeder.outs.append(tmp / f"{node}.jsonl")
+    return feeder
+
+
+def launch_chromium(playwright, extra_args: list[str] | None = None):
+    if not Path(CHROMIUM).exists():
+        raise RuntimeError(f"{CHROMIUM} not found: install Debian's chromium package")
+    return playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS + (extra_args or []))

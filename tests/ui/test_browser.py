@@ -1,0 +1,270 @@
+"""The page in headless Chromium against a real relay fed by two nodes (Figures 13 and 14 and beyond).
+
+The nodes are two real ``dcuscope run --probes --relay`` pipelines (the demo's DCUs), or
+simulated nodes with ``DCUSCOPE_UI_FEEDER=sim``. The tests of this module run in order on one
+relay while the nodes stream: stage view, hover, zoom and pan, frame view and its limit, the
+HTTP-polling fallback, then, once the nodes ended, exact counters and the stored session.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.ui.helpers import (ROOT, RelayThread, get_json, pipeline_nodes, sim_nodes, wait_for)
+
+NODES = ["DCU-1", "DCU-2"]
+FIVE = {"mux": "#e53935", "infer": "#1e88e5", "tiler": "#fdd835", "convert": "#43a047", "osd": "#8e24aa"}
+DEEP_RED, UNDER = "#8b0000", "#78909c"
+SHOTS = ROOT / "build" / "screenshots"  # git-ignored; the README's copies in docs/ are chosen by hand
+PLOT_X = 96  # frame view: bars start right of the time labels
+
+PIXELS_JS = """([sel, y, h, colours, x = 0]) => {
+    // Exact-colour pixel counts of a canvas band right of x (bars are drawn on whole pixels, unblended).
+    const c = document.querySelector(sel);
+    const dpr = c.width / c.clientWidth;
+    const y0 = Math.max(0, Math.round(y * dpr)), rows = Math.max(1, Math.round(h * dpr));
+    const x0 = Math.round(x * dpr);
+    const data = c.getContext("2d").getImageData(x0, y0, c.width - x0, Math.min(rows, c.height - y0)).data;
+    const want = new Map(colours.map((hex) => [parseInt(hex.slice(1), 16), hex]));
+    const out = Object.fromEntries(colours.map((hex) => [hex, 0]));
+    for (let i = 0; i < data.length; i += 4) {
+        const hex = want.get((data[i] << 16) | (data[i + 1] << 8) | data[i + 2]);
+        if (hex !== undefined) out[hex]++;
+    }
+    return out;
+}"""
+
+
+@pytest.fixture(scope="module")
+def live(browser, feeder_kind, tmp_path_factory):
+    """A relay, two nodes streaming to it, and the page open on it."""
+    tmp = tmp_path_factory.mktemp("ui-live")
+    relay = RelayThread(tmp / "relay.db")
+    if feeder_kind == "pipeline":
+        feeder = pipeline_nodes(relay.url, tmp, NODES, duration=45)
+    else:
+        feeder = sim_nodes(relay.url, tmp, NODES, frames=900, sources=3, fps=30, paced=True,
+                           offsets_ns=[0, 3_000_000])
+    page = browser.new_page(viewport={"width": 1400, "height": 950})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    try:
+        page.goto(relay.url + "/")
+        yield relay, feeder, page
+        assert not errors, errors
+    finally:
+        page.close()
+        feeder.stop()
+        relay.stop()
+
+
+def frame_pixels(page, node: str) -> dict:
+    return page.evaluate(PIXELS_JS, [f'.frame-panel[data-node="{node}"] canvas', 0, 340, [DEEP_RED, UNDER], PLOT_X])
+
+
+def debug(page) -> dict:
+    return page.evaluate("window.dcuscope.debug()")
+
+
+def has_all_bars(d: dict) -> bool:
+    bars = d["stage"]["bars"]
+    return all(all(bars.get(n, {}).get(s, 0) > 0 for s in FIVE) for n in NODES)
+
+
+def test_stage_view_shows_both_dcus_in_the_stage_colours(live):
+    relay, feeder, page = live
+    d = wait_for(lambda: (lambda d: d if has_all_bars(d) else None)(debug(page)), 120, 0.5,
+                 "bars of the five stages of both DCUs")
+    assert d["transport"] == "socket.io" and d["mode"] == "live" and not d["paused"]
+    for stage, colour in FIVE.items():
+        assert d["colours"][stage] == colour
+    legend = page.locator("#legend .legend-item").all_inner_texts()
+    assert set(FIVE) <= {t.split()[0] for t in legend}
+    rows = {r["node"]: r for r in d["stage"]["rows"] if r["source"] is None}
+    assert set(rows) == set(NODES)
+    for node, row in rows.items():
+        assert set(FIVE) <= set(row["lanes"])
+        pixels = page.evaluate(PIXELS_JS, ["#stage-canvas", row["y"], row["h"], list(FIVE.values())])
+        # At least one whole bar (>= 1 px wide, a lane high) of every stage colour in the row.
+        assert all(n >= 10 for n in pixels.values()), (node, pixels)
+    # The time axis reads HH:MM:SS.mmm.
+    assert ":" in page.locator("#relay-clock").inner_text()
+    page.wait_for_selector("#stats-body tr.bottleneck", timeout=30000)
+    page.wait_for_selector('#nodes-body tr[data-node="DCU-2"] .dot-up', timeout=30000)
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(SHOTS / "stage-view.png"), full_page=True)
+
+
+def test_hover_names_node_stage_and_frame(live):
+    _, _, page = live
+    page.click("#pause")
+    assert debug(page)["paused"] and page.locator("#pause").inner_text() == "Resume"
+    box = page.locator("#stage-canvas").bounding_box()
+    for node in NODES:
+        for stage in ("infer", "osd", "mux"):
+            d = debug(page)
+            rect = d["stage"]["samples"][node][stage]
+            page.mouse.move(box["x"] + rect["x"] + rect["w"] / 2, box["y"] + rect["y"] + rect["h"] / 2)
+            tip = wait_for(lambda: debug(page)["tooltip"], 5, 0.1, "the tooltip")
+            lines = tip.splitlines()
+            assert lines[0] == f"{node} · {stage}", tip
+            assert "frame" in lines[1] and lines[2].startswith("enter ") and "delay" in lines[3]
+    page.mouse.move(5, 5)
+    wait_for(lambda: debug(page)["tooltip"] is None, 5, 0.1, "the tooltip to go")
+
+
+def test_zoom_pan_and_rows_per_source(live):
+    _, _, page = live
+    if not debug(page)["paused"]:
+        page.click("#pause")
+    box = page.locator("#stage-canvas").bounding_box()
+    plot_x, plot_w = 150, box["width"] - 150 - 10  # stageview.js GUTTER and RIGHT_PAD
+    before = debug(page)["window"]
+    x = box["x"] + plot_x + plot_w * 0.6
+    page.mouse.move(x, box["y"] + 60)
+    page.mouse.wheel(0, -400)  # zoom in around the pointer: the time under it stays put
+    after = wait_for(lambda: (lambda w: w if w[1] - w[0] < 0.8 * (before[1] - before[0]) else None)(
+        debug(page)["window"]), 5, 0.1, "a narrower window")
+    t_pointer = before[0] + 0.6 * (before[1] - before[0])
+    assert after[0] + 0.6 * (after[1] - after[0]) == pytest.approx(t_pointer, abs=1.0)
+    page.mouse.down()
+    page.mouse.move(x + 200, box["y"] + 60, steps=5)
+    page.mouse.up()
+    panned = debug(page)["window"]
+    width = after[1] - after[0]
+    assert panned[1] == pytest.approx(after[1] - 200 * width / plot_w, abs=1.0)
+    assert panned[1] - panned[0] == pytest.approx(width, abs=1e-3)
+    page.click("#zoom-reset")
+    d = wait_for(lambda: (lambda d: d if not d["paused"] else None)(debug(page)), 5, 0.1, "following again")
+    assert abs(d["window"][1] - d["window"][0] - 5000) < 1e-6
+
+    page.check("#per-source")
+    d = wait_for(lambda: (lambda d: d if all(len(d["stage"]["bySource"].get(n, {})) == len(d["stores"][n]["sources"])
+                                              for n in NODES) else None)(debug(page)), 10, 0.2, "rows per source")
+    for node in NODES:
+        assert any(sum(v.values()) > 0 for v in d["stage"]["bySource"][node].values())
+    page.uncheck("#per-source")
+
+
+def test_frame_view_limit_turns_bars_deep_red_and_counts(live):
+    _, _, page = live
+    page.click(".tab[data-tab=frame]")
+    d = wait_for(lambda: (lambda d: d if all(d["frame"]["nodes"].get(n, {}).get("shown", 0) > 0 for n in NODES)
+                          else None)(debug(page)), 60, 0.3, "frame bars of both DCUs")
+
+    def set_limit(value: str) -> dict:
+        page.fill("#limit-input", value)
+        page.click("#set-limit")
+        return wait_for(lambda: (lambda d: d if d["frame"]["limit"] == float(value) else None)(debug(page)),
+                        5, 0.1, f"limit {value}")
+
+    # Below every measured delay: every bar deep red, the counters say all of them.
+    page.click("#pause")
+    d = set_limit("0.001")
+    for node in NODES:
+        c = d["frame"]["nodes"][node]
+        assert c["overShown"] == c["shown"] > 0 and c["overReceived"] == c["received"]
+        panel = page.locator(f'.frame-panel[data-node="{node}"]')
+        assert panel.locator(".over-count").inner_text() == f'{c["shown"]:,}'
+        assert panel.locator(".over-share").inner_text() == "100.0%"
+        pixels = frame_pixels(page, node)
+        assert pixels[DEEP_RED] > 100 and pixels[UNDER] == 0, pixels
+    # Above them all: none.
+    d = set_limit("100000")
+    for node in NODES:
+        c = d["frame"]["nodes"][node]
+        assert c["overShown"] == 0 and c["overReceived"] == 0
+        pixels = frame_pixels(page, node)
+        assert pixels[DEEP_RED] == 0 and pixels[UNDER] > 100, pixels
+        assert page.locator(f'.frame-panel[data-node="{node}"] .over-share').inner_text() == "0.0%"
+    # The median delay of DCU-1: some over, some not, and the line moves with it.
+    median = debug(page)["stats"]["DCU-1"]["frame"]["p50_ms"]
+    d = set_limit(f"{median:.3f}")
+    page.click("#pause")  # resume
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    page.screenshot(path=str(SHOTS / "frame-view.png"), full_page=True)
+    hover_node = "DCU-1"
+    box = page.locator(f'.frame-panel[data-node="{hover_node}"] canvas').bounding_box()
+    page.mouse.move(box["x"] + 120, box["y"] + 20)
+    tip = wait_for(lambda: debug(page)["tooltip"], 5, 0.1, "the frame tooltip")
+    assert tip.startswith(f"{hover_node} · source ") and "end-to-end delay" in tip
+    page.mouse.move(5, 5)
+    page.click(".tab[data-tab=stage]")
+
+
+def test_polling_fallback_without_the_socketio_client(live, browser):
+    relay, _, _ = live
+    page = browser.new_page(viewport={"width": 1200, "height": 800})
+    try:
+        page.route("**/vendor/socket.io.min.js", lambda route: route.abort())
+        page.goto(relay.url + "/")
+        d = wait_for(lambda: (lambda d: d if has_all_bars(d) else None)(debug(page)), 60, 0.5, "bars while polling")
+        assert d["transport"] == "polling"
+        assert "polling" in page.locator("#conn").inner_text()
+    finally:
+        page.close()
+
+
+def test_counters_match_the_relay_once_nodes_ended(live):
+    relay, feeder, page = live
+    feeder.wait(180)
+    limit = 50.0
+    page.click(".tab[data-tab=frame]")
+    page.fill("#limit-input", str(limit))
+    page.click("#set-limit")
+    for node in NODES:
+        def settled():
+            shown = get_json(f"{relay.url}/api/nodes")
+            view = next(n for n in shown if n["node"] == node)
+            d = debug(page)
+            return (view, d) if d["stores"][node]["received"] == view["frames"]["shown"] else None
+
+        view, _ = wait_for(settled, 30, 0.5, f"every frame of {node} in the page")
+        # /api/frames gives the newest frames only; the stored session has every one.
+        frames = get_json(f"{relay.url}/api/sessions/{view['session']}/frames?node={node}&limit=10000")["frames"]
+        assert len(frames) == view["frames"]["shown"]
+        over = sum(f["delay_ms"] > limit for f in frames)
+        d = wait_for(lambda: (lambda d: d if d["frame"]["limit"] == limit else None)(debug(page)), 5, 0.1, "redraw")
+        c = d["frame"]["nodes"][node]
+        assert (c["received"], c["overReceived"]) == (len(frames), over)
+        text = page.locator(f'.frame-panel[data-node="{node}"] .over-total').inner_text()
+        assert text == f"{over:,}"
+    page.click(".tab[data-tab=stage]")
+
+
+def test_stored_session_browses_like_live(live):
+    relay, _, page = live
+    sessions = get_json(f"{relay.url}/api/sessions")
+    sid = sessions[0]["session"]
+    stored = {n["node"]: n for n in get_json(f"{relay.url}/api/sessions/{sid}/nodes")}
+    assert set(stored) == set(NODES)
+    page.locator("#session-select").focus()
+    page.wait_for_selector(f'#session-select option[value="{sid}"]', state="attached", timeout=15000)
+    page.select_option("#session-select", str(sid))
+    d = wait_for(lambda: (lambda d: d if d["mode"] == "session" and d["loaded"] else None)(debug(page)), 60, 0.3,
+                 "the session loaded")
+    for node in NODES:
+        assert d["stores"][node]["size"] == stored[node]["frames"]
+    assert page.locator("#pause").inner_text() == "Play" and d["paused"]
+    page.click("#zoom-reset")  # the whole session
+    d = wait_for(lambda: (lambda d: d if has_all_bars(d) else None)(debug(page)), 10, 0.2, "session bars")
+    first = min(n["first_ns"] for n in stored.values()) / 1e6
+    last = max(n["last_ns"] for n in stored.values()) / 1e6
+    assert d["window"][0] <= first and d["window"][1] >= last
+    page.wait_for_selector('#nodes-body .dot-stored', timeout=10000)
+    assert page.locator("#stats-body tr.bottleneck").count() == 2
+    # Play replays at real speed from the start of the window.
+    page.mouse.move(box_center(page, "#stage-canvas")[0], box_center(page, "#stage-canvas")[1])
+    page.mouse.wheel(0, -600)
+    page.click("#pause")
+    w0 = debug(page)["window"]
+    page.wait_for_timeout(600)
+    w1 = debug(page)["window"]
+    assert w1[1] > w0[1] and page.locator("#pause").inner_text() == "Pause"
+    page.select_option("#session-select", "live")
+    assert wait_for(lambda: debug(page)["mode"] == "live", 5, 0.1, "back to live")
+
+
+def box_center(page, selector: str) -> tuple[float, float]:
+    b = page.locator(selector).bounding_box()
+    return b["x"] + b["width"] / 2, b["y"] + min(b["height"] / 2, 60)

@@ -1,0 +1,114 @@
+"""The page's pure JavaScript (time axis, formatting, bounded stores, colours), run in Chromium."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.ui.helpers import RelayThread
+
+
+@pytest.fixture(scope="module")
+def page(browser, tmp_path_factory):
+    relay = RelayThread(tmp_path_factory.mktemp("units") / "relay.db")
+    page = browser.new_page()
+    errors = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    try:
+        page.goto(relay.url + "/")
+        page.wait_for_function("window.dcuscope !== undefined", timeout=15000)
+        yield page
+        assert not errors, errors
+    finally:
+        page.close()
+        relay.stop()
+
+
+def js(page, body: str, arg=None):
+    """Run ``body`` (an async function body with the page's modules in scope) in the page."""
+    return page.evaluate(
+        """async ([body, arg]) => {
+            const m = {};
+            for (const name of ["timefmt", "store", "colours", "panels"]) Object.assign(m, await import(`/${name}.js`));
+            return new Function("m", "arg", `return (async () => { ${body} })()`)(m, arg);
+        }""", [body, arg])
+
+
+def test_clock_format_and_millisecond_ticks(page):
+    # Local noon on a fixed day, plus 7.25 ms: HH:MM:SS.mmm keeps milliseconds and truncates.
+    out = js(page, """
+        const t = new Date(2024, 0, 2, 12, 34, 56, 789).getTime() + 0.25;
+        const fine = m.clockTicks(t, t + 20, 1000);          // 20 ms over 1000 px
+        const coarse = m.clockTicks(t, t + 60000, 1000);     // 1 min over 1000 px
+        return {clock: m.formatClock(t), precise: m.formatClockPrecise(t), fine, coarse,
+                labels: fine.major.map(m.formatClock)};""")
+    assert out["clock"] == "12:34:56.789" and out["precise"] == "12:34:56.789250"
+    # 110 px at 0.02 ms/px is 2.2 ms: the next round step is 5 ms, on multiples of 5 ms.
+    assert out["fine"]["step"] == 5
+    assert out["labels"] == ["12:34:56.790", "12:34:56.795", "12:34:56.800", "12:34:56.805"]
+    assert len(out["fine"]["minor"]) == 20  # 1 ms minor ticks
+    # 1 min over 1000 px: 10 s steps on the round 10 s of the clock.
+    assert out["coarse"]["step"] == 10000 and len(out["coarse"]["major"]) == 6
+
+
+def test_delay_ring_counts_over_limit_with_eviction(page):
+    out = js(page, """
+        const r = new m.DelayRing(4, 50);
+        const seen = [];
+        for (const d of [10, 60, 70, 20, 80, 30]) { r.push(d); seen.push(r.over); }
+        r.setLimit(25);
+        return {seen, size: r.size, over: r.over};""")
+    # Ring of 4: after 6 pushes it holds 70, 20, 80, 30.
+    assert out["seen"] == [0, 1, 2, 2, 3, 2]
+    assert out["size"] == 4 and out["over"] == 3
+
+
+def test_node_store_is_bounded_and_searchable(page):
+    out = js(page, """
+        const stages = ["src0", "mux", "infer", "sink"];
+        const s = new m.NodeStore("DCU-1", stages, 8, 16);
+        const frame = (n, src, originMs, delay) => ({n, source: src, frame: n, origin: originMs * 1e6,
+            enter: [null, originMs * 1e6 + 1e6, originMs * 1e6 + 3e6, originMs * 1e6 + delay * 1e6],
+            exit: [null, originMs * 1e6 + 2e6, originMs * 1e6 + 5e6, null], delay_ms: delay});
+        const frames = [];
+        for (let n = 1; n <= 12; n++) frames.push(frame(n, n % 2, 1000 * n, 10 + n));
+        const added = s.ingest({run: "a", stages, frames});
+        const again = s.ingest({run: "a", stages, frames: frames.slice(-3)});   // already held
+        const oldest = s.frame[s.slot(0)];
+        const first = s.firstEndingAfter(7000);      // frame 7 ends at 7017
+        const beyond = s.firstEndingBeyond(9019);    // frame 9 ends at 9019 exactly
+        const lanes = s.lanes.map((i) => stages[i]);
+        const other = s.ingest({run: "b", stages: ["src0", "mux", "sink"], frames: [
+            {n: 1, source: 0, frame: 0, origin: 5e12, enter: [null, 5e12, 5e12 + 1e6],
+             exit: [null, 5e12 + 1e6, null], delay_ms: 1}]});
+        return {added, again, size: 8, oldest, first: s.size && first, beyond, lanes, sources: [0, 1],
+                afterNewRun: {size: s.size, stages: s.stages, received: s.received, other}};""")
+    assert out["added"] == 12 and out["again"] == 0
+    assert out["oldest"] == 5  # capacity 8: frames 5..12 kept
+    assert out["first"] == 2  # logical index of frame 7 (frames 5, 6 ended before 7000)
+    assert out["beyond"] == 5  # frames 5..9 end at or before 9019
+    assert out["lanes"] == ["mux", "infer"]  # the sink has an enter only: no bar
+    # A run with other stages starts the store afresh.
+    assert out["afterNewRun"] == {"size": 1, "stages": ["src0", "mux", "sink"], "received": 1, "other": 1}
+
+
+def test_stage_colours_follow_the_paper_and_palette_is_stable(page):
+    out = js(page, """
+        const c = new m.StageColours();
+        return ["mux", "infer_2", "queue", "tiler", "convert", "osd", "queue_1", "queue"].map((s) => c.get(s));""")
+    mux, infer2, queue, tiler, convert, osd, queue1, queue_again = out
+    assert (mux, infer2, tiler, convert, osd) == ("#e53935", "#1e88e5", "#fdd835", "#43a047", "#8e24aa")
+    # Inserted elements: one palette colour per stage name, the same wherever it shows up.
+    assert queue == queue_again == "#fb8c00" and queue1 == "#00897b"
+
+
+def test_delay_formats_and_axis(page):
+    out = js(page, """
+        return {d: [0.5, 12.345, 250, 1234.5].map(m.formatDelay), t: [0, 0.25, 20, 2500].map(m.formatTick),
+                nice: [0.7, 3, 41, 120, 2600].map(m.niceCeil), ticks: m.delayTicks(100, 500).values,
+                neck: m.bottleneckOf({stages: {mux: {mean_ms: 2}, infer: {mean_ms: 30}, osd: {mean_ms: null}},
+                                      frame: {mean_ms: 40}})};""")
+    assert out["d"] == ["500 µs", "12.35 ms", "250.0 ms", "1.234 s"]
+    assert out["t"] == ["0", "250 µs", "20 ms", "2.5 s"]
+    assert out["nice"] == [1, 5, 50, 200, 5000]
+    assert out["ticks"] == [0, 20, 40, 60, 80, 100]
+    assert out["neck"] == {"stage": "infer", "mean_ms": 30, "share": 0.75}

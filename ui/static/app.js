@@ -1,0 +1,567 @@
+// The dcuscope page: wires the data feeds to the stores, the two views and the panels, and runs
+// the drawing loop. window.dcuscope.debug() reports what was drawn (tests, benchmarks).
+
+import { baseName, StageColours } from "./colours.js";
+import { Api, LiveFeed, listSessions, loadSession, SESSION_CAPACITY, tokenFromUrl } from "./feed.js";
+import { FrameView } from "./frameview.js";
+import { nodesHtml, setHtml, statsHtml } from "./panels.js";
+import { GUTTER, StageView } from "./stageview.js";
+import { DELAY_CAPACITY, LIVE_CAPACITY, NodeStore } from "./store.js";
+import { formatClock } from "./timefmt.js";
+
+const DEFAULT_WIDTH_MS = 5000;
+const MIN_WIDTH_MS = 1;
+const MAX_WIDTH_MS = 3 * 3600 * 1000;
+const PANEL_REFRESH_MS = 500;
+const STAGE_NAMES = { mux: "frame collection", infer: "neural network", tiler: "collage", convert: "post-processing", osd: "on-screen display" };
+
+const $ = (sel) => document.querySelector(sel);
+
+/** Everything the page knows of one data set: the live relay, or one stored session. */
+class Dataset {
+  constructor(kind, id = null) {
+    this.kind = kind;
+    this.id = id;
+    this.stores = new Map();
+    this.nodes = new Map();
+    this.stats = new Map();
+    this.span = null;
+  }
+
+  sorted() {
+    return [...this.stores.keys()].sort().map((k) => this.stores.get(k));
+  }
+}
+
+const api = new Api(tokenFromUrl());
+const colours = new StageColours();
+const live = new Dataset("live");
+let current = live;
+const view = {
+  follow: true, width: DEFAULT_WIDTH_MS, end: Date.now(), limit: 50, perSource: false, expanded: new Set(),
+  tab: "stage", windowed: false, frameCount: 300, dirty: true, panelsDirty: true, openGaps: new Set(),
+};
+let skewSamples = [];
+let skew = 0;
+let mouse = null;
+let drag = null;
+let legendSize = -1;
+
+function describe(node, source) {
+  const info = current.nodes.get(node);
+  return info?.sources?.[String(source)] ?? `source ${source}`;
+}
+
+const model = {
+  stores: () => current.sorted(),
+  colours,
+  expanded: (node) => view.perSource || view.expanded.has(node),
+  describe,
+  limit: () => view.limit,
+};
+const stageView = new StageView($("#stage-canvas"), model);
+const frameView = new FrameView($("#frame-panels"), model);
+
+// --- relay clock ---------------------------------------------------------------------------
+
+function relayNow() {
+  return Date.now() + skew;
+}
+
+function noteRelayTime(ms) {
+  // relay time at send - local time at receipt = skew - latency <= skew: keep the largest.
+  if (ms !== null) {
+    skewSamples.push(ms - Date.now());
+    if (skewSamples.length > 50) skewSamples = skewSamples.slice(-50);
+    skew = Math.max(...skewSamples);
+  }
+}
+
+// --- live data -------------------------------------------------------------------------------
+
+function ingest(ds, node, block, capacity = LIVE_CAPACITY) {
+  let store = ds.stores.get(node);
+  if (!store) {
+    store = new NodeStore(node, block.stages, capacity, ds.kind === "live" ? DELAY_CAPACITY : capacity, view.limit);
+    ds.stores.set(node, store);
+  }
+  if (store.ingest(block)) {
+    for (const s of store.lanes) colours.get(store.stages[s]);
+    if (ds === current) view.dirty = true;
+  }
+}
+
+function setStatus(kind, text) {
+  if (current !== live && kind !== "error") return;
+  const el = $("#conn");
+  el.className = `conn conn-${kind}`;
+  el.textContent = text;
+  if (kind === "error" && /unauthori[sz]ed/i.test(text)) {
+    showBanner(`The relay refused this page: ${text}. Open it with ?token=TOKEN in its address.`);
+  } else if (kind === "live") {
+    showBanner(null);
+  }
+}
+
+function showBanner(text) {
+  const el = $("#banner");
+  el.hidden = !text;
+  if (text) el.textContent = text;
+}
+
+const feed = new LiveFeed(api, {
+  nodes(list) {
+    for (const n of list) live.nodes.set(n.node, n);
+    if (current === live) view.panelsDirty = true;
+  },
+  frames(node, block) {
+    ingest(live, node, block);
+  },
+  stats(node, stats) {
+    live.stats.set(node, stats);
+    if (current === live) view.panelsDirty = true;
+  },
+  relayTime: noteRelayTime,
+  status: setStatus,
+  cursor(node, run) {
+    const store = live.stores.get(node);
+    return store && store.run === run ? store.lastN : 0;
+  },
+});
+
+// --- stored sessions -------------------------------------------------------------------------
+
+async function refreshSessions() {
+  let sessions;
+  try {
+    sessions = await listSessions(api);
+  } catch (err) {
+    if (err.status === 401) setStatus("error", err.message);
+    return;
+  }
+  const select = $("#session-select");
+  const chosen = select.value;
+  const options = [`<option value="live">Live</option>`].concat(sessions.map((s) => {
+    const when = s.created_ns ? formatClock(s.created_ns / 1e6).slice(0, 8) : "";
+    const nodes = [...new Set(s.runs.map((r) => r.node))].join(", ");
+    return `<option value="${s.session}">Session ${s.session} · ${when} · ${nodes.replace(/[<&]/g, "")}</option>`;
+  }));
+  const html = options.join("");
+  if (select._html !== html) {
+    select._html = html;
+    select.innerHTML = html;
+    select.value = [...select.options].some((o) => o.value === chosen) ? chosen : "live";
+  }
+}
+
+async function openSession(id) {
+  const ds = new Dataset("session", id);
+  current = ds;
+  view.follow = false;
+  view.dirty = view.panelsDirty = true;
+  updatePauseButton();
+  const bar = $("#progress");
+  bar.hidden = false;
+  const show = (p) => {
+    bar.querySelector(".bar").style.width = `${(100 * p).toFixed(1)}%`;
+    bar.querySelector(".text").textContent = `loading session ${id}: ${(100 * p).toFixed(0)}%`;
+  };
+  show(0);
+  $("#conn").className = "conn conn-session";
+  $("#conn").textContent = `session ${id}`;
+  try {
+    const nodes = await loadSession(api, id, {
+      onNode(n) {
+        if (current !== ds) throw new Error("another data set was chosen");
+        ds.nodes.set(n.node, n);
+        ds.stores.set(n.node, new NodeStore(n.node, n.stages, Math.max(1, Math.min(n.frames, SESSION_CAPACITY)),
+          Math.max(1, Math.min(n.frames, SESSION_CAPACITY)), view.limit));
+        view.panelsDirty = true;
+      },
+      onBlock(n, block) {
+        if (current !== ds) throw new Error("another data set was chosen");
+        ingest(ds, n.node, block);
+      },
+      onStats(node, stats) {
+        ds.stats.set(node, stats);
+        view.panelsDirty = true;
+      },
+      progress: show,
+    });
+    const firsts = nodes.filter((n) => n.first_ns !== null).map((n) => n.first_ns / 1e6);
+    const lasts = nodes.filter((n) => n.last_ns !== null).map((n) => n.last_ns / 1e6);
+    if (firsts.length) {
+      ds.span = [Math.min(...firsts), Math.max(...lasts)];
+      if (current === ds) {
+        view.width = Math.min(DEFAULT_WIDTH_MS, ds.span[1] - ds.span[0] + 100);
+        view.end = ds.span[0] + view.width - 50;
+      }
+    }
+    ds.loaded = true;
+  } catch (err) {
+    if (current === ds) showBanner(`Cannot load session ${id}: ${err.message}`);
+  } finally {
+    if (current === ds) bar.hidden = true;
+    view.dirty = true;
+  }
+}
+
+function chooseData(value) {
+  mouse = null;
+  hideTooltip();
+  if (value === "live") {
+    current = live;
+    view.follow = true;
+    view.width = DEFAULT_WIDTH_MS;
+    view.dirty = view.panelsDirty = true;
+    showBanner(null);
+    $("#progress").hidden = true;
+    setStatus("live", feed.transport === "polling" ? "polling the HTTP API" : "live");
+    updatePauseButton();
+  } else {
+    openSession(value);
+  }
+}
+
+// --- controls --------------------------------------------------------------------------------
+
+function updatePauseButton() {
+  const b = $("#pause");
+  if (current.kind === "live") b.textContent = view.follow ? "Pause" : "Resume";
+  else b.textContent = view.follow ? "Pause" : "Play";
+}
+
+function togglePause() {
+  if (current.kind === "live") {
+    if (view.follow) view.end = relayNow();
+    view.follow = !view.follow;
+  } else if (current.span) {
+    if (!view.follow && view.end >= current.span[1]) view.end = current.span[0] + view.width;
+    view.follow = !view.follow;
+  }
+  view.dirty = true;
+  updatePauseButton();
+}
+
+function resetView() {
+  if (current.kind === "live") {
+    view.width = DEFAULT_WIDTH_MS;
+    view.follow = true;
+  } else if (current.span) {
+    view.width = Math.max(MIN_WIDTH_MS, current.span[1] - current.span[0]) * 1.02;
+    view.end = current.span[1] + view.width * 0.01;
+    view.follow = false;
+  }
+  view.dirty = true;
+  updatePauseButton();
+}
+
+function setLimit(value) {
+  const v = Number(value);
+  if (!(v > 0) || !Number.isFinite(v)) {
+    $("#limit-input").setCustomValidity("a delay in ms, above 0");
+    $("#limit-input").reportValidity();
+    return false;
+  }
+  $("#limit-input").setCustomValidity("");
+  view.limit = v;
+  for (const ds of [live, current]) for (const store of ds.stores.values()) store.delays.setLimit(v);
+  view.dirty = true;
+  return true;
+}
+
+function pause() {
+  if (view.follow) {
+    if (current.kind === "live") view.end = relayNow();
+    view.follow = false;
+    updatePauseButton();
+  }
+}
+
+function stageWheel(ev) {
+  ev.preventDefault();
+  const rect = ev.currentTarget.getBoundingClientRect();
+  const x = ev.clientX - rect.left;
+  const factor = Math.exp(Math.max(-300, Math.min(300, ev.deltaY)) * 0.002);
+  const width = Math.max(MIN_WIDTH_MS, Math.min(MAX_WIDTH_MS, view.width * factor));
+  const following = view.follow && current.kind === "live";
+  if (!following && x > GUTTER) {
+    // Keep the time under the pointer where it is.
+    const frac = Math.min(1, (x - GUTTER) / stageView.plotWidth);
+    const tm = view.end - view.width * (1 - frac);
+    view.end = tm + width * (1 - frac);
+  }
+  view.width = width;
+  view.dirty = true;
+}
+
+function stageMouseDown(ev) {
+  const rect = ev.currentTarget.getBoundingClientRect();
+  const x = ev.clientX - rect.left;
+  const y = ev.clientY - rect.top;
+  if (x < GUTTER) {
+    const h = stageView.hit(x, y);
+    if (h && h.gutter && h.header) {
+      if (view.expanded.has(h.node)) view.expanded.delete(h.node);
+      else view.expanded.add(h.node);
+      view.dirty = true;
+    }
+    return;
+  }
+  drag = { x: ev.clientX, end: current.kind === "live" && view.follow ? relayNow() : view.end, moved: false };
+}
+
+function windowMouseMove(ev) {
+  if (drag) {
+    const dx = ev.clientX - drag.x;
+    if (Math.abs(dx) > 2 || drag.moved) {
+      if (!drag.moved) {
+        drag.moved = true;
+        pause();
+        $("#stage-canvas").classList.add("dragging");
+      }
+      view.end = drag.end - (dx * view.width) / stageView.plotWidth;
+      view.dirty = true;
+    }
+  }
+}
+
+function windowMouseUp() {
+  drag = null;
+  $("#stage-canvas").classList.remove("dragging");
+}
+
+function frameWheel(ev) {
+  const canvas = ev.target.closest(".frame-panel");
+  const store = canvas && current.stores.get(canvas.dataset.node);
+  if (!store || !store.size) return;
+  ev.preventDefault();
+  pause();
+  const hi = store.firstEndingBeyond(view.end);
+  const step = Math.max(1, Math.round(view.frameCount / 10)) * Math.sign(ev.deltaY);
+  const next = Math.max(1, Math.min(store.size, hi + step));
+  view.end = store.maxEnd[store.slot(next - 1)];
+  view.dirty = true;
+}
+
+function showTooltip(lines, clientX, clientY) {
+  const tip = $("#tooltip");
+  const text = lines.join("\n");
+  if (tip.textContent !== text) tip.textContent = text;
+  tip.hidden = false;
+  const w = tip.offsetWidth;
+  const h = tip.offsetHeight;
+  const x = clientX + 14 + w > window.innerWidth ? clientX - 14 - w : clientX + 14;
+  const y = clientY + 16 + h > window.innerHeight ? clientY - 12 - h : clientY + 16;
+  tip.style.left = `${Math.max(0, x)}px`;
+  tip.style.top = `${Math.max(0, y)}px`;
+}
+
+function hideTooltip() {
+  $("#tooltip").hidden = true;
+}
+
+function updateTooltip() {
+  if (!mouse || drag?.moved) {
+    hideTooltip();
+    return;
+  }
+  const rect = mouse.el.getBoundingClientRect();
+  const x = mouse.clientX - rect.left;
+  const y = mouse.clientY - rect.top;
+  let lines = null;
+  if (mouse.kind === "stage") {
+    const h = stageView.hit(x, y);
+    if (h && !h.gutter) lines = StageView.describeHit(h, describe);
+  } else {
+    const h = frameView.hit(mouse.node, x, y);
+    if (h) lines = FrameView.describeHit(h, describe, view.limit);
+  }
+  if (lines) showTooltip(lines, mouse.clientX, mouse.clientY);
+  else hideTooltip();
+}
+
+function trackMouse(kind) {
+  return (ev) => {
+    const el = ev.target.closest("canvas");
+    if (!el) return;
+    mouse = { kind, el, clientX: ev.clientX, clientY: ev.clientY, node: el.closest(".frame-panel")?.dataset.node };
+    mouse.fresh = true;
+  };
+}
+
+function setTab(tab) {
+  view.tab = tab;
+  for (const b of document.querySelectorAll(".tab")) b.classList.toggle("active", b.dataset.tab === tab);
+  $("#stage-view").hidden = tab !== "stage";
+  $("#frame-view").hidden = tab !== "frame";
+  mouse = null;
+  hideTooltip();
+  view.dirty = true;
+}
+
+// --- drawing loop ----------------------------------------------------------------------------
+
+const perf = {
+  frames: new Float64Array(600), // rAF timestamps
+  draws: new Float32Array(600), // ms spent drawing per frame
+  n: 0,
+  record(ts, drawMs) {
+    const i = this.n % 600;
+    this.frames[i] = ts;
+    this.draws[i] = drawMs;
+    this.n++;
+  },
+  summary(lastMs = 5000) {
+    const count = Math.min(this.n, 600);
+    const newest = this.frames[(this.n - 1 + 600) % 600];
+    let k = 0;
+    let oldest = newest;
+    let sum = 0;
+    let max = 0;
+    for (let j = 0; j < count; j++) {
+      const i = (this.n - 1 - j + 600) % 600;
+      if (newest - this.frames[i] > lastMs) break;
+      oldest = this.frames[i];
+      sum += this.draws[i];
+      max = Math.max(max, this.draws[i]);
+      k++;
+    }
+    return { fps: k > 1 ? ((k - 1) * 1000) / (newest - oldest) : 0, drawMsMean: k ? sum / k : 0, drawMsMax: max, frames: k };
+  },
+};
+
+let lastTs = null;
+let panelsAt = 0;
+
+function updateLegend() {
+  const entries = colours.entries();
+  if (entries.length === legendSize) return;
+  legendSize = entries.length;
+  $("#legend").innerHTML = entries.map(([stage, colour]) => {
+    const desc = STAGE_NAMES[baseName(stage)];
+    return `<span class="legend-item" data-stage="${stage.replace(/[<&"]/g, "")}"><span class="swatch" style="background:${colour}"></span>`
+      + `${stage.replace(/[<&]/g, "")}${desc ? ` <span class="desc">${desc}</span>` : ""}</span>`;
+  }).join("");
+}
+
+function renderPanels() {
+  const entries = current.sorted().filter((s) => current.stats.has(s.node)).map((s) => [s.node, current.stats.get(s.node), s.stages]);
+  // Stats of nodes with no frames yet still show (their stages from the nodes list).
+  for (const [node, stats] of current.stats) {
+    if (!current.stores.has(node)) entries.push([node, stats, current.nodes.get(node)?.stages ?? []]);
+  }
+  setHtml($("#stats-body"), statsHtml(entries, colours, view.windowed && current.kind === "live", view.openGaps));
+  const nodes = [...current.nodes.values()].sort((a, b) => (a.node < b.node ? -1 : 1));
+  setHtml($("#nodes-body"), nodesHtml(nodes, current.kind !== "live"));
+}
+
+function frame(ts) {
+  requestAnimationFrame(frame);
+  const dt = lastTs === null ? 0 : ts - lastTs;
+  lastTs = ts;
+  if (current.kind === "live") {
+    if (view.follow) view.end = relayNow();
+  } else if (view.follow && current.span) {
+    view.end += dt;
+    if (view.end >= current.span[1]) {
+      view.end = current.span[1];
+      view.follow = false;
+      updatePauseButton();
+    }
+  }
+  const t0 = performance.now();
+  if (view.dirty || view.follow || mouse?.fresh) {
+    view.dirty = false;
+    if (view.tab === "stage") stageView.draw(view.end - view.width, view.end);
+    else frameView.draw(view.end, view.frameCount);
+    updateTooltip();
+    if (mouse) mouse.fresh = false;
+    updateLegend();
+    const clock = $("#relay-clock");
+    const text = formatClock(view.end);
+    if (clock.textContent !== text) clock.textContent = text;
+  }
+  if (view.panelsDirty && ts - panelsAt > PANEL_REFRESH_MS) {
+    panelsAt = ts;
+    view.panelsDirty = false;
+    renderPanels();
+  }
+  perf.record(ts, performance.now() - t0);
+}
+
+// --- start -----------------------------------------------------------------------------------
+
+$("#pause").addEventListener("click", togglePause);
+$("#zoom-reset").addEventListener("click", resetView);
+$("#per-source").addEventListener("change", (ev) => {
+  view.perSource = ev.target.checked;
+  view.expanded.clear();
+  view.dirty = true;
+});
+$("#set-limit").addEventListener("click", () => setLimit($("#limit-input").value));
+$("#limit-input").addEventListener("keydown", (ev) => {
+  if (ev.key === "Enter") setLimit(ev.target.value);
+});
+$("#frame-count").addEventListener("change", (ev) => {
+  view.frameCount = Number(ev.target.value);
+  view.dirty = true;
+});
+$("#stats-window").addEventListener("change", (ev) => {
+  view.windowed = ev.target.checked;
+  view.panelsDirty = true;
+});
+$("#stats-body").addEventListener("toggle", (ev) => {
+  // Refreshes rebuild the tables: remember which gaps tables the user opened.
+  const node = ev.target.closest(".stats-node")?.dataset.node;
+  if (node !== undefined) view.openGaps[ev.target.open ? "add" : "delete"](node);
+}, true);
+$("#session-select").addEventListener("change", (ev) => chooseData(ev.target.value));
+$("#session-select").addEventListener("focus", refreshSessions);
+for (const b of document.querySelectorAll(".tab")) b.addEventListener("click", () => setTab(b.dataset.tab));
+const stageCanvas = $("#stage-canvas");
+stageCanvas.addEventListener("wheel", stageWheel, { passive: false });
+stageCanvas.addEventListener("mousedown", stageMouseDown);
+stageCanvas.addEventListener("mousemove", trackMouse("stage"));
+stageCanvas.addEventListener("mouseleave", () => {
+  mouse = null;
+  hideTooltip();
+});
+const panels = $("#frame-panels");
+panels.addEventListener("mousemove", trackMouse("frame"));
+panels.addEventListener("mouseleave", () => {
+  mouse = null;
+  hideTooltip();
+});
+panels.addEventListener("wheel", frameWheel, { passive: false });
+window.addEventListener("mousemove", windowMouseMove);
+window.addEventListener("mouseup", windowMouseUp);
+window.addEventListener("resize", () => {
+  view.dirty = true;
+});
+
+window.dcuscope = {
+  /** What the page holds and last drew: for tests and benchmarks, not an API. */
+  debug() {
+    const stores = {};
+    for (const s of current.sorted()) {
+      stores[s.node] = { size: s.size, received: s.received, run: s.run, stages: s.stages, sources: s.sources, lastN: s.lastN };
+    }
+    const tip = $("#tooltip");
+    return {
+      mode: current.kind, session: current.id, loaded: current.kind === "live" || !!current.loaded,
+      paused: !view.follow, tab: view.tab, window: [view.end - view.width, view.end], limit: view.limit,
+      transport: feed.transport, stores, colours: Object.fromEntries(colours.entries()),
+      stage: stageView.last, frame: frameView.last, perf: perf.summary(),
+      tooltip: tip.hidden ? null : tip.textContent,
+      stats: Object.fromEntries(current.stats), nodes: [...current.nodes.values()],
+    };
+  },
+  perf: (lastMs) => perf.summary(lastMs),
+  setLimit,
+};
+
+feed.start();
+refreshSessions();
+setInterval(refreshSessions, 10000);
+requestAnimationFrame(frame);

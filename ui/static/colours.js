@@ -1,0 +1,44 @@
+// Stage colours: the paper's legend for the five DeepStream-like stages, a palette for the rest.
+
+export const STAGE_COLOURS = Object.freeze({
+  mux: "#e53935", // red: frame collection (nvstreammux)
+  infer: "#1e88e5", // blue: neural network (nvinfer)
+  tiler: "#fdd835", // yellow: collage (nvmultistreamtiler)
+  convert: "#43a047", // green: post-inference processing (nvvideoconvert)
+  osd: "#8e24aa", // purple: on-screen display (nvdsosd)
+});
+
+// Elements inserted by a configuration (queues, a second infer named otherwise, ...): colours
+// far from the five above, assigned in order of appearance so every DCU shows a stage alike.
+export const PALETTE = Object.freeze(["#fb8c00", "#00897b", "#6d4c41", "#d81b60", "#546e7a",
+  "#c0ca33", "#00acc1", "#3949ab", "#f4511e", "#7cb342"]);
+
+export const OVER_LIMIT = "#8b0000"; // deep red: a frame slower than the limit
+export const UNDER_LIMIT = "#78909c";
+export const LIMIT_LINE = "#ff1744";
+
+/** "infer_2" -> "infer": stage names are element names, de-duplicated with _N. */
+export function baseName(stage) {
+  return String(stage).replace(/_\d+$/, "");
+}
+
+export class StageColours {
+  constructor() {
+    this.assigned = new Map();
+    this.next = 0;
+  }
+
+  get(stage) {
+    let colour = this.assigned.get(stage);
+    if (colour === undefined) {
+      colour = STAGE_COLOURS[baseName(stage)] ?? PALETTE[this.next++ % PALETTE.length];
+      this.assigned.set(stage, colour);
+    }
+    return colour;
+  }
+
+  /** [[stage, colour]] in order of first use: the legend. */
+  entries() {
+    return [...this.assigned.entries()];
+  }
+}

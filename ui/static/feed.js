@@ -1,0 +1,194 @@
+// Where the page's data comes from: the relay's Socket.IO namespace /ui (live pushes), its HTTP
+// API (backfill, statistics, stored sessions), or polling the API when the Socket.IO client is
+// not installed. A token from ?token= goes with every request.
+
+export const BACKFILL_FRAMES = 2000;
+export const SESSION_PAGE = 10000;
+export const SESSION_CAPACITY = 262144; // frames per node a stored session is browsed with, at most
+const POLL_FRAMES_MS = 250;
+const POLL_SLOW_MS = 1000;
+
+export class ApiError extends Error {
+  constructor(status, message) {
+    super(message);
+    this.status = status;
+  }
+}
+
+/** The token the page was opened with (?token=...), or null. */
+export function tokenFromUrl(search = location.search) {
+  return new URLSearchParams(search).get("token");
+}
+
+export class Api {
+  constructor(token) {
+    this.token = token;
+  }
+
+  async get(path) {
+    const headers = this.token ? { Authorization: `Bearer ${this.token}` } : {};
+    const r = await fetch(path, { headers, cache: "no-store" });
+    if (!r.ok) {
+      let message = `${r.status} ${r.statusText}`;
+      try {
+        message = (await r.json()).error ?? message;
+      } catch (_) { /* not JSON */ }
+      throw new ApiError(r.status, message);
+    }
+    return r.json();
+  }
+}
+
+const q = encodeURIComponent;
+
+/**
+ * Live data. `sink` receives: nodes(list), frames(node, block), stats(node, stats),
+ * relayTime(ms), status(kind, text); `cursor(node, run)` says which frame it holds last.
+ */
+export class LiveFeed {
+  constructor(api, sink) {
+    this.api = api;
+    this.sink = sink;
+    this.known = new Map(); // node -> run last seen in `nodes`
+    this.pending = new Map(); // node -> frames blocks pushed while its backfill runs
+    this.transport = null;
+    this.socket = null;
+  }
+
+  start() {
+    if (typeof window.io === "function") this.startSocket();
+    else this.startPolling("the Socket.IO client (vendor/socket.io.min.js) is not installed");
+  }
+
+  startSocket() {
+    this.transport = "socket.io";
+    const socket = window.io("/ui", { auth: this.api.token ? { token: this.api.token } : {}, reconnectionDelayMax: 5000 });
+    this.socket = socket;
+    socket.on("connect", () => {
+      this.sink.status("live", "live");
+      // After a reconnect the pushes went on without us: fetch what was missed.
+      for (const node of this.known.keys()) this.backfill(node);
+    });
+    socket.on("connect_error", (err) => this.sink.status("error", err.message || String(err)));
+    socket.on("disconnect", (reason) => this.sink.status("down", `disconnected (${reason})`));
+    socket.on("nodes", (list) => this.onNodes(list));
+    socket.on("frames", (msg) => {
+      this.sink.relayTime(msg.t_ns / 1e6);
+      for (const [node, block] of Object.entries(msg.nodes)) {
+        const queue = this.pending.get(node);
+        if (queue) {
+          queue.push(block);
+        } else if (block.frames.length && block.frames[0].n > this.sink.cursor(node, block.run) + 1) {
+          // The relay pushes at most its newest frames per tick: fetch the ones it skipped.
+          this.backfill(node, [block]);
+        } else {
+          this.sink.frames(node, block);
+        }
+      }
+    });
+    socket.on("stats", (msg) => {
+      for (const [node, stats] of Object.entries(msg.nodes)) this.sink.stats(node, stats);
+    });
+  }
+
+  onNodes(list) {
+    this.sink.nodes(list);
+    for (const n of list) {
+      if (this.known.get(n.node) !== n.run) {
+        this.known.set(n.node, n.run);
+        this.backfill(n.node);
+        this.api.get(`/api/stats?node=${q(n.node)}`).then((s) => this.sink.stats(n.node, s), () => {});
+      }
+    }
+  }
+
+  /** Fetch the frames after the page's cursor, holding back pushes (`held`, then new ones) until they are in. */
+  async backfill(node, held = []) {
+    if (this.pending.has(node)) {
+      this.pending.get(node).push(...held);
+      return;
+    }
+    this.pending.set(node, held);
+    try {
+      const run = held.length ? held[0].run : this.known.get(node);
+      for (;;) {
+        const since = this.sink.cursor(node, run);
+        const block = await this.api.get(`/api/frames?node=${q(node)}&since=${since}&limit=${BACKFILL_FRAMES}`);
+        this.sink.frames(node, block);
+        if (block.frames.length < BACKFILL_FRAMES || block.run !== run) break;
+      }
+    } catch (err) {
+      this.sink.status("error", `backfill of ${node}: ${err.message}`);
+    } finally {
+      const queue = this.pending.get(node) ?? [];
+      this.pending.delete(node);
+      for (const block of queue) this.sink.frames(node, block);
+    }
+  }
+
+  startPolling(why) {
+    this.transport = "polling";
+    this.sink.status("live", `polling the HTTP API (${why})`);
+    const slow = async () => {
+      try {
+        const list = await this.api.get("/api/nodes");
+        this.sink.nodes(list);
+        for (const n of list) {
+          this.known.set(n.node, n.run);
+          this.sink.stats(n.node, await this.api.get(`/api/stats?node=${q(n.node)}`));
+        }
+        this.sink.status("live", `polling the HTTP API (${why})`);
+      } catch (err) {
+        this.sink.status("error", err.message);
+      }
+    };
+    const fast = async () => {
+      for (const [node, run] of this.known) {
+        try {
+          const since = this.sink.cursor(node, run);
+          const block = await this.api.get(`/api/frames?node=${q(node)}&since=${since}&limit=${BACKFILL_FRAMES}`);
+          this.sink.frames(node, block);
+        } catch (_) { /* the slow loop reports errors */ }
+      }
+      this.sink.relayTime(null);
+    };
+    slow();
+    setInterval(slow, POLL_SLOW_MS);
+    const loop = async () => {
+      await fast();
+      setTimeout(loop, POLL_FRAMES_MS);
+    };
+    loop();
+  }
+}
+
+/** Stored sessions, newest first, as GET /api/sessions gives them. */
+export function listSessions(api) {
+  return api.get("/api/sessions");
+}
+
+/**
+ * A stored session: its nodes, every complete frame (up to SESSION_CAPACITY per node, paged) and
+ * statistics. `onBlock(summary, block)` gets the frames as they arrive; `progress(0..1)`.
+ */
+export async function loadSession(api, id, { onNode, onBlock, onStats, progress }) {
+  const nodes = await api.get(`/api/sessions/${q(id)}/nodes`);
+  const total = nodes.reduce((a, n) => a + Math.min(n.frames, SESSION_CAPACITY), 0);
+  let done = 0;
+  for (const n of nodes) {
+    onNode(n);
+    api.get(`/api/sessions/${q(id)}/stats?node=${q(n.node)}`).then((s) => onStats(n.node, s), () => {});
+    let since = 0;
+    const want = Math.min(n.frames, SESSION_CAPACITY);
+    while (since < want) {
+      const block = await api.get(`/api/sessions/${q(id)}/frames?node=${q(n.node)}&since=${since}&limit=${Math.min(SESSION_PAGE, want - since)}`);
+      if (!block.frames.length) break;
+      onBlock(n, block);
+      done += block.frames.length;
+      since = block.cursor;
+      progress(total ? done / total : 1);
+    }
+  }
+  progress(1);
+  return nodes;
+}

@@ -1,0 +1,105 @@
+// Statistics and nodes panels: HTML tables rebuilt from the relay's JSON (only when it changed).
+
+import { formatDelay } from "./timefmt.js";
+
+const esc = (s) => String(s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
+const ms = (v) => (v === null || v === undefined ? "–" : formatDelay(v));
+const int = (v) => (v === null || v === undefined ? "–" : Number(v).toLocaleString("en-US"));
+
+/** Set innerHTML only when it differs: the panels refresh every second without churning the DOM. */
+export function setHtml(el, html) {
+  if (el._html !== html) {
+    el._html = html;
+    el.innerHTML = html;
+  }
+}
+
+/** The stage with the largest mean delay (the relay's own rule), for window statistics. */
+export function bottleneckOf(stats) {
+  let best = null;
+  for (const [name, s] of Object.entries(stats.stages ?? {})) {
+    if (s.mean_ms !== null && (best === null || s.mean_ms > best.mean_ms)) best = { stage: name, mean_ms: s.mean_ms };
+  }
+  if (best && stats.frame?.mean_ms) best.share = best.mean_ms / stats.frame.mean_ms;
+  return best;
+}
+
+function summaryCells(s) {
+  return `<td>${int(s.count)}</td><td>${ms(s.mean_ms)}</td><td>${ms(s.p50_ms)}</td><td>${ms(s.p95_ms)}</td>`
+    + `<td>${ms(s.p99_ms)}</td><td>${ms(s.max_ms)}</td>`;
+}
+
+/**
+ * One block per node: stage rows (bottleneck highlighted), the end-to-end row, gaps, fps, drops.
+ * `windowed`: show the relay's rolling window (``stats.window``) instead of the whole run;
+ * `openGaps`: nodes whose gaps table the user opened (kept open across refreshes).
+ */
+export function statsHtml(entries, colours, windowed, openGaps = new Set()) {
+  if (!entries.length) return `<p class="muted">No statistics yet.</p>`;
+  return entries.map(([node, full, order]) => {
+    const st = windowed && full.window ? full.window : full;
+    const neck = windowed && full.window ? bottleneckOf(st) : full.bottleneck ?? bottleneckOf(st);
+    const frameMean = st.frame?.mean_ms;
+    const names = Object.keys(st.stages ?? {}).sort((a, b) => order.indexOf(a) - order.indexOf(b));
+    const rows = names.map((name) => {
+      const s = st.stages[name];
+      const isNeck = neck && neck.stage === name;
+      const share = frameMean && s.mean_ms !== null ? `${((100 * s.mean_ms) / frameMean).toFixed(0)}%` : "–";
+      return `<tr data-stage="${esc(name)}"${isNeck ? ' class="bottleneck"' : ""}>`
+        + `<td><span class="swatch" style="background:${colours.get(name)}"></span>${esc(name)}`
+        + `${isNeck ? ' <span class="badge">bottleneck</span>' : ""}</td>${summaryCells(s)}<td>${share}</td></tr>`;
+    }).join("");
+    const gaps = Object.entries(st.gaps ?? {}).map(([name, s]) => `<tr><td>${esc(name)}</td>${summaryCells(s)}<td></td></tr>`).join("");
+    const fps = Object.entries(st.fps ?? {}).map(([src, v]) => `source ${esc(src)}: ${Number(v).toFixed(1)}`).join(" · ") || "–";
+    const dropped = full.dropped ?? 0;
+    const lost = full.lost ?? 0;
+    const frames = st.frames ?? {};
+    const scope = windowed && full.window ? `last ${full.window.window_s} s` : "whole run";
+    const run = full.run ? ` · run ${esc(String(full.run).slice(0, 8))}` : "";
+    const session = full.session ? ` · session ${esc(full.session)}` : "";
+    return `<div class="stats-node" data-node="${esc(node)}">
+      <h3>${esc(node)} <span class="muted">${scope}${run}${session}</span></h3>
+      <table class="stats"><thead><tr><th>stage</th><th>frames</th><th>mean</th><th>p50</th><th>p95</th><th>p99</th><th>max</th><th>share</th></tr></thead>
+      <tbody>${rows}<tr class="frame-row"><td>frame (end-to-end)</td>${summaryCells(st.frame ?? {})}<td>100%</td></tr></tbody></table>
+      ${gaps ? `<details${openGaps.has(node) ? " open" : ""}><summary>gaps between stages (queueing, hand-over)</summary>
+        <table class="stats"><tbody>${gaps}</tbody></table></details>` : ""}
+      <p class="stats-foot">fps ${fps}<br>drops <b class="drops">${int(dropped + lost)}</b> (probe buffer ${int(dropped)}, transport ${int(lost)})
+      · frames ${int(frames.complete)} complete, ${int(frames.incomplete)} incomplete</p></div>`;
+  }).join("");
+}
+
+function offsetText(clock) {
+  if (!clock || clock.offset_us === null || clock.offset_us === undefined) return `<span class="muted">no estimate yet</span>`;
+  const sign = clock.offset_us >= 0 ? "+" : "−";
+  return `${sign}${formatDelay(Math.abs(clock.offset_us) / 1000)} ± ${formatDelay(clock.uncertainty_us / 1000)}`;
+}
+
+function ptpText(ptp) {
+  if (!ptp || !ptp.state) return "–";
+  const parts = [`<span class="ptp ptp-${esc(ptp.state)}">${esc(ptp.state)}</span>`];
+  if (ptp.master_offset_ns !== undefined) parts.push(`offset ${esc(ptp.master_offset_ns)} ns`);
+  if (ptp.gm_identity) parts.push(`GM ${esc(ptp.gm_identity)}`);
+  if (ptp.gm_present === false) parts.push("no grandmaster");
+  if (ptp.reason) parts.push(`<span class="muted">${esc(ptp.reason)}</span>`);
+  return parts.join(" · ");
+}
+
+/** Nodes table: connection, clock offset ± uncertainty, applied correction, PTP, counters. */
+export function nodesHtml(nodes, stored) {
+  if (!nodes.length) return `<p class="muted">No node has connected yet.</p>`;
+  const rows = nodes.map((n) => {
+    const state = stored ? (n.ended ? "stored" : "stored (incomplete)") : n.connected ? "connected" : n.ended ? "ended" : "disconnected";
+    const cls = stored ? "stored" : n.connected ? "up" : n.ended ? "ended" : "down";
+    const clock = n.clock ?? {};
+    const corr = clock.applied ? `${esc(clock.applied)}${clock.correction_us ? ` (${formatDelay(clock.correction_us / 1000)})` : ""}` : "–";
+    const frames = stored ? n.frames : n.frames?.shown;
+    const drops = stored ? (n.dropped ?? 0) + (n.lost ?? 0) : n.drops;
+    return `<tr data-node="${esc(n.node)}"><td><b>${esc(n.node)}</b></td>`
+      + `<td><span class="dot dot-${cls}"></span><span class="conn-state">${state}</span></td>`
+      + `<td class="clock-offset">${offsetText(clock)}</td><td>${corr}</td><td>${ptpText(n.ptp ?? clock.ptp)}</td>`
+      + `<td>${int(n.events)}</td><td>${int(frames)}</td><td>${int(drops)}</td>`
+      + `<td class="muted">${esc(String(n.run).slice(0, 8))}</td></tr>`;
+  }).join("");
+  return `<table class="nodes"><thead><tr><th>DCU</th><th>state</th><th>clock offset</th><th>correction</th><th>PTP</th>`
+    + `<th>events</th><th>frames</th><th>drops</th><th>run</th></tr></thead><tbody>${rows}</tbody></table>`;
+}

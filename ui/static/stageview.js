@@ -1,0 +1,268 @@
+// Stage view (the paper's Figure 13): one row per DCU, or per DCU and source; in a row one lane
+// per stage, and for every frame a bar from its enter to its exit at that stage.
+
+import { clockTicks, formatClock, formatClockPrecise, formatDelay } from "./timefmt.js";
+
+export const GUTTER = 150;
+const AXIS_H = 30;
+const RIGHT_PAD = 10;
+const LANE_H = 10;
+const LANE_GAP = 2;
+const ROW_PAD = 6;
+const HIT_PX = 3;
+
+export class StageView {
+  /**
+   * @param canvas the <canvas> to draw on
+   * @param model {stores(): NodeStore[] sorted by node, colours: StageColours,
+   *               expanded(node): bool, describe(node, source): string}
+   */
+  constructor(canvas, model) {
+    this.canvas = canvas;
+    this.ctx = canvas.getContext("2d", { alpha: false });
+    this.model = model;
+    this.rows = [];
+    this.t0 = 0;
+    this.t1 = 1;
+    this.scratch = new Int32Array(1024);
+    this.last = { bars: {}, runs: 0, samples: {}, rows: [] };
+  }
+
+  get plotX() {
+    return GUTTER;
+  }
+
+  get plotWidth() {
+    return Math.max(50, this.cssWidth - GUTTER - RIGHT_PAD);
+  }
+
+  /** Rows and their lanes; resizes the canvas when its content height changed. */
+  layout() {
+    const rows = [];
+    let y = AXIS_H;
+    for (const store of this.model.stores()) {
+      const lanes = store.lanes;
+      const h = Math.max(1, lanes.length) * (LANE_H + LANE_GAP) - LANE_GAP + 2 * ROW_PAD;
+      const split = this.model.expanded(store.node) && store.sources.length > 0;
+      rows.push({ store, node: store.node, source: null, y, h, lanes, header: true, split });
+      y += h;
+      if (split) {
+        for (const source of store.sources) {
+          rows.push({ store, node: store.node, source, y, h, lanes, header: false });
+          y += h;
+        }
+      }
+    }
+    this.rows = rows;
+    const cssHeight = Math.max(y + 8, 120);
+    const cssWidth = Math.max(300, this.canvas.parentElement.clientWidth);
+    const dpr = window.devicePixelRatio || 1;
+    if (cssWidth !== this.cssWidth || cssHeight !== this.cssHeight || dpr !== this.dpr) {
+      this.cssWidth = cssWidth;
+      this.cssHeight = cssHeight;
+      this.dpr = dpr;
+      this.canvas.width = Math.round(cssWidth * dpr);
+      this.canvas.height = Math.round(cssHeight * dpr);
+      this.canvas.style.width = `${cssWidth}px`;
+      this.canvas.style.height = `${cssHeight}px`;
+    }
+  }
+
+  /** Draw the window [t0, t1] (ms since the epoch, relay clock). */
+  draw(t0, t1) {
+    this.layout();
+    this.t0 = t0;
+    this.t1 = t1;
+    const ctx = this.ctx;
+    const W = this.cssWidth;
+    const H = this.cssHeight;
+    const X = GUTTER;
+    const PW = this.plotWidth;
+    const k = PW / (t1 - t0);
+    ctx.setTransform(this.dpr, 0, 0, this.dpr, 0, 0);
+    ctx.fillStyle = "#ffffff";
+    ctx.fillRect(0, 0, W, H);
+
+    // Row backgrounds, then the time grid over them, then bars on top.
+    this.rows.forEach((row, i) => {
+      ctx.fillStyle = row.header ? (i % 2 ? "#f4f6f8" : "#fafbfc") : "#fdfdf6";
+      ctx.fillRect(0, row.y, W, row.h);
+    });
+    const ticks = clockTicks(t0, t1, PW);
+    ctx.fillStyle = "#eceff1";
+    for (const t of ticks.minor) ctx.fillRect(Math.round(X + (t - t0) * k), AXIS_H - 4, 1, H - AXIS_H + 4);
+    ctx.fillStyle = "#cfd8dc";
+    for (const t of ticks.major) ctx.fillRect(Math.round(X + (t - t0) * k), AXIS_H - 8, 1, H - AXIS_H + 8);
+    ctx.fillStyle = "#263238";
+    ctx.font = "11px ui-monospace, SFMono-Regular, Menlo, monospace";
+    ctx.textBaseline = "top";
+    ctx.textAlign = "center";
+    // Edge labels give the window's exact bounds; tick labels that would overlap them are left out.
+    const half = ctx.measureText("00:00:00.000").width / 2 + 6;
+    for (const t of ticks.major) {
+      const x = X + (t - t0) * k;
+      if (x > X + 3 * half && x < X + PW - 3 * half) ctx.fillText(formatClock(t), x, 6);
+    }
+    ctx.textAlign = "left";
+    ctx.fillText(formatClock(t0), X, 6);
+    ctx.textAlign = "right";
+    ctx.fillText(formatClock(t1), X + PW, 6);
+
+    const bars = {};
+    const samples = {};
+    const bySource = {};
+    let runs = 0;
+    for (const row of this.rows) {
+      const store = row.store;
+      this.drawLabel(row);
+      if (!store.size) continue;
+      const visible = this.visible(store, row.source, t0, t1);
+      const n = visible.length;
+      const S = store.S;
+      const perNode = (bars[row.node] ??= {});
+      row.lanes.forEach((s, li) => {
+        const stage = store.stages[s];
+        const y = row.y + ROW_PAD + li * (LANE_H + LANE_GAP);
+        ctx.fillStyle = this.model.colours.get(stage);
+        let rx0 = -1;
+        let rx1 = -1;
+        let drawn = 0;
+        let best = null;
+        const flush = () => {
+          if (rx0 < 0) return;
+          // A 1 px seam between touching bars wide enough to show it keeps frames apart.
+          const w = rx1 - rx0 >= 4 ? rx1 - rx0 - 1 : rx1 - rx0;
+          ctx.fillRect(rx0, y, w, LANE_H);
+          runs++;
+          if (best === null || w > best.w) best = { x: rx0, y, w, h: LANE_H };
+        };
+        for (let j = 0; j < n; j++) {
+          const b = store.slot(visible[j]) * S + s;
+          const a = store.enter[b];
+          const e = store.exit[b];
+          if (!(e >= t0 && a <= t1)) continue; // NaN fails both: no bar
+          const px0 = Math.floor(X + Math.max(a - t0, 0) * k);
+          const px1 = Math.max(px0 + 1, Math.round(X + Math.min(e - t0, t1 - t0) * k));
+          drawn++;
+          if (rx0 >= 0 && px0 <= rx1 && (px0 < rx1 - 1 || px1 - px0 <= 2 || rx1 - rx0 <= 2)) {
+            rx0 = Math.min(rx0, px0);
+            rx1 = Math.max(rx1, px1);
+          } else {
+            flush();
+            rx0 = px0;
+            rx1 = px1;
+          }
+        }
+        flush();
+        if (row.header) {
+          perNode[stage] = drawn;
+          if (best) (samples[row.node] ??= {})[stage] = best;
+        } else {
+          ((bySource[row.node] ??= {})[row.source] ??= {})[stage] = drawn;
+        }
+      });
+    }
+    if (!this.rows.length) {
+      ctx.fillStyle = "#607d8b";
+      ctx.font = "14px system-ui, sans-serif";
+      ctx.textAlign = "left";
+      ctx.fillText("Waiting for nodes: dcuscope run CONFIG --probes --relay URL --node NAME", X, AXIS_H + 20);
+    }
+    this.last = {
+      bars, bySource, runs, samples,
+      rows: this.rows.map((r) => ({ node: r.node, source: r.source, y: r.y, h: r.h, lanes: r.lanes.map((s) => r.store.stages[s]) })),
+    };
+  }
+
+  drawLabel(row) {
+    const ctx = this.ctx;
+    ctx.textAlign = "left";
+    ctx.textBaseline = "middle";
+    ctx.fillStyle = "#263238";
+    if (row.header) {
+      ctx.font = "bold 13px system-ui, sans-serif";
+      const mark = row.store.sources.length > 1 ? (row.split ? "▾ " : "▸ ") : "";
+      ctx.fillText(mark + row.node, 8, row.y + Math.min(row.h / 2, 16));
+      if (row.split) {
+        ctx.font = "11px system-ui, sans-serif";
+        ctx.fillStyle = "#607d8b";
+        ctx.fillText("all sources", 22, row.y + Math.min(row.h / 2, 16) + 15);
+      }
+    } else {
+      ctx.font = "12px system-ui, sans-serif";
+      ctx.fillText(`source ${row.source}`, 22, row.y + 14);
+      ctx.font = "10px system-ui, sans-serif";
+      ctx.fillStyle = "#607d8b";
+      const text = this.model.describe(row.node, row.source);
+      ctx.fillText(text.length > 20 ? `…${text.slice(-19)}` : text, 22, row.y + 28);
+    }
+    ctx.font = "9px system-ui, sans-serif";
+    ctx.textAlign = "right";
+    ctx.fillStyle = "#78909c";
+    row.lanes.forEach((s, li) => {
+      ctx.fillText(row.store.stages[s], GUTTER - 6, row.y + ROW_PAD + li * (LANE_H + LANE_GAP) + LANE_H / 2 + 1);
+    });
+  }
+
+  /** Logical indices of the frames of `source` (null: all) whose span meets [t0, t1]. */
+  visible(store, source, t0, t1) {
+    if (this.scratch.length < store.size) this.scratch = new Int32Array(store.capacity);
+    let n = 0;
+    for (let i = store.firstEndingAfter(t0); i < store.size; i++) {
+      const p = store.slot(i);
+      if (store.origin[p] > t1 || store.end[p] < t0) continue;
+      if (source !== null && store.source[p] !== source) continue;
+      this.scratch[n++] = i;
+    }
+    return this.scratch.subarray(0, n);
+  }
+
+  /** What is under (x, y) in CSS px: a bar's details, the row's node (gutter), or null. */
+  hit(x, y) {
+    const row = this.rows.find((r) => y >= r.y && y < r.y + r.h);
+    if (!row) return null;
+    if (x < GUTTER) return { gutter: true, node: row.node, header: row.header };
+    const li = Math.floor((y - row.y - ROW_PAD + LANE_GAP / 2) / (LANE_H + LANE_GAP));
+    if (li < 0 || li >= row.lanes.length) return null;
+    const s = row.lanes[li];
+    const store = row.store;
+    const k = this.plotWidth / (this.t1 - this.t0);
+    const t = this.t0 + (x - GUTTER) / k;
+    const tol = HIT_PX / k;
+    let best = -1;
+    let bestDist = Infinity;
+    for (let i = store.firstEndingAfter(t - tol); i < store.size; i++) {
+      const p = store.slot(i);
+      if (row.source !== null && store.source[p] !== row.source) continue;
+      const a = store.enter[p * store.S + s];
+      const e = store.exit[p * store.S + s];
+      if (!(a <= t + tol && e >= t - tol)) continue;
+      const dist = t < a ? a - t : t > e ? t - e : 0;
+      if (dist < bestDist || (dist === bestDist && e - a < this._span(store, best, s))) {
+        best = p;
+        bestDist = dist;
+      }
+    }
+    if (best < 0) return null;
+    const a = store.enter[best * store.S + s];
+    const e = store.exit[best * store.S + s];
+    return {
+      node: store.node, stage: store.stages[s], source: store.source[best], frame: store.frame[best],
+      enter: a, exit: e, delay: e - a, frameDelay: store.delay[best],
+    };
+  }
+
+  _span(store, p, s) {
+    return p < 0 ? Infinity : store.exit[p * store.S + s] - store.enter[p * store.S + s];
+  }
+
+  /** Tooltip lines of a hit. */
+  static describeHit(h, describe) {
+    return [
+      `${h.node} · ${h.stage}`,
+      `source ${h.source} (${describe(h.node, h.source)}) · frame ${h.frame}`,
+      `enter ${formatClockPrecise(h.enter)}  exit ${formatClockPrecise(h.exit)}`,
+      `delay ${formatDelay(h.delay)}  (frame end-to-end ${formatDelay(h.frameDelay)})`,
+    ];
+  }
+}
