@@ -15,6 +15,7 @@ import argparse
 import json
 import sys
 from contextlib import contextmanager
+from pathlib import Path
 
 from pipeline.errors import DcuscopeError
 from probes.export import perfetto_document, write_csv
@@ -44,8 +45,9 @@ def add_export_parser(subparsers) -> argparse.ArgumentParser:
                     "following each frame; µs since the earliest event). csv: one row per frame "
                     "per stage.",
     )
-    # nargs="*": other inputs (the relay's --db/--session) may stand in for trace files.
     p.add_argument("traces", nargs="*", metavar="TRACE", help="trace file(s) written by `dcuscope run`")
+    p.add_argument("--db", metavar="PATH", help="a relay's SQLite database, instead of trace files")
+    p.add_argument("--session", metavar="ID", help="with --db: the stored session to export (see /api/sessions)")
     p.add_argument("--format", choices=("perfetto", "csv"), default="perfetto", help="output format (default perfetto)")
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="output file, - for stdout")
     p.set_defaults(func=run_export)
@@ -65,9 +67,7 @@ def run_stats(args: argparse.Namespace) -> int:
 
 def run_export(args: argparse.Namespace) -> int:
     with _user_errors() as failed:
-        if not args.traces:
-            raise DcuscopeError("export: give at least one TRACE file")
-        nodes = [(t.header, t.events) for t in (read_trace(path) for path in args.traces)]
+        nodes = _export_inputs(args)
         with _open_output(args.output) as out:
             if args.format == "csv":
                 write_csv(out, nodes)
@@ -75,6 +75,24 @@ def run_export(args: argparse.Namespace) -> int:
                 json.dump(perfetto_document(nodes), out, separators=(",", ":"), ensure_ascii=False)
                 out.write("\n")
     return 2 if failed else 0
+
+
+def _export_inputs(args: argparse.Namespace) -> list:
+    """(header, events) per node: from trace files, or from a relay's stored session."""
+    if args.db is not None or args.session is not None:
+        if args.traces or args.db is None or args.session is None:
+            raise DcuscopeError("export: give either TRACE files, or --db PATH with --session ID")
+        if not Path(args.db).is_file():
+            raise DcuscopeError(f"export: {args.db}: no such database")
+        from relay.storage import load_session  # the relay's modules load only for this input
+
+        nodes = load_session(args.db, args.session)
+        if not nodes:
+            raise DcuscopeError(f"export: {args.db}: session {args.session} holds no events")
+        return nodes
+    if not args.traces:
+        raise DcuscopeError("export: give at least one TRACE file (or --db PATH --session ID)")
+    return [(t.header, t.events) for t in (read_trace(path) for path in args.traces)]
 
 
 @contextmanager

@@ -1,0 +1,226 @@
+"""Relay benchmark: sustained ingest (storage + live statistics) and UI-visible lag.
+
+For each node count (default 2, 8, 32), on 127.0.0.1:
+
+1. throughput: one relay process, N simulated node processes (``python -m relay.simnode``)
+   each shipping its share of ``--events`` as fast as the relay acknowledges; the rate is
+   events committed to SQLite per second between 10 % and 90 % of the total (every one of
+   them also went through the live pairing);
+2. lag: N nodes paced at ``--rate`` events/s each (the paper's DCU: ~4,300), a browser-side
+   Socket.IO client on ``/ui``; lag = arrival of a ``frames`` push - the timestamp of the
+   frame's last event (its sink enter). The node stamps an event when it happens and ships
+   it within its flush interval (50 ms), so this includes the node's batching;
+   ``push_transit`` is the part from the relay sending a push to the client handling it.
+
+The relay and the node processes share this machine's cores: on a 2-core machine the nodes
+take CPU from the relay, so the figures are a floor. Each phase also reports the relay's CPU
+(% of one core: ``relay_cpu_pct``; in the throughput phase also within the 10-90 % window)
+and that of all node processes (``nodes_cpu_pct``), and ``load_before`` (1-min load average
+when it started: other work on the machine). Prints one JSON line per node count.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_relay.py [--nodes 2 8 32] [--events 2000000]
+        [--batch-events 8192] [--rate 4300] [--seconds 12]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import re
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+import socketio
+
+ROOT = Path(__file__).resolve().parents[1]
+SOURCES = 2
+EVENTS_PER_FRAME = 12  # origin, 5 stages x enter/exit, sink enter
+
+
+def _env() -> dict:
+    e = dict(os.environ)
+    e["PYTHONPATH"] = str(ROOT) + os.pathsep + e.get("PYTHONPATH", "")
+    return e
+
+
+class Relay:
+    def __init__(self, db: Path) -> None:
+        self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", "0", "--db", str(db)], cwd=ROOT,
+                                     env=_env(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        line = self.proc.stdout.readline().decode()
+        m = re.search(r"http://127\.0\.0\.1:(\d+)", line)
+        if not m:
+            raise RuntimeError(f"relay did not start: {line!r}")
+        self.url = f"http://127.0.0.1:{m.group(1)}"
+
+    def get(self, path: str):
+        with urllib.request.urlopen(self.url + path, timeout=30) as r:
+            return json.loads(r.read())
+
+    def cpu_s(self) -> float:
+        """CPU seconds the relay process used so far (user + system)."""
+        return _proc_cpu(self.proc.pid)
+
+    def stored(self) -> int:
+        return sum(run["events"] for s in self.get("/api/sessions") for run in s["runs"])
+
+    def stop(self) -> None:
+        self.proc.terminate()
+        self.proc.wait(30)
+
+
+def start_nodes(url: str, n: int, per_node_events: int, paced: bool, fps: float,
+                batch_events: int = 8192) -> list[subprocess.Popen]:
+    frames = max(1, per_node_events // (EVENTS_PER_FRAME * SOURCES))
+    procs = []
+    for k in range(n):
+        cmd = [sys.executable, "-m", "relay.simnode", "--relay", url, "--node", f"DCU-{k + 1}",
+               "--sources", str(SOURCES), "--frames", str(frames), "--fps", str(fps), "--seed", str(k),
+               "--close-timeout", "120", "--batch-events", str(batch_events)]
+        if paced:
+            cmd.append("--paced")
+        procs.append(subprocess.Popen(cmd, cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE))
+    return procs
+
+
+def wait_nodes(procs: list[subprocess.Popen], timeout: float) -> list[dict]:
+    out = []
+    for p in procs:
+        stdout, stderr = p.communicate(timeout=timeout)
+        if p.returncode != 0:
+            raise RuntimeError(stderr.decode()[-2000:])
+        out.append(json.loads(stdout.decode().strip().splitlines()[-1]))
+    return out
+
+
+def throughput(n: int, total: int, tmp: Path, batch_events: int) -> dict:
+    relay = Relay(tmp / f"tp{n}.db")
+    try:
+        per_node = total // n
+        expected = n * (per_node // (EVENTS_PER_FRAME * SOURCES)) * EVENTS_PER_FRAME * SOURCES
+        children = _children_cpu()
+        cpu0, wall0 = relay.cpu_s(), time.monotonic()
+        procs = start_nodes(relay.url, n, per_node, paced=False, fps=1000.0, batch_events=batch_events)
+        samples = []
+        deadline = time.monotonic() + 600
+        while time.monotonic() < deadline:
+            samples.append((time.monotonic(), relay.stored(), relay.cpu_s()))
+            if samples[-1][1] >= expected:
+                break
+            time.sleep(0.1)
+        relay_cpu = relay.cpu_s() - cpu0
+        wall = time.monotonic() - wall0
+        counters = wait_nodes(procs, 120)
+        t = np.array([s[0] for s in samples])
+        v = np.array([s[1] for s in samples], float)
+        c = np.array([s[2] for s in samples])
+        lo, hi = np.searchsorted(v, 0.1 * expected), min(np.searchsorted(v, 0.9 * expected), len(v) - 1)
+        ok = hi > lo and t[hi] > t[lo]
+        rate = (v[hi] - v[lo]) / (t[hi] - t[lo]) if ok else float("nan")
+        window_cpu = (c[hi] - c[lo]) / (t[hi] - t[lo]) if ok else float("nan")
+        return {"batch_events": batch_events, "events": int(v[-1]), "events_per_s": round(rate),
+                "lost": sum(c["lost"] for c in counters), "window_s": round(float(t[hi] - t[lo]), 2),
+                "relay_cpu_pct_in_window": round(100 * window_cpu), "relay_cpu_pct": round(100 * relay_cpu / wall),
+                "nodes_cpu_pct": round(100 * (_children_cpu() - children) / wall)}
+    finally:
+        relay.stop()
+
+
+async def _watch_ui(url: str, seconds: float) -> tuple[list[float], list[float]]:
+    """Lags of the frames pushed (ms), and of the pushes themselves (arrival - relay send)."""
+    lags: list[float] = []
+    transit: list[float] = []
+    sio = socketio.AsyncClient(reconnection=False)
+
+    def on_frames(data: dict) -> None:
+        now = time.clock_gettime_ns(time.CLOCK_REALTIME)
+        transit.append((now - data["t_ns"]) / 1e6)
+        for block in data["nodes"].values():
+            corr = block["correction_ns"]
+            for f in block["frames"]:
+                last = max(t for t in f["enter"] + f["exit"] if t is not None) + corr
+                lags.append((now - last) / 1e6)
+
+    sio.on("frames", on_frames, namespace="/ui")
+    await sio.connect(url, namespaces=["/ui"], transports=["websocket"], wait_timeout=10)
+    await asyncio.sleep(seconds)
+    await sio.disconnect()
+    return lags, transit
+
+
+def lag(n: int, rate: float, seconds: float, tmp: Path) -> dict:
+    relay = Relay(tmp / f"lag{n}.db")
+    try:
+        fps = rate / (EVENTS_PER_FRAME * SOURCES)
+        # Nodes run long enough to outlast their own start-up (Python imports: ~0.5 CPU-s
+        # each, which on 2 cores and 32 nodes is seconds); measured only once all stream.
+        procs = start_nodes(relay.url, n, int(rate * (seconds + 60)), paced=True, fps=fps)
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:
+            nodes = relay.get("/api/nodes")
+            if len(nodes) == n and all(node["events"] > 0 for node in nodes):
+                break
+            time.sleep(0.5)
+        time.sleep(1.0)
+        cpu0, wall0 = relay.cpu_s(), time.monotonic()
+        nodes_cpu0 = sum(_proc_cpu(p.pid) for p in procs)
+        lags, transit = asyncio.run(_watch_ui(relay.url, seconds))
+        relay_cpu, wall = relay.cpu_s() - cpu0, time.monotonic() - wall0
+        nodes_cpu = sum(_proc_cpu(p.pid) for p in procs) - nodes_cpu0
+        received = sum(node["events"] for node in relay.get("/api/nodes"))
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            p.wait(30)
+        a = np.array(lags)
+        return {"rate_per_node": rate, "seconds": seconds, "frames_seen": len(a), "events_received": received,
+                "lag_p50_ms": round(float(np.percentile(a, 50)), 1) if len(a) else None,
+                "lag_p99_ms": round(float(np.percentile(a, 99)), 1) if len(a) else None,
+                "push_transit_p50_ms": round(float(np.percentile(transit, 50)), 1) if transit else None,
+                "push_transit_p99_ms": round(float(np.percentile(transit, 99)), 1) if transit else None,
+                "relay_cpu_pct": round(100 * relay_cpu / wall), "nodes_cpu_pct": round(100 * nodes_cpu / wall)}
+    finally:
+        relay.stop()
+
+
+def _proc_cpu(pid: int) -> float:
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except FileNotFoundError:
+        return 0.0
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _children_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--nodes", type=int, nargs="+", default=[2, 8, 32])
+    p.add_argument("--events", type=int, default=2_000_000, help="events in all for the throughput phase")
+    p.add_argument("--batch-events", type=int, default=8192,
+                   help="events per batch in the throughput phase (a paced DCU at 4,300/s sends ~215)")
+    p.add_argument("--rate", type=float, default=4300.0, help="events/s per node in the lag phase")
+    p.add_argument("--seconds", type=float, default=12.0, help="length of the lag phase")
+    args = p.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in args.nodes:
+            result = {"nodes": n, "cpus": os.cpu_count(), "load_before": round(os.getloadavg()[0], 1),
+                      "throughput": throughput(n, args.events, Path(tmp), args.batch_events),
+                      "lag": lag(n, args.rate, args.seconds, Path(tmp))}
+            print(json.dumps(result), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

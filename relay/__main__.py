@@ -1,0 +1,22 @@
+"""``python -m relay [--host H] [--port P] [--db PATH] [--token T] [--clock MODE]``: the relay alone."""
+
+import argparse
+import sys
+
+from pipeline.errors import DcuscopeError
+from relay.commands import add_relay_arguments, run_relay
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m relay", description="dcuscope relay")
+    add_relay_arguments(parser)
+    args = parser.parse_args(argv)
+    try:
+        return run_relay(args)
+    except DcuscopeError as exc:
+        print(f"dcuscope relay: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,84 @@
+"""HTTP JSON API of the relay (aiohttp routes); a token, when set, guards every ``/api`` route.
+
+- ``GET /api/health``: {ok, uptime_s, runs, rejected}
+- ``GET /api/nodes``: [{node, run, session, connected, clock {offset_us, uncertainty_us, ...},
+  ptp, events, dropped, lost, drops, ...}], one per node (its newest run)
+- ``GET /api/stats?node=NAME``: ``probes.stats.node_stats`` of the node's newest run, plus
+  ``bottleneck`` and the rolling ``window``
+- ``GET /api/frames?node=NAME&since=CURSOR&limit=N``: complete frames after the cursor
+  (clock-corrected enter/exit per stage, origin, end-to-end delay)
+- ``GET /api/sessions``: stored sessions and their runs, newest first
+- ``GET /api/sessions/ID/{nodes,stats,frames}``: a stored session browsed like a live one
+  (:mod:`relay.sessionapi`)
+"""
+
+from __future__ import annotations
+
+import json
+import time
+
+from aiohttp import web
+
+from relay import storage as db
+from relay.auth import http_token, token_matches
+from relay.state import RelayState
+
+MAX_FRAMES_PER_REQUEST = 2000
+
+
+def add_routes(app: web.Application, state: RelayState, token: str | None, counters) -> None:
+    """``counters()`` returns extra figures for /api/health (rejected connections, pushes)."""
+
+    @web.middleware
+    async def guard(request: web.Request, handler):
+        if request.path.startswith("/api/") and not token_matches(token, http_token(request.headers, request.query)):
+            return web.json_response({"error": "unauthorized: wrong or missing token"}, status=401)
+        return await handler(request)
+
+    app.middlewares.append(guard)
+
+    def run_of(request: web.Request):
+        node = request.query.get("node")
+        if not node:
+            raise _error(web.HTTPBadRequest, "node=NAME is required")
+        rs = state.node_run(node)
+        if rs is None:
+            raise _error(web.HTTPNotFound, f"no node named {node[:100]!r}")
+        return rs
+
+    def int_arg(request: web.Request, name: str, default: int, lo: int, hi: int) -> int:
+        try:
+            value = int(request.query.get(name, default))
+        except ValueError:
+            raise _error(web.HTTPBadRequest, f"{name} must be an integer") from None
+        return max(lo, min(hi, value))
+
+    async def health(request: web.Request) -> web.Response:
+        return web.json_response({"ok": True, "uptime_s": time.time() - state.started, "runs": len(state.runs),
+                                  "clock": state.clock_mode, **counters()})
+
+    async def nodes(request: web.Request) -> web.Response:
+        return web.json_response(state.nodes_view())
+
+    async def stats(request: web.Request) -> web.Response:
+        return web.json_response(state.stats(run_of(request), fresh=True))
+
+    async def frames(request: web.Request) -> web.Response:
+        rs = run_of(request)
+        since = int_arg(request, "since", 0, 0, 1 << 62)
+        limit = int_arg(request, "limit", 200, 1, MAX_FRAMES_PER_REQUEST)
+        rs.live.maintain()
+        return web.json_response(state.frames_view(rs, since, limit))
+
+    async def sessions(request: web.Request) -> web.Response:
+        return web.json_response(await state.storage.call(db.list_sessions))
+
+    app.router.add_get("/api/health", health)
+    app.router.add_get("/api/nodes", nodes)
+    app.router.add_get("/api/stats", stats)
+    app.router.add_get("/api/frames", frames)
+    app.router.add_get("/api/sessions", sessions)
+
+
+def _error(kind: type[web.HTTPException], message: str) -> web.HTTPException:
+    return kind(text=json.dumps({"error": message}), content_type="application/json")

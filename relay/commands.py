@@ -1,0 +1,46 @@
+"""``dcuscope relay``: argparse wiring (``add_relay_parser``), used by ``pipeline/cli.py``."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+
+from relay.clock import CLOCK_MODES
+from relay.errors import RelayError
+
+TOKEN_ENV = "DCUSCOPE_TOKEN"
+
+
+def add_relay_parser(subparsers) -> argparse.ArgumentParser:
+    """Add the ``relay`` subcommand; its ``func`` default runs it (returns the exit status)."""
+    p = subparsers.add_parser(
+        "relay", help="run the monitoring host: ingest from nodes, live delays, storage, API and UI",
+        description="Receive probe events from dcuscope nodes (dcuscope run ... --relay URL), estimate "
+                    "their clock offsets, compute per-stage and per-frame delays live, store every "
+                    "session in SQLite and serve the HTTP API and the UI.")
+    add_relay_arguments(p)
+    p.set_defaults(func=run_relay)
+    return p
+
+
+def add_relay_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default: loopback only)")
+    p.add_argument("--port", type=int, default=3000, help="TCP port (default 3000; 0 picks a free one)")
+    p.add_argument("--db", default="dcuscope.db", help="SQLite database file (default ./dcuscope.db)")
+    p.add_argument("--token", default=os.environ.get(TOKEN_ENV),
+                   help=f"shared secret nodes and browsers must present (default ${TOKEN_ENV})")
+    p.add_argument("--clock", choices=CLOCK_MODES, default="auto",
+                   help="ptp: never correct node timestamps; estimate: subtract each node's estimated "
+                        "offset; auto: trust PTP where the node reports it locked, else estimate")
+    p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+
+
+def run_relay(args: argparse.Namespace) -> int:
+    from relay.server import serve  # aiohttp and socketio load only for this command
+
+    logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    if not 0 <= args.port <= 65535:
+        raise RelayError(f"--port must be 0..65535, not {args.port}")
+    serve(args.host, args.port, args.db, args.token, args.clock)
+    return 0

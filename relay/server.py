@@ -1,0 +1,140 @@
+"""The relay process: aiohttp app + python-socketio AsyncServer (ingest, UI), HTTP API, storage.
+
+``serve(host, port, db, token, clock)`` runs it until SIGINT/SIGTERM; ``start_relay`` starts it
+on a running loop (tests, benchmarks). The page of ``ui/static/`` is served at ``/``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import signal
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from aiohttp import web
+
+from relay.api import add_routes
+from relay.clock import CLOCK_MODES
+from relay.errors import RelayError
+from relay.ingest import IngestNamespace
+from relay.limits import Limits
+from relay.live import LiveConfig
+from relay.protocol import MAX_MESSAGE_BYTES
+from relay.sessionapi import add_session_routes
+from relay.sioserver import GuardedServer, JsonPacket
+from relay.state import RelayState
+from relay.storage import Storage
+from relay.uiapi import DEFAULT_PUSH_HZ, Ticker, UiNamespace
+
+UI_DIR = Path(__file__).resolve().parents[1] / "ui" / "static"
+LOOPBACK = ("127.0.0.1", "::1", "localhost")
+PLACEHOLDER = """<!doctype html><html><head><meta charset="utf-8"><title>dcuscope relay</title></head>
+<body><h1>dcuscope relay</h1><p>The UI is not installed (ui/static/index.html). The JSON API is at
+<a href="/api/nodes">/api/nodes</a>, <a href="/api/sessions">/api/sessions</a>,
+/api/stats?node=NAME, /api/frames?node=NAME.</p></body></html>"""
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Relay:
+    state: RelayState
+    storage: Storage
+    sio: GuardedServer
+    ingest: IngestNamespace
+    ui: UiNamespace
+    ticker: Ticker
+    runner: web.AppRunner | None = None
+    port: int = 0
+    _task: asyncio.Task | None = None
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+        # Close every client's websocket first: the web runner would wait out their pings.
+        for eio_sid in list(self.sio.eio.sockets):
+            await self.sio.hang_up(eio_sid)
+        await self.sio.shutdown()
+        if self.runner is not None:
+            await self.runner.cleanup()
+        self.storage.stop()
+
+
+def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *, limits: Limits = Limits(),
+               live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ) -> tuple[web.Application, Relay]:
+    if clock not in CLOCK_MODES:
+        raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
+    storage = Storage(db)
+    state = RelayState(storage, clock, live)
+    sio = GuardedServer(async_mode="aiohttp", serializer=JsonPacket, max_http_buffer_size=MAX_MESSAGE_BYTES,
+                        logger=False, engineio_logger=False, ping_interval=10, ping_timeout=10)
+    ingest = IngestNamespace(state, token, limits)
+    ui = UiNamespace(state, token)
+    sio.register_namespace(ingest)
+    sio.register_namespace(ui)
+    app = web.Application(client_max_size=MAX_MESSAGE_BYTES)
+    sio.attach(app)
+    ticker = Ticker(state, ui, push_hz)
+    add_routes(app, state, token, lambda: {"rejected": ingest.rejected, "pushes": ticker.pushes,
+                                           "commits": storage.commits, "batches": storage.batches_written})
+    add_session_routes(app, state)
+    _add_ui(app)
+    return app, Relay(state, storage, sio, ingest, ui, ticker)
+
+
+def _add_ui(app: web.Application) -> None:
+    index = UI_DIR / "index.html"
+
+    async def root(request: web.Request) -> web.StreamResponse:
+        if index.is_file():
+            return web.FileResponse(index)
+        return web.Response(text=PLACEHOLDER, content_type="text/html")
+
+    app.router.add_get("/", root)
+    if UI_DIR.is_dir():
+        # Registered last: every other route wins; aiohttp refuses paths leaving the folder.
+        app.router.add_static("/", UI_DIR, follow_symlinks=False)
+
+
+async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db",
+                      token: str | None = None, clock: str = "auto", **options) -> Relay:
+    """Start a relay on the running loop; ``port=0`` picks a free port (see ``Relay.port``)."""
+    app, relay = create_app(db, token, clock, **options)
+    relay.storage.start(asyncio.get_running_loop())
+    runner = web.AppRunner(app, access_log=None, handle_signals=False)
+    await runner.setup()
+    site = web.TCPSite(runner, host, port)
+    try:
+        await site.start()
+    except OSError as exc:
+        await runner.cleanup()
+        relay.storage.stop()
+        raise RelayError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from exc
+    relay.runner = runner
+    relay.port = runner.addresses[0][1]
+    relay._task = asyncio.create_task(relay.ticker.run())
+    return relay
+
+
+def serve(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db", token: str | None = None,
+          clock: str = "auto") -> None:
+    """Run the relay until SIGINT or SIGTERM."""
+    if host not in LOOPBACK and token is None:
+        log.warning("relay listens on %s without --token: anyone who can reach it may feed or read it", host)
+    asyncio.run(_serve(host, port, db, token, clock))
+
+
+async def _serve(host: str, port: int, db: str | Path, token: str | None, clock: str) -> None:
+    relay = await start_relay(host, port, db, token, clock)
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, stop.set)
+    print(f"dcuscope relay: listening on http://{host}:{relay.port} (db {db}, clock {clock})", flush=True)
+    try:
+        await stop.wait()
+    finally:
+        await relay.stop()
+        print("dcuscope relay: stopped", file=sys.stderr, flush=True)

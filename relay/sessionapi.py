@@ -1,0 +1,197 @@
+"""Stored sessions, browsed like live ones: HTTP routes over the relay's database.
+
+- ``GET /api/sessions/{session}/nodes``: [{node, run, stages, sources, frames, events, first_ns,
+  last_ns, dropped, lost, clock, ended}], one per run of the session (a node seen twice: NODE, NODE_2)
+- ``GET /api/sessions/{session}/frames?node=NAME&since=CURSOR&limit=N``: the node's complete
+  frames in the order their chains ended, shaped as ``GET /api/frames`` (cursor = position, from 1)
+- ``GET /api/sessions/{session}/stats?node=NAME``: ``probes.stats.node_stats`` over the node's
+  stored events, plus ``bottleneck``
+
+Timestamps are moved to the relay's clock by each run's last stored clock correction, as
+``dcuscope export`` does (:func:`relay.storage.load_runs`). A session is paired once, in a
+worker thread with its own read connection (WAL: ingest keeps writing meanwhile), and kept
+for the next requests; a session still being recorded is re-read after ``LIVE_TTL_S``.
+
+Register with ``add_session_routes(app, state)`` before the app starts; the token middleware of
+:mod:`relay.api` guards these routes like every ``/api`` route.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import time
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+from aiohttp import web
+
+from probes.events import TraceHeader
+from probes.stats import MISSING, chains, frame_table, node_stats, unique_name
+from relay import storage as db
+from relay.errors import RelayError
+from relay.live import bottleneck
+from relay.state import RelayState
+
+CACHED_SESSIONS = 3
+LIVE_TTL_S = 2.0
+MAX_FRAMES_PER_REQUEST = 10000
+"""More than /api/frames allows: a page loads a whole stored session in a few requests."""
+ROUTES = ("/api/sessions/{session:\\d+}/nodes", "/api/sessions/{session:\\d+}/frames",
+          "/api/sessions/{session:\\d+}/stats")
+
+
+@dataclass
+class StoredNode:
+    """One run of a stored session, paired: complete frames ordered by the end of their chain."""
+
+    node: str
+    run: str
+    header: TraceHeader
+    dropped: int
+    lost: int
+    clock: dict
+    ended: bool
+    events: int
+    source: np.ndarray
+    frame: np.ndarray
+    origin: np.ndarray
+    end: np.ndarray
+    enter: np.ndarray
+    """(n, n_stages) int64 ns, MISSING where the frame has no enter there."""
+    exit: np.ndarray
+    stats: dict
+
+    def summary(self) -> dict:
+        n = len(self.source)
+        return {"node": self.node, "run": self.run, "stages": self.header.stages,
+                "sources": {str(k): v for k, v in self.header.sources.items()}, "frames": n, "events": self.events,
+                "first_ns": int(self.origin.min()) if n else None, "last_ns": int(self.end.max()) if n else None,
+                "dropped": self.dropped, "lost": self.lost, "clock": self.clock, "ended": self.ended}
+
+    def frames_view(self, since: int, limit: int) -> dict:
+        """Frames at positions since+1 .. since+limit, shaped as ``RelayState.frames_view``."""
+        lo, hi = min(since, len(self.source)), min(since + limit, len(self.source))
+        sl = slice(lo, hi)
+        frames = [
+            {"n": lo + k + 1, "source": s, "frame": f, "origin": o, "enter": _nulls(en), "exit": _nulls(ex),
+             "delay_ms": (e - o) / 1e6}
+            for k, (s, f, o, e, en, ex) in enumerate(zip(
+                self.source[sl].tolist(), self.frame[sl].tolist(), self.origin[sl].tolist(), self.end[sl].tolist(),
+                self.enter[sl].tolist(), self.exit[sl].tolist()))
+        ]
+        return {"node": self.node, "run": self.run, "stages": self.header.stages, "cursor": hi,
+                "total": len(self.source), "clock": self.clock.get("applied", "stored"), "frames": frames}
+
+
+def _nulls(values: list[int]) -> list[int | None]:
+    return [None if v == MISSING else v for v in values]
+
+
+def pair_run(run: db.StoredRun, name: str) -> StoredNode:
+    """Pair a stored run's events into complete frames (``probes.stats`` definitions)."""
+    table = frame_table(run.header, run.events)
+    ch = chains(table)
+    c = np.flatnonzero(ch.complete)
+    order = c[np.argsort(ch.end[c], kind="stable")]
+    stats = node_stats(run.header, run.events, run.dropped)
+    stats["bottleneck"] = bottleneck(stats)
+    stats.update(node=name, run=run.run, session=run.session, lost=run.lost)
+    return StoredNode(node=name, run=run.run, header=run.header, dropped=run.dropped, lost=run.lost,
+                      clock=run.clock, ended=run.ended, events=len(run.events), source=table.source[order],
+                      frame=table.frame[order], origin=table.origin[order], end=ch.end[order],
+                      enter=table.enter[order], exit=table.exit[order], stats=stats)
+
+
+def load_session_nodes(path, session: int) -> list[StoredNode]:
+    """Every run of a stored session, paired (blocking: call it in a worker thread)."""
+    nodes: list[StoredNode] = []
+    taken: set[str] = set()
+    for run in db.load_runs(path, session):
+        name = unique_name(run.header.node, taken)
+        taken.add(name)
+        nodes.append(pair_run(run, name))
+    return nodes
+
+
+class SessionCache:
+    """Paired sessions, the few most recent; one load at a time per session."""
+
+    def __init__(self, path, size: int = CACHED_SESSIONS) -> None:
+        self.path = path
+        self.size = size
+        self._entries: OrderedDict[int, tuple[float, list[StoredNode]]] = OrderedDict()
+        self._loading: dict[int, asyncio.Future] = {}
+
+    async def get(self, session: int) -> list[StoredNode]:
+        entry = self._entries.get(session)
+        if entry is not None:
+            at, nodes = entry
+            if all(n.ended for n in nodes) or time.monotonic() - at < LIVE_TTL_S:
+                self._entries.move_to_end(session)
+                return nodes
+        pending = self._loading.get(session)
+        if pending is None:
+            pending = asyncio.ensure_future(asyncio.to_thread(load_session_nodes, self.path, session))
+            self._loading[session] = pending
+            pending.add_done_callback(lambda _: self._loading.pop(session, None))
+        nodes = await asyncio.shield(pending)
+        self._entries[session] = (time.monotonic(), nodes)
+        self._entries.move_to_end(session)
+        while len(self._entries) > self.size:
+            self._entries.popitem(last=False)
+        return nodes
+
+
+def _error(status: type[web.HTTPException], message: str) -> web.HTTPException:
+    return status(text=json.dumps({"error": message}), content_type="application/json")
+
+
+def add_session_routes(app: web.Application, state: RelayState) -> SessionCache:
+    """Add the ``/api/sessions/{session}/...`` routes; returns their cache (tests look at it)."""
+    cache = SessionCache(state.storage.path)
+
+    async def session_nodes(request: web.Request) -> list[StoredNode]:
+        try:
+            return await cache.get(int(request.match_info["session"]))
+        except RelayError as exc:
+            raise _error(web.HTTPNotFound, str(exc)) from exc
+
+    async def node_of(request: web.Request) -> StoredNode:
+        name = request.query.get("node")
+        if not name:
+            raise _error(web.HTTPBadRequest, "node=NAME is required")
+        for node in await session_nodes(request):
+            if node.node == name:
+                return node
+        raise _error(web.HTTPNotFound, f"session {request.match_info['session']} has no node {name[:100]!r}")
+
+    def int_arg(request: web.Request, name: str, default: int, lo: int, hi: int) -> int:
+        try:
+            value = int(request.query.get(name, default))
+        except ValueError:
+            raise _error(web.HTTPBadRequest, f"{name} must be an integer") from None
+        return max(lo, min(hi, value))
+
+    async def nodes(request: web.Request) -> web.Response:
+        return web.json_response([n.summary() for n in await session_nodes(request)])
+
+    async def frames(request: web.Request) -> web.Response:
+        node = await node_of(request)
+        since = int_arg(request, "since", 0, 0, 1 << 62)
+        limit = int_arg(request, "limit", 200, 1, MAX_FRAMES_PER_REQUEST)
+        return web.json_response(node.frames_view(since, limit))
+
+    async def stats(request: web.Request) -> web.Response:
+        return web.json_response((await node_of(request)).stats)
+
+    for route, handler in zip(ROUTES, (nodes, frames, stats)):
+        app.router.add_get(route, handler)
+    return cache
+
+
+def has_session_routes(app: web.Application) -> bool:
+    """Whether ``add_session_routes`` was already called on ``app``."""
+    canon = {r.canonical for r in app.router.resources()}
+    return any(route.replace(":\\d+", "") in canon for route in ROUTES)

@@ -1,0 +1,176 @@
+"""What the relay knows about every run it has seen since it started: live pairing, clock, counters.
+
+Shared by the ingest namespace (which feeds it), the HTTP API and the UI namespace (which
+read it). Everything runs on the relay's event loop; only storage works in its own thread.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass, field
+
+from probes.events import TraceHeader
+from relay import storage as db
+from relay.clock import ClockEstimator, correction_ns
+from relay.errors import ProtocolError
+from relay.frames import block, frame_dicts
+from relay.live import LiveConfig, LiveRun, bottleneck, frame_table_from_cells
+from relay.protocol import Hello
+from relay.storage import Storage
+
+RELOAD_SLICE = 262_144
+STATS_MAX_AGE_S = 0.5
+"""Session statistics are recomputed at most this often per run (percentiles over every frame)."""
+
+
+@dataclass
+class RunState:
+    run: str
+    node: str
+    session: int
+    header: TraceHeader
+    live: LiveRun
+    seqs: set[int]
+    clock: ClockEstimator = field(default_factory=ClockEstimator)
+    ptp: dict = field(default_factory=lambda: {"state": "unavailable"})
+    sid: str | None = None
+    ended: bool = False
+    written: int | None = None
+    dropped: int = 0
+    lost: int = 0
+    duplicates: int = 0
+    first_seen: float = field(default_factory=time.time)
+    last_seen: float = field(default_factory=time.time)
+    pushed: int = 0
+    """Cursor of the newest frame pushed to the UI."""
+    _stats: tuple = (None, 0.0, None, 0.0)
+
+
+class RelayState:
+    def __init__(self, storage: Storage, clock_mode: str, live_config: LiveConfig = LiveConfig()) -> None:
+        self.storage = storage
+        self.clock_mode = clock_mode
+        self.live_config = live_config
+        self.runs: dict[str, RunState] = {}
+        self.nodes: dict[str, str] = {}
+        """Node name -> its newest run."""
+        self.started = time.time()
+        self._attach_lock = asyncio.Lock()
+
+    def live_session(self) -> int | None:
+        for rs in self.runs.values():
+            if rs.sid is not None and not rs.ended:
+                return rs.session
+        return None
+
+    async def attach(self, hello: Hello, sid: str) -> tuple[RunState, str | None]:
+        """Bind a run to connection ``sid``; returns it and the connection it took over, if any."""
+        async with self._attach_lock:
+            rs = self.runs.get(hello.run)
+            if rs is None:
+                rs = await self._load(hello)
+                self.runs[hello.run] = rs
+            elif rs.node != hello.header.node or rs.header.stages != hello.header.stages:
+                raise ProtocolError(f"run {hello.run} belongs to node {rs.node!r} with other stages")
+            current = self.nodes.get(rs.node)
+            if current is None or self.runs[current].first_seen <= rs.first_seen:
+                self.nodes[rs.node] = rs.run
+                old = self.runs.get(current) if current != rs.run else None
+                if old is not None and old.sid is None:
+                    # A node's older run leaves memory once a newer one starts (it stays stored,
+                    # and comes back from storage should it reconnect).
+                    del self.runs[current]
+            previous, rs.sid = rs.sid, sid
+            rs.lost = max(rs.lost, hello.lost)
+            rs.ptp = hello.ptp
+            rs.last_seen = time.time()
+            return rs, previous if previous != sid else None
+
+    async def _load(self, hello: Hello) -> RunState:
+        header = hello.header
+        session, first_seen_ns = await self.storage.call(db.register_run, hello.run, header.node, header.to_dict(),
+                                                         self.live_session())
+        seqs = await self.storage.call(db.stored_seqs, hello.run)
+        live = LiveRun(header, self.live_config)
+        if seqs:
+            # The relay restarted while this run went on: rebuild its live state from storage,
+            # in slices, so that only the frames of one slice are ever open at once.
+            events = await self.storage.call(db.run_events, hello.run)
+            for i in range(0, len(events), RELOAD_SLICE):
+                live.add(events[i:i + RELOAD_SLICE])
+                live.maintain()
+        return RunState(run=hello.run, node=header.node, session=session, header=header, live=live, seqs=seqs,
+                        first_seen=first_seen_ns / 1e9)
+
+    def detach(self, run: str, sid: str) -> None:
+        rs = self.runs.get(run)
+        if rs is not None and rs.sid == sid:
+            rs.sid = None
+            rs.last_seen = time.time()
+
+    def node_run(self, node: str) -> RunState | None:
+        run = self.nodes.get(node)
+        return self.runs.get(run) if run else None
+
+    # --- views ----------------------------------------------------------------------------------
+
+    def correction(self, rs: RunState) -> tuple[int, str]:
+        return correction_ns(self.clock_mode, rs.clock.estimate(), rs.ptp)
+
+    def clock_view(self, rs: RunState) -> dict:
+        est = rs.clock.estimate()
+        corr, applied = self.correction(rs)
+        view = {"mode": self.clock_mode, "applied": applied, "correction_ns": corr, "correction_us": corr / 1e3}
+        if est is not None:
+            view.update(offset_ns=est.offset_ns, offset_us=est.offset_ns / 1e3,
+                        uncertainty_ns=est.uncertainty_ns, uncertainty_us=est.uncertainty_ns / 1e3,
+                        rtt_us=est.rtt_ns / 1e3, samples=est.samples)
+        else:
+            view.update(offset_ns=None, offset_us=None, uncertainty_ns=None, uncertainty_us=None, rtt_us=None,
+                        samples=0)
+        return view
+
+    def node_view(self, rs: RunState) -> dict:
+        live = rs.live
+        return {
+            "node": rs.node, "run": rs.run, "session": rs.session, "connected": rs.sid is not None,
+            "ended": rs.ended, "stages": rs.header.stages, "sources": {str(k): v for k, v in rs.header.sources.items()},
+            "clock": self.clock_view(rs), "ptp": rs.ptp,
+            "events": live.events, "duplicates": rs.duplicates, "written": rs.written,
+            "dropped": rs.dropped, "lost": rs.lost, "drops": rs.dropped + rs.lost,
+            "frames": {"shown": live.visible, "finalised": live.finalised, "evicted": live.evicted,
+                       "late_events": live.late},
+            "last_seen": rs.last_seen,
+        }
+
+    def nodes_view(self) -> list[dict]:
+        return [self.node_view(self.runs[run]) for _, run in sorted(self.nodes.items())]
+
+    def stats(self, rs: RunState, fresh: bool = True) -> dict:
+        """node_stats of the run + ``bottleneck`` + rolling ``window``.
+
+        Session statistics take percentiles over every frame of the run, a cost that grows
+        with it; unless ``fresh`` (the HTTP API), they are recomputed at most every
+        max(STATS_MAX_AGE_S, 50 x their last cost), so that pushing them to browsers stays
+        within ~2 % of the relay's time however long the run. The window is always recomputed.
+        """
+        version, at, cached, cost = rs._stats
+        now = time.monotonic()
+        if cached is None or (version != rs.live.events and (fresh or now - at >= max(STATS_MAX_AGE_S, 50 * cost))):
+            cached = rs.live.session_stats(rs.dropped)
+            cached["bottleneck"] = bottleneck(cached)
+            rs._stats = (rs.live.events, now, cached, time.monotonic() - now)
+        stats = dict(cached, window=rs.live.window_stats(), node=rs.node, run=rs.run, session=rs.session,
+                     lost=rs.lost)
+        return stats
+
+    def frames_view(self, rs: RunState, since: int = 0, limit: int = 200, newest: bool = False) -> dict:
+        """Complete frames after cursor ``since``, clock-corrected, as the UI draws them: the
+        first ``limit`` of them (paging), or with ``newest`` the last ``limit`` (pushes)."""
+        rec = rs.live.recent(since, limit, newest)
+        corr, applied = self.correction(rs)
+        table = frame_table_from_cells(rs.header.stages, rec["source"], rec["frame"], rec["cells"])
+        frames = frame_dicts(rec["n"], rec["source"], rec["frame"], table.origin, rec["end"],
+                             rec["cells"][:, :, 1], rec["cells"][:, :, 2], corr)
+        return block(rs.node, rs.run, rs.header.stages, frames, since, rs.live.visible, corr, applied)

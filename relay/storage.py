@@ -1,0 +1,331 @@
+"""SQLite storage of everything nodes ship (WAL mode), queryable after a restart.
+
+Design: a *run* is one run of one node (one ``RelayExporter``: a UUID, the node's trace header,
+its event batches). A *session* groups the runs that overlap in time: a new run joins the
+session of any run that is live (connected and not ended) when it says hello, else it opens a
+new session, so "start the relay, start three nodes" makes one session of three runs. A run
+that comes back after a relay restart keeps its session. Sessions are numbered 1, 2, ...
+
+Events are stored as they arrived, one row per batch (the payload blob, compressed or not),
+keyed by (run, seq): a resent batch is ignored by the primary key, so every event is stored
+exactly once. Timestamps are stored raw (node clock); each run keeps its last clock estimate,
+whose correction :func:`load_session` applies.
+
+All writes go through one thread that owns the connection and commits in groups: a batch is
+acknowledged to its node only after the transaction holding it committed.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import queue
+import sqlite3
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from probes.events import EVENT_DTYPE, TraceHeader
+from relay.errors import RelayError
+from relay.protocol import decode_payload
+
+SCHEMA_VERSION = 1
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS sessions (id INTEGER PRIMARY KEY AUTOINCREMENT, created_ns INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS runs (
+    id TEXT PRIMARY KEY,
+    session INTEGER NOT NULL REFERENCES sessions(id),
+    node TEXT NOT NULL,
+    header TEXT NOT NULL,
+    first_seen_ns INTEGER NOT NULL,
+    last_seen_ns INTEGER NOT NULL,
+    ended_ns INTEGER,
+    events INTEGER NOT NULL DEFAULT 0,
+    written INTEGER,
+    dropped INTEGER NOT NULL DEFAULT 0,
+    lost INTEGER NOT NULL DEFAULT 0,
+    clock TEXT NOT NULL DEFAULT '{}'
+);
+CREATE INDEX IF NOT EXISTS runs_by_session ON runs(session);
+CREATE TABLE IF NOT EXISTS batches (
+    run TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    count INTEGER NOT NULL,
+    compressed INTEGER NOT NULL,
+    received_ns INTEGER NOT NULL,
+    data BLOB NOT NULL,
+    PRIMARY KEY (run, seq)
+);
+"""
+GROUP_LIMIT = 2000
+"""Batches committed in one transaction at most."""
+
+
+def connect(path: str | Path, create: bool = True) -> sqlite3.Connection:
+    """A connection with the schema in place (WAL mode, normal synchronous)."""
+    path = Path(path)
+    if not create and not path.exists():
+        raise RelayError(f"{path}: no such relay database")
+    try:
+        conn = sqlite3.connect(str(path), timeout=30, isolation_level=None, check_same_thread=False)
+        conn.execute("PRAGMA journal_mode=WAL")
+        # NORMAL in WAL mode: a commit survives a crash of the process (kill -9), only an
+        # OS crash or power loss may lose the last transactions.
+        conn.execute("PRAGMA synchronous=NORMAL")
+        conn.executescript(SCHEMA)
+        row = conn.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
+        if row is None:
+            conn.execute("INSERT OR IGNORE INTO meta VALUES ('schema', ?)", (str(SCHEMA_VERSION),))
+        elif row[0] != str(SCHEMA_VERSION):
+            raise RelayError(f"{path}: relay database schema {row[0]}, this relay reads {SCHEMA_VERSION}")
+    except sqlite3.DatabaseError as exc:
+        raise RelayError(f"{path}: not a usable relay database: {exc}") from exc
+    return conn
+
+
+@dataclass
+class _Batch:
+    run: str
+    seq: int
+    count: int
+    compressed: bool
+    payload: bytes
+    future: asyncio.Future
+
+
+@dataclass
+class _Call:
+    fn: Callable[..., Any]
+    args: tuple
+    kwargs: dict
+    future: asyncio.Future
+
+
+class Storage:
+    """The relay's database, written by one thread; coroutines wait for their commit."""
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._conn = connect(self.path)
+        self._queue: queue.SimpleQueue = queue.SimpleQueue()
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread = threading.Thread(target=self._worker, name="dcuscope-relay-db", daemon=True)
+        self.commits = 0
+        self.batches_written = 0
+
+    def start(self, loop: asyncio.AbstractEventLoop) -> None:
+        self._loop = loop
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._queue.put(None)
+        self._thread.join(10)
+        self._conn.close()
+
+    async def put_batch(self, run: str, seq: int, count: int, compressed: bool, payload: bytes) -> bool:
+        """Store a batch; True once committed, False if (run, seq) was already stored."""
+        future = asyncio.get_running_loop().create_future()
+        self._queue.put(_Batch(run, seq, count, compressed, payload, future))
+        return await future
+
+    async def call(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """Run ``fn(connection, *args, **kwargs)`` in the database thread (its own transaction)."""
+        future = asyncio.get_running_loop().create_future()
+        self._queue.put(_Call(fn, args, kwargs, future))
+        return await future
+
+    def _resolve(self, future: asyncio.Future, value: Any = None, error: BaseException | None = None) -> None:
+        self._resolve_all([(future, value, error)])
+
+    def _resolve_all(self, outcomes: list[tuple[asyncio.Future, Any, BaseException | None]]) -> None:
+        # One wake-up of the event loop per commit, not one per batch.
+        def settle() -> None:
+            for future, value, error in outcomes:
+                if future.done():
+                    continue
+                if error is not None:
+                    future.set_exception(error)
+                else:
+                    future.set_result(value)
+        self._loop.call_soon_threadsafe(settle)
+
+    def _worker(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is None:
+                return
+            group = [item]
+            while len(group) < GROUP_LIMIT:
+                try:
+                    nxt = self._queue.get_nowait()
+                except queue.Empty:
+                    break
+                if nxt is None:
+                    self._queue.put(None)
+                    break
+                group.append(nxt)
+            self._write_batches([g for g in group if isinstance(g, _Batch)])
+            for call in (g for g in group if isinstance(g, _Call)):
+                try:
+                    value = call.fn(self._conn, *call.args, **call.kwargs)
+                except Exception as exc:  # noqa: BLE001 - handed to the awaiting coroutine
+                    _rollback(self._conn)
+                    self._resolve(call.future, error=exc)
+                else:
+                    self._resolve(call.future, value)
+
+    def _write_batches(self, batches: list[_Batch]) -> None:
+        if not batches:
+            return
+        now = time.time_ns()
+        conn = self._conn
+        try:
+            conn.execute("BEGIN")
+            inserted, per_run = [], {}
+            for b in batches:
+                cur = conn.execute(
+                    "INSERT OR IGNORE INTO batches (run, seq, count, compressed, received_ns, data) "
+                    "VALUES (?, ?, ?, ?, ?, ?)", (b.run, b.seq, b.count, int(b.compressed), now, b.payload))
+                ok = cur.rowcount == 1
+                inserted.append(ok)
+                per_run[b.run] = per_run.get(b.run, 0) + (b.count if ok else 0)
+            conn.executemany("UPDATE runs SET events = events + ?, last_seen_ns = ? WHERE id = ?",
+                             [(n, now, run) for run, n in per_run.items()])
+            conn.execute("COMMIT")
+        except sqlite3.Error as exc:
+            _rollback(conn)
+            err = RelayError(f"{self.path}: cannot store batches: {exc}")
+            self._resolve_all([(b.future, None, err) for b in batches])
+            return
+        self.commits += 1
+        self.batches_written += sum(inserted)
+        self._resolve_all([(b.future, ok, None) for b, ok in zip(batches, inserted)])
+
+
+def _rollback(conn: sqlite3.Connection) -> None:
+    if conn.in_transaction:
+        conn.execute("ROLLBACK")
+
+
+# --- operations run in the database thread (Storage.call) or on a connection of one's own ---
+
+def register_run(conn: sqlite3.Connection, run: str, node: str, header: dict,
+                 live_session: int | None) -> tuple[int, int]:
+    """Record a run at its (first or renewed) hello; returns its session and first-seen time (ns).
+
+    A run id already stored must come from the same node with the same stages, else the hello
+    is refused: its batches would be read against the wrong stage list.
+    """
+    now = time.time_ns()
+    row = conn.execute("SELECT session, node, header, first_seen_ns FROM runs WHERE id = ?", (run,)).fetchone()
+    if row is not None:
+        stored = json.loads(row[2])
+        if row[1] != node or stored.get("stages") != header.get("stages"):
+            raise RelayError(f"run {run} belongs to node {row[1]!r} with other stages")
+        conn.execute("UPDATE runs SET last_seen_ns = ? WHERE id = ?", (now, run))
+        return int(row[0]), int(row[3])
+    conn.execute("BEGIN")
+    try:
+        session = live_session
+        if session is None:
+            session = conn.execute("INSERT INTO sessions (created_ns) VALUES (?)", (now,)).lastrowid
+        conn.execute("INSERT INTO runs (id, session, node, header, first_seen_ns, last_seen_ns) "
+                     "VALUES (?, ?, ?, ?, ?, ?)",
+                     (run, session, node, json.dumps(header), now, now))
+        conn.execute("COMMIT")
+    except BaseException:
+        _rollback(conn)
+        raise
+    return int(session), now
+
+
+def update_run(conn: sqlite3.Connection, run: str, **fields: Any) -> None:
+    """Set ``ended_ns``, ``written``, ``dropped``, ``lost`` or ``clock`` (a dict) of a run."""
+    allowed = {"ended_ns", "written", "dropped", "lost", "clock"}
+    if not fields.keys() <= allowed:
+        raise ValueError(f"unknown run fields {sorted(fields.keys() - allowed)}")
+    values = [json.dumps(v) if k == "clock" else v for k, v in fields.items()]
+    conn.execute(f"UPDATE runs SET {', '.join(f'{k} = ?' for k in fields)} WHERE id = ?", (*values, run))
+
+
+def stored_seqs(conn: sqlite3.Connection, run: str) -> set[int]:
+    return {r[0] for r in conn.execute("SELECT seq FROM batches WHERE run = ?", (run,))}
+
+
+def run_events(conn: sqlite3.Connection, run: str) -> np.ndarray:
+    """Every stored event of a run, in batch order (raw node timestamps)."""
+    parts = [decode_payload(data, bool(c)) for data, c in
+             conn.execute("SELECT data, compressed FROM batches WHERE run = ? ORDER BY seq", (run,))]
+    return np.concatenate(parts) if parts else np.zeros(0, EVENT_DTYPE)
+
+
+def list_sessions(conn: sqlite3.Connection) -> list[dict]:
+    """Sessions, newest first, each with its runs."""
+    runs: dict[int, list[dict]] = {}
+    for (rid, session, node, first, last, ended, events, written, dropped, lost, clock) in conn.execute(
+            "SELECT id, session, node, first_seen_ns, last_seen_ns, ended_ns, events, written, dropped, lost, clock "
+            "FROM runs ORDER BY first_seen_ns"):
+        runs.setdefault(session, []).append({
+            "run": rid, "node": node, "first_seen_ns": first, "last_seen_ns": last, "ended_ns": ended,
+            "events": events, "written": written, "dropped": dropped, "lost": lost, "clock": json.loads(clock)})
+    return [{"session": sid, "created_ns": created, "runs": runs.get(sid, [])}
+            for sid, created in conn.execute("SELECT id, created_ns FROM sessions ORDER BY id DESC")]
+
+
+@dataclass
+class StoredRun:
+    run: str
+    session: int
+    header: TraceHeader
+    events: np.ndarray
+    dropped: int
+    lost: int
+    clock: dict
+    ended: bool
+
+
+def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> list[StoredRun]:
+    """The runs of session ``session_id`` (a number), or the one run whose id starts with it.
+
+    With ``corrected`` each run's timestamps are moved to the relay's clock by the correction
+    its last clock estimate called for (see :func:`relay.clock.correction_ns`).
+    """
+    conn = connect(db, create=False)
+    try:
+        key = str(session_id).strip()
+        cols = "id, session, header, dropped, lost, clock, ended_ns"
+        if key.isdigit():
+            rows = conn.execute(f"SELECT {cols} FROM runs WHERE session = ? ORDER BY first_seen_ns",
+                                (int(key),)).fetchall()
+        elif len(key) >= 6 and all(c in "0123456789abcdef" for c in key.lower()):
+            rows = conn.execute(f"SELECT {cols} FROM runs WHERE id LIKE ? ORDER BY first_seen_ns",
+                                (key.lower() + "%",)).fetchall()
+        else:
+            raise RelayError(f"{db}: session must be a number or a run id, not {session_id!r}")
+        if not rows:
+            raise RelayError(f"{db}: no session or run {session_id!r}")
+        out = []
+        for rid, session, header, dropped, lost, clock, ended in rows:
+            events = run_events(conn, rid)
+            clock = json.loads(clock)
+            shift = int(clock.get("correction_ns", 0)) if corrected else 0
+            if shift and len(events):
+                events = events.copy()
+                events["ts"] -= shift
+            out.append(StoredRun(rid, int(session), TraceHeader.from_dict(json.loads(header)), events,
+                                 int(dropped), int(lost), clock, ended is not None))
+        return out
+    except sqlite3.DatabaseError as exc:
+        raise RelayError(f"{db}: cannot read session {session_id!r}: {exc}") from exc
+    finally:
+        conn.close()
+
+
+def load_session(db: str | Path, session_id: int | str, corrected: bool = True) -> list[tuple[TraceHeader, np.ndarray]]:
+    """``[(header, events), ...]`` of every run of a stored session (for ``dcuscope export``)."""
+    return [(r.header, r.events) for r in load_runs(db, session_id, corrected)]

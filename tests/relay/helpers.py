@@ -1,0 +1,159 @@
+"""Test helpers: a relay process, simulated node processes, JSON over HTTP, stats comparison.
+
+Everything runs on 127.0.0.1 with free ports and bounded waits. A node here is a separate
+process (``python -m relay.simnode``) writing the events it shipped to an .npz; a real
+``dcuscope run --probes --relay ... --trace FILE`` process can take its place, the test then
+reading its trace file instead.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.error
+import urllib.request
+from pathlib import Path
+
+import numpy as np
+
+from probes.events import TraceHeader
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def env() -> dict:
+    e = dict(os.environ)
+    e["PYTHONPATH"] = str(ROOT) + os.pathsep + e.get("PYTHONPATH", "")
+    return e
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class RelayProcess:
+    """``python -m relay`` in a subprocess; ``url`` once it listens."""
+
+    def __init__(self, db: Path, port: int = 0, token: str | None = None, clock: str = "auto",
+                 log: Path | None = None) -> None:
+        cmd = [sys.executable, "-m", "relay", "--port", str(port), "--db", str(db), "--clock", clock]
+        if token:
+            cmd += ["--token", token]
+        self.log = log or db.with_suffix(".relay.log")
+        self._log = open(self.log, "ab")
+        self.proc = subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=self._log)
+        line = _readline(self.proc, 30)
+        m = re.search(r"http://127\.0\.0\.1:(\d+)", line)
+        if not m:
+            self.stop()
+            raise RuntimeError(f"relay did not start: {line!r}; log: {self.log.read_text()[-2000:]}")
+        self.port = int(m.group(1))
+        self.url = f"http://127.0.0.1:{self.port}"
+
+    def kill9(self) -> None:
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(10)
+        self._log.close()
+
+    def stop(self) -> int:
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(15)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
+        self._log.close()
+        return self.proc.returncode
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+
+def _readline(proc: subprocess.Popen, timeout: float) -> str:
+    import selectors
+    sel = selectors.DefaultSelector()
+    sel.register(proc.stdout, selectors.EVENT_READ)
+    if not sel.select(timeout):
+        return ""
+    return proc.stdout.readline().decode(errors="replace")
+
+
+def start_node(url: str, node: str, out: Path, *, frames: int = 100, sources: int = 2, fps: float = 25.0,
+               paced: bool = False, offset_ns: int = 0, t0_ns: int = 0, drop_rate: float = 0.0, seed: int = 0,
+               token: str | None = None, extra: list[str] | None = None) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "relay.simnode", "--relay", url, "--node", node, "--out", str(out),
+           "--frames", str(frames), "--sources", str(sources), "--fps", str(fps), "--seed", str(seed),
+           "--clock-offset-ns", str(offset_ns), "--drop-rate", str(drop_rate)]
+    if paced:
+        cmd.append("--paced")
+    if t0_ns:
+        cmd += ["--t0-ns", str(t0_ns)]
+    if token:
+        cmd += ["--token", token]
+    cmd += extra or []
+    return subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+
+
+def finish_node(proc: subprocess.Popen, timeout: float = 60) -> dict:
+    out, err = proc.communicate(timeout=timeout)
+    assert proc.returncode == 0, err.decode()[-3000:]
+    return json.loads(out.decode().strip().splitlines()[-1])
+
+
+def load_node(out: Path) -> tuple[TraceHeader, np.ndarray]:
+    z = np.load(out)
+    return TraceHeader.from_dict(json.loads(str(z["header"]))), z["events"]
+
+
+def get_json(url: str, token: str | None = None, timeout: float = 10):
+    req = urllib.request.Request(url)
+    if token:
+        req.add_header("Authorization", f"Bearer {token}")
+    with urllib.request.urlopen(req, timeout=timeout) as r:
+        return json.loads(r.read())
+
+
+def http_status(url: str, headers: dict | None = None) -> int:
+    try:
+        with urllib.request.urlopen(urllib.request.Request(url, headers=headers or {}), timeout=10) as r:
+            return r.status
+    except urllib.error.HTTPError as exc:
+        return exc.code
+
+
+def wait_for(predicate, timeout: float, interval: float = 0.1, what: str = "condition"):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def assert_stats_equal(expected, got, path: str = "stats") -> None:
+    """Every key of ``expected`` (node_stats) is in ``got`` with the same value (floats to 1e-9)."""
+    if isinstance(expected, dict):
+        assert isinstance(got, dict), path
+        missing = set(expected) - set(got)
+        assert not missing, f"{path}: missing {sorted(missing)}"
+        for k in expected:
+            assert_stats_equal(expected[k], got[k], f"{path}/{k}")
+    elif isinstance(expected, float):
+        assert isinstance(got, (int, float)) and abs(expected - got) <= 1e-9 * max(1.0, abs(expected)), \
+            f"{path}: {got} != {expected}"
+    else:
+        assert expected == got, f"{path}: {got!r} != {expected!r}"
+
+
+def sort_events(events: np.ndarray) -> np.ndarray:
+    return np.sort(events, order=["source", "frame", "stage", "point", "ts"])

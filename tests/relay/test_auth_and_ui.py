@@ -1,0 +1,115 @@
+"""--token refuses nodes, browsers and HTTP clients without it; /ui pushes are throttled and batched."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+import socketio
+
+from tests.relay.helpers import (RelayProcess, finish_node, get_json, http_status, load_node, start_node)
+
+TOKEN = "s3cret-token"
+
+
+async def ui_connect(url: str, auth: dict | None, query: str = "") -> tuple[socketio.AsyncClient, list]:
+    sio = socketio.AsyncClient(reconnection=False)
+    got: list = []
+    for event in ("nodes", "frames", "stats"):
+        sio.on(event, (lambda e: lambda data: got.append((time.monotonic(), e, data)))(event), namespace="/ui")
+    await sio.connect(url + query, auth=auth, namespaces=["/ui"], transports=["websocket"], wait_timeout=5)
+    return sio, got
+
+
+def test_token_refusals(tmp_path):
+    relay = RelayProcess(tmp_path / "relay.db", token=TOKEN)
+    try:
+        # A node without the token ships nothing and says why.
+        bad = start_node(relay.url, "intruder", tmp_path / "bad.npz", frames=20, fps=50,
+                         extra=["--close-timeout", "2"])
+        counters = finish_node(bad, 30)
+        assert counters["acked"] == 0 and "unauthorized" in counters["last_error"]
+        good = start_node(relay.url, "DCU-1", tmp_path / "good.npz", frames=20, fps=50, token=TOKEN)
+        assert finish_node(good, 30)["acked"] > 0
+
+        # HTTP: header or query token, nothing else.
+        assert http_status(f"{relay.url}/api/nodes") == 401
+        assert http_status(f"{relay.url}/api/stats?node=DCU-1", {"Authorization": "Bearer wrong"}) == 401
+        assert http_status(f"{relay.url}/api/nodes", {"Authorization": f"Bearer {TOKEN}"}) == 200
+        assert http_status(f"{relay.url}/api/sessions?token={TOKEN}") == 200
+        assert [n["node"] for n in get_json(f"{relay.url}/api/nodes", TOKEN)] == ["DCU-1"]
+
+        async def browsers():
+            for auth, query in ((None, ""), ({"token": "wrong"}, ""), (None, "?token=wrong")):
+                with pytest.raises(socketio.exceptions.ConnectionError):
+                    await ui_connect(relay.url, auth, query)
+            for auth, query in (({"token": TOKEN}, ""), (None, f"?token={TOKEN}")):
+                sio, got = await ui_connect(relay.url, auth, query)
+                for _ in range(50):
+                    if got:
+                        break
+                    await asyncio.sleep(0.05)
+                assert got and got[0][1] == "nodes" and got[0][2][0]["node"] == "DCU-1"
+                await sio.disconnect()
+
+        asyncio.run(browsers())
+    finally:
+        relay.stop()
+
+
+def test_ui_pushes_frames_and_stats_throttled(tmp_path):
+    relay = RelayProcess(tmp_path / "relay.db")
+
+    async def watch():
+        sio, got = await ui_connect(relay.url, None)
+        other, got_other = await ui_connect(relay.url, None)
+        narrow, got_narrow = await ui_connect(relay.url, None)
+        assert (await other.call("subscribe", {"nodes": ["elsewhere"]}, namespace="/ui")) == {"ok": True}
+        assert (await narrow.call("subscribe", {"nodes": None, "max_frames": 1}, namespace="/ui")) == {"ok": True}
+        bad = await narrow.call("subscribe", {"max_frames": 10**6}, namespace="/ui")
+        assert bad["ok"] is False
+        node = start_node(relay.url, "DCU-1", tmp_path / "n.npz", frames=150, sources=2, fps=50, paced=True)
+        while node.poll() is None:
+            await asyncio.sleep(0.1)
+        await asyncio.sleep(1.5)
+        for c in (sio, other, narrow):
+            await c.disconnect()
+        assert not [d for _, e, d in got_other if e == "frames"]
+        narrow_frames = [d["nodes"]["DCU-1"] for _, e, d in got_narrow if e == "frames"]
+        assert narrow_frames and all(len(b["frames"]) == 1 for b in narrow_frames)
+        assert narrow_frames[-1]["cursor"] == 300 and narrow_frames[-1]["frames"][0]["n"] == 300
+        return node, got
+
+    try:
+        node, got = asyncio.run(watch())
+        counters = finish_node(node, 30)
+        assert counters["acked"] == counters["events"]
+        frames = [(t, d) for t, e, d in got if e == "frames"]
+        stats = [d for _, e, d in got if e == "stats"]
+        assert frames and stats
+        times = [t for t, _ in frames]
+        span = times[-1] - times[0]
+        assert len(frames) <= 10 * span + 2  # at most 10 pushes a second
+        blocks = [d["nodes"]["DCU-1"] for _, d in frames]
+        pushed = [raw(f, b["correction_ns"]) for b in blocks for f in b["frames"]]
+        cursors = [f["n"] for f in pushed]
+        assert cursors == sorted(set(cursors)) and cursors[-1] == 300  # each frame once, in order, to the last
+        assert len(pushed) == 300  # 50 fps x 2 sources fits under the default per-push cap of 25
+        view = get_json(f"{relay.url}/api/frames?node=DCU-1&limit=2000")
+        api = {(f["source"], f["frame"]): raw(f, view["correction_ns"]) for f in view["frames"]}
+        for f in pushed:
+            assert api[(f["source"], f["frame"])] == f
+        header, _ = load_node(tmp_path / "n.npz")
+        last = stats[-1]["nodes"]["DCU-1"]
+        assert last["frames"]["complete"] == 300 and set(last["stages"]) == set(header.stages[2:-1])
+        assert last["bottleneck"]["stage"] == "infer" and "window" in last
+    finally:
+        relay.stop()
+
+
+def raw(frame: dict, correction: int) -> dict:
+    """A pushed frame with its clock correction undone (it changes as estimates improve)."""
+    def back(values):
+        return [None if v is None else v + correction for v in values]
+    return dict(frame, origin=frame["origin"] + correction, enter=back(frame["enter"]), exit=back(frame["exit"]))

@@ -1,0 +1,86 @@
+"""NTP-style offset estimation, the --clock policy and linuxptp's TIME_STATUS_NP parsing."""
+
+from __future__ import annotations
+
+import asyncio
+import shutil
+
+import numpy as np
+import pytest
+
+from relay.clock import ClockEstimator, ClockEstimate, correction_ns, ntp_sample, parse_time_status, read_ptp_state
+
+PMC_LOCKED = """sending: GET TIME_STATUS_NP
+\t90e2ba.fffe.0d8a6c-0 seq 0 RESPONSE MANAGEMENT TIME_STATUS_NP
+\t\tmaster_offset              -11
+\t\tingress_time               1481209542396429442
+\t\tcumulativeScaledRateOffset +0.000000000
+\t\tscaledLastGmPhaseChange    0
+\t\tgmTimeBaseIndicator        0
+\t\tlastGmPhaseChange          0x0000'0000000000000000.0000
+\t\tgmPresent                  true
+\t\tgmIdentity                 001e67.fffe.e1e2c5
+"""
+
+
+def exchange(offset: int, t1_true: int, up: int, down: int, hold: int) -> tuple[int, int, int, int]:
+    """Timestamps of one exchange with a node clock ``offset`` ahead and given path delays."""
+    t2 = t1_true + up
+    t3 = t2 + hold
+    return t1_true + offset, t2, t3, t3 + down + offset
+
+
+def test_symmetric_exchange_recovers_offset_exactly():
+    s = ntp_sample(*exchange(37_000_000, 10**18, 200_000, 200_000, 50_000))
+    assert s.offset_ns == 37_000_000 and s.rtt_ns == 400_000
+
+
+def test_asymmetry_stays_within_half_rtt():
+    rng = np.random.default_rng(1)
+    for _ in range(1000):
+        up, down = rng.integers(10_000, 5_000_000, 2)
+        s = ntp_sample(*exchange(-4_000_000, 10**18, int(up), int(down), 10_000))
+        assert abs(s.offset_ns - (-4_000_000)) <= (s.rtt_ns + 1) // 2
+
+
+def test_estimator_keeps_min_delay_sample_of_window():
+    est = ClockEstimator(window=4)
+    assert est.estimate() is None
+    est.add(*exchange(5_000_000, 10**18, 3_000_000, 100_000, 0))  # asymmetric, large RTT
+    est.add(*exchange(5_000_000, 10**18, 60_000, 40_000, 0))     # the best one
+    est.add(*exchange(5_000_000, 10**18, 900_000, 100_000, 0))
+    e = est.estimate()
+    assert e.rtt_ns == 100_000 and abs(e.offset_ns - 5_000_000) <= e.uncertainty_ns == 50_000
+    for _ in range(4):  # the best sample leaves the window
+        est.add(*exchange(5_000_000, 10**18, 300_000, 300_000, 0))
+    assert est.estimate().rtt_ns == 600_000 and est.estimate().samples == 4
+
+
+def test_correction_policy():
+    est = ClockEstimate(offset_ns=37_000, uncertainty_ns=100, rtt_ns=200, samples=3)
+    locked, unlocked, none = {"state": "locked"}, {"state": "unlocked"}, {"state": "unavailable"}
+    assert correction_ns("ptp", est, unlocked) == (0, "ptp")
+    assert correction_ns("estimate", est, locked) == (37_000, "estimate")
+    assert correction_ns("auto", est, locked) == (0, "ptp")
+    assert correction_ns("auto", est, unlocked) == (37_000, "estimate")
+    assert correction_ns("auto", None, none) == (0, "none")
+    with pytest.raises(ValueError):
+        correction_ns("bogus", est, none)
+
+
+def test_parse_time_status():
+    assert parse_time_status(PMC_LOCKED) == {"state": "locked", "master_offset_ns": -11, "gm_present": True,
+                                             "gm_identity": "001e67.fffe.e1e2c5"}
+    far = PMC_LOCKED.replace("-11", "2500000")
+    assert parse_time_status(far)["state"] == "unlocked"
+    no_gm = PMC_LOCKED.replace("gmPresent                  true", "gmPresent                  false")
+    assert parse_time_status(no_gm)["state"] == "unlocked"
+    assert parse_time_status("sending: GET TIME_STATUS_NP\n")["state"] == "unavailable"
+
+
+def test_read_ptp_state_on_this_machine():
+    state = asyncio.run(read_ptp_state(timeout_s=3))
+    if shutil.which("pmc") is None:
+        assert state == {"state": "unavailable", "reason": "pmc not installed"}
+    else:
+        assert state["state"] in ("unavailable", "locked", "unlocked")

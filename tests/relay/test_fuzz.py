@@ -1,0 +1,45 @@
+"""10,000 malformed payloads at the ingest while a well-behaved node streams: every bad
+connection is closed, the relay stays up, the good node's data and statistics stay exact."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+from probes.stats import node_stats
+from tests.relay.fuzzer import fuzz
+from tests.relay.helpers import RelayProcess, assert_stats_equal, finish_node, get_json, load_node, start_node
+
+PAYLOADS = 10_000
+
+
+def test_fuzz_while_a_node_streams(tmp_path):
+    relay = RelayProcess(tmp_path / "relay.db", token="t0k")
+    try:
+        node = start_node(relay.url, "good", tmp_path / "good.npz", frames=1500, sources=2, fps=50, paced=True,
+                          drop_rate=0.01, token="t0k")
+        started = time.monotonic()
+        report = asyncio.run(fuzz(relay.url, PAYLOADS, token="t0k", workers=16, timeout=5.0))
+        elapsed = time.monotonic() - started
+        assert relay.alive()
+        streaming = node.poll() is None
+        counters = finish_node(node, 120)
+
+        assert report.sent == PAYLOADS and elapsed < 240
+        assert not report.not_closed, report.not_closed
+        assert report.closed == PAYLOADS
+        assert len(report.kinds) >= 20 and min(report.kinds.values()) > 100
+        health = get_json(f"{relay.url}/api/health", "t0k")
+        assert health["ok"] and health["rejected"] >= report.errors_seen > PAYLOADS // 2
+
+        # The well-behaved node never noticed: one connection, everything acknowledged, exact stats.
+        assert counters["connects"] == 1 and counters["lost"] == 0 and counters["acked"] == counters["events"]
+        header, events = load_node(tmp_path / "good.npz")
+        assert_stats_equal(node_stats(header, events), get_json(f"{relay.url}/api/stats?node=good", "t0k"))
+        fuzzed = [n for n in get_json(f"{relay.url}/api/nodes", "t0k") if n["node"].startswith("fuzz")]
+        assert fuzzed and all(n["events"] == 0 for n in fuzzed)
+        print(f"fuzz: {PAYLOADS} payloads in {elapsed:.1f} s, node streaming throughout: {streaming}, "
+              f"kinds: {dict(report.kinds)}")
+    finally:
+        assert relay.stop() == 0
+    assert "Traceback" not in relay.log.read_text()

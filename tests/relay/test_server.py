@@ -1,0 +1,141 @@
+"""The relay app in-process: per-connection rate bound, takeover of a run, page, CLI wiring."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import subprocess
+import sys
+import uuid
+
+import aiohttp
+import socketio
+
+from relay.commands import add_relay_parser
+from relay.limits import Limits
+from relay.protocol import encode_batch
+from relay.server import start_relay
+from relay.simnode import header_for, synth_events
+from tests.relay.helpers import ROOT, env
+
+T0 = 1_700_000_000_000_000_000
+
+
+async def node_client(url: str, node: str, run: str, errors: list) -> socketio.AsyncClient:
+    sio = socketio.AsyncClient(reconnection=False)
+    sio.on("relay_error", lambda data: errors.append(data), namespace="/ingest")
+    await sio.connect(url, auth={"node": node}, namespaces=["/ingest"], transports=["websocket"], wait_timeout=5)
+    hello = {"proto": 1, "run": run, "header": header_for(node, 1).to_dict(), "lost": 0}
+    assert (await sio.call("hello", hello, namespace="/ingest", timeout=5))["ok"]
+    return sio
+
+
+def test_rate_bound_closes_only_the_offender(tmp_path):
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db", limits=Limits(messages_per_s=20, message_burst=40))
+        url = f"http://127.0.0.1:{relay.port}"
+        try:
+            errors_a, errors_b = [], []
+            run_b = uuid.uuid4().hex
+            a = await node_client(url, "A", uuid.uuid4().hex, errors_a)
+            b = await node_client(url, "B", run_b, errors_b)
+            for _ in range(80):  # twice the burst, at once
+                await a.emit("sync", namespace="/ingest")
+            for _ in range(50):
+                if not a.connected:
+                    break
+                await asyncio.sleep(0.05)
+            assert not a.connected and errors_a == [{"error": "rate limit exceeded"}]
+            events = synth_events(10, 1, 25.0, T0)
+            reply = await b.call("batch", encode_batch(run_b, 0, events), namespace="/ingest", timeout=5)
+            assert reply == {"ok": True, "seq": 0} and b.connected and not errors_b
+            await b.disconnect()
+        finally:
+            await relay.stop()
+
+    asyncio.run(scenario())
+
+
+def test_a_reconnecting_run_takes_over_its_old_connection(tmp_path):
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        url = f"http://127.0.0.1:{relay.port}"
+        run = uuid.uuid4().hex
+        try:
+            errors: list = []
+            old = await node_client(url, "A", run, errors)
+            new = await node_client(url, "A", run, [])
+            await asyncio.sleep(0.3)
+            assert not old.connected and "superseded" in errors[0]["error"]
+            events = synth_events(10, 1, 25.0, T0)
+            assert (await new.call("batch", encode_batch(run, 0, events), namespace="/ingest"))["ok"]
+            dup = await new.call("batch", encode_batch(run, 0, events), namespace="/ingest")
+            assert dup == {"ok": True, "seq": 0, "dup": True}
+            assert relay.state.runs[run].live.events == len(events) and relay.state.runs[run].duplicates == 1
+            await new.disconnect()
+        finally:
+            await relay.stop()
+
+    asyncio.run(scenario())
+
+
+def test_page_and_unknown_routes(tmp_path):
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        try:
+            async with aiohttp.ClientSession() as s:
+                async with s.get(f"http://127.0.0.1:{relay.port}/") as r:
+                    assert r.status == 200 and r.content_type == "text/html"
+                async with s.get(f"http://127.0.0.1:{relay.port}/../relay/server.py") as r:
+                    assert r.status in (403, 404)
+                async with s.get(f"http://127.0.0.1:{relay.port}/api/frames?node=x&since=abc") as r:
+                    assert r.status == 404
+                async with s.get(f"http://127.0.0.1:{relay.port}/api/stats") as r:
+                    assert r.status == 400 and "node=NAME" in (await r.json())["error"]
+        finally:
+            await relay.stop()
+
+    asyncio.run(scenario())
+
+
+def test_cli_wiring_and_port_in_use(tmp_path):
+    parser = argparse.ArgumentParser(prog="dcuscope")
+    add_relay_parser(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["relay", "--port", "0", "--db", "x.db", "--clock", "ptp", "--token", "t"])
+    assert (args.port, args.db, args.clock, args.token, args.host) == (0, "x.db", "ptp", "t", "127.0.0.1")
+    assert callable(args.func)
+
+    import socket
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        p = subprocess.run([sys.executable, "-m", "relay", "--port", str(port), "--db", str(tmp_path / "r.db")],
+                           cwd=ROOT, env=env(), capture_output=True, text=True, timeout=30)
+    assert p.returncode == 2 and p.stderr.strip().count("\n") == 0
+    assert f"cannot listen on 127.0.0.1:{port}" in p.stderr
+
+
+def test_a_nodes_newest_run_is_its_current_one(tmp_path):
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        url = f"http://127.0.0.1:{relay.port}"
+        first, second = uuid.uuid4().hex, uuid.uuid4().hex
+        events = synth_events(10, 1, 25.0, T0)
+        try:
+            c1 = await node_client(url, "A", first, [])
+            assert (await c1.call("batch", encode_batch(first, 0, events), namespace="/ingest"))["ok"]
+            await c1.disconnect()
+            await asyncio.sleep(0.2)
+            c2 = await node_client(url, "A", second, [])
+            assert relay.state.nodes["A"] == second and first not in relay.state.runs  # the old run left memory
+            c1 = await node_client(url, "A", first, [])  # the old run comes back: from storage
+            assert relay.state.runs[first].live.events == len(events) and relay.state.nodes["A"] == second
+            # Nothing was live when the second run began: it opened a session of its own.
+            assert (relay.state.runs[first].session, relay.state.runs[second].session) == (1, 2)
+            for c in (c1, c2):
+                await c.disconnect()
+        finally:
+            await relay.stop()
+
+    asyncio.run(scenario())

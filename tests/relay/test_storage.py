@@ -1,0 +1,84 @@
+"""SQLite storage: group commits, deduplication, sessions, reading back after a restart."""
+
+from __future__ import annotations
+
+import asyncio
+import sqlite3
+import uuid
+
+import numpy as np
+import pytest
+
+from relay import storage as db
+from relay.errors import RelayError
+from relay.protocol import encode_batch
+from relay.simnode import header_for, synth_events
+
+T0 = 1_700_000_000_000_000_000
+
+
+def payload(run: str, seq: int, events: np.ndarray, compress: bool) -> bytes:
+    return encode_batch(run, seq, events, compress)[40:]
+
+
+def test_batches_sessions_and_reload(tmp_path):
+    path = tmp_path / "r.db"
+    h1, h2 = header_for("a", 2), header_for("b", 1)
+    ev1 = synth_events(30, 2, 25.0, T0, seed=1)
+    ev2 = synth_events(30, 1, 25.0, T0, seed=2)
+    r1, r2, r3 = (uuid.uuid4().hex for _ in range(3))
+
+    async def scenario():
+        s = db.Storage(path)
+        s.start(asyncio.get_running_loop())
+        s1, first = await s.call(db.register_run, r1, "a", h1.to_dict(), None)
+        s2, _ = await s.call(db.register_run, r2, "b", h2.to_dict(), s1)  # joins the live session
+        assert await s.call(db.register_run, r1, "a", h1.to_dict(), None) == (1, first)  # a renewed hello
+        assert s1 == s2 == 1
+        halves = np.array_split(ev1, 3)
+        results = await asyncio.gather(*(s.put_batch(r1, i, len(p), i == 1, payload(r1, i, p, i == 1))
+                                         for i, p in enumerate(halves)))
+        assert results == [True, True, True]
+        assert await s.put_batch(r1, 1, len(halves[1]), True, payload(r1, 1, halves[1], True)) is False  # resent
+        assert await s.put_batch(r2, 0, len(ev2), False, payload(r2, 0, ev2, False))
+        await s.call(db.update_run, r2, clock={"correction_ns": 1000}, ended_ns=5, dropped=2, lost=1)
+        assert await s.call(db.stored_seqs, r1) == {0, 1, 2}
+        with pytest.raises(RelayError, match="belongs to node 'a'"):
+            await s.call(db.register_run, r1, "b", h1.to_dict(), None)
+        s3, _ = await s.call(db.register_run, r3, "a", h1.to_dict(), None)  # nothing live: a new session
+        assert s3 == 2
+        assert s.commits >= 2
+        s.stop()
+
+    asyncio.run(scenario())
+
+    runs = db.load_runs(path, 1)
+    assert [r.header.node for r in runs] == ["a", "b"]
+    assert np.array_equal(runs[0].events, ev1)
+    shifted = ev2.copy()
+    shifted["ts"] -= 1000
+    assert np.array_equal(runs[1].events, shifted) and runs[1].dropped == 2 and runs[1].ended
+    assert np.array_equal(db.load_runs(path, 1, corrected=False)[1].events, ev2)
+    (h, e), = db.load_session(path, r1[:8])
+    assert h.node == "a" and len(e) == len(ev1)
+    conn = db.connect(path)
+    sessions = db.list_sessions(conn)
+    assert [s["session"] for s in sessions] == [2, 1]
+    assert [r["events"] for r in sessions[1]["runs"]] == [len(ev1), len(ev2)]
+    assert conn.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+
+
+def test_errors_name_the_file(tmp_path):
+    with pytest.raises(RelayError, match="no such relay database"):
+        db.load_session(tmp_path / "missing.db", 1)
+    bad = tmp_path / "bad.db"
+    bad.write_bytes(b"this is not sqlite" * 100)
+    with pytest.raises(RelayError, match="bad.db"):
+        db.load_session(bad, 1)
+    good = tmp_path / "good.db"
+    db.connect(good).close()
+    with pytest.raises(RelayError, match="no session or run"):
+        db.load_session(good, 3)
+    with pytest.raises(RelayError, match="must be a number or a run id"):
+        db.load_session(good, "x; DROP TABLE runs")
+    assert sqlite3.connect(good).execute("SELECT count(*) FROM runs").fetchone()[0] == 0
