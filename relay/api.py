@@ -40,18 +40,11 @@ def add_routes(app: web.Application, state: RelayState, token: str | None, count
     def run_of(request: web.Request):
         node = request.query.get("node")
         if not node:
-            raise _error(web.HTTPBadRequest, "node=NAME is required")
+            raise http_error(web.HTTPBadRequest, "node=NAME is required")
         rs = state.node_run(node)
         if rs is None:
-            raise _error(web.HTTPNotFound, f"no node named {node[:100]!r}")
+            raise http_error(web.HTTPNotFound, f"no node named {node[:100]!r}")
         return rs
-
-    def int_arg(request: web.Request, name: str, default: int, lo: int, hi: int) -> int:
-        try:
-            value = int(request.query.get(name, default))
-        except ValueError:
-            raise _error(web.HTTPBadRequest, f"{name} must be an integer") from None
-        return max(lo, min(hi, value))
 
     async def health(request: web.Request) -> web.Response:
         return web.json_response({"ok": True, "uptime_s": time.time() - state.started, "runs": len(state.runs),
@@ -80,5 +73,15 @@ def add_routes(app: web.Application, state: RelayState, token: str | None, count
     app.router.add_get("/api/sessions", sessions)
 
 
-def _error(kind: type[web.HTTPException], message: str) -> web.HTTPException:
+def http_error(kind: type[web.HTTPException], message: str) -> web.HTTPException:
+    """A JSON ``{"error": message}`` HTTP error to raise from a handler."""
     return kind(text=json.dumps({"error": message}), content_type="application/json")
+
+
+def int_arg(request: web.Request, name: str, default: int, lo: int, hi: int) -> int:
+    """Query argument ``name`` as an integer clamped to [lo, hi]; 400 if it is not one."""
+    try:
+        value = int(request.query.get(name, default))
+    except ValueError:
+        raise http_error(web.HTTPBadRequest, f"{name} must be an integer") from None
+    return max(lo, min(hi, value))

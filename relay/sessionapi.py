@@ -19,7 +19,6 @@ Register with ``add_session_routes(app, state)`` before the app starts; the toke
 from __future__ import annotations
 
 import asyncio
-import json
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -30,6 +29,7 @@ from aiohttp import web
 from probes.events import TraceHeader
 from probes.stats import MISSING, chains, frame_table, node_stats, unique_name
 from relay import storage as db
+from relay.api import http_error, int_arg
 from relay.errors import RelayError
 from relay.live import bottleneck
 from relay.state import RelayState
@@ -144,10 +144,6 @@ class SessionCache:
         return nodes
 
 
-def _error(status: type[web.HTTPException], message: str) -> web.HTTPException:
-    return status(text=json.dumps({"error": message}), content_type="application/json")
-
-
 def add_session_routes(app: web.Application, state: RelayState) -> SessionCache:
     """Add the ``/api/sessions/{session}/...`` routes; returns their cache (tests look at it)."""
     cache = SessionCache(state.storage.path)
@@ -156,23 +152,16 @@ def add_session_routes(app: web.Application, state: RelayState) -> SessionCache:
         try:
             return await cache.get(int(request.match_info["session"]))
         except RelayError as exc:
-            raise _error(web.HTTPNotFound, str(exc)) from exc
+            raise http_error(web.HTTPNotFound, str(exc)) from exc
 
     async def node_of(request: web.Request) -> StoredNode:
         name = request.query.get("node")
         if not name:
-            raise _error(web.HTTPBadRequest, "node=NAME is required")
+            raise http_error(web.HTTPBadRequest, "node=NAME is required")
         for node in await session_nodes(request):
             if node.node == name:
                 return node
-        raise _error(web.HTTPNotFound, f"session {request.match_info['session']} has no node {name[:100]!r}")
-
-    def int_arg(request: web.Request, name: str, default: int, lo: int, hi: int) -> int:
-        try:
-            value = int(request.query.get(name, default))
-        except ValueError:
-            raise _error(web.HTTPBadRequest, f"{name} must be an integer") from None
-        return max(lo, min(hi, value))
+        raise http_error(web.HTTPNotFound, f"session {request.match_info['session']} has no node {name[:100]!r}")
 
     async def nodes(request: web.Request) -> web.Response:
         return web.json_response([n.summary() for n in await session_nodes(request)])

@@ -12,7 +12,6 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import pytest
 
 from pipeline.build import build_pipeline
 from pipeline.config import SinkConfig, load_config

@@ -91,3 +91,22 @@ def _events(ts, source, frame, stage, point) -> np.ndarray:
     ev = np.zeros(len(ts), EVENT_DTYPE)
     ev["ts"], ev["source"], ev["frame"], ev["stage"], ev["point"] = ts, source, frame, stage, point
     return ev
+
+
+def run_commands(*argv: str) -> tuple[int, str, str]:
+    """Run ``dcuscope stats|export ARGV`` in-process: (exit code, stdout, stderr)."""
+    import argparse
+    import contextlib
+    import io
+
+    from probes.commands import add_export_parser, add_stats_parser
+
+    parser = argparse.ArgumentParser(prog="dcuscope")
+    sub = parser.add_subparsers()
+    add_stats_parser(sub)
+    add_export_parser(sub)
+    args = parser.parse_args(list(argv))
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        rc = args.func(args)
+    return rc, out.getvalue(), err.getvalue()

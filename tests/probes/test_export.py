@@ -1,7 +1,5 @@
 """Perfetto/Chrome Trace Event JSON and CSV exports, checked structurally against known runs."""
 
-import argparse
-import contextlib
 import csv
 import io
 import json
@@ -14,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probes.commands import add_export_parser, add_stats_parser
 from probes.export import CSV_COLUMNS, assign_lanes, perfetto_document, write_csv
 from probes.tracefile import write_trace
+from tests.probes.synth import run_commands as _cli
 from tests.probes.synth import STAGES, pipeline_run
 
 EPS_US = 1e-6
@@ -181,18 +179,6 @@ def test_csv_marks_incomplete_frames():
     rows = _read_csv(out.getvalue())
     assert {x["complete"] for x in rows if x["frame"] == "2"} == {"0"}
     assert {x["complete"] for x in rows if x["frame"] != "2"} == {"1"}
-
-
-def _cli(*argv):
-    parser = argparse.ArgumentParser(prog="dcuscope")
-    sub = parser.add_subparsers()
-    add_stats_parser(sub)
-    add_export_parser(sub)
-    args = parser.parse_args(list(argv))
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        rc = args.func(args)
-    return rc, out.getvalue(), err.getvalue()
 
 
 def test_export_cli_writes_perfetto_and_csv_files(tmp_path, two_nodes):

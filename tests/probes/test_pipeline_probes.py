@@ -84,7 +84,7 @@ def test_inserted_20ms_stage_is_measured_accurately(tmp_path):
     # Sleep wake-ups on this shared 2-core machine are occasionally late by tens of ms; a
     # late wake-up is a real delay (both probe backends see it), so allow three attempts.
     for attempt in range(3):
-        trace = probed_run(tmp_path, quad_yaml(slow_us=20000), 25)
+        probed_run(tmp_path, quad_yaml(slow_us=20000), 25)
         result = run_cli("stats", tmp_path / "t.jsonl", "--json", cwd=tmp_path)
         assert result.returncode == 0, result.stderr
         slow = json.loads(result.stdout)["nodes"]["DCU-1"]["stages"]["slow"]

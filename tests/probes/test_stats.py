@@ -1,8 +1,5 @@
 """Statistics against synthetic runs whose every timestamp is known (tests/probes/synth.py)."""
 
-import argparse
-import contextlib
-import io
 import json
 import os
 import subprocess
@@ -12,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probes.commands import add_export_parser, add_stats_parser
 from probes.errors import TraceError
 from probes.events import ENTER, EVENT_DTYPE, EXIT
 from probes.stats import (
     MISSING, chains, frame_delays_ns, frame_table, gaps_ns, node_stats, stage_delays_ns, stats_document, summarize,
 )
 from probes.tracefile import read_trace, write_trace
+from tests.probes.synth import run_commands as _cli
 from tests.probes.synth import STAGES, pipeline_run
 
 STAT_KEYS = {"count", "mean_ms", "p50_ms", "p95_ms", "p99_ms", "max_ms"}
@@ -200,18 +197,6 @@ def test_stats_document_keeps_same_named_nodes_apart():
     doc = stats_document([T(a, 0), T(b, 1), T(c, 2)])
     assert list(doc["nodes"]) == ["dcu1", "dcu1_2", "dcu2"]
     assert doc["nodes"]["dcu1_2"]["frames"]["complete"] == 8 and doc["nodes"]["dcu2"]["dropped"] == 2
-
-
-def _cli(*argv):
-    parser = argparse.ArgumentParser(prog="dcuscope")
-    sub = parser.add_subparsers()
-    add_stats_parser(sub)
-    add_export_parser(sub)
-    args = parser.parse_args(list(argv))
-    out, err = io.StringIO(), io.StringIO()
-    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        rc = args.func(args)
-    return rc, out.getvalue(), err.getvalue()
 
 
 @pytest.fixture

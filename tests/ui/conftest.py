@@ -11,8 +11,10 @@ from tests.ui.helpers import REAL_PIPELINES, launch_chromium
 FEEDER_ENV = "DCUSCOPE_UI_FEEDER"
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def browser():
+    # Module scope: Playwright's sync API keeps an asyncio loop running in the main thread
+    # while it is open, which would break asyncio.run() in any test that ran after it.
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as playwright:

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import pytest
 
-from tests.ui.helpers import (ROOT, RelayThread, get_json, pipeline_nodes, sim_nodes, wait_for)
+from tests.relay.helpers import get_json, wait_for
+from tests.ui.helpers import ROOT, RelayThread, pipeline_nodes, sim_nodes
 
 NODES = ["DCU-1", "DCU-2"]
 FIVE = {"mux": "#e53935", "infer": "#1e88e5", "tiler": "#fdd835", "convert": "#43a047", "osd": "#8e24aa"}
@@ -252,7 +253,8 @@ def test_stored_session_browses_like_live(live):
     last = max(n["last_ns"] for n in stored.values()) / 1e6
     assert d["window"][0] <= first and d["window"][1] >= last
     page.wait_for_selector('#nodes-body .dot-stored', timeout=10000)
-    assert page.locator("#stats-body tr.bottleneck").count() == 2
+    # Each node's stored statistics arrive by their own request: wait for both.
+    wait_for(lambda: page.locator("#stats-body tr.bottleneck").count() == 2, 15, 0.2, "both bottleneck rows")
     # Play replays at real speed from the start of the window.
     page.mouse.move(box_center(page, "#stage-canvas")[0], box_center(page, "#stage-canvas")[1])
     page.mouse.wheel(0, -600)

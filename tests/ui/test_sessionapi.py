@@ -9,7 +9,8 @@ import pytest
 
 from probes.events import TraceHeader
 from probes.stats import chains, frame_table, node_stats
-from tests.ui.helpers import RelayThread, get_json, http_status, sim_nodes, wait_for
+from tests.relay.helpers import get_json, http_status, wait_for
+from tests.ui.helpers import RelayThread, sim_nodes
 
 TOKEN = "ui-token"
 

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from tests.ui.helpers import RelayThread, sim_nodes, wait_for
+from tests.relay.helpers import wait_for
+from tests.ui.helpers import RelayThread, sim_nodes
 
 TOKEN = "tok-3f9a"
 
