@@ -1,0 +1,662 @@
+"""Streams sweep: the paper's Tables 4-6 (A = S/n per stream count) and Figure 12 (per-stage
+delays vs stream count), measured on this machine.
+
+    .venv/bin/python benchmarks/streams_sweep.py                  # full sweep (long)
+    .venv/bin/python benchmarks/streams_sweep.py --quick          # 3982 kbit/s, 30 fps, 1-2 streams, 8 s runs
+    benchmarks/streams_sweep --model ssd --rates 30,60 --bitrates-at 60=3982 --max-streams 3 \\
+        --all-streams --duration 15 --plot docs/streams_sweep.png   # BENCHMARKS.md's run, ~15 min
+
+1. Clips. 1920x1080 H.264 clips at each frame rate and bitrate are made from the shipped
+   clips (vtest.avi, bikes.mp4) with GStreamer (videoscale, videorate, x264enc, mp4mux) into
+   a cache folder (default build/sweep-clips/); clips already there are kept.
+2. Runs. For each input kind (``file``: local files played in real time by a synchronised
+   sink; ``rtsp``: the same clips served live by ``dcuscope serve-rtsp`` on loopback), frame
+   rate, bitrate and stream count 1..N, a config mux(batch-size=N, 1920x1080) -> infer ->
+   tiler -> convert -> osd -> fakesink is written and run by ``dcuscope run --probes`` for
+   ``--duration`` seconds, in its own process. The first ``--warmup`` seconds of frames are
+   left out; the rest give A = S/n (the mean frame delay), p95, fps per stream and the mean
+   delay of every stage. A series stops at the first stream count whose fps per stream is
+   under 90 % of the clip's rate (saturated) unless ``--all-streams``.
+3. Output. Markdown tables (one per bitrate like the paper's Tables 4-6, and the per-stage
+   data of Figure 12) on stdout and in ``--out``; the raw results as JSON next to it; a PNG
+   plot (``--plot``, drawn by benchmarks/plot.py).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import platform
+import select
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: make the project importable
+    sys.path.insert(0, str(ROOT))
+
+from probes.events import ORIGIN  # noqa: E402
+from probes.stats import node_stats  # noqa: E402
+from probes.tracefile import Trace, read_trace  # noqa: E402
+
+MEDIA = ROOT / "assets" / "media"
+MODELS = {"centernet": ROOT / "assets" / "models" / "centernet_mobilenetv3_coco80.onnx",
+          "ssd": ROOT / "assets" / "models" / "ssdlite_mobilenetv2_person.onnx"}
+CLIP_SOURCES = ("vtest.avi", "bikes.mp4")
+"""Stream i plays a clip made from CLIP_SOURCES[i % 2]."""
+KINDS = ("file", "rtsp")
+BITRATES = (3982, 4971, 7955)
+"""kbit/s of the paper's clips; its Tables 4, 5 and 6."""
+RATES = (30, 60)
+STAGES = ("mux", "infer", "tiler", "convert", "osd")
+WIDTH, HEIGHT = 1920, 1080
+
+DEFAULT_CACHE = ROOT / "build" / "sweep-clips"
+DEFAULT_OUT = ROOT / "build" / "streams_sweep.md"
+DEFAULT_CLIP_SECONDS = 10
+DEFAULT_PRESET = "superfast"  # x264: quick to make on 2 cores; the bitrate is what the paper fixes
+DEFAULT_DURATION = 20.0
+DEFAULT_WARMUP = 5.0
+DEFAULT_MAX_STREAMS = 4
+SATURATION = 0.9
+"""A stream count saturates the pipeline when its fps per stream is under this share of the clip's rate."""
+START_ALLOWANCE_S = 60.0
+"""Time a run may take beyond --duration (start-up, model load, end-of-stream drain) before it is killed."""
+RTSP_READY_S = 30.0
+
+
+# -- clips -------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ClipSpec:
+    source: str
+    """File name in assets/media."""
+    fps: int
+    bitrate: int
+    """kbit/s."""
+    seconds: int
+    preset: str = DEFAULT_PRESET
+
+    @property
+    def name(self) -> str:
+        stem = Path(self.source).stem
+        return f"{stem}_{HEIGHT}p{self.fps}_{self.bitrate}k_{self.seconds}s_{self.preset}.mp4"
+
+
+def clip_pipeline(spec: ClipSpec, target: Path) -> str:
+    """gst-launch description that turns a shipped clip into ``spec`` at ``target``."""
+    caps = (f"video/x-raw,format=I420,width={WIDTH},height={HEIGHT},pixel-aspect-ratio=1/1,"
+            f"framerate={spec.fps}/1")
+    # Letterboxed (add-borders) rather than stretched, so that people keep their shape for the detector.
+    return (f'filesrc location="{MEDIA / spec.source}" ! decodebin ! videoconvert name=first ! videoscale add-borders=true '
+            f"! videorate name=rate ! {caps} ! x264enc bitrate={spec.bitrate} speed-preset={spec.preset} "
+            f"key-int-max={spec.fps} ! h264parse ! mp4mux ! filesink location=\"{target}\"")
+
+
+def make_clip(spec: ClipSpec, cache: Path, progress: Callable[[str], None] = lambda _: None,
+              timeout_s: float = 600.0) -> Path:
+    """Encode ``spec`` into ``cache`` unless it is there already; return its path."""
+    from pipeline.gst import Gst
+
+    target = cache / spec.name
+    if target.is_file() and target.stat().st_size > 0:
+        return target
+    cache.mkdir(parents=True, exist_ok=True)
+    part = target.with_suffix(".part.mp4")  # renamed when complete: a killed run leaves no half clip
+    pipeline = Gst.parse_launch(clip_pipeline(spec, part))
+    limit = spec.seconds * Gst.SECOND
+    ended = []
+
+    def cut(pad, info):
+        # Ends the clip at its length: a seek cannot go through the encoder and muxer, and
+        # mp4mux only finalises the file on EOS. Frames after the end are dropped.
+        if info.get_buffer().pts < limit:
+            return Gst.PadProbeReturn.OK
+        if not ended:
+            ended.append(True)
+            pad.push_event(Gst.Event.new_eos())
+        return Gst.PadProbeReturn.DROP
+
+    def skip(_pad, info):
+        # Spares scaling the rest of a long source to 1080p (videorate may still need a frame past the end).
+        late = info.get_buffer().pts >= limit + Gst.SECOND
+        return Gst.PadProbeReturn.DROP if late else Gst.PadProbeReturn.OK
+
+    # The cut is after videorate: at EOS it repeats the last frame to fill out the source's own duration.
+    pipeline.get_by_name("rate").get_static_pad("src").add_probe(Gst.PadProbeType.BUFFER, cut)
+    pipeline.get_by_name("first").get_static_pad("sink").add_probe(Gst.PadProbeType.BUFFER, skip)
+    try:
+        pipeline.set_state(Gst.State.PLAYING)
+        bus = pipeline.get_bus()
+        deadline = time.monotonic() + timeout_s
+        while True:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"{spec.name}: not made within {timeout_s:.0f} s")
+            msg = bus.timed_pop_filtered(2 * Gst.SECOND, Gst.MessageType.EOS | Gst.MessageType.ERROR)
+            if msg is None:
+                ok, pos = pipeline.query_position(Gst.Format.TIME)
+                if ok:
+                    progress(f"  {spec.name}: {min(100, 100 * pos / limit):3.0f} %")
+                continue
+            if msg.type == Gst.MessageType.ERROR:
+                err, debug = msg.parse_error()
+                raise RuntimeError(f"{spec.name}: {err.message} ({debug})")
+            break
+    finally:
+        pipeline.set_state(Gst.State.NULL)
+    part.rename(target)
+    return target
+
+
+def clip_for(stream: int, fps: int, bitrate: int, seconds: int, preset: str) -> ClipSpec:
+    return ClipSpec(CLIP_SOURCES[stream % len(CLIP_SOURCES)], fps, bitrate, seconds, preset)
+
+
+# -- configurations ----------------------------------------------------------------------------
+def grid(streams: int) -> tuple[int, int]:
+    """(rows, columns) of the collage: as square as possible, wider than tall."""
+    columns = math.ceil(math.sqrt(streams))
+    return math.ceil(streams / columns), columns
+
+
+def config_text(kind: str, uris: list[str], fps: int, model: str) -> str:
+    """A dcuscope YAML config for one run: the paper's chain over ``uris`` at 1080p."""
+    n = len(uris)
+    rows, columns = grid(n)
+    if kind == "file":
+        sources = "\n".join(f"  - {{uri: '{u}', loop: true}}" for u in uris)
+        mux = f"{{batch-size: {n}, width: {WIDTH}, height: {HEIGHT}}}"
+        # sync: the file plays at its own rate, as the paper's file input did (else as fast as possible).
+        sink = "{type: fake, sync: true}"
+    else:
+        sources = "\n".join(f"  - {{uri: '{u}'}}" for u in uris)
+        # nvstreammux's advice: batched-push-timeout = one frame period of the fastest source.
+        mux = (f"{{batch-size: {n}, width: {WIDTH}, height: {HEIGHT}, live-source: true, "
+               f"batched-push-timeout: {1_000_000 // fps}}}")
+        # Live sources pace themselves; a synchronised sink would only add the jitter buffer's
+        # latency as a wait after the last tracepoint, as in configs/rtsp.yaml.
+        sink = "{type: fake}"
+    return f"""\
+node: sweep
+sources:
+{sources}
+stages:
+  - mux: {mux}
+  - infer: {{model: '{MODELS[model]}', threshold: 0.3}}
+  - tiler: {{rows: {rows}, columns: {columns}, width: {WIDTH}, height: {HEIGHT}}}
+  - convert: {{format: RGBA}}
+  - osd: {{line-width: 3}}
+sink: {sink}
+"""
+
+
+# -- processes ---------------------------------------------------------------------------------
+def cli_env() -> dict:
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(ROOT) + os.pathsep + env.get("PYTHONPATH", "")
+    env.setdefault("GST_DEBUG", "0")
+    return env
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+class RtspServer:
+    """``dcuscope serve-rtsp`` in its own process for the duration of a ``with`` block."""
+
+    def __init__(self, clips: list[Path], bitrate: int):
+        self.clips, self.bitrate = clips, bitrate
+        self.port = free_port()
+        self.proc: subprocess.Popen | None = None
+        self._errors = tempfile.TemporaryFile()  # not a pipe: nobody reads it while it serves
+        self._started = 0.0
+        self.cores: float | None = None
+        """CPU cores the server used while it ran (measured when it stops)."""
+
+    @property
+    def uris(self) -> list[str]:
+        return [f"rtsp://127.0.0.1:{self.port}/cam{i}" for i in range(len(self.clips))]
+
+    def __enter__(self) -> "RtspServer":
+        # Unbuffered stdout: select() then sees every announced line (a buffered reader would
+        # swallow several lines at once and leave select() waiting for nothing).
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "pipeline.cli", "serve-rtsp", *map(str, self.clips), "--port", str(self.port),
+             "--bitrate", str(self.bitrate)],
+            cwd=ROOT, env=cli_env(), stdout=subprocess.PIPE, stderr=self._errors, bufsize=0)
+        self._started = time.monotonic()
+        deadline = time.monotonic() + RTSP_READY_S
+        announced = b""
+        try:
+            # It announces one line per mount once it listens.
+            while announced.count(b"rtsp://") < len(self.clips):
+                ready, _, _ = select.select([self.proc.stdout], [], [], max(deadline - time.monotonic(), 0))
+                chunk = os.read(self.proc.stdout.fileno(), 4096) if ready else b""
+                if not chunk:
+                    self._errors.seek(0)
+                    raise RuntimeError(f"serve-rtsp did not start within {RTSP_READY_S:.0f} s: "
+                                       f"{self._errors.read()[-500:].decode(errors='replace')}")
+                announced += chunk
+        except BaseException:
+            self.__exit__()
+            raise
+        return self
+
+    def _cpu_cores(self) -> float | None:
+        try:  # utime + stime, fields 14 and 15 of /proc/PID/stat (after the command name)
+            fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+            cpu_s = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        except (OSError, ValueError, IndexError):
+            return None
+        return cpu_s / max(time.monotonic() - self._started, 1e-3)
+
+    def __exit__(self, *_exc) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.cores = self._cpu_cores()
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(10)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(10)
+        if self.proc is not None:
+            self.proc.stdout.close()
+        self._errors.close()
+
+
+def run_pipeline(config: Path, trace: Path, duration: float) -> tuple[int, str]:
+    """``dcuscope run CONFIG --probes`` for ``duration`` s, killed if it overruns; (exit status, stderr tail)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pipeline.cli", "run", str(config), "--probes", "--trace", str(trace),
+         "--duration", str(duration), "-q"],
+        cwd=ROOT, env=cli_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        _, stderr = proc.communicate(timeout=duration + START_ALLOWANCE_S)
+    except subprocess.TimeoutExpired:
+        proc.kill()  # the trace reader accepts the cut file
+        _, stderr = proc.communicate()
+        return -9, (stderr or "")[-500:] + "\n(killed: overran its time)"
+    finally:
+        if proc.poll() is None:  # interrupted: leave no pipeline behind
+            proc.kill()
+            proc.wait()
+    return proc.returncode, (stderr or "")[-500:]
+
+
+# -- measurement (pure) ------------------------------------------------------------------------
+def after_warmup(events: np.ndarray, warmup_s: float) -> np.ndarray:
+    """The events of the frames that originated ``warmup_s`` or more after the first origin."""
+    origins = events[events["point"] == ORIGIN]
+    if len(origins) == 0 or warmup_s <= 0:
+        return events
+    cutoff = int(origins["ts"].min()) + int(warmup_s * 1e9)
+    late = origins[origins["ts"] >= cutoff]
+    keys = (events["source"].astype(np.int64) << 40) | events["frame"].astype(np.int64)
+    keep = (late["source"].astype(np.int64) << 40) | late["frame"].astype(np.int64)
+    return events[np.isin(keys, keep)]
+
+
+@dataclass
+class Measurement:
+    a_ms: float | None
+    """The paper's A = S/n: mean frame delay (origin -> sink) of the complete frames."""
+    p95_ms: float | None
+    fps: float
+    """Mean over the streams of each stream's complete frames per second."""
+    stages_ms: dict[str, float]
+    """Mean delay of each of STAGES (exit - enter)."""
+    queues_ms: float
+    """A minus the sum of the stage means: waits between stages (hand-over, back-pressure)."""
+    frames: int
+    incomplete: int
+
+
+def measure(trace: Trace, warmup_s: float) -> Measurement:
+    stats = node_stats(trace.header, after_warmup(trace.events, warmup_s), trace.dropped)
+    frame = stats["frame"]
+    stages = {s: stats["stages"][s]["mean_ms"] for s in STAGES if s in stats["stages"]}
+    fps = list(stats["fps"].values())
+    a_ms = frame["mean_ms"]
+    queues = a_ms - sum(v for v in stages.values() if v is not None) if a_ms is not None else 0.0
+    return Measurement(a_ms=a_ms, p95_ms=frame["p95_ms"], fps=float(np.mean(fps)) if fps else 0.0,
+                       stages_ms=stages, queues_ms=queues, frames=stats["frames"]["complete"],
+                       incomplete=stats["frames"]["incomplete"])
+
+
+def saturated(fps: float, rate: float) -> bool:
+    return fps < SATURATION * rate
+
+
+# -- the sweep ---------------------------------------------------------------------------------
+@dataclass
+class Point:
+    kind: str
+    fps: int
+    bitrate: int
+    streams: int
+
+
+@dataclass
+class Result:
+    kind: str
+    fps: int
+    bitrate: int
+    streams: int
+    a_ms: float | None = None
+    p95_ms: float | None = None
+    achieved_fps: float = 0.0
+    stages_ms: dict[str, float] = field(default_factory=dict)
+    queues_ms: float = 0.0
+    frames: int = 0
+    incomplete: int = 0
+    saturated: bool = False
+    error: str = ""
+    wall_s: float = 0.0
+    load: float = 0.0
+    """1-minute load average at the end of the run: this machine is shared."""
+    server_cores: float | None = None
+    """RTSP: CPU cores that serve-rtsp (decoding and re-encoding on this machine) used."""
+    runs: int = 1
+    """Repetitions the figures are the median of."""
+
+
+def combine(results: list[Result]) -> Result:
+    """One result from repetitions of one point: the median of each figure over the runs that measured."""
+    ok = [r for r in results if r.a_ms is not None]
+    if not ok:
+        return results[0]
+    med = lambda values: float(np.median(values))  # noqa: E731
+    first = ok[0]
+    cores = [r.server_cores for r in ok if r.server_cores is not None]
+    return Result(
+        first.kind, first.fps, first.bitrate, first.streams, a_ms=med([r.a_ms for r in ok]),
+        p95_ms=med([r.p95_ms for r in ok]), achieved_fps=med([r.achieved_fps for r in ok]),
+        stages_ms={s: med([r.stages_ms[s] for r in ok if s in r.stages_ms]) for s in first.stages_ms},
+        queues_ms=med([r.queues_ms for r in ok]), frames=sum(r.frames for r in ok),
+        incomplete=sum(r.incomplete for r in ok), saturated=saturated(med([r.achieved_fps for r in ok]), first.fps),
+        error="; ".join(dict.fromkeys(r.error for r in results if r.error)), wall_s=sum(r.wall_s for r in results),
+        load=med([r.load for r in ok]), server_cores=med(cores) if cores else None, runs=len(ok))
+
+
+def series(kinds, rates, bitrates, bitrates_at: dict[int, list[int]] | None = None) -> Iterator[tuple[str, int, int]]:
+    """(kind, fps, bitrate) of every series, bitrate-major; ``bitrates_at`` narrows the bitrates of a rate."""
+    for bitrate in bitrates:
+        for kind in kinds:
+            for fps in rates:
+                if bitrate in (bitrates_at or {}).get(fps, [bitrate]):
+                    yield kind, fps, bitrate
+
+
+def run_point(point: Point, clips: list[Path], model: str, duration: float, warmup: float, workdir: Path,
+              rep: int = 1) -> Result:
+    result = Result(point.kind, point.fps, point.bitrate, point.streams)
+    started = time.monotonic()
+    tag = f"{point.kind}-{point.fps}-{point.bitrate}-{point.streams}-{rep}"
+    config, trace = workdir / f"{tag}.yaml", workdir / f"{tag}.jsonl"
+    try:
+        if point.kind == "file":
+            config.write_text(config_text("file", [c.as_uri() for c in clips], point.fps, model))
+            status, stderr = run_pipeline(config, trace, duration)
+        else:
+            with RtspServer(clips, point.bitrate) as server:
+                config.write_text(config_text("rtsp", server.uris, point.fps, model))
+                status, stderr = run_pipeline(config, trace, duration)
+            result.server_cores = server.cores
+        if not trace.is_file():
+            raise RuntimeError(f"no trace (exit status {status}): {stderr.strip()}")
+        m = measure(read_trace(trace), warmup)
+        result.a_ms, result.p95_ms, result.achieved_fps = m.a_ms, m.p95_ms, m.fps
+        result.stages_ms, result.queues_ms, result.frames, result.incomplete = m.stages_ms, m.queues_ms, m.frames, m.incomplete
+        result.saturated = saturated(m.fps, point.fps)
+        if status != 0:
+            result.error = f"exit status {status}: {stderr.strip().splitlines()[-1] if stderr.strip() else ''}"
+        if m.a_ms is None:
+            result.error = result.error or "no complete frame after the warm-up"
+            result.saturated = True
+    except (RuntimeError, OSError) as exc:
+        result.error = str(exc)
+        result.saturated = True
+    result.wall_s = time.monotonic() - started
+    result.load = os.getloadavg()[0]
+    return result
+
+
+def machine() -> str:
+    """CPU count and model, memory and load: the figures only mean something next to these."""
+    model = "?"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                model = line.split(":", 1)[1].strip()
+                break
+        mem_kb = int(Path("/proc/meminfo").read_text().split()[1])
+    except (OSError, ValueError, IndexError):
+        mem_kb = 0
+    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
+    return (f"{os.cpu_count()} CPUs ({model}), {mem_kb / 2**20:.0f} GiB RAM, {platform.system()} "
+            f"{platform.release()}, load average {load}")
+
+
+def fmt_duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 60}m{seconds % 60:02d}s" if seconds >= 60 else f"{seconds}s"
+
+
+def sweep(args: argparse.Namespace, log: Callable[[str], None],
+          on_result: Callable[[list[Result]], None] = lambda _: None) -> list[Result]:
+    """Make the clips, then run every point of the plan; ``on_result`` sees the results so far after each run."""
+    plan = list(series(args.kinds, args.rates, args.bitrates, args.bitrates_at))
+    specs = sorted({clip_for(i, fps, b, args.clip_seconds, args.preset)
+                    for _, fps, b in plan for i in range(min(args.max_streams, len(CLIP_SOURCES)))},
+                   key=lambda s: (s.fps, s.bitrate, s.source))
+    missing = [s for s in specs if not (args.cache / s.name).is_file()]
+    log(f"clips: {len(specs)} needed, {len(missing)} to make in {args.cache}")
+    for i, spec in enumerate(missing, 1):
+        t0 = time.monotonic()
+        log(f"[clip {i}/{len(missing)}] {spec.name}")
+        make_clip(spec, args.cache, progress=log)
+        log(f"  made in {time.monotonic() - t0:.1f} s")
+
+    runs: dict[tuple, list[Result]] = {}  # point -> its repetitions, in the order first run
+
+    def report() -> list[Result]:
+        combined = [combine(rs) for rs in runs.values()]
+        on_result(combined)
+        return combined
+
+    runs_left = len(plan) * args.max_streams * args.repeat  # an upper bound: a saturated series stops early
+    per_run = args.duration + 10.0  # first guess; replaced by the measured mean
+    done = 0
+    spent = 0.0
+
+    def run(point: Point, rep: int, workdir: Path) -> Result:
+        nonlocal runs_left, per_run, done, spent
+        clips = [args.cache / clip_for(i, point.fps, point.bitrate, args.clip_seconds, args.preset).name
+                 for i in range(point.streams)]
+        log(f"[run {done + 1}, at most {runs_left} left, eta <= {fmt_duration(runs_left * per_run)}] "
+            f"{point.kind} {point.fps} fps {point.bitrate} kbit/s, {point.streams} stream(s), {args.duration:g} s"
+            + (f", repetition {rep}/{args.repeat}" if args.repeat > 1 else ""))
+        r = run_point(point, clips, args.model, args.duration, args.warmup, workdir, rep)
+        runs.setdefault((point.kind, point.fps, point.bitrate, point.streams), []).append(r)
+        done, runs_left, spent = done + 1, runs_left - 1, spent + r.wall_s
+        per_run = spent / done
+        log("    " + describe(r))
+        report()
+        return r
+
+    with tempfile.TemporaryDirectory(prefix="streams-sweep-") as tmp:
+        workdir = args.keep_traces or Path(tmp)
+        workdir.mkdir(parents=True, exist_ok=True)
+        measured: list[Point] = []
+        for kind, fps, bitrate in plan:
+            for streams in range(1, args.max_streams + 1):
+                point = Point(kind, fps, bitrate, streams)
+                measured.append(point)
+                r = run(point, 1, workdir)
+                if r.saturated and not args.all_streams:
+                    runs_left -= (args.max_streams - streams) * args.repeat
+                    break
+        # Repetitions go round the whole plan again, so that the load of this shared machine at
+        # one moment does not weigh on one point only.
+        runs_left = len(measured) * (args.repeat - 1)
+        for rep in range(2, args.repeat + 1):
+            for point in measured:
+                run(point, rep, workdir)
+    return report()
+
+
+def describe(r: Result) -> str:
+    if r.a_ms is None:
+        return f"failed: {r.error}"
+    stages = " ".join(f"{s} {v:.1f}" for s, v in r.stages_ms.items())
+    text = (f"A {r.a_ms:.1f} ms, p95 {r.p95_ms:.1f} ms, {r.achieved_fps:.1f} fps/stream"
+            f"{' SATURATED' if r.saturated else ''} | {stages} queues {r.queues_ms:.1f} ms | "
+            f"{r.frames} frames, {r.wall_s:.0f} s, load {r.load:.1f}"
+            + (f", serve-rtsp {r.server_cores:.2f} cores" if r.server_cores is not None else ""))
+    return text + (f" | {r.error}" if r.error else "")
+
+
+# -- report (pure) -----------------------------------------------------------------------------
+def _cell(r: Result | None) -> str:
+    if r is None:
+        return "–"
+    if r.a_ms is None:
+        return "failed"
+    return f"{r.a_ms:.1f} (p95 {r.p95_ms:.0f}) @ {r.achieved_fps:.1f}{'*' if r.saturated else ''}"
+
+
+def markdown(results: list[Result], model: str, preamble: list[str] = ()) -> str:
+    """Tables 4-6 (one per bitrate) and the per-stage data of Figure 12, after ``preamble`` lines."""
+    out = [*preamble, ""] if preamble else []
+    columns = [(k, f) for k in KINDS for f in RATES if any(r.kind == k and r.fps == f for r in results)]
+    paper_table = {b: f"Table {4 + i}" for i, b in enumerate(BITRATES)}
+    for bitrate in sorted({r.bitrate for r in results}):
+        rows = sorted({r.streams for r in results if r.bitrate == bitrate})
+        title = f"{bitrate} kbit/s" + (f" (paper's {paper_table[bitrate]})" if bitrate in paper_table else "")
+        out += [f"#### A = S/n per stream count, {title}, model {model}", "",
+                "| streams | " + " | ".join(f"{k} {f} fps" for k, f in columns) + " |",
+                "|---:|" + "---:|" * len(columns)]
+        for n in rows:
+            cells = [_cell(next((r for r in results if (r.kind, r.fps, r.bitrate, r.streams) == (k, f, bitrate, n)),
+                                None)) for k, f in columns]
+            out.append(f"| {n} | " + " | ".join(cells) + " |")
+        out.append("")
+    out += ["Cells: A in ms (p95 in ms) @ achieved frames/s per stream; * saturated (under "
+            f"{SATURATION:.0%} of the clip's rate); – not run.", ""]
+    out += [f"#### Per-stage mean delay (ms), Figure 12's data, model {model}", "",
+            "| input | fps | kbit/s | streams | " + " | ".join(STAGES)
+            + " | queues | A | p95 | fps/stream | load | serve-rtsp cores |",
+            "|---|---:|---:|---:|" + "---:|" * (len(STAGES) + 6)]
+    for r in sorted(results, key=lambda r: (r.kind, r.fps, r.bitrate, r.streams)):
+        if r.a_ms is None:
+            continue
+        stages = " | ".join(f"{r.stages_ms.get(s, float('nan')):.1f}" for s in STAGES)
+        out.append(f"| {r.kind} | {r.fps} | {r.bitrate} | {r.streams} | {stages} | {r.queues_ms:.1f} | "
+                   f"{r.a_ms:.1f} | {r.p95_ms:.1f} | {r.achieved_fps:.1f}{'*' if r.saturated else ''} | "
+                   f"{r.load:.1f} | {'–' if r.server_cores is None else f'{r.server_cores:.2f}'} |")
+    runs = sorted({r.runs for r in results})
+    out += ["", "queues = A minus the sum of the stage means: the waits between stages (source -> mux "
+            "back-pressure, hand-over). load: 1-minute load average after the run. serve-rtsp cores: CPU the "
+            "RTSP server (decoding and re-encoding every stream on this same machine) used."
+            + (f" Figures are medians of {'/'.join(map(str, runs))} runs per point." if runs != [1] else "")]
+    failed = [r for r in results if r.error]
+    if failed:
+        out += ["", "Notes:"] + [f"- {r.kind} {r.fps} fps {r.bitrate} kbit/s {r.streams} stream(s): {r.error}"
+                                 for r in failed]
+    return "\n".join(out) + "\n"
+
+
+# -- command line ------------------------------------------------------------------------------
+def _ints(text: str) -> list[int]:
+    return [int(x) for x in text.split(",") if x]
+
+
+def _rate_bitrates(text: str) -> tuple[int, list[int]]:
+    fps, _, kbps = text.partition("=")
+    return int(fps), [int(k) for k in kbps.split("+") if k]
+
+
+def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--quick", action="store_true",
+                   help="short run: one bitrate (3982), 30 fps only, at most 2 streams, 8 s runs, 3 s warm-up")
+    p.add_argument("--model", choices=sorted(MODELS), default="centernet",
+                   help="detector: centernet (80 classes, the product's default) or ssd (persons, much faster)")
+    p.add_argument("--kinds", type=lambda t: t.split(","), default=list(KINDS), help="file,rtsp (default both)")
+    p.add_argument("--rates", type=_ints, default=list(RATES), help="clip frame rates (default 30,60)")
+    p.add_argument("--bitrates", type=_ints, default=list(BITRATES), help="clip bitrates, kbit/s (default 3982,4971,7955)")
+    p.add_argument("--bitrates-at", type=_rate_bitrates, action="append", default=[], metavar="FPS=KBPS[+KBPS]",
+                   help="only these bitrates at this frame rate, e.g. 60=3982 (repeatable)")
+    p.add_argument("--max-streams", type=int, default=DEFAULT_MAX_STREAMS, help="highest stream count (default 4)")
+    p.add_argument("--all-streams", action="store_true", help="go on to --max-streams past saturation")
+    p.add_argument("--repeat", type=int, default=1,
+                   help="run every point this many times, a pass over the plan at a time; report medians")
+    p.add_argument("--duration", type=float, default=DEFAULT_DURATION, help="seconds per run (default 20)")
+    p.add_argument("--warmup", type=float, default=DEFAULT_WARMUP, help="seconds of frames left out at the start (default 5)")
+    p.add_argument("--clip-seconds", type=int, default=DEFAULT_CLIP_SECONDS, help="length of the clips made (default 10)")
+    p.add_argument("--preset", default=DEFAULT_PRESET, help=f"x264 speed-preset of the clips (default {DEFAULT_PRESET})")
+    p.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="clip folder (default build/sweep-clips)")
+    p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="Markdown results (default build/streams_sweep.md); "
+                   "the raw results go to the same name with .json")
+    p.add_argument("--plot", type=Path, help="PNG plot (default: --out with .png)")
+    p.add_argument("--keep-traces", type=Path, metavar="DIR", help="keep the configs and traces of the runs here")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.bitrates, args.rates = args.bitrates[:1], [30]
+        args.max_streams, args.duration, args.warmup = min(args.max_streams, 2), 8.0, 3.0
+    bad = [k for k in args.kinds if k not in KINDS]
+    if bad or args.max_streams < 1 or args.repeat < 1 or args.warmup >= args.duration:
+        p.error(f"unknown kinds {bad}" if bad else "need --max-streams >= 1, --repeat >= 1 and --warmup < --duration")
+    args.plot = args.plot or args.out.with_suffix(".png")
+    args.bitrates_at = dict(args.bitrates_at)
+    return args
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    started = time.monotonic()
+
+    def log(line: str) -> None:
+        print(f"[{fmt_duration(time.monotonic() - started):>6}] {line}", file=sys.stderr, flush=True)
+
+    command = " ".join(["benchmarks/streams_sweep.py", *(sys.argv[1:] if argv is None else argv)])
+    preamble = [f"- command: `{command}`", f"- date: {time.strftime('%Y-%m-%d %H:%M %Z')}",
+                f"- machine at the start: {machine()}",
+                f"- runs: {args.duration:g} s each, first {args.warmup:g} s of frames left out; clips "
+                f"{args.clip_seconds} s, x264 {args.preset}, looped; model {args.model}"]
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+
+    def save(results: list[Result], final: bool = False) -> str:
+        # Written after every run, so that an interrupted sweep keeps what it measured.
+        lines = preamble + [f"- machine at the end: {machine()}"] if final else preamble
+        text = markdown(results, args.model, lines)
+        args.out.write_text(text)
+        args.out.with_suffix(".json").write_text(json.dumps(
+            {"model": args.model, "duration_s": args.duration, "warmup_s": args.warmup, "command": command,
+             "results": [asdict(r) for r in results]}, indent=1))
+        return text
+
+    results = sweep(args, log, save)
+    print(save(results, final=True))
+    from benchmarks.plot import draw_sweep
+
+    draw_sweep([asdict(r) for r in results], args.plot, title=f"dcuscope streams sweep, model {args.model}")
+    log(f"done in {fmt_duration(time.monotonic() - started)}: {args.out}, {args.out.with_suffix('.json')}, {args.plot}")
+    return 0 if all(r.a_ms is not None for r in results) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
