@@ -63,3 +63,26 @@ def test_export_from_db_needs_a_session(tmp_path):
     assert result.returncode == 2 and "no such database" in result.stderr
     result = run_cli("export", "--db", tmp_path / "nope.db", "-o", tmp_path / "x.json", cwd=tmp_path)
     assert result.returncode == 2 and "--db PATH with --session ID" in result.stderr
+
+
+def test_clock_offset_of_a_real_node_is_recovered_within_its_uncertainty(tmp_path):
+    """``dcuscope run --clock-offset-ms 37`` (the testing aid) shifts that node's clock; the
+    relay's NTP-style estimate must find +37 ms within its stated uncertainty."""
+    relay = RelayProcess(tmp_path / "relay.db", clock="estimate")
+    try:
+        procs = []
+        for name, offset in (("DCU-1", "0"), ("DCU-2", "37")):
+            cmd = [sys.executable, "-m", "pipeline.cli", "run", str(node_config(tmp_path, name, 1)), "--probes",
+                   "--relay", relay.url, "--duration", "8", "--clock-offset-ms", offset, "-q"]
+            procs.append(subprocess.Popen(cmd, cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE, text=True))
+        for proc in procs:
+            _, err = proc.communicate(timeout=120)
+            assert proc.returncode == 0, err
+        nodes = {n["node"]: n for n in get_json(f"{relay.url}/api/nodes")}
+    finally:
+        relay.stop()
+    for name, expected_ms in (("DCU-1", 0.0), ("DCU-2", 37.0)):
+        clock = nodes[name]["clock"]
+        assert clock["samples"] >= 2
+        assert abs(clock["offset_us"] / 1000 - expected_ms) <= clock["uncertainty_us"] / 1000, clock
+        assert clock["uncertainty_us"] < 2000

@@ -1,0 +1,66 @@
+"""mux: rate-aware batching of streams of different sizes and rates; one stream ending early."""
+
+from __future__ import annotations
+
+from pipeline.gst import Gst
+from plugins.frames import BatchLayout, mapped_batch, read_frames
+from plugins.mux import due_pads
+
+
+def test_due_pads_takes_frames_within_one_period_of_the_earliest():
+    assert due_pads([(0, 0), (0, 1)], 40, 4) == [0, 1]
+    assert due_pads([(40, 0), (100, 1)], 40, 4) == [0]  # the 10 fps frame is not due yet
+    assert due_pads([(120, 0), (100, 1)], 40, 4) == [1, 0]  # earliest first
+    assert due_pads([(0, 0), (5, 1), (9, 2)], 40, 2) == [0, 1]  # batch-size limit
+    assert due_pads([(0, 0), (999, 1)], 0, 4) == [0, 1]  # no rate known: everything that is there
+    assert due_pads([], 40, 4) == []
+
+
+def run(launch: str) -> list[tuple[int, list[tuple[int, int]], list[float], tuple[int, int]]]:
+    import plugins
+
+    plugins.register()
+    pipeline = Gst.parse_launch(launch)
+    out = []
+
+    def handoff(_sink, buf, pad):
+        layout = BatchLayout.from_caps(pad.get_current_caps())
+        with mapped_batch(buf, layout) as frames:
+            out.append((buf.pts, [(f.source, f.frame) for f in read_frames(buf)],
+                        [float(f.mean()) for f in frames], (layout.width, layout.height)))
+
+    pipeline.get_by_name("out").connect("handoff", handoff)
+    pipeline.set_state(Gst.State.PLAYING)
+    msg = pipeline.get_bus().timed_pop_filtered(20 * Gst.SECOND, Gst.MessageType.EOS | Gst.MessageType.ERROR)
+    pipeline.set_state(Gst.State.NULL)
+    assert msg is not None and msg.type == Gst.MessageType.EOS, msg and msg.parse_error()
+    return out
+
+
+def test_streams_of_different_sizes_and_rates_one_ending_early():
+    batches = run(
+        "mux name=m width=320 height=240 ! fakesink name=out signal-handoffs=true "
+        "videotestsrc num-buffers=10 pattern=white ! video/x-raw,format=RGB,width=320,height=240,framerate=25/1 "
+        "! framestamp source-id=0 ! m.sink_0 "
+        "videotestsrc num-buffers=3 pattern=black ! video/x-raw,format=RGB,width=641,height=200,framerate=10/1 "
+        "! framestamp source-id=1 ! m.sink_1"
+    )
+    assert all(size == (320, 240) for *_, size in batches)
+    # The 25 fps stream is in every batch; the 10 fps one joins when its frame is due (0, 100, 200 ms).
+    assert [ids for _, ids, _, _ in batches[:6]] == [
+        [(0, 0), (1, 0)], [(0, 1)], [(0, 2), (1, 1)], [(0, 3)], [(0, 4)], [(0, 5), (1, 2)]]
+    assert [pts // Gst.MSECOND for pts, *_ in batches[:3]] == [0, 40, 80]
+    # After the short stream's EOS the other one goes on to its end, alone.
+    assert [ids for _, ids, _, _ in batches[6:]] == [[(0, f)] for f in range(6, 10)]
+    # Pixels: white frames stay white; the 641x200 black frames were scaled to 320x240, black.
+    means = [m for _, _, ms, _ in batches for m in ms]
+    assert max(means) > 250 and min(means) < 5
+
+
+def test_frames_without_identity_get_one_from_the_pad():
+    batches = run(
+        "mux name=m batch-size=2 width=64 height=48 ! fakesink name=out signal-handoffs=true "
+        "videotestsrc num-buffers=3 ! video/x-raw,format=RGB,width=64,height=48 ! m.sink_0 "
+        "videotestsrc num-buffers=3 ! video/x-raw,format=RGB,width=64,height=48 ! m.sink_1"
+    )
+    assert [ids for _, ids, _, _ in batches] == [[(0, i), (1, i)] for i in range(3)]
