@@ -17,6 +17,7 @@ import numpy as np
 from pipeline.gst import GLib, GObject, Gst, GstBase, GstVideo
 from plugins.colorspace import BT601, FORMATS, YUV420, Converter, Image, YuvMatrix, image_from_memory
 from plugins.frames import OBJECTS_CAPS, Detections, read_objects, write_objects
+from plugins.properties import AttributeProperties
 
 DEFAULT_FORMAT = "RGBA"
 DEFAULT_WIDTH = 0  # keep the input's
@@ -65,7 +66,7 @@ def mapped_image(buf: Gst.Buffer, info: GstVideo.VideoInfo, write: bool = False)
         buf.unmap(mapinfo)
 
 
-class Convert(GstBase.BaseTransform):
+class Convert(AttributeProperties, GstBase.BaseTransform):
     __gtype_name__ = "DcuscopeConvert"
     __gstmetadata__ = (
         "Video convert", "Filter/Converter/Video/Scaler",
@@ -76,7 +77,7 @@ class Convert(GstBase.BaseTransform):
         Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS, CAPS),
         Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, CAPS),
     )
-    __gproperties__ = {
+    __gproperties__ = PROPERTIES = {
         "format": (str, "Format", f"Output format: one of {', '.join(FORMATS)}",
                    DEFAULT_FORMAT, GObject.ParamFlags.READWRITE),
         "width": (int, "Width", "Output width in pixels (0 = the input's)",
@@ -87,32 +88,11 @@ class Convert(GstBase.BaseTransform):
 
     def __init__(self):
         super().__init__()
-        self.format = DEFAULT_FORMAT
-        self.width = DEFAULT_WIDTH
-        self.height = DEFAULT_HEIGHT
+        self.init_properties()
         self.in_info = self.out_info = None
         self.converter = None
 
-    def do_get_property(self, prop):
-        if prop.name == "format":
-            return self.format
-        if prop.name == "width":
-            return self.width
-        if prop.name == "height":
-            return self.height
-        raise AttributeError(f"unknown property {prop.name}")
-
-    def do_set_property(self, prop, value):
-        # A bad format is kept and refused in do_start: an exception here would only be
-        # printed by PyGObject, never reach whoever set it.
-        if prop.name == "format":
-            self.format = value
-        elif prop.name == "width":
-            self.width = value
-        elif prop.name == "height":
-            self.height = value
-        else:
-            raise AttributeError(f"unknown property {prop.name}")
+    def property_changed(self, name):
         self.reconfigure_src()
 
     def do_start(self):

@@ -11,6 +11,7 @@ import time
 
 from pipeline.gst import GObject, Gst, GstBase
 from plugins.frames import FrameId, write_frames
+from plugins.properties import AttributeProperties
 
 DEFAULT_SOURCE_ID = 0
 DEFAULT_CLOCK_ID = 0  # CLOCK_REALTIME, the clock phc2sys disciplines
@@ -18,7 +19,7 @@ DEFAULT_CLOCK_ID = 0  # CLOCK_REALTIME, the clock phc2sys disciplines
 CAPS = Gst.Caps.new_any()
 
 
-class FrameStamp(GstBase.BaseTransform):
+class FrameStamp(AttributeProperties, GstBase.BaseTransform):
     __gtype_name__ = "DcuscopeFrameStamp"
     __gstmetadata__ = (
         "Frame stamp", "Filter/Video", "Attaches (source, frame number, origin time) to each frame", "dcuscope",
@@ -27,7 +28,7 @@ class FrameStamp(GstBase.BaseTransform):
         Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS, CAPS),
         Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, CAPS),
     )
-    __gproperties__ = {
+    __gproperties__ = PROPERTIES = {
         "source-id": (int, "Source id", "Id of the camera or file this frame comes from",
                       0, 65535, DEFAULT_SOURCE_ID, GObject.ParamFlags.READWRITE),
         "clock-id": (int, "Clock id", "Linux clock for origin timestamps: 0 realtime, 1 monotonic, 11 tai",
@@ -36,25 +37,9 @@ class FrameStamp(GstBase.BaseTransform):
 
     def __init__(self):
         super().__init__()
-        self.source_id = DEFAULT_SOURCE_ID
-        self.clock_id = DEFAULT_CLOCK_ID
+        self.init_properties()
         self.count = 0
         self.set_in_place(True)
-
-    def do_get_property(self, prop):
-        if prop.name == "source-id":
-            return self.source_id
-        if prop.name == "clock-id":
-            return self.clock_id
-        raise AttributeError(f"unknown property {prop.name}")
-
-    def do_set_property(self, prop, value):
-        if prop.name == "source-id":
-            self.source_id = value
-        elif prop.name == "clock-id":
-            self.clock_id = value
-        else:
-            raise AttributeError(f"unknown property {prop.name}")
 
     def do_start(self):
         self.count = 0

@@ -22,6 +22,7 @@ from plugins.models import (
     DECODERS, DEFAULT_MODEL, Detector, ModelError, default_labels, inspect_model, load_labels, open_session,
     select_providers,
 )
+from plugins.properties import AttributeProperties
 
 DEFAULT_DECODER = "auto"
 DEFAULT_THRESHOLD = 0.3
@@ -38,7 +39,7 @@ _ERROR_CODES = {
 }
 
 
-class Infer(GstBase.BaseTransform):
+class Infer(AttributeProperties, GstBase.BaseTransform):
     __gtype_name__ = "DcuscopeInfer"
     __gstmetadata__ = (
         "Inference", "Filter/Analyzer/Video", "Detects objects in each frame of a batch with an ONNX model",
@@ -66,30 +67,12 @@ class Infer(GstBase.BaseTransform):
 
     def __init__(self):
         super().__init__()
-        self.model = str(DEFAULT_MODEL)
-        self.decoder = DEFAULT_DECODER
-        self.threshold = DEFAULT_THRESHOLD
-        self.nms_iou = DEFAULT_NMS_IOU
-        self.interval = DEFAULT_INTERVAL
-        self.labels = ""
-        self.providers = DEFAULT_PROVIDERS
-        self.threads = DEFAULT_THREADS
+        self.init_properties()
         self.detector: Detector | None = None
         self.names: list[str] = []
         self.layout: BatchLayout | None = None
         self.batches = 0
         self.set_in_place(True)
-
-    # PyGObject strips __gproperties__ from the class once registered; PROPERTIES stays
-    def do_get_property(self, prop):
-        if prop.name not in self.PROPERTIES:
-            raise AttributeError(f"unknown property {prop.name}")
-        return getattr(self, prop.name.replace("-", "_"))
-
-    def do_set_property(self, prop, value):
-        if prop.name not in self.PROPERTIES:
-            raise AttributeError(f"unknown property {prop.name}")
-        setattr(self, prop.name.replace("-", "_"), value)
 
     def _post_error(self, prop: str, text: str, code: Gst.ResourceError, debug: str) -> None:
         text = f'{self.get_name()}: property "{prop}": {text}'

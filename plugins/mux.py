@@ -20,6 +20,7 @@ import numpy as np
 
 from pipeline.gst import GObject, Gst, GstBase, GstVideo
 from plugins.frames import BATCH_TEMPLATE_CAPS, FrameId, batch_caps, read_frames, write_frames
+from plugins.properties import AttributeProperties
 
 DEFAULT_BATCH_SIZE = 0  # 0: as many as there are sink pads
 DEFAULT_PUSH_TIMEOUT_US = 40000
@@ -44,7 +45,7 @@ def due_pads(heads: list[tuple[int, int]], period_ns: int, limit: int) -> list[i
     return [i for _, i in due[:limit]]
 
 
-class Mux(GstBase.Aggregator):
+class Mux(AttributeProperties, GstBase.Aggregator):
     __gtype_name__ = "DcuscopeMux"
     __gstmetadata__ = ("Stream muxer", "Video/Muxer", "Batches N video streams into one buffer of N frames",
                        "dcuscope")
@@ -54,7 +55,7 @@ class Mux(GstBase.Aggregator):
         Gst.PadTemplate.new_with_gtype("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS,
                                        BATCH_TEMPLATE_CAPS, GstBase.AggregatorPad.__gtype__),
     )
-    __gproperties__ = {
+    __gproperties__ = PROPERTIES = {
         "batch-size": (int, "Batch size", "Most frames in a batch (0: the number of sink pads)",
                        0, 1024, DEFAULT_BATCH_SIZE, GObject.ParamFlags.READWRITE),
         "batched-push-timeout": (int, "Batched push timeout",
@@ -70,40 +71,20 @@ class Mux(GstBase.Aggregator):
 
     def __init__(self):
         super().__init__()
-        self.batch_size = DEFAULT_BATCH_SIZE
-        self.push_timeout_us = DEFAULT_PUSH_TIMEOUT_US
-        self.width, self.height = DEFAULT_WIDTH, DEFAULT_HEIGHT
-        self.live_source = DEFAULT_LIVE_SOURCE
+        self.init_properties()
         self._infos: dict[str, GstVideo.VideoInfo] = {}
         self._segments: dict[str, Gst.Segment] = {}  # AggregatorPad.segment is not readable from Python
         self._counts: dict[str, int] = {}
         self._caps_sent = False
         self._apply_latency()
 
-    def do_get_property(self, prop):
-        return {"batch-size": lambda: self.batch_size, "batched-push-timeout": lambda: self.push_timeout_us,
-                "width": lambda: self.width, "height": lambda: self.height,
-                "live-source": lambda: self.live_source}[prop.name]()
-
-    def do_set_property(self, prop, value):
-        if prop.name == "batch-size":
-            self.batch_size = value
-        elif prop.name == "batched-push-timeout":
-            self.push_timeout_us = value
+    def property_changed(self, name):
+        if name in ("batched-push-timeout", "live-source"):
             self._apply_latency()
-        elif prop.name == "width":
-            self.width = value
-        elif prop.name == "height":
-            self.height = value
-        elif prop.name == "live-source":
-            self.live_source = value
-            self._apply_latency()
-        else:
-            raise AttributeError(f"unknown property {prop.name}")
 
     def _apply_latency(self):
         # The aggregator's own latency is how long it waits for late pads in live mode.
-        self.set_property("latency", max(self.push_timeout_us, 0) * 1000)
+        self.set_property("latency", max(self.batched_push_timeout, 0) * 1000)
 
     def do_start(self):
         self._caps_sent = False

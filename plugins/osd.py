@@ -13,6 +13,7 @@ import time
 from pipeline.gst import GObject, Gst, GstBase, GstVideo
 from plugins.drawing import FORMATS, clock_text, draw_clock, draw_detections
 from plugins.frames import mapped_video, read_objects
+from plugins.properties import AttributeProperties
 
 DEFAULT_DISPLAY_TEXT = True
 DEFAULT_LINE_WIDTH = 2
@@ -22,11 +23,7 @@ DEFAULT_FONT_SCALE = 0.5
 CAPS = Gst.Caps.from_string(
     f"video/x-raw, format=(string){{ {', '.join(FORMATS)} }}, width=(int)[1,32768], height=(int)[1,32768]"
 )
-_ATTRIBUTES = {"display-text": "display_text", "line-width": "line_width",
-               "display-clock": "display_clock", "font-scale": "font_scale"}
-
-
-class Osd(GstBase.BaseTransform):
+class Osd(AttributeProperties, GstBase.BaseTransform):
     __gtype_name__ = "DcuscopeOsd"
     __gstmetadata__ = (
         "On-screen display", "Filter/Effect/Video",
@@ -36,7 +33,7 @@ class Osd(GstBase.BaseTransform):
         Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS, CAPS),
         Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, CAPS),
     )
-    __gproperties__ = {
+    __gproperties__ = PROPERTIES = {
         "display-text": (bool, "Display text", "Write the label and score above each box",
                          DEFAULT_DISPLAY_TEXT, GObject.ParamFlags.READWRITE),
         "line-width": (int, "Line width", "Width of box outlines in pixels",
@@ -49,22 +46,9 @@ class Osd(GstBase.BaseTransform):
 
     def __init__(self):
         super().__init__()
-        self.display_text = DEFAULT_DISPLAY_TEXT
-        self.line_width = DEFAULT_LINE_WIDTH
-        self.display_clock = DEFAULT_DISPLAY_CLOCK
-        self.font_scale = DEFAULT_FONT_SCALE
+        self.init_properties()
         self.info = None
         self.set_in_place(True)
-
-    def do_get_property(self, prop):
-        if prop.name not in _ATTRIBUTES:
-            raise AttributeError(f"unknown property {prop.name}")
-        return getattr(self, _ATTRIBUTES[prop.name])
-
-    def do_set_property(self, prop, value):
-        if prop.name not in _ATTRIBUTES:
-            raise AttributeError(f"unknown property {prop.name}")
-        setattr(self, _ATTRIBUTES[prop.name], value)
 
     def do_set_caps(self, incaps, outcaps):
         self.info = GstVideo.VideoInfo.new_from_caps(incaps)

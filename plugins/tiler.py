@@ -16,6 +16,7 @@ from plugins.frames import (
     BATCH_TEMPLATE_CAPS, OBJECTS_CAPS, BatchLayout, Detections, mapped_batch, mapped_video,
     read_frames, read_objects, write_objects,
 )
+from plugins.properties import AttributeProperties
 from plugins.tiling import compose, grid_shape, map_boxes, tile_rects, tiles_for_slots
 
 DEFAULT_ROWS = 0
@@ -29,7 +30,7 @@ SRC_CAPS = Gst.Caps.from_string(
 )
 
 
-class Tiler(GstBase.BaseTransform):
+class Tiler(AttributeProperties, GstBase.BaseTransform):
     __gtype_name__ = "DcuscopeTiler"
     __gstmetadata__ = (
         "Multi-stream tiler", "Filter/Video/Compositor",
@@ -39,7 +40,7 @@ class Tiler(GstBase.BaseTransform):
         Gst.PadTemplate.new("sink", Gst.PadDirection.SINK, Gst.PadPresence.ALWAYS, BATCH_TEMPLATE_CAPS),
         Gst.PadTemplate.new("src", Gst.PadDirection.SRC, Gst.PadPresence.ALWAYS, SRC_CAPS),
     )
-    __gproperties__ = {
+    __gproperties__ = PROPERTIES = {
         "rows": (int, "Rows", "Rows of the grid (0 = automatic from the batch size)",
                  0, 1024, DEFAULT_ROWS, GObject.ParamFlags.READWRITE),
         "columns": (int, "Columns", "Columns of the grid (0 = automatic from the batch size)",
@@ -52,21 +53,12 @@ class Tiler(GstBase.BaseTransform):
 
     def __init__(self):
         super().__init__()
-        self._settings = {"rows": DEFAULT_ROWS, "columns": DEFAULT_COLUMNS,
-                          "width": DEFAULT_WIDTH, "height": DEFAULT_HEIGHT}
+        self.init_properties()
         self.layout = None
         self.out_info = None
         self.rects = None
 
-    def do_get_property(self, prop):
-        if prop.name not in self._settings:
-            raise AttributeError(f"unknown property {prop.name}")
-        return self._settings[prop.name]
-
-    def do_set_property(self, prop, value):
-        if prop.name not in self._settings:
-            raise AttributeError(f"unknown property {prop.name}")
-        self._settings[prop.name] = value
+    def property_changed(self, name):
         # A new grid or size needs new caps downstream; takes effect on the next buffer.
         self.reconfigure_src()
 
@@ -79,8 +71,8 @@ class Tiler(GstBase.BaseTransform):
                 s = caps.get_structure(i)  # a copy: PyGObject never hands out the caps' own
                 out = Gst.Structure.new_empty("video/x-raw")
                 out.set_value("format", "RGB")
-                out.set_value("width", self._settings["width"])
-                out.set_value("height", self._settings["height"])
+                out.set_value("width", self.width)
+                out.set_value("height", self.height)
                 if s.has_field("framerate"):
                     out.set_value("framerate", s.get_value("framerate"))
                 result.append_structure(out)
@@ -91,7 +83,7 @@ class Tiler(GstBase.BaseTransform):
     def do_set_caps(self, incaps, outcaps):
         self.layout = BatchLayout.from_caps(incaps)
         self.out_info = GstVideo.VideoInfo.new_from_caps(outcaps)
-        rows, columns = grid_shape(self.layout.batch_size, self._settings["rows"], self._settings["columns"])
+        rows, columns = grid_shape(self.layout.batch_size, self.rows, self.columns)
         self.rects = tile_rects(rows, columns, self.out_info.width, self.out_info.height)
         # A camera missing from a batch (slower rate, late, dead) keeps its last picture and
         # boxes in its tile, as a video wall would, instead of flashing black.
