@@ -11,6 +11,9 @@ A configuration names its sources, the chain of stages they go through, and a si
         height: 540
       - test: ball                  # a videotestsrc pattern
       - camera: /dev/video0         # a V4L2 device
+        stall-timeout: 3            # live sources: report a stall after this many s without a frame
+      - uri: rtsp://10.0.0.5/cam1
+        latency: 200                # RTSP only: rtspsrc's jitter buffer, ms (default 2000)
     stages:
       - mux: {batch-size: 2, width: 1280, height: 720}
       - infer: {threshold: 0.3}
@@ -41,6 +44,7 @@ STAGE_SHORTHANDS = ("mux", "infer", "tiler", "convert", "osd", "queue")
 """Stage kinds written as ``- KIND: {properties}``; anything else is ``- factory: NAME``."""
 SINK_TYPES = ("fake", "file", "frames")
 CLOCK_NAMES = ("realtime", "tai", "monotonic")
+DEFAULT_STALL_TIMEOUT_S = 3.0
 REMOTE_SCHEMES = ("rtsp://", "rtsps://", "http://", "https://", "udp://", "rtmp://", "srt://")
 
 
@@ -59,6 +63,15 @@ class SourceConfig:
     """Size forced before the mux; None keeps the stream's own (the mux scales to its size)."""
     live: bool = False
     """Test sources: produce frames in real time, like a camera."""
+    stall_timeout: float = DEFAULT_STALL_TIMEOUT_S
+    """Live sources: seconds without a frame (while the others go on) before a stall is reported; 0: never."""
+    latency_ms: int | None = None
+    """RTSP sources: rtspsrc's jitter-buffer latency; None keeps rtspsrc's default (2000 ms)."""
+
+    @property
+    def is_live(self) -> bool:
+        """Frames come in real time whether or not the pipeline is ready: cameras, streams, live tests."""
+        return self.kind == "camera" or self.live or self.location.startswith(REMOTE_SCHEMES)
 
     @property
     def description(self) -> str:
@@ -166,6 +179,16 @@ class _Parser:
             raise self.doc.error(path, f"expected a positive integer, got {_kind(value)}")
         return value
 
+    def non_negative_int(self, value: Any, path: KeyPath) -> int:
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise self.doc.error(path, f"expected an integer >= 0, got {_kind(value)}")
+        return value
+
+    def seconds(self, value: Any, path: KeyPath) -> float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not 0 <= value < 1e6:
+            raise self.doc.error(path, f"expected seconds >= 0 (0: off), got {_kind(value)}")
+        return float(value)
+
     def rate(self, value: Any, path: KeyPath) -> Fraction:
         try:
             rate = Fraction(str(value)) if not isinstance(value, bool) else None
@@ -184,7 +207,8 @@ class _Parser:
 
     # -- sections ------------------------------------------------------------------------
     def source(self, value: Any, path: KeyPath) -> SourceConfig:
-        entry = self.mapping(value, path, {"uri", "camera", "test", "loop", "rate", "width", "height", "live"})
+        entry = self.mapping(value, path, {"uri", "camera", "test", "loop", "rate", "width", "height", "live",
+                                                 "stall-timeout", "latency"})
         kinds = [k for k in ("uri", "camera", "test") if k in entry]
         if len(kinds) != 1:
             raise self.doc.error(path, "a source needs exactly one of uri:, camera:, test:")
@@ -208,6 +232,12 @@ class _Parser:
         for key in ("width", "height"):
             if key in entry:
                 setattr(src, key, self.positive_int(entry[key], path + (key,)))
+        if "stall-timeout" in entry:
+            src.stall_timeout = self.seconds(entry["stall-timeout"], path + ("stall-timeout",))
+        if "latency" in entry:
+            if not location.startswith(("rtsp://", "rtsps://")):
+                raise self.doc.error(path + ("latency",), "only rtsp:// sources take latency:")
+            src.latency_ms = self.non_negative_int(entry["latency"], path + ("latency",))
         return src
 
     def uri(self, value: str, path: KeyPath) -> str:

@@ -11,6 +11,7 @@ from typing import Callable, TextIO
 from pipeline.build import BuiltPipeline
 from pipeline.errors import PipelineError
 from pipeline.gst import GLib, Gst
+from pipeline.stalls import Stall, StallWatch
 
 EOS_GRACE_S = 15.0
 """How long to wait for EOS to drain the pipeline after a stop was asked for."""
@@ -22,6 +23,8 @@ class RunResult:
     seconds: float = 0.0
     interrupted: bool = False
     dead_sources: dict[int, str] = field(default_factory=dict)
+    stalls: dict[int, list[Stall]] = field(default_factory=dict)
+    """Live sources that went quiet for longer than their stall-timeout, and for how long."""
 
     @property
     def fps(self) -> float:
@@ -46,9 +49,11 @@ class Runner:
         self.on_progress: list[Callable[[RunResult], None]] = []
         self._loop = GLib.MainLoop()
         self._error: str | None = None
+        self._retired: set = set()  # every element of the sources dropped so far
         self._stop_asked_at: float | None = None
         self._started = 0.0
         self._last_report = (0.0, 0)
+        self._stalls = StallWatch(self._say, self.result.stalls)
 
     # -- public ----------------------------------------------------------------------------
     def run(self) -> RunResult:
@@ -66,12 +71,14 @@ class Runner:
                 self._error = self._error or self._drain_error(bus) or "the pipeline could not start"
             else:
                 self._started = time.monotonic()
+                self._stalls.start(self.built.sources, self._started)
                 self._loop.run()
         finally:
             GLib.source_remove(ticker)
             GLib.source_remove(sigint)
             GLib.source_remove(sigterm)
             self.result.seconds = time.monotonic() - self._started if self._started else 0.0
+            self._stalls.finish(time.monotonic())
             pipeline.set_state(Gst.State.NULL)
             bus.disconnect(handler)
             bus.remove_signal_watch()
@@ -119,6 +126,8 @@ class Runner:
         if self._stop_asked_at is not None and now - self._stop_asked_at > EOS_GRACE_S:
             self._say(f"\nend-of-stream did not reach the sink within {EOS_GRACE_S:.0f} s: stopping anyway")
             self._loop.quit()
+        if self._started and self._stop_asked_at is None:
+            self._stalls.update(self._live_sources(), now)
         if now - self._last_report[0] >= self.progress_every:
             self._report()
         return True
@@ -128,9 +137,9 @@ class Runner:
             self._loop.quit()
         elif message.type == Gst.MessageType.ERROR:
             err, debug = message.parse_error()
+            if message.src in self._retired:
+                return  # the aftershocks of a source already retired, whatever bin still holds the element
             source = self._source_of(message.src)
-            if source is not None and source.index in self.result.dead_sources:
-                return  # the aftershocks of a source already retired
             if source is not None and self._stop_asked_at is None and len(self._live_sources()) > 1:
                 self._drop_source(source, err.message)
             else:
@@ -155,6 +164,10 @@ class Runner:
     def _drop_source(self, source, reason: str) -> None:
         """A camera or stream died: report it, end its stream into the mux, keep the rest running."""
         self.result.dead_sources[source.index] = reason
+        # Snapshot the whole source bin now: on the way to NULL, uridecodebin unparents its rtspsrc
+        # before that element posts its last "could not write" error, so the parent chain is gone.
+        self._retired.add(source)
+        self._retired.update(source.iterate_recurse())
         self._say(f"\nsource {source.index} ({source.config.description}) failed: {reason}; the other sources go on")
         source.stop_looping()
         pad = source.get_static_pad("src").get_peer()

@@ -9,6 +9,7 @@ from pathlib import Path
 from pipeline.build import build_pipeline
 from pipeline.config import PipelineConfig, SinkConfig, load_config
 from pipeline.run import Runner
+from pipeline.stalls import describe
 
 
 def apply_overrides(config: PipelineConfig, args: argparse.Namespace) -> PipelineConfig:
@@ -54,6 +55,8 @@ def run_session(args: argparse.Namespace) -> int:
             probing.stop()
     for index, reason in result.dead_sources.items():
         print(f"dcuscope: source {index} ({config.sources[index].description}) was lost: {reason}", file=sys.stderr)
+    for index, stalls in result.stalls.items():
+        print(f"dcuscope: source {index} ({config.sources[index].description}) {describe(stalls)}", file=sys.stderr)
     if config.sink.path is not None and progress is not None:
         print(f"output: {config.sink.path}", file=sys.stderr)
     return 0

@@ -70,6 +70,8 @@ class SourceBin(Gst.Bin):
         if cfg.kind == "uri":
             element = _make("uridecodebin", f"decode{self.index}")
             element.set_property("uri", cfg.location)
+            if cfg.latency_ms is not None:
+                element.connect("source-setup", self._on_source_setup)
         elif cfg.kind == "camera":
             element = _make("v4l2src", f"camera{self.index}")
             element.set_property("device", cfg.location)
@@ -78,6 +80,20 @@ class SourceBin(Gst.Bin):
             Gst.util_set_object_arg(element, "pattern", cfg.location)
             element.set_property("is-live", cfg.live)
         return element
+
+    def _on_source_setup(self, _decodebin, source: Gst.Element) -> None:
+        if source.find_property("latency") is not None:
+            source.set_property("latency", self.config.latency_ms)
+
+    @property
+    def frames(self) -> int:
+        """Frames this source has delivered so far (read without a probe: the stamp counts them)."""
+        return self.stamp.count
+
+    @property
+    def ended(self) -> bool:
+        """Its end-of-stream has gone out to the mux."""
+        return self.stamp.get_static_pad("src").get_sticky_event(Gst.EventType.EOS, 0) is not None
 
     def _on_pad_added(self, _element, pad: Gst.Pad) -> None:
         caps = pad.get_current_caps() or pad.query_caps(None)

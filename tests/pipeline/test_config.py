@@ -21,6 +21,9 @@ sources:
     live: true
     width: 320
     height: 240
+    stall-timeout: 1.5
+  - uri: rtsp://127.0.0.1:8554/cam0
+    latency: 200
 stages:
   - mux: {{batch-size: 2, width: 320, height: 240}}
   - infer: {{threshold: 0.4}}
@@ -43,7 +46,10 @@ def write(tmp_path: Path, text: str) -> Path:
 def test_good_config_is_typed(tmp_path):
     cfg = load_config(write(tmp_path, GOOD))
     assert cfg.node == "DCU-7"
-    assert [s.kind for s in cfg.sources] == ["uri", "test"]
+    assert [s.kind for s in cfg.sources] == ["uri", "test", "uri"]
+    assert [s.is_live for s in cfg.sources] == [False, True, True]
+    assert cfg.sources[1].stall_timeout == 1.5 and cfg.sources[0].stall_timeout == 3.0
+    assert cfg.sources[2].latency_ms == 200 and cfg.sources[0].latency_ms is None
     assert cfg.sources[0].location == VTEST.as_uri() and cfg.sources[0].loop
     assert cfg.sources[0].rate == 5 and cfg.sources[1].live and cfg.sources[1].width == 320
     assert [s.name for s in cfg.stages] == ["mux", "infer", "slow", "queue", "queue_1"]
@@ -70,6 +76,12 @@ BAD = [
     ("bad rate", "sources:\n  - test: ball\n    rate: fast\nstages: [{queue: {}}]\n", ":3: sources[0].rate: expected frames per second"),
     ("loop a stream", "sources:\n  - uri: rtsp://127.0.0.1:1/x\n    loop: true\nstages: [{queue: {}}]\n",
      ":3: sources[0].loop: only files can loop"),
+    ("latency on a file", f"sources:\n  - uri: {VTEST}\n    latency: 100\nstages: [{{queue: {{}}}}]\n",
+     ":3: sources[0].latency: only rtsp:// sources take latency:"),
+    ("negative latency", "sources:\n  - uri: rtsp://127.0.0.1:1/x\n    latency: -1\nstages: [{queue: {}}]\n",
+     ":3: sources[0].latency: expected an integer >= 0, got a number (-1)"),
+    ("bad stall timeout", "sources:\n  - test: ball\n    stall-timeout: soon\nstages: [{queue: {}}]\n",
+     ":3: sources[0].stall-timeout: expected seconds >= 0 (0: off), got text ('soon')"),
     ("unknown stage kind", "sources: [{test: ball}]\nstages:\n  - mixer: {}\n", ":3: stages[0].mixer: unknown stage kind"),
     ("unknown element", "sources: [{test: ball}]\nstages:\n  - factory: nosuchelement\n",
      ":3: stages[0].factory: no GStreamer element named 'nosuchelement'"),

@@ -84,3 +84,63 @@ def test_killing_the_rtsp_server_leaves_the_other_source_running_and_reports_the
     after = origins[origins["ts"] > killed_at + 2_000_000_000]
     assert (before["source"] == 0).sum() >= 10  # the stream was flowing before the kill
     assert (after["source"] == 0).sum() == 0 and (after["source"] == 1).sum() >= 40  # the test source went on
+
+
+def test_a_stalled_stream_is_reported_while_the_others_go_on_and_its_return_too(tmp_path):
+    port = free_port()
+    server = serve(VTEST, port=port)
+    try:
+        config = tmp_path / "stall.yaml"
+        config.write_text(
+            f"sources:\n  - uri: rtsp://127.0.0.1:{port}/cam0\n    stall-timeout: 2\n    latency: 200\n"
+            "  - {test: ball, live: true, rate: 10}\n"
+            "stages:\n  - mux: {batch-size: 2, width: 320, height: 240, live-source: true}\n  - queue: {}\n"
+        )
+        node = run(config, tmp_path / "t.jsonl", 18, tmp_path)
+        time.sleep(5)
+        server.send_signal(signal.SIGSTOP)  # the server freezes: no error, no EOS, just no frames
+        stopped_at = time.time_ns()
+        time.sleep(7)
+        server.send_signal(signal.SIGCONT)
+        resumed_at = time.time_ns()
+        _, stderr = node.communicate(timeout=60)
+    finally:
+        server.send_signal(signal.SIGCONT)
+        server.send_signal(signal.SIGINT)
+        server.wait(10)
+    assert node.returncode == 0, stderr
+    assert "source 0 (uri:rtsp://" in stderr and "stalled: no frame for 2." in stderr, stderr
+    assert "resumed after" in stderr and "stalled once" in stderr and "Traceback" not in stderr, stderr
+    assert "was lost" not in stderr
+    origins = read_trace(tmp_path / "t.jsonl").events
+    origins = origins[origins["point"] == ORIGIN]
+    # 0.5 s after the freeze: frames still in the 200 ms jitter buffer have come out by then.
+    frozen = origins[(origins["ts"] > stopped_at + 500_000_000) & (origins["ts"] < resumed_at)]
+    assert (frozen["source"] == 0).sum() == 0 and (frozen["source"] == 1).sum() >= 40  # 10 fps for 6.5 s
+    after = origins[origins["ts"] > resumed_at]
+    assert (after["source"] == 0).sum() >= 10  # the stream came back
+
+
+def test_rtsp_latency_from_the_config_reaches_rtspsrc(tmp_path, gst_registered):
+    from pipeline.build import build_pipeline
+    from pipeline.config import load_config
+    from pipeline.gst import Gst
+
+    port = free_port()
+    server = serve(VTEST, port=port)
+    config = tmp_path / "latency.yaml"
+    config.write_text(f"sources:\n  - uri: rtsp://127.0.0.1:{port}/cam0\n    latency: 123\nstages:\n  - queue: {{}}\n")
+    built = build_pipeline(load_config(config))
+    try:
+        built.pipeline.set_state(Gst.State.PLAYING)
+        found = None
+        for _ in range(100):
+            found = [e for e in built.pipeline.iterate_recurse() if e.__gtype__.name == "GstRTSPSrc"]
+            if found:
+                break
+            time.sleep(0.05)
+        assert found and found[0].get_property("latency") == 123
+    finally:
+        built.pipeline.set_state(Gst.State.NULL)
+        server.send_signal(signal.SIGINT)
+        server.wait(10)

@@ -67,6 +67,23 @@ def debug(page) -> dict:
     return page.evaluate("window.dcuscope.debug()")
 
 
+PANEL_TEXT_JS = """() => {
+  const d = window.dcuscope.debug();
+  d.text = {};
+  for (const p of document.querySelectorAll('.frame-panel')) {
+    d.text[p.dataset.node] = { over: p.querySelector('.over-count').textContent,
+                               share: p.querySelector('.over-share').textContent };
+  }
+  return d;
+}"""
+
+
+def debug_with_panel_text(page) -> dict:
+    """The debug state and the frame panels' counters read in one turn of the page's event loop, so a redraw
+    (late frames still land in a paused window) cannot fall between them."""
+    return page.evaluate(PANEL_TEXT_JS)
+
+
 def has_all_bars(d: dict) -> bool:
     bars = d["stage"]["bars"]
     return all(all(bars.get(n, {}).get(s, 0) > 0 for s in FIVE) for n in NODES)
@@ -156,8 +173,8 @@ def test_frame_view_limit_turns_bars_deep_red_and_counts(live):
     def set_limit(value: str) -> dict:
         page.fill("#limit-input", value)
         page.click("#set-limit")
-        return wait_for(lambda: (lambda d: d if d["frame"]["limit"] == float(value) else None)(debug(page)),
-                        5, 0.1, f"limit {value}")
+        return wait_for(lambda: (lambda d: d if d["frame"]["limit"] == float(value) else None)(
+            debug_with_panel_text(page)), 5, 0.1, f"limit {value}")
 
     # Below every measured delay: every bar deep red, the counters say all of them.
     page.click("#pause")
@@ -165,9 +182,7 @@ def test_frame_view_limit_turns_bars_deep_red_and_counts(live):
     for node in NODES:
         c = d["frame"]["nodes"][node]
         assert c["overShown"] == c["shown"] > 0 and c["overReceived"] == c["received"]
-        panel = page.locator(f'.frame-panel[data-node="{node}"]')
-        assert panel.locator(".over-count").inner_text() == f'{c["shown"]:,}'
-        assert panel.locator(".over-share").inner_text() == "100.0%"
+        assert d["text"][node] == {"over": f'{c["shown"]:,}', "share": "100.0%"}
         pixels = frame_pixels(page, node)
         assert pixels[DEEP_RED] > 100 and pixels[UNDER] == 0, pixels
     # Above them all: none.
@@ -177,7 +192,7 @@ def test_frame_view_limit_turns_bars_deep_red_and_counts(live):
         assert c["overShown"] == 0 and c["overReceived"] == 0
         pixels = frame_pixels(page, node)
         assert pixels[DEEP_RED] == 0 and pixels[UNDER] > 100, pixels
-        assert page.locator(f'.frame-panel[data-node="{node}"] .over-share').inner_text() == "0.0%"
+        assert d["text"][node]["share"] == "0.0%"
     # The median delay of DCU-1: some over, some not, and the line moves with it.
     median = debug(page)["stats"]["DCU-1"]["frame"]["p50_ms"]
     d = set_limit(f"{median:.3f}")
