@@ -24,9 +24,9 @@ DEFAULT_BITRATE = 2000  # kbit/s
 class LoopingClipFactory(GstRtspServer.RTSPMediaFactory):
     """Serves one clip, shared by all clients, looping, paced at its own frame rate."""
 
-    def __init__(self, clip: Path, index: int, bitrate: int):
+    def __init__(self, clip: Path, index: int, bitrate: int, keyframe_every: int):
         super().__init__()
-        self.clip, self.index, self.bitrate = clip, index, bitrate
+        self.clip, self.index, self.bitrate, self.keyframe_every = clip, index, bitrate, keyframe_every
         self.set_shared(True)
 
     def do_create_element(self, _url):
@@ -39,7 +39,7 @@ class LoopingClipFactory(GstRtspServer.RTSPMediaFactory):
         Gst.util_set_object_arg(encoder, "tune", "zerolatency")
         Gst.util_set_object_arg(encoder, "speed-preset", "ultrafast")
         encoder.set_property("bitrate", self.bitrate)
-        encoder.set_property("key-int-max", 30)
+        encoder.set_property("key-int-max", self.keyframe_every)
         payloader.set_property("name", "pay0")
         payloader.set_property("pt", 96)
         media.add(source)
@@ -49,6 +49,22 @@ class LoopingClipFactory(GstRtspServer.RTSPMediaFactory):
         convert.link(encoder)
         encoder.link(payloader)
         return media
+
+
+def keyframe_interval(clip: Path) -> int:
+    """Frames between key frames: one a second at the clip's own rate, as IP cameras do
+    (a client joining mid-stream waits at most a second for its first picture)."""
+    from gi.repository import GstPbutils
+
+    try:
+        info = GstPbutils.Discoverer.new(10 * Gst.SECOND).discover_uri(clip.resolve().as_uri())
+    except GLib.Error as exc:
+        raise PipelineError(f"{clip}: cannot read it as video: {exc.message}") from exc
+    streams = info.get_video_streams()
+    if not streams:
+        raise PipelineError(f"{clip}: no video stream in it")
+    num, den = streams[0].get_framerate_num(), streams[0].get_framerate_denom()
+    return max(1, round(num / den)) if num > 0 and den > 0 else 30
 
 
 def serve(clips: list[Path], host: str = "127.0.0.1", port: int = DEFAULT_PORT, bitrate: int = DEFAULT_BITRATE,
@@ -63,7 +79,8 @@ def serve(clips: list[Path], host: str = "127.0.0.1", port: int = DEFAULT_PORT, 
     server.set_service(str(port))
     mounts = server.get_mount_points()
     for index, clip in enumerate(clips):
-        mounts.add_factory(f"/cam{index}", LoopingClipFactory(clip.resolve(), index, bitrate))
+        gop = keyframe_interval(clip)
+        mounts.add_factory(f"/cam{index}", LoopingClipFactory(clip.resolve(), index, bitrate, gop))
     if server.attach(None) == 0:
         raise PipelineError(f"cannot listen on {host}:{port} (in use?)")
     for index, clip in enumerate(clips):

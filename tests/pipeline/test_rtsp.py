@@ -144,3 +144,18 @@ def test_rtsp_latency_from_the_config_reaches_rtspsrc(tmp_path, gst_registered):
         built.pipeline.set_state(Gst.State.NULL)
         server.send_signal(signal.SIGINT)
         server.wait(10)
+
+
+def test_serve_rtsp_refuses_what_is_not_a_video(tmp_path):
+    from tests.conftest import run_cli
+
+    text = tmp_path / "notes.mp4"
+    text.write_text("not a video\n")
+    result = run_cli("serve-rtsp", text, "--port", str(free_port()), timeout=60)
+    assert result.returncode != 0 and "cannot read it as video" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_serve_rtsp_puts_a_key_frame_every_second_of_the_clip():
+    from pipeline.rtsp import keyframe_interval
+
+    assert keyframe_interval(BIKES) == 25 and keyframe_interval(VTEST) == 10
