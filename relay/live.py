@@ -31,6 +31,7 @@ import numpy as np
 from probes.events import EXIT, TraceHeader
 from probes.stats import (MISSING, NS_PER_MS, Chains, FrameTable, chains, frame_delays_ns, gaps_ns,
                           stage_delays_ns, summarize)
+from relay.sessionvalues import RELATIVE_ERROR, OriginSpans, SessionValues
 
 KEY_SHIFT = 44  # key = source << 44 | frame; relay.protocol bounds both to fit
 FINALISE_PERIOD_NS = 500_000_000
@@ -47,6 +48,11 @@ class LiveConfig:
     recent_frames: int = 4096
     """Complete frames kept for the UI and /api/frames."""
     max_open_frames: int = 200_000
+    exact_values: int = 262_144
+    """Values per series kept exactly for session percentiles (2 MB each); past it, a log
+    histogram with percentiles within 1 % (relay.sessionvalues), so a run of days stays bounded."""
+    evicted_kept: int = 65_536
+    """Eviction times kept for the rolling window's incomplete count (older ones are outside it)."""
     """Open frames at most (~40 MB with 8 stages): beyond, the stalest are evicted, so that a
     node whose timestamps stand still cannot make the relay grow without bound."""
 
@@ -117,11 +123,10 @@ class LiveRun:
         self._sources = np.zeros(0, bool)
         self.newest = 0
         # Finalised frames.
-        self._stage_values: dict[str, Grow] = {}
-        self._gap_values: dict[str, Grow] = {}
-        self._frame_values = Grow(np.float64)
-        self._origins = Grow(np.int64)
-        self._origin_source = Grow(np.int32)
+        self._stage_values: dict[str, SessionValues] = {}
+        self._gap_values: dict[str, SessionValues] = {}
+        self._frame_values = SessionValues(config.exact_values)
+        self._origins = OriginSpans()
         self._ring = {"source": Grow(np.int32), "frame": Grow(np.int64), "cells": Grow(np.int64, (s, 3)),
                       "end": Grow(np.int64)}
         self._evicted_last = Grow(np.int64)
@@ -258,6 +263,8 @@ class LiveRun:
         if stale.any():
             self.evicted += int(stale.sum())
             self._evicted_last.extend(self._last[stale])
+            if self._evicted_last.n > 2 * self.config.evicted_kept:
+                self._evicted_last.keep_last(self.config.evicted_kept)
             self._raise_watermark(open_.source[stale], open_.frame[stale])
         gone = done | stale
         if gone.any():
@@ -281,13 +288,12 @@ class LiveRun:
     def _finalise(self, frames: _Frames, end: np.ndarray) -> None:
         table, ch = self._chains(frames)
         for name, v in stage_delays_ns(table, ch).items():
-            self._stage_values.setdefault(name, Grow(np.float64)).extend(v / NS_PER_MS)
+            self._series(self._stage_values, name).extend(v / NS_PER_MS)
         for name, v in gaps_ns(table, ch).items():
-            self._gap_values.setdefault(name, Grow(np.float64)).extend(v / NS_PER_MS)
+            self._series(self._gap_values, name).extend(v / NS_PER_MS)
         self._frame_values.extend(frame_delays_ns(table, ch) / NS_PER_MS)
         c = ch.complete
-        self._origins.extend(table.origin[c])
-        self._origin_source.extend(table.source[c])
+        self._origins.extend(table.origin[c], table.source[c])
         self.finalised += int(c.sum())
         ring = self._ring
         ring["source"].extend(frames.source)
@@ -298,6 +304,14 @@ class LiveRun:
             for g in ring.values():
                 g.keep_last(self.config.ring_frames)
         self._raise_watermark(frames.source, frames.frame)
+
+    def _all_series(self) -> list[SessionValues]:
+        return [self._frame_values, *self._stage_values.values(), *self._gap_values.values()]
+
+    def _series(self, series: dict[str, SessionValues], name: str) -> SessionValues:
+        if name not in series:
+            series[name] = SessionValues(self.config.exact_values)
+        return series[name]
 
     def _raise_watermark(self, source: np.ndarray, frame: np.ndarray) -> None:
         np.maximum.at(self._watermark, source.astype(np.int64), frame.astype(np.int64))
@@ -314,21 +328,20 @@ class LiveRun:
         stages = {}
         for s, name in enumerate(self.stages):
             if self._has_exit[s]:
-                stages[name] = summarize(_cat(self._stage_values.get(name), stage_v.get(name)))
+                stages[name] = self._series(self._stage_values, name).summary(stage_v.get(name))
         gaps = {}
         for name in sorted(set(self._gap_values) | set(gap_v), key=self._gap_order):
-            gaps[name] = summarize(_cat(self._gap_values.get(name), gap_v.get(name)))
-        frame_ms = _cat(self._frame_values, frame_delays_ns(table, ch) / NS_PER_MS)
+            gaps[name] = self._series(self._gap_values, name).summary(gap_v.get(name))
+        frame = self._frame_values.summary(frame_delays_ns(table, ch) / NS_PER_MS)
         c = ch.complete
-        origins = np.concatenate([self._origins.view, table.origin[c]])
-        o_source = np.concatenate([self._origin_source.view, table.source[c]])
         n_open_complete = int(c.sum())
         n_open_incomplete = len(open_.source) - n_open_complete
         return {
-            "stages": stages, "gaps": gaps, "frame": summarize(frame_ms),
-            "fps": self._fps(origins, o_source, self._all_sources()),
+            "stages": stages, "gaps": gaps, "frame": frame,
+            "fps": self._origins.fps(self._all_sources(), table.origin[c], table.source[c]),
             "dropped": int(dropped),
             "frames": {"complete": self.finalised + n_open_complete, "incomplete": self.evicted + n_open_incomplete},
+            "percentile_error": 0.0 if all(v.exact for v in self._all_series()) else RELATIVE_ERROR,
         }
 
     def window_stats(self) -> dict:
@@ -386,11 +399,6 @@ class LiveRun:
         sel = after[-limit:] if newest else after[:limit]
         return {"n": n[sel], "source": r["source"].view[sel], "frame": r["frame"].view[sel],
                 "cells": r["cells"].view[sel], "end": r["end"].view[sel]}
-
-
-def _cat(grow: Grow | None, extra: np.ndarray | None) -> np.ndarray:
-    parts = [g for g in (grow.view if grow is not None else None, extra) if g is not None and len(g)]
-    return np.concatenate(parts) if parts else np.zeros(0)
 
 
 def bottleneck(stats: dict) -> dict | None:

@@ -17,6 +17,7 @@ from relay.errors import ProtocolError
 from relay.frames import block, frame_dicts
 from relay.live import LiveConfig, LiveRun, bottleneck, frame_table_from_cells
 from relay.protocol import Hello
+from relay.seqset import SeqSet
 from relay.storage import Storage
 
 RELOAD_SLICE = 262_144
@@ -31,7 +32,7 @@ class RunState:
     session: int
     header: TraceHeader
     live: LiveRun
-    seqs: set[int]
+    seqs: SeqSet
     clock: ClockEstimator = field(default_factory=ClockEstimator)
     ptp: dict = field(default_factory=lambda: {"state": "unavailable"})
     sid: str | None = None
@@ -91,7 +92,7 @@ class RelayState:
         header = hello.header
         session, first_seen_ns = await self.storage.call(db.register_run, hello.run, header.node, header.to_dict(),
                                                          self.live_session())
-        seqs = await self.storage.call(db.stored_seqs, hello.run)
+        seqs = SeqSet(await self.storage.call(db.stored_seqs, hello.run))
         live = LiveRun(header, self.live_config)
         if seqs:
             # The relay restarted while this run went on: rebuild its live state from storage,

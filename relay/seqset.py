@@ -1,0 +1,49 @@
+"""The batch sequence numbers a run has delivered, in memory that does not grow with the run.
+
+A node numbers its batches 0, 1, 2, ... and resends the unacknowledged ones after a cut, so
+what was seen is almost always "everything below N" plus a few above it: that is what this
+keeps (``low`` and the set of the ones above it).
+"""
+
+from __future__ import annotations
+
+from typing import Iterable
+
+
+class SeqSet:
+    def __init__(self, seqs: Iterable[int] = ()) -> None:
+        self.low = 0
+        """Every seq below this was seen."""
+        self._above: set[int] = set()
+        for seq in seqs:
+            self.add(seq)
+
+    def __contains__(self, seq: int) -> bool:
+        return seq < self.low or seq in self._above
+
+    def __len__(self) -> int:
+        return self.low + len(self._above)
+
+    def __bool__(self) -> bool:
+        return len(self) > 0
+
+    def add(self, seq: int) -> None:
+        if seq < self.low:
+            return
+        self._above.add(seq)
+        while self.low in self._above:
+            self._above.discard(self.low)
+            self.low += 1
+
+    def discard(self, seq: int) -> None:
+        if seq >= self.low:
+            self._above.discard(seq)
+            return
+        # Rare (storage refused a batch just taken): give back the contiguous run above it.
+        self._above.update(range(seq + 1, self.low))
+        self.low = seq
+
+    @property
+    def held(self) -> int:
+        """Numbers held individually (the memory it takes)."""
+        return len(self._above)

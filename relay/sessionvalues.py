@@ -1,0 +1,149 @@
+"""Whole-session values of a run in bounded memory: exact while small, a log histogram beyond.
+
+A relay may watch many nodes for days; keeping every frame's delays for session percentiles
+would grow without bound (13 values a frame: ~270 MB an hour for one DCU at 360 frames/s).
+
+- :class:`SessionValues` keeps the values themselves up to ``exact_limit``, so statistics of
+  runs of that size are exactly ``probes.stats.summarize``'s. Past it, the values move into
+  a histogram with logarithmic buckets (as DDSketch): count, mean and max stay exact, and
+  each percentile is within ``RELATIVE_ERROR`` of the exact one.
+- :class:`OriginSpans` keeps, per source, what frames/s needs: count, first and last origin.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from probes.stats import PERCENTILES, summarize
+
+RELATIVE_ERROR = 0.01
+"""Largest relative error of a percentile once a series is past its exact limit."""
+_GAMMA = (1 + RELATIVE_ERROR) / (1 - RELATIVE_ERROR)
+_LOG_GAMMA = math.log(_GAMMA)
+_SMALLEST = 1e-6  # ms: |values| below this count as zero
+_LARGEST = 1e8  # ms: a bigger value lands in the last bucket (its max is still exact)
+_BUCKETS = math.ceil(math.log(_LARGEST / _SMALLEST) / _LOG_GAMMA) + 1
+
+
+class SessionValues:
+    """One series (a stage's delays, a gap, the frame delay), in ms."""
+
+    def __init__(self, exact_limit: int) -> None:
+        self.exact_limit = exact_limit
+        self._exact = np.zeros(64)
+        self._n_exact = 0
+        self._hist: np.ndarray | None = None  # (2, _BUCKETS): negative, positive magnitudes
+        self._zeros = 0
+        self._count = 0
+        self._sum = 0.0
+        self._max = -math.inf
+
+    @property
+    def exact(self) -> bool:
+        return self._hist is None
+
+    @property
+    def count(self) -> int:
+        return self._count + self._n_exact
+
+    def extend(self, values: np.ndarray) -> None:
+        values = np.asarray(values, np.float64).ravel()
+        if not len(values):
+            return
+        if self._hist is None and self._n_exact + len(values) <= self.exact_limit:
+            if self._n_exact + len(values) > len(self._exact):
+                bigger = np.zeros(min(self.exact_limit, max(2 * len(self._exact), self._n_exact + len(values))))
+                bigger[:self._n_exact] = self._exact[:self._n_exact]
+                self._exact = bigger
+            self._exact[self._n_exact:self._n_exact + len(values)] = values
+            self._n_exact += len(values)
+            return
+        if self._hist is None:
+            self._hist = np.zeros((2, _BUCKETS), np.int64)
+            self._add(self._exact[:self._n_exact])
+            self._exact, self._n_exact = np.zeros(0), 0
+        self._add(values)
+
+    def summary(self, extra: np.ndarray | None = None) -> dict:
+        """``summarize`` of these values and ``extra`` (frames not yet final), shaped as it."""
+        extra = np.zeros(0) if extra is None else np.asarray(extra, np.float64).ravel()
+        if self._hist is None:
+            return summarize(np.concatenate([self._exact[:self._n_exact], extra]))
+        hist, zeros = self._hist.copy(), self._zeros
+        if len(extra):
+            zeros += _bucket_into(hist, extra)
+        count = self._count + len(extra)
+        top = max(self._max, float(extra.max()) if len(extra) else -math.inf)
+        p50, p95, p99 = (min(top, _quantile(hist, zeros, count, p / 100)) for p in PERCENTILES)
+        return {"count": count, "mean_ms": (self._sum + float(extra.sum())) / count,
+                "p50_ms": p50, "p95_ms": p95, "p99_ms": p99, "max_ms": top}
+
+    def _add(self, values: np.ndarray) -> None:
+        if not len(values):
+            return
+        self._zeros += _bucket_into(self._hist, values)
+        self._count += len(values)
+        self._sum += float(values.sum())
+        self._max = max(self._max, float(values.max()))
+
+
+def _bucket_into(hist: np.ndarray, values: np.ndarray) -> int:
+    """Add ``values`` to ``hist``; returns how many were (near) zero."""
+    magnitude = np.abs(values)
+    small = magnitude < _SMALLEST
+    index = np.ceil(np.log(magnitude[~small] / _SMALLEST) / _LOG_GAMMA).astype(np.int64)
+    np.clip(index, 0, _BUCKETS - 1, out=index)
+    side = (values[~small] > 0).astype(np.int64)
+    np.add.at(hist, (side, index), 1)
+    return int(small.sum())
+
+
+def _quantile(hist: np.ndarray, zeros: int, count: int, q: float) -> float:
+    """The value at rank q * (count - 1), from most negative to most positive."""
+    rank = q * (count - 1)
+    # Order: negative buckets from the largest magnitude down, the zeros, positive buckets up.
+    counts = np.concatenate([hist[0][::-1], [zeros], hist[1]])
+    k = int(np.searchsorted(np.cumsum(counts), math.floor(rank) + 1))
+    if k == _BUCKETS:
+        return 0.0
+    if k < _BUCKETS:
+        return -_representative(_BUCKETS - 1 - k)
+    return _representative(k - _BUCKETS - 1)
+
+
+def _representative(index: int) -> float:
+    # Bucket i holds (SMALLEST * gamma^(i-1), SMALLEST * gamma^i]; this point is within the
+    # relative error of every value in it.
+    return _SMALLEST * 2 * _GAMMA ** index / (_GAMMA + 1)
+
+
+class OriginSpans:
+    """Per source: complete frames counted, earliest and latest origin (ns)."""
+
+    def __init__(self) -> None:
+        self.count: dict[int, int] = {}
+        self.first: dict[int, int] = {}
+        self.last: dict[int, int] = {}
+
+    def extend(self, origins: np.ndarray, sources: np.ndarray) -> None:
+        for sid in np.unique(sources).tolist():
+            o = origins[sources == sid]
+            self.count[sid] = self.count.get(sid, 0) + len(o)
+            self.first[sid] = min(self.first.get(sid, int(o.min())), int(o.min()))
+            self.last[sid] = max(self.last.get(sid, int(o.max())), int(o.max()))
+
+    def fps(self, ids: list[int], origins: np.ndarray, sources: np.ndarray) -> dict[str, float]:
+        """probes.stats.fps_by_source's rule, (n - 1) / span, over these and ``origins``."""
+        out = {}
+        for sid in ids:
+            o = origins[sources == sid]
+            n = self.count.get(sid, 0) + len(o)
+            lows, highs = ([int(o.min())], [int(o.max())]) if len(o) else ([], [])
+            if sid in self.first:
+                lows.append(self.first[sid])
+                highs.append(self.last[sid])
+            span = max(highs) - min(lows) if lows else 0
+            out[str(sid)] = (n - 1) * 1e9 / span if n >= 2 and span > 0 else 0.0
+        return out

@@ -1,0 +1,74 @@
+"""Session statistics in bounded memory: exact up to a limit, then within 1 % (count, mean, max exact)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from probes.stats import node_stats, summarize
+from relay.live import LiveConfig, LiveRun
+from relay.sessionvalues import RELATIVE_ERROR, SessionValues
+from relay.simnode import header_for, synth_events
+from tests.relay.helpers import assert_stats_equal
+
+T0 = 1_700_000_000_000_000_000
+
+
+def close(exact: dict, approx: dict) -> None:
+    assert approx["count"] == exact["count"]
+    assert approx["max_ms"] == exact["max_ms"]
+    assert approx["mean_ms"] == pytest.approx(exact["mean_ms"], rel=1e-9, abs=1e-9)
+    for key in ("p50_ms", "p95_ms", "p99_ms"):
+        assert abs(approx[key] - exact[key]) <= RELATIVE_ERROR * abs(exact[key]) + 1e-6, (key, exact, approx)
+
+
+def test_below_the_limit_it_is_summarize_itself():
+    rng = np.random.default_rng(1)
+    values = rng.lognormal(2, 1, 5000)
+    series = SessionValues(exact_limit=10_000)
+    for chunk in np.array_split(values, 7):
+        series.extend(chunk)
+    extra = rng.lognormal(2, 1, 50)
+    assert series.exact and series.summary(extra) == summarize(np.concatenate([values, extra]))
+
+
+@pytest.mark.parametrize("shape", ["lognormal", "with zeros and negatives", "one value"])
+def test_past_the_limit_percentiles_stay_within_one_percent_in_fixed_memory(shape):
+    rng = np.random.default_rng(2)
+    if shape == "lognormal":
+        values = rng.lognormal(3, 1.2, 300_000)  # ms, 0.1 ms .. seconds
+    elif shape == "with zeros and negatives":
+        values = np.concatenate([rng.normal(0.4, 0.5, 200_000), np.zeros(20_000), rng.lognormal(1, 2, 80_000)])
+        rng.shuffle(values)
+    else:
+        values = np.full(300_000, 33.3)
+    series = SessionValues(exact_limit=1000)
+    for chunk in np.array_split(values, 97):
+        series.extend(chunk)
+    assert not series.exact
+    extra = values[:123] * 1.5
+    close(summarize(np.concatenate([values, extra])), series.summary(extra))
+    held = sum(a.nbytes for a in vars(series).values() if isinstance(a, np.ndarray))
+    series.extend(np.tile(values, 3))
+    assert sum(a.nbytes for a in vars(series).values() if isinstance(a, np.ndarray)) == held  # no growth
+    close(summarize(np.tile(values, 4)), series.summary())
+
+
+def test_a_long_run_past_the_limit_agrees_with_node_stats_within_one_percent():
+    header = header_for("n", 2)
+    events = synth_events(3000, 2, 30.0, T0, drop_rate=0.02, seed=5)
+    exact, bounded = LiveRun(header), LiveRun(header, LiveConfig(exact_values=500))
+    for i in range(0, len(events), 400):
+        for run in (exact, bounded):
+            run.add(events[i:i + 400])
+            run.maintain()
+    want = node_stats(header, events)
+    assert_stats_equal(want, {k: v for k, v in exact.session_stats().items() if k != "percentile_error"})
+    got = bounded.session_stats()
+    assert exact.session_stats()["percentile_error"] == 0.0 and got["percentile_error"] == RELATIVE_ERROR
+    assert got["fps"] == want["fps"] and got["frames"] == want["frames"] and got["dropped"] == want["dropped"]
+    for group in ("stages", "gaps"):
+        assert got[group].keys() == want[group].keys()
+        for name in want[group]:
+            close(want[group][name], got[group][name])
+    close(want["frame"], got["frame"])
