@@ -38,6 +38,9 @@ class TraceHeader:
     started_ns: int = 0
     versions: dict[str, str] = field(default_factory=dict)
     format: int = FORMAT_VERSION
+    kinds: dict[str, str] = field(default_factory=dict)
+    """Stage name -> the factory of its element (``infer`` for a stage named ``pgie``): what
+    the UI colours by. Optional: traces written before it have none."""
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -51,6 +54,7 @@ class TraceHeader:
             sources={int(k): str(v) for k, v in d.get("sources", {}).items()},
             started_ns=int(d.get("started_ns", 0)), versions=dict(d.get("versions", {})),
             format=int(d.get("format", FORMAT_VERSION)),
+            kinds={str(k): str(v) for k, v in d.get("kinds", {}).items()},
         )
 
 

@@ -135,12 +135,14 @@ def attach(pipeline: Gst.Pipeline, node: str, clock: str = "realtime", capacity:
         raise PipelineError(f"pipeline {pipeline.get_name()} has no {FRAMESTAMP} element and no linked "
                             "elements after its sources: there is nothing to trace")
     ring = make_ring(backend, capacity)
-    names = _unique([fs.get_name() for fs in stamps] + [e.get_name() for e in stage_elements])
+    elements = stamps + stage_elements
+    names = _unique([e.get_name() for e in elements])
+    kinds = {name: e.get_factory().get_name() for name, e in zip(names, elements) if e.get_factory() is not None}
     described = {fs.get_property("source-id"): _describe_source(fs, host, pipeline) for fs, host in zip(stamps, hosts)}
     header = TraceHeader(
         node=node, clock=clock, stages=names, sources={**described, **(sources or {})},
         started_ns=ring.now(CLOCKS[clock]),
-        versions={"gstreamer": Gst.version_string(), "probes": ring.backend},
+        versions={"gstreamer": Gst.version_string(), "probes": ring.backend}, kinds=kinds,
     )
     tracer = Tracer(header, ring, CLOCKS[clock])
     for index, fs in enumerate(stamps):

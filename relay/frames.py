@@ -24,11 +24,11 @@ def frame_dicts(n: np.ndarray, source: np.ndarray, frame: np.ndarray, origin: np
 
 
 def block(node: str, run: str, stages: list[str], frames: list[dict], since: int, newest: int,
-          correction_ns: int, clock: str) -> dict:
+          correction_ns: int, clock: str, kinds: dict[str, str] | None = None) -> dict:
     """A page of frames: ``cursor`` is the n of its last frame (``since`` when empty), ``newest``
-    the n of the newest frame there is."""
-    return {"node": node, "run": run, "stages": stages, "correction_ns": correction_ns, "clock": clock,
-            "cursor": frames[-1]["n"] if frames else since, "newest": newest, "frames": frames}
+    the n of the newest frame there is; ``kinds``: stage name -> element factory."""
+    return {"node": node, "run": run, "stages": stages, "kinds": kinds or {}, "correction_ns": correction_ns,
+            "clock": clock, "cursor": frames[-1]["n"] if frames else since, "newest": newest, "frames": frames}
 
 
 def _corrected(values: list[int], corr: int) -> list[int | None]:

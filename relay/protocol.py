@@ -224,6 +224,9 @@ def decode_hello(obj: object, node: str) -> Hello:
     if len(versions) > 64 or not all(isinstance(k, str) and isinstance(v, str) and len(k) + len(v) < 400
                                      for k, v in versions.items()):
         raise ProtocolError("hello.header.versions must map names to version strings")
+    kinds = _dict(h.get("kinds", {}), "hello.header.kinds")
+    if not (kinds.keys() <= set(stages) and all(isinstance(v, str) and len(v) <= MAX_NAME for v in kinds.values())):
+        raise ProtocolError("hello.header.kinds must map stage names to element factory names")
     header_node = _str(h.get("node"), "hello.header.node")
     if header_node != node:
         raise ProtocolError(f"hello names node {header_node!r} but the connection is {node!r}")

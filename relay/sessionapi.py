@@ -65,7 +65,7 @@ class StoredNode:
 
     def summary(self) -> dict:
         n = len(self.source)
-        return {"node": self.node, "run": self.run, "stages": self.header.stages,
+        return {"node": self.node, "run": self.run, "stages": self.header.stages, "kinds": self.header.kinds,
                 "sources": {str(k): v for k, v in self.header.sources.items()}, "frames": n, "events": self.events,
                 "first_ns": int(self.origin.min()) if n else None, "last_ns": int(self.end.max()) if n else None,
                 "dropped": self.dropped, "lost": self.lost, "clock": self.clock, "ended": self.ended}
@@ -81,7 +81,7 @@ class StoredNode:
                 self.source[sl].tolist(), self.frame[sl].tolist(), self.origin[sl].tolist(), self.end[sl].tolist(),
                 self.enter[sl].tolist(), self.exit[sl].tolist()))
         ]
-        return {"node": self.node, "run": self.run, "stages": self.header.stages, "cursor": hi,
+        return {"node": self.node, "run": self.run, "stages": self.header.stages, "kinds": self.header.kinds, "cursor": hi,
                 "total": len(self.source), "clock": self.clock.get("applied", "stored"), "frames": frames}
 
 

@@ -29,8 +29,9 @@ EVENTS_PER_FRAME = 2 + 2 * len(STAGES)
 
 
 def header_for(node: str, sources: int, started_ns: int = 0) -> TraceHeader:
-    return TraceHeader(node=node, clock="realtime",
-                       stages=[f"src{k}" for k in range(sources)] + list(STAGES) + ["sink"],
+    stages = [f"src{k}" for k in range(sources)] + list(STAGES) + ["sink"]
+    kinds = {**{f"src{k}": "framestamp" for k in range(sources)}, **{s: s for s in STAGES}, "sink": "fakesink"}
+    return TraceHeader(node=node, clock="realtime", stages=stages, kinds=kinds,
                        sources={k: f"sim://camera{k}" for k in range(sources)}, started_ns=started_ns)
 
 

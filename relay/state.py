@@ -136,7 +136,7 @@ class RelayState:
         live = rs.live
         return {
             "node": rs.node, "run": rs.run, "session": rs.session, "connected": rs.sid is not None,
-            "ended": rs.ended, "stages": rs.header.stages, "sources": {str(k): v for k, v in rs.header.sources.items()},
+            "ended": rs.ended, "stages": rs.header.stages, "kinds": rs.header.kinds, "sources": {str(k): v for k, v in rs.header.sources.items()},
             "clock": self.clock_view(rs), "ptp": rs.ptp,
             "events": live.events, "duplicates": rs.duplicates, "written": rs.written,
             "dropped": rs.dropped, "lost": rs.lost, "drops": rs.dropped + rs.lost,
@@ -174,4 +174,4 @@ class RelayState:
         table = frame_table_from_cells(rs.header.stages, rec["source"], rec["frame"], rec["cells"])
         frames = frame_dicts(rec["n"], rec["source"], rec["frame"], table.origin, rec["end"],
                              rec["cells"][:, :, 1], rec["cells"][:, :, 2], corr)
-        return block(rs.node, rs.run, rs.header.stages, frames, since, rs.live.visible, corr, applied)
+        return block(rs.node, rs.run, rs.header.stages, frames, since, rs.live.visible, corr, applied, rs.header.kinds)

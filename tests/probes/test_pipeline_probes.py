@@ -49,6 +49,7 @@ def test_lineage_every_frame_has_one_origin_and_one_enter_exit_per_stage(tmp_pat
     trace = probed_run(tmp_path, quad_yaml(), 30)
     header, events = trace.header, trace.events
     assert header.stages == ["src0", "src1", "src2", "src3", *FIVE, "sink"]
+    assert [header.kinds[s] for s in header.stages[:-1]] == ["framestamp"] * 4 + list(FIVE)
     assert trace.complete and trace.dropped == 0
     sink = header.stages.index("sink")
     reached = {(int(e["source"]), int(e["frame"])) for e in events[(events["stage"] == sink) & (events["point"] == ENTER)]}

@@ -108,6 +108,7 @@ def test_a_batch_buffer_yields_one_event_per_frame_at_every_tracepoint(backend):
     pipe = Gst.parse_launch("appsrc name=src format=time ! identity name=a ! queue name=q ! fakesink name=sink")
     tracer = attach(pipe, "node-b", backend=backend)
     assert tracer.header.stages == ["a", "q", "sink"]
+    assert tracer.header.kinds == {"a": "identity", "q": "queue", "sink": "fakesink"}  # what the UI colours by
     src = pipe.get_by_name("src")
     pipe.set_state(Gst.State.PLAYING)
     for b in range(4):

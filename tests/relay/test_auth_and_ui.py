@@ -92,6 +92,8 @@ def test_ui_pushes_frames_and_stats_throttled(tmp_path):
         span = times[-1] - times[0]
         assert len(frames) <= 10 * span + 2  # at most 10 pushes a second
         blocks = [d["nodes"]["DCU-1"] for _, d in frames]
+        assert blocks[0]["kinds"] == {"src0": "framestamp", "src1": "framestamp", "mux": "mux", "infer": "infer",
+                                      "tiler": "tiler", "convert": "convert", "osd": "osd", "sink": "fakesink"}
         pushed = [raw(f, b["correction_ns"]) for b in blocks for f in b["frames"]]
         cursors = [f["n"] for f in pushed]
         assert cursors == sorted(set(cursors)) and cursors[-1] == 300  # each frame once, in order, to the last

@@ -128,6 +128,9 @@ def test_hello():
     (hello(header={**header_for("n1", 2).to_dict(), "sources": {"a": "b"}}), "source ids"),
     (hello(header=header_for("other", 2).to_dict()), "names node 'other'"),
     (hello(header="x"), "header must be an object"),
+    (hello(header={**header_for("n1", 2).to_dict(), "kinds": {"nosuchstage": "infer"}}), "kinds must map"),
+    (hello(header={**header_for("n1", 2).to_dict(), "kinds": {"mux": 3}}), "kinds must map"),
+    (hello(header={**header_for("n1", 2).to_dict(), "kinds": []}), "kinds must be an object"),
 ])
 def test_hello_rejects(data, message):
     with pytest.raises(ProtocolError, match=message):

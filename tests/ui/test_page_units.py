@@ -101,6 +101,18 @@ def test_stage_colours_follow_the_paper_and_palette_is_stable(page):
     assert queue == queue_again == "#fb8c00" and queue1 == "#00897b"
 
 
+def test_stage_colours_follow_the_element_kind_whatever_the_stage_is_called(page):
+    out = js(page, """
+        const c = new m.StageColours();
+        const early = c.get("pgie");                        // seen before its node's kinds arrived
+        c.learn({pgie: "infer", sgie: "infer", mixer: "mux", q: "queue"});
+        c.learn({pgie: "identity"});                          // the first node's kind stays
+        return [early, c.get("pgie"), c.get("sgie"), c.get("mixer"), c.get("q"), c.entries().length];""")
+    early, pgie, sgie, mixer, q, n = out
+    assert early == "#fb8c00"  # a palette colour until the kind was known
+    assert pgie == sgie == "#1e88e5" and mixer == "#e53935" and q == "#00897b" and n == 4
+
+
 def test_delay_formats_and_axis(page):
     out = js(page, """
         return {d: [0.5, 12.345, 250, 1234.5].map(m.formatDelay), t: [0, 0.25, 20, 2500].map(m.formatTick),

@@ -80,6 +80,7 @@ function noteRelayTime(ms) {
 // --- live data -------------------------------------------------------------------------------
 
 function ingest(ds, node, block, capacity = LIVE_CAPACITY) {
+  colours.learn(block.kinds);
   let store = ds.stores.get(node);
   if (!store) {
     store = new NodeStore(node, block.stages, capacity, ds.kind === "live" ? DELAY_CAPACITY : capacity, view.limit);
@@ -111,7 +112,10 @@ function showBanner(text) {
 
 const feed = new LiveFeed(api, {
   nodes(list) {
-    for (const n of list) live.nodes.set(n.node, n);
+    for (const n of list) {
+      live.nodes.set(n.node, n);
+      colours.learn(n.kinds);
+    }
     if (current === live) view.panelsDirty = true;
   },
   frames(node, block) {
@@ -174,6 +178,7 @@ async function openSession(id) {
       onNode(n) {
         if (current !== ds) throw new Error("another data set was chosen");
         ds.nodes.set(n.node, n);
+        colours.learn(n.kinds);
         ds.stores.set(n.node, new NodeStore(n.node, n.stages, Math.max(1, Math.min(n.frames, SESSION_CAPACITY)),
           Math.max(1, Math.min(n.frames, SESSION_CAPACITY)), view.limit));
         view.panelsDirty = true;

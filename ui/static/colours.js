@@ -25,13 +25,30 @@ export function baseName(stage) {
 export class StageColours {
   constructor() {
     this.assigned = new Map();
+    this.kinds = new Map();
     this.next = 0;
+  }
+
+  /**
+   * Stage name -> element factory, from a node's trace header ({pgie: "infer"}): a stage is
+   * coloured by what its element is, whatever it is called. Learnt before its first use.
+   */
+  learn(kinds) {
+    for (const [stage, factory] of Object.entries(kinds ?? {})) {
+      if (this.kinds.has(stage)) continue;
+      this.kinds.set(stage, factory);
+      const colour = STAGE_COLOURS[factory];
+      if (colour !== undefined && this.assigned.has(stage) && this.assigned.get(stage) !== colour) {
+        this.assigned.set(stage, colour); // it was seen before its kind was known
+      }
+    }
   }
 
   get(stage) {
     let colour = this.assigned.get(stage);
     if (colour === undefined) {
-      colour = STAGE_COLOURS[baseName(stage)] ?? PALETTE[this.next++ % PALETTE.length];
+      colour = STAGE_COLOURS[this.kinds.get(stage)] ?? STAGE_COLOURS[baseName(stage)]
+        ?? PALETTE[this.next++ % PALETTE.length];
       this.assigned.set(stage, colour);
     }
     return colour;
