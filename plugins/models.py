@@ -64,13 +64,21 @@ def select_providers(requested: str) -> tuple[list[str], list[str]]:
     return use, missing
 
 
-def open_session(path: str | Path, providers: Sequence[str], threads: int = 0) -> ort.InferenceSession:
-    """An inference session on ``path``; raises :class:`ModelError` naming the file."""
+def open_session(path: str | Path, providers: Sequence[str], threads: int = 0,
+                 spin_wait: bool = False) -> ort.InferenceSession:
+    """An inference session on ``path``; raises :class:`ModelError` naming the file.
+
+    ``spin_wait``: ONNX Runtime's worker threads spin after each run by default. Between two
+    batches of a pipeline that time is the other stages' (decoders, tiler, convert): with a
+    batch every 20 ms of other work, spinning took 1.6x the CPU for the same wall time
+    (benchmarks/bench_infer_cpu.py).
+    """
     path = Path(path)
     if not path.is_file():
         raise ModelError(f"model file {path} does not exist", "not-found")
     options = ort.SessionOptions()
     options.intra_op_num_threads = threads
+    options.add_session_config_entry("session.intra_op.allow_spinning", "1" if spin_wait else "0")
     options.log_severity_level = 3  # ORT's own warnings would duplicate ours on stderr
     try:
         return ort.InferenceSession(str(path), sess_options=options, providers=list(providers))

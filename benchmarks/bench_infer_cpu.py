@@ -1,0 +1,73 @@
+"""CPU an inference takes inside a pipeline: ONNX Runtime threads spinning between batches or not.
+
+In a pipeline the detector runs once a batch and the other stages work in between. Here a
+batch comes every ``--gap-ms`` (other stages' time, spent sleeping so it costs no CPU), and
+the benchmark reports, per model and side by side (interleaved repetitions, medians):
+wall time of a run, and CPU time of the process per run (ORT's worker threads included).
+The infer element's ``spin-wait`` property (default off) chooses between the two.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_infer_cpu.py [--runs 30] [--repeat 5] [--gap-ms 20]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import statistics
+import time
+
+import numpy as np
+
+from plugins.models import DEFAULT_MODEL, open_session
+
+SSD = DEFAULT_MODEL.parent / "ssdlite_mobilenetv2_person.onnx"
+
+
+def _cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def measure(session, runs: int, gap_s: float) -> tuple[float, float]:
+    """(wall ms, CPU ms) per run."""
+    i = session.get_inputs()[0]
+    shape = [d if isinstance(d, int) and d > 0 else 1 for d in i.shape]
+    x = (np.random.default_rng(0).random(shape) * 255).astype(np.uint8 if "uint8" in i.type else np.float32)
+    for _ in range(3):
+        session.run(None, {i.name: x})
+    wall = cpu = 0.0
+    for _ in range(runs):
+        c, t = _cpu(), time.perf_counter()
+        session.run(None, {i.name: x})
+        wall += time.perf_counter() - t
+        time.sleep(gap_s)
+        cpu += _cpu() - c
+    return 1000 * wall / runs, 1000 * cpu / runs
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--runs", type=int, default=30)
+    p.add_argument("--repeat", type=int, default=5)
+    p.add_argument("--gap-ms", type=float, default=20.0)
+    args = p.parse_args()
+    for model in (SSD, DEFAULT_MODEL):
+        sessions = {spin: open_session(model, ["CPUExecutionProvider"], spin_wait=spin) for spin in (False, True)}
+        got = {spin: [] for spin in sessions}
+        for _ in range(args.repeat):
+            for spin, session in sessions.items():
+                got[spin].append(measure(session, args.runs, args.gap_ms / 1000))
+        med = {spin: (statistics.median(w for w, _ in v), statistics.median(c for _, c in v)) for spin, v in got.items()}
+        print(json.dumps({
+            "model": model.name, "gap_ms": args.gap_ms,
+            "no_spin": {"wall_ms": round(med[False][0], 1), "cpu_ms": round(med[False][1], 1)},
+            "spin": {"wall_ms": round(med[True][0], 1), "cpu_ms": round(med[True][1], 1)},
+            "cpu_ratio_spin_vs_no_spin": round(med[True][1] / med[False][1], 2),
+            "wall_ratio_spin_vs_no_spin": round(med[True][0] / med[False][0], 2),
+        }), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
