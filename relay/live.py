@@ -365,22 +365,12 @@ class LiveRun:
             "stages": {k: summarize(v / NS_PER_MS) for k, v in stage_delays_ns(table, ch).items()},
             "gaps": {k: summarize(v / NS_PER_MS) for k, v in gaps_ns(table, ch).items()},
             "frame": summarize(frame_delays_ns(table, ch) / NS_PER_MS),
-            "fps": self._fps(table.origin[c], table.source[c], self._all_sources()),
+            "fps": OriginSpans().fps(self._all_sources(), table.origin[c], table.source[c]),
             "frames": {"complete": int(c.sum()), "incomplete": incomplete},
         }
 
     def _all_sources(self) -> list[int]:
         return sorted(set(int(k) for k in self.header.sources) | set(np.flatnonzero(self._sources).tolist()))
-
-    @staticmethod
-    def _fps(origins: np.ndarray, source: np.ndarray, ids: list[int]) -> dict[str, float]:
-        # probes.stats.fps_by_source's rule: (n - 1) / span of the complete frames' origins.
-        out = {}
-        for sid in ids:
-            o = origins[source == sid]
-            span = int(o.max() - o.min()) if o.size >= 2 else 0
-            out[str(sid)] = (o.size - 1) * 1e9 / span if span > 0 else 0.0
-        return out
 
     def _gap_order(self, name: str) -> tuple[int, int]:
         a, _, b = name.partition("->")
