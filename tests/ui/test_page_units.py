@@ -28,7 +28,7 @@ def js(page, body: str, arg=None):
     return page.evaluate(
         """async ([body, arg]) => {
             const m = {};
-            for (const name of ["timefmt", "store", "colours", "panels"]) Object.assign(m, await import(`/${name}.js`));
+            for (const name of ["timefmt", "store", "colours", "panels", "stageview"]) Object.assign(m, await import(`/${name}.js`));
             return new Function("m", "arg", `return (async () => { ${body} })()`)(m, arg);
         }""", [body, arg])
 
@@ -89,6 +89,47 @@ def test_node_store_is_bounded_and_searchable(page):
     assert out["lanes"] == ["mux", "infer"]  # the sink has an enter only: no bar
     # A run with other stages starts the store afresh.
     assert out["afterNewRun"] == {"size": 1, "stages": ["src0", "mux", "sink"], "received": 1, "other": 1}
+
+
+def test_stage_bars_cover_only_where_frames_were_and_every_bar_pixel_hovers(page):
+    # Frames arrive in the order the relay completes them, not in order of their time at a stage:
+    # here the osd of frame 3 lies between those of frames 1 and 2. A run of bars that took frame 3
+    # in would have painted the gaps on either side of it, where hovering finds no frame.
+    out = js(page, """
+        const base = 1.7e12, stages = ["mux", "osd"], osd = [[1000, 1010], [1200, 1210], [1100, 1105]];
+        const store = new m.NodeStore("DCU-9", stages, 16, 16);
+        store.ingest({run: "r", stages, frames: osd.map(([a, b], i) => ({n: i + 1, source: i, frame: i,
+            origin: (base + a - 50) * 1e6, enter: [(base + a - 50) * 1e6, (base + a) * 1e6],
+            exit: [(base + a - 40) * 1e6, (base + b) * 1e6], delay_ms: b + 50 - a}))});
+        const wrap = document.createElement("div");
+        wrap.style.width = "1150px";
+        document.body.append(wrap);
+        const canvas = document.createElement("canvas");
+        wrap.append(canvas);
+        const colours = new m.StageColours();
+        const view = new m.StageView(canvas, {stores: () => [store], colours, expanded: () => false,
+                                              describe: () => "clip"});
+        view.draw(base + 900, base + 1300);
+        const row = view.rows[0], y = row.y + 6 + 12 + 5;   // the osd lane's middle (ROW_PAD, LANE_H + LANE_GAP)
+        const ctx = canvas.getContext("2d"), dpr = canvas.width / canvas.clientWidth;
+        const purple = parseInt(colours.get("osd").slice(1), 16);
+        const painted = [], hits = [];
+        for (let x = m.GUTTER; x < view.cssWidth; x++) {
+            const d = ctx.getImageData(Math.round(x * dpr), Math.round(y * dpr), 1, 1).data;
+            if (((d[0] << 16) | (d[1] << 8) | d[2]) !== purple) continue;
+            painted.push(x);
+            const h = view.hit(x + 0.5, y);
+            hits.push(h ? h.stage + ":" + h.frame : null);
+        }
+        wrap.remove();
+        const k = view.plotWidth / 400;
+        return {painted, hits, gaps: [[1010, 1100], [1105, 1200]].map(([a, b]) =>
+            [m.GUTTER + (a - 900) * k + 2, m.GUTTER + (b - 900) * k - 2])};""")
+    assert len(out["painted"]) > 20, out
+    assert all(h is not None and h.startswith("osd:") for h in out["hits"]), out["hits"]
+    assert {h for h in out["hits"]} == {"osd:0", "osd:1", "osd:2"}
+    for lo, hi in out["gaps"]:
+        assert not [x for x in out["painted"] if lo < x < hi], (lo, hi, out["painted"])
 
 
 def test_stage_colours_follow_the_paper_and_palette_is_stable(page):

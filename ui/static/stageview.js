@@ -11,6 +11,17 @@ const LANE_GAP = 2;
 const ROW_PAD = 6;
 const HIT_PX = 3;
 
+/**
+ * Whether the bar [px0, px1) joins the run [rx0, rx1) drawn so far in its lane. Frames come in
+ * arrival order, not in order of their time at a stage, so a bar may lie left of the run: it
+ * joins only where the two overlap (or touch, when one is too narrow to show a 1 px seam), so
+ * that a run never covers pixels where no frame was.
+ */
+export function joins(rx0, rx1, px0, px1) {
+  const overlap = Math.min(px1, rx1) - Math.max(px0, rx0);
+  return overlap > 1 || (overlap >= 0 && (px1 - px0 <= 2 || rx1 - rx0 <= 2));
+}
+
 export class StageView {
   /**
    * @param canvas the <canvas> to draw on
@@ -144,7 +155,7 @@ export class StageView {
           const px0 = Math.floor(X + Math.max(a - t0, 0) * k);
           const px1 = Math.max(px0 + 1, Math.round(X + Math.min(e - t0, t1 - t0) * k));
           drawn++;
-          if (rx0 >= 0 && px0 <= rx1 && (px0 < rx1 - 1 || px1 - px0 <= 2 || rx1 - rx0 <= 2)) {
+          if (rx0 >= 0 && joins(rx0, rx1, px0, px1)) {
             rx0 = Math.min(rx0, px0);
             rx1 = Math.max(rx1, px1);
           } else {
