@@ -1,11 +1,11 @@
 """dcuscope's GStreamer elements, one per module, registered in-process by :func:`register`.
 
 ``gst-launch-1.0`` finds them through the Python plugin loader: see ``plugins/loader``.
+GStreamer is imported by :func:`register` and the element modules, not here, so that the
+logic modules (``detection``, ``models``, ``tiling``, ...) load where GStreamer is absent.
 """
 
 import importlib
-
-from pipeline.gst import Gst
 
 ELEMENT_MODULES = ("framestamp", "mux", "infer", "tiler", "convert", "osd")
 
@@ -17,6 +17,8 @@ def register() -> None:
     global _registered
     if _registered:
         return
+    from pipeline.gst import Gst
+
     for name in ELEMENT_MODULES:
         module = importlib.import_module(f"plugins.{name}")
         factory, rank, cls = module.__gstelementfactory__

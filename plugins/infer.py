@@ -94,11 +94,14 @@ class Infer(AttributeProperties, GstBase.BaseTransform):
                              Gst.ResourceError.SETTINGS, "")
             return False
         providers, missing = select_providers(self.providers)
-        if missing:
-            self._warn_providers(missing, providers)
         prop = "model"
         try:
             session = open_session(self.model, providers, self.threads, self.spin_wait)
+            # A provider this onnxruntime has can still fail to start (no GPU, no cuDNN): ORT
+            # then falls back to the next one without an error.
+            missing += [p for p in providers if p not in session.get_providers()]
+            if missing:
+                self._warn_providers(missing, session.get_providers())
             layout = inspect_model(session, self.decoder, self.model)
             prop = "labels"
             self.names = load_labels(self.labels) if self.labels else default_labels(layout)

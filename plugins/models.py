@@ -27,6 +27,7 @@ DEFAULT_MODEL = MODELS_DIR / "centernet_mobilenetv3_coco80.onnx"
 COCO80_NAMES = MODELS_DIR / "coco80.names"
 DECODERS = ("auto", "centernet", "ssd", "yolo")
 CPU = "CPUExecutionProvider"
+CUDA = "CUDAExecutionProvider"
 
 # network input (width, height) when the model leaves it dynamic: what each family was trained on
 DEFAULT_INPUT_SIZE = {"centernet": (512, 512), "ssd": (300, 300), "yolo": (640, 640)}
@@ -80,6 +81,10 @@ def open_session(path: str | Path, providers: Sequence[str], threads: int = 0,
     options.intra_op_num_threads = threads
     options.add_session_config_entry("session.intra_op.allow_spinning", "1" if spin_wait else "0")
     options.log_severity_level = 3  # ORT's own warnings would duplicate ours on stderr
+    if CUDA in providers and hasattr(ort, "preload_dlls"):
+        # onnxruntime-gpu finds CUDA and cuDNN installed as pip packages (nvidia-*, or PyTorch's)
+        # only when they are loaded first; system-wide installs are found either way.
+        ort.preload_dlls()
     try:
         return ort.InferenceSession(str(path), sess_options=options, providers=list(providers))
     except Exception as exc:  # ORT raises several unrelated types for a bad file

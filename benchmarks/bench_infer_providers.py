@@ -1,0 +1,154 @@
+"""The infer element's detector on each ONNX Runtime execution provider: speed and agreement.
+
+Decodes frames of the shipped vtest clip, then runs the detector the ``infer`` element uses
+(:class:`plugins.models.Detector`: the same preprocessing, session options and decoders) once
+per provider list, side by side with interleaved repetitions, and reports per batch size the
+median ms per batch (in all, and in the model alone) and frames/s, the ratio to the first provider list, and whether the
+detections agree with the first list's (same count per frame, boxes within --tolerance px).
+
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_infer_providers.py \\
+        [--providers CPUExecutionProvider CUDAExecutionProvider,CPUExecutionProvider] \\
+        [--model centernet|ssd] [--frames 64] [--batches 1 4] [--repeat 5]
+
+A provider list this onnxruntime lacks is reported and left out (GPU providers need the
+onnxruntime-gpu package and a GPU). Needs no GStreamer.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from plugins.models import DEFAULT_MODEL, Detector, inspect_model, open_session, select_providers  # noqa: E402
+
+MODELS = {"centernet": DEFAULT_MODEL, "ssd": DEFAULT_MODEL.parent / "ssdlite_mobilenetv2_person.onnx"}
+CLIP = Path(__file__).resolve().parents[1] / "assets" / "media" / "vtest.avi"
+THRESHOLD, IOU = 0.3, 0.5
+
+
+def read_frames(n: int, start: int = 250) -> list[np.ndarray]:
+    """``n`` RGB frames of the shipped clip from frame ``start`` (persons walking in all of them)."""
+    cap = cv2.VideoCapture(str(CLIP))
+    cap.set(cv2.CAP_PROP_POS_FRAMES, start)
+    frames = []
+    while len(frames) < n:
+        ok, bgr = cap.read()
+        if not ok:
+            break
+        frames.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
+    cap.release()
+    if len(frames) < n:
+        raise SystemExit(f"{CLIP} gave {len(frames)} frames, {n} asked for")
+    return frames
+
+
+def run_all(det: Detector, frames: list[np.ndarray], batch: int) -> tuple[float, float, list]:
+    """(ms per batch in all, ms per batch in the model, detections per frame) over ``frames``."""
+    found = []
+    det.session.ms = 0.0
+    t = time.perf_counter()
+    for i in range(0, len(frames) - batch + 1, batch):
+        found += det.detect(frames[i:i + batch], THRESHOLD, IOU)
+    n = len(frames) // batch
+    return 1000 * (time.perf_counter() - t) / n, det.session.ms / n, found
+
+
+def agreement(ref: list, other: list, tol: float) -> dict:
+    """Frames whose objects match the reference's one to one: same class, box corners within ``tol`` px."""
+    same, worst = 0, 0.0
+    for a, b in zip(ref, other):
+        if len(a.boxes) != len(b.boxes):
+            continue
+        unused = set(range(len(b.boxes)))
+        ok = True
+        for box, cls in zip(a.boxes, a.classes):
+            cands = [j for j in unused if b.classes[j] == cls]
+            if not cands:
+                ok = False
+                break
+            d = [float(np.abs(box - b.boxes[j]).max()) for j in cands]
+            k = int(np.argmin(d))
+            worst = max(worst, d[k])
+            ok = ok and d[k] <= tol
+            unused.discard(cands[k])
+        same += ok
+    return {"frames_agreeing": same, "frames": len(ref), "max_box_diff_px": round(worst, 3)}
+
+
+class TimedSession:
+    """The session with the time spent in ``run`` (the model alone) added up."""
+
+    def __init__(self, session) -> None:
+        self.session, self.ms = session, 0.0
+
+    def run(self, *args, **kwargs):
+        t = time.perf_counter()
+        try:
+            return self.session.run(*args, **kwargs)
+        finally:
+            self.ms += 1000 * (time.perf_counter() - t)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--providers", nargs="+", default=["CPUExecutionProvider", "CUDAExecutionProvider,CPUExecutionProvider"],
+                   help="provider lists to compare, each comma-separated in order of preference; the first is the reference")
+    p.add_argument("--model", choices=sorted(MODELS), default="centernet")
+    p.add_argument("--frames", type=int, default=64)
+    p.add_argument("--batches", type=int, nargs="+", default=[1, 4])
+    p.add_argument("--repeat", type=int, default=5)
+    p.add_argument("--tolerance", type=float, default=1.0, help="px a box may differ from the reference's")
+    args = p.parse_args()
+
+    import onnxruntime as ort
+
+    print(json.dumps({"onnxruntime": ort.__version__, "available": ort.get_available_providers(),
+                      "model": args.model}), flush=True)
+    frames = read_frames(args.frames)
+    detectors = {}
+    for req in args.providers:
+        use, missing = select_providers(req)
+        if missing:
+            print(json.dumps({"providers": req, "skipped": f"not in this onnxruntime: {', '.join(missing)}"}), flush=True)
+            continue
+        session = open_session(MODELS[args.model], use)
+        detectors[req] = Detector(TimedSession(session), inspect_model(session, "auto", MODELS[args.model]))
+        detectors[req].used = session.get_providers()
+    if not detectors:
+        return 1
+    ref = next(iter(detectors))
+    for batch in args.batches:
+        times = {req: [] for req in detectors}
+        model = {req: [] for req in detectors}
+        found = {}
+        for req, det in detectors.items():  # warm-up: CUDA builds its kernels and arenas on the first runs
+            run_all(det, frames[: 2 * batch], batch)
+        for _ in range(args.repeat):
+            for req, det in detectors.items():
+                ms, model_ms, found[req] = run_all(det, frames, batch)
+                times[req].append(ms)
+                model[req].append(model_ms)
+        for req, det in detectors.items():
+            ms = statistics.median(times[req])
+            ref_ms = statistics.median(times[ref])
+            print(json.dumps({
+                "providers": req, "used": det.used, "batch": batch, "ms_per_batch": round(ms, 2),
+                "model_ms_per_batch": round(statistics.median(model[req]), 2),
+                "frames_per_s": round(1000 * batch / ms, 1), "speedup_vs_" + ref.split(",")[0]: round(ref_ms / ms, 2),
+                "objects": sum(len(o.boxes) for o in found[req]),
+                "agreement": agreement(found[ref], found[req], args.tolerance),
+            }), flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
