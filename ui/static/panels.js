@@ -96,7 +96,7 @@ export function nodesHtml(nodes, stored) {
     const drops = stored ? (n.dropped ?? 0) + (n.lost ?? 0) : n.drops;
     return `<tr data-node="${esc(n.node)}"><td><b>${esc(n.node)}</b></td>`
       + `<td><span class="dot dot-${cls}"></span><span class="conn-state">${state}</span></td>`
-      + `<td class="clock-offset">${offsetText(clock)}</td><td>${corr}</td><td>${ptpText(n.ptp ?? clock.ptp)}</td>`
+      + `<td class="clock-offset">${offsetText(clock)}</td><td class="wrap">${corr}</td><td class="wrap">${ptpText(n.ptp ?? clock.ptp)}</td>`
       + `<td>${int(n.events)}</td><td>${int(frames)}</td><td>${int(drops)}</td>`
       + `<td class="muted">${esc(String(n.run).slice(0, 8))}</td></tr>`;
   }).join("");
