@@ -2,12 +2,14 @@
 
 DCU-1 runs two cameras through CenterNet, DCU-2 four cameras through the SSD person detector,
 both paced in real time and streaming their probe events to a relay on loopback, whose UI
-shows where the time goes. Runs until Ctrl-C (or ``--duration``), then stops the pipelines
-with end-of-stream and the relay, in that order.
+shows where the time goes. Runs until Ctrl-C, SIGTERM or SIGHUP (or ``--duration``), then stops
+the pipelines with end-of-stream and the relay, in that order. Should the demo itself be killed
+outright, the kernel sends its children SIGTERM, so no pipeline or relay outlives it.
 """
 
 from __future__ import annotations
 
+import ctypes
 import json
 import signal
 import subprocess
@@ -21,6 +23,24 @@ from pipeline.errors import PipelineError
 ROOT = Path(__file__).resolve().parents[1]
 NODES = (("DCU-1", ROOT / "configs" / "demo-dcu1.yaml"), ("DCU-2", ROOT / "configs" / "demo-dcu2.yaml"))
 STATUS_EVERY_S = 5.0
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+class _Stopped(Exception):
+    """SIGTERM or SIGHUP reached the demo: stop as for Ctrl-C."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+def _raise_stopped(signum: int, _frame) -> None:
+    raise _Stopped(signum)
+
+
+def _die_with_parent() -> None:
+    """Run in each child before exec: SIGTERM to it when the demo dies, however it dies (Linux)."""
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def _cli(*args: str) -> list[str]:
@@ -72,15 +92,18 @@ def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = 
     print(f"demo: starting the relay on {url} (sessions stored in {db})", flush=True)
     # Own sessions: the terminal's Ctrl-C reaches only this process, which then stops the
     # pipelines (one SIGINT each: a clean EOS) before the relay.
-    relay = subprocess.Popen(_cli("relay", "--port", str(port), "--db", str(db)), start_new_session=True)
+    relay = subprocess.Popen(_cli("relay", "--port", str(port), "--db", str(db)), start_new_session=True,
+                             preexec_fn=_die_with_parent)
     nodes: list[subprocess.Popen] = []
-    interrupted = False
+    status = 0
+    handlers = {sig: signal.signal(sig, _raise_stopped) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
         _wait_for_relay(url, relay)
         for name, config in NODES:
             print(f"demo: starting {name} ({config.relative_to(ROOT)}) with probes -> {url}", flush=True)
             nodes.append(subprocess.Popen(_cli("run", str(config), "--probes", "--relay", url, "--node", name, "-q"),
-                                          stdout=subprocess.DEVNULL, start_new_session=True))
+                                          stdout=subprocess.DEVNULL, start_new_session=True,
+                                          preexec_fn=_die_with_parent))
         print(f"\n  open {url}/ in a browser to watch the DCUs live. Ctrl-C stops the demo.\n", flush=True)
         started = time.monotonic()
         last_status = started
@@ -92,11 +115,16 @@ def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = 
                 last_status = time.monotonic()
                 print(f"demo: {_status_line(url)}", flush=True)
     except KeyboardInterrupt:
-        interrupted = True
+        status = 128 + signal.SIGINT
         print("\ndemo: stopping", flush=True)
+    except _Stopped as stop:
+        status = 128 + stop.signum
+        print(f"\ndemo: {stop} received, stopping", flush=True)
     finally:
+        for sig, handler in handlers.items():  # a second signal while stopping ends the demo at once
+            signal.signal(sig, handler)
         _stop_all(nodes, relay)
-    return 130 if interrupted else 0
+    return status
 
 
 def _stop_all(nodes: list[subprocess.Popen], relay: subprocess.Popen) -> None:

@@ -3,11 +3,16 @@
 from __future__ import annotations
 
 import json
+import os
+import signal
 import socket
 import subprocess
 import sys
 import time
 import urllib.request
+from pathlib import Path
+
+import pytest
 
 from tests.conftest import cli_env
 
@@ -19,14 +24,36 @@ def get(url: str):
         return json.loads(response.read())
 
 
-def test_demo_runs_two_dcus_that_report_all_five_stages(tmp_path):
+def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
-        port = s.getsockname()[1]
-    url = f"http://127.0.0.1:{port}"
-    demo = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "demo", "--duration", "60", "--port", str(port),
-                             "--db", str(tmp_path / "demo.db")], cwd=tmp_path, env=cli_env(),
+        return s.getsockname()[1]
+
+
+def start_demo(tmp_path: Path, port: int, *args: str) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", "demo", "--port", str(port),
+                             "--db", str(tmp_path / "demo.db"), *args], cwd=tmp_path, env=cli_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+
+
+def demo_children(port: int) -> list[int]:
+    """PIDs of the relay and pipelines a demo on ``port`` started (found by their command lines)."""
+    marks = (f"http://127.0.0.1:{port}".encode(), f"--port\0{port}\0".encode())
+    pids = []
+    for entry in Path("/proc").iterdir():
+        try:
+            cmdline = (entry / "cmdline").read_bytes()
+        except OSError:  # not a process, or gone
+            continue
+        if b"pipeline.cli" in cmdline and b"demo\0" not in cmdline and any(m in cmdline for m in marks):
+            pids.append(int(entry.name))
+    return pids
+
+
+def test_demo_runs_two_dcus_that_report_all_five_stages(tmp_path):
+    port = free_port()
+    url = f"http://127.0.0.1:{port}"
+    demo = start_demo(tmp_path, port, "--duration", "60")
     try:
         seen: dict[str, dict] = {}
         deadline = time.monotonic() + 55
@@ -49,3 +76,33 @@ def test_demo_runs_two_dcus_that_report_all_five_stages(tmp_path):
             demo.kill()
     assert demo.returncode == 0, output
     assert f"open {url}/" in output and "demo: stopped" in output and "Traceback" not in output
+
+
+@pytest.mark.parametrize("how", ["SIGTERM", "SIGKILL"])
+def test_a_stopped_or_killed_demo_leaves_no_pipeline_or_relay_running(tmp_path, how):
+    """SIGTERM (systemd, docker stop, kill) stops the demo like Ctrl-C; after SIGKILL, which it
+    cannot see, its children still end, told by the kernel that their parent died."""
+    port = free_port()
+    demo = start_demo(tmp_path, port)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and len(demo_children(port)) < 3:
+            time.sleep(0.5)
+        children = demo_children(port)
+        assert len(children) == 3, children  # the relay and two pipelines
+        demo.send_signal(getattr(signal, how))
+        output, _ = demo.communicate(timeout=60)
+        deadline = time.monotonic() + 45
+        while time.monotonic() < deadline and demo_children(port):
+            time.sleep(0.5)
+        assert demo_children(port) == [], "children outlived the demo"
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+        for pid in demo_children(port):
+            os.kill(pid, signal.SIGKILL)
+    if how == "SIGTERM":
+        assert demo.returncode == 128 + signal.SIGTERM, output
+        assert "SIGTERM received, stopping" in output and "demo: stopped" in output and "Traceback" not in output
+    else:
+        assert demo.returncode == -signal.SIGKILL
