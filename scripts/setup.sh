@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # One-command, idempotent setup of dcuscope on Debian 12: system packages (GStreamer 1.22,
 # Python GI overrides, RTSP server, Chromium for the UI tests), a venv that sees Debian's
-# PyGObject, the project in editable mode, the native probe library, and the UI's pinned
-# front-end packages. Fast (~1 s) when everything is already in place.
+# PyGObject, the project in editable mode with the tested versions of constraints.txt, the
+# native probe library, and the UI's pinned front-end packages. Fast (~1 s) when all is in place.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -38,11 +38,11 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 mkdir -p "$STAMPS"
 
-deps_hash=$(sha256sum pyproject.toml | cut -c1-16)
+deps_hash=$(cat pyproject.toml constraints.txt | sha256sum | cut -c1-16)
 if [ ! -f "$STAMPS/pip-$deps_hash" ]; then
   say "installing dcuscope and its Python dependencies into $VENV"
   log=$STAMPS/pip.log
-  if ! { "$VENV/bin/python" -m pip install -q --upgrade pip && "$VENV/bin/python" -m pip install -q -e '.[dev]'; } >"$log" 2>&1; then
+  if ! { "$VENV/bin/python" -m pip install -q --upgrade pip && "$VENV/bin/python" -m pip install -q -c constraints.txt -e '.[dev]'; } >"$log" 2>&1; then
     cat "$log" >&2
     say "pip install failed (log above)"
     exit 1
