@@ -3,10 +3,11 @@
 Decodes frames of the shipped vtest clip, then runs the detector the ``infer`` element uses
 (:class:`plugins.models.Detector`: the same preprocessing, session options and decoders) once
 per provider list, side by side with interleaved repetitions, and reports per batch size the
-median ms per batch (in all, and in the model alone) and frames/s, the ratio to the first provider list, and whether the
-detections agree with the first list's (same count per frame, boxes within --tolerance px).
+median ms per batch (in all, and in the model alone), frames/s, the ratio to the first provider
+list, and whether the detections agree with the first list's (one to one, same class, box
+corners within --tolerance px).
 
-    PYTHONPATH=. .venv/bin/python benchmarks/bench_infer_providers.py \\
+    .venv/bin/python benchmarks/bench_infer_providers.py \\
         [--providers CPUExecutionProvider CUDAExecutionProvider,CPUExecutionProvider] \\
         [--model centernet|ssd] [--frames 64] [--batches 1 4] [--repeat 5]
 
@@ -21,6 +22,7 @@ import json
 import statistics
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -51,15 +53,24 @@ def read_frames(n: int, start: int = 250) -> list[np.ndarray]:
     return frames
 
 
-def run_all(det: Detector, frames: list[np.ndarray], batch: int) -> tuple[float, float, list]:
+@dataclass
+class Variant:
+    """One provider list: its detector, the session's run time, and the providers ORT really uses."""
+
+    detector: Detector
+    timed: TimedSession
+    used: list[str]
+
+
+def run_all(v: Variant, frames: list[np.ndarray], batch: int) -> tuple[float, float, list]:
     """(ms per batch in all, ms per batch in the model, detections per frame) over ``frames``."""
     found = []
-    det.session.ms = 0.0
+    v.timed.ms = 0.0
     t = time.perf_counter()
     for i in range(0, len(frames) - batch + 1, batch):
-        found += det.detect(frames[i:i + batch], THRESHOLD, IOU)
+        found += v.detector.detect(frames[i:i + batch], THRESHOLD, IOU)
     n = len(frames) // batch
-    return 1000 * (time.perf_counter() - t) / n, det.session.ms / n, found
+    return 1000 * (time.perf_counter() - t) / n, v.timed.ms / n, found
 
 
 def agreement(ref: list, other: list, tol: float) -> dict:
@@ -114,34 +125,35 @@ def main() -> int:
     print(json.dumps({"onnxruntime": ort.__version__, "available": ort.get_available_providers(),
                       "model": args.model}), flush=True)
     frames = read_frames(args.frames)
-    detectors = {}
+    variants: dict[str, Variant] = {}
     for req in args.providers:
         use, missing = select_providers(req)
         if missing:
             print(json.dumps({"providers": req, "skipped": f"not in this onnxruntime: {', '.join(missing)}"}), flush=True)
             continue
         session = open_session(MODELS[args.model], use)
-        detectors[req] = Detector(TimedSession(session), inspect_model(session, "auto", MODELS[args.model]))
-        detectors[req].used = session.get_providers()
-    if not detectors:
+        timed = TimedSession(session)
+        variants[req] = Variant(Detector(timed, inspect_model(session, "auto", MODELS[args.model])), timed,
+                                session.get_providers())
+    if not variants:
         return 1
-    ref = next(iter(detectors))
+    ref = next(iter(variants))
     for batch in args.batches:
-        times = {req: [] for req in detectors}
-        model = {req: [] for req in detectors}
+        times = {req: [] for req in variants}
+        model = {req: [] for req in variants}
         found = {}
-        for req, det in detectors.items():  # warm-up: CUDA builds its kernels and arenas on the first runs
-            run_all(det, frames[: 2 * batch], batch)
+        for v in variants.values():  # warm-up: CUDA builds its kernels and arenas on the first runs
+            run_all(v, frames[: 2 * batch], batch)
         for _ in range(args.repeat):
-            for req, det in detectors.items():
-                ms, model_ms, found[req] = run_all(det, frames, batch)
+            for req, v in variants.items():
+                ms, model_ms, found[req] = run_all(v, frames, batch)
                 times[req].append(ms)
                 model[req].append(model_ms)
-        for req, det in detectors.items():
+        for req, v in variants.items():
             ms = statistics.median(times[req])
             ref_ms = statistics.median(times[ref])
             print(json.dumps({
-                "providers": req, "used": det.used, "batch": batch, "ms_per_batch": round(ms, 2),
+                "providers": req, "used": v.used, "batch": batch, "ms_per_batch": round(ms, 2),
                 "model_ms_per_batch": round(statistics.median(model[req]), 2),
                 "frames_per_s": round(1000 * batch / ms, 1), "speedup_vs_" + ref.split(",")[0]: round(ref_ms / ms, 2),
                 "objects": sum(len(o.boxes) for o in found[req]),

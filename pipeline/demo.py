@@ -43,8 +43,12 @@ def _die_with_parent() -> None:
     ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
-def _cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "pipeline.cli", *args]
+def _start(*args: str, **popen) -> subprocess.Popen:
+    """``dcuscope ARGS`` as a child. In a session of its own, so that the terminal's Ctrl-C reaches
+    only the demo, which then stops the pipelines (one SIGINT each: a clean EOS) before the relay;
+    and told to end with the demo, should the demo die without stopping it."""
+    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", *args], start_new_session=True,
+                            preexec_fn=_die_with_parent, **popen)
 
 
 def _get_json(url: str, timeout: float = 2.0):
@@ -90,10 +94,7 @@ def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = 
     url = f"http://127.0.0.1:{port}"
     db = db or Path.cwd() / "dcuscope-demo.db"
     print(f"demo: starting the relay on {url} (sessions stored in {db})", flush=True)
-    # Own sessions: the terminal's Ctrl-C reaches only this process, which then stops the
-    # pipelines (one SIGINT each: a clean EOS) before the relay.
-    relay = subprocess.Popen(_cli("relay", "--port", str(port), "--db", str(db)), start_new_session=True,
-                             preexec_fn=_die_with_parent)
+    relay = _start("relay", "--port", str(port), "--db", str(db))
     nodes: list[subprocess.Popen] = []
     status = 0
     handlers = {sig: signal.signal(sig, _raise_stopped) for sig in (signal.SIGTERM, signal.SIGHUP)}
@@ -101,9 +102,8 @@ def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = 
         _wait_for_relay(url, relay)
         for name, config in NODES:
             print(f"demo: starting {name} ({config.relative_to(ROOT)}) with probes -> {url}", flush=True)
-            nodes.append(subprocess.Popen(_cli("run", str(config), "--probes", "--relay", url, "--node", name, "-q"),
-                                          stdout=subprocess.DEVNULL, start_new_session=True,
-                                          preexec_fn=_die_with_parent))
+            nodes.append(_start("run", str(config), "--probes", "--relay", url, "--node", name, "-q",
+                                stdout=subprocess.DEVNULL))
         print(f"\n  open {url}/ in a browser to watch the DCUs live. Ctrl-C stops the demo.\n", flush=True)
         started = time.monotonic()
         last_status = started

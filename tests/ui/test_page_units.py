@@ -110,7 +110,7 @@ def test_stage_bars_cover_only_where_frames_were_and_every_bar_pixel_hovers(page
         const view = new m.StageView(canvas, {stores: () => [store], colours, expanded: () => false,
                                               describe: () => "clip"});
         view.draw(base + 900, base + 1300);
-        const row = view.rows[0], y = row.y + 6 + 12 + 5;   // the osd lane's middle (ROW_PAD, LANE_H + LANE_GAP)
+        const lane = view.last.samples["DCU-9"].osd, y = lane.y + lane.h / 2;   // the osd lane's middle
         const ctx = canvas.getContext("2d"), dpr = canvas.width / canvas.clientWidth;
         const purple = parseInt(colours.get("osd").slice(1), 16);
         const painted = [], hits = [];
