@@ -6,6 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from pipeline import signals
 from pipeline.errors import DcuscopeError
 
 DESCRIPTION = """\
@@ -55,7 +56,7 @@ def build_parser() -> argparse.ArgumentParser:
     probes.add_argument("--token", metavar="TOKEN", help="token the relay asks for")
     probes.add_argument("--clock-offset-ms", type=float, default=0.0, metavar="MS",
                         help="TESTING AID: shift this node's clock by MS milliseconds, to check clock alignment")
-    run.set_defaults(func=_run)
+    run.set_defaults(func=_run, holds_signals=True)
 
     demo = sub.add_parser("demo", help="run a relay and two DCU pipelines with probes on the shipped clips",
                           description="Start a relay on loopback and two DCU pipelines (DCU-1: 2 cameras, "
@@ -73,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     rtsp.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
     rtsp.add_argument("--port", type=int, default=8554, help="RTSP port (default 8554)")
     rtsp.add_argument("--bitrate", type=_positive_int, default=2000, help="H.264 bitrate in kbit/s (default 2000)")
-    rtsp.set_defaults(func=_serve_rtsp)
+    rtsp.set_defaults(func=_serve_rtsp, holds_signals=True)
 
     _add_optional(sub, "probes.commands", ("add_stats_parser", "add_export_parser"))
     _add_optional(sub, "relay.commands", ("add_relay_parser",))
@@ -129,6 +130,8 @@ def _serve_rtsp(args: argparse.Namespace) -> int:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if getattr(args, "holds_signals", False):
+        signals.hold()  # the command's main loop acts on a Ctrl-C that comes while it starts
     try:
         return int(args.func(args) or 0)
     except DcuscopeError as exc:

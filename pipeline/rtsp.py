@@ -10,6 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import plugins
+from pipeline import signals
 from pipeline.config import SourceConfig
 from pipeline.errors import ConfigError, PipelineError
 from pipeline.gst import GLib, Gst
@@ -88,4 +89,5 @@ def serve(clips: list[Path], host: str = "127.0.0.1", port: int = DEFAULT_PORT, 
     loop = GLib.MainLoop()
     for signum in (2, 15):  # SIGINT, SIGTERM
         GLib.unix_signal_add(GLib.PRIORITY_HIGH, signum, lambda: loop.quit() or False)
-    loop.run()
+    if signals.held() is None:  # else Ctrl-C came while starting up
+        loop.run()

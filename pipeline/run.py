@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 from typing import Callable, TextIO
 
 from pipeline.build import BuiltPipeline
+from pipeline import signals
 from pipeline.errors import PipelineError
 from pipeline.gst import GLib, Gst
 from pipeline.stalls import Stall, StallWatch
@@ -67,7 +68,10 @@ class Runner:
         sigterm = GLib.unix_signal_add(GLib.PRIORITY_HIGH, signal.SIGTERM, self._on_sigint)
         ticker = GLib.timeout_add(200, self._tick)
         try:
-            if pipeline.set_state(Gst.State.PLAYING) == Gst.StateChangeReturn.FAILURE:
+            if signals.held() is not None:
+                self.result.interrupted = True
+                self._say("stopped before the pipeline started")
+            elif pipeline.set_state(Gst.State.PLAYING) == Gst.StateChangeReturn.FAILURE:
                 self._error = self._error or self._drain_error(bus) or "the pipeline could not start"
             else:
                 self._started = time.monotonic()

@@ -3,6 +3,7 @@
 import argparse
 import sys
 
+from pipeline import signals
 from pipeline.errors import DcuscopeError
 from relay.commands import add_relay_arguments, run_relay
 
@@ -11,6 +12,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m relay", description="dcuscope relay")
     add_relay_arguments(parser)
     args = parser.parse_args(argv)
+    signals.hold()  # a Ctrl-C while starting stops the relay once it is up
     try:
         return run_relay(args)
     except DcuscopeError as exc:

@@ -20,7 +20,7 @@ def add_relay_parser(subparsers) -> argparse.ArgumentParser:
                     "their clock offsets, compute per-stage and per-frame delays live, store every "
                     "session in SQLite and serve the HTTP API and the UI.")
     add_relay_arguments(p)
-    p.set_defaults(func=run_relay)
+    p.set_defaults(func=run_relay, holds_signals=True)
     return p
 
 

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from aiohttp import web
 
+from pipeline import signals
 from relay.api import add_routes
 from relay.clock import CLOCK_MODES
 from relay.errors import RelayError
@@ -132,6 +133,8 @@ async def _serve(host: str, port: int, db: str | Path, token: str | None, clock:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
+    if signals.held() is not None:  # Ctrl-C while starting up
+        stop.set()
     print(f"dcuscope relay: listening on http://{host}:{relay.port} (db {db}, clock {clock})", flush=True)
     try:
         await stop.wait()

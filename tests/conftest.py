@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -38,3 +39,15 @@ def gst_registered():
     import plugins
 
     plugins.register()
+
+
+def wait_until_mapped(proc: subprocess.Popen, library: str, timeout: float = 60) -> None:
+    """Until ``proc`` has loaded a shared library whose path contains ``library``: a point in its
+    start-up that is known to come before its main loop is running."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline and proc.poll() is None:
+        if library in Path(f"/proc/{proc.pid}/maps").read_text():
+            return
+        time.sleep(0.005)
+    raise AssertionError(f"{library} never loaded")
+

@@ -12,13 +12,14 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from pipeline.build import build_pipeline
 from pipeline.config import SinkConfig, load_config
 from pipeline.gst import Gst, GstVideo
 from pipeline.run import Runner
 from plugins.frames import mapped_video, read_frames, read_objects
-from tests.conftest import REPO, cli_env, run_cli
+from tests.conftest import REPO, cli_env, run_cli, wait_until_mapped
 
 
 def decode_video(path: Path) -> list[np.ndarray]:
@@ -118,6 +119,26 @@ def test_ctrl_c_ends_the_run_cleanly_and_finalises_the_video(tmp_path):
     assert "stopping: sending end-of-stream" in stderr and "Traceback" not in stderr
     frames = decode_video(out)
     assert 30 <= len(frames) <= 200  # about 4 s at 30 fps, and the MP4 is finalised
+
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_ctrl_c_while_the_run_is_starting_stops_it_cleanly(tmp_path, signum):
+    """The signal lands while GStreamer and our elements load (without a handler it raised
+    KeyboardInterrupt in PyGObject's type registration, which aborts the process)."""
+    config = tmp_path / "ball.yaml"
+    config.write_text("sources:\n  - {test: ball, width: 320, height: 240}\n"
+                      "stages:\n  - mux: {width: 320, height: 240}\n  - infer: {}\n"
+                      "  - tiler: {width: 320, height: 240}\n  - convert: {format: RGBA}\n  - osd: {}\n")
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(config), "--probes"],
+                            cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE, text=True)
+    wait_until_mapped(proc, "libgstreamer-1.0")
+    proc.send_signal(signum)
+    _, stderr = proc.communicate(timeout=60)
+    assert proc.returncode == 0, stderr
+    name = signal.Signals(signum).name
+    assert f"{name} while starting" in stderr and "stopped before the pipeline started" in stderr, stderr
+    assert "Traceback" not in stderr and "ERROR" not in stderr, stderr
 
 
 def test_gst_launch_uses_the_five_elements_by_name():

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import signal
 import subprocess
 import sys
 import uuid
@@ -16,6 +17,7 @@ from relay.limits import Limits
 from relay.protocol import encode_batch
 from relay.server import start_relay
 from relay.simnode import header_for, synth_events
+from tests.conftest import wait_until_mapped
 from tests.relay.helpers import ROOT, env
 
 T0 = 1_700_000_000_000_000_000
@@ -139,3 +141,15 @@ def test_a_nodes_newest_run_is_its_current_one(tmp_path):
             await relay.stop()
 
     asyncio.run(scenario())
+
+
+def test_ctrl_c_while_the_relay_is_starting_stops_it_cleanly(tmp_path):
+    """The signal lands while aiohttp is still loading: the relay starts, then stops at once."""
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "relay", "--port", "0", "--db", str(tmp_path / "r.db")],
+                            cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    wait_until_mapped(proc, "aiohttp")
+    proc.send_signal(signal.SIGINT)
+    output, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 0, output
+    assert "SIGINT while starting" in output and "dcuscope relay: stopped" in output, output
+    assert "Traceback" not in output, output
