@@ -116,11 +116,11 @@ class Runner:
     def _on_sigint(self):
         if self._stop_asked_at is None:
             self.result.interrupted = True
-            self._say("\nstopping: sending end-of-stream (Ctrl-C again to abort)")
             self.stop()
+            self._say("\nstopping: sending end-of-stream (Ctrl-C again to abort)")
         else:
-            self._say("\naborting")
             self._loop.quit()
+            self._say("\naborting")
         return True
 
     def _tick(self):

@@ -8,6 +8,7 @@ from pathlib import Path
 
 from pipeline.build import build_pipeline
 from pipeline.config import PipelineConfig, SinkConfig, load_config
+from pipeline.console import Console
 from pipeline.run import Runner
 from pipeline.stalls import describe
 
@@ -39,9 +40,10 @@ def sink_for_output(path: Path, current: SinkConfig) -> SinkConfig:
 def run_session(args: argparse.Namespace) -> int:
     config = apply_overrides(load_config(args.config), args)
     built = build_pipeline(config)
-    progress = None if args.quiet else sys.stderr
+    console = Console(sys.stderr)
+    progress = None if args.quiet else console
     runner = Runner(built, num_frames=args.num_frames, duration=args.duration, progress=progress,
-                    progress_every=1.0 if sys.stderr.isatty() else 5.0)
+                    progress_every=1.0 if console.isatty() else 5.0)
     probing = None
     if config.probes.enabled:
         from probes.session import start_probes
@@ -54,9 +56,9 @@ def run_session(args: argparse.Namespace) -> int:
         if probing is not None:
             probing.stop()
     for index, reason in result.dead_sources.items():
-        print(f"dcuscope: source {index} ({config.sources[index].description}) was lost: {reason}", file=sys.stderr)
+        console.write(f"dcuscope: source {index} ({config.sources[index].description}) was lost: {reason}\n")
     for index, stalls in result.stalls.items():
-        print(f"dcuscope: source {index} ({config.sources[index].description}) {describe(stalls)}", file=sys.stderr)
+        console.write(f"dcuscope: source {index} ({config.sources[index].description}) {describe(stalls)}\n")
     if config.sink.path is not None and progress is not None:
-        print(f"output: {config.sink.path}", file=sys.stderr)
+        console.write(f"output: {config.sink.path}\n")
     return 0

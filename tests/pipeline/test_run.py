@@ -141,6 +141,28 @@ def test_ctrl_c_while_the_run_is_starting_stops_it_cleanly(tmp_path, signum):
     assert "Traceback" not in stderr and "ERROR" not in stderr, stderr
 
 
+
+@pytest.mark.parametrize("stop", ["duration", "SIGTERM"])
+def test_a_run_whose_stderr_went_away_still_stops(tmp_path, stop):
+    """``dcuscope run ... 2>&1 | head`` or a dropped ssh session: writing progress to a closed pipe
+    raised inside the main loop's callbacks and took --duration and the SIGTERM handler with it."""
+    config = tmp_path / "ball.yaml"
+    config.write_text("sources:\n  - {test: ball, live: true, width: 320, height: 240, rate: 30}\n"
+                      "stages:\n  - mux: {width: 320, height: 240}\n  - tiler: {width: 320, height: 240}\n"
+                      "  - convert: {format: RGBA}\n  - osd: {}\n")
+    limit = ["--duration", "3"] if stop == "duration" else []
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(config), *limit],
+                            cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE)
+    proc.stderr.close()  # nobody reads its messages any more: each write is a broken pipe
+    if stop == "SIGTERM":
+        time.sleep(3)
+        proc.send_signal(signal.SIGTERM)
+    try:
+        assert proc.wait(timeout=30) == 0
+    finally:
+        proc.kill()
+
+
 def test_gst_launch_uses_the_five_elements_by_name():
     env = cli_env()
     env["GST_PLUGIN_PATH"] = str(REPO / "plugins" / "loader")
