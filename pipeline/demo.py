@@ -12,6 +12,7 @@ from __future__ import annotations
 import ctypes
 import json
 import signal
+import socket
 import subprocess
 import sys
 import time
@@ -90,8 +91,20 @@ def _status_line(url: str) -> str:
     return " | ".join(parts) or "no node connected yet"
 
 
+def _check_port_free(port: int) -> None:
+    """Before anything starts: a relay already on the port would answer for ours and take our DCUs."""
+    with socket.socket() as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the relay binds: only a listener is in the way
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError as exc:
+            raise PipelineError(f"port {port} on 127.0.0.1 is taken ({exc.strerror}): another demo or relay? "
+                                f"pick a free one with --port (make demo PORT=...)") from None
+
+
 def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = None) -> int:
     url = f"http://127.0.0.1:{port}"
+    _check_port_free(port)
     db = db or Path.cwd() / "dcuscope-demo.db"
     print(f"demo: starting the relay on {url} (sessions stored in {db})", flush=True)
     relay = _start("relay", "--port", str(port), "--db", str(db))

@@ -106,3 +106,17 @@ def test_a_stopped_or_killed_demo_leaves_no_pipeline_or_relay_running(tmp_path, 
         assert "SIGTERM received, stopping" in output and "demo: stopped" in output and "Traceback" not in output
     else:
         assert demo.returncode == -signal.SIGKILL
+
+
+def test_a_demo_on_a_taken_port_says_so_and_starts_nothing(tmp_path):
+    """Another relay on the port would answer for the demo's own and receive its DCUs' events."""
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        demo = start_demo(tmp_path, port, "--duration", "5")
+        output, _ = demo.communicate(timeout=60)
+    assert demo.returncode == 1, output
+    assert f"port {port} on 127.0.0.1 is taken" in output and "--port" in output, output
+    assert "starting" not in output and "Traceback" not in output, output
+    assert demo_children(port) == []
