@@ -6,6 +6,7 @@ A configuration names its sources, the chain of stages they go through, and a si
     sources:
       - uri: ../assets/media/vtest.avi   # file path (relative to this file), file://, rtsp://, http://
         loop: true                  # files: start again at the end
+        live: true                  # files and tests: frames in real time, like a camera
         rate: 10                    # optional frames/s (videorate)
         width: 960                  # optional size before the mux (videoscale)
         height: 540
@@ -62,7 +63,8 @@ class SourceConfig:
     height: int | None = None
     """Size forced before the mux; None keeps the stream's own (the mux scales to its size)."""
     live: bool = False
-    """Test sources: produce frames in real time, like a camera."""
+    """Files and test sources: frames come in real time, like a camera's (files: clocksync paces
+    them), whether or not the pipeline keeps up; without it they come as fast as it takes them."""
     stall_timeout: float = DEFAULT_STALL_TIMEOUT_S
     """Live sources: seconds without a frame (while the others go on) before a stall is reported; 0: never."""
     latency_ms: int | None = None
@@ -225,8 +227,8 @@ class _Parser:
                 raise self.doc.error(path + ("loop",), "only files can loop")
         if "live" in entry:
             src.live = self.boolean(entry["live"], path + ("live",))
-            if kind != "test":
-                raise self.doc.error(path + ("live",), "only test sources take live: (cameras and streams are live)")
+            if kind == "camera" or (kind == "uri" and not location.startswith("file://")):
+                raise self.doc.error(path + ("live",), "only files and test sources take live: (cameras and streams are live)")
         if "rate" in entry:
             src.rate = self.rate(entry["rate"], path + ("rate",))
         for key in ("width", "height"):

@@ -38,10 +38,13 @@ class SourceBin(Gst.Bin):
             caps += f",framerate={config.rate.numerator}/{config.rate.denominator}"
         capsfilter = _make("capsfilter", f"caps{index}")
         capsfilter.set_property("caps", Gst.Caps.from_string(caps))
+        chain.append(capsfilter)
+        if config.live and config.kind == "uri":
+            chain.append(_make("clocksync", f"pace{index}"))  # a file played in real time, like a camera
         self.stamp = _make("framestamp", f"src{index}")
         self.stamp.set_property("source-id", index)
         self.stamp.set_property("clock-id", clock_id)
-        chain += [capsfilter, self.stamp]
+        chain.append(self.stamp)
         for element in chain:
             self.add(element)
         for a, b in zip(chain, chain[1:]):
@@ -62,8 +65,9 @@ class SourceBin(Gst.Bin):
 
         out = self.stamp.get_static_pad("src")
         self.add_pad(Gst.GhostPad.new("src", out))
-        if config.loop:
-            out.add_probe(Gst.PadProbeType.EVENT_DOWNSTREAM | Gst.PadProbeType.EVENT_FLUSH, self._on_event)
+        if config.loop:  # before the pacing, which must see the running time go on
+            capsfilter.get_static_pad("src").add_probe(Gst.PadProbeType.EVENT_DOWNSTREAM | Gst.PadProbeType.EVENT_FLUSH,
+                                                       self._on_event)
 
     def _make_origin(self) -> Gst.Element:
         cfg = self.config

@@ -24,6 +24,8 @@ sources:
     stall-timeout: 1.5
   - uri: rtsp://127.0.0.1:8554/cam0
     latency: 200
+  - uri: {VTEST}
+    live: true
 stages:
   - mux: {{batch-size: 2, width: 320, height: 240}}
   - infer: {{threshold: 0.4}}
@@ -46,8 +48,8 @@ def write(tmp_path: Path, text: str) -> Path:
 def test_good_config_is_typed(tmp_path):
     cfg = load_config(write(tmp_path, GOOD))
     assert cfg.node == "DCU-7"
-    assert [s.kind for s in cfg.sources] == ["uri", "test", "uri"]
-    assert [s.is_live for s in cfg.sources] == [False, True, True]
+    assert [s.kind for s in cfg.sources] == ["uri", "test", "uri", "uri"]
+    assert [s.is_live for s in cfg.sources] == [False, True, True, True]
     assert cfg.sources[1].stall_timeout == 1.5 and cfg.sources[0].stall_timeout == 3.0
     assert cfg.sources[2].latency_ms == 200 and cfg.sources[0].latency_ms is None
     assert cfg.sources[0].location == VTEST.as_uri() and cfg.sources[0].loop
@@ -76,6 +78,8 @@ BAD = [
     ("bad rate", "sources:\n  - test: ball\n    rate: fast\nstages: [{queue: {}}]\n", ":3: sources[0].rate: expected frames per second"),
     ("loop a stream", "sources:\n  - uri: rtsp://127.0.0.1:1/x\n    loop: true\nstages: [{queue: {}}]\n",
      ":3: sources[0].loop: only files can loop"),
+    ("live stream", "sources:\n  - uri: rtsp://127.0.0.1:1/x\n    live: true\nstages: [{queue: {}}]\n",
+     ":3: sources[0].live: only files and test sources take live: (cameras and streams are live)"),
     ("latency on a file", f"sources:\n  - uri: {VTEST}\n    latency: 100\nstages: [{{queue: {{}}}}]\n",
      ":3: sources[0].latency: only rtsp:// sources take latency:"),
     ("negative latency", "sources:\n  - uri: rtsp://127.0.0.1:1/x\n    latency: -1\nstages: [{queue: {}}]\n",
