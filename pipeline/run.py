@@ -8,8 +8,8 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, TextIO
 
-from pipeline.build import BuiltPipeline
 from pipeline import signals
+from pipeline.build import BuiltPipeline
 from pipeline.errors import PipelineError
 from pipeline.gst import GLib, Gst
 from pipeline.stalls import Stall, StallWatch

@@ -36,8 +36,16 @@ def _note(signum: int, _frame) -> None:
     global _received
     name = signal.Signals(signum).name
     if _received is not None:
-        os.write(2, f"\ndcuscope: {name} again while starting: aborted\n".encode())
+        _tell(f"{name} again while starting: aborted")
         os._exit(128 + signum)
     _received = signum
-    # os.write, not print: a handler may run in the middle of another write to sys.stderr
-    os.write(2, f"\ndcuscope: {name} while starting: stopping as soon as started (again to abort)\n".encode())
+    _tell(f"{name} while starting: stopping as soon as started (again to abort)")
+
+
+def _tell(text: str) -> None:
+    # os.write, not print: a handler may run in the middle of another write to sys.stderr;
+    # and a closed stderr must not turn the signal into an exception after all
+    try:
+        os.write(2, f"\ndcuscope: {text}\n".encode())
+    except OSError:
+        pass
