@@ -1,7 +1,8 @@
 """Source bins: a file, stream, camera or test pattern -> RGB frames stamped with their identity.
 
     uridecodebin | v4l2src ! decodebin | videotestsrc
-        ! videoconvert ! videoscale ! [videorate] ! capsfilter(RGB[, size][, rate]) ! framestamp
+        ! videoconvert ! videoscale ! [videorate] ! capsfilter(RGB[, size][, rate])
+        ! [clocksync: a live file, paced like a camera] ! framestamp
 
 A looping file seeks back to its start at EOS; the EOS and the flush stay inside the bin and
 the bin's output running time goes on (pad offset), so the mux never sees the loop.
