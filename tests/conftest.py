@@ -50,4 +50,3 @@ def wait_until_mapped(proc: subprocess.Popen, library: str, timeout: float = 60)
             return
         time.sleep(0.005)
     raise AssertionError(f"{library} never loaded")
-

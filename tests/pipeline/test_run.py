@@ -21,6 +21,11 @@ from pipeline.run import Runner
 from plugins.frames import mapped_video, read_frames, read_objects
 from tests.conftest import REPO, cli_env, run_cli, wait_until_mapped
 
+LIVE_BALL = ("sources:\n  - {test: ball, live: true, width: 320, height: 240, rate: 30}\n"
+             "stages:\n  - mux: {width: 320, height: 240}\n  - tiler: {width: 320, height: 240}\n"
+             "  - convert: {format: RGBA}\n  - osd: {}\n")
+"""A camera-like test pattern through the chain without a model: quick to start, runs until stopped."""
+
 
 def decode_video(path: Path) -> list[np.ndarray]:
     """Every frame of an MP4 as RGB arrays, decoded by GStreamer (proves the file plays)."""
@@ -105,11 +110,7 @@ def test_quad_demo_writes_a_playable_2x2_collage(tmp_path):
 def test_ctrl_c_ends_the_run_cleanly_and_finalises_the_video(tmp_path):
     out = tmp_path / "live.mp4"
     config = tmp_path / "ball.yaml"
-    config.write_text(
-        "sources:\n  - {test: ball, live: true, width: 320, height: 240, rate: 30}\n"
-        "stages:\n  - mux: {width: 320, height: 240}\n  - tiler: {width: 320, height: 240}\n"
-        "  - convert: {format: RGBA}\n  - osd: {}\n"
-    )
+    config.write_text(LIVE_BALL)
     proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(config), "--output", str(out)],
                             cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE, text=True)
     time.sleep(4)
@@ -119,7 +120,6 @@ def test_ctrl_c_ends_the_run_cleanly_and_finalises_the_video(tmp_path):
     assert "stopping: sending end-of-stream" in stderr and "Traceback" not in stderr
     frames = decode_video(out)
     assert 30 <= len(frames) <= 200  # about 4 s at 30 fps, and the MP4 is finalised
-
 
 
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
@@ -141,15 +141,12 @@ def test_ctrl_c_while_the_run_is_starting_stops_it_cleanly(tmp_path, signum):
     assert "Traceback" not in stderr and "ERROR" not in stderr, stderr
 
 
-
 @pytest.mark.parametrize("stop", ["duration", "SIGTERM"])
 def test_a_run_whose_stderr_went_away_still_stops(tmp_path, stop):
     """``dcuscope run ... 2>&1 | head`` or a dropped ssh session: writing progress to a closed pipe
     raised inside the main loop's callbacks and took --duration and the SIGTERM handler with it."""
     config = tmp_path / "ball.yaml"
-    config.write_text("sources:\n  - {test: ball, live: true, width: 320, height: 240, rate: 30}\n"
-                      "stages:\n  - mux: {width: 320, height: 240}\n  - tiler: {width: 320, height: 240}\n"
-                      "  - convert: {format: RGBA}\n  - osd: {}\n")
+    config.write_text(LIVE_BALL)
     limit = ["--duration", "3"] if stop == "duration" else []
     proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(config), *limit],
                             cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE)
