@@ -12,6 +12,7 @@ from pipeline import signals
 from pipeline.build import BuiltPipeline
 from pipeline.errors import PipelineError
 from pipeline.gst import GLib, Gst
+from pipeline.sourcefaults import describe_fault
 from pipeline.stalls import Stall, StallWatch
 
 EOS_GRACE_S = 15.0
@@ -138,21 +139,37 @@ class Runner:
 
     def _on_message(self, _bus, message: Gst.Message):
         if message.type == Gst.MessageType.EOS:
+            if self._started and self._stop_asked_at is None:
+                self._stalls.update(self._live_sources(), time.monotonic())  # the last live source's end, said
             self._loop.quit()
         elif message.type == Gst.MessageType.ERROR:
-            err, debug = message.parse_error()
-            if message.src in self._retired:
-                return  # the aftershocks of a source already retired, whatever bin still holds the element
-            source = self._source_of(message.src)
-            if source is not None and self._stop_asked_at is None and len(self._live_sources()) > 1:
-                self._drop_source(source, err.message)
-            else:
-                where = message.src.get_path_string() if message.src else "pipeline"
-                self._error = f"{where}: {err.message}" + (f" ({debug.splitlines()[0]})" if debug else "")
-                self._loop.quit()
+            self._on_error(message)
         elif message.type == Gst.MessageType.WARNING:
-            err, _debug = message.parse_warning()
-            self._say(f"\nwarning: {message.src.get_name() if message.src else 'pipeline'}: {err.message}")
+            err, debug = message.parse_warning()
+            source = self._source_of(message.src)
+            if source is not None:
+                where = f"source {source.index} ({source.config.description})"
+                text = describe_fault(err, debug, source.config.location)
+            else:
+                where, text = message.src.get_name() if message.src else "pipeline", err.message
+            self._say(f"\nwarning: {where}: {text}")
+
+    def _on_error(self, message: Gst.Message) -> None:
+        err, debug = message.parse_error()
+        if message.src in self._retired:
+            return  # the aftershocks of a source already retired, whatever bin still holds the element
+        source = self._source_of(message.src)
+        if source is None:
+            where = message.src.get_path_string() if message.src else "pipeline"
+            self._error = f"{where}: {err.message}" + (f" ({debug.splitlines()[0]})" if debug else "")
+            self._loop.quit()
+            return
+        reason = describe_fault(err, debug, source.config.location)
+        if self._stop_asked_at is None and len(self._live_sources()) > 1:
+            self._drop_source(source, reason)
+        else:
+            self._error = f"source {source.index} ({source.config.description}): {reason}"
+            self._loop.quit()
 
     # -- helpers ---------------------------------------------------------------------------
     def _source_of(self, obj) -> object | None:

@@ -5,7 +5,9 @@
         ! [clocksync: a live file, paced like a camera] ! framestamp
 
 A looping file seeks back to its start at EOS; the EOS and the flush stay inside the bin and
-the bin's output running time goes on (pad offset), so the mux never sees the loop.
+the bin's output running time goes on (pad offset), so the mux never sees the loop. Its
+segments are open-ended and its length unknown downstream: it has no end. A file that cannot
+loop says so on the bus (a warning naming the source) and ends there.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import threading
 
 from pipeline.config import SourceConfig
 from pipeline.errors import PipelineError
-from pipeline.gst import Gst
+from pipeline.gst import GLib, Gst
 
 
 class SourceBin(Gst.Bin):
@@ -24,7 +26,6 @@ class SourceBin(Gst.Bin):
         super().__init__(name=f"source{index}")
         self.config = config
         self.index = index
-        self.failed: str | None = None
         self._stopping = False
         self._loop_offset = 0
 
@@ -67,8 +68,9 @@ class SourceBin(Gst.Bin):
         out = self.stamp.get_static_pad("src")
         self.add_pad(Gst.GhostPad.new("src", out))
         if config.loop:  # before the pacing, which must see the running time go on
-            capsfilter.get_static_pad("src").add_probe(Gst.PadProbeType.EVENT_DOWNSTREAM | Gst.PadProbeType.EVENT_FLUSH,
-                                                       self._on_event)
+            looped = capsfilter.get_static_pad("src")
+            looped.add_probe(Gst.PadProbeType.EVENT_DOWNSTREAM | Gst.PadProbeType.EVENT_FLUSH, self._on_event)
+            looped.add_probe(Gst.PadProbeType.QUERY_UPSTREAM, _endless)
 
     def _make_origin(self) -> Gst.Element:
         cfg = self.config
@@ -110,7 +112,7 @@ class SourceBin(Gst.Bin):
             return
         result = pad.link(self._entry)
         if result != Gst.PadLinkReturn.OK:
-            self.failed = f"cannot link the decoded video of {self.config.description}: {result.value_nick}"
+            self._post(Gst.Message.new_error, f"cannot link its decoded video: {result.value_nick}")
 
     def _discard(self, pad: Gst.Pad) -> None:
         sink = _make("fakesink", None)
@@ -131,10 +133,13 @@ class SourceBin(Gst.Bin):
             return Gst.PadProbeReturn.OK
         if event.type in (Gst.EventType.FLUSH_START, Gst.EventType.FLUSH_STOP):
             return Gst.PadProbeReturn.DROP  # our own seek's flush: nothing downstream to flush
+        if event.type == Gst.EventType.SEGMENT:
+            return _open_ended(pad, event)
         if event.type == Gst.EventType.EOS:
             ok, duration = self.origin.query_duration(Gst.Format.TIME)
             if not ok or duration <= 0:
-                return Gst.PadProbeReturn.OK  # unknown length: cannot loop, end normally
+                self._post(Gst.Message.new_warning, "cannot loop: its length is unknown; it ends here")
+                return Gst.PadProbeReturn.OK
             self._loop_offset += duration
             pad.set_offset(self._loop_offset)
             threading.Thread(target=self._rewind, name=f"loop-{self.index}", daemon=True).start()
@@ -145,9 +150,37 @@ class SourceBin(Gst.Bin):
         seek = Gst.Event.new_seek(1.0, Gst.Format.TIME, Gst.SeekFlags.FLUSH | Gst.SeekFlags.KEY_UNIT,
                                   Gst.SeekType.SET, 0, Gst.SeekType.NONE, -1)
         if not self._entry.push_event(seek):  # upstream, from the first converter's sink pad
-            self.failed = f"{self.config.description} cannot seek back to its start to loop"
+            self._post(Gst.Message.new_warning, "cannot loop: it cannot seek back to its start; it ends here")
             self._stopping = True
             self.stamp.get_static_pad("sink").send_event(Gst.Event.new_eos())
+
+    def _post(self, new_message, text: str) -> None:
+        """An error or warning from this source on the bus, where the runner reports it by the source's name."""
+        error = GLib.Error.new_literal(Gst.StreamError.quark(), text, Gst.StreamError.FAILED)
+        self.post_message(new_message(self, error, ""))
+
+
+def _open_ended(pad: Gst.Pad, event: Gst.Event) -> Gst.PadProbeReturn:
+    """A looping source never ends, so its segments must not either: the file's segment stops at
+    its length, which an RTSP server announces as ``Range: npt=0-LENGTH`` and at which its clients
+    (rtspsrc's jitter buffer) end the stream."""
+    segment = event.parse_segment()
+    if segment.stop == Gst.CLOCK_TIME_NONE:
+        return Gst.PadProbeReturn.OK
+    segment.stop = Gst.CLOCK_TIME_NONE
+    segment.offset_running_time(Gst.Format.TIME, -pad.get_offset())  # the pad adds its offset again on the way out
+    endless = Gst.Event.new_segment(segment)
+    endless.set_seqnum(event.get_seqnum())
+    pad.push_event(endless)  # comes back through this probe, open-ended this time
+    return Gst.PadProbeReturn.DROP
+
+
+def _endless(_pad: Gst.Pad, info: Gst.PadProbeInfo):
+    """Nor has a looping source a length, nor can it be seeked from downstream (the seek would
+    meet the loop's own flush handling): such queries stay unanswered."""
+    if info.get_query().type in (Gst.QueryType.DURATION, Gst.QueryType.SEEKING, Gst.QueryType.SEGMENT):
+        return Gst.PadProbeReturn.DROP
+    return Gst.PadProbeReturn.OK
 
 
 def _make(factory: str, name: str | None) -> Gst.Element:

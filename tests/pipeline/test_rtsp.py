@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import signal
 import socket
 import subprocess
@@ -13,7 +14,10 @@ import numpy as np
 from probes.events import ORIGIN
 from probes.stats import chains, frame_table
 from probes.tracefile import read_trace
-from tests.conftest import BIKES, VTEST, cli_env
+from tests.conftest import BIKES, VTEST, cli_env, run_cli
+from tests.pipeline.clips import MJPEG_MULTIPART, write_clip
+
+CLIP_FRAMES = 20  # two seconds at 10 frames/s
 
 
 def free_port() -> int:
@@ -147,8 +151,6 @@ def test_rtsp_latency_from_the_config_reaches_rtspsrc(tmp_path, gst_registered):
 
 
 def test_serve_rtsp_refuses_what_is_not_a_video(tmp_path):
-    from tests.conftest import run_cli
-
     text = tmp_path / "notes.mp4"
     text.write_text("not a video\n")
     result = run_cli("serve-rtsp", text, "--port", str(free_port()), timeout=60)
@@ -159,3 +161,70 @@ def test_serve_rtsp_puts_a_key_frame_every_second_of_the_clip():
     from pipeline.rtsp import keyframe_interval
 
     assert keyframe_interval(BIKES) == 25 and keyframe_interval(VTEST) == 10
+
+
+def rtsp_config(path, port: int, *more: str) -> str:
+    path.write_text(f"sources:\n  - {{uri: 'rtsp://127.0.0.1:{port}/cam0', latency: 200}}\n" + "".join(more)
+                    + "stages:\n  - mux: {batch-size: 2, width: 320, height: 240, live-source: true}\n  - queue: {}\n")
+    return path
+
+
+def frames_and_seconds(stderr: str) -> tuple[int, float]:
+    frames, seconds = re.search(r"(\d+) frames in ([\d.]+) s", stderr).groups()
+    return int(frames), float(seconds)
+
+
+def test_serve_rtsp_loops_a_short_clip_for_longer_than_its_length(tmp_path):
+    """The server's stream used to announce the clip's length (Range: npt=0-2), and rtspsrc ended it there."""
+    clip = write_clip(tmp_path / "two.mp4", CLIP_FRAMES)
+    port = free_port()
+    server = serve(clip, port=port)
+    try:
+        result = run_cli("run", rtsp_config(tmp_path / "loop.yaml", port), "--duration", "7", cwd=tmp_path, timeout=60)
+    finally:
+        server.send_signal(signal.SIGINT)
+        server.wait(10)
+    assert result.returncode == 0, result.stderr
+    assert "ended" not in result.stderr and "stalled" not in result.stderr, result.stderr
+    frames, seconds = frames_and_seconds(result.stderr)
+    assert seconds >= 6.9 and frames >= 2.5 * CLIP_FRAMES, (frames, seconds)  # 10 frames/s, past the third loop
+
+
+def test_a_stream_that_the_server_ends_is_reported_and_the_others_go_on(tmp_path):
+    """A clip that cannot loop (no length) makes the server end its stream: the consumer says so."""
+    clip = write_clip(tmp_path / "clip.mjpeg", CLIP_FRAMES, MJPEG_MULTIPART)
+    port = free_port()
+    server = serve(clip, port=port)
+    try:
+        config = rtsp_config(tmp_path / "ends.yaml", port, "  - {test: ball, live: true, rate: 10}\n")
+        result = run_cli("run", config, "--duration", "6", cwd=tmp_path, timeout=60)
+    finally:
+        server.send_signal(signal.SIGINT)
+        server.wait(10)
+    assert result.returncode == 0, result.stderr
+    assert f"source 0 (uri:rtsp://127.0.0.1:{port}/cam0) ended: end of stream after " in result.stderr, result.stderr
+    assert "; the other sources go on" in result.stderr and frames_and_seconds(result.stderr)[1] >= 5.9
+
+
+def test_a_refused_rtsp_connection_names_the_source_and_says_what_to_check(tmp_path):
+    port = free_port()  # nothing listens there
+    result = run_cli("run", rtsp_config(tmp_path / "refused.yaml", port), "--duration", "5", cwd=tmp_path, timeout=60)
+    assert result.returncode == 1 and "Traceback" not in result.stderr, result.stderr
+    assert (f"dcuscope: error: source 0 (uri:rtsp://127.0.0.1:{port}/cam0): " in result.stderr
+            and f"check that an RTSP server is running at 127.0.0.1:{port}, that it serves the path /cam0, "
+                f"and that no firewall blocks port {port}" in result.stderr), result.stderr
+
+
+def test_a_wrong_rtsp_path_is_named_while_the_others_go_on(tmp_path):
+    port = free_port()
+    server = serve(VTEST, port=port)
+    try:
+        config = rtsp_config(tmp_path / "path.yaml", port, "  - {test: ball, live: true, rate: 10}\n")
+        config.write_text(config.read_text().replace("/cam0", "/cam7"))
+        result = run_cli("run", config, "--duration", "3", cwd=tmp_path, timeout=60)
+    finally:
+        server.send_signal(signal.SIGINT)
+        server.wait(10)
+    assert result.returncode == 0, result.stderr
+    assert (f"source 0 (uri:rtsp://127.0.0.1:{port}/cam7) failed: Not found (Not Found (404)): the server at "
+            f"127.0.0.1:{port} has no stream at /cam7: check the path; the other sources go on") in result.stderr, result.stderr
