@@ -14,12 +14,14 @@ not stall the others).
 """
 
 import time
+from contextlib import contextmanager
+from typing import Iterator
 
 import cv2
 import numpy as np
 
 from pipeline.gst import GObject, Gst, GstBase, GstVideo
-from plugins.frames import BATCH_TEMPLATE_CAPS, FrameId, batch_caps, read_frames, write_frames
+from plugins.frames import BATCH_TEMPLATE_CAPS, FrameId, batch_caps, mapped_video, read_frames, write_frames
 from plugins.properties import AttributeProperties
 
 DEFAULT_BATCH_SIZE = 0  # 0: as many as there are sink pads
@@ -162,20 +164,29 @@ class Mux(AttributeProperties, GstBase.Aggregator):
             return buf.peek_memory(0) if buf.n_memory() == 1 else buf.get_all_memory()
         # Not the batch size (or padded rows): scale straight into a new frame memory.
         mem = Gst.Allocator.find(None).alloc(self.width * self.height * 3, None)
-        ok_in, src = buf.map(Gst.MapFlags.READ)
-        ok_out, dst = mem.map(Gst.MapFlags.WRITE)
-        if not (ok_in and ok_out):
-            raise RuntimeError("mux: cannot map an input frame")
-        try:
-            rows = np.frombuffer(src.data, np.uint8, count=info.stride[0] * info.height).reshape(info.height, -1)
-            frame = rows[:, : info.width * 3].reshape(info.height, info.width, 3)
-            target = np.frombuffer(dst.data, np.uint8).reshape(self.height, self.width, 3)
-            cv2.resize(frame, (self.width, self.height), dst=target, interpolation=cv2.INTER_LINEAR)
-            del rows, frame, target
-        finally:
-            buf.unmap(src)
-            mem.unmap(dst)
+        scale_into(buf, info, mem, self.width, self.height)
         return mem
+
+
+def scale_into(buf: Gst.Buffer, info: GstVideo.VideoInfo, mem: Gst.Memory, width: int, height: int) -> None:
+    """Scale the RGB frame in ``buf`` (laid out as ``info``) into ``mem``, a width x height RGB frame."""
+    with mapped_video(buf, info) as frame, _mapped_slot(mem, width, height) as target:
+        cv2.resize(frame, (width, height), dst=target, interpolation=cv2.INTER_LINEAR)
+
+
+@contextmanager
+def _mapped_slot(mem: Gst.Memory, width: int, height: int) -> Iterator[np.ndarray]:
+    """``mem`` mapped for writing as a (height, width, 3) array, unmapped whatever happens."""
+    ok, mapinfo = mem.map(Gst.MapFlags.WRITE)
+    if not ok:
+        raise RuntimeError("mux: cannot map a frame of the batch for writing")
+    target = None  # so that a failure below is reported, not masked by the cleanup
+    try:
+        target = np.frombuffer(mapinfo.data, np.uint8).reshape(height, width, 3)
+        yield target
+    finally:
+        del target
+        mem.unmap(mapinfo)
 
 
 GObject.type_register(Mux)

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from pipeline.gst import Gst
+import numpy as np
+import pytest
+
+from pipeline.gst import Gst, GstVideo
 from plugins.frames import BatchLayout, mapped_batch, read_frames
 from plugins.mux import due_pads
 
@@ -64,3 +67,31 @@ def test_frames_without_identity_get_one_from_the_pad():
         "videotestsrc num-buffers=3 ! video/x-raw,format=RGB,width=64,height=48 ! m.sink_1"
     )
     assert [ids for _, ids, _, _ in batches] == [[(0, i), (1, i)] for i in range(3)]
+
+
+def test_a_frame_that_cannot_be_scaled_into_its_batch_slot_is_left_unmapped():
+    """The input frame was mapped, then the batch slot failed to map: the input stayed mapped for ever."""
+    from plugins.mux import scale_into
+
+    info = GstVideo.VideoInfo.new()
+    info.set_format(GstVideo.VideoFormat.RGB, 64, 48)
+    frame = Gst.Buffer.new_allocate(None, info.size, None)
+    slot = Gst.Allocator.find(None).alloc(32 * 24 * 3, None)
+    slot.mini_object.flags |= Gst.MemoryFlags.READONLY  # a slot that cannot be mapped for writing
+    unmapped = frame.peek_memory(0).mini_object.lockstate
+    with pytest.raises(RuntimeError, match="cannot map"):
+        scale_into(frame, info, slot, 32, 24)
+    assert frame.peek_memory(0).mini_object.lockstate == unmapped
+
+
+def test_a_frame_is_scaled_into_its_batch_slot():
+    from plugins.mux import scale_into
+
+    info = GstVideo.VideoInfo.new()
+    info.set_format(GstVideo.VideoFormat.RGB, 64, 48)
+    frame = Gst.Buffer.new_wrapped(np.full((48, 64, 3), 200, np.uint8).tobytes())
+    slot = Gst.Allocator.find(None).alloc(32 * 24 * 3, None)
+    scale_into(frame, info, slot, 32, 24)
+    ok, mapped = slot.map(Gst.MapFlags.READ)
+    assert ok and np.all(np.frombuffer(mapped.data, np.uint8) == 200)
+    slot.unmap(mapped)
