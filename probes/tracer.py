@@ -58,7 +58,7 @@ class Tracer:
         self.ring = ring
         self.clock_id = clock_id
         self._points: list[_Tracepoint] = []
-        self._probed: set[int] = set()
+        self._probed: set[Gst.Pad] = set()  # the pads themselves: the set holds them, so identity is exact
         self._signals: list[tuple[Gst.Element, int]] = []
         self._lock = threading.Lock()  # guards the tracepoint list (attach time, not per frame)
         self._attached = True
@@ -70,9 +70,9 @@ class Tracer:
     def add(self, pad: Gst.Pad, stage: int, point: int) -> None:
         """Put a tracepoint on ``pad`` (once per pad)."""
         with self._lock:
-            if not self._attached or hash(pad) in self._probed:
+            if not self._attached or pad in self._probed:
                 return
-            self._probed.add(hash(pad))  # hash() of a GObject wrapper is its C address
+            self._probed.add(pad)
             self._points.append(_Tracepoint(pad, self.ring.attach(pad, stage, point, self.clock_id)))
 
     def watch(self, element: Gst.Element, stage: int) -> None:
@@ -112,6 +112,7 @@ class Tracer:
                 self.ring.detach(tp.pad, tp.handle)
             self._signals.clear()
             self._points.clear()
+            self._probed.clear()
 
 
 def attach(pipeline: Gst.Pipeline, node: str, clock: str = "realtime", capacity: int = DEFAULT_CAPACITY,
@@ -198,30 +199,28 @@ def _peers(element: Gst.Element, direction: Gst.PadDirection, pipeline: Gst.Pipe
 def _downstream_in_order(children: list[Gst.Element], hosts: list[Gst.Element],
                          pipeline: Gst.Pipeline) -> list[Gst.Element]:
     """Top-level elements downstream of the hosts, topologically sorted (ties: order added)."""
-    rank = {hash(e): i for i, e in enumerate(children)}
-    host_ids = {hash(h) for h in hosts}
-    reached: dict[int, Gst.Element] = {}
+    rank = {e: i for i, e in enumerate(children)}
+    reached: list[Gst.Element] = []  # in the order found
     todo = list(hosts)
     while todo:
         for nxt in _peers(todo.pop(), Gst.PadDirection.SRC, pipeline):
-            if hash(nxt) not in reached and hash(nxt) not in host_ids:
-                reached[hash(nxt)] = nxt
+            if nxt not in reached and nxt not in hosts:
+                reached.append(nxt)
                 todo.append(nxt)
-    indegree = {k: sum(hash(u) in reached for u in _peers(e, Gst.PadDirection.SINK, pipeline))
-                for k, e in reached.items()}
+    indegree = {e: sum(u in reached for u in _peers(e, Gst.PadDirection.SINK, pipeline)) for e in reached}
     ordered: list[Gst.Element] = []
-    ready = sorted((k for k, d in indegree.items() if d == 0), key=lambda k: rank.get(k, 0))
+    ready = sorted((e for e, d in indegree.items() if d == 0), key=lambda e: rank.get(e, 0))
     while ready:
-        k = ready.pop(0)
-        ordered.append(reached[k])
-        for nxt in _peers(reached[k], Gst.PadDirection.SRC, pipeline):
-            if hash(nxt) in indegree:
-                indegree[hash(nxt)] -= 1
-                if indegree[hash(nxt)] == 0:
-                    ready.append(hash(nxt))
-                    ready.sort(key=lambda x: rank.get(x, 0))
+        element = ready.pop(0)
+        ordered.append(element)
+        for nxt in _peers(element, Gst.PadDirection.SRC, pipeline):
+            if nxt in indegree:
+                indegree[nxt] -= 1
+                if indegree[nxt] == 0:
+                    ready.append(nxt)
+                    ready.sort(key=lambda e: rank.get(e, 0))
     # A cycle (a feedback loop) leaves elements unsorted: keep them, in the order added.
-    ordered += sorted((e for k, e in reached.items() if e not in ordered), key=lambda e: rank.get(hash(e), 0))
+    ordered += sorted((e for e in reached if e not in ordered), key=lambda e: rank.get(e, 0))
     return ordered
 
 
@@ -260,8 +259,8 @@ def _describe_source(stamp: Gst.Element, host: Gst.Element, pipeline: Gst.Pipeli
     if host != stamp:
         return _describe(host)  # a source bin: its uri/location/device is inside
     element, seen = stamp, set()
-    while hash(element) not in seen:
-        seen.add(hash(element))
+    while element not in seen:
+        seen.add(element)
         upstream = _peers(element, Gst.PadDirection.SINK, pipeline)
         if not upstream:
             break
