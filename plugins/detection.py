@@ -26,10 +26,6 @@ class Objects(NamedTuple):
     classes: np.ndarray  # (K,) int32, 0-based
 
 
-def no_objects() -> Objects:
-    return Objects(np.zeros((0, 4), np.float32), np.zeros(0, np.float32), np.zeros(0, np.int32))
-
-
 # --- preprocessing -------------------------------------------------------------------------
 
 

@@ -109,19 +109,6 @@ def read_frames(buf: Gst.Buffer) -> list[FrameId]:
     return [FrameId(int(a), int(b), int(c)) for a, b, c in zip(sources, frames, origins)]
 
 
-def frames_caps(buf: Gst.Buffer) -> Gst.Caps | None:
-    """The identity caps of ``buf`` as they are, to re-attach to another buffer unchanged."""
-    meta = buf.get_reference_timestamp_meta(FRAMES_CAPS)
-    return None if meta is None else meta.reference
-
-
-def copy_frames(src: Gst.Buffer, dst: Gst.Buffer) -> None:
-    """Give ``dst`` (writable) the identity of ``src``, sharing the caps (no re-parse)."""
-    meta = src.get_reference_timestamp_meta(FRAMES_CAPS)
-    if meta is not None:
-        dst.add_reference_timestamp_meta(meta.reference, meta.timestamp, meta.duration)
-
-
 def write_objects(buf: Gst.Buffer, dets: Detections) -> None:
     """Attach ``dets`` to ``buf`` (writable); one meta, replacing nothing already there."""
     n = len(dets)

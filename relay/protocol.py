@@ -158,11 +158,6 @@ def check_events(events: np.ndarray, n_stages: int) -> None:
         )
 
 
-def batch_run_id(data: bytes) -> str:
-    """The run id of a stored (already validated) batch message."""
-    return uuid.UUID(bytes=HEADER.unpack_from(data)[4]).hex
-
-
 def decode_payload(payload: bytes, compressed: bool) -> np.ndarray:
     """Events of a stored payload (as kept by storage: validated when it arrived)."""
     raw = zlib.decompress(payload) if compressed else payload
