@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from contextlib import contextmanager
 from pathlib import Path
@@ -109,7 +110,13 @@ def _user_errors():
 @contextmanager
 def _open_output(path: str):
     if path == "-":
-        yield sys.stdout
+        try:
+            yield sys.stdout
+            sys.stdout.flush()
+        except BrokenPipeError:
+            # The reader stopped early (`-o - | head`): it has what it wanted. What is left goes
+            # nowhere, as does the flush at exit, which would otherwise fail on the closed pipe too.
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return
     try:
         out = open(path, "w", encoding="utf-8", newline="")

@@ -222,3 +222,21 @@ def test_dcuscope_export_through_the_real_command_line(tmp_path, two_nodes):
                           cwd=root, timeout=60)
     assert done.returncode == 0, done.stderr
     assert json.loads((tmp_path / "t.json").read_text()) == _doc(two_nodes[0])
+
+
+def test_export_to_a_reader_that_stops_early_ends_quietly(tmp_path):
+    """``dcuscope export ... -o - | head``: the reader closes the pipe after a few lines."""
+    h, e, _ = pipeline_run(3000, n_sources=2, node="dcu1", seed=3)  # megabytes of JSON: more than a pipe holds
+    write_trace(tmp_path / "t.trace", h, e)
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "export", str(tmp_path / "t.trace"), "-o", "-"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=root)
+    try:
+        assert proc.stdout.read(100).startswith(b"{")
+        proc.stdout.close()  # as head does once it has its lines
+        err = proc.stderr.read().decode()
+        assert proc.wait(60) == 0 and err == "", err
+    finally:
+        proc.kill()
+        proc.wait()
