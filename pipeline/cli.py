@@ -55,7 +55,7 @@ def build_parser() -> argparse.ArgumentParser:
     probes.add_argument("--relay", metavar="URL", help="stream probe events to a relay, e.g. http://127.0.0.1:3000")
     probes.add_argument("--token", metavar="TOKEN", help="token the relay asks for")
     probes.add_argument("--clock-offset-ms", type=float, default=0.0, metavar="MS",
-                        help="TESTING AID: shift this node's clock by MS milliseconds, to check clock alignment")
+                        help="TESTING AID: shift this node's clock by MS milliseconds, to check clock alignment (default 0)")
     run.set_defaults(func=_run, holds_signals=True)
 
     demo = sub.add_parser("demo", help="run a relay and two DCU pipelines with probes on the shipped clips",

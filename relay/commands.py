@@ -32,8 +32,11 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
                    help=f"shared secret nodes and browsers must present (default ${TOKEN_ENV})")
     p.add_argument("--clock", choices=CLOCK_MODES, default="auto",
                    help="ptp: never correct node timestamps; estimate: subtract each node's estimated "
-                        "offset; auto: trust PTP where the node reports it locked, else estimate")
-    p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
+                        "offset; auto: trust PTP where the node reports it locked, else estimate (default auto)")
+    p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                   help="how much the relay logs to stderr: WARNING its failures and warnings, INFO also "
+                        "the connections it closes (malformed packets, refused messages), DEBUG everything "
+                        "its libraries say (default WARNING)")
 
 
 def run_relay(args: argparse.Namespace) -> int:
