@@ -7,7 +7,9 @@ Each clip is decoded, looped forever, re-encoded as H.264 (x264, zero-latency) a
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
+from typing import Callable
 
 import plugins
 from pipeline import signals
@@ -22,13 +24,33 @@ DEFAULT_PORT = 8554
 DEFAULT_BITRATE = 2000  # kbit/s
 
 
+def _stderr(line: str) -> None:
+    print(line, file=sys.stderr, flush=True)
+
+
 class LoopingClipFactory(GstRtspServer.RTSPMediaFactory):
     """Serves one clip, shared by all clients, looping, paced at its own frame rate."""
 
-    def __init__(self, clip: Path, index: int, bitrate: int, keyframe_every: int):
+    def __init__(self, clip: Path, index: int, bitrate: int, keyframe_every: int, say: Callable[[str], None] = _stderr):
         super().__init__()
         self.clip, self.index, self.bitrate, self.keyframe_every = clip, index, bitrate, keyframe_every
+        self.say = say
         self.set_shared(True)
+        self.connect("media-configure", self._on_media_configure)
+
+    def _on_media_configure(self, _factory, media: GstRtspServer.RTSPMedia) -> None:
+        # The media watches its pipeline's bus itself and keeps what goes wrong to GStreamer's debug
+        # log: a clip that cannot loop would end its stream without a word here. A sync handler sees
+        # the messages too (once each, in the thread that posts them).
+        bus = media.get_element().get_parent().get_bus()
+        bus.enable_sync_message_emission()
+        bus.connect("sync-message::warning", self._on_trouble)
+        bus.connect("sync-message::error", self._on_trouble)
+
+    def _on_trouble(self, _bus, message: Gst.Message) -> None:
+        warning = message.type == Gst.MessageType.WARNING
+        err, _debug = message.parse_warning() if warning else message.parse_error()
+        self.say(f"{'warning' if warning else 'error'}: cam{self.index} ({self.clip}): {err.message}")
 
     def do_create_element(self, _url):
         media = Gst.Bin.new(f"cam{self.index}")

@@ -13,6 +13,7 @@ loop says so on the bus (a warning naming the source) and ends there.
 from __future__ import annotations
 
 import threading
+from typing import Callable
 
 from pipeline.config import SourceConfig
 from pipeline.errors import PipelineError
@@ -154,7 +155,7 @@ class SourceBin(Gst.Bin):
             self._stopping = True
             self.stamp.get_static_pad("sink").send_event(Gst.Event.new_eos())
 
-    def _post(self, new_message, text: str) -> None:
+    def _post(self, new_message: Callable[[Gst.Object, GLib.Error, str], Gst.Message], text: str) -> None:
         """An error or warning from this source on the bus, where the runner reports it by the source's name."""
         error = GLib.Error.new_literal(Gst.StreamError.quark(), text, Gst.StreamError.FAILED)
         self.post_message(new_message(self, error, ""))
@@ -176,8 +177,9 @@ def _open_ended(pad: Gst.Pad, event: Gst.Event) -> Gst.PadProbeReturn:
 
 
 def _endless(_pad: Gst.Pad, info: Gst.PadProbeInfo):
-    """Nor has a looping source a length, nor can it be seeked from downstream (the seek would
-    meet the loop's own flush handling): such queries stay unanswered."""
+    """Nor has a looping source a length (an RTSP server asks for it with a duration or a segment
+    query), nor can it be seeked from downstream (the seek would meet the loop's own flush
+    handling): such queries stay unanswered."""
     if info.get_query().type in (Gst.QueryType.DURATION, Gst.QueryType.SEEKING, Gst.QueryType.SEGMENT):
         return Gst.PadProbeReturn.DROP
     return Gst.PadProbeReturn.OK
