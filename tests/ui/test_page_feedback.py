@@ -7,6 +7,7 @@ its port is reported as unreachable (not as a transport error) and then followed
 
 from __future__ import annotations
 
+import signal
 import urllib.request
 
 import pytest
@@ -22,12 +23,14 @@ def debug(page) -> dict:
     return page.evaluate("window.dcuscope.debug()")
 
 
-def open_page(browser, url: str, viewport: dict | None = None):
-    """A page on ``url`` and the page errors and console errors it reports."""
+def open_page(browser, url: str, viewport: dict | None = None, polling: bool = False):
+    """A page on ``url`` (``polling``: without the Socket.IO client) and the page and console errors it reports."""
     page = browser.new_page(viewport=viewport or {"width": 1280, "height": 900})
     errors: list[str] = []
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    if polling:
+        page.route("**/vendor/socket.io.min.js", lambda route: route.abort())
     page.goto(url + "/")
     page.wait_for_function("window.dcuscope !== undefined", timeout=15000)
     return page, errors
@@ -132,37 +135,50 @@ def test_favicon_is_served_and_loading_the_page_logs_no_error(ended, browser):
         page.close()
 
 
-def test_relay_restart_reads_unreachable_then_the_live_view_resumes(browser, tmp_path):
+@pytest.mark.parametrize("polling", [False, True], ids=["socketio", "polling"])
+def test_relay_restart_reads_unreachable_then_the_live_view_resumes(browser, tmp_path, polling):
     relay = RelayThread(tmp_path / "relay.db")
     port = relay.port
     # Paced: 30 frames/s of one source for up to 60 s, through the restart.
     feeder = sim_nodes(relay.url, tmp_path, ["DCU-1"], frames=1800, sources=1, fps=30, paced=True)
+    node = feeder.procs[0]
     page = None
     try:
-        page, errors = open_page(browser, relay.url)
+        page, errors = open_page(browser, relay.url, polling=polling)
+        live = "polling the HTTP API (the Socket.IO client (vendor/socket.io.min.js) is not installed)" if polling else "live"
+        # Every status the page shows, in order (setting the same text again counts too).
         page.evaluate("""() => { window.connTexts = [];
             new MutationObserver(() => window.connTexts.push(document.querySelector('#conn').textContent))
                 .observe(document.querySelector('#conn'), {childList: true, characterData: true, subtree: true}); }""")
         wait_for(lambda: debug(page)["stores"].get("DCU-1", {}).get("received", 0) > 30, 60, 0.2, "live frames")
+        # The node is held still, so that the page is back before the node: the restarted relay
+        # does not know DCU-1 yet when the page reconnects.
+        node.send_signal(signal.SIGSTOP)
         relay.stop()
-        page.wait_for_function("document.querySelector('#conn').textContent === 'relay unreachable, retrying'",
-                               timeout=20000)
+        # The hang-up, then at least one failed attempt to reconnect (Socket.IO's "xhr poll error",
+        # the API's "Failed to fetch").
+        page.wait_for_function("window.connTexts.filter((t) => t === 'relay unreachable, retrying').length >= 2",
+                               timeout=30000)
         before = debug(page)["stores"]["DCU-1"]["received"]
         relay = RelayThread(tmp_path / "relay.db", port=port)
-        page.wait_for_function("document.querySelector('#conn').textContent === 'live'", timeout=30000)
+        page.wait_for_function("(live) => document.querySelector('#conn').textContent === live", arg=live,
+                               timeout=30000)
+        node.send_signal(signal.SIGCONT)
         # The node reconnects too: its frames reach the page again and the stage view draws them.
         d = wait_for(lambda: (lambda d: d if d["stores"]["DCU-1"]["received"] > before + 60
                               and sum(d["stage"]["bars"].get("DCU-1", {}).values()) > 0 else None)(debug(page)),
                      60, 0.3, "frames after the restart")
         assert not d["paused"] and d["mode"] == "live"
         texts = page.evaluate("window.connTexts")
-        assert "relay unreachable, retrying" in texts, texts
         assert not [t for t in texts if any(raw in t for raw in RAW_ERRORS)], texts
-        assert page.locator("#banner").is_hidden()
+        assert set(texts) == {"relay unreachable, retrying", live}, texts
+        assert page.locator("#conn").inner_text() == live and page.locator("#banner").is_hidden()
         # Chromium logs the refused connections themselves as console errors; the page raised none.
         assert not [e for e in errors if "ERR_CONNECTION_REFUSED" not in e and "Failed to load" not in e], errors
     finally:
         if page is not None:
             page.close()
+        if node.poll() is None:
+            node.send_signal(signal.SIGCONT)
         feeder.stop()
         relay.stop()
