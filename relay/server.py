@@ -95,7 +95,7 @@ def _add_ui(app: web.Application) -> None:
         return web.Response(text=PLACEHOLDER, content_type="text/html")
 
     async def favicon(request: web.Request) -> web.StreamResponse:
-        # Browsers ask for /favicon.ico whatever the page links to; an SVG answers them all.
+        # The page links favicon.svg; browsers on pages that link none (the JSON API's) ask here.
         if icon.is_file():
             return web.FileResponse(icon, headers={"Content-Type": "image/svg+xml"})
         raise web.HTTPNotFound()

@@ -85,11 +85,8 @@ export class LiveFeed {
       this.resync = new Set(this.known.keys());
     });
     socket.on("connect_error", (err) => this.sink.status(...failure(err)));
-    socket.on("disconnect", (reason) => {
-      this.sink.status("down", UNREACHABLE);
-      // The relay hung up on us (it stopped): Socket.IO waits for us to call again.
-      if (reason === "io server disconnect") socket.connect();
-    });
+    // A relay that stops closes the transport: Socket.IO calls again by itself, with backoff.
+    socket.on("disconnect", () => this.sink.status("down", UNREACHABLE));
     socket.on("nodes", (list) => this.onNodes(list));
     socket.on("frames", (msg) => {
       this.sink.relayTime(msg.t_ns / 1e6);
