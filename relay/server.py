@@ -87,13 +87,21 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
 
 def _add_ui(app: web.Application) -> None:
     index = UI_DIR / "index.html"
+    icon = UI_DIR / "favicon.svg"
 
     async def root(request: web.Request) -> web.StreamResponse:
         if index.is_file():
             return web.FileResponse(index)
         return web.Response(text=PLACEHOLDER, content_type="text/html")
 
+    async def favicon(request: web.Request) -> web.StreamResponse:
+        # The page links favicon.svg; browsers on pages that link none (the JSON API's) ask here.
+        if icon.is_file():
+            return web.FileResponse(icon, headers={"Content-Type": "image/svg+xml"})
+        raise web.HTTPNotFound()
+
     app.router.add_get("/", root)
+    app.router.add_get("/favicon.ico", favicon)
     if UI_DIR.is_dir():
         # Registered last: every other route wins; aiohttp refuses paths leaving the folder.
         app.router.add_static("/", UI_DIR, follow_symlinks=False)

@@ -30,9 +30,12 @@ def env() -> dict:
 
 
 class RelayThread:
-    """The relay (HTTP API, /ui, /ingest, the page) on a background event loop; ``url`` once up."""
+    """The relay (HTTP API, /ui, /ingest, the page) on a background event loop; ``url`` once up.
 
-    def __init__(self, db: Path, token: str | None = None, push_hz: float = 10.0) -> None:
+    ``port=0`` picks a free port; a relay started again on the port of a stopped one (and its
+    database) is that relay restarted."""
+
+    def __init__(self, db: Path, token: str | None = None, push_hz: float = 10.0, port: int = 0) -> None:
         from relay.server import create_app  # noqa: F401 - fail here, not in the thread, if missing
 
         self._db, self._token, self._push_hz = db, token, push_hz
@@ -40,7 +43,7 @@ class RelayThread:
         self._error: BaseException | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
-        self.port = 0
+        self.port = port
         self._thread = threading.Thread(target=self._main, name="ui-test-relay", daemon=True)
         self._thread.start()
         if not self._ready.wait(30) or self._error is not None:
@@ -63,7 +66,7 @@ class RelayThread:
             relay.storage.start(asyncio.get_running_loop())
             runner = web.AppRunner(app, access_log=None, handle_signals=False)
             await runner.setup()
-            site = web.TCPSite(runner, "127.0.0.1", 0)
+            site = web.TCPSite(runner, "127.0.0.1", self.port)
             await site.start()
             relay.runner = runner
             self.port = runner.addresses[0][1]
@@ -80,7 +83,7 @@ class RelayThread:
             await relay.stop()
 
     def stop(self) -> None:
-        if self._loop is not None and self._stop is not None:
+        if self._loop is not None and self._stop is not None and self._thread.is_alive():
             self._loop.call_soon_threadsafe(self._stop.set)
         self._thread.join(15)
 

@@ -165,3 +165,44 @@ def test_delay_formats_and_axis(page):
     assert out["nice"] == [1, 5, 50, 200, 5000]
     assert out["ticks"] == [0, 20, 40, 60, 80, 100]
     assert out["neck"] == {"stage": "infer", "mean_ms": 30, "share": 0.75}
+
+
+def test_stage_row_names_never_overlap_the_stage_names(page):
+    # One row per source, a long node name, long stage names and long source paths: every text
+    # drawn in the gutter is measured where it was drawn (its ink box), and no two may meet.
+    out = js(page, """
+        const base = 1.7e12, stages = ["src0", "mux_batcher", "infer_primary", "convert_post", "osd_overlay"];
+        const store = new m.NodeStore("DCU-with-a-rather-long-node-name-7", stages, 16, 16);
+        const ms = (t) => (base + t) * 1e6;
+        store.ingest({run: "r", stages, frames: [0, 1, 2].map((s) => ({n: s + 1, source: s, frame: 0, origin: ms(s),
+            enter: [ms(s), ms(s + 1), ms(s + 2), ms(s + 3), ms(s + 4)],
+            exit: [null, ms(s + 2), ms(s + 3), ms(s + 4), ms(s + 5)], delay_ms: 5}))});
+        const wrap = document.createElement("div");
+        wrap.style.width = "900px";
+        document.body.append(wrap);
+        const canvas = document.createElement("canvas");
+        wrap.append(canvas);
+        const ctx = canvas.getContext("2d", {alpha: false});
+        const boxes = [];
+        const fill = ctx.fillText.bind(ctx);
+        ctx.fillText = (text, x, y) => {
+            const t = ctx.measureText(text);
+            boxes.push({text, x0: x - t.actualBoundingBoxLeft, x1: x + t.actualBoundingBoxRight,
+                        y0: y - t.actualBoundingBoxAscent, y1: y + t.actualBoundingBoxDescent});
+            fill(text, x, y);
+        };
+        const view = new m.StageView(canvas, {stores: () => [store], colours: new m.StageColours(),
+            expanded: () => true, describe: (n, s) => `file:///srv/media/cameras/loading-dock-north-entrance-${s}.mp4`});
+        view.draw(base - 5, base + 20);
+        wrap.remove();
+        const gutter = boxes.filter((b) => b.x0 < m.GUTTER && b.text);
+        const overlaps = [];
+        gutter.forEach((a, i) => gutter.slice(i + 1).forEach((b) => {
+            if (a.x0 < b.x1 && b.x0 < a.x1 && a.y0 < b.y1 && b.y0 < a.y1) overlaps.push([a.text, b.text]);
+        }));
+        return {texts: gutter.map((b) => b.text), overlaps, right: Math.max(...gutter.map((b) => b.x1))};""")
+    texts = out["texts"]
+    assert sum(t.startswith("source ") for t in texts) == 3 and sum(t.endswith("0.mp4") for t in texts) == 1, texts
+    assert any(t.startswith("▾ DCU-") for t in texts) and "all sources" in texts, texts
+    assert not out["overlaps"], out
+    assert out["right"] <= 150, out  # inside the gutter, left of the plot

@@ -13,6 +13,7 @@ const DEFAULT_WIDTH_MS = 5000;
 const MIN_WIDTH_MS = 1;
 const MAX_WIDTH_MS = 3 * 3600 * 1000;
 const PANEL_REFRESH_MS = 500;
+const TIP_MARGIN = 4; // px between the tooltip and the viewport's edges
 const STAGE_NAMES = { mux: "frame collection", infer: "neural network", tiler: "collage", convert: "post-processing", osd: "on-screen display" };
 
 const $ = (sel) => document.querySelector(sel);
@@ -164,6 +165,7 @@ async function openSession(id) {
   view.follow = false;
   view.dirty = view.panelsDirty = true;
   updatePauseButton();
+  updateStatsWindow();
   const bar = $("#progress");
   bar.hidden = false;
   const show = (p) => {
@@ -223,12 +225,20 @@ function chooseData(value) {
     $("#progress").hidden = true;
     setStatus("live", feed.transport === "polling" ? "polling the HTTP API" : "live");
     updatePauseButton();
+    updateStatsWindow();
   } else {
     openSession(value);
   }
 }
 
 // --- controls --------------------------------------------------------------------------------
+
+/** The rolling window exists on the live relay only: a stored session says so instead of ignoring the box. */
+function updateStatsWindow() {
+  const stored = current.kind !== "live";
+  $("#stats-window").disabled = stored;
+  $("#stats-window-note").hidden = !stored;
+}
 
 function updatePauseButton() {
   const b = $("#pause");
@@ -261,14 +271,20 @@ function resetView() {
   updatePauseButton();
 }
 
+/** Set the frame view's limit; anything but a delay above 0 is refused, saying why, and the box shows the limit in force. */
 function setLimit(value) {
-  const v = Number(value);
+  const typed = String(value ?? "").trim();
+  const v = typed === "" ? NaN : Number(typed);
+  const msg = $("#limit-msg");
   if (!(v > 0) || !Number.isFinite(v)) {
-    $("#limit-input").setCustomValidity("a delay in ms, above 0");
-    $("#limit-input").reportValidity();
+    msg.textContent = `Not set: ${typed === "" ? "the box is empty" : `“${typed}” is not a delay above 0 ms`}.`
+      + ` The limit is still ${view.limit} ms.`;
+    msg.hidden = false;
+    $("#limit-input").value = String(view.limit);
     return false;
   }
-  $("#limit-input").setCustomValidity("");
+  msg.hidden = true;
+  $("#limit-input").value = String(v);
   view.limit = v;
   for (const ds of [live, current]) for (const store of ds.stores.values()) store.delays.setLimit(v);
   view.dirty = true;
@@ -354,12 +370,16 @@ function showTooltip(lines, clientX, clientY) {
   const text = lines.join("\n");
   if (tip.textContent !== text) tip.textContent = text;
   tip.hidden = false;
+  // Beside the pointer, flipped to its other side near an edge, and never out of the viewport
+  // (its scroll bars excluded): the CSS caps its size and wraps long lines.
   const w = tip.offsetWidth;
   const h = tip.offsetHeight;
-  const x = clientX + 14 + w > window.innerWidth ? clientX - 14 - w : clientX + 14;
-  const y = clientY + 16 + h > window.innerHeight ? clientY - 12 - h : clientY + 16;
-  tip.style.left = `${Math.max(0, x)}px`;
-  tip.style.top = `${Math.max(0, y)}px`;
+  const vw = document.documentElement.clientWidth;
+  const vh = document.documentElement.clientHeight;
+  const x = clientX + 14 + w > vw - TIP_MARGIN ? clientX - 14 - w : clientX + 14;
+  const y = clientY + 16 + h > vh - TIP_MARGIN ? clientY - 12 - h : clientY + 16;
+  tip.style.left = `${Math.max(TIP_MARGIN, Math.min(x, vw - TIP_MARGIN - w))}px`;
+  tip.style.top = `${Math.max(TIP_MARGIN, Math.min(y, vh - TIP_MARGIN - h))}px`;
 }
 
 function hideTooltip() {
@@ -377,7 +397,9 @@ function updateTooltip() {
   let lines = null;
   if (mouse.kind === "stage") {
     const h = stageView.hit(x, y);
-    if (h && !h.gutter) lines = StageView.describeHit(h, describe);
+    // A row's name may be cut to fit the gutter: hovering it shows it whole.
+    if (h?.gutter) lines = h.header ? [h.node] : [h.node, `source ${h.source}: ${describe(h.node, h.source)}`];
+    else if (h) lines = StageView.describeHit(h, describe);
   } else {
     const h = frameView.hit(mouse.node, x, y);
     if (h) lines = FrameView.describeHit(h, describe, view.limit);
@@ -507,6 +529,9 @@ $("#per-source").addEventListener("change", (ev) => {
 $("#set-limit").addEventListener("click", () => setLimit($("#limit-input").value));
 $("#limit-input").addEventListener("keydown", (ev) => {
   if (ev.key === "Enter") setLimit(ev.target.value);
+});
+$("#limit-input").addEventListener("input", () => {
+  $("#limit-msg").hidden = true;
 });
 $("#frame-count").addEventListener("change", (ev) => {
   view.frameCount = Number(ev.target.value);

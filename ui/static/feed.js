@@ -7,6 +7,19 @@ export const SESSION_PAGE = 10000;
 export const SESSION_CAPACITY = 262144; // frames per node a stored session is browsed with, at most
 const POLL_FRAMES_MS = 250;
 const POLL_SLOW_MS = 1000;
+export const UNREACHABLE = "relay unreachable, retrying";
+
+/**
+ * What the user is told of a failed request or connection: [status kind, text]. Transport
+ * failures (a fetch that never got an answer, Socket.IO's "xhr poll error") mean the relay is
+ * down or restarting, which the page recovers from by itself; an answer (a refused token, an
+ * HTTP error) is shown as it is.
+ */
+export function failure(err) {
+  const text = err?.message || String(err);
+  if (err?.status !== undefined || /unauthori[sz]ed/i.test(text)) return ["error", text];
+  return ["down", UNREACHABLE];
+}
 
 export class ApiError extends Error {
   constructor(status, message) {
@@ -53,6 +66,7 @@ export class LiveFeed {
     this.pending = new Map(); // node -> frames blocks pushed while its backfill runs
     this.transport = null;
     this.socket = null;
+    this.resync = new Set(); // nodes to backfill once the relay lists them again after a reconnect
   }
 
   start() {
@@ -66,11 +80,13 @@ export class LiveFeed {
     this.socket = socket;
     socket.on("connect", () => {
       this.sink.status("live", "live");
-      // After a reconnect the pushes went on without us: fetch what was missed.
-      for (const node of this.known.keys()) this.backfill(node);
+      // After a reconnect the pushes went on without us: fetch what was missed, once the relay
+      // (perhaps restarted, its nodes not back yet) lists the node again.
+      this.resync = new Set(this.known.keys());
     });
-    socket.on("connect_error", (err) => this.sink.status("error", err.message || String(err)));
-    socket.on("disconnect", (reason) => this.sink.status("down", `disconnected (${reason})`));
+    socket.on("connect_error", (err) => this.sink.status(...failure(err)));
+    // A relay that stops closes the transport: Socket.IO calls again by itself, with backoff.
+    socket.on("disconnect", () => this.sink.status("down", UNREACHABLE));
     socket.on("nodes", (list) => this.onNodes(list));
     socket.on("frames", (msg) => {
       this.sink.relayTime(msg.t_ns / 1e6);
@@ -94,10 +110,13 @@ export class LiveFeed {
   onNodes(list) {
     this.sink.nodes(list);
     for (const n of list) {
+      const stale = this.resync.delete(n.node);
       if (this.known.get(n.node) !== n.run) {
         this.known.set(n.node, n.run);
         this.backfill(n.node);
         this.api.get(`/api/stats?node=${q(n.node)}`).then((s) => this.sink.stats(n.node, s), () => {});
+      } else if (stale) {
+        this.backfill(n.node);
       }
     }
   }
@@ -118,7 +137,9 @@ export class LiveFeed {
         if (block.frames.length < BACKFILL_FRAMES || block.run !== run) break;
       }
     } catch (err) {
-      this.sink.status("error", `backfill of ${node}: ${err.message}`);
+      // 404: the relay no longer has the node (it restarted); it backfills when listed again.
+      if (err.status === 404) this.resync.add(node);
+      else this.sink.status(...failure(err));
     } finally {
       const queue = this.pending.get(node) ?? [];
       this.pending.delete(node);
@@ -139,7 +160,7 @@ export class LiveFeed {
         }
         this.sink.status("live", `polling the HTTP API (${why})`);
       } catch (err) {
-        this.sink.status("error", err.message);
+        this.sink.status(...failure(err));
       }
     };
     const fast = async () => {

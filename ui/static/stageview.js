@@ -10,6 +10,23 @@ const LANE_H = 10;
 const LANE_GAP = 2;
 const ROW_PAD = 6;
 const HIT_PX = 3;
+const LANE_FONT = "9px system-ui, sans-serif";
+const LANE_LABEL_MAX = 48; // px: longer stage names are cut, leaving the row's name some room
+const LABEL_GAP = 6; // px between a row's name and its stage names
+
+/** `text` cut with an ellipsis to fit `width` px in ctx's font: its start kept, or its end. */
+export function fitText(ctx, text, width, keepEnd = false) {
+  if (ctx.measureText(text).width <= width) return text;
+  const cut = (k) => (keepEnd ? `…${text.slice(text.length - k)}` : `${text.slice(0, k)}…`);
+  let lo = 0;
+  let hi = text.length - 1;
+  while (lo < hi) {
+    const mid = (lo + hi + 1) >> 1;
+    if (ctx.measureText(cut(mid)).width <= width) lo = mid;
+    else hi = mid - 1;
+  }
+  return lo > 0 ? cut(lo) : "";
+}
 
 /**
  * Whether the bar [px0, px1) joins the run [rx0, rx1) drawn so far in its lane. Frames come in
@@ -185,33 +202,41 @@ export class StageView {
     };
   }
 
+  /**
+   * A row's gutter: its name (node, or source and its description) on the left, its lanes'
+   * stage names right-aligned against the plot. The names are cut to the room the stage
+   * names leave them, so the two never overlap, however long a node or source name is.
+   */
   drawLabel(row) {
     const ctx = this.ctx;
-    ctx.textAlign = "left";
     ctx.textBaseline = "middle";
+    ctx.font = LANE_FONT;
+    const lanes = row.lanes.map((s) => fitText(ctx, row.store.stages[s], LANE_LABEL_MAX));
+    const laneLeft = GUTTER - 6 - Math.max(0, ...lanes.map((t) => ctx.measureText(t).width));
+    const name = (text, x, y, font, keepEnd = false) => {
+      ctx.font = font;
+      ctx.fillText(fitText(ctx, text, laneLeft - LABEL_GAP - x, keepEnd), x, y);
+    };
+    ctx.textAlign = "left";
     ctx.fillStyle = "#263238";
     if (row.header) {
-      ctx.font = "bold 13px system-ui, sans-serif";
       const mark = row.store.sources.length > 1 ? (row.split ? "▾ " : "▸ ") : "";
-      ctx.fillText(mark + row.node, 8, row.y + Math.min(row.h / 2, 16));
+      name(mark + row.node, 8, row.y + Math.min(row.h / 2, 16), "bold 13px system-ui, sans-serif");
       if (row.split) {
-        ctx.font = "11px system-ui, sans-serif";
         ctx.fillStyle = "#607d8b";
-        ctx.fillText("all sources", 22, row.y + Math.min(row.h / 2, 16) + 15);
+        name("all sources", 22, row.y + Math.min(row.h / 2, 16) + 15, "11px system-ui, sans-serif");
       }
     } else {
-      ctx.font = "12px system-ui, sans-serif";
-      ctx.fillText(`source ${row.source}`, 22, row.y + 14);
-      ctx.font = "10px system-ui, sans-serif";
+      name(`source ${row.source}`, 22, row.y + 14, "12px system-ui, sans-serif");
       ctx.fillStyle = "#607d8b";
-      const text = this.model.describe(row.node, row.source);
-      ctx.fillText(text.length > 20 ? `…${text.slice(-19)}` : text, 22, row.y + 28);
+      // A path or URI: its end (the file name) tells sources apart.
+      name(this.model.describe(row.node, row.source), 22, row.y + 28, "10px system-ui, sans-serif", true);
     }
-    ctx.font = "9px system-ui, sans-serif";
+    ctx.font = LANE_FONT;
     ctx.textAlign = "right";
     ctx.fillStyle = "#78909c";
-    row.lanes.forEach((s, li) => {
-      ctx.fillText(row.store.stages[s], GUTTER - 6, row.y + ROW_PAD + li * (LANE_H + LANE_GAP) + LANE_H / 2 + 1);
+    lanes.forEach((text, li) => {
+      ctx.fillText(text, GUTTER - 6, row.y + ROW_PAD + li * (LANE_H + LANE_GAP) + LANE_H / 2 + 1);
     });
   }
 
@@ -232,7 +257,7 @@ export class StageView {
   hit(x, y) {
     const row = this.rows.find((r) => y >= r.y && y < r.y + r.h);
     if (!row) return null;
-    if (x < GUTTER) return { gutter: true, node: row.node, header: row.header };
+    if (x < GUTTER) return { gutter: true, node: row.node, header: row.header, source: row.source };
     const li = Math.floor((y - row.y - ROW_PAD + LANE_GAP / 2) / (LANE_H + LANE_GAP));
     if (li < 0 || li >= row.lanes.length) return null;
     const s = row.lanes[li];
