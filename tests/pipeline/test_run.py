@@ -189,3 +189,18 @@ def test_help_explains_the_run_command():
     assert result.returncode == 0
     for words in ("--num-frames", "--duration", "--output", "--probes", "Ctrl-C", "examples"):
         assert words in result.stdout
+
+
+def test_live_files_write_a_playable_mp4(tmp_path):
+    """Live files (paced by clocksync, like cameras) into an MP4: a camera that missed the mux's
+    timeout made a batch with a PTS that did not grow, and mp4mux stopped the run."""
+    config = tmp_path / "live.yaml"
+    config.write_text(f"sources:\n  - {{uri: {REPO / 'assets/media/vtest.avi'}, rate: 10, live: true}}\n"
+                      f"  - {{uri: {REPO / 'assets/media/bikes.mp4'}, rate: 10, live: true}}\n"
+                      "stages:\n  - mux: {width: 320, height: 180, batched-push-timeout: 1000}\n"
+                      "  - tiler: {rows: 1, columns: 2, width: 640, height: 180}\n  - convert: {format: RGBA}\n"
+                      "  - osd: {}\n")
+    out = tmp_path / "live.mp4"
+    result = run_cli("run", config, "--output", out, "--num-frames", "20", cwd=tmp_path, timeout=120)
+    assert result.returncode == 0 and "Could not multiplex" not in result.stderr, result.stderr
+    assert len(decode_video(out)) == 20
