@@ -8,6 +8,7 @@ import subprocess
 import sys
 import sysconfig
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -48,8 +49,7 @@ def decode_video(path: Path) -> list[np.ndarray]:
 
 
 def test_boxes_are_drawn_where_the_detections_are(tmp_path):
-    config = load_config(REPO / "configs" / "vtest.yaml")
-    config.sink = SinkConfig(kind="frames", path=tmp_path / "frames")
+    config = replace(load_config(REPO / "configs" / "vtest.yaml"), sink=SinkConfig(kind="frames", path=tmp_path / "frames"))
     built = build_pipeline(config)
     osd = built.pipeline.get_by_name("osd")
     before, detections, identities = [], [], []
