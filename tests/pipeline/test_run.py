@@ -204,3 +204,40 @@ def test_live_files_write_a_playable_mp4(tmp_path):
     result = run_cli("run", config, "--output", out, "--num-frames", "20", cwd=tmp_path, timeout=120)
     assert result.returncode == 0 and "Could not multiplex" not in result.stderr, result.stderr
     assert len(decode_video(out)) == 20
+
+
+BALL = ("sources:\n  - {test: ball, width: 160, height: 120}\n"
+        "stages:\n  - mux: {width: 160, height: 120}\n  - tiler: {width: 160, height: 120}\n"
+        "  - convert: {format: RGBA}\n  - osd: {}\n")
+"""A test pattern through the chain without a model: a few frames in a second."""
+
+
+@pytest.mark.parametrize("output,expected", [
+    ("missing/dir/x.mp4", "folder {tmp}/missing/dir does not exist"),
+    ("/proc/x.mp4", "cannot be written"),
+    ("x.txt", "unknown video container '.txt'"),
+    ("old/", "already holds frame_*.png frames of an earlier run"),
+    ("missing/frames/", "folder {tmp}/missing does not exist"),
+], ids=["missing folder", "unwritable", "unknown container", "old frames", "frames in a missing folder"])
+def test_a_bad_output_path_exits_2_before_the_run(tmp_path, output, expected):
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "frame_00000.png").write_bytes(b"an earlier run")
+    config = tmp_path / "ball.yaml"
+    config.write_text(BALL)
+    result = run_cli("run", config, "--output", output, "-n", "3", cwd=tmp_path, timeout=60)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"dcuscope: error: --output {output.rstrip('/')}: "), lines
+    assert expected.format(tmp=tmp_path) in lines[0]
+    assert not (tmp_path / "missing").exists() and sorted(p.name for p in (tmp_path / "old").iterdir()) == [
+        "frame_00000.png"]
+
+
+@pytest.mark.parametrize("suffix,magic", [(".mkv", b"\x1a\x45\xdf\xa3"), (".avi", b"RIFF")])
+def test_the_output_name_picks_the_container(tmp_path, suffix, magic):
+    config = tmp_path / "ball.yaml"
+    config.write_text(BALL)
+    out = tmp_path / f"x{suffix}"
+    result = run_cli("run", config, "--output", out, "-n", "3", cwd=tmp_path, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert out.read_bytes()[:4] == magic  # not an MP4 (ftyp) under another name
