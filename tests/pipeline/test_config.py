@@ -107,6 +107,12 @@ BAD = [
      ":3: stages[0].infer.model: file not found"),
     ("bad sink", "sources: [{test: ball}]\nstages: [{queue: {}}]\nsink: {type: screen}\n",
      ":3: sink.type: unknown sink type 'screen'"),
+    ("sink in a missing folder", "sources: [{test: ball}]\nstages: [{queue: {}}]\nsink: {type: file, path: /nonexistent/x.mp4}\n",
+     ":3: sink.path: /nonexistent/x.mp4: folder /nonexistent does not exist"),
+    ("sink container", "sources: [{test: ball}]\nstages: [{queue: {}}]\nsink:\n  type: file\n  path: x.webm\n",
+     "x.webm: unknown video container '.webm'"),
+    ("model of another decoder", "sources: [{test: ball}]\nstages:\n  - infer: {decoder: ssd}\n",
+     ":3: stages[0].infer.decoder: model file"),
     ("sink without path", "sources: [{test: ball}]\nstages: [{queue: {}}]\nsink: {type: file}\n",
      ":3: sink: sink type file needs a path"),
     ("no mux for many", "sources: [{test: ball}, {test: snow}]\nstages: [{queue: {}}]\n",
@@ -126,6 +132,16 @@ def test_bad_config_exits_2_with_one_line(tmp_path, name, text, expected):
     assert lines[0].startswith(f"dcuscope: error: {path}"), lines[0]
     assert expected in lines[0], lines[0]
     assert "Traceback" not in result.stderr
+
+
+def test_a_model_file_that_is_not_onnx_exits_2_naming_file_and_key(tmp_path):
+    (tmp_path / "notes.onnx").write_text("not a model\n")
+    path = write(tmp_path, "sources: [{test: ball}]\nstages:\n  - infer:\n      model: notes.onnx\n")
+    result = run_cli("run", path, "--num-frames", "1", cwd=tmp_path, timeout=60)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"dcuscope: error: {path}:4: stages[0].infer.model: "), lines
+    assert f"{tmp_path / 'notes.onnx'} is not a usable ONNX model" in lines[0]
 
 
 def test_missing_config_file(tmp_path):
