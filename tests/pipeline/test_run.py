@@ -241,3 +241,25 @@ def test_the_output_name_picks_the_container(tmp_path, suffix, magic):
     result = run_cli("run", config, "--output", out, "-n", "3", cwd=tmp_path, timeout=60)
     assert result.returncode == 0, result.stderr
     assert out.read_bytes()[:4] == magic  # not an MP4 (ftyp) under another name
+
+
+def test_a_second_ctrl_c_says_the_video_is_incomplete_and_exits_non_zero(tmp_path):
+    """Aborted before end-of-stream reached mp4mux, the MP4 has no index (moov): the run said
+    "output: ..." and exited 0 as if it had been written."""
+    config = tmp_path / "slow.yaml"  # frames pile up before a slow stage, so end-of-stream takes seconds
+    config.write_text(LIVE_BALL + "  - queue: {max-size-buffers: 0, max-size-time: 0, max-size-bytes: 0}\n"
+                                  "  - factory: identity\n    properties: {sleep-time: 100000}\n")
+    out = tmp_path / "x.mp4"
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(config), "--output", str(out)],
+                            cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE, text=True)
+    while proc.poll() is None and not (out.exists() and out.stat().st_size > 0):
+        time.sleep(0.05)  # until frames reach the file: the run's main loop is on
+    proc.send_signal(signal.SIGINT)
+    for line in proc.stderr:
+        if "stopping: sending end-of-stream" in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    stderr = proc.stderr.read()
+    assert proc.wait(timeout=30) != 0, stderr
+    assert f"{out} is incomplete" in stderr and "output:" not in stderr, stderr
+    assert b"moov" not in out.read_bytes()
