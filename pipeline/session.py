@@ -10,7 +10,7 @@ from pathlib import Path
 from pipeline.build import build_pipeline
 from pipeline.config import PipelineConfig, SinkConfig, load_config
 from pipeline.console import Console
-from pipeline.errors import ConfigError
+from pipeline.errors import UsageError
 from pipeline.outputs import check_frames_folder, check_video_file
 from pipeline.run import Runner
 from pipeline.stalls import describe
@@ -44,7 +44,7 @@ def sink_for_output(path: Path, current: SinkConfig) -> SinkConfig:
 
 def check_sink(config: PipelineConfig, output: Path | None) -> None:
     """Before anything runs: the sink can write where it is told to (``output``: as given on the
-    command line, else the YAML's ``sink.path``). ConfigError otherwise."""
+    command line, else the YAML's ``sink.path``). UsageError or ConfigError otherwise."""
     sink = config.sink
     if sink.path is None:
         return
@@ -52,7 +52,7 @@ def check_sink(config: PipelineConfig, output: Path | None) -> None:
     if problem is None:
         return
     if output is not None:
-        raise ConfigError(f"--output {output}: {problem}")
+        raise UsageError(f"--output {output}: {problem}")
     raise config.document.error(("sink", "path"), f"{sink.path}: {problem}")
 
 
