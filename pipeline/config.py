@@ -25,7 +25,7 @@ A configuration names its sources, the chain of stages they go through, and a si
       - tiler: {rows: 1, columns: 2}
       - convert: {format: RGBA}
       - osd: {}
-    sink: {type: file, path: out.mp4}   # fake | file (MP4/H.264) | frames (numbered PNGs)
+    sink: {type: file, path: out.mp4}   # fake | file (H.264 in .mp4, .mkv, .avi) | frames (numbered PNGs)
     probes: {enabled: false, clock: realtime, trace: trace.jsonl}
 
 This module checks the structure (keys, types, files); :mod:`pipeline.elements` checks the
@@ -101,7 +101,7 @@ class StageConfig:
 class SinkConfig:
     kind: str = "fake"
     path: Path | None = None
-    """``file``: the MP4 to write; ``frames``: a folder for numbered PNGs."""
+    """``file``: the video to write (its suffix names the container); ``frames``: a folder for numbered PNGs."""
     sync: bool = False
     """Render at the stream's pace (True) or as fast as the pipeline goes (False)."""
     bitrate: int = 4000

@@ -16,7 +16,8 @@ from pipeline.run import Runner
 from pipeline.stalls import describe
 
 ABORTED_STATUS = 130
-"""A run stopped before end-of-stream reached the sink, as after Ctrl-C (128 + SIGINT)."""
+"""A run the user stopped before end-of-stream reached the sink, as after Ctrl-C (128 + SIGINT);
+one whose end-of-stream never reached the sink by itself exits 1, a pipeline failure."""
 
 
 def apply_overrides(config: PipelineConfig, args: argparse.Namespace) -> PipelineConfig:
@@ -83,7 +84,7 @@ def run_session(args: argparse.Namespace) -> int:
         incomplete = {"file": f": {config.sink.path} is incomplete (not finalised, may not play)",
                       "frames": f": the frames in {config.sink.path} end early"}.get(config.sink.kind, "")
         console.write(f"dcuscope: {result.aborted}{incomplete}\n")
-        return ABORTED_STATUS
+        return ABORTED_STATUS if result.interrupted else 1
     if config.sink.path is not None and progress is not None:
         console.write(f"output: {config.sink.path}\n")
     return 0
