@@ -16,6 +16,7 @@ import statistics
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -60,7 +61,7 @@ def measure(sources: int, probes: bool, frames: int, model: str, workdir: Path) 
     if probes:
         from probes.session import start_probes
 
-        config.probes.trace = workdir / f"trace-{sources}.jsonl"
+        config = replace(config, probes=replace(config.probes, trace=workdir / f"trace-{sources}.jsonl"))
         probing = start_probes(built, config)
     Runner(built, num_frames=frames + WARMUP, progress=None).run()
     info = {}

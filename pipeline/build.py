@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import plugins
 from pipeline.config import PipelineConfig
@@ -20,6 +20,8 @@ class BuiltPipeline:
     sources: list[SourceBin]
     stages: list[Gst.Element]
     sink: Gst.Bin
+    scaled_to: list[tuple[int, int] | None]
+    """Per source: the size it is scaled to before the mux (the config's, else the mux's), or None."""
 
 
 def build_pipeline(config: PipelineConfig) -> BuiltPipeline:
@@ -32,12 +34,13 @@ def build_pipeline(config: PipelineConfig) -> BuiltPipeline:
         raise config.document.error(("stages", 0), "with several sources the first stage must be a mux")
 
     clock_id = CLOCKS[config.probes.clock]
-    sources = []
+    sources, scaled_to = [], []
     for index, source in enumerate(config.sources):
         if mux is not None and source.width is None and source.height is None:
             # Scale in the source's own streaming thread (native, parallel) so the mux
             # can batch without copying; the result is the same as the mux scaling.
-            source.width, source.height = mux.get_property("width"), mux.get_property("height")
+            source = replace(source, width=mux.get_property("width"), height=mux.get_property("height"))
+        scaled_to.append((source.width, source.height) if source.width and source.height else None)
         sources.append(SourceBin(source, index, clock_id))
     sink = build_sink(config.sink)
 
@@ -53,4 +56,4 @@ def build_pipeline(config: PipelineConfig) -> BuiltPipeline:
                 f"{config.file}:{config.document.line(('stages',))}: stages: {a.get_name()} cannot be linked to "
                 f"{b.get_name()} (their formats do not match: check the order of the stages)"
             )
-    return BuiltPipeline(pipeline, sources, stages, sink)
+    return BuiltPipeline(pipeline, sources, stages, sink, scaled_to)

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import sys
+import tomllib
 from pathlib import Path
 
 from pipeline import signals
@@ -24,20 +26,36 @@ examples:
   dcuscope run configs/quad.yaml --probes --trace quad.jsonl --duration 20
   dcuscope run configs/quad.yaml --probes --relay http://127.0.0.1:3000 --node DCU-1
 
---output picks the sink from the path: NAME.mp4 writes H.264 video, a folder (or a path
-ending in /) writes numbered PNG frames. Ctrl-C ends the run cleanly (end-of-stream, so
-the MP4 is finalised); a second Ctrl-C aborts. Exit status: 0 done, 1 the pipeline failed,
-2 bad configuration or arguments.
+--output picks the sink from the path: NAME.mp4 (.mkv, .avi) writes H.264 video in that
+container, a folder (or a path ending in /) writes numbered PNG frames into it. Ctrl-C ends
+the run cleanly (end-of-stream, so the MP4 is finalised); a second Ctrl-C aborts, leaving
+the video incomplete (exit 130).
+Exit status: 0 done, 1 the pipeline failed, 2 bad configuration or arguments.
 """
+
+
+PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
+
+
+def version() -> str:
+    """The installed package's version, else (a source tree not installed) pyproject.toml's."""
+    try:
+        return importlib.metadata.version("dcuscope")
+    except importlib.metadata.PackageNotFoundError:
+        try:
+            return tomllib.loads(PYPROJECT.read_text(encoding="utf-8"))["project"]["version"]
+        except (OSError, KeyError, tomllib.TOMLDecodeError):
+            return "unknown"
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="dcuscope", description=DESCRIPTION,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"dcuscope {version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
-    run = sub.add_parser("run", help="run a pipeline from a YAML configuration", description=RUN_EPILOG.split("\n")[0],
-                         epilog=RUN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    run = sub.add_parser("run", help="run a pipeline from a YAML configuration",
+                         description="Run a pipeline from a YAML configuration (see configs/).", epilog=RUN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     run.add_argument("config", type=Path, metavar="CONFIG", help="pipeline configuration (YAML)")
     run.add_argument("--output", "-o", type=Path, metavar="PATH",
                      help="write the osd's frames: NAME.mp4 (H.264) or a folder for PNG frames (overrides sink:)")

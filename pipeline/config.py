@@ -25,11 +25,15 @@ A configuration names its sources, the chain of stages they go through, and a si
       - tiler: {rows: 1, columns: 2}
       - convert: {format: RGBA}
       - osd: {}
-    sink: {type: file, path: out.mp4}   # fake | file (MP4/H.264) | frames (numbered PNGs)
+    sink: {type: file, path: out.mp4}   # fake | file (H.264 in .mp4, .mkv, .avi) | frames (numbered PNGs)
     probes: {enabled: false, clock: realtime, trace: trace.jsonl}
 
 This module checks the structure (keys, types, files); :mod:`pipeline.elements` checks the
 stages against the installed GStreamer elements and their properties.
+
+The objects are frozen: once checked, a configuration is not changed by whoever uses it. A
+command-line override makes a new one (``dataclasses.replace``); building a pipeline returns
+what it resolved (:class:`pipeline.build.BuiltPipeline`) instead of writing it back here.
 """
 
 from __future__ import annotations
@@ -37,7 +41,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from fractions import Fraction
 from pathlib import Path
-from typing import Any
+from types import MappingProxyType
+from typing import Any, Mapping
 
 from pipeline.yamlsource import Document, KeyPath, load_document
 
@@ -49,7 +54,7 @@ DEFAULT_STALL_TIMEOUT_S = 3.0
 REMOTE_SCHEMES = ("rtsp://", "rtsps://", "http://", "https://", "udp://", "rtmp://", "srt://")
 
 
-@dataclass
+@dataclass(frozen=True)
 class SourceConfig:
     kind: str
     """``uri``, ``camera`` or ``test``."""
@@ -80,41 +85,42 @@ class SourceConfig:
         return f"{self.kind}:{self.location}"
 
 
-@dataclass
+@dataclass(frozen=True)
 class StageConfig:
     factory: str
     """GStreamer element factory name (``mux``, ``infer``, ``identity``, ...)."""
     name: str
     """Element (and stage) name: the ``name`` given, else the factory, made unique with ``_N``."""
-    properties: dict[str, Any]
+    properties: Mapping[str, Any]
+    """As written in the YAML (read-only)."""
     path: KeyPath
     """Where the stage is in the YAML, for error messages."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class SinkConfig:
     kind: str = "fake"
     path: Path | None = None
-    """``file``: the MP4 to write; ``frames``: a folder for numbered PNGs."""
+    """``file``: the video to write (its suffix names the container); ``frames``: a folder for numbered PNGs."""
     sync: bool = False
     """Render at the stream's pace (True) or as fast as the pipeline goes (False)."""
     bitrate: int = 4000
     """``file``: H.264 bitrate in kbit/s."""
 
 
-@dataclass
+@dataclass(frozen=True)
 class ProbesConfig:
     enabled: bool = False
     clock: str = "realtime"
     trace: Path | None = None
 
 
-@dataclass
+@dataclass(frozen=True)
 class PipelineConfig:
     file: Path
     node: str
-    sources: list[SourceConfig]
-    stages: list[StageConfig]
+    sources: tuple[SourceConfig, ...]
+    stages: tuple[StageConfig, ...]
     sink: SinkConfig
     probes: ProbesConfig
     document: Document = field(repr=False)
@@ -138,7 +144,7 @@ class _Parser:
             raise self.doc.error((), "missing 'sources' (a list of uri:/camera:/test: entries)")
         if "stages" not in top:
             raise self.doc.error((), "missing 'stages' (the chain mux, infer, tiler, convert, osd)")
-        sources = [self.source(s, ("sources", i)) for i, s in enumerate(self.sequence(top["sources"], ("sources",)))]
+        sources = tuple(self.source(s, ("sources", i)) for i, s in enumerate(self.sequence(top["sources"], ("sources",))))
         if not sources:
             raise self.doc.error(("sources",), "at least one source is needed")
         stages = self.stages(self.sequence(top["stages"], ("stages",)))
@@ -220,27 +226,27 @@ class _Parser:
             location = self.uri(location, path + (kind,))
         elif kind == "camera" and not Path(location).exists():
             raise self.doc.error(path + (kind,), f"camera device not found: {location}")
-        src = SourceConfig(kind=kind, location=location)
+        fields: dict[str, Any] = {}
         if "loop" in entry:
-            src.loop = self.boolean(entry["loop"], path + ("loop",))
-            if src.loop and not location.startswith("file://"):
+            fields["loop"] = self.boolean(entry["loop"], path + ("loop",))
+            if fields["loop"] and not location.startswith("file://"):
                 raise self.doc.error(path + ("loop",), "only files can loop")
         if "live" in entry:
-            src.live = self.boolean(entry["live"], path + ("live",))
+            fields["live"] = self.boolean(entry["live"], path + ("live",))
             if kind == "camera" or (kind == "uri" and not location.startswith("file://")):
                 raise self.doc.error(path + ("live",), "only files and test sources take live: (cameras and streams are live)")
         if "rate" in entry:
-            src.rate = self.rate(entry["rate"], path + ("rate",))
+            fields["rate"] = self.rate(entry["rate"], path + ("rate",))
         for key in ("width", "height"):
             if key in entry:
-                setattr(src, key, self.positive_int(entry[key], path + (key,)))
+                fields[key] = self.positive_int(entry[key], path + (key,))
         if "stall-timeout" in entry:
-            src.stall_timeout = self.seconds(entry["stall-timeout"], path + ("stall-timeout",))
+            fields["stall_timeout"] = self.seconds(entry["stall-timeout"], path + ("stall-timeout",))
         if "latency" in entry:
             if not location.startswith(("rtsp://", "rtsps://")):
                 raise self.doc.error(path + ("latency",), "only rtsp:// sources take latency:")
-            src.latency_ms = self.non_negative_int(entry["latency"], path + ("latency",))
-        return src
+            fields["latency_ms"] = self.non_negative_int(entry["latency"], path + ("latency",))
+        return SourceConfig(kind=kind, location=location, **fields)
 
     def uri(self, value: str, path: KeyPath) -> str:
         if value.startswith(REMOTE_SCHEMES):
@@ -251,7 +257,7 @@ class _Parser:
             raise self.doc.error(path, f"unsupported URI scheme in {value!r} (file, rtsp, http(s), udp, rtmp, srt)")
         return self.local_file(value, path, "video file").as_uri()
 
-    def stages(self, entries: list) -> list[StageConfig]:
+    def stages(self, entries: list) -> tuple[StageConfig, ...]:
         stages, seen = [], {}
         for i, value in enumerate(entries):
             path = ("stages", i)
@@ -273,7 +279,9 @@ class _Parser:
                                          "other elements: '- factory: NAME')")
                 props_path = path + (factory,)
                 props = props or {}
-                name = props.pop("name", None) if isinstance(props, dict) else None
+                name = props.get("name") if isinstance(props, dict) else None
+                if name is not None:  # a copy without it: the YAML data stays as read
+                    props = {key: value for key, value in props.items() if key != "name"}
             if not isinstance(props, dict):
                 raise self.doc.error(props_path, f"expected a mapping of properties, got {_kind(props)}")
             name = name or factory
@@ -282,10 +290,11 @@ class _Parser:
                 name = f"{name}_{seen[name]}"
             else:
                 seen[name] = 0
-            stages.append(StageConfig(factory=factory, name=name, properties=dict(props), path=props_path))
+            stages.append(StageConfig(factory=factory, name=name, properties=MappingProxyType(dict(props)),
+                                      path=props_path))
         if not stages:
             raise self.doc.error(("stages",), "at least one stage is needed")
-        return stages
+        return tuple(stages)
 
     def sink(self, value: Any) -> SinkConfig:
         path = ("sink",)
@@ -293,31 +302,31 @@ class _Parser:
         kind = self.text(entry.get("type", "fake"), path + ("type",))
         if kind not in SINK_TYPES:
             raise self.doc.error(path + ("type",), f"unknown sink type {kind!r} (expected one of: {', '.join(SINK_TYPES)})")
-        sink = SinkConfig(kind=kind)
+        fields: dict[str, Any] = {}
         if kind in ("file", "frames"):
             if "path" not in entry:
                 raise self.doc.error(path, f"sink type {kind} needs a path:")
             target = Path(self.text(entry["path"], path + ("path",))).expanduser()
-            sink.path = target if target.is_absolute() else Path.cwd() / target
+            fields["path"] = target if target.is_absolute() else Path.cwd() / target
         if "sync" in entry:
-            sink.sync = self.boolean(entry["sync"], path + ("sync",))
+            fields["sync"] = self.boolean(entry["sync"], path + ("sync",))
         if "bitrate" in entry:
-            sink.bitrate = self.positive_int(entry["bitrate"], path + ("bitrate",))
-        return sink
+            fields["bitrate"] = self.positive_int(entry["bitrate"], path + ("bitrate",))
+        return SinkConfig(kind=kind, **fields)
 
     def probes(self, value: Any) -> ProbesConfig:
         path = ("probes",)
         entry = self.mapping(value, path, {"enabled", "clock", "trace"})
-        probes = ProbesConfig()
+        fields: dict[str, Any] = {}
         if "enabled" in entry:
-            probes.enabled = self.boolean(entry["enabled"], path + ("enabled",))
+            fields["enabled"] = self.boolean(entry["enabled"], path + ("enabled",))
         if "clock" in entry:
-            probes.clock = self.text(entry["clock"], path + ("clock",))
-            if probes.clock not in CLOCK_NAMES:
+            fields["clock"] = self.text(entry["clock"], path + ("clock",))
+            if fields["clock"] not in CLOCK_NAMES:
                 raise self.doc.error(path + ("clock",), f"unknown clock (expected one of: {', '.join(CLOCK_NAMES)})")
         if "trace" in entry:
-            probes.trace = Path(self.text(entry["trace"], path + ("trace",)))
-        return probes
+            fields["trace"] = Path(self.text(entry["trace"], path + ("trace",)))
+        return ProbesConfig(**fields)
 
 
 def _kind(value: Any) -> str:

@@ -12,7 +12,6 @@ from __future__ import annotations
 import ctypes
 import json
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -20,6 +19,7 @@ import urllib.request
 from pathlib import Path
 
 from pipeline.errors import PipelineError
+from pipeline.ports import check_port_free
 
 ROOT = Path(__file__).resolve().parents[1]
 NODES = (("DCU-1", ROOT / "configs" / "demo-dcu1.yaml"), ("DCU-2", ROOT / "configs" / "demo-dcu2.yaml"))
@@ -91,20 +91,10 @@ def _status_line(url: str) -> str:
     return " | ".join(parts) or "no node connected yet"
 
 
-def _check_port_free(port: int) -> None:
-    """Before anything starts: a relay already on the port would answer for ours and take our DCUs."""
-    with socket.socket() as probe:
-        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)  # as the relay binds: only a listener is in the way
-        try:
-            probe.bind(("127.0.0.1", port))
-        except OSError as exc:
-            raise PipelineError(f"port {port} on 127.0.0.1 is taken ({exc.strerror}): another demo or relay? "
-                                f"pick a free one with --port (make demo PORT=...)") from None
-
-
 def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = None) -> int:
     url = f"http://127.0.0.1:{port}"
-    _check_port_free(port)
+    # a relay already on the port would answer for ours and take our DCUs
+    check_port_free("127.0.0.1", port, "another demo or relay? pick a free one with --port (make demo PORT=...)")
     db = db or Path.cwd() / "dcuscope-demo.db"
     print(f"demo: starting the relay on {url} (sessions stored in {db})", flush=True)
     relay = _start("relay", "--port", str(port), "--db", str(db))

@@ -11,6 +11,7 @@ from typing import Any
 
 from pipeline.config import PipelineConfig, StageConfig
 from pipeline.gst import GObject, Gst
+from plugins.models import ModelError, check_model
 
 FILE_PROPERTIES = {"infer": ("model", "labels")}
 """Properties that name files: resolved against the configuration's folder and checked."""
@@ -30,7 +31,18 @@ def make_stage_element(config: PipelineConfig, stage: StageConfig) -> Gst.Elemen
         raise doc.error(stage.path, f"element {stage.factory!r} could not be created")
     for key, value in stage.properties.items():
         set_checked_property(config, stage, element, key, value)
+    if stage.factory == "infer":
+        _check_model(config, stage, element)
     return element
+
+
+def _check_model(config: PipelineConfig, stage: StageConfig, element: Gst.Element) -> None:
+    """Its model file opens and its layout fits the decoder, now rather than once it runs."""
+    try:
+        check_model(element.get_property("model"), element.get_property("decoder"))
+    except ModelError as exc:
+        key = "model" if "model" in stage.properties or "decoder" not in stage.properties else "decoder"
+        raise config.document.error(stage.path + (key,), str(exc).splitlines()[0]) from exc
 
 
 def set_checked_property(config: PipelineConfig, stage: StageConfig, element: Gst.Element, key: str, value: Any) -> None:

@@ -9,5 +9,9 @@ class ConfigError(DcuscopeError):
     """The YAML configuration is malformed or names something that does not exist."""
 
 
+class UsageError(DcuscopeError):
+    """A command-line argument that cannot be used: an output path, a taken port."""
+
+
 class PipelineError(DcuscopeError):
     """The GStreamer pipeline could not be built or stopped with an error."""

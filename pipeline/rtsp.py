@@ -14,8 +14,9 @@ from typing import Callable
 import plugins
 from pipeline import signals
 from pipeline.config import SourceConfig
-from pipeline.errors import ConfigError, PipelineError
+from pipeline.errors import ConfigError, PipelineError, UsageError
 from pipeline.gst import GLib, Gst
+from pipeline.ports import check_port_free
 from pipeline.sources import SourceBin
 
 from gi.repository import GstRtspServer  # noqa: E402  (version pinned by pipeline.gst)
@@ -97,6 +98,7 @@ def serve(clips: list[Path], host: str = "127.0.0.1", port: int = DEFAULT_PORT, 
     for clip in clips:
         if not clip.is_file():
             raise ConfigError(f"{clip}: no such video file")
+    check_port_free(host, port)
     server = GstRtspServer.RTSPServer()
     server.set_address(host)
     server.set_service(str(port))
@@ -105,7 +107,7 @@ def serve(clips: list[Path], host: str = "127.0.0.1", port: int = DEFAULT_PORT, 
         gop = keyframe_interval(clip)
         mounts.add_factory(f"/cam{index}", LoopingClipFactory(clip.resolve(), index, bitrate, gop))
     if server.attach(None) == 0:
-        raise PipelineError(f"cannot listen on {host}:{port} (in use?)")
+        raise UsageError(f"--port {port}: cannot listen on {host}:{port}: pick a free one with --port")
     for index, clip in enumerate(clips):
         announce(f"rtsp://{host}:{port}/cam{index}  <-  {clip}")
     loop = GLib.MainLoop()

@@ -24,6 +24,9 @@ class RunResult:
     frames: int = 0
     seconds: float = 0.0
     interrupted: bool = False
+    aborted: str | None = None
+    """Why the run ended before end-of-stream reached the sink (a second Ctrl-C, EOS too slow):
+    the sink did not finish (an MP4 without its index), or None."""
     dead_sources: dict[int, str] = field(default_factory=dict)
     stalls: dict[int, list[Stall]] = field(default_factory=dict)
     """Live sources that went quiet for longer than their stall-timeout, and for how long."""
@@ -120,6 +123,7 @@ class Runner:
             self.stop()
             self._say("\nstopping: sending end-of-stream (Ctrl-C again to abort)")
         else:
+            self.result.aborted = "aborted by a second Ctrl-C"
             self._loop.quit()
             self._say("\naborting")
         return True
@@ -130,6 +134,7 @@ class Runner:
             self.stop()
         if self._stop_asked_at is not None and now - self._stop_asked_at > EOS_GRACE_S:
             self._say(f"\nend-of-stream did not reach the sink within {EOS_GRACE_S:.0f} s: stopping anyway")
+            self.result.aborted = "end-of-stream did not reach the sink"
             self._loop.quit()
         if self._started and self._stop_asked_at is None:
             self._stalls.update(self._live_sources(), now)

@@ -4,32 +4,38 @@ from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 from pipeline.build import build_pipeline
 from pipeline.config import PipelineConfig, SinkConfig, load_config
 from pipeline.console import Console
+from pipeline.errors import UsageError
+from pipeline.outputs import check_frames_folder, check_video_file
 from pipeline.run import Runner
 from pipeline.stalls import describe
 
+ABORTED_STATUS = 130
+"""A run the user stopped before end-of-stream reached the sink, as after Ctrl-C (128 + SIGINT);
+one whose end-of-stream never reached the sink by itself exits 1, a pipeline failure."""
+
 
 def apply_overrides(config: PipelineConfig, args: argparse.Namespace) -> PipelineConfig:
-    """The command line wins over the YAML."""
-    if args.node:
-        config.node = args.node
-    if args.output is not None:
-        config.sink = sink_for_output(args.output, config.sink)
+    """The command line wins over the YAML: a new configuration, ``config`` stays as it is."""
+    probes = config.probes
     if args.probes or args.trace or args.relay:
-        config.probes.enabled = True
+        probes = replace(probes, enabled=True)
     if args.trace:
-        config.probes.trace = args.trace
+        probes = replace(probes, trace=args.trace)
     if args.clock:
-        config.probes.clock = args.clock
-    return config
+        probes = replace(probes, clock=args.clock)
+    return replace(config, node=args.node or config.node, probes=probes,
+                   sink=config.sink if args.output is None else sink_for_output(args.output, config.sink))
 
 
 def sink_for_output(path: Path, current: SinkConfig) -> SinkConfig:
-    """``x.mp4`` -> H.264 file; an existing folder or a path ending in a separator -> PNG frames."""
+    """``x.mp4`` (.mkv, .avi) -> H.264 file; an existing folder, a path ending in a separator or
+    without suffix -> PNG frames."""
     text = str(path)
     target = path if path.is_absolute() else Path.cwd() / path
     if text.endswith(("/", "\\")) or target.is_dir() or not target.suffix:
@@ -37,8 +43,23 @@ def sink_for_output(path: Path, current: SinkConfig) -> SinkConfig:
     return SinkConfig(kind="file", path=target, sync=current.sync, bitrate=current.bitrate)
 
 
+def check_sink(config: PipelineConfig, output: Path | None) -> None:
+    """Before anything runs: the sink can write where it is told to (``output``: as given on the
+    command line, else the YAML's ``sink.path``). UsageError or ConfigError otherwise."""
+    sink = config.sink
+    if sink.path is None:
+        return
+    problem = check_video_file(sink.path) if sink.kind == "file" else check_frames_folder(sink.path)
+    if problem is None:
+        return
+    if output is not None:
+        raise UsageError(f"--output {output}: {problem}")
+    raise config.document.error(("sink", "path"), f"{sink.path}: {problem}")
+
+
 def run_session(args: argparse.Namespace) -> int:
     config = apply_overrides(load_config(args.config), args)
+    check_sink(config, args.output)
     built = build_pipeline(config)
     console = Console(sys.stderr)
     progress = None if args.quiet else console
@@ -59,6 +80,11 @@ def run_session(args: argparse.Namespace) -> int:
         console.write(f"dcuscope: source {index} ({config.sources[index].description}) was lost: {reason}\n")
     for index, stalls in result.stalls.items():
         console.write(f"dcuscope: source {index} ({config.sources[index].description}) {describe(stalls)}\n")
+    if result.aborted is not None:
+        incomplete = {"file": f": {config.sink.path} is incomplete (not finalised, may not play)",
+                      "frames": f": the frames in {config.sink.path} end early"}.get(config.sink.kind, "")
+        console.write(f"dcuscope: {result.aborted}{incomplete}\n")
+        return ABORTED_STATUS if result.interrupted else 1
     if config.sink.path is not None and progress is not None:
         console.write(f"output: {config.sink.path}\n")
     return 0

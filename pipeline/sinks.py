@@ -1,8 +1,8 @@
 """Sink bins: where the osd's frames go. Each is one stage named ``sink`` (enter point only).
 
 - ``fake``: discard (measure the pipeline alone);
-- ``file``: H.264 in MP4 (``videoconvert ! x264enc ! h264parse ! mp4mux ! filesink``),
-  finalised when the run ends with EOS;
+- ``file``: H.264 in the container the file's name says (``videoconvert ! x264enc ! h264parse
+  ! mp4mux|matroskamux|avimux ! filesink``), finalised when the run ends with EOS;
 - ``frames``: numbered PNG images in a folder (``frame_00000.png`` ...).
 """
 
@@ -11,28 +11,31 @@ from __future__ import annotations
 from pipeline.config import SinkConfig
 from pipeline.errors import PipelineError
 from pipeline.gst import Gst
+from pipeline.outputs import CONTAINERS, FRAME_PATTERN
 
 
 def build_sink(config: SinkConfig) -> Gst.Bin:
     if config.kind == "fake":
         chain = [_make("fakesink", "render", sync=config.sync, async_=False)]
     elif config.kind == "file":
-        config.path.parent.mkdir(parents=True, exist_ok=True)
+        muxer = CONTAINERS.get(config.path.suffix.lower())
+        if muxer is None:
+            raise PipelineError(f"{config.path}: unknown video container (expected one of {', '.join(CONTAINERS)})")
         chain = [
             _make("videoconvert", "encconvert"),
             _make("capsfilter", "enccaps", caps=Gst.Caps.from_string("video/x-raw,format=I420")),
             _make("x264enc", "encoder", bitrate=config.bitrate, speed_preset="ultrafast", tune="zerolatency",
                   key_int_max=30),
             _make("h264parse", "parse"),
-            _make("mp4mux", "mp4"),
+            _make(muxer, "container"),
             _make("filesink", "render", location=str(config.path), sync=config.sync, async_=False),
         ]
     elif config.kind == "frames":
-        config.path.mkdir(parents=True, exist_ok=True)
+        config.path.mkdir(exist_ok=True)  # the folder itself; its parent was checked, not made
         chain = [
             _make("videoconvert", "encconvert"),
             _make("pngenc", "encoder", compression_level=1),
-            _make("multifilesink", "render", location=str(config.path / "frame_%05d.png"), sync=config.sync,
+            _make("multifilesink", "render", location=str(config.path / FRAME_PATTERN), sync=config.sync,
                   async_=False),
         ]
     else:  # the config parser only lets known kinds through

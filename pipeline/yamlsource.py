@@ -21,7 +21,7 @@ def format_path(path: KeyPath) -> str:
     return out or "(top level)"
 
 
-@dataclass
+@dataclass(frozen=True)
 class Document:
     """A parsed YAML file: plain Python data plus the line of every key path."""
 

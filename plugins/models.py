@@ -91,6 +91,13 @@ def open_session(path: str | Path, providers: Sequence[str], threads: int = 0,
         raise ModelError(f"model file {path} is not a usable ONNX model: {exc}", "unreadable") from exc
 
 
+def check_model(path: str | Path, decoder: str = "auto") -> ModelLayout:
+    """The layout of the model at ``path``, from a CPU session opened only to look at it: the
+    check, when a configuration is loaded, that ``infer`` will be able to use the file (a bad one
+    would otherwise stop the pipeline once it starts). :class:`ModelError` naming the file."""
+    return inspect_model(open_session(path, [CPU], threads=1), decoder, path)
+
+
 def _short(name: str) -> str:
     return name.split(":")[0]
 

@@ -78,6 +78,7 @@ class Mux(AttributeProperties, GstBase.Aggregator):
         self._segments: dict[str, Gst.Segment] = {}  # AggregatorPad.segment is not readable from Python
         self._counts: dict[str, int] = {}
         self._caps_sent = False
+        self._last_pts: int | None = None
         self._apply_latency()
 
     def property_changed(self, name):
@@ -90,6 +91,7 @@ class Mux(AttributeProperties, GstBase.Aggregator):
 
     def do_start(self):
         self._caps_sent = False
+        self._last_pts = None
         self._counts.clear()
         return True
 
@@ -138,9 +140,18 @@ class Mux(AttributeProperties, GstBase.Aggregator):
             out.append_memory(self._frame_memory(pad, buf))
             ids.extend(read_frames(buf) or [self._own_identity(pad)])
         write_frames(out, ids)
-        out.pts = min(rt for rt, i in heads if i in chosen)
+        out.pts = self._stamp(min(rt for rt, i in heads if i in chosen))
         out.duration = self._period_ns() or Gst.CLOCK_TIME_NONE
         return self.finish_buffer(out)
+
+    def _stamp(self, running_time: int) -> int:
+        """The batch's PTS: its earliest frame's running time, but always after the last batch's.
+        Live, a camera late past the timeout misses its batch; its frame then comes out alone,
+        with a running time that batch already had, and encoders refuse a PTS that does not grow."""
+        if self._last_pts is not None and running_time <= self._last_pts:
+            running_time = self._last_pts + 1
+        self._last_pts = running_time
+        return running_time
 
     def _running_time(self, pad, buf: Gst.Buffer) -> int:
         segment = self._segments.get(pad.get_name())

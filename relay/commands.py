@@ -6,6 +6,7 @@ import argparse
 import logging
 import os
 
+from pipeline.ports import check_port_free
 from relay.clock import CLOCK_MODES
 from relay.errors import RelayError
 
@@ -45,5 +46,6 @@ def run_relay(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     if not 0 <= args.port <= 65535:
         raise RelayError(f"--port must be 0..65535, not {args.port}")
+    check_port_free(args.host, args.port)
     serve(args.host, args.port, args.db, args.token, args.clock)
     return 0

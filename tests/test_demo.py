@@ -116,7 +116,7 @@ def test_a_demo_on_a_taken_port_says_so_and_starts_nothing(tmp_path):
         port = taken.getsockname()[1]
         demo = start_demo(tmp_path, port, "--duration", "5")
         output, _ = demo.communicate(timeout=60)
-    assert demo.returncode == 1, output
-    assert f"port {port} on 127.0.0.1 is taken" in output and "--port" in output, output
+    assert demo.returncode == 2, output
+    assert f"--port {port}: cannot listen on 127.0.0.1:{port}" in output, output
     assert "starting" not in output and "Traceback" not in output, output
     assert demo_children(port) == []

@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
 import textwrap
 from pathlib import Path
 
 import pytest
 
+from pipeline.build import build_pipeline
+from pipeline.cli import build_parser
 from pipeline.config import load_config
 from pipeline.errors import ConfigError
+from pipeline.session import apply_overrides
 from tests.conftest import VTEST, run_cli
 
 GOOD = f"""\
@@ -103,6 +107,12 @@ BAD = [
      ":3: stages[0].infer.model: file not found"),
     ("bad sink", "sources: [{test: ball}]\nstages: [{queue: {}}]\nsink: {type: screen}\n",
      ":3: sink.type: unknown sink type 'screen'"),
+    ("sink in a missing folder", "sources: [{test: ball}]\nstages: [{queue: {}}]\nsink: {type: file, path: /nonexistent/x.mp4}\n",
+     ":3: sink.path: /nonexistent/x.mp4: folder /nonexistent does not exist"),
+    ("sink container", "sources: [{test: ball}]\nstages: [{queue: {}}]\nsink:\n  type: file\n  path: x.webm\n",
+     "x.webm: unknown video container '.webm'"),
+    ("model of another decoder", "sources: [{test: ball}]\nstages:\n  - infer: {decoder: ssd}\n",
+     ":3: stages[0].infer.decoder: model file"),
     ("sink without path", "sources: [{test: ball}]\nstages: [{queue: {}}]\nsink: {type: file}\n",
      ":3: sink: sink type file needs a path"),
     ("no mux for many", "sources: [{test: ball}, {test: snow}]\nstages: [{queue: {}}]\n",
@@ -124,6 +134,16 @@ def test_bad_config_exits_2_with_one_line(tmp_path, name, text, expected):
     assert "Traceback" not in result.stderr
 
 
+def test_a_model_file_that_is_not_onnx_exits_2_naming_file_and_key(tmp_path):
+    (tmp_path / "notes.onnx").write_text("not a model\n")
+    path = write(tmp_path, "sources: [{test: ball}]\nstages:\n  - infer:\n      model: notes.onnx\n")
+    result = run_cli("run", path, "--num-frames", "1", cwd=tmp_path, timeout=60)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"dcuscope: error: {path}:4: stages[0].infer.model: "), lines
+    assert f"{tmp_path / 'notes.onnx'} is not a usable ONNX model" in lines[0]
+
+
 def test_missing_config_file(tmp_path):
     result = run_cli("run", tmp_path / "nope.yaml", cwd=tmp_path, timeout=60)
     assert result.returncode == 2
@@ -133,3 +153,35 @@ def test_missing_config_file(tmp_path):
 def test_loading_reports_the_key_path_in_python(tmp_path):
     with pytest.raises(ConfigError, match=r"pipeline.yaml:3: sources\[0\]\.rate"):
         load_config(write(tmp_path, "sources:\n  - test: ball\n    rate: 0\nstages: [{queue: {}}]\n"))
+
+
+def test_a_checked_config_cannot_be_changed(tmp_path):
+    cfg = load_config(write(tmp_path, GOOD))
+    for obj, field, value in [(cfg, "node", "x"), (cfg.sources[0], "width", 1), (cfg.stages[0], "name", "x"),
+                              (cfg.sink, "path", tmp_path), (cfg.probes, "enabled", False)]:
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(obj, field, value)
+    with pytest.raises(TypeError):
+        cfg.stages[1].properties["threshold"] = 0.9
+    with pytest.raises(AttributeError):
+        cfg.sources.append(cfg.sources[0])
+
+
+def test_a_stage_name_is_not_taken_out_of_the_yaml_data(tmp_path):
+    cfg = load_config(write(tmp_path, "sources: [{test: ball}]\nstages:\n  - queue: {name: q, max-size-buffers: 2}\n"))
+    assert cfg.stages[0].name == "q" and dict(cfg.stages[0].properties) == {"max-size-buffers": 2}
+    assert cfg.document.data["stages"][0]["queue"] == {"name": "q", "max-size-buffers": 2}
+
+
+def test_building_and_overrides_leave_the_config_as_it_was(tmp_path, gst_registered):
+    cfg = load_config(write(tmp_path, "sources:\n  - {test: ball}\n  - {test: snow, width: 64, height: 48}\n"
+                                      "stages:\n  - mux: {width: 320, height: 240}\n"))
+    before = repr(cfg)
+    built = build_pipeline(cfg)
+    assert built.scaled_to == [(320, 240), (64, 48)]  # what the build resolved, returned
+    assert (cfg.sources[0].width, cfg.sources[0].height) == (None, None)
+    args = build_parser().parse_args(["run", "x.yaml", "--node", "N", "--probes", "--clock", "tai",
+                                      "--output", str(tmp_path / "out.mp4")])
+    new = apply_overrides(cfg, args)
+    assert (new.node, new.probes.enabled, new.probes.clock, new.sink.kind) == ("N", True, "tai", "file")
+    assert repr(cfg) == before

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import sysconfig
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -48,8 +49,7 @@ def decode_video(path: Path) -> list[np.ndarray]:
 
 
 def test_boxes_are_drawn_where_the_detections_are(tmp_path):
-    config = load_config(REPO / "configs" / "vtest.yaml")
-    config.sink = SinkConfig(kind="frames", path=tmp_path / "frames")
+    config = replace(load_config(REPO / "configs" / "vtest.yaml"), sink=SinkConfig(kind="frames", path=tmp_path / "frames"))
     built = build_pipeline(config)
     osd = built.pipeline.get_by_name("osd")
     before, detections, identities = [], [], []
@@ -189,3 +189,78 @@ def test_help_explains_the_run_command():
     assert result.returncode == 0
     for words in ("--num-frames", "--duration", "--output", "--probes", "Ctrl-C", "examples"):
         assert words in result.stdout
+
+
+def test_live_files_write_a_playable_mp4(tmp_path):
+    """Live files (paced by clocksync, like cameras) into an MP4: a camera that missed the mux's
+    timeout made a batch with a PTS that did not grow, and mp4mux stopped the run."""
+    config = tmp_path / "live.yaml"
+    config.write_text(f"sources:\n  - {{uri: {REPO / 'assets/media/vtest.avi'}, rate: 10, live: true}}\n"
+                      f"  - {{uri: {REPO / 'assets/media/bikes.mp4'}, rate: 10, live: true}}\n"
+                      "stages:\n  - mux: {width: 320, height: 180, batched-push-timeout: 1000}\n"
+                      "  - tiler: {rows: 1, columns: 2, width: 640, height: 180}\n  - convert: {format: RGBA}\n"
+                      "  - osd: {}\n")
+    out = tmp_path / "live.mp4"
+    result = run_cli("run", config, "--output", out, "--num-frames", "20", cwd=tmp_path, timeout=120)
+    assert result.returncode == 0 and "Could not multiplex" not in result.stderr, result.stderr
+    assert len(decode_video(out)) == 20
+
+
+BALL = ("sources:\n  - {test: ball, width: 160, height: 120}\n"
+        "stages:\n  - mux: {width: 160, height: 120}\n  - tiler: {width: 160, height: 120}\n"
+        "  - convert: {format: RGBA}\n  - osd: {}\n")
+"""A test pattern through the chain without a model: a few frames in a second."""
+
+
+@pytest.mark.parametrize("output,expected", [
+    ("missing/dir/x.mp4", "folder {tmp}/missing/dir does not exist"),
+    ("/proc/x.mp4", "cannot be written"),
+    ("x.txt", "unknown video container '.txt'"),
+    ("old/", "already holds frame_*.png frames of an earlier run"),
+    ("missing/frames/", "folder {tmp}/missing does not exist"),
+], ids=["missing folder", "unwritable", "unknown container", "old frames", "frames in a missing folder"])
+def test_a_bad_output_path_exits_2_before_the_run(tmp_path, output, expected):
+    (tmp_path / "old").mkdir()
+    (tmp_path / "old" / "frame_00000.png").write_bytes(b"an earlier run")
+    config = tmp_path / "ball.yaml"
+    config.write_text(BALL)
+    result = run_cli("run", config, "--output", output, "-n", "3", cwd=tmp_path, timeout=60)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"dcuscope: error: --output {output.rstrip('/')}: "), lines
+    assert expected.format(tmp=tmp_path) in lines[0]
+    assert not (tmp_path / "missing").exists() and sorted(p.name for p in (tmp_path / "old").iterdir()) == [
+        "frame_00000.png"]
+
+
+@pytest.mark.parametrize("suffix,magic", [(".mkv", b"\x1a\x45\xdf\xa3"), (".avi", b"RIFF")])
+def test_the_output_name_picks_the_container(tmp_path, suffix, magic):
+    config = tmp_path / "ball.yaml"
+    config.write_text(BALL)
+    out = tmp_path / f"x{suffix}"
+    result = run_cli("run", config, "--output", out, "-n", "3", cwd=tmp_path, timeout=60)
+    assert result.returncode == 0, result.stderr
+    assert out.read_bytes()[:4] == magic  # not an MP4 (ftyp) under another name
+
+
+def test_a_second_ctrl_c_says_the_video_is_incomplete_and_exits_non_zero(tmp_path):
+    """Aborted before end-of-stream reached mp4mux, the MP4 has no index (moov): the run said
+    "output: ..." and exited 0 as if it had been written."""
+    config = tmp_path / "slow.yaml"  # frames pile up before a slow stage, so end-of-stream takes seconds
+    config.write_text(LIVE_BALL + "  - queue: {max-size-buffers: 0, max-size-time: 0, max-size-bytes: 0}\n"
+                                  "  - factory: identity\n    properties: {sleep-time: 500000}\n")
+    out = tmp_path / "x.mp4"
+    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(config), "--output", str(out)],
+                            cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE, text=True)
+    for line in proc.stderr:
+        if "frames" in line:  # a progress line: the run's main loop, and its Ctrl-C handler, are on
+            break
+    proc.send_signal(signal.SIGINT)
+    for line in proc.stderr:
+        if "stopping: sending end-of-stream" in line:
+            break
+    proc.send_signal(signal.SIGINT)
+    stderr = proc.stderr.read()
+    assert proc.wait(timeout=30) == 130, stderr
+    assert f"{out} is incomplete" in stderr and "output:" not in stderr, stderr
+    assert b"moov" not in out.read_bytes()

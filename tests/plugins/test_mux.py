@@ -95,3 +95,20 @@ def test_a_frame_is_scaled_into_its_batch_slot():
     ok, mapped = slot.map(Gst.MapFlags.READ)
     assert ok and np.all(np.frombuffer(mapped.data, np.uint8) == 200)
     slot.unmap(mapped)
+
+
+def test_a_late_frame_never_stamps_a_batch_at_or_before_the_last_one():
+    """Live: the mux pushes on its timeout without a late camera; the late frame, whose running
+    time is that of the batch already gone, came out as a second batch with the same PTS, which
+    an encoder cannot take (mp4mux: "Could not multiplex stream")."""
+    batches = run(
+        "mux name=m width=64 height=48 batched-push-timeout=1000 ! fakesink name=out signal-handoffs=true "
+        "videotestsrc is-live=true num-buffers=8 ! video/x-raw,format=RGB,width=64,height=48,framerate=10/1 "
+        "! framestamp source-id=0 ! m.sink_0 "
+        "videotestsrc is-live=true num-buffers=8 ! video/x-raw,format=RGB,width=64,height=48,framerate=10/1 "
+        "! identity sleep-time=130000 ! framestamp source-id=1 ! m.sink_1"
+    )
+    assert sorted(i for _, ids, _, _ in batches for i in ids) == [(s, f) for s in (0, 1) for f in range(8)]
+    assert any(len(ids) == 1 for _, ids, _, _ in batches)  # the delay made the mux push without camera 1
+    stamps = [pts for pts, *_ in batches]
+    assert all(a < b for a, b in zip(stamps, stamps[1:])), stamps
