@@ -131,14 +131,18 @@ def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = 
 
 
 def _stop_all(nodes: list[subprocess.Popen], relay: subprocess.Popen) -> None:
-    """Pipelines first (EOS, so their last events reach the relay), then the relay."""
+    """Pipelines first (EOS, so their last events reach the relay), then the relay.
+
+    SIGTERM, not SIGINT: a child that is still importing, before its handlers are in place,
+    then ends silently (nothing of it has started yet), where SIGINT would print a
+    KeyboardInterrupt traceback from the middle of an import."""
     for proc in nodes:
         if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
+            proc.send_signal(signal.SIGTERM)
     for proc in nodes:
         _wait(proc, 30)
     if relay.poll() is None:
-        relay.send_signal(signal.SIGINT)
+        relay.send_signal(signal.SIGTERM)
     _wait(relay, 15)
     print("demo: stopped", flush=True)
 
