@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from probes.events import TraceHeader
-from probes.stats import chains, frame_table, node_stats
+from probes.delays import chains, node_stats
+from probes.frametable import frame_table
 from tests.relay.helpers import get_json, http_status, wait_for
 from tests.ui.helpers import RelayThread, sim_nodes
 
