@@ -157,8 +157,13 @@ def series(fd: FrameDelays) -> Series:
 
 
 def summarize(values_ms: np.ndarray | Iterable[float]) -> dict:
-    """``{count, mean_ms, p50_ms, p95_ms, p99_ms, max_ms}``; values are None when count is 0."""
-    values = np.asarray(values_ms, dtype=np.float64).ravel()
+    """``{count, mean_ms, p50_ms, p95_ms, p99_ms, max_ms}``; values are None when count is 0.
+
+    The values are summed in sorted order, so that the mean does not depend on the order they
+    came in: the relay, which adds finalised and open frames, gets the figures of a trace file
+    to the last bit.
+    """
+    values = np.sort(np.asarray(values_ms, dtype=np.float64).ravel())
     if values.size == 0:
         return {"count": 0, "mean_ms": None, "p50_ms": None, "p95_ms": None, "p99_ms": None, "max_ms": None}
     p50, p95, p99 = np.percentile(values, PERCENTILES, method="linear")

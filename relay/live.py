@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from probes.delays import NS_PER_MS, FrameDelays, Series, delay_summary, frame_delays, series
+from probes.delays import NS_PER_MS, Chains, FrameDelays, Series, chains, delay_summary, frame_delays, series
 from probes.events import EXIT, TraceHeader
-from probes.frametable import MISSING, frame_table_from_cells
+from probes.frametable import MISSING, FrameTable, frame_table_from_cells
 from relay.sessionvalues import RELATIVE_ERROR, OriginSpans, SessionValues
 
 KEY_SHIFT = 44  # key = source << 44 | frame; relay.protocol bounds both to fit
@@ -218,7 +218,7 @@ class LiveRun:
             return 0
         self._dirty = False
         open_ = self._open_frames()
-        ch = self._delays(open_).chains
+        ch = self._chains(open_)
         complete, end = ch.complete, ch.end
         shown = complete & ~self._shown
         k = int(shown.sum())
@@ -262,10 +262,16 @@ class LiveRun:
     def _open_frames(self) -> _Frames:
         return _Frames((self._keys >> KEY_SHIFT).astype(np.int32), self._keys & ((1 << KEY_SHIFT) - 1), self._cells)
 
+    def _table(self, frames: _Frames) -> FrameTable:
+        return frame_table_from_cells(self.stages, frames.source, frames.frame, frames.cells)
+
+    def _chains(self, frames: _Frames) -> Chains:
+        """Completeness and ends of ``frames``, judged by the exit points of the whole run."""
+        return chains(self._table(frames), self._has_exit)
+
     def _delays(self, frames: _Frames) -> FrameDelays:
         """The delay model's figures of ``frames``, judged by the exit points of the whole run."""
-        return frame_delays(frame_table_from_cells(self.stages, frames.source, frames.frame, frames.cells),
-                            self._has_exit)
+        return frame_delays(self._table(frames), self._has_exit)
 
     def _finalise(self, frames: _Frames, end: np.ndarray) -> None:
         fd = self._delays(frames)
@@ -334,7 +340,7 @@ class LiveRun:
         ring = self._ring
         sel = ring["end"].view >= cutoff
         open_ = self._open_frames()
-        och = self._delays(open_).chains
+        och = self._chains(open_)
         osel = och.complete & (och.end >= cutoff)
         fd = self._delays(_Frames(np.concatenate([ring["source"].view[sel], open_.source[osel]]),
                                   np.concatenate([ring["frame"].view[sel], open_.frame[osel]]),
