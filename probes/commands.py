@@ -66,7 +66,7 @@ def run_stats(args: argparse.Namespace) -> int:
         if args.json:
             print(json.dumps(doc, indent=2))
         else:
-            print(format_stats(doc, traces), end="")
+            print(format_stats(doc, [_origin(t, args.db) for t in traces]), end="")
     return 2 if failed else 0
 
 
@@ -121,14 +121,21 @@ def _open_output(path: str):
         yield out
 
 
-def format_stats(doc: dict, traces: list[Trace] | None = None) -> str:
-    """Readable aligned tables, one block per node: stages, gaps, frame, fps, drops."""
+def _origin(trace, db: str | None) -> str:
+    """Where a node's events come from, for the title of its table."""
+    if isinstance(trace, Trace):
+        return f"{trace.path}{'' if trace.complete else ', no end line: the run did not close the trace'}"
+    return f"{db}: session {trace.session}, run {trace.run[:8]}{'' if trace.ended else ', not ended'}"
+
+
+def format_stats(doc: dict, origins: list[str] | None = None) -> str:
+    """Readable aligned tables, one block per node (``origins``: where each came from, for the
+    titles): stages, gaps, frame, fps, drops."""
     lines: list[str] = []
     for i, (node, st) in enumerate(doc["nodes"].items()):
-        trace = traces[i] if traces and i < len(traces) else None
         title = f"node {node}"
-        if trace is not None:
-            title += f"  ({trace.path}{'' if trace.complete else ', no end line: the run did not close the trace'})"
+        if origins and i < len(origins):
+            title += f"  ({origins[i]})"
         frames = st["frames"]
         rows = [("stage " + k, v) for k, v in st["stages"].items()]
         rows += [("gap " + k, v) for k, v in st["gaps"].items()]
