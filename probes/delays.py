@@ -159,16 +159,18 @@ def series(fd: FrameDelays) -> Series:
 def summarize(values_ms: np.ndarray | Iterable[float]) -> dict:
     """``{count, mean_ms, p50_ms, p95_ms, p99_ms, max_ms}``; values are None when count is 0.
 
-    The values are summed in sorted order, so that the mean does not depend on the order they
-    came in: the relay, which adds finalised and open frames, gets the figures of a trace file
-    to the last bit.
+    The mean is that of the values in whole nanoseconds (what timestamps hold), summed exactly
+    (float64 adds integers exactly up to 2**53 ns, 104 days in all): so it does not depend on
+    the order the values came in, and the relay, which adds finalised and open frames, gets
+    the figures of a trace file to the last bit. Sorting would cost 3x the rest.
     """
-    values = np.sort(np.asarray(values_ms, dtype=np.float64).ravel())
+    values = np.asarray(values_ms, dtype=np.float64).ravel()
     if values.size == 0:
         return {"count": 0, "mean_ms": None, "p50_ms": None, "p95_ms": None, "p99_ms": None, "max_ms": None}
     p50, p95, p99 = np.percentile(values, PERCENTILES, method="linear")
+    total_ns = float(np.rint(values * NS_PER_MS).sum())
     return {
-        "count": int(values.size), "mean_ms": float(values.mean()),
+        "count": int(values.size), "mean_ms": total_ns / values.size / NS_PER_MS,
         "p50_ms": float(p50), "p95_ms": float(p95), "p99_ms": float(p99), "max_ms": float(values.max()),
     }
 

@@ -106,7 +106,7 @@ def _cli_json(*argv) -> dict:
     return json.loads(out)
 
 
-def _live(header, events, dropped) -> LiveRun:
+def _live(header, events) -> LiveRun:
     run = LiveRun(header)
     for i in range(0, len(events), BATCH):
         run.add(events[i:i + BATCH])
@@ -124,7 +124,7 @@ def test_the_runs_hold_every_kind_of_trouble(world):
         assert st["frames"]["incomplete"] > 10 and st["frames"]["complete"] > 100, node
         assert n_late > 0 and world.relay_nodes[node]["frames"]["late_events"] > 0, node
         assert world.relay_nodes[node]["frames"]["evicted"] > 0, node  # early incomplete frames aged out
-        assert _live(header, events, 0).late > 0, node
+        assert _live(header, events).late > 0, node
 
 
 def test_statistics_of_the_whole_run_agree_exactly_on_every_path(world):
@@ -136,7 +136,7 @@ def test_statistics_of_the_whole_run_agree_exactly_on_every_path(world):
         assert expected == _json(node_stats(header, events, dropped))
         assert _pick(world.relay_stats[node], STATS_KEYS) == expected, node
         assert _pick(world.stored_stats[node], STATS_KEYS) == expected, node
-        live = _live(header, events, dropped)
+        live = _live(header, events)
         assert _pick(_json(live.session_stats(dropped)), STATS_KEYS) == expected, node
         assert world.relay_stats[node]["percentile_error"] == 0.0
 
@@ -144,7 +144,7 @@ def test_statistics_of_the_whole_run_agree_exactly_on_every_path(world):
 def test_window_statistics_agree_with_the_model_over_the_frames_in_the_window(world):
     for node, (header, events, _, _) in world.runs.items():
         window = world.relay_stats[node]["window"]
-        assert _pick(_json(_live(header, events, 0).window_stats()), WINDOW_KEYS) == _pick(window, WINDOW_KEYS)
+        assert _pick(_json(_live(header, events).window_stats()), WINDOW_KEYS) == _pick(window, WINDOW_KEYS)
         # The model's own figures over the frames whose chain ended in the last window_s.
         fd = frame_delays(frame_table(header, events))
         cutoff = int(events["ts"].max()) - int(window["window_s"] * 1e9)
