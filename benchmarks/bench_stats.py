@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 from probes.export import perfetto_document, write_csv
-from probes.stats import node_stats
+from probes.delays import node_stats
 from probes.tracefile import read_trace, write_trace
 from tests.probes.synth import pipeline_run
 

@@ -47,7 +47,7 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
 from probes.events import ORIGIN  # noqa: E402
-from probes.stats import node_stats  # noqa: E402
+from probes.delays import node_stats  # noqa: E402
 from probes.tracefile import Trace, read_trace  # noqa: E402
 
 MEDIA = ROOT / "assets" / "media"

@@ -1,4 +1,4 @@
-"""The ``dcuscope stats`` and ``dcuscope export`` subcommands over trace files.
+"""The ``dcuscope stats`` and ``dcuscope export`` subcommands over trace files or a relay's database.
 
 ``pipeline/cli.py`` wires them in::
 
@@ -6,7 +6,7 @@
     args = parser.parse_args(); sys.exit(args.func(args))
 
 Each ``func`` returns the exit code: 0, or 2 after one ``dcuscope: error: ...`` line on stderr
-for a bad input (missing file, not a trace, unwritable output).
+for a bad input (missing file, not a trace, no such database or session, unwritable output).
 """
 
 from __future__ import annotations
@@ -28,11 +28,12 @@ STAT_COLUMNS = ("count", "mean_ms", "p50_ms", "p95_ms", "p99_ms", "max_ms")
 
 def add_stats_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
-        "stats", help="per-stage and per-frame delay statistics of trace files",
+        "stats", help="per-stage and per-frame delay statistics of trace files or a stored session",
         description="Per node: stage delays, gaps between stages and end-to-end frame delays "
                     "(count, mean, p50, p95, p99, max in ms), frames/s per source, drops.",
     )
-    p.add_argument("traces", nargs="+", metavar="TRACE", help="trace file(s) written by `dcuscope run`")
+    p.add_argument("traces", nargs="*", metavar="TRACE", help="trace file(s) written by `dcuscope run`")
+    _add_db_arguments(p)
     p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
     p.set_defaults(func=run_stats)
     return p
@@ -47,28 +48,32 @@ def add_export_parser(subparsers) -> argparse.ArgumentParser:
                     "per stage.",
     )
     p.add_argument("traces", nargs="*", metavar="TRACE", help="trace file(s) written by `dcuscope run`")
-    p.add_argument("--db", metavar="PATH", help="a relay's SQLite database, instead of trace files")
-    p.add_argument("--session", metavar="ID", help="with --db: the stored session to export (see /api/sessions)")
+    _add_db_arguments(p)
     p.add_argument("--format", choices=("perfetto", "csv"), default="perfetto", help="output format (default perfetto)")
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="output file, - for stdout")
     p.set_defaults(func=run_export)
     return p
 
 
+def _add_db_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--db", metavar="PATH", help="a relay's SQLite database, instead of trace files")
+    p.add_argument("--session", metavar="ID", help="with --db: the stored session (see /api/sessions) or a run id")
+
+
 def run_stats(args: argparse.Namespace) -> int:
     with _user_errors() as failed:
-        traces = [read_trace(path) for path in args.traces]
+        traces = _inputs(args, "stats")
         doc = stats_document(traces)
         if args.json:
             print(json.dumps(doc, indent=2))
         else:
-            print(format_stats(doc, traces), end="")
+            print(format_stats(doc, [_origin(t, args.db) for t in traces]), end="")
     return 2 if failed else 0
 
 
 def run_export(args: argparse.Namespace) -> int:
     with _user_errors() as failed:
-        nodes = _export_inputs(args)
+        nodes = [(t.header, t.events) for t in _inputs(args, "export")]
         with _open_output(args.output) as out:
             if args.format == "csv":
                 write_csv(out, nodes)
@@ -78,22 +83,19 @@ def run_export(args: argparse.Namespace) -> int:
     return 2 if failed else 0
 
 
-def _export_inputs(args: argparse.Namespace) -> list:
-    """(header, events) per node: from trace files, or from a relay's stored session."""
-    if args.db is not None or args.session is not None:
-        if args.traces or args.db is None or args.session is None:
-            raise DcuscopeError("export: give either TRACE files, or --db PATH with --session ID")
-        if not Path(args.db).is_file():
-            raise DcuscopeError(f"export: {args.db}: no such database")
-        from relay.storage import load_session  # the relay's modules load only for this input
+def _inputs(args: argparse.Namespace, command: str) -> list:
+    """Per node an object with header, events, dropped: trace files, or a stored session's runs."""
+    if args.db is None and args.session is None:
+        if not args.traces:
+            raise DcuscopeError(f"{command}: give at least one TRACE file (or --db PATH --session ID)")
+        return [read_trace(path) for path in args.traces]
+    if args.traces or args.db is None or args.session is None:
+        raise DcuscopeError(f"{command}: give either TRACE files, or --db PATH with --session ID")
+    if not Path(args.db).is_file():
+        raise DcuscopeError(f"{command}: {args.db}: no such database")
+    from relay.storage import load_runs  # the relay's modules load only for this input
 
-        nodes = load_session(args.db, args.session)
-        if not nodes:
-            raise DcuscopeError(f"export: {args.db}: session {args.session} holds no events")
-        return nodes
-    if not args.traces:
-        raise DcuscopeError("export: give at least one TRACE file (or --db PATH --session ID)")
-    return [(t.header, t.events) for t in (read_trace(path) for path in args.traces)]
+    return load_runs(args.db, args.session)
 
 
 @contextmanager
@@ -126,14 +128,21 @@ def _open_output(path: str):
         yield out
 
 
-def format_stats(doc: dict, traces: list[Trace] | None = None) -> str:
-    """Readable aligned tables, one block per node: stages, gaps, frame, fps, drops."""
+def _origin(trace, db: str | None) -> str:
+    """Where a node's events come from, for the title of its table."""
+    if isinstance(trace, Trace):
+        return f"{trace.path}{'' if trace.complete else ', no end line: the run did not close the trace'}"
+    return f"{db}: session {trace.session}, run {trace.run[:8]}{'' if trace.ended else ', not ended'}"
+
+
+def format_stats(doc: dict, origins: list[str] | None = None) -> str:
+    """Readable aligned tables, one block per node (``origins``: where each came from, for the
+    titles): stages, gaps, frame, fps, drops."""
     lines: list[str] = []
     for i, (node, st) in enumerate(doc["nodes"].items()):
-        trace = traces[i] if traces and i < len(traces) else None
         title = f"node {node}"
-        if trace is not None:
-            title += f"  ({trace.path}{'' if trace.complete else ', no end line: the run did not close the trace'})"
+        if origins and i < len(origins):
+            title += f"  ({origins[i]})"
         frames = st["frames"]
         rows = [("stage " + k, v) for k, v in st["stages"].items()]
         rows += [("gap " + k, v) for k, v in st["gaps"].items()]

@@ -20,11 +20,13 @@ from typing import IO, Iterable, Iterator
 
 import numpy as np
 
+from probes.delays import NS_PER_MS, STAGE_COLUMNS, frame_delays
 from probes.events import TraceHeader
-from probes.stats import MISSING, NS_PER_MS, chains, frame_table, unique_name
+from probes.frametable import MISSING, frame_table
+from probes.stats import unique_name
 
 FLOW_CATEGORY = "frame"
-CSV_COLUMNS = ("node", "source", "frame", "stage", "enter_ns", "exit_ns", "delay_ms", "gap_ms", "complete")
+CSV_COLUMNS = ("node", "source", "frame", "stage", "enter_ns", "exit_ns", *(f"{c}_ms" for c in STAGE_COLUMNS), "complete")
 
 NodeEvents = tuple[TraceHeader, np.ndarray]
 
@@ -55,8 +57,9 @@ def node_trace_events(
 ) -> list[dict]:
     """Trace events of one node as process ``pid``; flow ids come from ``flow_ids``."""
     flow_ids = flow_ids if flow_ids is not None else iter(range(1, 1 << 62))
-    table = frame_table(header, events)
-    ch = chains(table)
+    fd = frame_delays(frame_table(header, events))
+    table, ch = fd.table, fd.chains
+    delay_ns, gap_ms = fd.per_stage["delay"], fd.per_stage["gap"] / NS_PER_MS
     stages = table.stages
     out: list[dict] = [
         _meta("process_name", pid, 0, name=name or header.node),
@@ -82,15 +85,15 @@ def node_trace_events(
                 label = f"{stage} · src {sid}" + (f" #{k + 1}" if k else "")
                 out.append(_meta("thread_name", pid, tid, name=label))
                 out.append(_meta("thread_sort_index", pid, tid, sort_index=tid))
-            gap = _gaps_ms(ch, rows, s)
             for i, r in enumerate(rows.tolist()):
                 tid = tid_of[(s, int(sid), int(lane[i]))]
                 args = {"source": int(sid), "frame": int(table.frame[r]), "complete": bool(ch.complete[r])}
-                if gap[i] is not None:
-                    args["gap_ms"] = gap[i]
+                gap = float(gap_ms[r, s])
+                if gap == gap:  # not NaN: the frame has a previous exit there
+                    args["gap_ms"] = gap
                 if is_slice[i]:
-                    start, dur = float(us(enter[i])), (int(exit_[i]) - int(enter[i])) / 1e3
-                    args["delay_ms"] = (int(exit_[i]) - int(enter[i])) / NS_PER_MS
+                    start, dur = float(us(enter[i])), float(delay_ns[r, s]) / 1e3
+                    args["delay_ms"] = float(delay_ns[r, s]) / NS_PER_MS
                     out.append({"ph": "X", "name": f"frame {table.frame[r]}", "cat": stage, "pid": pid,
                                 "tid": tid, "ts": start, "dur": dur, "args": args})
                     if dur > 0:
@@ -134,15 +137,6 @@ def assign_lanes(start: np.ndarray, end: np.ndarray) -> np.ndarray:
     return lanes
 
 
-def _gaps_ms(ch, rows: np.ndarray, s: int) -> list[float | None]:
-    """Gap into stage ``s`` (ms) for ``rows``, None where the frame has no previous exit there."""
-    prev = ch.prev[rows, s]
-    before = ch.t_out[rows, np.maximum(prev, 0)]
-    ok = (prev >= 0) & (before != MISSING) & (ch.t_in[rows, s] != MISSING)
-    gap = (ch.t_in[rows, s] - before) / NS_PER_MS
-    return [float(g) if k else None for g, k in zip(gap.tolist(), ok.tolist())]
-
-
 def _meta(kind: str, pid: int, tid: int, **args) -> dict:
     return {"ph": "M", "name": kind, "pid": pid, "tid": tid, "args": args}
 
@@ -165,26 +159,23 @@ def csv_rows(header: TraceHeader, events: np.ndarray, node: str | None = None) -
 
     At the origin stage ``exit_ns`` is the origin timestamp; missing values are empty.
     """
-    table = frame_table(header, events)
-    ch = chains(table)
+    fd = frame_delays(frame_table(header, events))
+    table, ch = fd.table, fd.chains
     node = node or header.node
     rows, stages = np.nonzero(ch.passed)
-    enter = ch.t_in[rows, stages]
-    exit_ = ch.t_out[rows, stages]
-    delay = np.where((table.exit[rows, stages] != MISSING) & (enter != MISSING), exit_ - enter, MISSING)
-    prev = ch.prev[rows, stages]
-    before = ch.t_out[rows, np.maximum(prev, 0)]
-    gap_ok = (prev >= 0) & (before != MISSING) & (enter != MISSING)
-    gap = enter - before
+    figures = [_ms_cells(fd.per_stage[name][rows, stages]) for name in STAGE_COLUMNS]
     columns = zip(
-        table.source[rows].tolist(), table.frame[rows].tolist(), stages.tolist(), enter.tolist(),
-        exit_.tolist(), delay.tolist(), gap.tolist(), gap_ok.tolist(), ch.complete[rows].tolist(),
+        table.source[rows].tolist(), table.frame[rows].tolist(), stages.tolist(), ch.t_in[rows, stages].tolist(),
+        ch.t_out[rows, stages].tolist(), ch.complete[rows].tolist(), *figures,
     )
-    for src, frm, s, e, x, d, g, g_ok, complete in columns:
-        yield [
-            node, src, frm, table.stages[s], "" if e == MISSING else e, "" if x == MISSING else x,
-            "" if d == MISSING else f"{d / NS_PER_MS:.6f}", f"{g / NS_PER_MS:.6f}" if g_ok else "", int(complete),
-        ]
+    for src, frm, s, e, x, complete, *cells in columns:
+        yield [node, src, frm, table.stages[s], "" if e == MISSING else e, "" if x == MISSING else x, *cells,
+               int(complete)]
+
+
+def _ms_cells(ns: np.ndarray) -> list[str]:
+    """ns -> ms with 6 decimals (1 ns), empty where undefined (NaN)."""
+    return ["" if v != v else f"{v / NS_PER_MS:.6f}" for v in ns.tolist()]
 
 
 def write_csv(out: IO[str], nodes: Iterable[NodeEvents]) -> int:

@@ -3,10 +3,10 @@
 - ``GET /api/health``: {ok, uptime_s, runs, rejected}
 - ``GET /api/nodes``: [{node, run, session, connected, clock {offset_us, uncertainty_us, ...},
   ptp, events, dropped, lost, drops, ...}], one per node (its newest run)
-- ``GET /api/stats?node=NAME``: ``probes.stats.node_stats`` of the node's newest run, plus
-  ``bottleneck`` and the rolling ``window``
-- ``GET /api/frames?node=NAME&since=CURSOR&limit=N``: complete frames after the cursor
-  (clock-corrected enter/exit per stage, origin, end-to-end delay)
+- ``GET /api/stats?node=NAME``: ``probes.delays.node_stats`` of the node's newest run (stage
+  shares and bottleneck included), plus the same figures over the rolling ``window``
+- ``GET /api/frames?node=NAME&since=CURSOR&limit=N``: complete frames after the cursor, each
+  with every figure the page draws (:mod:`relay.framejson`)
 - ``GET /api/sessions``: stored sessions and their runs, newest first
 - ``GET /api/sessions/ID/{nodes,stats,frames}``: a stored session browsed like a live one
   (:mod:`relay.sessionapi`)

@@ -1,13 +1,13 @@
 """Live per-run delay engine: pairs a node's events by frame as batches arrive (numpy per batch).
 
-The definitions are those of :mod:`probes.stats`, applied through its own functions
-(``chains``, ``stage_delays_ns``, ``gaps_ns``, ``frame_delays_ns``, ``summarize``) so that the
-relay's statistics over a run equal ``node_stats`` over the same events.
+Every figure comes from the delay model, :mod:`probes.delays` (``frame_delays``, ``series``,
+``delay_summary``), so that the relay's statistics over a run equal ``node_stats`` over the
+same events, and its window's are those of the frames in it.
 
 A frame lives in the *open* table (one row per (source, frame): the earliest timestamp of each
 (stage, point) cell, as ``frame_table`` keeps) until it is
 
-- *finalised*: its chain is complete (``probes.stats.chains``) and ``settle_s`` of the node's
+- *finalised*: its chain is complete (``probes.delays.chains``) and ``settle_s`` of the node's
   time passed since its chain ended, so stragglers still land in it; its per-frame delays then
   join the session's value arrays and its row leaves the open table; or
 - *evicted*: incomplete, with no event for ``evict_s`` of the node's time; it is counted.
@@ -15,11 +15,11 @@ A frame lives in the *open* table (one row per (source, frame): the earliest tim
 Time here is the node's own event time (its newest timestamp), so a network cut or a replay
 after a relay restart ages nothing. Events for a frame already finalised or evicted (at or
 below the source's watermark) are counted as ``late`` and ignored. Frames show up for the UI as
-soon as their chain is complete (``drain_visible``).
+soon as their chain is complete (:meth:`LiveRun.recent`).
 
-``chains`` derives one cross-frame fact, whether a stage has an exit point at all; a sentinel
-row (no origin, so never complete) carrying the exits seen so far makes every subset of frames
-see the run's value of it.
+Whether a stage has an exit point at all is the one fact of a chain that spans frames; the
+engine keeps the run's value of it and hands it to ``chains``, so that every subset of frames
+is judged by the exits the whole run has seen.
 """
 
 from __future__ import annotations
@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from probes.delays import NS_PER_MS, Chains, FrameDelays, Series, chains, delay_summary, frame_delays, series
 from probes.events import EXIT, TraceHeader
-from probes.stats import (MISSING, NS_PER_MS, Chains, FrameTable, chains, frame_delays_ns, gaps_ns,
-                          stage_delays_ns, summarize)
+from probes.frametable import MISSING, FrameTable, frame_table_from_cells
 from relay.sessionvalues import RELATIVE_ERROR, OriginSpans, SessionValues
 
 KEY_SHIFT = 44  # key = source << 44 | frame; relay.protocol bounds both to fit
@@ -48,13 +48,13 @@ class LiveConfig:
     recent_frames: int = 4096
     """Complete frames kept for the UI and /api/frames."""
     max_open_frames: int = 200_000
+    """Open frames at most (~40 MB with 8 stages): beyond, the stalest are evicted, so that a
+    node whose timestamps stand still cannot make the relay grow without bound."""
     exact_values: int = 262_144
     """Values per series kept exactly for session percentiles (2 MB each); past it, a log
     histogram with percentiles within 1 % (relay.sessionvalues), so a run of days stays bounded."""
     evicted_kept: int = 65_536
     """Eviction times kept for the rolling window's incomplete count (older ones are outside it)."""
-    """Open frames at most (~40 MB with 8 stages): beyond, the stalest are evicted, so that a
-    node whose timestamps stand still cannot make the relay grow without bound."""
 
 
 class Grow:
@@ -92,18 +92,6 @@ class _Frames:
     cells: np.ndarray  # (n, n_stages, 3) int64
 
 
-def frame_table_from_cells(stages: list[str], source: np.ndarray, frame: np.ndarray, cells: np.ndarray) -> FrameTable:
-    """The FrameTable ``probes.stats.frame_table`` builds, from already paired cells."""
-    n = len(source)
-    origins = cells[:, :, 0]
-    has_origin = origins != MISSING
-    origin_stage = np.where(has_origin.any(axis=1), has_origin.argmax(axis=1), -1)
-    origin = np.where(origin_stage >= 0, origins[np.arange(n), np.maximum(origin_stage, 0)], MISSING)
-    return FrameTable(stages=list(stages), source=source.astype(np.int32), frame=frame.astype(np.int64),
-                      origin=origin, origin_stage=origin_stage,
-                      enter=np.ascontiguousarray(cells[:, :, 1]), exit=np.ascontiguousarray(cells[:, :, 2]))
-
-
 class LiveRun:
     """Live pairing and statistics of one run of one node."""
 
@@ -131,7 +119,7 @@ class LiveRun:
                       "end": Grow(np.int64)}
         self._evicted_last = Grow(np.int64)
         self._recent = {"n": Grow(np.int64), "source": Grow(np.int32), "frame": Grow(np.int64),
-                        "cells": Grow(np.int64, (s, 3)), "end": Grow(np.int64)}
+                        "cells": Grow(np.int64, (s, 3))}
         self.finalised = 0
         self.evicted = 0
         self.late = 0
@@ -230,9 +218,8 @@ class LiveRun:
             return 0
         self._dirty = False
         open_ = self._open_frames()
-        table, ch = self._chains(open_)
-        complete = ch.complete[:-1]
-        end = ch.end[:-1]
+        ch = self._chains(open_)
+        complete, end = ch.complete, ch.end
         shown = complete & ~self._shown
         k = int(shown.sum())
         if k:
@@ -242,7 +229,6 @@ class LiveRun:
             r["source"].extend(open_.source[shown])
             r["frame"].extend(open_.frame[shown])
             r["cells"].extend(open_.cells[shown])
-            r["end"].extend(end[shown])
             self.visible += k
             if r["n"].n > 2 * self.config.recent_frames:
                 for g in r.values():
@@ -276,24 +262,27 @@ class LiveRun:
     def _open_frames(self) -> _Frames:
         return _Frames((self._keys >> KEY_SHIFT).astype(np.int32), self._keys & ((1 << KEY_SHIFT) - 1), self._cells)
 
-    def _chains(self, frames: _Frames) -> tuple[FrameTable, Chains]:
-        """Table and chains of ``frames`` plus the sentinel row (last)."""
-        sentinel = np.full((1, self._s, 3), MISSING, np.int64)
-        sentinel[0, self._has_exit, 2] = 1
-        src = np.concatenate([frames.source, frames.source[:1] if len(frames.source) else np.zeros(1, np.int32)])
-        table = frame_table_from_cells(self.stages, src, np.concatenate([frames.frame, [0]]),
-                                       np.concatenate([frames.cells, sentinel]))
-        return table, chains(table)
+    def _table(self, frames: _Frames) -> FrameTable:
+        return frame_table_from_cells(self.stages, frames.source, frames.frame, frames.cells)
+
+    def _chains(self, frames: _Frames) -> Chains:
+        """Completeness and ends of ``frames``, judged by the exit points of the whole run."""
+        return chains(self._table(frames), self._has_exit)
+
+    def _delays(self, frames: _Frames) -> FrameDelays:
+        """The delay model's figures of ``frames``, judged by the exit points of the whole run."""
+        return frame_delays(self._table(frames), self._has_exit)
 
     def _finalise(self, frames: _Frames, end: np.ndarray) -> None:
-        table, ch = self._chains(frames)
-        for name, v in stage_delays_ns(table, ch).items():
+        fd = self._delays(frames)
+        values = series(fd)
+        for name, v in values.stages.items():
             self._series(self._stage_values, name).extend(v / NS_PER_MS)
-        for name, v in gaps_ns(table, ch).items():
+        for name, v in values.gaps.items():
             self._series(self._gap_values, name).extend(v / NS_PER_MS)
-        self._frame_values.extend(frame_delays_ns(table, ch) / NS_PER_MS)
-        c = ch.complete
-        self._origins.extend(table.origin[c], table.source[c])
+        self._frame_values.extend(values.frame / NS_PER_MS)
+        c = fd.chains.complete
+        self._origins.extend(fd.table.origin[c], fd.table.source[c])
         self.finalised += int(c.sum())
         ring = self._ring
         ring["source"].extend(frames.source)
@@ -319,30 +308,30 @@ class LiveRun:
     # --- statistics -----------------------------------------------------------------------------
 
     def session_stats(self, dropped: int = 0) -> dict:
-        """``probes.stats.node_stats`` of every event received for this run."""
+        """``probes.delays.node_stats`` of every event received for this run."""
         self.maintain()
-        open_ = self._open_frames()
-        table, ch = self._chains(open_)
-        stage_v = {k: v / NS_PER_MS for k, v in stage_delays_ns(table, ch).items()}
-        gap_v = {k: v / NS_PER_MS for k, v in gaps_ns(table, ch).items()}
-        stages = {}
-        for s, name in enumerate(self.stages):
-            if self._has_exit[s]:
-                stages[name] = self._series(self._stage_values, name).summary(stage_v.get(name))
-        gaps = {}
-        for name in sorted(set(self._gap_values) | set(gap_v), key=self._gap_order):
-            gaps[name] = self._series(self._gap_values, name).summary(gap_v.get(name))
-        frame = self._frame_values.summary(frame_delays_ns(table, ch) / NS_PER_MS)
-        c = ch.complete
+        fd = self._delays(self._open_frames())
+        open_values = series(fd)
+        # Every series the run has seen, finalised frames' values added by _session_summary.
+        gap_names = sorted(set(self._gap_values) | set(open_values.gaps), key=self._gap_order)
+        values = Series(stages=open_values.stages, frame=open_values.frame,
+                        gaps={name: open_values.gaps.get(name, np.zeros(0)) for name in gap_names})
+        c = fd.chains.complete
         n_open_complete = int(c.sum())
-        n_open_incomplete = len(open_.source) - n_open_complete
         return {
-            "stages": stages, "gaps": gaps, "frame": frame,
-            "fps": self._origins.fps(self._all_sources(), table.origin[c], table.source[c]),
+            **delay_summary(values, self._session_summary),
+            "fps": self._origins.fps(self._all_sources(), fd.table.origin[c], fd.table.source[c]),
             "dropped": int(dropped),
-            "frames": {"complete": self.finalised + n_open_complete, "incomplete": self.evicted + n_open_incomplete},
+            "frames": {"complete": self.finalised + n_open_complete,
+                       "incomplete": self.evicted + len(fd) - n_open_complete},
             "percentile_error": 0.0 if all(v.exact for v in self._all_series()) else RELATIVE_ERROR,
         }
+
+    def _session_summary(self, kind: str, name: str, values_ms: np.ndarray) -> dict:
+        """``summarize`` of the finalised values of a series and ``values_ms`` (open frames)."""
+        if kind == "frame":
+            return self._frame_values.summary(values_ms)
+        return self._series(self._stage_values if kind == "stages" else self._gap_values, name).summary(values_ms)
 
     def window_stats(self) -> dict:
         """The same statistics over frames whose chain ended in the last ``window_s`` (node time)."""
@@ -351,21 +340,17 @@ class LiveRun:
         ring = self._ring
         sel = ring["end"].view >= cutoff
         open_ = self._open_frames()
-        _, och = self._chains(open_)
-        osel = och.complete[:-1] & (och.end[:-1] >= cutoff)
-        frames = _Frames(np.concatenate([ring["source"].view[sel], open_.source[osel]]),
-                         np.concatenate([ring["frame"].view[sel], open_.frame[osel]]),
-                         np.concatenate([ring["cells"].view[sel], open_.cells[osel]]))
-        table, ch = self._chains(frames)
-        c = ch.complete
-        incomplete = int((self._evicted_last.view >= cutoff).sum()) + \
-            int((~och.complete[:-1] & (self._last >= cutoff)).sum())
+        och = self._chains(open_)
+        osel = och.complete & (och.end >= cutoff)
+        fd = self._delays(_Frames(np.concatenate([ring["source"].view[sel], open_.source[osel]]),
+                                  np.concatenate([ring["frame"].view[sel], open_.frame[osel]]),
+                                  np.concatenate([ring["cells"].view[sel], open_.cells[osel]])))
+        c = fd.chains.complete
+        incomplete = int((self._evicted_last.view >= cutoff).sum()) + int((~och.complete & (self._last >= cutoff)).sum())
         return {
             "window_s": self.config.window_s,
-            "stages": {k: summarize(v / NS_PER_MS) for k, v in stage_delays_ns(table, ch).items()},
-            "gaps": {k: summarize(v / NS_PER_MS) for k, v in gaps_ns(table, ch).items()},
-            "frame": summarize(frame_delays_ns(table, ch) / NS_PER_MS),
-            "fps": OriginSpans().fps(self._all_sources(), table.origin[c], table.source[c]),
+            **delay_summary(series(fd)),
+            "fps": OriginSpans().fps(self._all_sources(), fd.table.origin[c], fd.table.source[c]),
             "frames": {"complete": int(c.sum()), "incomplete": incomplete},
         }
 
@@ -379,24 +364,13 @@ class LiveRun:
 
     # --- frames for the UI --------------------------------------------------------------------
 
-    def recent(self, since: int = 0, limit: int = 200, newest: bool = False) -> dict:
-        """Complete frames with cursor > ``since``, as column arrays: the first ``limit`` of
-        them, or the last ``limit`` with ``newest``. Only the last ``recent_frames`` are kept."""
+    def recent(self, since: int = 0, limit: int = 200, newest: bool = False) -> tuple[np.ndarray, FrameDelays]:
+        """Complete frames with cursor > ``since``: their cursors and their delays (rows in
+        cursor order); the first ``limit`` of them, or the last ``limit`` with ``newest``.
+        Only the last ``recent_frames`` are kept."""
         self.maintain()
         r = self._recent
         n = r["n"].view
         after = np.flatnonzero(n > since)
         sel = after[-limit:] if newest else after[:limit]
-        return {"n": n[sel], "source": r["source"].view[sel], "frame": r["frame"].view[sel],
-                "cells": r["cells"].view[sel], "end": r["end"].view[sel]}
-
-
-def bottleneck(stats: dict) -> dict | None:
-    """The stage with the largest share of the mean frame delay."""
-    means = {k: v["mean_ms"] for k, v in stats["stages"].items() if v["mean_ms"] is not None}
-    if not means:
-        return None
-    name = max(means, key=means.get)
-    frame_mean = stats["frame"]["mean_ms"]
-    return {"stage": name, "mean_ms": means[name],
-            "share": means[name] / frame_mean if frame_mean else None}
+        return n[sel], self._delays(_Frames(r["source"].view[sel], r["frame"].view[sel], r["cells"].view[sel]))

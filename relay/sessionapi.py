@@ -4,8 +4,8 @@
   last_ns, dropped, lost, clock, ended}], one per run of the session (a node seen twice: NODE, NODE_2)
 - ``GET /api/sessions/{session}/frames?node=NAME&since=CURSOR&limit=N``: the node's complete
   frames in the order their chains ended, shaped as ``GET /api/frames`` (cursor = position, from 1)
-- ``GET /api/sessions/{session}/stats?node=NAME``: ``probes.stats.node_stats`` over the node's
-  stored events, plus ``bottleneck``
+- ``GET /api/sessions/{session}/stats?node=NAME``: ``probes.delays.node_stats`` over the node's
+  stored events (stage shares and bottleneck included)
 
 Timestamps are moved to the relay's clock by each run's last stored clock correction, as
 ``dcuscope export`` does (:func:`relay.storage.load_runs`). A session is paired once, in a
@@ -26,12 +26,14 @@ from dataclasses import dataclass
 import numpy as np
 from aiohttp import web
 
+from probes.delays import FrameDelays, delay_stats, frame_delays
 from probes.events import TraceHeader
-from probes.stats import MISSING, chains, frame_table, node_stats, unique_name
+from probes.frametable import frame_table
+from probes.stats import unique_name
 from relay import storage as db
 from relay.api import http_error, int_arg
 from relay.errors import RelayError
-from relay.live import bottleneck
+from relay.framejson import block, frame_dicts
 from relay.state import RelayState
 
 CACHED_SESSIONS = 3
@@ -44,7 +46,8 @@ ROUTES = ("/api/sessions/{session:\\d+}/nodes", "/api/sessions/{session:\\d+}/fr
 
 @dataclass
 class StoredNode:
-    """One run of a stored session, paired: complete frames ordered by the end of their chain."""
+    """One run of a stored session, paired: its frames' delays and the order of its complete
+    frames by the end of their chain (the order in which a live relay would have shown them)."""
 
     node: str
     run: str
@@ -54,54 +57,38 @@ class StoredNode:
     clock: dict
     ended: bool
     events: int
-    source: np.ndarray
-    frame: np.ndarray
-    origin: np.ndarray
-    end: np.ndarray
-    enter: np.ndarray
-    """(n, n_stages) int64 ns, MISSING where the frame has no enter there."""
-    exit: np.ndarray
+    fd: FrameDelays
+    order: np.ndarray
+    """Rows of ``fd`` of the complete frames, by chain end: position k is cursor k + 1."""
     stats: dict
 
     def summary(self) -> dict:
-        n = len(self.source)
+        n = len(self.order)
+        t, ch = self.fd.table, self.fd.chains
         return {"node": self.node, "run": self.run, "stages": self.header.stages, "kinds": self.header.kinds,
                 "sources": {str(k): v for k, v in self.header.sources.items()}, "frames": n, "events": self.events,
-                "first_ns": int(self.origin.min()) if n else None, "last_ns": int(self.end.max()) if n else None,
+                "first_ns": int(t.origin[self.order].min()) if n else None,
+                "last_ns": int(ch.end[self.order].max()) if n else None,
                 "dropped": self.dropped, "lost": self.lost, "clock": self.clock, "ended": self.ended}
 
     def frames_view(self, since: int, limit: int) -> dict:
         """Frames at positions since+1 .. since+limit, shaped as ``RelayState.frames_view``."""
-        lo, hi = min(since, len(self.source)), min(since + limit, len(self.source))
-        sl = slice(lo, hi)
-        frames = [
-            {"n": lo + k + 1, "source": s, "frame": f, "origin": o, "enter": _nulls(en), "exit": _nulls(ex),
-             "delay_ms": (e - o) / 1e6}
-            for k, (s, f, o, e, en, ex) in enumerate(zip(
-                self.source[sl].tolist(), self.frame[sl].tolist(), self.origin[sl].tolist(), self.end[sl].tolist(),
-                self.enter[sl].tolist(), self.exit[sl].tolist()))
-        ]
-        return {"node": self.node, "run": self.run, "stages": self.header.stages, "kinds": self.header.kinds, "cursor": hi,
-                "total": len(self.source), "clock": self.clock.get("applied", "stored"), "frames": frames}
-
-
-def _nulls(values: list[int]) -> list[int | None]:
-    return [None if v == MISSING else v for v in values]
+        lo, hi = min(since, len(self.order)), min(since + limit, len(self.order))
+        frames = frame_dicts(np.arange(lo + 1, hi + 1), self.fd, 0, self.order[lo:hi])
+        return block(self.node, self.run, self.header.stages, self.header.kinds, self.fd.chains.has_exit, frames,
+                     self.clock.get("applied", "stored"), cursor=hi, total=len(self.order))
 
 
 def pair_run(run: db.StoredRun, name: str) -> StoredNode:
-    """Pair a stored run's events into complete frames (``probes.stats`` definitions)."""
-    table = frame_table(run.header, run.events)
-    ch = chains(table)
+    """Pair a stored run's events into frames and their delays (:mod:`probes.delays`)."""
+    fd = frame_delays(frame_table(run.header, run.events))
+    ch = fd.chains
     c = np.flatnonzero(ch.complete)
-    order = c[np.argsort(ch.end[c], kind="stable")]
-    stats = node_stats(run.header, run.events, run.dropped)
-    stats["bottleneck"] = bottleneck(stats)
-    stats.update(node=name, run=run.run, session=run.session, lost=run.lost)
+    stats = dict(delay_stats(fd, run.header.sources, run.dropped), node=name, run=run.run, session=run.session,
+                 lost=run.lost)
     return StoredNode(node=name, run=run.run, header=run.header, dropped=run.dropped, lost=run.lost,
-                      clock=run.clock, ended=run.ended, events=len(run.events), source=table.source[order],
-                      frame=table.frame[order], origin=table.origin[order], end=ch.end[order],
-                      enter=table.enter[order], exit=table.exit[order], stats=stats)
+                      clock=run.clock, ended=run.ended, events=len(run.events), fd=fd,
+                      order=c[np.argsort(ch.end[c], kind="stable")], stats=stats)
 
 
 def load_session_nodes(path, session: int) -> list[StoredNode]:

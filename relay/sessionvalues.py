@@ -4,7 +4,7 @@ A relay may watch many nodes for days; keeping every frame's delays for session 
 would grow without bound (13 values a frame: ~270 MB an hour for one DCU at 360 frames/s).
 
 - :class:`SessionValues` keeps the values themselves up to ``exact_limit``, so statistics of
-  runs of that size are exactly ``probes.stats.summarize``'s. Past it, the values move into
+  runs of that size are exactly ``probes.delays.summarize``'s. Past it, the values move into
   a histogram with logarithmic buckets (as DDSketch): count, mean and max stay exact, and
   each percentile is within ``RELATIVE_ERROR`` of the exact one.
 - :class:`OriginSpans` keeps, per source, what frames/s needs: count, first and last origin.
@@ -16,7 +16,7 @@ import math
 
 import numpy as np
 
-from probes.stats import PERCENTILES, summarize
+from probes.delays import PERCENTILES, summarize
 
 RELATIVE_ERROR = 0.01
 """Largest relative error of a percentile once a series is past its exact limit."""
@@ -135,7 +135,7 @@ class OriginSpans:
             self.last[sid] = max(self.last.get(sid, int(o.max())), int(o.max()))
 
     def fps(self, ids: list[int], origins: np.ndarray, sources: np.ndarray) -> dict[str, float]:
-        """probes.stats.fps_by_source's rule, (n - 1) / span, over these and ``origins``."""
+        """probes.delays.fps_by_source's rule, (n - 1) / span, over these and ``origins``."""
         out = {}
         for sid in ids:
             o = origins[sources == sid]

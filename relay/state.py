@@ -14,8 +14,8 @@ from probes.events import TraceHeader
 from relay import storage as db
 from relay.clock import ClockEstimator, correction_ns
 from relay.errors import ProtocolError
-from relay.frames import block, frame_dicts
-from relay.live import LiveConfig, LiveRun, bottleneck, frame_table_from_cells
+from relay.framejson import block, frame_dicts
+from relay.live import LiveConfig, LiveRun
 from relay.protocol import Hello
 from relay.seqset import SeqSet
 from relay.storage import Storage
@@ -149,7 +149,7 @@ class RelayState:
         return [self.node_view(self.runs[run]) for _, run in sorted(self.nodes.items())]
 
     def stats(self, rs: RunState, fresh: bool = True) -> dict:
-        """node_stats of the run + ``bottleneck`` + rolling ``window``.
+        """node_stats of the run (bottleneck included) + the rolling ``window``.
 
         Session statistics take percentiles over every frame of the run, a cost that grows
         with it; unless ``fresh`` (the HTTP API), they are recomputed at most every
@@ -160,7 +160,6 @@ class RelayState:
         now = time.monotonic()
         if cached is None or (version != rs.live.events and (fresh or now - at >= max(STATS_MAX_AGE_S, 50 * cost))):
             cached = rs.live.session_stats(rs.dropped)
-            cached["bottleneck"] = bottleneck(cached)
             rs._stats = (rs.live.events, now, cached, time.monotonic() - now)
         stats = dict(cached, window=rs.live.window_stats(), node=rs.node, run=rs.run, session=rs.session,
                      lost=rs.lost)
@@ -169,9 +168,8 @@ class RelayState:
     def frames_view(self, rs: RunState, since: int = 0, limit: int = 200, newest: bool = False) -> dict:
         """Complete frames after cursor ``since``, clock-corrected, as the UI draws them: the
         first ``limit`` of them (paging), or with ``newest`` the last ``limit`` (pushes)."""
-        rec = rs.live.recent(since, limit, newest)
+        n, fd = rs.live.recent(since, limit, newest)
         corr, applied = self.correction(rs)
-        table = frame_table_from_cells(rs.header.stages, rec["source"], rec["frame"], rec["cells"])
-        frames = frame_dicts(rec["n"], rec["source"], rec["frame"], table.origin, rec["end"],
-                             rec["cells"][:, :, 1], rec["cells"][:, :, 2], corr)
-        return block(rs.node, rs.run, rs.header.stages, frames, since, rs.live.visible, corr, applied, rs.header.kinds)
+        frames = frame_dicts(n, fd, corr)
+        return block(rs.node, rs.run, rs.header.stages, rs.header.kinds, fd.chains.has_exit, frames, applied,
+                     cursor=frames[-1]["n"] if frames else since, newest=rs.live.visible, correction_ns=corr)

@@ -12,7 +12,8 @@ import time
 import numpy as np
 
 from probes.events import ORIGIN
-from probes.stats import chains, frame_table
+from probes.delays import chains
+from probes.frametable import frame_table
 from probes.tracefile import read_trace
 from tests.conftest import BIKES, VTEST, cli_env, run_cli
 from tests.pipeline.clips import MJPEG_MULTIPART, write_clip

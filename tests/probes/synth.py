@@ -87,6 +87,37 @@ def pipeline_run(
     return header, events, Truth(source, frame, origin, enter, exit_)
 
 
+def troubled_run(seed: int, n_frames: int = 130, node: str = "dcu1") -> tuple[TraceHeader, np.ndarray, int, int]:
+    """A run with every kind of trouble, its events in the order a relay would receive them.
+
+    From a :func:`pipeline_run` (random sources, jitter, batching): frames dropped midway
+    (they never reach the sink), single events lost, tracepoints seen twice (a later copy),
+    events reordered by up to 30 ms, and, at the very end, late copies of tracepoints of
+    frames long finished (timestamps a little later than the originals, so that the earliest
+    kept is the original wherever the copy lands). 130 frames at 10/s span 13 s: more than
+    the relay's 10 s window and settle time. Returns (header, events, number of late copies at
+    the end of events, dropped event count).
+    """
+    rng = np.random.default_rng(seed)
+    n_sources = int(rng.integers(1, 4))
+    header, events, _ = pipeline_run(n_frames, n_sources, jitter_ns=int(rng.integers(1, 20_000_000)),
+                                     batched_mux=bool(rng.integers(2)), node=node, seed=seed)
+    n = n_sources * n_frames
+    row = events["source"].astype(np.int64) * n_frames + events["frame"]
+    # Dropped midway: the frame stops at a random stage, half of them after entering it.
+    cut = np.where(rng.random(n) < 0.1, rng.integers(n_sources, len(header.stages), n), len(header.stages))[row]
+    entered_only = (rng.random(n) < 0.5)[row]
+    past = (events["stage"] > cut) | ((events["stage"] == cut) & (events["point"] == EXIT) & entered_only)
+    events = events[~past & (rng.random(len(events)) >= 0.01)]  # and 1 % of single events lost
+    copies = events[rng.random(len(events)) < 0.02].copy()
+    copies["ts"] += rng.integers(0, 1_000_000, len(copies))
+    events = np.concatenate([events, copies])
+    events = events[np.argsort(events["ts"] + rng.integers(0, 30_000_000, len(events)), kind="stable")]
+    early = events[(events["ts"] < T0 + (n_frames // 3) * 100_000_000) & (rng.random(len(events)) < 0.05)].copy()
+    early["ts"] += rng.integers(0, 1000, len(early))
+    return header, np.concatenate([events, early]), len(early), int(rng.integers(0, 50))
+
+
 def _events(ts, source, frame, stage, point) -> np.ndarray:
     ev = np.zeros(len(ts), EVENT_DTYPE)
     ev["ts"], ev["source"], ev["frame"], ev["stage"], ev["point"] = ts, source, frame, stage, point

@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from probes.events import ENTER, EXIT, ORIGIN
-from probes.stats import MISSING, chains, frame_table
+from probes.delays import chains
+from probes.frametable import MISSING, frame_table
 from probes.tracefile import read_trace
 from tests.conftest import REPO, run_cli
 

@@ -11,9 +11,9 @@ import pytest
 
 from probes.errors import TraceError
 from probes.events import ENTER, EVENT_DTYPE, EXIT
-from probes.stats import (
-    MISSING, chains, frame_delays_ns, frame_table, gaps_ns, node_stats, stage_delays_ns, stats_document, summarize,
-)
+from probes.delays import frame_delays, node_stats, series, summarize
+from probes.frametable import MISSING, frame_table
+from probes.stats import stats_document
 from probes.tracefile import read_trace, write_trace
 from tests.probes.synth import run_commands as _cli
 from tests.probes.synth import STAGES, pipeline_run
@@ -29,7 +29,7 @@ def expected(values_ns) -> dict:
 
 
 def assert_stats(got: dict, want: dict):
-    assert set(got) == STAT_KEYS
+    assert set(got) - {"share"} == STAT_KEYS
     assert got["count"] == want["count"]
     for k in STAT_KEYS - {"count"}:
         assert got[k] == pytest.approx(want[k], rel=1e-12, abs=1e-9), k
@@ -60,7 +60,7 @@ def test_constant_delays_give_exact_stage_gap_and_frame_statistics():
     header, events, _ = pipeline_run(10, n_sources=2, stage_ns=stage_ns, gap_ns=250_000)
     st = node_stats(header, events, dropped=5)
 
-    assert set(st) == {"stages", "gaps", "frame", "fps", "dropped", "frames"}
+    assert set(st) == {"stages", "gaps", "frame", "bottleneck", "fps", "dropped", "frames"}
     assert list(st["stages"]) == list(STAGES)  # pipeline order; no delay at sources or sink
     for name, ns in zip(STAGES, stage_ns):
         assert_stats(st["stages"][name], expected([ns] * 20))
@@ -92,19 +92,19 @@ def test_frame_delay_is_the_sum_of_stage_delays_and_gaps_for_every_frame(seed):
     n_sources = int(rng.integers(1, 5))
     header, events, _ = pipeline_run(int(rng.integers(5, 60)), n_sources=n_sources,
                                      jitter_ns=int(rng.integers(1, 50_000_000)), batched_mux=bool(seed % 2), seed=seed)
-    table = frame_table(header, events)
-    ch = chains(table)
-    assert ch.complete.all()
-    total = sum(stage_delays_ns(table, ch).values())  # per stage: one value per complete frame, table order
-    gaps = gaps_ns(table, ch)
+    fd = frame_delays(frame_table(header, events))
+    table, sr = fd.table, series(fd)
+    assert fd.chains.complete.all()
+    total = sum(sr.stages.values())  # per stage: one value per complete frame, table order
+    gaps = sr.gaps
     for key, values in gaps.items():
         if key.endswith(f"->{STAGES[0]}"):
             continue
         total = total + values
-    per_source_gap = np.zeros(len(table), np.int64)
+    per_source_gap = np.zeros(len(table))
     for k in range(n_sources):
         per_source_gap[table.source == k] = gaps[f"src{k}->{STAGES[0]}"]
-    assert np.array_equal(total + per_source_gap, frame_delays_ns(table, ch))
+    assert np.array_equal(total + per_source_gap, sr.frame)
 
     # The same identity on the summary: mean frame delay = sum of stage means + count-weighted gap means.
     st = node_stats(header, events)
@@ -215,7 +215,7 @@ def test_stats_cli_json_prints_one_document(two_traces):
     doc = json.loads(out)
     assert doc == json.loads(json.dumps(stats_document([read_trace(p) for p in two_traces])))
     assert set(doc["nodes"]) == {"dcu1", "dcu2"} and doc["nodes"]["dcu2"]["dropped"] == 1
-    assert set(doc["nodes"]["dcu1"]["stages"]["infer"]) == STAT_KEYS
+    assert set(doc["nodes"]["dcu1"]["stages"]["infer"]) == STAT_KEYS | {"share"}
 
 
 def test_stats_cli_table_has_one_aligned_block_per_node(two_traces):

@@ -114,4 +114,5 @@ def raw(frame: dict, correction: int) -> dict:
     """A pushed frame with its clock correction undone (it changes as estimates improve)."""
     def back(values):
         return [None if v is None else v + correction for v in values]
-    return dict(frame, origin=frame["origin"] + correction, enter=back(frame["enter"]), exit=back(frame["exit"]))
+    return dict(frame, origin=frame["origin"] + correction, end=frame["end"] + correction, enter=back(frame["enter"]),
+                exit=back(frame["exit"]))

@@ -6,7 +6,7 @@ from __future__ import annotations
 import asyncio
 import time
 
-from probes.stats import node_stats
+from probes.delays import node_stats
 from tests.relay.fuzzer import fuzz
 from tests.relay.helpers import RelayProcess, assert_stats_equal, finish_node, get_json, load_node, start_node
 

@@ -1,4 +1,4 @@
-"""The live engine against probes.stats.node_stats over the same events, fed batch by batch."""
+"""The live engine against probes.delays.node_stats over the same events, fed batch by batch."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from probes.events import ENTER, EXIT
-from probes.stats import node_stats
-from relay.live import LiveConfig, LiveRun, bottleneck
+from probes.delays import node_stats
+from relay.live import LiveConfig, LiveRun
 from relay.simnode import header_for, synth_events
 from tests.probes.synth import pipeline_run
 from tests.relay.helpers import assert_stats_equal
@@ -104,11 +104,13 @@ def test_visible_frames_and_bottleneck():
     run = LiveRun(header)
     feed(run, events, 120)
     assert run.visible == 200
-    assert run.recent(since=190, limit=5, newest=True)["n"].tolist() == [196, 197, 198, 199, 200]
-    assert run.recent(since=190, limit=5)["n"].tolist() == [191, 192, 193, 194, 195]
-    stats = run.session_stats()
-    b = bottleneck(stats)
-    assert b["stage"] == "infer" and 0.5 < b["share"] < 1.0
+    assert run.recent(since=190, limit=5, newest=True)[0].tolist() == [196, 197, 198, 199, 200]
+    n, fd = run.recent(since=190, limit=5)
+    assert n.tolist() == [191, 192, 193, 194, 195] and fd.chains.complete.all()
+    for stats in (run.session_stats(), run.window_stats()):
+        b = stats["bottleneck"]
+        assert b["stage"] == "infer" and 0.5 < b["share"] < 1.0
+        assert b["share"] == stats["stages"]["infer"]["share"]
 
 
 def test_throughput_is_vectorised():

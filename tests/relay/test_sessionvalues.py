@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from probes.stats import node_stats, summarize
+from probes.delays import node_stats, summarize
 from relay.live import LiveConfig, LiveRun
 from relay.sessionvalues import RELATIVE_ERROR, SessionValues
 from relay.simnode import header_for, synth_events

@@ -67,26 +67,29 @@ def test_node_store_is_bounded_and_searchable(page):
         const stages = ["src0", "mux", "infer", "sink"];
         const s = new m.NodeStore("DCU-1", stages, 8, 16);
         const frame = (n, src, originMs, delay) => ({n, source: src, frame: n, origin: originMs * 1e6,
+            end: (originMs + delay) * 1e6,
             enter: [null, originMs * 1e6 + 1e6, originMs * 1e6 + 3e6, originMs * 1e6 + delay * 1e6],
-            exit: [null, originMs * 1e6 + 2e6, originMs * 1e6 + 5e6, null], delay_ms: delay});
+            exit: [null, originMs * 1e6 + 2e6, originMs * 1e6 + 5e6, null], delay_ms: delay,
+            stage_delay_ms: [null, 1, 2, null]});
         const frames = [];
         for (let n = 1; n <= 12; n++) frames.push(frame(n, n % 2, 1000 * n, 10 + n));
-        const added = s.ingest({run: "a", stages, frames});
-        const again = s.ingest({run: "a", stages, frames: frames.slice(-3)});   // already held
+        const has_exit = [false, true, true, false];
+        const added = s.ingest({run: "a", stages, has_exit, frames});
+        const again = s.ingest({run: "a", stages, has_exit, frames: frames.slice(-3)});   // already held
         const oldest = s.frame[s.slot(0)];
         const first = s.firstEndingAfter(7000);      // frame 7 ends at 7017
         const beyond = s.firstEndingBeyond(9019);    // frame 9 ends at 9019 exactly
         const lanes = s.lanes.map((i) => stages[i]);
-        const other = s.ingest({run: "b", stages: ["src0", "mux", "sink"], frames: [
-            {n: 1, source: 0, frame: 0, origin: 5e12, enter: [null, 5e12, 5e12 + 1e6],
-             exit: [null, 5e12 + 1e6, null], delay_ms: 1}]});
+        const other = s.ingest({run: "b", stages: ["src0", "mux", "sink"], has_exit: [false, true, false], frames: [
+            {n: 1, source: 0, frame: 0, origin: 5e12, end: 5e12 + 1e6, enter: [null, 5e12, 5e12 + 1e6],
+             exit: [null, 5e12 + 1e6, null], delay_ms: 1, stage_delay_ms: [null, 1, null]}]});
         return {added, again, size: 8, oldest, first: s.size && first, beyond, lanes, sources: [0, 1],
                 afterNewRun: {size: s.size, stages: s.stages, received: s.received, other}};""")
     assert out["added"] == 12 and out["again"] == 0
     assert out["oldest"] == 5  # capacity 8: frames 5..12 kept
     assert out["first"] == 2  # logical index of frame 7 (frames 5, 6 ended before 7000)
     assert out["beyond"] == 5  # frames 5..9 end at or before 9019
-    assert out["lanes"] == ["mux", "infer"]  # the sink has an enter only: no bar
+    assert out["lanes"] == ["mux", "infer"]  # the relay's has_exit: the sink has an enter only, no bar
     # A run with other stages starts the store afresh.
     assert out["afterNewRun"] == {"size": 1, "stages": ["src0", "mux", "sink"], "received": 1, "other": 1}
 
@@ -98,9 +101,10 @@ def test_stage_bars_cover_only_where_frames_were_and_every_bar_pixel_hovers(page
     out = js(page, """
         const base = 1.7e12, stages = ["mux", "osd"], osd = [[1000, 1010], [1200, 1210], [1100, 1105]];
         const store = new m.NodeStore("DCU-9", stages, 16, 16);
-        store.ingest({run: "r", stages, frames: osd.map(([a, b], i) => ({n: i + 1, source: i, frame: i,
-            origin: (base + a - 50) * 1e6, enter: [(base + a - 50) * 1e6, (base + a) * 1e6],
-            exit: [(base + a - 40) * 1e6, (base + b) * 1e6], delay_ms: b + 50 - a}))});
+        store.ingest({run: "r", stages, has_exit: [true, true], frames: osd.map(([a, b], i) => ({n: i + 1,
+            source: i, frame: i, origin: (base + a - 50) * 1e6, end: (base + b) * 1e6,
+            enter: [(base + a - 50) * 1e6, (base + a) * 1e6], exit: [(base + a - 40) * 1e6, (base + b) * 1e6],
+            delay_ms: b + 50 - a, stage_delay_ms: [10, b - a]}))});
         const wrap = document.createElement("div");
         wrap.style.width = "1150px";
         document.body.append(wrap);
@@ -157,14 +161,11 @@ def test_stage_colours_follow_the_element_kind_whatever_the_stage_is_called(page
 def test_delay_formats_and_axis(page):
     out = js(page, """
         return {d: [0.5, 12.345, 250, 1234.5].map(m.formatDelay), t: [0, 0.25, 20, 2500].map(m.formatTick),
-                nice: [0.7, 3, 41, 120, 2600].map(m.niceCeil), ticks: m.delayTicks(100, 500).values,
-                neck: m.bottleneckOf({stages: {mux: {mean_ms: 2}, infer: {mean_ms: 30}, osd: {mean_ms: null}},
-                                      frame: {mean_ms: 40}})};""")
+                nice: [0.7, 3, 41, 120, 2600].map(m.niceCeil), ticks: m.delayTicks(100, 500).values};""")
     assert out["d"] == ["500 µs", "12.35 ms", "250.0 ms", "1.234 s"]
     assert out["t"] == ["0", "250 µs", "20 ms", "2.5 s"]
     assert out["nice"] == [1, 5, 50, 200, 5000]
     assert out["ticks"] == [0, 20, 40, 60, 80, 100]
-    assert out["neck"] == {"stage": "infer", "mean_ms": 30, "share": 0.75}
 
 
 def test_stage_row_names_never_overlap_the_stage_names(page):
@@ -174,9 +175,11 @@ def test_stage_row_names_never_overlap_the_stage_names(page):
         const base = 1.7e12, stages = ["src0", "mux_batcher", "infer_primary", "convert_post", "osd_overlay"];
         const store = new m.NodeStore("DCU-with-a-rather-long-node-name-7", stages, 16, 16);
         const ms = (t) => (base + t) * 1e6;
-        store.ingest({run: "r", stages, frames: [0, 1, 2].map((s) => ({n: s + 1, source: s, frame: 0, origin: ms(s),
+        store.ingest({run: "r", stages, has_exit: [false, true, true, true, true],
+            frames: [0, 1, 2].map((s) => ({n: s + 1, source: s, frame: 0, origin: ms(s), end: ms(s + 5),
             enter: [ms(s), ms(s + 1), ms(s + 2), ms(s + 3), ms(s + 4)],
-            exit: [null, ms(s + 2), ms(s + 3), ms(s + 4), ms(s + 5)], delay_ms: 5}))});
+            exit: [null, ms(s + 2), ms(s + 3), ms(s + 4), ms(s + 5)], delay_ms: 5,
+            stage_delay_ms: [null, 1, 1, 1, 1]}))});
         const wrap = document.createElement("div");
         wrap.style.width = "900px";
         document.body.append(wrap);
@@ -206,3 +209,25 @@ def test_stage_row_names_never_overlap_the_stage_names(page):
     assert any(t.startswith("▾ DCU-") for t in texts) and "all sources" in texts, texts
     assert not out["overlaps"], out
     assert out["right"] <= 150, out  # inside the gutter, left of the plot
+
+
+def test_stats_panel_shows_the_relays_shares_and_bottleneck_and_derives_none(page):
+    # Figures no page could derive from the means (share 0.25 of a 30 ms stage in a 40 ms frame,
+    # the bottleneck on the smaller stage): the panel must show exactly what the relay sent.
+    out = js(page, """
+        const summary = (mean, share) => ({count: 3, mean_ms: mean, p50_ms: mean, p95_ms: mean, p99_ms: mean,
+                                           max_ms: mean, share});
+        const whole = {stages: {mux: summary(2, 0.125), infer: summary(30, 0.25)}, gaps: {}, frame: summary(40),
+                       bottleneck: {stage: "mux", mean_ms: 2, share: 0.125}, fps: {}, frames: {}};
+        const window = {...whole, window_s: 10, stages: {mux: summary(2, null), infer: summary(30, 0.5)},
+                        bottleneck: null};
+        const colours = new m.StageColours();
+        const html = (windowed) => {
+            const div = document.createElement("div");
+            div.innerHTML = m.statsHtml([["DCU-1", {...whole, window}, ["mux", "infer"]]], colours, windowed);
+            return [...div.querySelectorAll("tbody tr[data-stage]")].map((tr) =>
+                [tr.dataset.stage, tr.classList.contains("bottleneck"), tr.lastElementChild.textContent]);
+        };
+        return {whole: html(false), window: html(true)};""")
+    assert out["whole"] == [["mux", True, "13%"], ["infer", False, "25%"]]
+    assert out["window"] == [["mux", False, "–"], ["infer", False, "50%"]]

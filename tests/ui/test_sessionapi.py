@@ -7,8 +7,10 @@ import json
 import numpy as np
 import pytest
 
+from probes.delays import chains, node_stats
 from probes.events import TraceHeader
-from probes.stats import chains, frame_table, node_stats
+from probes.frametable import frame_table
+from relay import simnode
 from tests.relay.helpers import get_json, http_status, wait_for
 from tests.ui.helpers import RelayThread, sim_nodes
 
@@ -59,8 +61,10 @@ def test_session_nodes_frames_and_stats_match_what_was_shipped(stored):
         assert len(got) == summary["frames"]
         assert {(f["source"], f["frame"]) for f in got} == {(int(s), int(f)) for s, f in
                                                              zip(table.source[ch.complete], table.frame[ch.complete])}
-        ends = [f["origin"] + f["delay_ms"] * 1e6 for f in got]
-        assert ends == sorted(ends)
+        ends = [f["end"] for f in got]
+        assert ends == sorted(ends) and all(f["complete"] for f in got)
+        assert all((f["end"] - f["origin"]) / 1e6 == f["delay_ms"] for f in got)
+        assert page["has_exit"] == [s in simnode.STAGES for s in header.stages]  # not the sources, not the sink
         # Delays are differences on one clock: the clock correction leaves them as shipped.
         expected = node_stats(header, events)
         stats = get_json(f"{relay.url}/api/sessions/{sid}/stats?node={summary['node']}", TOKEN)
@@ -72,6 +76,8 @@ def test_session_nodes_frames_and_stats_match_what_was_shipped(stored):
         first = got[0]
         mux = header.stages.index("mux")
         assert first["enter"][mux] is not None and first["exit"][mux] > first["enter"][mux]
+        assert first["stage_delay_ms"][mux] == (first["exit"][mux] - first["enter"][mux]) / 1e6
+        assert first["stage_gap_ms"][mux] == (first["enter"][mux] - first["origin"]) / 1e6
         assert first["enter"][0] is None  # the origin stage has no enter
 
 

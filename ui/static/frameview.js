@@ -207,9 +207,8 @@ export class FrameView {
     const p = store.slot(lo + i);
     const stages = [];
     for (let s = 0; s < store.S; s++) {
-      const a = store.enter[p * store.S + s];
-      const e = store.exit[p * store.S + s];
-      if (a === a && e === e) stages.push([store.stages[s], e - a]);
+      const d = store.stageDelay[p * store.S + s];
+      if (d === d) stages.push([store.stages[s], d]);
     }
     return { node, source: store.source[p], frame: store.frame[p], origin: store.origin[p], delay: store.delay[p], stages };
   }

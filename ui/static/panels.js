@@ -14,23 +14,14 @@ export function setHtml(el, html) {
   }
 }
 
-/** The stage with the largest mean delay (the relay's own rule), for window statistics. */
-export function bottleneckOf(stats) {
-  let best = null;
-  for (const [name, s] of Object.entries(stats.stages ?? {})) {
-    if (s.mean_ms !== null && (best === null || s.mean_ms > best.mean_ms)) best = { stage: name, mean_ms: s.mean_ms };
-  }
-  if (best && stats.frame?.mean_ms) best.share = best.mean_ms / stats.frame.mean_ms;
-  return best;
-}
-
 function summaryCells(s) {
   return `<td>${int(s.count)}</td><td>${ms(s.mean_ms)}</td><td>${ms(s.p50_ms)}</td><td>${ms(s.p95_ms)}</td>`
     + `<td>${ms(s.p99_ms)}</td><td>${ms(s.max_ms)}</td>`;
 }
 
 /**
- * One block per node: stage rows (bottleneck highlighted), the end-to-end row, gaps, fps, drops.
+ * One block per node: stage rows (bottleneck highlighted), the end-to-end row, gaps, fps, drops;
+ * every figure as the relay computed it (shares and bottleneck included).
  * `windowed`: show the relay's rolling window (``stats.window``) instead of the whole run;
  * `openGaps`: nodes whose gaps table the user opened (kept open across refreshes).
  */
@@ -38,13 +29,12 @@ export function statsHtml(entries, colours, windowed, openGaps = new Set()) {
   if (!entries.length) return `<p class="muted">No statistics yet.</p>`;
   return entries.map(([node, full, order]) => {
     const st = windowed && full.window ? full.window : full;
-    const neck = windowed && full.window ? bottleneckOf(st) : full.bottleneck ?? bottleneckOf(st);
-    const frameMean = st.frame?.mean_ms;
+    const neck = st.bottleneck;
     const names = Object.keys(st.stages ?? {}).sort((a, b) => order.indexOf(a) - order.indexOf(b));
     const rows = names.map((name) => {
       const s = st.stages[name];
       const isNeck = neck && neck.stage === name;
-      const share = frameMean && s.mean_ms !== null ? `${((100 * s.mean_ms) / frameMean).toFixed(0)}%` : "–";
+      const share = s.share === null || s.share === undefined ? "–" : `${(100 * s.share).toFixed(0)}%`;
       return `<tr data-stage="${esc(name)}"${isNeck ? ' class="bottleneck"' : ""}>`
         + `<td><span class="swatch" style="background:${colours.get(name)}"></span>${esc(name)}`
         + `${isNeck ? ' <span class="badge">bottleneck</span>' : ""}</td>${summaryCells(s)}<td>${share}</td></tr>`;

@@ -274,7 +274,7 @@ export class StageView {
       const e = store.exit[p * store.S + s];
       if (!(a <= t + tol && e >= t - tol)) continue;
       const dist = t < a ? a - t : t > e ? t - e : 0;
-      if (dist < bestDist || (dist === bestDist && e - a < this._span(store, best, s))) {
+      if (dist < bestDist || (dist === bestDist && store.stageDelay[p * store.S + s] < this._span(store, best, s))) {
         best = p;
         bestDist = dist;
       }
@@ -284,12 +284,12 @@ export class StageView {
     const e = store.exit[best * store.S + s];
     return {
       node: store.node, stage: store.stages[s], source: store.source[best], frame: store.frame[best],
-      enter: a, exit: e, delay: e - a, frameDelay: store.delay[best],
+      enter: a, exit: e, delay: store.stageDelay[best * store.S + s], frameDelay: store.delay[best],
     };
   }
 
   _span(store, p, s) {
-    return p < 0 ? Infinity : store.exit[p * store.S + s] - store.enter[p * store.S + s];
+    return p < 0 ? Infinity : store.stageDelay[p * store.S + s];
   }
 
   /** Tooltip lines of a hit. */

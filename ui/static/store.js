@@ -60,13 +60,14 @@ export class NodeStore {
     this.delay = new Float32Array(cap);
     this.enter = new Float64Array(cap * this.S);
     this.exit = new Float64Array(cap * this.S);
+    this.stageDelay = new Float64Array(cap * this.S); // ms, NaN where the frame has none
     this.maxEnd = new Float64Array(cap); // running maximum of `end` in arrival order: searchable
     this.head = 0;
     this.size = 0;
     this.lastN = 0;
     this.received = 0;
     this.newestEnd = -Infinity;
-    this.barStage = new Uint8Array(this.S); // 1 where some frame has enter and exit: a lane
+    this.barStage = new Uint8Array(this.S); // 1 where the relay says the stage has an exit point: a lane
     this.sourceCounts = new Map();
     this._sources = null;
     this.version = 0;
@@ -92,8 +93,9 @@ export class NodeStore {
   }
 
   /**
-   * Add a block shaped as GET /api/frames ({run, stages, frames: [{n, source, frame, origin,
-   * enter[], exit[], delay_ms}]}); frames at or below the cursor already held are skipped.
+   * Add a block shaped as GET /api/frames ({run, stages, has_exit[], frames: [{n, source, frame,
+   * origin, end, enter[], exit[], delay_ms, stage_delay_ms[]}]}); frames at or below the cursor
+   * already held are skipped. Every figure comes from the relay; none is derived here.
    * Returns how many were added.
    */
   ingest(block) {
@@ -103,6 +105,7 @@ export class NodeStore {
       this.run = block.run;
       this.lastN = 0;
     }
+    (block.has_exit ?? []).forEach((h, s) => { if (h && s < this.S) this.barStage[s] = 1; });
     let added = 0;
     for (const f of block.frames) {
       if (f.n <= this.lastN) continue;
@@ -126,7 +129,7 @@ export class NodeStore {
     }
     const S = this.S;
     const origin = f.origin / 1e6;
-    const end = origin + f.delay_ms;
+    const end = f.end / 1e6;
     this.source[p] = f.source;
     this.frame[p] = f.frame;
     this.origin[p] = origin;
@@ -138,7 +141,7 @@ export class NodeStore {
       const b = f.exit[s];
       this.enter[base + s] = a === null || a === undefined ? NaN : a / 1e6;
       this.exit[base + s] = b === null || b === undefined ? NaN : b / 1e6;
-      if (a !== null && a !== undefined && b !== null && b !== undefined) this.barStage[s] = 1;
+      this.stageDelay[base + s] = f.stage_delay_ms?.[s] ?? NaN;
     }
     this.newestEnd = Math.max(this.newestEnd, end);
     this.maxEnd[p] = this.newestEnd;

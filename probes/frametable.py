@@ -1,0 +1,93 @@
+"""Probe events paired by frame identity: one row per (source, frame), one cell per tracepoint.
+
+The input of the delay model (:mod:`probes.delays`). Trace files and stored sessions pair all
+their events at once (:func:`frame_table`); the relay pairs incrementally into cells and
+builds its tables with :func:`frame_table_from_cells`. Where a tracepoint saw a frame twice,
+the earliest timestamp is kept.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from probes.errors import TraceError
+from probes.events import ENTER, EXIT, ORIGIN, POINT_NAMES, TraceHeader
+
+MISSING = -1
+"""Timestamp of a tracepoint a frame never hit. Real timestamps (ns) are never negative."""
+
+_NEVER = np.iinfo(np.int64).max
+
+
+@dataclass
+class FrameTable:
+    """One row per frame identity (source, frame), sorted by source then frame number."""
+
+    stages: list[str]
+    source: np.ndarray
+    """(n,) int32."""
+    frame: np.ndarray
+    """(n,) int64."""
+    origin: np.ndarray
+    """(n,) int64 ns, MISSING if the origin event is missing."""
+    origin_stage: np.ndarray
+    """(n,) int64 stage index of the origin event, -1 if missing."""
+    enter: np.ndarray
+    """(n, n_stages) int64 ns, MISSING where the frame has no enter at that stage."""
+    exit: np.ndarray
+    """(n, n_stages) int64 ns, MISSING where the frame has no exit at that stage."""
+
+    def __len__(self) -> int:
+        return int(self.source.shape[0])
+
+
+def frame_table(header: TraceHeader, events: np.ndarray) -> FrameTable:
+    """Pair events by frame identity; where a tracepoint saw a frame twice keep the earliest."""
+    n_stages = len(header.stages)
+    stage = events["stage"].astype(np.int64)
+    point = events["point"].astype(np.int64)
+    if len(events) and (stage.min() < 0 or stage.max() >= n_stages or point.min() < 0 or point.max() > EXIT):
+        raise TraceError(f"node {header.node}: event stage or point out of range for {n_stages} stages")
+    ts = np.ascontiguousarray(events["ts"], dtype=np.int64)
+    row, source, frame = _frame_rows(np.ascontiguousarray(events["source"]), np.ascontiguousarray(events["frame"]))
+    n = len(source)
+
+    # Earliest timestamp per (frame, stage, point): a scatter-min, no per-event Python.
+    cells = np.full(n * n_stages * len(POINT_NAMES), _NEVER, np.int64)
+    np.minimum.at(cells, (row * n_stages + stage) * len(POINT_NAMES) + point, ts)
+    cells[cells == _NEVER] = MISSING
+    return frame_table_from_cells(header.stages, source, frame, cells.reshape(n, n_stages, len(POINT_NAMES)))
+
+
+def frame_table_from_cells(stages: list[str], source: np.ndarray, frame: np.ndarray, cells: np.ndarray) -> FrameTable:
+    """FrameTable from paired cells: ``cells[row, stage, point]`` = ts or MISSING.
+
+    Points are 0 origin, 1 enter, 2 exit; the relay pairs incrementally and builds tables here.
+    """
+    n = len(source)
+    origins = cells[:, :, ORIGIN]
+    has_origin = origins != MISSING
+    origin_stage = np.where(has_origin.any(axis=1), has_origin.argmax(axis=1), -1)
+    origin = np.where(origin_stage >= 0, origins[np.arange(n), np.maximum(origin_stage, 0)], MISSING)
+    return FrameTable(
+        stages=list(stages), source=np.asarray(source, np.int32), frame=np.asarray(frame, np.int64),
+        origin=origin, origin_stage=origin_stage,
+        enter=np.ascontiguousarray(cells[:, :, ENTER]), exit=np.ascontiguousarray(cells[:, :, EXIT]),
+    )
+
+
+def _frame_rows(source: np.ndarray, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Row of each event's frame identity, and the identities sorted by (source, frame)."""
+    if len(source) and source.min() >= 0 and source.max() < 1 << 22 and frame.min() >= 0 and frame.max() < 1 << 40:
+        # One sort of one int64 key instead of a two-key lexsort: ~3x faster on 1M events.
+        keys, row = np.unique((source.astype(np.int64) << 40) | frame, return_inverse=True)
+        return row.ravel(), (keys >> 40).astype(np.int32), keys & ((1 << 40) - 1)
+    order = np.lexsort((frame, source))
+    s_src, s_frame = source[order], frame[order]
+    new = np.ones(len(order), bool)
+    new[1:] = (s_src[1:] != s_src[:-1]) | (s_frame[1:] != s_frame[:-1])
+    row = np.empty(len(order), np.int64)
+    row[order] = np.cumsum(new) - 1
+    return row, s_src[new].astype(np.int32), s_frame[new].astype(np.int64)

@@ -1,0 +1,57 @@
+"""Frames as the API and the UI carry them: one JSON object per complete frame, built here only.
+
+Per frame::
+
+    {"n": cursor, "source", "frame", "origin": ns, "end": ns, "complete": true,
+     "enter": [ns|null per stage], "exit": [ns|null per stage], "delay_ms": end - origin,
+     "stage_delay_ms": [ms|null per stage], "stage_gap_ms": [ms|null per stage]}
+
+one ``stage_<column>_ms`` list per column of the delay model (``probes.delays.STAGE_COLUMNS``),
+every figure taken from it, so that the page only draws. Timestamps are moved to the relay's
+clock by the run's correction. A block adds the node, run, stages, their kinds, ``has_exit``
+(per stage: it has an exit point, so its frames have bars), the clock and the paging cursor.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from probes.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays
+from probes.frametable import MISSING
+
+
+def frame_dicts(n: np.ndarray, fd: FrameDelays, correction_ns: int, rows: np.ndarray | None = None) -> list[dict]:
+    """One dict per row of ``fd`` (or per index in ``rows``), ``n`` the cursor of each."""
+    rows = np.arange(len(fd)) if rows is None else rows
+    t, ch = fd.table, fd.chains
+    columns = {f"stage_{c}_ms": _ms_lists(fd.per_stage[c][rows]) for c in STAGE_COLUMNS}
+    base = zip(np.asarray(n).tolist(), t.source[rows].tolist(), t.frame[rows].tolist(), t.origin[rows].tolist(),
+               ch.end[rows].tolist(), ch.complete[rows].tolist(), t.enter[rows].tolist(), t.exit[rows].tolist(),
+               _ms_values(fd.delay[rows]))
+    return [
+        {"n": k, "source": s, "frame": f, "origin": o - correction_ns, "end": e - correction_ns, "complete": c,
+         "enter": _corrected(en, correction_ns), "exit": _corrected(ex, correction_ns), "delay_ms": d,
+         **{name: values[i] for name, values in columns.items()}}
+        for i, (k, s, f, o, e, c, en, ex, d) in enumerate(base)
+    ]
+
+
+def block(node: str, run: str, stages: list[str], kinds: dict[str, str], has_exit: np.ndarray, frames: list[dict],
+          clock: str, cursor: int, **paging) -> dict:
+    """A page of frames; ``cursor`` is where the next page starts, ``paging`` the figures of its
+    kind of source (live: ``newest``, ``correction_ns``; stored: ``total``); ``kinds``: stage
+    name -> element factory."""
+    return {"node": node, "run": run, "stages": stages, "kinds": kinds or {},
+            "has_exit": [bool(h) for h in has_exit], "clock": clock, "cursor": cursor, **paging, "frames": frames}
+
+
+def _ms_values(ns: np.ndarray) -> list[float | None]:
+    return [None if v != v else v for v in (ns / NS_PER_MS).tolist()]
+
+
+def _ms_lists(ns: np.ndarray) -> list[list[float | None]]:
+    return [[None if v != v else v for v in row] for row in (ns / NS_PER_MS).tolist()]
+
+
+def _corrected(values: list[int], corr: int) -> list[int | None]:
+    return [None if v == MISSING else v - corr for v in values]
