@@ -35,6 +35,18 @@ class SeqSet:
             self._above.discard(self.low)
             self.low += 1
 
+    def advance(self, floor: int) -> None:
+        """Count every seq below ``floor`` as seen: the node acknowledged or gave up all of them
+        (a batch its full buffer evicted never comes, and would otherwise hold ``low`` below
+        it for the rest of the run, every later seq kept one by one)."""
+        if floor <= self.low:
+            return
+        self._above = {seq for seq in self._above if seq >= floor}
+        self.low = floor
+        while self.low in self._above:
+            self._above.discard(self.low)
+            self.low += 1
+
     def discard(self, seq: int) -> None:
         if seq >= self.low:
             self._above.discard(seq)
