@@ -45,7 +45,7 @@ DEFAULT_WINDOW = 64
 SYNC_BURST_FIRST, SYNC_BURST = 8, 4
 ACK_TIMEOUT_S = 30.0
 HELLO_TIMEOUT_S = 10.0
-SYNC_TIMEOUT_S = 5.0
+SYNC_TIMEOUT_S = 10.0
 END_TIMEOUT_S = 2.0
 """Of ``close_timeout_s``, kept to say ``end``."""
 TEARDOWN_S = 1.5
@@ -245,7 +245,7 @@ class RelayExporter:
         delay = self._backoff[0]
         async with aiohttp.ClientSession() as session:
             while not self._stop.is_set():
-                link = await self._connect(session)
+                link = await self._connect_unless_stopped(session)
                 if link is not None:
                     delay = self._backoff[0]
                     await self._serve(link)
@@ -258,6 +258,18 @@ class RelayExporter:
                     pass
                 delay = min(delay * 2, self._backoff[1])
         await self._stop.wait()
+
+    async def _connect_unless_stopped(self, session: aiohttp.ClientSession) -> Link | None:
+        # close() must not wait out a handshake with a relay that does not answer.
+        connecting = asyncio.create_task(self._connect(session))
+        stopping = asyncio.create_task(self._stop.wait())
+        await asyncio.wait([connecting, stopping], return_when=asyncio.FIRST_COMPLETED)
+        stopping.cancel()
+        if connecting.done():
+            return connecting.result()
+        connecting.cancel()
+        await asyncio.gather(connecting, return_exceptions=True)
+        return None
 
     async def _connect(self, session: aiohttp.ClientSession) -> Link | None:
         """A link that said hello, or None (the reason noted)."""
@@ -275,7 +287,7 @@ class RelayExporter:
             if not (isinstance(reply, dict) and reply.get("ok")):
                 raise RelayError(f"relay refused hello: {reply!r}")
         except (ConnectionError, TimeoutError, aiohttp.ClientError, RelayError) as exc:
-            self._note_error(f"cannot reach relay {self.url}: {link.error or exc}")
+            self._note_error(f"cannot reach relay {self.url}: {link.error or _describe(exc)}")
             await link.close()
             return None
         return link
@@ -294,7 +306,7 @@ class RelayExporter:
             t.cancel()
         for t in workers:
             if t.done() and not t.cancelled() and t.exception() is not None:
-                self._note_error(f"connection to {self.url} failed: {link.error or t.exception()}")
+                self._note_error(f"connection to {self.url} failed: {link.error or _describe(t.exception())}")
         if link.error:
             self._note_error(link.error)
         self._connected, self._link = False, None
@@ -376,7 +388,7 @@ class RelayExporter:
             try:
                 await link.call("end", end, max(0.1, min(END_TIMEOUT_S, deadline - TEARDOWN_S - time.monotonic())))
             except (ConnectionError, TimeoutError, aiohttp.ClientError) as exc:
-                self._note_error(f"could not send end: {exc or type(exc).__name__}")
+                self._note_error(f"could not send end: {_describe(exc)}")
         self._stop.set()
 
 
@@ -389,3 +401,7 @@ async def _wait(event: asyncio.Event, timeout_s: float) -> bool:
         return True
     except TimeoutError:
         return False
+
+
+def _describe(exc: BaseException) -> str:
+    return str(exc) or type(exc).__name__

@@ -47,14 +47,6 @@ class SeqSet:
             self._above.discard(self.low)
             self.low += 1
 
-    def discard(self, seq: int) -> None:
-        if seq >= self.low:
-            self._above.discard(seq)
-            return
-        # Rare (storage refused a batch just taken): give back the contiguous run above it.
-        self._above.update(range(seq + 1, self.low))
-        self.low = seq
-
     @property
     def held(self) -> int:
         """Numbers held individually (the memory it takes)."""

@@ -68,6 +68,29 @@ def test_a_reconnecting_run_takes_over_its_old_connection(tmp_path):
     asyncio.run(scenario())
 
 
+def test_a_batch_resent_after_a_storage_failure_counts_once(tmp_path):
+    """Events used to reach the live state before storage: a batch storage refused, sent again,
+    counted twice."""
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        run = uuid.uuid4().hex
+        events = synth_events(10, 1, 25.0, T0)
+        try:
+            node = await HandNode.open(f"http://127.0.0.1:{relay.port}", "A", run)
+            await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = ON"))  # commits now fail
+            refused = await node.batch(encode_batch(run, 0, events))
+            assert refused["ok"] is False and refused["seq"] == 0 and node.connected
+            assert relay.state.runs[run].live.events == 0
+            await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = OFF"))
+            assert (await node.batch(encode_batch(run, 0, events))) == {"v": 2, "type": "ack", "seq": 0, "ok": True}
+            assert relay.state.runs[run].live.events == len(events) and relay.state.runs[run].duplicates == 0
+            await node.close()
+        finally:
+            await relay.stop()
+
+    asyncio.run(scenario())
+
+
 def test_page_and_unknown_routes(tmp_path):
     async def scenario():
         relay = await start_relay(port=0, db=tmp_path / "r.db")
