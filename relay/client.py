@@ -373,7 +373,10 @@ class RelayExporter:
     async def _finish(self, dropped: int, deadline: float) -> None:
         """Wait for the acknowledgements until ``deadline`` leaves time to say ``end``."""
         self._cut_batches()
-        acks_until = deadline - END_TIMEOUT_S - TEARDOWN_S
+        # What close() keeps to say end and tear down: at most half its time, so that a short
+        # close_timeout_s still waits for acknowledgements (or a first answer from the relay).
+        reserve = min(END_TIMEOUT_S + TEARDOWN_S, self._close_timeout / 2)
+        acks_until = deadline - reserve
         while self._unacked and not self.refused and time.monotonic() < acks_until:
             self._progress.clear()
             await _wait(self._progress, min(0.2, max(acks_until - time.monotonic(), 0.01)))
@@ -386,7 +389,8 @@ class RelayExporter:
         if link is not None:
             end = {"events": self._written, "dropped": dropped, "lost": self.lost + self._unacked_n}
             try:
-                await link.call("end", end, max(0.1, min(END_TIMEOUT_S, deadline - TEARDOWN_S - time.monotonic())))
+                teardown = reserve * TEARDOWN_S / (END_TIMEOUT_S + TEARDOWN_S)
+                await link.call("end", end, max(0.1, min(END_TIMEOUT_S, deadline - teardown - time.monotonic())))
             except (ConnectionError, TimeoutError, aiohttp.ClientError) as exc:
                 self._note_error(f"could not send end: {_describe(exc)}")
         self._stop.set()

@@ -131,7 +131,8 @@ class Ingest:
             await conn.ws.send_str(envelope.error(message))
         except (ConnectionError, RuntimeError):  # the peer already left
             pass
-        await conn.ws.close(code=WSCloseCode.POLICY_VIOLATION, message=message[:100].encode())
+        # A close reason holds at most 123 bytes.
+        await conn.ws.close(code=WSCloseCode.POLICY_VIOLATION, message=message[:100].encode("ascii", "replace"))
 
     async def _send(self, conn: _Conn, text: str) -> None:
         try:
@@ -215,6 +216,7 @@ class Ingest:
         task = asyncio.create_task(self._store(conn, rs, batch))
         conn.tasks.add(task)
         task.add_done_callback(conn.tasks.discard)
+        task.add_done_callback(_report_failure)
 
     async def _store(self, conn: _Conn, rs: RunState, batch: Batch) -> None:
         seq = batch.seq
@@ -254,3 +256,9 @@ class Ingest:
         else:  # stored before this relay's run state knew it: already in the live state
             rs.duplicates += 1
         return envelope.ack(batch.seq, dup=not new)
+
+
+def _report_failure(task: asyncio.Task) -> None:
+    # A bug, not a node's fault: said loudly, since nobody awaits these tasks' results.
+    if not task.cancelled() and task.exception() is not None:
+        log.error("ingest: storing a batch failed", exc_info=task.exception())

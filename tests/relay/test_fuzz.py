@@ -23,9 +23,9 @@ def test_fuzz_while_a_node_streams(tmp_path):
         started = time.monotonic()
         report = asyncio.run(fuzz(relay.url, PAYLOADS, token="t0k", workers=16, timeout=5.0))
         elapsed = time.monotonic() - started
+        streaming = node.poll() is None
         ui_kinds = asyncio.run(fuzz_ui(relay.url, UI_PAYLOADS, token="t0k"))
         assert relay.alive()
-        streaming = node.poll() is None
         counters = finish_node(node, 120)
 
         assert report.sent == PAYLOADS and elapsed < 240
