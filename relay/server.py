@@ -21,7 +21,7 @@ from pipeline import signals
 from relay.api import add_routes
 from relay.clock import CLOCK_MODES
 from relay.errors import RelayError
-from relay.ingest import Ingest
+from relay.ingest import DEFAULT_MAX_CONNECTIONS, Ingest
 from relay.limits import Limits
 from relay.live import LiveConfig
 from relay.protocol import INGEST_PATH, MAX_MESSAGE_BYTES
@@ -65,13 +65,14 @@ class Relay:
 
 
 def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *, limits: Limits = Limits(),
-               live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ) -> tuple[web.Application, Relay]:
+               live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ,
+               max_connections: int = DEFAULT_MAX_CONNECTIONS) -> tuple[web.Application, Relay]:
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     storage = Storage(db)
     state = RelayState(storage, clock, live)
     sio = create_sio()
-    ingest = Ingest(state, token, limits)
+    ingest = Ingest(state, token, limits, max_connections)
     ui = UiNamespace(state, token)
     sio.register_namespace(ui)
     app = web.Application(client_max_size=MAX_MESSAGE_BYTES, middlewares=[sio_errors])

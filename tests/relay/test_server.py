@@ -10,8 +10,10 @@ import sys
 import uuid
 
 import aiohttp
+import pytest
 
 from relay.commands import add_relay_parser
+from relay.errors import RelayError
 from relay.limits import Limits
 from relay.protocol import encode_batch
 from relay.server import start_relay
@@ -62,6 +64,28 @@ def test_a_reconnecting_run_takes_over_its_old_connection(tmp_path):
             assert relay.state.runs[run].live.events == len(events) and relay.state.runs[run].duplicates == 1
             for n in (old, new):
                 await n.close()
+        finally:
+            await relay.stop()
+
+    asyncio.run(scenario())
+
+
+def test_connections_beyond_the_cap_are_refused_before_the_upgrade(tmp_path):
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db", max_connections=1)
+        url = f"http://127.0.0.1:{relay.port}"
+        try:
+            first = await HandNode.open(url, "A", uuid.uuid4().hex)
+            with pytest.raises(RelayError, match="HTTP 503"):
+                await HandNode.open(url, "B", uuid.uuid4().hex)
+            await first.close()
+            for _ in range(100):  # until the relay saw it go
+                if relay.state.runs and all(rs.sid is None for rs in relay.state.runs.values()):
+                    break
+                await asyncio.sleep(0.05)
+            again = await HandNode.open(url, "B", uuid.uuid4().hex)
+            assert again.connected
+            await again.close()
         finally:
             await relay.stop()
 
