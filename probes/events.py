@@ -58,6 +58,11 @@ class TraceHeader:
         )
 
 
+EXPORTER_CLOSE_S = 10.0
+"""The longest an exporter's ``close`` may take (sending what is buffered included): the
+shipping thread's ``stop`` waits at least this long for it."""
+
+
 class Exporter(Protocol):
     """Where the probe shipping thread sends events. Called from that thread only."""
 
@@ -67,4 +72,5 @@ class Exporter(Protocol):
         """``events``: a structured array of EVENT_DTYPE, in the order they were recorded."""
 
     def close(self, dropped: int) -> None:
-        """The run ended; ``dropped`` events were lost in the node's buffer."""
+        """The run ended; ``dropped`` events were lost in the node's buffer. Returns within
+        ``EXPORTER_CLOSE_S``."""

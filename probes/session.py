@@ -5,16 +5,20 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TextIO
+from typing import TYPE_CHECKING, TextIO
 
 import numpy as np
 
 from pipeline.build import BuiltPipeline
 from pipeline.config import PipelineConfig
+from probes.errors import ExportError
 from probes.events import Exporter, TraceHeader
 from probes.shipper import Shipper
 from probes.tracefile import TraceFileWriter
 from probes.tracer import Tracer, attach
+
+if TYPE_CHECKING:
+    from relay.client import RelayExporter
 
 
 class _Shifted:
@@ -43,8 +47,11 @@ class ProbeSession:
     shipper: Shipper
     trace: Path | None
     progress: TextIO | None
+    relay: "RelayExporter | None" = None
 
     def stop(self) -> None:
+        """Stop shipping and write the summary; raises ExportError if the relay refused the node
+        (``dcuscope run`` then exits non-zero with that one line)."""
         self.shipper.stop()
         tracepoints = self.tracer.tracepoints
         self.tracer.detach()
@@ -55,6 +62,8 @@ class ProbeSession:
                                 f"({self.tracer.backend}), {dropped} dropped; {where}\n")
             for error in self.shipper.errors:
                 self.progress.write(f"probes: {error}\n")
+        if self.relay is not None and self.relay.refused:
+            raise ExportError(self.relay.refused)
 
 
 def default_trace_path(node: str) -> Path:
@@ -72,12 +81,14 @@ def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None
     exporters: list[Exporter] = []
     if trace is not None:
         exporters.append(TraceFileWriter(trace))
+    relay_exporter = None
     if relay is not None:
         from relay.client import RelayExporter
 
-        exporters.append(RelayExporter(relay, config.node, token=token, clock=config.probes.clock,
-                                       clock_offset_ns=clock_offset_ns))
+        relay_exporter = RelayExporter(relay, config.node, token=token, clock=config.probes.clock,
+                                       clock_offset_ns=clock_offset_ns)
+        exporters.append(relay_exporter)
     if clock_offset_ns:
         exporters = [_Shifted(e, clock_offset_ns) for e in exporters]
     shipper = Shipper(tracer, exporters).start()
-    return ProbeSession(tracer, shipper, trace, progress)
+    return ProbeSession(tracer, shipper, trace, progress, relay_exporter)

@@ -17,13 +17,15 @@ import logging
 import threading
 from typing import Sequence
 
-from probes.events import Exporter
+from probes.events import EXPORTER_CLOSE_S, Exporter
 from probes.tracer import Tracer
 
 log = logging.getLogger("dcuscope.probes")
 
 DEFAULT_INTERVAL_S = 0.1
 DEFAULT_BATCH = 1 << 16
+STOP_TIMEOUT_S = EXPORTER_CLOSE_S + 5.0
+"""What ``stop`` waits: the exporters' close, plus the final drain."""
 
 
 class Shipper:
@@ -49,7 +51,7 @@ class Shipper:
         self._thread.start()
         return self
 
-    def stop(self, timeout: float | None = 10.0) -> None:
+    def stop(self, timeout: float | None = STOP_TIMEOUT_S) -> None:
         """Ship what is left, close the exporters and end the thread."""
         self._stop.set()
         if self._thread.is_alive():

@@ -2,13 +2,16 @@
 
 It implements the ``probes.events.Exporter`` protocol. ``write`` only copies the events into a
 pending list under a short lock and returns: it never waits for the network. A thread of its
-own runs an asyncio loop with a python-socketio ``AsyncClient`` that cuts the pending events
-into numbered batches (:mod:`relay.protocol`), keeps every batch until the relay acknowledges
-it (the relay acknowledges after its database committed the batch), resends what is not
+own runs an asyncio loop with an aiohttp WebSocket to the relay's ``/ingest`` (:mod:`relay.link`)
+that cuts the pending events into numbered batches (:mod:`relay.protocol`), keeps every batch
+until the relay acknowledges it (the relay acknowledges after its database committed the
+batch), sends again at once a batch the relay could not store, resends what is not
 acknowledged after a reconnect, and reconnects with exponential backoff. The buffer of
 unacknowledged events is bounded (``max_buffer_events``); beyond it the oldest batches are
 dropped and counted as ``lost``, a count the relay receives with the next ``hello``/``clock``
-message and with ``end``.
+message and with ``end`` (with the lowest batch it still holds, so that the relay stops
+waiting for the dropped ones). A relay that refuses the token (HTTP 401) is not asked again:
+:attr:`RelayExporter.refused` says so (``dcuscope run`` ends with it as its error).
 
 On each connection it also measures the clock offset to the relay (NTP-style exchanges,
 ``sync``) and reports them with the node's linuxptp state (``clock``); the relay estimates.
@@ -17,7 +20,6 @@ On each connection it also measures the clock offset to the relay (NTP-style exc
 from __future__ import annotations
 
 import asyncio
-import functools
 import logging
 import random
 import threading
@@ -25,15 +27,15 @@ import time
 import uuid
 from collections import OrderedDict, deque
 
+import aiohttp
 import numpy as np
-import socketio
 
-from probes.events import CLOCKS, EVENT_DTYPE, TraceHeader
+from probes.events import CLOCKS, EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
 from relay.clock import read_ptp_state
 from relay.errors import RelayError
+from relay.link import Link, Refused
 from relay.protocol import MAX_BATCH_EVENTS, PROTOCOL_VERSION, encode_batch
 
-NAMESPACE = "/ingest"
 DEFAULT_BATCH_EVENTS = 8192
 DEFAULT_FLUSH_INTERVAL_S = 0.05
 DEFAULT_MAX_BUFFER_EVENTS = 2_000_000
@@ -42,6 +44,12 @@ DEFAULT_WINDOW = 64
 """Batches in flight (sent, not acknowledged) on one connection."""
 SYNC_BURST_FIRST, SYNC_BURST = 8, 4
 ACK_TIMEOUT_S = 30.0
+HELLO_TIMEOUT_S = 10.0
+SYNC_TIMEOUT_S = 10.0
+END_TIMEOUT_S = 2.0
+"""Of ``close_timeout_s``, kept to say ``end``."""
+TEARDOWN_S = 1.5
+"""Of ``close_timeout_s``, kept to close the WebSocket and end the thread."""
 
 log = logging.getLogger(__name__)
 
@@ -52,13 +60,15 @@ class RelayExporter:
     ``clock`` names the clock the probes read (``probes.events.CLOCKS``): the NTP exchanges
     must read the same one. ``clock_offset_ns`` is a testing aid: it shifts every clock reading
     of this client, as the probes shift event timestamps, to inject a known skew.
+    ``close_timeout_s`` bounds ``close`` as a whole (waiting for acknowledgements included).
     """
 
     def __init__(self, url: str, node: str, token: str | None = None, clock: str = "realtime",
                  clock_offset_ns: int = 0, *, compress: bool = False,
                  batch_events: int = DEFAULT_BATCH_EVENTS, flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
                  max_buffer_events: int = DEFAULT_MAX_BUFFER_EVENTS, window: int = DEFAULT_WINDOW,
-                 sync_interval_s: float = 2.0, ptp_interval_s: float = 10.0, close_timeout_s: float = 5.0,
+                 sync_interval_s: float = 2.0, ptp_interval_s: float = 10.0,
+                 close_timeout_s: float = EXPORTER_CLOSE_S,
                  backoff_s: tuple[float, float] = (0.1, 5.0)) -> None:
         if clock not in CLOCKS:
             raise RelayError(f"relay exporter: unknown clock {clock!r} (one of {', '.join(CLOCKS)})")
@@ -96,8 +106,11 @@ class RelayExporter:
         self._written = self._acked = self._sent = self._connects = 0
         self._connected = False
         self._last_error = ""
+        self._retries = 0
         self._ptp: dict = {"state": "unavailable", "reason": "not read yet"}
-        self._sio: socketio.AsyncClient | None = None
+        self._link: Link | None = None
+        self.refused: str | None = None
+        """Why the relay refused this node (a wrong or missing token), if it did."""
 
     # --- Exporter protocol (the probe shipping thread) -----------------------------------
 
@@ -134,15 +147,16 @@ class RelayExporter:
             self._loop.call_soon_threadsafe(self._wake.set)
 
     def close(self, dropped: int) -> None:
-        """Send what is buffered (up to ``close_timeout_s``), tell the relay the run ended."""
+        """Send what is buffered, tell the relay the run ended; all within ``close_timeout_s``."""
         if self._thread is None or self._loop is None:
             return
-        future = asyncio.run_coroutine_threadsafe(self._finish(int(dropped)), self._loop)
+        deadline = time.monotonic() + self._close_timeout
+        future = asyncio.run_coroutine_threadsafe(self._finish(int(dropped), deadline), self._loop)
         try:
-            future.result(self._close_timeout + 5)
+            future.result(max(0.0, deadline - time.monotonic()))
         except Exception as exc:  # noqa: BLE001 - closing must not raise into the pipeline's teardown
-            log.warning("relay exporter %s: close: %s", self.node, exc)
-        self._thread.join(5)
+            log.warning("relay exporter %s: close: %s", self.node, exc or type(exc).__name__)
+        self._thread.join(max(0.0, deadline - time.monotonic()))
 
     # --- introspection ------------------------------------------------------------------------
 
@@ -155,7 +169,8 @@ class RelayExporter:
         return {
             "run": self.run_id, "connected": self._connected, "connects": self._connects,
             "written": self._written, "sent": self._sent, "acked": self._acked, "lost": self.lost,
-            "buffered": self._unacked_n + self._pending_n, "last_error": self._last_error,
+            "buffered": self._unacked_n + self._pending_n, "retries": self._retries,
+            "last_error": self._last_error,
         }
 
     # --- loop thread --------------------------------------------------------------------------
@@ -165,6 +180,7 @@ class RelayExporter:
         self._wake = asyncio.Event()
         self._progress = asyncio.Event()
         self._stop = asyncio.Event()
+        self._synced = asyncio.Event()  # the relay got a clock report on this connection
         self._loop = loop  # last: write() uses it as the sign that _wake exists
         ready.set()
         try:
@@ -219,51 +235,84 @@ class RelayExporter:
 
     def _hello(self) -> dict:
         return {"proto": PROTOCOL_VERSION, "run": self.run_id, "header": self._header,
-                "lost": self.lost, "ptp": self._ptp}
+                "lost": self.lost, "floor": self._floor(), "ptp": self._ptp}
+
+    def _floor(self) -> int:
+        """Every batch below this was acknowledged or evicted: the relay need not wait for it."""
+        return next(iter(self._unacked), self._next_seq)
 
     async def _connection_loop(self) -> None:
         delay = self._backoff[0]
-        while not self._stop.is_set():
-            sio = socketio.AsyncClient(reconnection=False, logger=False, engineio_logger=False)
-            gone = asyncio.Event()
-            sio.on("disconnect", lambda *_: gone.set(), namespace=NAMESPACE)
-            sio.on("relay_error", self._on_relay_error, namespace=NAMESPACE)
-            refusal: list = []
-            sio.on("connect_error", lambda data=None: refusal.append(data), namespace=NAMESPACE)
-            try:
-                await sio.connect(self.url, auth={"token": self._token, "node": self.node},
-                                  namespaces=[NAMESPACE], transports=["websocket"], wait_timeout=5)
-                reply = await sio.call("hello", self._hello(), namespace=NAMESPACE, timeout=10)
-                if not (isinstance(reply, dict) and reply.get("ok")):
-                    raise RelayError(f"relay refused hello: {reply!r}")
-            except (socketio.exceptions.SocketIOError, OSError, asyncio.TimeoutError, RelayError) as exc:
-                why = f" ({_reason(refusal[-1])})" if refusal else ""
-                self._note_error(f"cannot reach relay {self.url}: {exc}{why}")
-                await _quietly_disconnect(sio)
+        async with aiohttp.ClientSession() as session:
+            while not self._stop.is_set():
+                link = await self._connect_unless_stopped(session)
+                if link is not None:
+                    delay = self._backoff[0]
+                    await self._serve(link)
+                    continue
+                if self.refused:
+                    break  # no use asking again: close() reports it
                 try:
                     await asyncio.wait_for(self._stop.wait(), delay * random.uniform(0.8, 1.2))
                 except asyncio.TimeoutError:
                     pass
                 delay = min(delay * 2, self._backoff[1])
-                continue
-            delay = self._backoff[0]
-            self._connects += 1
-            self._connected, self._sio = True, sio
-            self._inflight.clear()
-            self._to_send = deque(self._unacked.keys())
-            workers = [asyncio.create_task(self._sender(sio)), asyncio.create_task(self._syncer(sio))]
-            stop = asyncio.create_task(self._stop.wait())
-            lost = asyncio.create_task(gone.wait())
-            await asyncio.wait([stop, lost, *workers], return_when=asyncio.FIRST_COMPLETED)
-            for t in (stop, lost, *workers):
-                t.cancel()
-            for t in workers:
-                if t.done() and not t.cancelled() and t.exception() is not None:
-                    self._note_error(f"connection to {self.url} failed: {t.exception()}")
-            self._connected, self._sio = False, None
-            await _quietly_disconnect(sio)
+        await self._stop.wait()
 
-    async def _sender(self, sio: socketio.AsyncClient) -> None:
+    async def _connect_unless_stopped(self, session: aiohttp.ClientSession) -> Link | None:
+        # close() must not wait out a handshake with a relay that does not answer.
+        connecting = asyncio.create_task(self._connect(session))
+        stopping = asyncio.create_task(self._stop.wait())
+        await asyncio.wait([connecting, stopping], return_when=asyncio.FIRST_COMPLETED)
+        stopping.cancel()
+        if connecting.done():
+            return connecting.result()
+        connecting.cancel()
+        await asyncio.gather(connecting, return_exceptions=True)
+        return None
+
+    async def _connect(self, session: aiohttp.ClientSession) -> Link | None:
+        """A link that said hello, or None (the reason noted)."""
+        try:
+            link = await Link.open(session, self.url, self._token, self._on_ack)
+        except Refused as exc:
+            # Not logged: the run ends with this as its one error line (probes.session).
+            self.refused = self._last_error = str(exc)
+            return None
+        except RelayError as exc:
+            self._note_error(f"cannot reach relay {self.url}: {exc}")
+            return None
+        try:
+            reply = await link.call("hello", self._hello(), HELLO_TIMEOUT_S)
+            if not (isinstance(reply, dict) and reply.get("ok")):
+                raise RelayError(f"relay refused hello: {reply!r}")
+        except (ConnectionError, TimeoutError, aiohttp.ClientError, RelayError) as exc:
+            self._note_error(f"cannot reach relay {self.url}: {link.error or _describe(exc)}")
+            await link.close()
+            return None
+        return link
+
+    async def _serve(self, link: Link) -> None:
+        self._connects += 1
+        self._connected, self._link = True, link
+        self._inflight.clear()
+        self._synced.clear()
+        self._to_send = deque(self._unacked.keys())
+        workers = [asyncio.create_task(self._sender(link)), asyncio.create_task(self._syncer(link))]
+        stop = asyncio.create_task(self._stop.wait())
+        lost = asyncio.create_task(link.closed())
+        await asyncio.wait([stop, lost, *workers], return_when=asyncio.FIRST_COMPLETED)
+        for t in (stop, lost, *workers):
+            t.cancel()
+        for t in workers:
+            if t.done() and not t.cancelled() and t.exception() is not None:
+                self._note_error(f"connection to {self.url} failed: {link.error or _describe(t.exception())}")
+        if link.error:
+            self._note_error(link.error)
+        self._connected, self._link = False, None
+        await link.close()
+
+    async def _sender(self, link: Link) -> None:
         while True:
             while self._to_send and len(self._inflight) < self._window:
                 seq = self._to_send.popleft()
@@ -271,7 +320,7 @@ class RelayExporter:
                 if item is None or seq in self._inflight:
                     continue
                 self._inflight[seq] = time.monotonic()
-                await sio.emit("batch", item[0], namespace=NAMESPACE, callback=functools.partial(self._on_ack, seq))
+                await link.send_batch(item[0])
                 self._sent += item[1]
             self._progress.clear()
             if not await _wait(self._progress, 1.0):
@@ -279,54 +328,71 @@ class RelayExporter:
                 if time.monotonic() - oldest > ACK_TIMEOUT_S:
                     raise RelayError(f"no acknowledgement for {ACK_TIMEOUT_S:.0f} s") from None
 
-    def _on_ack(self, seq: int, reply: object = None) -> None:
-        if not (isinstance(reply, dict) and reply.get("ok")):
-            self._note_error(f"relay rejected batch {seq}: {reply!r}")
+    def _on_ack(self, ack: dict) -> None:
+        seq = ack.get("seq")
+        if not isinstance(seq, int) or seq not in self._inflight:
             return
-        self._inflight.pop(seq, None)
+        del self._inflight[seq]
+        if ack.get("ok") is not True:
+            # Not stored (the relay's storage failed): send it again shortly, on this connection.
+            self._retries += 1
+            self._note_error(f"relay could not store batch {seq}: {str(ack.get('error'))[:100]}; sending it again")
+            self._loop.call_later(self._backoff[0], self._resend, seq)
+            return
         item = self._unacked.pop(seq, None)
         if item is not None:
             self._unacked_n -= item[1]
             self._acked += item[1]
         self._progress.set()
 
-    async def _syncer(self, sio: socketio.AsyncClient) -> None:
+    def _resend(self, seq: int) -> None:
+        if seq in self._unacked and seq not in self._inflight:
+            self._to_send.append(seq)
+            self._progress.set()
+
+    async def _syncer(self, link: Link) -> None:
         burst = SYNC_BURST_FIRST
         while True:
             samples = []
             for _ in range(burst):
                 t1 = self._now()
-                reply = await sio.call("sync", None, namespace=NAMESPACE, timeout=5)
+                reply = await link.call("sync", None, SYNC_TIMEOUT_S)
                 t4 = self._now()
                 if isinstance(reply, dict) and isinstance(reply.get("t2"), int) and isinstance(reply.get("t3"), int):
                     samples.append([t1, reply["t2"], reply["t3"], t4])
-            await sio.emit("clock", {"samples": samples, "lost": self.lost, "ptp": self._ptp}, namespace=NAMESPACE)
+            await link.tell("clock", {"samples": samples, "lost": self.lost, "floor": self._floor(), "ptp": self._ptp})
+            self._synced.set()
             burst = SYNC_BURST
             await asyncio.sleep(self._sync_interval)
-
-    def _on_relay_error(self, data: object = None) -> None:
-        self._note_error(f"relay error: {data!r}")
 
     def _note_error(self, message: str) -> None:
         if message != self._last_error:
             log.warning("relay exporter %s: %s", self.node, message)
         self._last_error = message
 
-    async def _finish(self, dropped: int) -> None:
+    async def _finish(self, dropped: int, deadline: float) -> None:
+        """Wait for the acknowledgements until ``deadline`` leaves time to say ``end``."""
         self._cut_batches()
-        deadline = time.monotonic() + self._close_timeout
-        while self._unacked and time.monotonic() < deadline:
+        # What close() keeps to say end and tear down: at most half its time, so that a short
+        # close_timeout_s still waits for acknowledgements (or a first answer from the relay).
+        reserve = min(END_TIMEOUT_S + TEARDOWN_S, self._close_timeout / 2)
+        acks_until = deadline - reserve
+        while self._unacked and not self.refused and time.monotonic() < acks_until:
             self._progress.clear()
-            await _wait(self._progress, min(0.2, max(deadline - time.monotonic(), 0.01)))
-        if self._unacked:
+            await _wait(self._progress, min(0.2, max(acks_until - time.monotonic(), 0.01)))
+        if self._link is not None:
+            # A short run still leaves the relay its clock estimate.
+            await _wait(self._synced, max(0.0, acks_until - time.monotonic()))
+        if self._unacked and not self.refused:  # a refusal is the whole story
             log.warning("relay exporter %s: %d events not acknowledged at close", self.node, self._unacked_n)
-        sio = self._sio
-        if sio is not None and self._connected:
+        link = self._link
+        if link is not None:
             end = {"events": self._written, "dropped": dropped, "lost": self.lost + self._unacked_n}
             try:
-                await sio.call("end", end, namespace=NAMESPACE, timeout=5)
-            except (socketio.exceptions.SocketIOError, asyncio.TimeoutError) as exc:
-                self._note_error(f"could not send end: {exc}")
+                teardown = reserve * TEARDOWN_S / (END_TIMEOUT_S + TEARDOWN_S)
+                await link.call("end", end, max(0.1, min(END_TIMEOUT_S, deadline - teardown - time.monotonic())))
+            except (ConnectionError, TimeoutError, aiohttp.ClientError) as exc:
+                self._note_error(f"could not send end: {_describe(exc)}")
         self._stop.set()
 
 
@@ -341,14 +407,5 @@ async def _wait(event: asyncio.Event, timeout_s: float) -> bool:
         return False
 
 
-async def _quietly_disconnect(sio: socketio.AsyncClient) -> None:
-    try:
-        await sio.disconnect()
-    except Exception:  # noqa: BLE001 - tearing down a half-open connection
-        pass
-
-
-def _reason(data: object) -> str:
-    if isinstance(data, dict) and "message" in data:
-        return str(data["message"])
-    return str(data)
+def _describe(exc: BaseException) -> str:
+    return str(exc) or type(exc).__name__

@@ -1,194 +1,264 @@
-"""Socket.IO namespace ``/ingest``: where nodes connect, say hello, ship batches, sync clocks.
+"""The ingest WebSocket ``GET /ingest``: where nodes connect, say hello, ship batches, sync clocks.
 
-Messages (see :mod:`relay.protocol`), each answered through the Socket.IO acknowledgement:
+A node opens ``ws://HOST:PORT/ingest`` with ``Authorization: Bearer TOKEN`` (or ``?token=``)
+when the relay has a token: a wrong or missing one is refused with HTTP 401 before the upgrade,
+and so is a connection beyond the cap (503). Then, in the envelope of :mod:`relay.envelope`:
 
-- connect with ``auth={"token": T, "node": NAME}``; refused without the token;
-- ``hello`` {proto, run, header, lost, ptp} -> {ok, run, session};
-- ``batch`` <binary> -> {ok, seq[, dup]} once the batch is committed (or was stored before);
-- ``sync`` -> {t2, t3}: relay receive and send times (ns, CLOCK_REALTIME);
-- ``clock`` {samples, lost, ptp}: the node's completed NTP samples and state;
-- ``end`` {events, dropped, lost} -> {ok}.
+- ``hello`` {proto, run, header, lost, floor, ptp} -> reply {ok, run, session}; first, once;
+- a binary batch (:mod:`relay.protocol`) -> ``ack`` {seq, ok[, dup]} once the batch is committed
+  (or was stored before), then its events reach the live state; ``ok: false`` if storage failed
+  (the node sends it again);
+- ``sync`` -> reply {t2, t3}: relay receive and send times (ns, CLOCK_REALTIME);
+- ``clock`` {samples, lost, floor, ptp}: the node's completed NTP samples and state;
+- ``end`` {events, dropped, lost} -> reply {ok}.
 
-Anything else (unknown event, wrong arguments, a malformed, truncated, oversize or
-wrong-version payload, a batch before ``hello``, a rate above the connection's bounds) gets a
-``relay_error`` message and the connection closed; it never touches another run's state.
+``floor``: every batch below it was acknowledged or given up by the node, so the relay stops
+waiting for the ones it never got. Anything else (unknown type, wrong version or shape, a
+malformed, truncated, oversize or wrong-version batch, a batch before ``hello``, a rate above
+the connection's bounds) gets an ``error`` message and the connection closed (1008; 1009 for a
+message over the size bound); it never touches another run's state.
 """
 
 from __future__ import annotations
 
+import asyncio
+import itertools
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-import socketio
-from socketio.exceptions import ConnectionRefusedError as Refused
+from aiohttp import WSCloseCode, WSMsgType, web
 
+from relay import envelope
 from relay import storage as db
-from relay.auth import socket_token, token_matches
+from relay.auth import http_token, token_matches
 from relay.errors import ProtocolError, RelayError
 from relay.limits import Limits, TokenBucket
-from relay.protocol import MAX_NAME, decode_batch, decode_clock, decode_end, decode_hello
-from relay.state import RelayState
+from relay.protocol import HEARTBEAT_S, MAX_MESSAGE_BYTES, Batch, decode_batch, decode_clock, decode_end, decode_hello
+from relay.state import RelayState, RunState
 
-NAMESPACE = "/ingest"
-EVENTS = frozenset({"connect", "disconnect", "hello", "batch", "sync", "clock", "end"})
 DEFAULT_MAX_CONNECTIONS = 1024
+MAX_STORING = 256
+"""Batches of one connection being stored at once (a node keeps 64 in flight)."""
+CLOSE_TIMEOUT_S = 2.0
 
 log = logging.getLogger(__name__)
 
 
 @dataclass
 class _Conn:
-    node: str
+    sid: str
+    ws: web.WebSocketResponse
     bucket: TokenBucket
     run: str | None = None
     closing: bool = False
+    tasks: set[asyncio.Task] = field(default_factory=set)
 
 
-class IngestNamespace(socketio.AsyncNamespace):
+class Ingest:
+    """The ``/ingest`` handler and the connections it holds."""
+
     def __init__(self, state: RelayState, token: str | None, limits: Limits = Limits(),
                  max_connections: int = DEFAULT_MAX_CONNECTIONS) -> None:
-        super().__init__(NAMESPACE)
         self.state = state
         self._token = token
         self._limits = limits
         self._max_connections = max_connections
         self._conns: dict[str, _Conn] = {}
+        self._ids = itertools.count(1)
         self.rejected = 0
         """Connections closed for a bad payload or rate (the fuzz test reads it via /api/health)."""
 
-    async def trigger_event(self, event: str, *args):
-        if event in ("connect", "disconnect"):
+    async def handle(self, request: web.Request) -> web.StreamResponse:
+        if not token_matches(self._token, http_token(request.headers, request.query)):
+            raise web.HTTPUnauthorized(text="unauthorized: wrong or missing token")
+        if len(self._conns) >= self._max_connections:
+            raise web.HTTPServiceUnavailable(text="too many connections")
+        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=HEARTBEAT_S, timeout=CLOSE_TIMEOUT_S)
+        if not ws.can_prepare(request):
+            raise web.HTTPBadRequest(text="/ingest takes a WebSocket")
+        await ws.prepare(request)
+        conn = _Conn(f"ws{next(self._ids)}", ws, TokenBucket(self._limits))
+        self._conns[conn.sid] = conn
+        try:
+            await self._serve(conn)
+        finally:
+            self._conns.pop(conn.sid, None)
+            if conn.run is not None:
+                self.state.detach(conn.run, conn.sid)
+            if conn.tasks:
+                # Batches being stored finish (their acknowledgements have nowhere to go).
+                await asyncio.gather(*conn.tasks, return_exceptions=True)
+        return ws
+
+    async def close_all(self) -> None:
+        for conn in list(self._conns.values()):
+            await conn.ws.close(code=WSCloseCode.GOING_AWAY, message=b"relay stopping")
+
+    async def _serve(self, conn: _Conn) -> None:
+        async for msg in conn.ws:
+            if conn.closing:
+                return
             try:
-                return await super().trigger_event(event, *args)
-            except Refused:
-                raise
-            except Exception as exc:  # noqa: BLE001 - a malformed connect is refused, not a crash
-                if event == "connect":
-                    raise Refused("malformed connect") from exc
-                log.exception("ingest: disconnect handler failed")
-                return None
-        if event not in EVENTS:
-            sid = args[0] if args and isinstance(args[0], str) else None
-            if sid is not None:
-                return await self._reject(sid, f"unknown event {event!r}"[:200])
-            return None
-        if len(args) > 2:
-            # Every message carries at most one argument: more is a malformed message.
-            return await self._reject(args[0], f"malformed {event!r} message")
-        try:
-            return await super().trigger_event(event, *args)
-        except ProtocolError as exc:
-            return await self._reject(args[0], str(exc))
-        except Exception as exc:  # noqa: BLE001 - one bad connection must not take the relay down
-            log.exception("ingest: %s from %s failed", event, args[0] if args else "?")
-            return await self._reject(args[0], f"{event} failed: {exc}"[:200])
+                if msg.type == WSMsgType.BINARY:
+                    self._take(conn, len(msg.data))
+                    await self._on_batch(conn, msg.data)
+                elif msg.type == WSMsgType.TEXT:
+                    self._take(conn, len(msg.data))
+                    await self._on_message(conn, envelope.decode_request(msg.data))
+                elif msg.type == WSMsgType.ERROR:
+                    # aiohttp already closes with 1009 (too big) or 1002 (not WebSocket).
+                    self._count_rejection(conn, f"bad frame: {msg.data}")
+                    return
+            except ProtocolError as exc:
+                await self._reject(conn, str(exc))
+                return
 
-    async def _reject(self, sid: str, message: str) -> dict:
-        conn = self._conns.get(sid)
-        if conn is not None and conn.closing:
-            return {"ok": False, "error": message}
-        if conn is not None:
-            conn.closing = True
-        self.rejected += 1
-        log.info("ingest: closing %s (%s): %s", sid, conn.node if conn else "?", message)
-        try:
-            await self.emit("relay_error", {"error": message}, to=sid)
-            eio_sid = self.server.manager.eio_sid_from_sid(sid, NAMESPACE)
-            await self.disconnect(sid)
-            if eio_sid is not None:
-                await self.server.hang_up(eio_sid)
-        except Exception:  # noqa: BLE001 - the peer may already be gone
-            pass
-        return {"ok": False, "error": message}
-
-    def _conn(self, sid: str, nbytes: int) -> _Conn:
-        conn = self._conns.get(sid)
-        if conn is None or conn.closing:
-            raise ProtocolError("not connected")
+    def _take(self, conn: _Conn, nbytes: int) -> None:
         if not conn.bucket.take(nbytes):
             raise ProtocolError("rate limit exceeded")
-        return conn
 
-    # --- handlers -----------------------------------------------------------------------------
+    def _count_rejection(self, conn: _Conn, message: str) -> None:
+        conn.closing = True
+        self.rejected += 1
+        log.info("ingest: closing %s (run %s): %s", conn.sid, conn.run or "-", message[:200])
 
-    async def on_connect(self, sid: str, environ: dict, auth: object = None) -> None:
-        if not token_matches(self._token, socket_token(auth, environ)):
-            raise Refused("unauthorized: wrong or missing token")
-        node = auth.get("node") if isinstance(auth, dict) else None
-        if not (isinstance(node, str) and 0 < len(node) <= MAX_NAME and node.isprintable()):
-            raise Refused("a node must name itself: auth={'node': NAME}")
-        if len(self._conns) >= self._max_connections:
-            raise Refused("too many connections")
-        self._conns[sid] = _Conn(node, TokenBucket(self._limits))
+    async def _reject(self, conn: _Conn, message: str) -> None:
+        if conn.closing:
+            return
+        self._count_rejection(conn, message)
+        try:
+            await conn.ws.send_str(envelope.error(message))
+        except (ConnectionError, RuntimeError):  # the peer already left
+            pass
+        # A close reason holds at most 123 bytes.
+        await conn.ws.close(code=WSCloseCode.POLICY_VIOLATION, message=message[:100].encode("ascii", "replace"))
 
-    async def on_disconnect(self, sid: str, reason: object = None) -> None:
-        conn = self._conns.pop(sid, None)
-        if conn is not None and conn.run is not None:
-            self.state.detach(conn.run, sid)
+    async def _send(self, conn: _Conn, text: str) -> None:
+        try:
+            await conn.ws.send_str(text)
+        except (ConnectionError, RuntimeError):  # closed meanwhile: the node resends what it lacks
+            pass
 
-    async def on_hello(self, sid: str, data: object = None) -> dict:
-        conn = self._conn(sid, 0)
+    # --- messages -------------------------------------------------------------------------------
+
+    async def _on_message(self, conn: _Conn, msg: envelope.Message) -> None:
+        if msg.type == "sync":
+            t2 = time.time_ns()
+            if msg.id is not None:
+                await self._send(conn, envelope.reply(msg.id, {"t2": t2, "t3": time.time_ns()}))
+            return
+        if msg.type == "hello":
+            answer = await self._on_hello(conn, msg.data)
+        elif conn.run is None:
+            raise ProtocolError(f"{msg.type} before hello")
+        elif msg.type == "clock":
+            answer = await self._on_clock(self.state.runs[conn.run], msg.data)
+        else:
+            answer = await self._on_end(self.state.runs[conn.run], msg.data)
+        if msg.id is not None:
+            await self._send(conn, envelope.reply(msg.id, answer))
+
+    async def _on_hello(self, conn: _Conn, data: object) -> dict:
         if conn.run is not None:
             raise ProtocolError("hello twice on one connection")
-        hello = decode_hello(data, conn.node)
-        rs, previous = await self.state.attach(hello, sid)
+        hello = decode_hello(data)
+        try:
+            rs, previous = await self.state.attach(hello, conn.sid)
+        except RelayError as exc:  # storage refused the run (another node's id), or failed
+            raise ProtocolError(str(exc)) from exc
         conn.run = rs.run
-        if previous is not None and previous in self._conns:
+        rs.seqs.advance(hello.floor)
+        old = self._conns.get(previous) if previous is not None else None
+        if old is not None:
             # The node reconnected before the relay noticed its old connection died.
-            await self._reject(previous, "superseded by a newer connection of this run")
+            await self._reject(old, "superseded by a newer connection of this run")
         return {"ok": True, "run": rs.run, "session": rs.session}
 
-    async def on_batch(self, sid: str, data: object = None) -> dict:
-        size = len(data) if isinstance(data, (bytes, bytearray)) else 0
-        conn = self._conn(sid, size)
+    async def _on_clock(self, rs: RunState, data: object) -> dict:
+        report = decode_clock(data)
+        for sample in report.samples:
+            rs.clock.add(*sample)
+        rs.ptp = report.ptp
+        rs.lost = max(rs.lost, report.lost)
+        rs.seqs.advance(report.floor)
+        clock = dict(self.state.clock_view(rs), ptp=rs.ptp)
+        return await self._update_run(rs, clock=clock, lost=rs.lost)
+
+    async def _on_end(self, rs: RunState, data: object) -> dict:
+        written, dropped, lost = decode_end(data)
+        rs.ended, rs.written, rs.dropped, rs.lost = True, written, dropped, max(rs.lost, lost)
+        clock = dict(self.state.clock_view(rs), ptp=rs.ptp)
+        return await self._update_run(rs, ended_ns=time.time_ns(), written=written, dropped=dropped, lost=rs.lost,
+                                      clock=clock)
+
+    async def _update_run(self, rs: RunState, **fields) -> dict:
+        try:
+            await self.state.storage.call(db.update_run, rs.run, **fields)
+        except RelayError as exc:  # the node's data is not at fault: keep the connection
+            log.error("%s", exc)
+            return {"ok": False, "error": "relay storage failed"}
+        return {"ok": True}
+
+    # --- batches --------------------------------------------------------------------------------
+
+    async def _on_batch(self, conn: _Conn, data: bytes) -> None:
         if conn.run is None:
             raise ProtocolError("batch before hello")
+        if len(conn.tasks) >= MAX_STORING:
+            raise ProtocolError(f"more than {MAX_STORING} batches unacknowledged")
         rs = self.state.runs[conn.run]
         batch = decode_batch(data, len(rs.header.stages))
         if batch.run != rs.run:
             raise ProtocolError("batch of another run on this connection")
         rs.last_seen = time.time()
-        if batch.seq in rs.seqs:
+        # Stored concurrently, so that the batches in flight commit together.
+        task = asyncio.create_task(self._store(conn, rs, batch))
+        conn.tasks.add(task)
+        task.add_done_callback(conn.tasks.discard)
+        task.add_done_callback(_report_failure)
+
+    async def _store(self, conn: _Conn, rs: RunState, batch: Batch) -> None:
+        seq = batch.seq
+        if seq in rs.seqs:
             rs.duplicates += 1
-            return {"ok": True, "seq": batch.seq, "dup": True}
-        rs.seqs.add(batch.seq)
-        rs.live.add(batch.events)
+            await self._send(conn, envelope.ack(seq, dup=True))
+            return
+        pending = rs.storing.get(seq)
+        if pending is not None:
+            # The same batch, resent on a newer connection while the first copy is being stored.
+            if await asyncio.shield(pending):
+                rs.duplicates += 1
+                await self._send(conn, envelope.ack(seq, dup=True))
+            else:
+                await self._send(conn, envelope.ack(seq, False, error="relay storage failed"))
+            return
+        await self._send(conn, await self._commit(rs, batch))
+
+    async def _commit(self, rs: RunState, batch: Batch) -> str:
+        """Store, then feed the live state: a batch reaches the statistics once it is stored, so a
+        batch storage refused, sent again, counts once."""
+        done = asyncio.get_running_loop().create_future()
+        rs.storing[batch.seq] = done
+        new = None
         try:
-            await self.state.storage.put_batch(rs.run, batch.seq, len(batch.events), batch.compressed, batch.payload)
+            new = await self.state.storage.put_batch(rs.run, batch.seq, len(batch.events), batch.compressed,
+                                                     batch.payload)
         except RelayError as exc:
-            rs.seqs.discard(batch.seq)
             log.error("%s", exc)
-            return {"ok": False, "error": "relay storage failed"}
-        return {"ok": True, "seq": batch.seq}
+            return envelope.ack(batch.seq, False, error="relay storage failed")
+        finally:
+            rs.storing.pop(batch.seq, None)
+            done.set_result(new is not None)
+        rs.seqs.add(batch.seq)
+        if new:
+            rs.live.add(batch.events)
+        else:  # stored before this relay's run state knew it: already in the live state
+            rs.duplicates += 1
+        return envelope.ack(batch.seq, dup=not new)
 
-    async def on_sync(self, sid: str, data: object = None) -> dict:
-        t2 = time.time_ns()
-        self._conn(sid, 0)
-        return {"t2": t2, "t3": time.time_ns()}
 
-    async def on_clock(self, sid: str, data: object = None) -> dict:
-        conn = self._conn(sid, 0)
-        if conn.run is None:
-            raise ProtocolError("clock before hello")
-        report = decode_clock(data)
-        rs = self.state.runs[conn.run]
-        for sample in report.samples:
-            rs.clock.add(*sample)
-        rs.ptp = report.ptp
-        rs.lost = max(rs.lost, report.lost)
-        clock = dict(self.state.clock_view(rs), ptp=rs.ptp)
-        await self.state.storage.call(db.update_run, rs.run, clock=clock, lost=rs.lost)
-        return {"ok": True}
-
-    async def on_end(self, sid: str, data: object = None) -> dict:
-        conn = self._conn(sid, 0)
-        if conn.run is None:
-            raise ProtocolError("end before hello")
-        written, dropped, lost = decode_end(data)
-        rs = self.state.runs[conn.run]
-        rs.ended, rs.written, rs.dropped, rs.lost = True, written, dropped, max(rs.lost, lost)
-        clock = dict(self.state.clock_view(rs), ptp=rs.ptp)
-        await self.state.storage.call(db.update_run, rs.run, ended_ns=time.time_ns(), written=written,
-                                      dropped=dropped, lost=rs.lost, clock=clock)
-        return {"ok": True}
+def _report_failure(task: asyncio.Task) -> None:
+    # A bug, not a node's fault: said loudly, since nobody awaits these tasks' results.
+    if not task.cancelled() and task.exception() is not None:
+        log.error("ingest: storing a batch failed", exc_info=task.exception())

@@ -1,4 +1,7 @@
-"""What nodes and the relay say to each other over Socket.IO namespace ``/ingest``.
+"""What nodes and the relay say to each other over the ingest WebSocket (``GET /ingest``).
+
+Each batch travels as one binary WebSocket frame, each other message as one JSON text frame
+(the envelope of :mod:`relay.envelope`).
 
 Events travel in binary batches: a 40-byte header, then the events as the raw bytes of an
 ``EVENT_DTYPE`` array (24 bytes each, little-endian), optionally zlib-compressed::
@@ -33,8 +36,14 @@ from relay.errors import ProtocolError
 
 MAGIC = b"DCUB"
 BATCH_VERSION = 1
-PROTOCOL_VERSION = 1
-"""Version of the JSON messages and of the namespace as a whole, sent in ``hello``."""
+PROTOCOL_VERSION = 2
+"""Version of the message envelope and the JSON messages (``v`` of every text frame, ``proto`` of
+``hello``); 1 was the Socket.IO transport."""
+INGEST_PATH = "/ingest"
+"""Where nodes open their WebSocket: ``ws://HOST:PORT/ingest``."""
+HEARTBEAT_S = 15.0
+"""WebSocket ping interval on both ends; a peer that answers no ping within half of it is gone.
+Longer than a short network stall (tests/relay/test_netcut.py holds one for 5 s)."""
 FLAG_ZLIB = 0x01
 HEADER = struct.Struct("<4sBBH16sQII")
 HEADER_SIZE = HEADER.size  # 40
@@ -42,7 +51,7 @@ HEADER_SIZE = HEADER.size  # 40
 MAX_BATCH_EVENTS = 65536
 """Events one batch may hold: 1.5 MiB raw, under the relay's message size limit."""
 MAX_MESSAGE_BYTES = 2 * 1024 * 1024
-"""The largest Socket.IO message the relay accepts (Engine.IO ``max_http_buffer_size``)."""
+"""The largest WebSocket message the relay accepts (``max_msg_size``); larger closes with 1009."""
 MAX_STAGES = 256
 MAX_NAME = 200
 MAX_SOURCES = 1024
@@ -71,6 +80,8 @@ class Hello:
     header: TraceHeader
     lost: int
     ptp: dict = field(default_factory=dict)
+    floor: int = 0
+    """Every batch below this sequence number was acknowledged or given up by the node."""
 
 
 @dataclass(frozen=True)
@@ -79,6 +90,8 @@ class ClockReport:
     """NTP samples (t1 node send, t2 relay receive, t3 relay send, t4 node receive), ns."""
     lost: int
     ptp: dict
+    floor: int = 0
+    """As :attr:`Hello.floor`."""
 
 
 def encode_batch(run: str, seq: int, events: np.ndarray, compress: bool = False) -> bytes:
@@ -194,8 +207,9 @@ def _run_id(obj: object) -> str:
     return value.hex
 
 
-def decode_hello(obj: object, node: str) -> Hello:
-    """A node's first message on a connection: who it is and how to read its events."""
+def decode_hello(obj: object, node: str | None = None) -> Hello:
+    """A node's first message on a connection: who it is and how to read its events (its
+    header must name ``node`` when given)."""
     d = _dict(obj, "hello")
     proto = _int(d.get("proto"), "hello.proto", 0, 1 << 16)
     if proto != PROTOCOL_VERSION:
@@ -223,7 +237,7 @@ def decode_hello(obj: object, node: str) -> Hello:
     if not (kinds.keys() <= set(stages) and all(isinstance(v, str) and len(v) <= MAX_NAME for v in kinds.values())):
         raise ProtocolError("hello.header.kinds must map stage names to element factory names")
     header_node = _str(h.get("node"), "hello.header.node")
-    if header_node != node:
+    if node is not None and header_node != node:
         raise ProtocolError(f"hello names node {header_node!r} but the connection is {node!r}")
     _str(h.get("clock"), "hello.header.clock", 32)
     _int(h.get("started_ns", 0), "hello.header.started_ns")
@@ -233,7 +247,7 @@ def decode_hello(obj: object, node: str) -> Hello:
     except (KeyError, TypeError, ValueError) as exc:
         raise ProtocolError(f"hello.header unreadable: {exc}") from exc
     lost = _int(d.get("lost", 0), "hello.lost")
-    return Hello(run, header, lost, sanitize_ptp(d.get("ptp")))
+    return Hello(run, header, lost, sanitize_ptp(d.get("ptp")), _int(d.get("floor", 0), "hello.floor"))
 
 
 def decode_clock(obj: object) -> ClockReport:
@@ -250,7 +264,8 @@ def decode_clock(obj: object) -> ClockReport:
         if t4 < t1 or t3 < t2:
             raise ProtocolError("clock sample times out of order")
         out.append((t1, t2, t3, t4))
-    return ClockReport(out, _int(d.get("lost", 0), "clock.lost"), sanitize_ptp(d.get("ptp")))
+    return ClockReport(out, _int(d.get("lost", 0), "clock.lost"), sanitize_ptp(d.get("ptp")),
+                       _int(d.get("floor", 0), "clock.floor"))
 
 
 def decode_end(obj: object) -> tuple[int, int, int]:

@@ -35,13 +35,17 @@ class SeqSet:
             self._above.discard(self.low)
             self.low += 1
 
-    def discard(self, seq: int) -> None:
-        if seq >= self.low:
-            self._above.discard(seq)
+    def advance(self, floor: int) -> None:
+        """Count every seq below ``floor`` as seen: the node acknowledged or gave up all of them
+        (a batch its full buffer evicted never comes, and would otherwise hold ``low`` below
+        it for the rest of the run, every later seq kept one by one)."""
+        if floor <= self.low:
             return
-        # Rare (storage refused a batch just taken): give back the contiguous run above it.
-        self._above.update(range(seq + 1, self.low))
-        self.low = seq
+        self._above = {seq for seq in self._above if seq >= floor}
+        self.low = floor
+        while self.low in self._above:
+            self._above.discard(self.low)
+            self.low += 1
 
     @property
     def held(self) -> int:

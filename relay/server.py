@@ -1,4 +1,5 @@
-"""The relay process: aiohttp app + python-socketio AsyncServer (ingest, UI), HTTP API, storage.
+"""The relay process: aiohttp app with the nodes' ingest WebSocket (``/ingest``), the browsers'
+Socket.IO server (``/ui``), the HTTP API and storage.
 
 ``serve(host, port, db, token, clock)`` runs it until SIGINT/SIGTERM; ``start_relay`` starts it
 on a running loop (tests, benchmarks). The page of ``ui/static/`` is served at ``/``.
@@ -13,18 +14,19 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
+import socketio
 from aiohttp import web
 
 from pipeline import signals
 from relay.api import add_routes
 from relay.clock import CLOCK_MODES
 from relay.errors import RelayError
-from relay.ingest import IngestNamespace
+from relay.ingest import DEFAULT_MAX_CONNECTIONS, Ingest
 from relay.limits import Limits
 from relay.live import LiveConfig
-from relay.protocol import MAX_MESSAGE_BYTES
+from relay.protocol import INGEST_PATH, MAX_MESSAGE_BYTES
 from relay.sessionapi import add_session_routes
-from relay.sioserver import GuardedServer, JsonPacket
+from relay.sioserver import create_sio, sio_errors
 from relay.state import RelayState
 from relay.storage import Storage
 from relay.uiapi import DEFAULT_PUSH_HZ, Ticker, UiNamespace
@@ -43,8 +45,8 @@ log = logging.getLogger(__name__)
 class Relay:
     state: RelayState
     storage: Storage
-    sio: GuardedServer
-    ingest: IngestNamespace
+    sio: socketio.AsyncServer
+    ingest: Ingest
     ui: UiNamespace
     ticker: Ticker
     runner: web.AppRunner | None = None
@@ -55,8 +57,7 @@ class Relay:
         if self._task is not None:
             self._task.cancel()
         # Close every client's websocket first: the web runner would wait out their pings.
-        for eio_sid in list(self.sio.eio.sockets):
-            await self.sio.hang_up(eio_sid)
+        await self.ingest.close_all()
         await self.sio.shutdown()
         if self.runner is not None:
             await self.runner.cleanup()
@@ -64,18 +65,18 @@ class Relay:
 
 
 def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *, limits: Limits = Limits(),
-               live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ) -> tuple[web.Application, Relay]:
+               live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ,
+               max_connections: int = DEFAULT_MAX_CONNECTIONS) -> tuple[web.Application, Relay]:
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     storage = Storage(db)
     state = RelayState(storage, clock, live)
-    sio = GuardedServer(async_mode="aiohttp", serializer=JsonPacket, max_http_buffer_size=MAX_MESSAGE_BYTES,
-                        logger=False, engineio_logger=False, ping_interval=10, ping_timeout=10)
-    ingest = IngestNamespace(state, token, limits)
+    sio = create_sio()
+    ingest = Ingest(state, token, limits, max_connections)
     ui = UiNamespace(state, token)
-    sio.register_namespace(ingest)
     sio.register_namespace(ui)
-    app = web.Application(client_max_size=MAX_MESSAGE_BYTES)
+    app = web.Application(client_max_size=MAX_MESSAGE_BYTES, middlewares=[sio_errors])
+    app.router.add_get(INGEST_PATH, ingest.handle)
     sio.attach(app)
     ticker = Ticker(state, ui, push_hz)
     add_routes(app, state, token, lambda: {"rejected": ingest.rejected, "pushes": ticker.pushes,

@@ -1,10 +1,11 @@
-"""The relay's Socket.IO server, hardened against clients that do not speak the protocol.
+"""The browsers' Socket.IO server (namespace ``/ui``), made with public python-socketio options.
 
-Every connection that sends something Engine.IO or Socket.IO cannot parse is closed at once,
-without a logged traceback; the relay's own namespaces (relay.ingest, relay.uiapi) close the
-ones that parse but make no sense. Relies on internals of python-socketio 5.x and
-python-engineio 4.x (``_handle_eio_message``, ``_handle_event``, the driver table, the socket
-queue); tests/relay/test_fuzz.py guards them.
+Only browsers speak Socket.IO here (nodes use the plain WebSocket of :mod:`relay.ingest`), and
+they only listen and ``subscribe``. What a client that sends garbage could still cause is
+logged tracebacks: python-socketio and python-engineio log an exception for a packet they
+cannot parse, and aiohttp one for a request handler that raises. The loggers handed to the
+server write such a failure as one line, and :func:`sio_errors` ends the request of a
+handler that raised with a one-line log instead of aiohttp's traceback.
 """
 
 from __future__ import annotations
@@ -12,36 +13,14 @@ from __future__ import annotations
 import logging
 
 import socketio
-from engineio import packet as eio_packet
-from engineio.async_drivers import aiohttp as aiohttp_driver
+from aiohttp import web
 from socketio import packet as sio_packet
 
-RESERVED_EVENTS = frozenset({"connect", "disconnect", "connect_error"})
+SIO_PATH = "/socket.io/"
+MAX_UI_MESSAGE_BYTES = 64 * 1024
+"""Browsers send only ``subscribe``."""
 
 log = logging.getLogger(__name__)
-
-
-class GuardedWebSocket(aiohttp_driver.WebSocket):
-    """Engine.IO's aiohttp websocket wrapper, ending the session on an undecodable frame.
-
-    Engine.IO decodes each frame in its websocket handler without a guard: a text frame that is
-    no Engine.IO packet raises out of the request handler (a logged traceback per frame) and
-    leaves the session behind until its ping times out. Reporting such a frame as the end of
-    the connection (None) takes Engine.IO's own orderly close path instead.
-    """
-
-    async def wait(self):
-        message = await super().wait()
-        if isinstance(message, str):
-            try:
-                kind = eio_packet.Packet(encoded_packet=message).packet_type
-            except Exception as exc:  # noqa: BLE001 - whatever the decoder rejects
-                log.info("closing connection: not an Engine.IO packet: %s", str(exc)[:100])
-                return None
-            if not 0 <= kind < len(eio_packet.packet_names):
-                log.info("closing connection: unknown Engine.IO packet type %d", kind)
-                return None
-        return message
 
 
 class JsonPacket(sio_packet.Packet):
@@ -61,49 +40,45 @@ class JsonPacket(sio_packet.Packet):
         return False
 
 
-class GuardedServer(socketio.AsyncServer):
-    """An AsyncServer that closes a connection whose packets it cannot parse.
+class OneLine(logging.Filter):
+    """Write a record's exception as one line: a malformed packet is the client's fault, not a
+    failure of the relay worth a traceback."""
 
-    python-socketio logs a traceback for a malformed packet and keeps the connection; a client
-    sending garbage gets closed here instead. It also refuses binary packets announcing more
-    than one attachment (the protocol uses exactly one), which would otherwise be buffered.
-    Relies on ``_handle_eio_message`` of python-socketio 5.x and on python-engineio 4.x's
-    driver table and socket queue; tests/relay/test_fuzz.py guards all three.
-    """
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.exc_info and record.exc_info[1] is not None:
+            exc = record.exc_info[1]
+            record.msg = f"{record.getMessage()}: {type(exc).__name__}: {str(exc)[:100]}"
+            record.args = None
+            record.exc_info = None
+            record.exc_text = None
+            record.levelno, record.levelname = logging.INFO, "INFO"
+        return record.levelno >= logging.getLogger(record.name).getEffectiveLevel()
 
-    def __init__(self, *args, **kwargs) -> None:
-        super().__init__(*args, **kwargs)
-        self.eio._async = dict(self.eio._async, websocket=GuardedWebSocket)
 
-    async def _handle_eio_message(self, eio_sid, data):
-        try:
-            await super()._handle_eio_message(eio_sid, data)
-            pending = self._binary_packet.get(eio_sid)
-            if pending is not None and pending.attachment_count > 1:
-                raise ValueError("too many binary attachments")
-        except Exception as exc:  # noqa: BLE001 - any unparsable packet closes its connection
-            log.info("closing connection %s: malformed packet: %s", eio_sid, str(exc)[:100])
-            self._binary_packet.pop(eio_sid, None)
-            await self.hang_up(eio_sid)
+def _quiet_logger(name: str) -> logging.Logger:
+    logger = logging.getLogger(name)
+    if not any(isinstance(f, OneLine) for f in logger.filters):
+        logger.addFilter(OneLine())
+    return logger
 
-    async def _handle_event(self, eio_sid, namespace, id, data):
-        # A client may not raise the server's own lifecycle events ("connect" would reach
-        # on_connect with the client's data as its environ).
-        if not (isinstance(data, list) and data and isinstance(data[0], str)) or data[0] in RESERVED_EVENTS:
-            raise ValueError("malformed or reserved event")
-        await super()._handle_event(eio_sid, namespace, id, data)
 
-    async def hang_up(self, eio_sid: str) -> None:
-        """Close a client's Engine.IO session and its websocket now.
+def create_sio() -> socketio.AsyncServer:
+    """The relay's Socket.IO server for browsers (attach it to the aiohttp app)."""
+    return socketio.AsyncServer(async_mode="aiohttp", serializer=JsonPacket,
+                                max_http_buffer_size=MAX_UI_MESSAGE_BYTES,
+                                logger=_quiet_logger("relay.sio"), engineio_logger=_quiet_logger("relay.eio"),
+                                ping_interval=10, ping_timeout=10)
 
-        ``eio.disconnect`` only queues Engine.IO's CLOSE packet; the websocket itself would
-        stay open until the client leaves or ping_interval + ping_timeout pass. The None in
-        the socket's queue is what Engine.IO's own reader uses to make its writer close it.
-        """
-        socket = self.eio.sockets.pop(eio_sid, None)
-        if socket is None:
-            return
-        # As eio.disconnect, without waiting for the writer to drain its queue: a writer whose
-        # client already left never would.
-        await socket.close(wait=False, reason=self.eio.reason.SERVER_DISCONNECT)
-        socket.queue.put_nowait(None)
+
+@web.middleware
+async def sio_errors(request: web.Request, handler) -> web.StreamResponse:
+    """End a Socket.IO request whose handler raised on a client's garbage, in one log line."""
+    try:
+        return await handler(request)
+    except web.HTTPException:
+        raise
+    except Exception as exc:  # noqa: BLE001 - what Engine.IO's unguarded packet decoding raises
+        if not request.path.startswith(SIO_PATH):
+            raise
+        log.info("closing Socket.IO connection: %s: %s", type(exc).__name__, str(exc)[:100])
+        raise web.HTTPBadRequest(text="malformed Socket.IO packet") from None

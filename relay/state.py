@@ -1,6 +1,6 @@
 """What the relay knows about every run it has seen since it started: live pairing, clock, counters.
 
-Shared by the ingest namespace (which feeds it), the HTTP API and the UI namespace (which
+Shared by the ingest endpoint (which feeds it), the HTTP API and the UI namespace (which
 read it). Everything runs on the relay's event loop; only storage works in its own thread.
 """
 
@@ -33,6 +33,9 @@ class RunState:
     header: TraceHeader
     live: LiveRun
     seqs: SeqSet
+    """Batches stored."""
+    storing: dict[int, asyncio.Future] = field(default_factory=dict)
+    """Batches being stored: seq -> future of "stored"."""
     clock: ClockEstimator = field(default_factory=ClockEstimator)
     ptp: dict = field(default_factory=lambda: {"state": "unavailable"})
     sid: str | None = None

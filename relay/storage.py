@@ -128,16 +128,23 @@ class Storage:
         self._conn.close()
 
     async def put_batch(self, run: str, seq: int, count: int, compressed: bool, payload: bytes) -> bool:
-        """Store a batch; True once committed, False if (run, seq) was already stored."""
-        future = asyncio.get_running_loop().create_future()
+        """Store a batch; True once committed, False if (run, seq) was already stored.
+        Raises :class:`RelayError` if it could not be stored."""
+        future = self._future()
         self._queue.put(_Batch(run, seq, count, compressed, payload, future))
         return await future
 
     async def call(self, fn: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
         """Run ``fn(connection, *args, **kwargs)`` in the database thread (its own transaction)."""
-        future = asyncio.get_running_loop().create_future()
+        future = self._future()
         self._queue.put(_Call(fn, args, kwargs, future))
         return await future
+
+    def _future(self) -> asyncio.Future:
+        # A queue nobody reads would leave the caller waiting for ever.
+        if not self._thread.is_alive():
+            raise RelayError(f"{self.path}: storage is not running")
+        return asyncio.get_running_loop().create_future()
 
     def _resolve(self, future: asyncio.Future, value: Any = None, error: BaseException | None = None) -> None:
         self._resolve_all([(future, value, error)])
@@ -152,7 +159,10 @@ class Storage:
                     future.set_exception(error)
                 else:
                     future.set_result(value)
-        self._loop.call_soon_threadsafe(settle)
+        try:
+            self._loop.call_soon_threadsafe(settle)
+        except RuntimeError:  # the loop closed: nobody waits for these any more
+            pass
 
     def _worker(self) -> None:
         while True:
@@ -197,9 +207,11 @@ class Storage:
             conn.executemany("UPDATE runs SET events = events + ?, last_seen_ns = ? WHERE id = ?",
                              [(n, now, run) for run, n in per_run.items()])
             conn.execute("COMMIT")
-        except sqlite3.Error as exc:
+        except Exception as exc:  # noqa: BLE001 - sqlite's errors, or a value it cannot bind
+            # Any failure fails this group's batches (their nodes send them again); the thread
+            # goes on serving the next ones.
             _rollback(conn)
-            err = RelayError(f"{self.path}: cannot store batches: {exc}")
+            err = RelayError(f"{self.path}: cannot store batches: {type(exc).__name__}: {exc}")
             self._resolve_all([(b.future, None, err) for b in batches])
             return
         self.commits += 1
@@ -208,8 +220,11 @@ class Storage:
 
 
 def _rollback(conn: sqlite3.Connection) -> None:
-    if conn.in_transaction:
-        conn.execute("ROLLBACK")
+    try:
+        if conn.in_transaction:
+            conn.execute("ROLLBACK")
+    except sqlite3.Error:  # the writer thread must outlive a failed rollback too
+        pass
 
 
 # --- operations run in the database thread (Storage.call) or on a connection of one's own ---

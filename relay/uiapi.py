@@ -59,6 +59,22 @@ class UiNamespace(socketio.AsyncNamespace):
         self._token = token
         self.subscriptions: dict[str, Subscription] = {}
 
+    async def trigger_event(self, event: str, *args):
+        """Dispatch as python-socketio does, but a browser's malformed message (an event of the
+        wrong arity, a ``connect`` it sends itself) is ignored with one log line, not a traceback."""
+        sid = args[0] if args else None
+        if event == "connect":
+            if sid in self.subscriptions:
+                log.info("ui: %s sent a connect event: ignored", sid)
+                return None
+            # The server's own connect: a refusal must reach python-socketio.
+            return await super().trigger_event(event, *args)
+        try:
+            return await super().trigger_event(event, *args)
+        except Exception as exc:  # noqa: BLE001 - a browser's garbage must not log a traceback
+            log.info("ui: %s from %s ignored: %s: %s", str(event)[:40], sid, type(exc).__name__, str(exc)[:100])
+            return {"ok": False, "error": "malformed message"}
+
     async def on_connect(self, sid: str, environ: dict, auth: object = None) -> None:
         if not token_matches(self._token, socket_token(auth, environ)):
             raise Refused("unauthorized: wrong or missing token")

@@ -8,6 +8,7 @@ reading its trace file instead.
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import re
@@ -20,9 +21,12 @@ import urllib.error
 import urllib.request
 from pathlib import Path
 
+import aiohttp
 import numpy as np
 
 from probes.events import TraceHeader
+from relay.link import Link
+from relay.simnode import header_for
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -157,3 +161,34 @@ def assert_stats_equal(expected, got, path: str = "stats") -> None:
 
 def sort_events(events: np.ndarray) -> np.ndarray:
     return np.sort(events, order=["source", "frame", "stage", "point", "ts"])
+
+
+class HandNode:
+    """A node driven by hand on one ingest WebSocket (:class:`relay.link.Link`), for in-process
+    tests that send exactly the messages they mean to."""
+
+    def __init__(self, session, link, acks) -> None:
+        self.session, self.link, self.acks = session, link, acks
+
+    @classmethod
+    async def open(cls, url: str, node: str, run: str, token: str | None = None, stages: int = 1) -> "HandNode":
+        session = aiohttp.ClientSession()
+        acks: asyncio.Queue = asyncio.Queue()
+        link = await Link.open(session, url, token, acks.put_nowait)
+        hello = {"proto": 2, "run": run, "header": header_for(node, stages).to_dict(), "lost": 0}
+        reply = await link.call("hello", hello, 5)
+        assert reply["ok"], reply
+        return cls(session, link, acks)
+
+    async def batch(self, data: bytes) -> dict:
+        """Send one batch and wait for its acknowledgement."""
+        await self.link.send_batch(data)
+        return await asyncio.wait_for(self.acks.get(), 10)
+
+    @property
+    def connected(self) -> bool:
+        return not self.link.ws.closed
+
+    async def close(self) -> None:
+        await self.link.close()
+        await self.session.close()

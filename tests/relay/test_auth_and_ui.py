@@ -8,6 +8,7 @@ import time
 import pytest
 import socketio
 
+from tests.conftest import run_cli
 from tests.relay.helpers import (RelayProcess, finish_node, get_json, http_status, load_node, start_node)
 
 TOKEN = "s3cret-token"
@@ -29,7 +30,7 @@ def test_token_refusals(tmp_path):
         bad = start_node(relay.url, "intruder", tmp_path / "bad.npz", frames=20, fps=50,
                          extra=["--close-timeout", "2"])
         counters = finish_node(bad, 30)
-        assert counters["acked"] == 0 and "unauthorized" in counters["last_error"]
+        assert counters["acked"] == 0 and "refused the token" in counters["last_error"]
         good = start_node(relay.url, "DCU-1", tmp_path / "good.npz", frames=20, fps=50, token=TOKEN)
         assert finish_node(good, 30)["acked"] > 0
 
@@ -116,3 +117,20 @@ def raw(frame: dict, correction: int) -> dict:
         return [None if v is None else v + correction for v in values]
     return dict(frame, origin=frame["origin"] + correction, end=frame["end"] + correction, enter=back(frame["enter"]),
                 exit=back(frame["exit"]))
+
+
+def test_a_node_with_a_wrong_token_exits_non_zero_with_one_line(tmp_path):
+    """``dcuscope run --probes --relay URL --token WRONG`` used to exit 0 having shipped nothing."""
+    config = tmp_path / "n.yaml"
+    config.write_text("node: DCU-1\nsources:\n  - {test: ball, width: 160, height: 120, rate: 30}\n"
+                      "stages:\n  - mux: {batch-size: 1, width: 160, height: 120}\n  - tiler: {rows: 1, columns: 1, width: 160, height: 120}\n"
+                      "  - convert: {}\n")
+    relay = RelayProcess(tmp_path / "relay.db", token=TOKEN)
+    try:
+        result = run_cli("run", config, "--probes", "--relay", relay.url, "--token", "WRONG", "--num-frames", "20",
+                         "-q", cwd=tmp_path, timeout=120)
+        assert get_json(f"{relay.url}/api/nodes", TOKEN) == []
+    finally:
+        relay.stop()
+    assert result.returncode == 2, result.stderr
+    assert result.stderr.strip().splitlines() == [f"dcuscope: error: relay {relay.url} refused the token (HTTP 401)"]

@@ -1,16 +1,25 @@
-"""RelayExporter on its own: write never blocks, the buffer is bounded, losses are counted."""
+"""RelayExporter: write never blocks, the buffer is bounded, losses are counted; a batch the relay
+could not store is sent again at once; evicted batches leave no gap at the relay; the probe
+shipper waits for its close."""
 
 from __future__ import annotations
 
+import asyncio
 import time
 
 import numpy as np
 import pytest
 
+from pipeline.gst import Gst
+from plugins import framestamp
+from probes.shipper import Shipper
+from probes.tracer import attach
 from relay.client import RelayExporter
 from relay.errors import RelayError
+from relay.server import start_relay
 from relay.simnode import header_for, synth_events
-from tests.relay.helpers import free_port
+from tests.relay.helpers import RelayProcess, free_port, wait_for
+from tests.relay.netcut import CutProxy
 
 T0 = 1_700_000_000_000_000_000
 
@@ -46,3 +55,87 @@ def test_bad_arguments_are_user_errors():
     with pytest.raises(ValueError, match="EVENT_DTYPE"):
         exporter.write(np.zeros(3, np.int64))
     exporter.close(0)  # never started: nothing to do
+
+
+async def until(predicate, timeout: float = 30.0, what: str = "condition") -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        await asyncio.sleep(0.05)
+
+
+def test_batches_evicted_before_the_relay_came_leave_no_gap_in_its_seqs(tmp_path):
+    """The relay used to keep every later seq one by one, for the rest of the run, behind the
+    gap the evicted batches left."""
+    port = free_port()
+    exporter = RelayExporter(f"http://127.0.0.1:{port}", "A", max_buffer_events=2_000, batch_events=200,
+                             backoff_s=(0.05, 0.2))
+    events = synth_events(250, 2, 25.0, T0)  # 6,000 events, 30 batches: the first 20 evicted
+
+    async def scenario():
+        exporter.start(header_for("A", 2))
+        for i in range(0, len(events), 200):
+            exporter.write(events[i:i + 200])
+            await until(lambda: exporter._pending_n == 0, what="a batch cut")  # else write would shed
+        assert exporter.lost == exporter._evicted == 4_000
+        relay = await start_relay(port=port, db=tmp_path / "r.db")
+        try:
+            await until(lambda: exporter.counters()["acked"] + exporter.lost == len(events), what="acknowledgements")
+            rs = relay.state.runs[exporter.run_id]
+            assert rs.live.events == exporter.counters()["acked"] > 0
+            assert rs.seqs.held == 0 and rs.seqs.low == 30
+            await asyncio.to_thread(exporter.close, 0)
+        finally:
+            await relay.stop()
+
+    asyncio.run(scenario())
+
+
+def test_a_batch_the_relay_could_not_store_is_sent_again_at_once(tmp_path):
+    """An ``ok: false`` acknowledgement used to leave its batch in flight until a 30 s timeout."""
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        exporter = RelayExporter(f"http://127.0.0.1:{relay.port}", "A", close_timeout_s=8.0)
+        try:
+            exporter.start(header_for("A", 2))
+            await until(lambda: exporter.counters()["connected"], what="connection")
+            await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = ON"))  # commits now fail
+            events = synth_events(50, 2, 25.0, T0)
+            exporter.write(events)
+            await until(lambda: "store" in exporter.counters()["last_error"], what="a refused batch")
+            await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = OFF"))
+            await asyncio.to_thread(exporter.close, 0)
+            c = exporter.counters()
+            assert c["acked"] == len(events) and c["connects"] == 1 and c["lost"] == 0
+            assert relay.state.runs[exporter.run_id].live.events == len(events)
+        finally:
+            await relay.stop()
+
+    asyncio.run(scenario())
+
+
+def test_the_probe_shipper_waits_for_the_relay_exporters_close(tmp_path):
+    """Shipper.stop waited 10 s while the exporter's close could take 15 s: it returned with the
+    close still running. Here the relay is black-holed, so close takes all the time it may."""
+    name, rank, cls = framestamp.__gstelementfactory__
+    if Gst.ElementFactory.find(name) is None:
+        Gst.Element.register(None, name, rank, cls.__gtype__)
+    relay = RelayProcess(tmp_path / "relay.db")
+    proxy = CutProxy(relay.port)
+    try:
+        pipe = Gst.parse_launch("videotestsrc num-buffers=30 ! video/x-raw,width=64,height=48 ! "
+                                "framestamp source-id=0 ! identity ! fakesink")
+        tracer = attach(pipe, "A")
+        exporter = RelayExporter(proxy.url, "A", sync_interval_s=60.0)  # nothing ends the link early
+        shipper = Shipper(tracer, [exporter]).start()
+        wait_for(lambda: exporter.counters()["connected"], 10, what="connection")
+        proxy.cut("blackhole")
+        pipe.set_state(Gst.State.PLAYING)
+        assert pipe.get_bus().timed_pop_filtered(20 * Gst.SECOND, Gst.MessageType.EOS) is not None
+        pipe.set_state(Gst.State.NULL)
+        shipper.stop()
+        assert not shipper._thread.is_alive() and not exporter._thread.is_alive()
+        assert exporter.counters()["written"] > 0 and exporter.counters()["acked"] == 0
+    finally:
+        proxy.close()
+        relay.stop()

@@ -1,5 +1,6 @@
-"""10,000 malformed payloads at the ingest while a well-behaved node streams: every bad
-connection is closed, the relay stays up, the good node's data and statistics stay exact."""
+"""10,000 malformed payloads at the ingest WebSocket while a well-behaved node streams: every bad
+connection is closed, the relay stays up, the good node's data and statistics stay exact; and
+garbage at the browsers' Socket.IO: the relay stays up and logs no traceback."""
 
 from __future__ import annotations
 
@@ -7,10 +8,11 @@ import asyncio
 import time
 
 from probes.delays import node_stats
-from tests.relay.fuzzer import fuzz
+from tests.relay.fuzzer import fuzz, fuzz_ui
 from tests.relay.helpers import RelayProcess, assert_stats_equal, finish_node, get_json, load_node, start_node
 
 PAYLOADS = 10_000
+UI_PAYLOADS = 500
 
 
 def test_fuzz_while_a_node_streams(tmp_path):
@@ -21,14 +23,16 @@ def test_fuzz_while_a_node_streams(tmp_path):
         started = time.monotonic()
         report = asyncio.run(fuzz(relay.url, PAYLOADS, token="t0k", workers=16, timeout=5.0))
         elapsed = time.monotonic() - started
-        assert relay.alive()
         streaming = node.poll() is None
+        ui_kinds = asyncio.run(fuzz_ui(relay.url, UI_PAYLOADS, token="t0k"))
+        assert relay.alive()
         counters = finish_node(node, 120)
 
         assert report.sent == PAYLOADS and elapsed < 240
         assert not report.not_closed, report.not_closed
         assert report.closed == PAYLOADS
-        assert len(report.kinds) >= 20 and min(report.kinds.values()) > 100
+        assert len(report.kinds) >= 25 and min(report.kinds.values()) > 100
+        assert len(ui_kinds) == 10 and sum(ui_kinds.values()) == UI_PAYLOADS
         health = get_json(f"{relay.url}/api/health", "t0k")
         assert health["ok"] and health["rejected"] >= report.errors_seen > PAYLOADS // 2
 

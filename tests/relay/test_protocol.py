@@ -105,7 +105,7 @@ def test_random_mutations_raise_only_protocol_errors():
 
 
 def hello(**over) -> dict:
-    d = {"proto": 1, "run": RUN, "header": header_for("n1", 2).to_dict(), "lost": 0, "ptp": {"state": "locked"}}
+    d = {"proto": 2, "run": RUN, "header": header_for("n1", 2).to_dict(), "lost": 0, "ptp": {"state": "locked"}}
     d.update(over)
     return d
 
@@ -117,8 +117,8 @@ def test_hello():
 
 @pytest.mark.parametrize("data, message", [
     ([], "must be an object"),
-    (hello(proto=2), "unsupported protocol version 2"),
-    (hello(proto="1"), "proto must be an integer"),
+    (hello(proto=1), "unsupported protocol version 1"),
+    (hello(proto="2"), "proto must be an integer"),
     (hello(run="zz"), "run must be a UUID"),
     (hello(lost=-1), "lost must be an integer"),
     (hello(lost=True), "lost must be an integer"),

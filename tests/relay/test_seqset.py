@@ -7,17 +7,16 @@ import numpy as np
 from relay.seqset import SeqSet
 
 
-def test_behaves_as_a_set_under_resends_gaps_and_discards():
+def test_behaves_as_a_set_under_resends_gaps_and_floors():
     rng = np.random.default_rng(3)
     seen, plain = SeqSet(), set()
     for _ in range(20_000):
-        # Mostly in order, with resends of recent ones, jumps ahead, and the odd discard.
-        r = rng.random()
+        # Mostly in order, with resends of recent ones, jumps ahead, and the odd floor (the node
+        # gave up everything below it).
         seq = max(0, len(plain) + int(rng.integers(-40, 5)))
-        if r < 0.02 and plain:
-            seq = int(rng.choice(list(plain)[-50:]))
-            seen.discard(seq)
-            plain.discard(seq)
+        if rng.random() < 0.02:
+            seen.advance(seq)
+            plain.update(range(seq))
         else:
             assert (seq in seen) == (seq in plain)
             seen.add(seq)
@@ -33,3 +32,14 @@ def test_an_in_order_run_holds_nothing_individually():
     for seq in range(6, 1_000_000):
         seen.add(seq)
     assert seen.low == 1_000_000 and seen.held == 0 and 999_999 in seen and 1_000_000 not in seen
+
+
+def test_a_floor_forgets_the_gap_of_batches_that_never_come():
+    seen = SeqSet()
+    for seq in range(20, 1000):  # 0..19 were evicted by the node
+        seen.add(seq)
+    assert seen.low == 0 and seen.held == 980
+    seen.advance(20)
+    assert seen.low == 1000 and seen.held == 0 and 5 in seen and 1000 not in seen
+    seen.advance(3)  # an old floor changes nothing
+    assert seen.low == 1000

@@ -10,26 +10,18 @@ import sys
 import uuid
 
 import aiohttp
-import socketio
+import pytest
 
 from relay.commands import add_relay_parser
+from relay.errors import RelayError
 from relay.limits import Limits
 from relay.protocol import encode_batch
 from relay.server import start_relay
-from relay.simnode import header_for, synth_events
+from relay.simnode import synth_events
 from tests.conftest import wait_until_mapped
-from tests.relay.helpers import ROOT, env
+from tests.relay.helpers import ROOT, HandNode, env
 
 T0 = 1_700_000_000_000_000_000
-
-
-async def node_client(url: str, node: str, run: str, errors: list) -> socketio.AsyncClient:
-    sio = socketio.AsyncClient(reconnection=False)
-    sio.on("relay_error", lambda data: errors.append(data), namespace="/ingest")
-    await sio.connect(url, auth={"node": node}, namespaces=["/ingest"], transports=["websocket"], wait_timeout=5)
-    hello = {"proto": 1, "run": run, "header": header_for(node, 1).to_dict(), "lost": 0}
-    assert (await sio.call("hello", hello, namespace="/ingest", timeout=5))["ok"]
-    return sio
 
 
 def test_rate_bound_closes_only_the_offender(tmp_path):
@@ -37,21 +29,18 @@ def test_rate_bound_closes_only_the_offender(tmp_path):
         relay = await start_relay(port=0, db=tmp_path / "r.db", limits=Limits(messages_per_s=20, message_burst=40))
         url = f"http://127.0.0.1:{relay.port}"
         try:
-            errors_a, errors_b = [], []
             run_b = uuid.uuid4().hex
-            a = await node_client(url, "A", uuid.uuid4().hex, errors_a)
-            b = await node_client(url, "B", run_b, errors_b)
+            a = await HandNode.open(url, "A", uuid.uuid4().hex)
+            b = await HandNode.open(url, "B", run_b)
             for _ in range(80):  # twice the burst, at once
-                await a.emit("sync", namespace="/ingest")
-            for _ in range(50):
-                if not a.connected:
-                    break
-                await asyncio.sleep(0.05)
-            assert not a.connected and errors_a == [{"error": "rate limit exceeded"}]
+                await a.link.tell("sync", None)
+            await asyncio.wait_for(a.link.closed(), 5)
+            assert not a.connected and a.link.error == "relay error: rate limit exceeded"
             events = synth_events(10, 1, 25.0, T0)
-            reply = await b.call("batch", encode_batch(run_b, 0, events), namespace="/ingest", timeout=5)
-            assert reply == {"ok": True, "seq": 0} and b.connected and not errors_b
-            await b.disconnect()
+            reply = await b.batch(encode_batch(run_b, 0, events))
+            assert reply == {"v": 2, "type": "ack", "seq": 0, "ok": True} and b.connected and not b.link.error
+            for n in (a, b):
+                await n.close()
         finally:
             await relay.stop()
 
@@ -64,17 +53,62 @@ def test_a_reconnecting_run_takes_over_its_old_connection(tmp_path):
         url = f"http://127.0.0.1:{relay.port}"
         run = uuid.uuid4().hex
         try:
-            errors: list = []
-            old = await node_client(url, "A", run, errors)
-            new = await node_client(url, "A", run, [])
-            await asyncio.sleep(0.3)
-            assert not old.connected and "superseded" in errors[0]["error"]
+            old = await HandNode.open(url, "A", run)
+            new = await HandNode.open(url, "A", run)
+            await asyncio.wait_for(old.link.closed(), 5)
+            assert not old.connected and "superseded" in old.link.error
             events = synth_events(10, 1, 25.0, T0)
-            assert (await new.call("batch", encode_batch(run, 0, events), namespace="/ingest"))["ok"]
-            dup = await new.call("batch", encode_batch(run, 0, events), namespace="/ingest")
-            assert dup == {"ok": True, "seq": 0, "dup": True}
+            assert (await new.batch(encode_batch(run, 0, events)))["ok"]
+            dup = await new.batch(encode_batch(run, 0, events))
+            assert dup["ok"] and dup["seq"] == 0 and dup["dup"]
             assert relay.state.runs[run].live.events == len(events) and relay.state.runs[run].duplicates == 1
-            await new.disconnect()
+            for n in (old, new):
+                await n.close()
+        finally:
+            await relay.stop()
+
+    asyncio.run(scenario())
+
+
+def test_connections_beyond_the_cap_are_refused_before_the_upgrade(tmp_path):
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db", max_connections=1)
+        url = f"http://127.0.0.1:{relay.port}"
+        try:
+            first = await HandNode.open(url, "A", uuid.uuid4().hex)
+            with pytest.raises(RelayError, match="HTTP 503"):
+                await HandNode.open(url, "B", uuid.uuid4().hex)
+            await first.close()
+            for _ in range(100):  # until the relay saw it go
+                if relay.state.runs and all(rs.sid is None for rs in relay.state.runs.values()):
+                    break
+                await asyncio.sleep(0.05)
+            again = await HandNode.open(url, "B", uuid.uuid4().hex)
+            assert again.connected
+            await again.close()
+        finally:
+            await relay.stop()
+
+    asyncio.run(scenario())
+
+
+def test_a_batch_resent_after_a_storage_failure_counts_once(tmp_path):
+    """Events used to reach the live state before storage: a batch storage refused, sent again,
+    counted twice."""
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        run = uuid.uuid4().hex
+        events = synth_events(10, 1, 25.0, T0)
+        try:
+            node = await HandNode.open(f"http://127.0.0.1:{relay.port}", "A", run)
+            await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = ON"))  # commits now fail
+            refused = await node.batch(encode_batch(run, 0, events))
+            assert refused["ok"] is False and refused["seq"] == 0 and node.connected
+            assert relay.state.runs[run].live.events == 0
+            await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = OFF"))
+            assert (await node.batch(encode_batch(run, 0, events))) == {"v": 2, "type": "ack", "seq": 0, "ok": True}
+            assert relay.state.runs[run].live.events == len(events) and relay.state.runs[run].duplicates == 0
+            await node.close()
         finally:
             await relay.stop()
 
@@ -125,18 +159,18 @@ def test_a_nodes_newest_run_is_its_current_one(tmp_path):
         first, second = uuid.uuid4().hex, uuid.uuid4().hex
         events = synth_events(10, 1, 25.0, T0)
         try:
-            c1 = await node_client(url, "A", first, [])
-            assert (await c1.call("batch", encode_batch(first, 0, events), namespace="/ingest"))["ok"]
-            await c1.disconnect()
+            c1 = await HandNode.open(url, "A", first)
+            assert (await c1.batch(encode_batch(first, 0, events)))["ok"]
+            await c1.close()
             await asyncio.sleep(0.2)
-            c2 = await node_client(url, "A", second, [])
+            c2 = await HandNode.open(url, "A", second)
             assert relay.state.nodes["A"] == second and first not in relay.state.runs  # the old run left memory
-            c1 = await node_client(url, "A", first, [])  # the old run comes back: from storage
+            c1 = await HandNode.open(url, "A", first)  # the old run comes back: from storage
             assert relay.state.runs[first].live.events == len(events) and relay.state.nodes["A"] == second
             # Nothing was live when the second run began: it opened a session of its own.
             assert (relay.state.runs[first].session, relay.state.runs[second].session) == (1, 2)
             for c in (c1, c2):
-                await c.disconnect()
+                await c.close()
         finally:
             await relay.stop()
 

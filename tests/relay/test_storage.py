@@ -82,3 +82,26 @@ def test_errors_name_the_file(tmp_path):
     with pytest.raises(RelayError, match="must be a number or a run id"):
         db.load_session(good, "x; DROP TABLE runs")
     assert sqlite3.connect(good).execute("SELECT count(*) FROM runs").fetchone()[0] == 0
+
+
+def test_a_batch_sqlite_cannot_bind_fails_alone_and_the_writer_keeps_serving(tmp_path):
+    """A value sqlite refuses with a non-sqlite exception (OverflowError) used to kill the
+    writer thread, and every later put_batch waited for ever."""
+    run = uuid.uuid4().hex
+    events = synth_events(5, 1, 25.0, T0)
+
+    async def scenario():
+        s = db.Storage(tmp_path / "r.db")
+        s.start(asyncio.get_running_loop())
+        try:
+            await s.call(db.register_run, run, "a", header_for("a", 1).to_dict(), None)
+            with pytest.raises(RelayError, match="cannot store batches: OverflowError"):
+                await asyncio.wait_for(s.put_batch(run, 1 << 64, len(events), False, payload(run, 0, events, False)), 10)
+            stored = await asyncio.wait_for(s.put_batch(run, 0, len(events), False, payload(run, 0, events, False)), 10)
+            assert stored is True and await s.call(db.stored_seqs, run) == {0}
+        finally:
+            s.stop()
+        with pytest.raises(RelayError, match="storage is not running"):
+            await s.put_batch(run, 1, len(events), False, payload(run, 1, events, False))
+
+    asyncio.run(scenario())

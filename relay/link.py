@@ -1,0 +1,115 @@
+"""A node's end of one ingest WebSocket (``GET /ingest``): requests with replies, batches with
+acknowledgements, in the envelope of :mod:`relay.envelope`.
+
+    link = await Link.open(session, "http://127.0.0.1:3000", token, on_ack)
+    reply = await link.call("hello", {...}, timeout=10)
+    await link.send_batch(encode_batch(...))       # on_ack(message) once the relay stored it
+    await link.closed()                            # the connection ended (link.error says why)
+"""
+
+from __future__ import annotations
+
+import asyncio
+import itertools
+from typing import Callable
+
+import aiohttp
+from aiohttp import WSMsgType
+
+from relay import envelope
+from relay.errors import ProtocolError, RelayError
+from relay.protocol import HEARTBEAT_S, INGEST_PATH, MAX_MESSAGE_BYTES
+
+HANDSHAKE_TIMEOUT_S = 10.0
+CLOSE_TIMEOUT_S = 1.0
+
+
+class Refused(RelayError):
+    """The relay refused the node before the WebSocket opened (a wrong or missing token)."""
+
+
+class Link:
+    def __init__(self, ws: aiohttp.ClientWebSocketResponse, on_ack: Callable[[dict], None]) -> None:
+        self.ws = ws
+        self.error = ""
+        """Why the relay ended the connection, when it said so."""
+        self._on_ack = on_ack
+        self._calls: dict[int, asyncio.Future] = {}
+        self._ids = itertools.count()
+        self._reader = asyncio.create_task(self._read())
+
+    @classmethod
+    async def open(cls, session: aiohttp.ClientSession, url: str, token: str | None,
+                   on_ack: Callable[[dict], None]) -> "Link":
+        """Connect to the relay at ``url`` (http[s]://HOST:PORT). Raises :class:`Refused` for an
+        HTTP 401, :class:`RelayError` for any other failure to connect."""
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        ws_url = "ws" + url[len("http"):] + INGEST_PATH
+        try:
+            async with asyncio.timeout(HANDSHAKE_TIMEOUT_S):
+                ws = await session.ws_connect(ws_url, headers=headers, heartbeat=HEARTBEAT_S,
+                                              max_msg_size=MAX_MESSAGE_BYTES,
+                                              timeout=aiohttp.ClientWSTimeout(ws_close=CLOSE_TIMEOUT_S))
+        except aiohttp.WSServerHandshakeError as exc:
+            if exc.status == 401:
+                raise Refused(f"relay {url} refused the token (HTTP 401)") from exc
+            raise RelayError(f"HTTP {exc.status} {exc.message}") from exc
+        except (aiohttp.ClientError, OSError, TimeoutError) as exc:
+            raise RelayError(str(exc) or type(exc).__name__) from exc
+        return cls(ws, on_ack)
+
+    async def call(self, kind: str, data: object, timeout: float) -> object:
+        """Send a request and wait for its reply's data (ConnectionError if the link ends first)."""
+        ident = next(self._ids)
+        future = asyncio.get_running_loop().create_future()
+        self._calls[ident] = future
+        try:
+            await self.ws.send_str(envelope.request(kind, data, ident))
+            async with asyncio.timeout(timeout):
+                return await future
+        finally:
+            self._calls.pop(ident, None)
+
+    async def tell(self, kind: str, data: object) -> None:
+        """Send a message that wants no reply."""
+        await self.ws.send_str(envelope.request(kind, data))
+
+    async def send_batch(self, data: bytes) -> None:
+        await self.ws.send_bytes(data)
+
+    async def closed(self) -> None:
+        await asyncio.shield(self._reader)
+
+    async def close(self) -> None:
+        self._reader.cancel()
+        try:
+            await self.ws.close()
+        except (aiohttp.ClientError, OSError, asyncio.TimeoutError):  # a half-open connection
+            pass
+
+    async def _read(self) -> None:
+        try:
+            async for msg in self.ws:
+                if msg.type != WSMsgType.TEXT:
+                    self.error = f"relay sent a {msg.type.name} frame"
+                    break
+                self._dispatch(envelope.decode_reply(msg.data))
+        except ProtocolError as exc:
+            self.error = f"relay sent {exc}"
+        finally:
+            for future in self._calls.values():
+                if not future.done():
+                    future.set_exception(ConnectionError(self.error or "connection to the relay closed"))
+            if not self.error and self.ws.close_code not in (None, 1000):
+                self.error = f"relay closed the connection ({self.ws.close_code})"
+
+    def _dispatch(self, d: dict) -> None:
+        if d["type"] == "reply":
+            ident = d.get("id")
+            future = self._calls.get(ident) if isinstance(ident, int) else None
+            if future is not None and not future.done():
+                future.set_result(d.get("data"))
+        elif d["type"] == "ack":
+            self._on_ack(d)
+        else:
+            self.error = f"relay error: {str(d.get('error'))[:200]}"
