@@ -9,7 +9,7 @@ setup:
 	@scripts/setup.sh
 
 demo: setup
-	$(PY) -m pipeline.cli demo --port $(PORT) $(if $(DURATION),--duration $(DURATION))
+	$(PY) -m dcuscope.cli demo --port $(PORT) $(if $(DURATION),--duration $(DURATION))
 
 test: setup
 	$(PY) -m pytest -q

@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from pipeline.gst import Gst  # noqa: E402
+from core.gst import Gst  # noqa: E402
 from plugins import convert, frames, tiler  # noqa: E402
 
 IN_W, IN_H = 1920, 1080

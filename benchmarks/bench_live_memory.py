@@ -2,7 +2,7 @@
 
 Feeds ``relay.live.LiveRun`` synthetic events of one DCU (6 sources x 60 fps, 12 events a
 frame) in 1-second batches, as the relay's tick does, and prints, every ``--every`` simulated
-minutes, the bytes of numpy arrays the engine holds, the cost of its whole-session
+minutes, the bytes of numpy arrays the engine holds, the cost of its whole-run
 statistics, and whether their percentiles are still exact. Side by side: the same feed with
 the exact limit raised past the run (every value kept, as before the bounded series), so the
 ratio of the two heaps is measured in one run.
@@ -16,8 +16,8 @@ import argparse
 import json
 import time
 
+from probes.simnode import header_for, synth_events
 from relay.live import LiveConfig, LiveRun
-from relay.simnode import header_for, synth_events
 
 SOURCES, FPS = 6, 60.0
 T0 = 1_700_000_000_000_000_000
@@ -40,7 +40,7 @@ def main() -> int:
             row = {"minutes": round((second + 1) / 60, 1), "frames": (second + 1) * int(FPS) * SOURCES}
             for name, run in runs.items():
                 t = time.perf_counter()
-                stats = run.session_stats()
+                stats = run.run_stats()
                 row[name] = {"heap_mib": round(_held(run) / 2**20, 1),
                              "stats_ms": round(1000 * (time.perf_counter() - t), 1),
                              "percentile_error": stats["percentile_error"]}

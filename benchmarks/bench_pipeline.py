@@ -22,9 +22,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from core.gst import Gst  # noqa: E402
 from pipeline.build import build_pipeline  # noqa: E402
 from pipeline.config import load_config  # noqa: E402
-from pipeline.gst import Gst  # noqa: E402
 from pipeline.run import Runner  # noqa: E402
 
 WARMUP = 5
@@ -59,7 +59,7 @@ def measure(sources: int, probes: bool, frames: int, model: str, workdir: Path) 
                                                lambda *_: stamps.append(time.perf_counter()) or Gst.PadProbeReturn.OK)
     probing = None
     if probes:
-        from probes.session import start_probes
+        from probes.instrument import start_probes
 
         config = replace(config, probes=replace(config.probes, trace=workdir / f"trace-{sources}.jsonl"))
         probing = start_probes(built, config)

@@ -21,7 +21,7 @@ import argparse
 import statistics
 import time
 
-from pipeline.gst import Gst
+from core.gst import Gst
 from probes import native
 from probes.tracer import attach
 

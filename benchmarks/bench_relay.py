@@ -2,7 +2,7 @@
 
 For each node count (default 2, 8, 32), on 127.0.0.1:
 
-1. throughput: one relay process, N simulated node processes (``python -m relay.simnode``)
+1. throughput: one relay process, N simulated node processes (``python -m probes.simnode``)
    each shipping its share of ``--events`` as fast as the relay acknowledges; the rate is
    events committed to SQLite per second between 10 % and 90 % of the total (every one of
    them also went through the live pairing);
@@ -82,7 +82,7 @@ def start_nodes(url: str, n: int, per_node_events: int, paced: bool, fps: float,
     frames = max(1, per_node_events // (EVENTS_PER_FRAME * SOURCES))
     procs = []
     for k in range(n):
-        cmd = [sys.executable, "-m", "relay.simnode", "--relay", url, "--node", f"DCU-{k + 1}",
+        cmd = [sys.executable, "-m", "probes.simnode", "--relay", url, "--node", f"DCU-{k + 1}",
                "--sources", str(SOURCES), "--frames", str(frames), "--fps", str(fps), "--seed", str(k),
                "--close-timeout", "120", "--batch-events", str(batch_events)]
         if paced:

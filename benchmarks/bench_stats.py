@@ -15,8 +15,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from probes.export import perfetto_document, write_csv
 from probes.delays import node_stats
+from probes.export import perfetto_document, write_csv
 from probes.tracefile import read_trace, write_trace
 from tests.probes.synth import pipeline_run
 

@@ -2,7 +2,7 @@
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_ui.py [--minutes 5] [--nodes 2] [--sources 6] [--fps 60]
 
-A relay (``python -m relay``) is fed by simulated nodes (``relay.simnode --paced``: every event
+A relay (``python -m relay``) is fed by simulated nodes (``probes.simnode --paced``: every event
 shipped when its time comes), by default 2 DCUs x 6 sources x 60 fps = 720 frames/s, 8,640
 events/s. The page follows live, alternating stage view and frame view every sample period.
 Measured per period: requestAnimationFrame rate (an rAF counter of the benchmark's own, beside

@@ -46,8 +46,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
-from probes.events import ORIGIN  # noqa: E402
 from probes.delays import node_stats  # noqa: E402
+from probes.events import ORIGIN  # noqa: E402
 from probes.tracefile import Trace, read_trace  # noqa: E402
 
 MEDIA = ROOT / "assets" / "media"
@@ -106,7 +106,7 @@ def clip_pipeline(spec: ClipSpec, target: Path) -> str:
 def make_clip(spec: ClipSpec, cache: Path, progress: Callable[[str], None] = lambda _: None,
               timeout_s: float = 600.0) -> Path:
     """Encode ``spec`` into ``cache`` unless it is there already; return its path."""
-    from pipeline.gst import Gst
+    from core.gst import Gst
 
     target = cache / spec.name
     if target.is_file() and target.stat().st_size > 0:
@@ -234,7 +234,7 @@ class RtspServer:
         # Unbuffered stdout: select() then sees every announced line (a buffered reader would
         # swallow several lines at once and leave select() waiting for nothing).
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "pipeline.cli", "serve-rtsp", *map(str, self.clips), "--port", str(self.port),
+            [sys.executable, "-m", "dcuscope.cli", "serve-rtsp", *map(str, self.clips), "--port", str(self.port),
              "--bitrate", str(self.bitrate)],
             cwd=ROOT, env=cli_env(), stdout=subprocess.PIPE, stderr=self._errors, bufsize=0)
         self._started = time.monotonic()
@@ -280,7 +280,7 @@ class RtspServer:
 def run_pipeline(config: Path, trace: Path, duration: float) -> tuple[int, str]:
     """``dcuscope run CONFIG --probes`` for ``duration`` s, killed if it overruns; (exit status, stderr tail)."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "pipeline.cli", "run", str(config), "--probes", "--trace", str(trace),
+        [sys.executable, "-m", "dcuscope.cli", "run", str(config), "--probes", "--trace", str(trace),
          "--duration", str(duration), "-q"],
         cwd=ROOT, env=cli_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:

@@ -1,1 +1,1 @@
-"""dcuscope's pipeline framework: YAML configuration, pipeline building and running, the CLI."""
+"""dcuscope's pipeline framework: YAML configuration, element checks, source and sink bins, building and running a pipeline, RTSP serving."""

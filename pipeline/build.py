@@ -4,14 +4,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-import plugins
+from core.clocks import CLOCKS
+from core.errors import ConfigError, PipelineError
+from core.gst import Gst
 from pipeline.config import PipelineConfig
 from pipeline.elements import make_stage_element
-from pipeline.errors import ConfigError, PipelineError
-from pipeline.gst import Gst
 from pipeline.sinks import build_sink
 from pipeline.sources import SourceBin
-from probes.events import CLOCKS
+import plugins
 
 
 @dataclass

@@ -9,8 +9,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from core.gst import GObject, Gst
 from pipeline.config import PipelineConfig, StageConfig
-from pipeline.gst import GObject, Gst
 from plugins.models import ModelError, check_model
 
 FILE_PROPERTIES = {"infer": ("model", "labels")}

@@ -11,15 +11,15 @@ import sys
 from pathlib import Path
 from typing import Callable
 
-import plugins
-from pipeline import signals
+from core import signals
+from core.errors import ConfigError, PipelineError, UsageError
+from core.gst import GLib, Gst
+from core.ports import check_port_free
 from pipeline.config import SourceConfig
-from pipeline.errors import ConfigError, PipelineError, UsageError
-from pipeline.gst import GLib, Gst
-from pipeline.ports import check_port_free
 from pipeline.sources import SourceBin
+import plugins
 
-from gi.repository import GstRtspServer  # noqa: E402  (version pinned by pipeline.gst)
+from gi.repository import GstRtspServer  # noqa: E402  (version pinned by core.gst)
 
 DEFAULT_PORT = 8554
 DEFAULT_BITRATE = 2000  # kbit/s

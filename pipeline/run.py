@@ -8,10 +8,10 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, TextIO
 
-from pipeline import signals
+from core import signals
+from core.errors import PipelineError
+from core.gst import GLib, Gst
 from pipeline.build import BuiltPipeline
-from pipeline.errors import PipelineError
-from pipeline.gst import GLib, Gst
 from pipeline.sourcefaults import describe_fault
 from pipeline.stalls import Stall, StallWatch
 

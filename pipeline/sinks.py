@@ -8,9 +8,9 @@
 
 from __future__ import annotations
 
+from core.errors import PipelineError
+from core.gst import Gst
 from pipeline.config import SinkConfig
-from pipeline.errors import PipelineError
-from pipeline.gst import Gst
 from pipeline.outputs import CONTAINERS, FRAME_PATTERN
 
 

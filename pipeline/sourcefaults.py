@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from urllib.parse import urlsplit
 
-from pipeline.gst import GLib, Gst
+from core.gst import GLib, Gst
 
 RTSP_SCHEMES = ("rtsp://", "rtsps://", "rtspt://", "rtspu://")
 RTSP_DEFAULT_PORT = 554

@@ -15,9 +15,9 @@ from __future__ import annotations
 import threading
 from typing import Callable
 
+from core.errors import PipelineError
+from core.gst import GLib, Gst
 from pipeline.config import SourceConfig
-from pipeline.errors import PipelineError
-from pipeline.gst import GLib, Gst
 
 
 class SourceBin(Gst.Bin):

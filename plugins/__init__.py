@@ -17,7 +17,7 @@ def register() -> None:
     global _registered
     if _registered:
         return
-    from pipeline.gst import Gst
+    from core.gst import Gst
 
     for name in ELEMENT_MODULES:
         module = importlib.import_module(f"plugins.{name}")

@@ -14,7 +14,7 @@ from typing import Iterator
 
 import numpy as np
 
-from pipeline.gst import GLib, GObject, Gst, GstBase, GstVideo
+from core.gst import GLib, GObject, Gst, GstBase, GstVideo
 from plugins.colorspace import BT601, FORMATS, YUV420, Converter, Image, YuvMatrix, image_from_memory
 from plugins.frames import OBJECTS_CAPS, Detections, read_objects, write_objects
 from plugins.properties import AttributeProperties

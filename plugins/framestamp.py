@@ -9,7 +9,7 @@ puts one at the end of every source; users rarely place it by hand.
 
 import time
 
-from pipeline.gst import GObject, Gst, GstBase
+from core.gst import GObject, Gst, GstBase
 from plugins.frames import FrameId, write_frames
 from plugins.properties import AttributeProperties
 

@@ -15,7 +15,7 @@ outputs (CenterNet, TF SSD, Ultralytics YOLOv8/v11) unless ``decoder`` names one
 
 import numpy as np
 
-from pipeline.gst import GLib, GObject, Gst, GstBase
+from core.gst import GLib, GObject, Gst, GstBase
 from plugins.detection import Objects
 from plugins.frames import BATCH_TEMPLATE_CAPS, BatchLayout, Detections, mapped_batch, write_objects
 from plugins.models import (

@@ -16,7 +16,7 @@ from typing import Sequence
 import numpy as np
 import onnxruntime as ort
 
-from pipeline.errors import DcuscopeError
+from core.errors import DcuscopeError
 from plugins.detection import (
     LETTERBOX_GREY, Letterbox, Objects, decode_centernet, decode_ssd, decode_yolo, hwc_to_chw_unit,
     letterbox_into, resize_into,

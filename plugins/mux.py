@@ -20,7 +20,7 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from pipeline.gst import GObject, Gst, GstBase, GstVideo
+from core.gst import GObject, Gst, GstBase, GstVideo
 from plugins.frames import BATCH_TEMPLATE_CAPS, FrameId, batch_caps, mapped_video, read_frames, write_frames
 from plugins.properties import AttributeProperties
 

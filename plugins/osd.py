@@ -10,7 +10,7 @@ colour.
 
 import time
 
-from pipeline.gst import GObject, Gst, GstBase, GstVideo
+from core.gst import GObject, Gst, GstBase, GstVideo
 from plugins.drawing import FORMATS, clock_text, draw_clock, draw_detections
 from plugins.frames import mapped_video, read_objects
 from plugins.properties import AttributeProperties

@@ -11,7 +11,7 @@ are black. Detections follow their frame into collage pixels; frame identities a
 
 import numpy as np
 
-from pipeline.gst import GLib, GObject, Gst, GstBase, GstVideo
+from core.gst import GLib, GObject, Gst, GstBase, GstVideo
 from plugins.frames import (
     BATCH_TEMPLATE_CAPS, OBJECTS_CAPS, BatchLayout, Detections, mapped_batch, mapped_video,
     read_frames, read_objects, write_objects,

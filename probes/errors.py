@@ -1,6 +1,6 @@
 """Exceptions of the probes package: each names the trace file (and line), or the exporter, at fault."""
 
-from pipeline.errors import DcuscopeError
+from core.errors import DcuscopeError
 
 
 class TraceError(DcuscopeError):
@@ -8,4 +8,10 @@ class TraceError(DcuscopeError):
 
 
 class ExportError(DcuscopeError):
-    """An exporter could not deliver the run's events (the relay refused the node's token)."""
+    """An exporter is misconfigured or could not deliver the run's events (the relay is
+    unreachable, or refused the node's token)."""
+
+
+class ProtocolError(DcuscopeError):
+    """A payload of the node <-> relay protocol is malformed, truncated, oversize or of another
+    version (:mod:`probes.wire`, :mod:`probes.envelope`)."""

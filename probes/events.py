@@ -18,8 +18,6 @@ FORMAT_VERSION = 1
 ORIGIN, ENTER, EXIT = 0, 1, 2
 POINT_NAMES = ("origin", "enter", "exit")
 
-CLOCKS = {"realtime": 0, "monotonic": 1, "tai": 11}  # Linux clock ids for time.clock_gettime_ns
-
 EVENT_DTYPE = np.dtype(
     [("ts", "<i8"), ("frame", "<i8"), ("source", "<i4"), ("stage", "<i2"), ("point", "<i1"), ("_pad", "<i1")]
 )

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import DcuscopeError
-from pipeline.gst import Gst
+from core.errors import DcuscopeError
+from core.gst import Gst
 from probes.events import EVENT_DTYPE
 from probes.ring import RingStats
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.gst import Gst
+from core.gst import Gst
 from plugins.frames import FRAMES_CAPS
 from probes.events import EVENT_DTYPE
 

@@ -21,9 +21,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.errors import PipelineError
-from pipeline.gst import Gst
-from probes.events import CLOCKS, ENTER, EXIT, ORIGIN, TraceHeader
+from core.clocks import CLOCKS
+from core.errors import PipelineError
+from core.gst import Gst
+from probes.events import ENTER, EXIT, ORIGIN, TraceHeader
 from probes.native import BuildError, NativeRing, load, unavailable_reason
 from probes.ring import DEFAULT_CAPACITY, PythonRing, RingStats
 

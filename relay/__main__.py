@@ -3,8 +3,8 @@
 import argparse
 import sys
 
-from pipeline import signals
-from pipeline.errors import DcuscopeError
+from core import signals
+from core.errors import DcuscopeError
 from relay.commands import add_relay_arguments, run_relay
 
 

@@ -1,4 +1,4 @@
-"""``dcuscope relay``: argparse wiring (``add_relay_parser``), used by ``pipeline/cli.py``."""
+"""``dcuscope relay``: argparse wiring (``add_relay_parser``), used by ``dcuscope/cli.py``."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import argparse
 import logging
 import os
 
-from pipeline.ports import check_port_free
+from core.ports import check_port_free
 from relay.clock import CLOCK_MODES
 from relay.errors import RelayError
 

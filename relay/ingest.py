@@ -2,10 +2,10 @@
 
 A node opens ``ws://HOST:PORT/ingest`` with ``Authorization: Bearer TOKEN`` (or ``?token=``)
 when the relay has a token: a wrong or missing one is refused with HTTP 401 before the upgrade,
-and so is a connection beyond the cap (503). Then, in the envelope of :mod:`relay.envelope`:
+and so is a connection beyond the cap (503). Then, in the envelope of :mod:`probes.envelope`:
 
 - ``hello`` {proto, run, header, lost, floor, ptp} -> reply {ok, run, session}; first, once;
-- a binary batch (:mod:`relay.protocol`) -> ``ack`` {seq, ok[, dup]} once the batch is committed
+- a binary batch (:mod:`probes.wire`) -> ``ack`` {seq, ok[, dup]} once the batch is committed
   (or was stored before), then its events reach the live state; ``ok: false`` if storage failed
   (the node sends it again);
 - ``sync`` -> reply {t2, t3}: relay receive and send times (ns, CLOCK_REALTIME);
@@ -29,12 +29,13 @@ from dataclasses import dataclass, field
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
-from relay import envelope
+from probes import envelope
+from probes.errors import ProtocolError
+from probes.wire import HEARTBEAT_S, MAX_MESSAGE_BYTES, Batch, decode_batch, decode_clock, decode_end, decode_hello
 from relay import storage as db
 from relay.auth import http_token, token_matches
-from relay.errors import ProtocolError, RelayError
+from relay.errors import RelayError
 from relay.limits import Limits, TokenBucket
-from relay.protocol import HEARTBEAT_S, MAX_MESSAGE_BYTES, Batch, decode_batch, decode_clock, decode_end, decode_hello
 from relay.state import RelayState, RunState
 
 DEFAULT_MAX_CONNECTIONS = 1024

@@ -1,5 +1,5 @@
 """Bounds on what one connection may send: message size is the WebSocket's ``max_msg_size``
-(:data:`relay.protocol.MAX_MESSAGE_BYTES`), rate is this bucket's."""
+(:data:`probes.wire.MAX_MESSAGE_BYTES`), rate is this bucket's."""
 
 from __future__ import annotations
 

@@ -31,9 +31,9 @@ import numpy as np
 from probes.delays import NS_PER_MS, Chains, FrameDelays, Series, chains, delay_summary, frame_delays, series
 from probes.events import EXIT, TraceHeader
 from probes.frametable import MISSING, FrameTable, frame_table_from_cells
-from relay.sessionvalues import RELATIVE_ERROR, OriginSpans, SessionValues
+from relay.runvalues import RELATIVE_ERROR, OriginSpans, RunValues
 
-KEY_SHIFT = 44  # key = source << 44 | frame; relay.protocol bounds both to fit
+KEY_SHIFT = 44  # key = source << 44 | frame; probes.wire bounds both to fit
 FINALISE_PERIOD_NS = 500_000_000
 """Node time between two finalisation/eviction passes."""
 
@@ -51,8 +51,8 @@ class LiveConfig:
     """Open frames at most (~40 MB with 8 stages): beyond, the stalest are evicted, so that a
     node whose timestamps stand still cannot make the relay grow without bound."""
     exact_values: int = 262_144
-    """Values per series kept exactly for session percentiles (2 MB each); past it, a log
-    histogram with percentiles within 1 % (relay.sessionvalues), so a run of days stays bounded."""
+    """Values per series kept exactly for whole-run percentiles (2 MB each); past it, a log
+    histogram with percentiles within 1 % (relay.runvalues), so a run of days stays bounded."""
     evicted_kept: int = 65_536
     """Eviction times kept for the rolling window's incomplete count (older ones are outside it)."""
 
@@ -111,9 +111,9 @@ class LiveRun:
         self._sources = np.zeros(0, bool)
         self.newest = 0
         # Finalised frames.
-        self._stage_values: dict[str, SessionValues] = {}
-        self._gap_values: dict[str, SessionValues] = {}
-        self._frame_values = SessionValues(config.exact_values)
+        self._stage_values: dict[str, RunValues] = {}
+        self._gap_values: dict[str, RunValues] = {}
+        self._frame_values = RunValues(config.exact_values)
         self._origins = OriginSpans()
         self._ring = {"source": Grow(np.int32), "frame": Grow(np.int64), "cells": Grow(np.int64, (s, 3)),
                       "end": Grow(np.int64)}
@@ -133,7 +133,7 @@ class LiveRun:
     # --- ingest -------------------------------------------------------------------------------
 
     def add(self, events: np.ndarray) -> None:
-        """Queue a batch of validated events (stage and point in range, see relay.protocol).
+        """Queue a batch of validated events (stage and point in range, see probes.wire).
 
         Merging costs a few dozen numpy calls whatever the batch size, so batches wait here
         until the next :meth:`maintain` (the relay's tick) or read, and merge as one.
@@ -294,12 +294,12 @@ class LiveRun:
                 g.keep_last(self.config.ring_frames)
         self._raise_watermark(frames.source, frames.frame)
 
-    def _all_series(self) -> list[SessionValues]:
+    def _all_series(self) -> list[RunValues]:
         return [self._frame_values, *self._stage_values.values(), *self._gap_values.values()]
 
-    def _series(self, series: dict[str, SessionValues], name: str) -> SessionValues:
+    def _series(self, series: dict[str, RunValues], name: str) -> RunValues:
         if name not in series:
-            series[name] = SessionValues(self.config.exact_values)
+            series[name] = RunValues(self.config.exact_values)
         return series[name]
 
     def _raise_watermark(self, source: np.ndarray, frame: np.ndarray) -> None:
@@ -307,7 +307,7 @@ class LiveRun:
 
     # --- statistics -----------------------------------------------------------------------------
 
-    def session_stats(self, dropped: int = 0) -> dict:
+    def run_stats(self, dropped: int = 0) -> dict:
         """``probes.delays.node_stats`` of every event received for this run."""
         self.maintain()
         fd = self._delays(self._open_frames())

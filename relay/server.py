@@ -17,14 +17,14 @@ from pathlib import Path
 import socketio
 from aiohttp import web
 
-from pipeline import signals
+from core import signals
+from probes.wire import INGEST_PATH, MAX_MESSAGE_BYTES
 from relay.api import add_routes
 from relay.clock import CLOCK_MODES
 from relay.errors import RelayError
 from relay.ingest import DEFAULT_MAX_CONNECTIONS, Ingest
 from relay.limits import Limits
 from relay.live import LiveConfig
-from relay.protocol import INGEST_PATH, MAX_MESSAGE_BYTES
 from relay.sessionapi import add_session_routes
 from relay.sioserver import create_sio, sio_errors
 from relay.state import RelayState

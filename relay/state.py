@@ -10,19 +10,39 @@ import asyncio
 import time
 from dataclasses import dataclass, field
 
+from probes.errors import ProtocolError
 from probes.events import TraceHeader
+from probes.wire import Hello
 from relay import storage as db
 from relay.clock import ClockEstimator, correction_ns
-from relay.errors import ProtocolError
 from relay.framejson import block, frame_dicts
 from relay.live import LiveConfig, LiveRun
-from relay.protocol import Hello
 from relay.seqset import SeqSet
 from relay.storage import Storage
 
 RELOAD_SLICE = 262_144
 STATS_MAX_AGE_S = 0.5
-"""Session statistics are recomputed at most this often per run (percentiles over every frame)."""
+"""Whole-run statistics are recomputed at most this often per run (percentiles over every frame)."""
+
+
+@dataclass
+class WholeRunStats:
+    """A run's whole-run statistics, recomputed only when new events came and, unless asked
+    ``fresh``, at most every max(STATS_MAX_AGE_S, 50 x their last cost)."""
+
+    stats: dict | None = None
+    events: int = -1
+    """``LiveRun.events`` when they were computed."""
+    at: float = 0.0
+    cost: float = 0.0
+
+    def get(self, live: LiveRun, dropped: int, fresh: bool) -> dict:
+        now = time.monotonic()
+        due = fresh or now - self.at >= max(STATS_MAX_AGE_S, 50 * self.cost)
+        if self.stats is None or (self.events != live.events and due):
+            self.stats = live.run_stats(dropped)
+            self.events, self.at, self.cost = live.events, now, time.monotonic() - now
+        return self.stats
 
 
 @dataclass
@@ -48,7 +68,7 @@ class RunState:
     last_seen: float = field(default_factory=time.time)
     pushed: int = 0
     """Cursor of the newest frame pushed to the UI."""
-    _stats: tuple = (None, 0.0, None, 0.0)
+    whole: WholeRunStats = field(default_factory=WholeRunStats)
 
 
 class RelayState:
@@ -154,19 +174,13 @@ class RelayState:
     def stats(self, rs: RunState, fresh: bool = True) -> dict:
         """node_stats of the run (bottleneck included) + the rolling ``window``.
 
-        Session statistics take percentiles over every frame of the run, a cost that grows
+        Whole-run statistics take percentiles over every frame of the run, a cost that grows
         with it; unless ``fresh`` (the HTTP API), they are recomputed at most every
         max(STATS_MAX_AGE_S, 50 x their last cost), so that pushing them to browsers stays
         within ~2 % of the relay's time however long the run. The window is always recomputed.
         """
-        version, at, cached, cost = rs._stats
-        now = time.monotonic()
-        if cached is None or (version != rs.live.events and (fresh or now - at >= max(STATS_MAX_AGE_S, 50 * cost))):
-            cached = rs.live.session_stats(rs.dropped)
-            rs._stats = (rs.live.events, now, cached, time.monotonic() - now)
-        stats = dict(cached, window=rs.live.window_stats(), node=rs.node, run=rs.run, session=rs.session,
-                     lost=rs.lost)
-        return stats
+        return dict(rs.whole.get(rs.live, rs.dropped, fresh), window=rs.live.window_stats(), node=rs.node,
+                    run=rs.run, session=rs.session, lost=rs.lost)
 
     def frames_view(self, rs: RunState, since: int = 0, limit: int = 200, newest: bool = False) -> dict:
         """Complete frames after cursor ``since``, clock-corrected, as the UI draws them: the

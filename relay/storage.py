@@ -30,8 +30,8 @@ from typing import Any, Callable
 import numpy as np
 
 from probes.events import EVENT_DTYPE, TraceHeader
+from probes.wire import decode_payload
 from relay.errors import RelayError
-from relay.protocol import decode_payload
 
 SCHEMA_VERSION = 1
 SCHEMA = """

@@ -30,8 +30,8 @@ from dataclasses import dataclass
 import socketio
 from socketio.exceptions import ConnectionRefusedError as Refused
 
+from probes.wire import MAX_NAME
 from relay.auth import socket_token, token_matches
-from relay.protocol import MAX_NAME
 from relay.state import RelayState
 
 NAMESPACE = "/ui"

@@ -30,7 +30,7 @@ def cli_env() -> dict:
 
 def run_cli(*args: str, cwd: Path | None = None, timeout: float = 240) -> subprocess.CompletedProcess:
     """Run ``dcuscope ARGS`` as a user would, in a real process."""
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", *map(str, args)], cwd=cwd or REPO, env=cli_env(),
+    return subprocess.run([sys.executable, "-m", "dcuscope.cli", *map(str, args)], cwd=cwd or REPO, env=cli_env(),
                           capture_output=True, text=True, timeout=timeout)
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pipeline.gst import Gst
+from core.gst import Gst
 
 H264_MP4 = "x264enc speed-preset=ultrafast ! mp4mux"
 MJPEG_MULTIPART = "jpegenc ! multipartmux"

@@ -11,8 +11,8 @@ import time
 
 import numpy as np
 
-from probes.events import ORIGIN
 from probes.delays import chains
+from probes.events import ORIGIN
 from probes.frametable import frame_table
 from probes.tracefile import read_trace
 from tests.conftest import BIKES, VTEST, cli_env, run_cli
@@ -28,14 +28,14 @@ def free_port() -> int:
 
 
 def serve(*clips, port: int) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "serve-rtsp", *map(str, clips), "--port", str(port)],
+    proc = subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "serve-rtsp", *map(str, clips), "--port", str(port)],
                             env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert f"rtsp://127.0.0.1:{port}/cam0" in proc.stdout.readline()
     return proc
 
 
 def run(config, trace, duration, cwd) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(config), "--probes", "--trace", str(trace),
+    return subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "run", str(config), "--probes", "--trace", str(trace),
                              "--duration", str(duration)], cwd=cwd, env=cli_env(), stderr=subprocess.PIPE, text=True)
 
 
@@ -127,9 +127,9 @@ def test_a_stalled_stream_is_reported_while_the_others_go_on_and_its_return_too(
 
 
 def test_rtsp_latency_from_the_config_reaches_rtspsrc(tmp_path, gst_registered):
+    from core.gst import Gst
     from pipeline.build import build_pipeline
     from pipeline.config import load_config
-    from pipeline.gst import Gst
 
     port = free_port()
     server = serve(VTEST, port=port)

@@ -15,9 +15,9 @@ import cv2
 import numpy as np
 import pytest
 
+from core.gst import Gst, GstVideo
 from pipeline.build import build_pipeline
 from pipeline.config import SinkConfig, load_config
-from pipeline.gst import Gst, GstVideo
 from pipeline.run import Runner
 from plugins.frames import mapped_video, read_frames, read_objects
 from tests.conftest import REPO, cli_env, run_cli, wait_until_mapped
@@ -111,7 +111,7 @@ def test_ctrl_c_ends_the_run_cleanly_and_finalises_the_video(tmp_path):
     out = tmp_path / "live.mp4"
     config = tmp_path / "ball.yaml"
     config.write_text(LIVE_BALL)
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(config), "--output", str(out)],
+    proc = subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "run", str(config), "--output", str(out)],
                             cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE, text=True)
     time.sleep(4)
     proc.send_signal(signal.SIGINT)
@@ -130,7 +130,7 @@ def test_ctrl_c_while_the_run_is_starting_stops_it_cleanly(tmp_path, signum):
     config.write_text("sources:\n  - {test: ball, width: 320, height: 240}\n"
                       "stages:\n  - mux: {width: 320, height: 240}\n  - infer: {}\n"
                       "  - tiler: {width: 320, height: 240}\n  - convert: {format: RGBA}\n  - osd: {}\n")
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(config), "--probes"],
+    proc = subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "run", str(config), "--probes"],
                             cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE, text=True)
     wait_until_mapped(proc, "libgstreamer-1.0")
     proc.send_signal(signum)
@@ -148,7 +148,7 @@ def test_a_run_whose_stderr_went_away_still_stops(tmp_path, stop):
     config = tmp_path / "ball.yaml"
     config.write_text(LIVE_BALL)
     limit = ["--duration", "3"] if stop == "duration" else []
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(config), *limit],
+    proc = subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "run", str(config), *limit],
                             cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE)
     proc.stderr.close()  # nobody reads its messages any more: each write is a broken pipe
     if stop == "SIGTERM":
@@ -250,7 +250,7 @@ def test_a_second_ctrl_c_says_the_video_is_incomplete_and_exits_non_zero(tmp_pat
     config.write_text(LIVE_BALL + "  - queue: {max-size-buffers: 0, max-size-time: 0, max-size-bytes: 0}\n"
                                   "  - factory: identity\n    properties: {sleep-time: 500000}\n")
     out = tmp_path / "x.mp4"
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(config), "--output", str(out)],
+    proc = subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "run", str(config), "--output", str(out)],
                             cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE, text=True)
     for line in proc.stderr:
         if "frames" in line:  # a progress line: the run's main loop, and its Ctrl-C handler, are on

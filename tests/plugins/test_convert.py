@@ -5,7 +5,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from pipeline.gst import Gst, GstVideo
+from core.gst import Gst, GstVideo
 from plugins import convert, frames
 from plugins.colorspace import image_from_memory
 from plugins.frames import Detections, FrameId

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.gst import Gst
+from core.gst import Gst
 from plugins.frames import OBJECTS_CAPS, FrameId, batch_caps, read_frames, read_objects, write_frames
 from plugins.infer import Infer
 from plugins.models import MODELS_DIR

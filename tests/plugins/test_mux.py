@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.gst import Gst, GstVideo
+from core.gst import Gst, GstVideo
 from plugins.frames import BatchLayout, mapped_batch, read_frames
 from plugins.mux import due_pads
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.gst import Gst
+from core.gst import Gst
 from plugins import convert, frames, osd
 from plugins.drawing import class_color
 from plugins.frames import Detections, FrameId

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.gst import Gst
+from core.gst import Gst
 from plugins import frames, tiler
 from plugins.frames import Detections, FrameId
 

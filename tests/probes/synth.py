@@ -130,7 +130,7 @@ def run_commands(*argv: str) -> tuple[int, str, str]:
     import contextlib
     import io
 
-    from probes.commands import add_export_parser, add_stats_parser
+    from dcuscope.tracecommands import add_export_parser, add_stats_parser
 
     parser = argparse.ArgumentParser(prog="dcuscope")
     sub = parser.add_subparsers()

@@ -27,8 +27,8 @@ import pytest
 
 from probes.delays import frame_delays, node_stats
 from probes.frametable import frame_table
+from probes.relayexport import RelayExporter
 from probes.tracefile import write_trace
-from relay.client import RelayExporter
 from relay.live import LiveRun
 from tests.probes.synth import run_commands, troubled_run
 from tests.relay.helpers import RelayProcess, get_json, wait_for
@@ -137,7 +137,7 @@ def test_statistics_of_the_whole_run_agree_exactly_on_every_path(world):
         assert _pick(world.relay_stats[node], STATS_KEYS) == expected, node
         assert _pick(world.stored_stats[node], STATS_KEYS) == expected, node
         live = _live(header, events)
-        assert _pick(_json(live.session_stats(dropped)), STATS_KEYS) == expected, node
+        assert _pick(_json(live.run_stats(dropped)), STATS_KEYS) == expected, node
         assert world.relay_stats[node]["percentile_error"] == 0.0
 
 

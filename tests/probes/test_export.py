@@ -217,7 +217,7 @@ def test_dcuscope_export_through_the_real_command_line(tmp_path, two_nodes):
     write_trace(tmp_path / "t.trace", h, e)
     root = Path(__file__).resolve().parents[2]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
-    done = subprocess.run([sys.executable, "-m", "pipeline.cli", "export", str(tmp_path / "t.trace"), "--format",
+    done = subprocess.run([sys.executable, "-m", "dcuscope.cli", "export", str(tmp_path / "t.trace"), "--format",
                            "perfetto", "-o", str(tmp_path / "t.json")], capture_output=True, text=True, env=env,
                           cwd=root, timeout=60)
     assert done.returncode == 0, done.stderr
@@ -230,7 +230,7 @@ def test_export_to_a_reader_that_stops_early_ends_quietly(tmp_path):
     write_trace(tmp_path / "t.trace", h, e)
     root = Path(__file__).resolve().parents[2]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "export", str(tmp_path / "t.trace"), "-o", "-"],
+    proc = subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "export", str(tmp_path / "t.trace"), "-o", "-"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env, cwd=root)
     try:
         assert proc.stdout.read(100).startswith(b"{")

@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from pipeline.gst import Gst
+from core.gst import Gst
 from plugins.frames import FrameId, write_frames
 from probes import native
 from probes.events import ENTER, EVENT_DTYPE, EXIT

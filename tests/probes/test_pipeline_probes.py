@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probes.events import ENTER, EXIT, ORIGIN
 from probes.delays import chains
+from probes.events import ENTER, EXIT, ORIGIN
 from probes.frametable import MISSING, frame_table
 from probes.tracefile import read_trace
 from tests.conftest import REPO, run_cli

@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from probes.delays import frame_delays, node_stats, series, summarize
 from probes.errors import TraceError
 from probes.events import ENTER, EVENT_DTYPE, EXIT
-from probes.delays import frame_delays, node_stats, series, summarize
 from probes.frametable import MISSING, frame_table
 from probes.stats import stats_document
 from probes.tracefile import read_trace, write_trace
@@ -256,7 +256,7 @@ def _dcuscope(*argv):
     """The real command line, in a child process, as a user runs it."""
     root = Path(__file__).resolve().parents[2]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", *argv], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "dcuscope.cli", *argv], capture_output=True, text=True,
                           env=env, cwd=root, timeout=60)
 
 

@@ -6,11 +6,12 @@ import time
 import numpy as np
 import pytest
 
-from pipeline.errors import PipelineError
-from pipeline.gst import Gst
+from core.clocks import CLOCKS
+from core.errors import PipelineError
+from core.gst import Gst
 from plugins.frames import FrameId, write_frames
 from probes import native, tracer as tracer_mod
-from probes.events import CLOCKS, ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
+from probes.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
 from probes.ring import PythonRing
 from probes.shipper import Shipper
 from probes.tracer import attach

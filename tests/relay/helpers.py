@@ -1,7 +1,7 @@
 """Test helpers: a relay process, simulated node processes, JSON over HTTP, stats comparison.
 
 Everything runs on 127.0.0.1 with free ports and bounded waits. A node here is a separate
-process (``python -m relay.simnode``) writing the events it shipped to an .npz; a real
+process (``python -m probes.simnode``) writing the events it shipped to an .npz; a real
 ``dcuscope run --probes --relay ... --trace FILE`` process can take its place, the test then
 reading its trace file instead.
 """
@@ -25,8 +25,8 @@ import aiohttp
 import numpy as np
 
 from probes.events import TraceHeader
-from relay.link import Link
-from relay.simnode import header_for
+from probes.relaylink import Link
+from probes.simnode import header_for
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -94,7 +94,7 @@ def _readline(proc: subprocess.Popen, timeout: float) -> str:
 def start_node(url: str, node: str, out: Path, *, frames: int = 100, sources: int = 2, fps: float = 25.0,
                paced: bool = False, offset_ns: int = 0, t0_ns: int = 0, drop_rate: float = 0.0, seed: int = 0,
                token: str | None = None, extra: list[str] | None = None) -> subprocess.Popen:
-    cmd = [sys.executable, "-m", "relay.simnode", "--relay", url, "--node", node, "--out", str(out),
+    cmd = [sys.executable, "-m", "probes.simnode", "--relay", url, "--node", node, "--out", str(out),
            "--frames", str(frames), "--sources", str(sources), "--fps", str(fps), "--seed", str(seed),
            "--clock-offset-ns", str(offset_ns), "--drop-rate", str(drop_rate)]
     if paced:
@@ -164,7 +164,7 @@ def sort_events(events: np.ndarray) -> np.ndarray:
 
 
 class HandNode:
-    """A node driven by hand on one ingest WebSocket (:class:`relay.link.Link`), for in-process
+    """A node driven by hand on one ingest WebSocket (:class:`probes.relaylink.Link`), for in-process
     tests that send exactly the messages they mean to."""
 
     def __init__(self, session, link, acks) -> None:

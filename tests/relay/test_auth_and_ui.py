@@ -120,15 +120,16 @@ def raw(frame: dict, correction: int) -> dict:
 
 
 def test_a_node_with_a_wrong_token_exits_non_zero_with_one_line(tmp_path):
-    """``dcuscope run --probes --relay URL --token WRONG`` used to exit 0 having shipped nothing."""
+    """``dcuscope run --probes --relay URL --token WRONG`` used to exit 0 having shipped nothing;
+    a live run without limits now ends before it starts (without the check it runs for ever)."""
     config = tmp_path / "n.yaml"
     config.write_text("node: DCU-1\nsources:\n  - {test: ball, width: 160, height: 120, rate: 30}\n"
                       "stages:\n  - mux: {batch-size: 1, width: 160, height: 120}\n  - tiler: {rows: 1, columns: 1, width: 160, height: 120}\n"
                       "  - convert: {}\n")
     relay = RelayProcess(tmp_path / "relay.db", token=TOKEN)
     try:
-        result = run_cli("run", config, "--probes", "--relay", relay.url, "--token", "WRONG", "--num-frames", "20",
-                         "-q", cwd=tmp_path, timeout=120)
+        result = run_cli("run", config, "--probes", "--relay", relay.url, "--token", "WRONG", "-q", cwd=tmp_path,
+                         timeout=120)
         assert get_json(f"{relay.url}/api/nodes", TOKEN) == []
     finally:
         relay.stop()

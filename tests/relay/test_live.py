@@ -7,10 +7,10 @@ import time
 import numpy as np
 import pytest
 
-from probes.events import ENTER, EXIT
 from probes.delays import node_stats
+from probes.events import ENTER, EXIT
+from probes.simnode import header_for, synth_events
 from relay.live import LiveConfig, LiveRun
-from relay.simnode import header_for, synth_events
 from tests.probes.synth import pipeline_run
 from tests.relay.helpers import assert_stats_equal
 
@@ -30,7 +30,7 @@ def test_matches_node_stats_with_drops(batch):
     events = synth_events(400, 3, 30.0, T0, drop_rate=0.03, seed=4)
     run = LiveRun(header)
     feed(run, events, batch)
-    assert_stats_equal(node_stats(header, events, 7), run.session_stats(7))
+    assert_stats_equal(node_stats(header, events, 7), run.run_stats(7))
     assert run.finalised > 0 and run.late == 0
 
 
@@ -43,7 +43,7 @@ def test_matches_node_stats_on_batched_mux_with_jitter_and_local_disorder():
         chunk = events[i:i + 250]
         run.add(chunk[rng.permutation(len(chunk))])  # order inside a batch must not matter
         run.maintain()
-    assert_stats_equal(node_stats(header, events), run.session_stats())
+    assert_stats_equal(node_stats(header, events), run.run_stats())
 
 
 def test_duplicate_tracepoints_keep_the_earliest():
@@ -57,7 +57,7 @@ def test_duplicate_tracepoints_keep_the_earliest():
     order = np.argsort(both["ts"], kind="stable")
     run = LiveRun(header, LiveConfig(settle_s=5))
     feed(run, both[order], 64)
-    assert_stats_equal(node_stats(header, both), run.session_stats())
+    assert_stats_equal(node_stats(header, both), run.run_stats())
 
 
 def test_incomplete_frames_are_evicted_and_counted():
@@ -66,7 +66,7 @@ def test_incomplete_frames_are_evicted_and_counted():
     run = LiveRun(header, LiveConfig(evict_s=2.0))
     feed(run, events, 200)
     ref = node_stats(header, events)
-    got = run.session_stats()
+    got = run.run_stats()
     assert run.evicted > 50 and len(run._keys) < 200  # the open table does not grow with the run
     assert got["frames"] == ref["frames"]
     assert_stats_equal(ref, got)
@@ -77,13 +77,13 @@ def test_late_events_for_finalised_frames_are_ignored_and_counted():
     events = synth_events(200, 1, 25.0, T0, seed=5)
     run = LiveRun(header, LiveConfig(settle_s=0.5))
     feed(run, events, 100)
-    before = run.session_stats()
+    before = run.run_stats()
     late = events[(events["frame"] < 10) & (events["stage"] == 3)].copy()
     late["ts"] -= 1  # would change those frames' infer delay if it were merged
     run.add(late)
     run.maintain()
     assert run.late == len(late)
-    assert_stats_equal(before, run.session_stats())
+    assert_stats_equal(before, run.run_stats())
 
 
 def test_window_covers_recent_frames_only():
@@ -95,7 +95,7 @@ def test_window_covers_recent_frames_only():
     assert 95 <= w["frames"]["complete"] <= 101
     assert w["fps"]["0"] == pytest.approx(10.0, rel=0.02)
     assert w["frame"]["count"] == w["frames"]["complete"]
-    assert run.session_stats()["frames"]["complete"] == 500
+    assert run.run_stats()["frames"]["complete"] == 500
 
 
 def test_visible_frames_and_bottleneck():
@@ -107,7 +107,7 @@ def test_visible_frames_and_bottleneck():
     assert run.recent(since=190, limit=5, newest=True)[0].tolist() == [196, 197, 198, 199, 200]
     n, fd = run.recent(since=190, limit=5)
     assert n.tolist() == [191, 192, 193, 194, 195] and fd.chains.complete.all()
-    for stats in (run.session_stats(), run.window_stats()):
+    for stats in (run.run_stats(), run.window_stats()):
         b = stats["bottleneck"]
         assert b["stage"] == "infer" and 0.5 < b["share"] < 1.0
         assert b["share"] == stats["stages"]["infer"]["share"]
@@ -131,4 +131,4 @@ def test_open_frames_are_bounded_when_timestamps_stand_still():
     run = LiveRun(header, LiveConfig(max_open_frames=500))
     feed(run, events, 1000)
     assert len(run._keys) <= 500 and run.evicted >= 2500
-    assert run.session_stats()["frames"] == {"complete": 0, "incomplete": 3000}
+    assert run.run_stats()["frames"] == {"complete": 0, "incomplete": 3000}

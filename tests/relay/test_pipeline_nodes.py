@@ -28,7 +28,7 @@ def test_two_pipeline_nodes_stats_agree_with_dcuscope_stats_and_export_from_db(t
         nodes = {}
         for name, sources in (("DCU-1", 2), ("DCU-2", 4)):
             trace = tmp_path / f"{name}.jsonl"
-            cmd = [sys.executable, "-m", "pipeline.cli", "run", str(node_config(tmp_path, name, sources)), "--probes",
+            cmd = [sys.executable, "-m", "dcuscope.cli", "run", str(node_config(tmp_path, name, sources)), "--probes",
                    "--relay", relay.url, "--trace", str(trace), "--num-frames", "30"]
             nodes[name] = (subprocess.Popen(cmd, cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE, text=True), trace)
         for name, (proc, _) in nodes.items():
@@ -72,7 +72,7 @@ def test_clock_offset_of_a_real_node_is_recovered_within_its_uncertainty(tmp_pat
     try:
         procs = []
         for name, offset in (("DCU-1", "0"), ("DCU-2", "37")):
-            cmd = [sys.executable, "-m", "pipeline.cli", "run", str(node_config(tmp_path, name, 1)), "--probes",
+            cmd = [sys.executable, "-m", "dcuscope.cli", "run", str(node_config(tmp_path, name, 1)), "--probes",
                    "--relay", relay.url, "--duration", "8", "--clock-offset-ms", offset, "-q"]
             procs.append(subprocess.Popen(cmd, cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE, text=True))
         for proc in procs:

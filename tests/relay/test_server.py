@@ -12,12 +12,12 @@ import uuid
 import aiohttp
 import pytest
 
+from probes.errors import ExportError
+from probes.simnode import synth_events
+from probes.wire import encode_batch
 from relay.commands import add_relay_parser
-from relay.errors import RelayError
 from relay.limits import Limits
-from relay.protocol import encode_batch
 from relay.server import start_relay
-from relay.simnode import synth_events
 from tests.conftest import wait_until_mapped
 from tests.relay.helpers import ROOT, HandNode, env
 
@@ -76,7 +76,7 @@ def test_connections_beyond_the_cap_are_refused_before_the_upgrade(tmp_path):
         url = f"http://127.0.0.1:{relay.port}"
         try:
             first = await HandNode.open(url, "A", uuid.uuid4().hex)
-            with pytest.raises(RelayError, match="HTTP 503"):
+            with pytest.raises(ExportError, match="HTTP 503"):
                 await HandNode.open(url, "B", uuid.uuid4().hex)
             await first.close()
             for _ in range(100):  # until the relay saw it go
@@ -179,7 +179,7 @@ def test_a_nodes_newest_run_is_its_current_one(tmp_path):
 
 def test_ctrl_c_while_the_relay_is_starting_stops_it_cleanly(tmp_path):
     """The signal lands while aiohttp is still loading: the relay starts, then stops at once."""
-    proc = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "relay", "--port", "0", "--db", str(tmp_path / "r.db")],
+    proc = subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "relay", "--port", "0", "--db", str(tmp_path / "r.db")],
                             cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     wait_until_mapped(proc, "aiohttp")
     proc.send_signal(signal.SIGINT)

@@ -9,10 +9,10 @@ import uuid
 import numpy as np
 import pytest
 
+from probes.simnode import header_for, synth_events
+from probes.wire import encode_batch
 from relay import storage as db
 from relay.errors import RelayError
-from relay.protocol import encode_batch
-from relay.simnode import header_for, synth_events
 
 T0 = 1_700_000_000_000_000_000
 

@@ -20,7 +20,7 @@ CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync", "--no-first-run"]
 REAL_PIPELINES = (ROOT / "probes" / "session.py").is_file()
-"""Real ``dcuscope run --probes --relay`` nodes exist once probes/session.py does."""
+"""Real ``dcuscope run --probes --relay`` nodes exist once probes/instrument.py does."""
 
 
 def env() -> dict:
@@ -94,7 +94,7 @@ class RelayThread:
 
 @dataclass
 class Feeder:
-    """Node processes feeding a relay; ``kind`` is "sim" (relay.simnode) or "pipeline" (dcuscope run)."""
+    """Node processes feeding a relay; ``kind`` is "sim" (probes.simnode) or "pipeline" (dcuscope run)."""
 
     kind: str
     nodes: list[str]
@@ -119,11 +119,11 @@ class Feeder:
 
 def sim_nodes(url: str, tmp: Path, nodes: list[str], *, frames: int, sources: int, fps: float, paced: bool,
               token: str | None = None, offsets_ns: list[int] | None = None, seed: int = 0) -> Feeder:
-    """``python -m relay.simnode`` per node, each writing the events it shipped to ``tmp/NODE.npz``."""
+    """``python -m probes.simnode`` per node, each writing the events it shipped to ``tmp/NODE.npz``."""
     feeder = Feeder("sim", nodes)
     for k, node in enumerate(nodes):
         out = tmp / f"{node}.npz"
-        cmd = [sys.executable, "-m", "relay.simnode", "--relay", url, "--node", node, "--out", str(out),
+        cmd = [sys.executable, "-m", "probes.simnode", "--relay", url, "--node", node, "--out", str(out),
                "--frames", str(frames), "--sources", str(sources), "--fps", str(fps), "--seed", str(seed + k),
                "--clock-offset-ns", str((offsets_ns or [0] * len(nodes))[k])]
         if paced:
@@ -144,7 +144,7 @@ def pipeline_nodes(url: str, tmp: Path, nodes: list[str], *, configs: tuple[str,
     by default the demo's two DCUs (CenterNet over two cameras, SSD over four with a queue)."""
     feeder = Feeder("pipeline", nodes)
     for node, config in zip(nodes, configs):
-        cmd = [sys.executable, "-m", "pipeline.cli", "run", config, "--probes", "--relay", url, "--node", node,
+        cmd = [sys.executable, "-m", "dcuscope.cli", "run", config, "--probes", "--relay", url, "--node", node,
                "--duration", str(duration), "--quiet", "--trace", str(tmp / f"{node}.jsonl")]
         if token:
             cmd += ["--token", token]

@@ -1,5 +1,5 @@
 """A node's end of one ingest WebSocket (``GET /ingest``): requests with replies, batches with
-acknowledgements, in the envelope of :mod:`relay.envelope`.
+acknowledgements, in the envelope of :mod:`probes.envelope`.
 
     link = await Link.open(session, "http://127.0.0.1:3000", token, on_ack)
     reply = await link.call("hello", {...}, timeout=10)
@@ -11,21 +11,39 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import urllib.error
+import urllib.request
 from typing import Callable
 
 import aiohttp
 from aiohttp import WSMsgType
 
-from relay import envelope
-from relay.errors import ProtocolError, RelayError
-from relay.protocol import HEARTBEAT_S, INGEST_PATH, MAX_MESSAGE_BYTES
+from probes import envelope
+from probes.errors import ExportError, ProtocolError
+from probes.wire import HEARTBEAT_S, INGEST_PATH, MAX_MESSAGE_BYTES
 
 HANDSHAKE_TIMEOUT_S = 10.0
 CLOSE_TIMEOUT_S = 1.0
 
 
-class Refused(RelayError):
+class Refused(ExportError):
     """The relay refused the node before the WebSocket opened (a wrong or missing token)."""
+
+
+def check_token(url: str, token: str | None, timeout_s: float = 3.0) -> None:
+    """Raise :class:`Refused` if the relay at ``url`` refuses ``token``, before a run starts.
+
+    A plain GET of the ingest path is answered 401 for a wrong token before anything else.
+    A relay that does not answer passes: the exporter keeps trying, and loses nothing.
+    """
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    try:
+        urllib.request.urlopen(urllib.request.Request(url + INGEST_PATH, headers=headers), timeout=timeout_s).close()
+    except urllib.error.HTTPError as exc:
+        if exc.code == 401:
+            raise Refused(f"relay {url} refused the token (HTTP 401)") from None
+    except (OSError, ValueError):
+        pass
 
 
 class Link:
@@ -42,7 +60,7 @@ class Link:
     async def open(cls, session: aiohttp.ClientSession, url: str, token: str | None,
                    on_ack: Callable[[dict], None]) -> "Link":
         """Connect to the relay at ``url`` (http[s]://HOST:PORT). Raises :class:`Refused` for an
-        HTTP 401, :class:`RelayError` for any other failure to connect."""
+        HTTP 401, :class:`ExportError` for any other failure to connect."""
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         ws_url = "ws" + url[len("http"):] + INGEST_PATH
         try:
@@ -53,9 +71,9 @@ class Link:
         except aiohttp.WSServerHandshakeError as exc:
             if exc.status == 401:
                 raise Refused(f"relay {url} refused the token (HTTP 401)") from exc
-            raise RelayError(f"HTTP {exc.status} {exc.message}") from exc
+            raise ExportError(f"HTTP {exc.status} {exc.message}") from exc
         except (aiohttp.ClientError, OSError, TimeoutError) as exc:
-            raise RelayError(str(exc) or type(exc).__name__) from exc
+            raise ExportError(str(exc) or type(exc).__name__) from exc
         return cls(ws, on_ack)
 
     async def call(self, kind: str, data: object, timeout: float) -> object:

@@ -7,10 +7,10 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+from core.console import Console
+from core.errors import UsageError
 from pipeline.build import build_pipeline
 from pipeline.config import PipelineConfig, SinkConfig, load_config
-from pipeline.console import Console
-from pipeline.errors import UsageError
 from pipeline.outputs import check_frames_folder, check_video_file
 from pipeline.run import Runner
 from pipeline.stalls import describe
@@ -57,7 +57,7 @@ def check_sink(config: PipelineConfig, output: Path | None) -> None:
     raise config.document.error(("sink", "path"), f"{sink.path}: {problem}")
 
 
-def run_session(args: argparse.Namespace) -> int:
+def run_command(args: argparse.Namespace) -> int:
     config = apply_overrides(load_config(args.config), args)
     check_sink(config, args.output)
     built = build_pipeline(config)
@@ -67,7 +67,7 @@ def run_session(args: argparse.Namespace) -> int:
                     progress_every=1.0 if console.isatty() else 5.0)
     probing = None
     if config.probes.enabled:
-        from probes.session import start_probes
+        from probes.instrument import start_probes
 
         probing = start_probes(built, config, relay=args.relay, token=args.token,
                                clock_offset_ns=int(args.clock_offset_ms * 1e6), progress=progress)

@@ -2,8 +2,8 @@
 
 It implements the ``probes.events.Exporter`` protocol. ``write`` only copies the events into a
 pending list under a short lock and returns: it never waits for the network. A thread of its
-own runs an asyncio loop with an aiohttp WebSocket to the relay's ``/ingest`` (:mod:`relay.link`)
-that cuts the pending events into numbered batches (:mod:`relay.protocol`), keeps every batch
+own runs an asyncio loop with an aiohttp WebSocket to the relay's ``/ingest`` (:mod:`probes.relaylink`)
+that cuts the pending events into numbered batches (:mod:`probes.wire`), keeps every batch
 until the relay acknowledges it (the relay acknowledges after its database committed the
 batch), sends again at once a batch the relay could not store, resends what is not
 acknowledged after a reconnect, and reconnects with exponential backoff. The buffer of
@@ -30,11 +30,12 @@ from collections import OrderedDict, deque
 import aiohttp
 import numpy as np
 
-from probes.events import CLOCKS, EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
-from relay.clock import read_ptp_state
-from relay.errors import RelayError
-from relay.link import Link, Refused
-from relay.protocol import MAX_BATCH_EVENTS, PROTOCOL_VERSION, encode_batch
+from core.clocks import CLOCKS
+from probes.errors import ExportError
+from probes.events import EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
+from probes.ptp import read_ptp_state
+from probes.relaylink import Link, Refused
+from probes.wire import MAX_BATCH_EVENTS, PROTOCOL_VERSION, encode_batch
 
 DEFAULT_BATCH_EVENTS = 8192
 DEFAULT_FLUSH_INTERVAL_S = 0.05
@@ -71,11 +72,11 @@ class RelayExporter:
                  close_timeout_s: float = EXPORTER_CLOSE_S,
                  backoff_s: tuple[float, float] = (0.1, 5.0)) -> None:
         if clock not in CLOCKS:
-            raise RelayError(f"relay exporter: unknown clock {clock!r} (one of {', '.join(CLOCKS)})")
+            raise ExportError(f"relay exporter: unknown clock {clock!r} (one of {', '.join(CLOCKS)})")
         if not url.startswith(("http://", "https://")):
-            raise RelayError(f"relay URL must start with http:// or https://, not {url!r}")
+            raise ExportError(f"relay URL must start with http:// or https://, not {url!r}")
         if not node:
-            raise RelayError("relay exporter: the node needs a name")
+            raise ExportError("relay exporter: the node needs a name")
         self.url, self.node, self._token = url.rstrip("/"), node, token
         self._clock_id, self._offset = CLOCKS[clock], int(clock_offset_ns)
         self._compress = compress
@@ -116,7 +117,7 @@ class RelayExporter:
 
     def start(self, header: TraceHeader) -> None:
         if self._thread is not None:
-            raise RelayError("relay exporter already started")
+            raise ExportError("relay exporter already started")
         d = header.to_dict()
         if d["node"] != self.node:
             log.warning("trace header names node %r, shipping it as %r", d["node"], self.node)
@@ -276,17 +277,17 @@ class RelayExporter:
         try:
             link = await Link.open(session, self.url, self._token, self._on_ack)
         except Refused as exc:
-            # Not logged: the run ends with this as its one error line (probes.session).
+            # Not logged: the run ends with this as its one error line (probes.instrument).
             self.refused = self._last_error = str(exc)
             return None
-        except RelayError as exc:
+        except ExportError as exc:
             self._note_error(f"cannot reach relay {self.url}: {exc}")
             return None
         try:
             reply = await link.call("hello", self._hello(), HELLO_TIMEOUT_S)
             if not (isinstance(reply, dict) and reply.get("ok")):
-                raise RelayError(f"relay refused hello: {reply!r}")
-        except (ConnectionError, TimeoutError, aiohttp.ClientError, RelayError) as exc:
+                raise ExportError(f"relay refused hello: {reply!r}")
+        except (ConnectionError, TimeoutError, aiohttp.ClientError, ExportError) as exc:
             self._note_error(f"cannot reach relay {self.url}: {link.error or _describe(exc)}")
             await link.close()
             return None
@@ -326,7 +327,7 @@ class RelayExporter:
             if not await _wait(self._progress, 1.0):
                 oldest = min(self._inflight.values(), default=time.monotonic())
                 if time.monotonic() - oldest > ACK_TIMEOUT_S:
-                    raise RelayError(f"no acknowledgement for {ACK_TIMEOUT_S:.0f} s") from None
+                    raise ExportError(f"no acknowledgement for {ACK_TIMEOUT_S:.0f} s") from None
 
     def _on_ack(self, ack: dict) -> None:
         seq = ack.get("seq")

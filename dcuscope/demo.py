@@ -18,8 +18,8 @@ import time
 import urllib.request
 from pathlib import Path
 
-from pipeline.errors import PipelineError
-from pipeline.ports import check_port_free
+from core.errors import PipelineError
+from core.ports import check_port_free
 
 ROOT = Path(__file__).resolve().parents[1]
 NODES = (("DCU-1", ROOT / "configs" / "demo-dcu1.yaml"), ("DCU-2", ROOT / "configs" / "demo-dcu2.yaml"))
@@ -48,7 +48,7 @@ def _start(*args: str, **popen) -> subprocess.Popen:
     """``dcuscope ARGS`` as a child. In a session of its own, so that the terminal's Ctrl-C reaches
     only the demo, which then stops the pipelines (one SIGINT each: a clean EOS) before the relay;
     and told to end with the demo, should the demo die without stopping it."""
-    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", *args], start_new_session=True,
+    return subprocess.Popen([sys.executable, "-m", "dcuscope.cli", *args], start_new_session=True,
                             preexec_fn=_die_with_parent, **popen)
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, TextIO
+from typing import TextIO
 
 import numpy as np
 
@@ -13,12 +13,11 @@ from pipeline.build import BuiltPipeline
 from pipeline.config import PipelineConfig
 from probes.errors import ExportError
 from probes.events import Exporter, TraceHeader
+from probes.relayexport import RelayExporter
+from probes.relaylink import check_token
 from probes.shipper import Shipper
 from probes.tracefile import TraceFileWriter
 from probes.tracer import Tracer, attach
-
-if TYPE_CHECKING:
-    from relay.client import RelayExporter
 
 
 class _Shifted:
@@ -42,12 +41,12 @@ class _Shifted:
 
 
 @dataclass
-class ProbeSession:
+class RunProbes:
     tracer: Tracer
     shipper: Shipper
     trace: Path | None
     progress: TextIO | None
-    relay: "RelayExporter | None" = None
+    relay: RelayExporter | None = None
 
     def stop(self) -> None:
         """Stop shipping and write the summary; raises ExportError if the relay refused the node
@@ -71,8 +70,10 @@ def default_trace_path(node: str) -> Path:
 
 
 def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None = None, token: str | None = None,
-                 clock_offset_ns: int = 0, progress: TextIO | None = None) -> ProbeSession:
+                 clock_offset_ns: int = 0, progress: TextIO | None = None) -> RunProbes:
     """Attach tracepoints to every element of ``built`` (not yet playing) and start shipping."""
+    if relay is not None:
+        check_token(relay, token)  # a wrong token ends the run before it starts, not after
     sources = {s.index: s.config.description for s in built.sources}
     tracer = attach(built.pipeline, config.node, clock=config.probes.clock, sources=sources)
     trace = config.probes.trace
@@ -83,12 +84,10 @@ def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None
         exporters.append(TraceFileWriter(trace))
     relay_exporter = None
     if relay is not None:
-        from relay.client import RelayExporter
-
         relay_exporter = RelayExporter(relay, config.node, token=token, clock=config.probes.clock,
                                        clock_offset_ns=clock_offset_ns)
         exporters.append(relay_exporter)
     if clock_offset_ns:
         exporters = [_Shifted(e, clock_offset_ns) for e in exporters]
     shipper = Shipper(tracer, exporters).start()
-    return ProbeSession(tracer, shipper, trace, progress, relay_exporter)
+    return RunProbes(tracer, shipper, trace, progress, relay_exporter)

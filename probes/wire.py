@@ -1,7 +1,7 @@
 """What nodes and the relay say to each other over the ingest WebSocket (``GET /ingest``).
 
 Each batch travels as one binary WebSocket frame, each other message as one JSON text frame
-(the envelope of :mod:`relay.envelope`).
+(the envelope of :mod:`probes.envelope`).
 
 Events travel in binary batches: a 40-byte header, then the events as the raw bytes of an
 ``EVENT_DTYPE`` array (24 bytes each, little-endian), optionally zlib-compressed::
@@ -31,8 +31,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from probes.errors import ProtocolError
 from probes.events import EVENT_DTYPE, TraceHeader
-from relay.errors import ProtocolError
 
 MAGIC = b"DCUB"
 BATCH_VERSION = 1

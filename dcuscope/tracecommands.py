@@ -1,6 +1,6 @@
 """The ``dcuscope stats`` and ``dcuscope export`` subcommands over trace files or a relay's database.
 
-``pipeline/cli.py`` wires them in::
+``dcuscope/cli.py`` wires them in::
 
     add_stats_parser(subparsers); add_export_parser(subparsers)
     args = parser.parse_args(); sys.exit(args.func(args))
@@ -18,7 +18,7 @@ import sys
 from contextlib import contextmanager
 from pathlib import Path
 
-from pipeline.errors import DcuscopeError
+from core.errors import DcuscopeError
 from probes.export import perfetto_document, write_csv
 from probes.stats import stats_document
 from probes.tracefile import Trace, read_trace

@@ -10,14 +10,14 @@ import time
 import numpy as np
 import pytest
 
-from pipeline.gst import Gst
+from core.gst import Gst
 from plugins import framestamp
+from probes.errors import ExportError
+from probes.relayexport import RelayExporter
 from probes.shipper import Shipper
+from probes.simnode import header_for, synth_events
 from probes.tracer import attach
-from relay.client import RelayExporter
-from relay.errors import RelayError
 from relay.server import start_relay
-from relay.simnode import header_for, synth_events
 from tests.relay.helpers import RelayProcess, free_port, wait_for
 from tests.relay.netcut import CutProxy
 
@@ -47,9 +47,9 @@ def test_unreachable_relay_write_returns_at_once_and_losses_are_counted():
 
 
 def test_bad_arguments_are_user_errors():
-    with pytest.raises(RelayError, match="http://"):
+    with pytest.raises(ExportError, match="http://"):
         RelayExporter("127.0.0.1:3000", "n")
-    with pytest.raises(RelayError, match="unknown clock"):
+    with pytest.raises(ExportError, match="unknown clock"):
         RelayExporter("http://127.0.0.1:3000", "n", clock="sundial")
     exporter = RelayExporter("http://127.0.0.1:1", "n")
     with pytest.raises(ValueError, match="EVENT_DTYPE"):

@@ -8,8 +8,10 @@ import sys
 import tomllib
 from pathlib import Path
 
-from pipeline import signals
-from pipeline.errors import DcuscopeError
+from core import signals
+from core.errors import DcuscopeError, PipelineError
+from dcuscope.tracecommands import add_export_parser, add_stats_parser
+from relay.commands import add_relay_parser
 
 DESCRIPTION = """\
 dcuscope: see where the time goes in multi-camera video-analytics pipelines.
@@ -58,7 +60,7 @@ def build_parser() -> argparse.ArgumentParser:
                          description="Run a pipeline from a YAML configuration (see configs/).", epilog=RUN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     run.add_argument("config", type=Path, metavar="CONFIG", help="pipeline configuration (YAML)")
     run.add_argument("--output", "-o", type=Path, metavar="PATH",
-                     help="write the osd's frames: NAME.mp4 (H.264) or a folder for PNG frames (overrides sink:)")
+                     help="write the osd's frames: NAME.mp4, .mkv or .avi (H.264) or a folder/ for PNG frames (overrides sink:)")
     limit = run.add_mutually_exclusive_group()
     limit.add_argument("--num-frames", "-n", type=_positive_int, metavar="N",
                        help="stop cleanly after N frames reached the sink")
@@ -94,22 +96,10 @@ def build_parser() -> argparse.ArgumentParser:
     rtsp.add_argument("--bitrate", type=_positive_int, default=2000, help="H.264 bitrate in kbit/s (default 2000)")
     rtsp.set_defaults(func=_serve_rtsp, holds_signals=True)
 
-    _add_optional(sub, "probes.commands", ("add_stats_parser", "add_export_parser"))
-    _add_optional(sub, "relay.commands", ("add_relay_parser",))
+    add_stats_parser(sub)
+    add_export_parser(sub)
+    add_relay_parser(sub)
     return parser
-
-
-def _add_optional(sub, module_name: str, functions: tuple[str, ...]) -> None:
-    import importlib
-
-    try:
-        module = importlib.import_module(module_name)
-    except ModuleNotFoundError as exc:
-        if exc.name != module_name:
-            raise
-        return
-    for name in functions:
-        getattr(module, name)(sub)
 
 
 def _positive_int(text: str) -> int:
@@ -127,13 +117,13 @@ def _positive_float(text: str) -> float:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from pipeline.session import run_session
+    from dcuscope.runcommand import run_command
 
-    return run_session(args)
+    return run_command(args)
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from pipeline.demo import run_demo
+    from dcuscope.demo import run_demo
 
     return run_demo(port=args.port, duration=args.duration, db=args.db)
 
@@ -154,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except DcuscopeError as exc:
         print(f"dcuscope: error: {exc}", file=sys.stderr)
-        return 1 if exc.__class__.__name__ == "PipelineError" else 2
+        return 1 if isinstance(exc, PipelineError) else 2
     except KeyboardInterrupt:
         print("dcuscope: interrupted", file=sys.stderr)
         return 130

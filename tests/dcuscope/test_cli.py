@@ -32,7 +32,7 @@ def test_a_taken_port_exits_2_with_one_line_naming_it(tmp_path, command):
         taken.listen()
         port = taken.getsockname()[1]
         args = [a.format(tmp=tmp_path) for a in command]
-        result = subprocess.run([sys.executable, "-m", "pipeline.cli", *args, "--port", str(port)], cwd=tmp_path,
+        result = subprocess.run([sys.executable, "-m", "dcuscope.cli", *args, "--port", str(port)], cwd=tmp_path,
                                 env=cli_env(), capture_output=True, text=True, timeout=60)
     assert result.returncode == 2, result.stdout + result.stderr
     lines = result.stderr.splitlines()

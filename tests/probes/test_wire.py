@@ -9,11 +9,11 @@ import zlib
 import numpy as np
 import pytest
 
+from probes.errors import ProtocolError
 from probes.events import EVENT_DTYPE
-from relay.errors import ProtocolError
-from relay.protocol import (HEADER, HEADER_SIZE, MAX_BATCH_EVENTS, decode_batch, decode_clock, decode_end,
+from probes.wire import (HEADER, HEADER_SIZE, MAX_BATCH_EVENTS, decode_batch, decode_clock, decode_end,
                             decode_hello, decode_payload, encode_batch, sanitize_ptp)
-from relay.simnode import header_for, synth_events
+from probes.simnode import header_for, synth_events
 
 RUN = uuid.uuid4().hex
 N_STAGES = 8

@@ -1,6 +1,6 @@
 """The envelope of the ingest WebSocket (``GET /ingest``): one message per frame.
 
-Binary frames, node to relay only, each hold one batch (:func:`relay.protocol.encode_batch`):
+Binary frames, node to relay only, each hold one batch (:func:`probes.wire.encode_batch`):
 the batch header already names its run and sequence number, which the acknowledgement echoes.
 Text frames hold one JSON object each::
 
@@ -10,7 +10,7 @@ Text frames hold one JSON object each::
                    {"v": 2, "type": "ack", "seq": 12, "ok": false, "error": "..."}   not stored: send again
                    {"v": 2, "type": "error", "error": "..."}                 then the relay closes
 
-``v`` is :data:`relay.protocol.PROTOCOL_VERSION`; a message of another version, of an unknown
+``v`` is :data:`probes.wire.PROTOCOL_VERSION`; a message of another version, of an unknown
 type or of another shape is a protocol error, answered with ``error`` and a closed connection.
 ``id`` is optional (``clock`` needs no answer), a non-negative integer chosen by the node.
 """
@@ -20,8 +20,8 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 
-from relay.errors import ProtocolError
-from relay.protocol import INT64_MAX, PROTOCOL_VERSION
+from probes.errors import ProtocolError
+from probes.wire import INT64_MAX, PROTOCOL_VERSION
 
 REQUESTS = frozenset({"hello", "sync", "clock", "end"})
 """Message types a node may send as text."""

@@ -1,4 +1,4 @@
-"""Session statistics in bounded memory: exact up to a limit, then within 1 % (count, mean, max exact)."""
+"""Whole-run statistics in bounded memory: exact up to a limit, then within 1 % (count, mean, max exact)."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from probes.delays import node_stats, summarize
+from probes.simnode import header_for, synth_events
 from relay.live import LiveConfig, LiveRun
-from relay.sessionvalues import RELATIVE_ERROR, SessionValues
-from relay.simnode import header_for, synth_events
+from relay.runvalues import RELATIVE_ERROR, RunValues
 from tests.relay.helpers import assert_stats_equal
 
 T0 = 1_700_000_000_000_000_000
@@ -25,7 +25,7 @@ def close(exact: dict, approx: dict) -> None:
 def test_below_the_limit_it_is_summarize_itself():
     rng = np.random.default_rng(1)
     values = rng.lognormal(2, 1, 5000)
-    series = SessionValues(exact_limit=10_000)
+    series = RunValues(exact_limit=10_000)
     for chunk in np.array_split(values, 7):
         series.extend(chunk)
     extra = rng.lognormal(2, 1, 50)
@@ -42,7 +42,7 @@ def test_past_the_limit_percentiles_stay_within_one_percent_in_fixed_memory(shap
         rng.shuffle(values)
     else:
         values = np.full(300_000, 33.3)
-    series = SessionValues(exact_limit=1000)
+    series = RunValues(exact_limit=1000)
     for chunk in np.array_split(values, 97):
         series.extend(chunk)
     assert not series.exact
@@ -63,9 +63,9 @@ def test_a_long_run_past_the_limit_agrees_with_node_stats_within_one_percent():
             run.add(events[i:i + 400])
             run.maintain()
     want = node_stats(header, events)
-    assert_stats_equal(want, {k: v for k, v in exact.session_stats().items() if k != "percentile_error"})
-    got = bounded.session_stats()
-    assert exact.session_stats()["percentile_error"] == 0.0 and got["percentile_error"] == RELATIVE_ERROR
+    assert_stats_equal(want, {k: v for k, v in exact.run_stats().items() if k != "percentile_error"})
+    got = bounded.run_stats()
+    assert exact.run_stats()["percentile_error"] == 0.0 and got["percentile_error"] == RELATIVE_ERROR
     assert got["fps"] == want["fps"] and got["frames"] == want["frames"] and got["dropped"] == want["dropped"]
     for group in ("stages", "gaps"):
         assert got[group].keys() == want[group].keys()

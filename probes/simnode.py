@@ -7,7 +7,7 @@ enter/exit at mux, infer, tiler, convert, osd, enter at the sink; a fraction of 
 dropped midway (incomplete). Timestamps are true times plus ``clock_offset_ns``, as on a node
 whose clock is off by that much.
 
-``python -m relay.simnode --relay URL --node NAME [--paced] ...`` writes the events it shipped
+``python -m probes.simnode --relay URL --node NAME [--paced] ...`` writes the events it shipped
 to ``--out`` (.npz with the header) so a test can compute ``node_stats`` over exactly them.
 """
 
@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from probes.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
-from relay.client import RelayExporter
+from probes.relayexport import RelayExporter
 
 STAGES = ("mux", "infer", "tiler", "convert", "osd")
 STAGE_MEAN_NS = (2_000_000, 30_000_000, 3_000_000, 1_000_000, 4_000_000)
@@ -90,7 +90,7 @@ def feed(exporter: RelayExporter, events: np.ndarray, *, paced: bool, offset_ns:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m relay.simnode", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m probes.simnode", description=__doc__.splitlines()[0])
     p.add_argument("--relay", required=True)
     p.add_argument("--node", required=True)
     p.add_argument("--token")

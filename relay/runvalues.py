@@ -1,9 +1,9 @@
-"""Whole-session values of a run in bounded memory: exact while small, a log histogram beyond.
+"""Whole-run values in bounded memory: exact while small, a log histogram beyond.
 
-A relay may watch many nodes for days; keeping every frame's delays for session percentiles
+A relay may watch many nodes for days; keeping every frame's delays for whole-run percentiles
 would grow without bound (13 values a frame: ~270 MB an hour for one DCU at 360 frames/s).
 
-- :class:`SessionValues` keeps the values themselves up to ``exact_limit``, so statistics of
+- :class:`RunValues` keeps the values themselves up to ``exact_limit``, so statistics of
   runs of that size are exactly ``probes.delays.summarize``'s. Past it, the values move into
   a histogram with logarithmic buckets (as DDSketch): count, mean and max stay exact, and
   each percentile is within ``RELATIVE_ERROR`` of the exact one.
@@ -27,7 +27,7 @@ _LARGEST = 1e8  # ms: a bigger value lands in the last bucket (its max is still 
 _BUCKETS = math.ceil(math.log(_LARGEST / _SMALLEST) / _LOG_GAMMA) + 1
 
 
-class SessionValues:
+class RunValues:
     """One series (a stage's delays, a gap, the frame delay), in ms."""
 
     def __init__(self, exact_limit: int) -> None:

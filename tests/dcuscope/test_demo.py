@@ -31,7 +31,7 @@ def free_port() -> int:
 
 
 def start_demo(tmp_path: Path, port: int, *args: str) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "pipeline.cli", "demo", "--port", str(port),
+    return subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "demo", "--port", str(port),
                              "--db", str(tmp_path / "demo.db"), *args], cwd=tmp_path, env=cli_env(),
                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
 
@@ -45,7 +45,7 @@ def demo_children(port: int) -> list[int]:
             cmdline = (entry / "cmdline").read_bytes()
         except OSError:  # not a process, or gone
             continue
-        if b"pipeline.cli" in cmdline and b"demo\0" not in cmdline and any(m in cmdline for m in marks):
+        if b"dcuscope.cli" in cmdline and b"demo\0" not in cmdline and any(m in cmdline for m in marks):
             pids.append(int(entry.name))
     return pids
 

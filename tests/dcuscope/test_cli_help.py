@@ -6,7 +6,7 @@ import argparse
 
 import pytest
 
-from pipeline.cli import build_parser
+from dcuscope.cli import build_parser
 from tests.conftest import run_cli
 
 
