@@ -25,6 +25,8 @@ from plugins.frames import BATCH_TEMPLATE_CAPS, FrameId, batch_caps, mapped_vide
 from plugins.properties import AttributeProperties
 
 DEFAULT_BATCH_SIZE = 0  # 0: as many as there are sink pads
+MIN_PTS_STEP_NS = 1_000_000
+"""Least PTS step between batches: one tick of the coarsest container timescale we write (Matroska's 1 ms)."""
 DEFAULT_PUSH_TIMEOUT_US = 40000
 DEFAULT_WIDTH = 1280
 DEFAULT_HEIGHT = 720
@@ -145,11 +147,12 @@ class Mux(AttributeProperties, GstBase.Aggregator):
         return self.finish_buffer(out)
 
     def _stamp(self, running_time: int) -> int:
-        """The batch's PTS: its earliest frame's running time, but always after the last batch's.
-        Live, a camera late past the timeout misses its batch; its frame then comes out alone,
-        with a running time that batch already had, and encoders refuse a PTS that does not grow."""
-        if self._last_pts is not None and running_time <= self._last_pts:
-            running_time = self._last_pts + 1
+        """The batch's PTS: its earliest frame's running time, but at least MIN_PTS_STEP_NS after
+        the last batch's. Live, a camera late past the timeout misses its batch; its frame then
+        comes out alone, with a running time that batch already had: encoders refuse a PTS that
+        does not grow, and containers merge two that fall into one tick of their timescale."""
+        if self._last_pts is not None and running_time < self._last_pts + MIN_PTS_STEP_NS:
+            running_time = self._last_pts + MIN_PTS_STEP_NS
         self._last_pts = running_time
         return running_time
 

@@ -78,7 +78,12 @@ class Ingest:
         ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=HEARTBEAT_S, timeout=CLOSE_TIMEOUT_S)
         if not ws.can_prepare(request):
             raise web.HTTPBadRequest(text="/ingest takes a WebSocket")
-        await ws.prepare(request)
+        try:
+            await ws.prepare(request)
+        except ConnectionResetError:
+            # The node went away during the handshake (stopped as it started). A plain answer,
+            # which aiohttp fails to write quietly, ends the request without a logged traceback.
+            raise web.HTTPBadRequest(text="connection closed during the handshake") from None
         conn = _Conn(f"ws{next(self._ids)}", ws, TokenBucket(self._limits))
         self._conns[conn.sid] = conn
         try:

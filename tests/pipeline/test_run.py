@@ -21,31 +21,12 @@ from pipeline.config import SinkConfig, load_config
 from pipeline.run import Runner
 from plugins.frames import mapped_video, read_frames, read_objects
 from tests.conftest import REPO, cli_env, run_cli, wait_until_mapped
+from tests.pipeline.clips import decode_video
 
 LIVE_BALL = ("sources:\n  - {test: ball, live: true, width: 320, height: 240, rate: 30}\n"
              "stages:\n  - mux: {width: 320, height: 240}\n  - tiler: {width: 320, height: 240}\n"
              "  - convert: {format: RGBA}\n  - osd: {}\n")
 """A camera-like test pattern through the chain without a model: quick to start, runs until stopped."""
-
-
-def decode_video(path: Path) -> list[np.ndarray]:
-    """Every frame of an MP4 as RGB arrays, decoded by GStreamer (proves the file plays)."""
-    pipeline = Gst.parse_launch(
-        f'filesrc location="{path}" ! qtdemux ! h264parse ! avdec_h264 ! videoconvert ! '
-        "video/x-raw,format=RGB ! appsink name=out sync=false emit-signals=false"
-    )
-    out = pipeline.get_by_name("out")
-    frames = []
-    pipeline.set_state(Gst.State.PLAYING)
-    while True:
-        sample = out.emit("try-pull-sample", 10 * Gst.SECOND)
-        if sample is None:
-            break
-        info = GstVideo.VideoInfo.new_from_caps(sample.get_caps())
-        with mapped_video(sample.get_buffer(), info) as frame:
-            frames.append(frame.copy())
-    pipeline.set_state(Gst.State.NULL)
-    return frames
 
 
 def test_boxes_are_drawn_where_the_detections_are(tmp_path):

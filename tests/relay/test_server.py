@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import asyncio
 import signal
+import socket
+import struct
 import subprocess
 import sys
 import uuid
@@ -14,12 +16,12 @@ import pytest
 
 from probes.errors import ExportError
 from probes.simnode import synth_events
-from probes.wire import encode_batch
+from probes.wire import INGEST_PATH, encode_batch
 from relay.commands import add_relay_parser
 from relay.limits import Limits
 from relay.server import start_relay
 from tests.conftest import wait_until_mapped
-from tests.relay.helpers import ROOT, HandNode, env
+from tests.relay.helpers import ROOT, HandNode, RelayProcess, env, get_json
 
 T0 = 1_700_000_000_000_000_000
 
@@ -187,3 +189,21 @@ def test_ctrl_c_while_the_relay_is_starting_stops_it_cleanly(tmp_path):
     assert proc.returncode == 0, output
     assert "SIGINT while starting" in output and "dcuscope relay: stopped" in output, output
     assert "Traceback" not in output, output
+
+
+def test_nodes_that_go_away_during_the_handshake_leave_no_traceback(tmp_path):
+    """A node stopped while it connects (the demo stopping its DCUs as they start): the relay's
+    handshake answer meets a closed socket, which aiohttp logged as an error with a traceback."""
+    relay = RelayProcess(tmp_path / "r.db")
+    try:
+        request = (f"GET {INGEST_PATH} HTTP/1.1\r\nHost: 127.0.0.1:{relay.port}\r\nUpgrade: websocket\r\n"
+                   "Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n"
+                   "Sec-WebSocket-Version: 13\r\n\r\n").encode()
+        for _ in range(200):
+            with socket.create_connection(("127.0.0.1", relay.port), timeout=5) as sock:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))  # close = RST
+                sock.sendall(request)
+        assert get_json(f"{relay.url}/api/health")["ok"]
+    finally:
+        relay.stop()
+    assert "Traceback" not in relay.log.read_text(), relay.log.read_text()[-3000:]
