@@ -64,10 +64,11 @@ def run_stats(args: argparse.Namespace) -> int:
     with _user_errors() as failed:
         traces = _inputs(args, "stats")
         doc = stats_document(traces)
-        if args.json:
-            print(json.dumps(doc, indent=2))
-        else:
-            print(format_stats(doc, [_origin(t, args.db) for t in traces]), end="")
+        with _open_output("-") as out:
+            if args.json:
+                out.write(json.dumps(doc, indent=2) + "\n")
+            else:
+                out.write(format_stats(doc, [_origin(t, args.db) for t in traces]))
     return 2 if failed else 0
 
 
@@ -111,6 +112,7 @@ def _user_errors():
 
 @contextmanager
 def _open_output(path: str):
+    """The file at ``path``, or stdout for ``-``, where a reader that goes away ends the output quietly."""
     if path == "-":
         try:
             yield sys.stdout

@@ -269,3 +269,18 @@ def test_dcuscope_stats_through_the_real_command_line(two_traces, tmp_path):
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr.startswith("dcuscope: error: ") and "junk.trace" in done.stderr
     assert done.stderr.count("\n") == 1
+
+
+@pytest.mark.parametrize("form", [[], ["--json"]])
+def test_stats_to_a_reader_that_went_away_ends_quietly(two_traces, form):
+    """``dcuscope stats T | head -0``, or a reader that quit: the table meets a closed pipe."""
+    root = Path(__file__).resolve().parents[2]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(root), os.environ.get("PYTHONPATH")]))}
+    read, write = os.pipe()
+    os.close(read)  # the reader is gone before the command prints anything
+    try:
+        done = subprocess.run([sys.executable, "-m", "dcuscope.cli", "stats", *map(str, two_traces), *form],
+                              stdout=write, stderr=subprocess.PIPE, text=True, env=env, cwd=root, timeout=60)
+    finally:
+        os.close(write)
+    assert done.returncode == 0 and done.stderr == "", done.stderr
