@@ -1,9 +1,26 @@
 """The probe event record and the exporter interface, shared by probes, trace files and relay.
 
-An event is one tracepoint hit for one frame: (stage, point, source, frame, timestamp). The
-node name and the stage names travel once, in the :class:`TraceHeader`; events refer to a
+An event is one tracepoint hit for one frame: (stage, point, source, frame, timestamp, code).
+The node name and the stage names travel once, in the :class:`TraceHeader`; events refer to a
 stage by its index in ``header.stages``. Events move in numpy structured arrays of
 :data:`EVENT_DTYPE`, never as per-event Python objects.
+
+Points (format 2; format 1 had only the first three):
+
+- ``origin``: the frame got its identity (a ``framestamp``'s src pad);
+- ``enter`` / ``exit``: the frame entered a stage (sink pad) / left it (src pad);
+- ``ready``: when the stage could start working on the output buffer that carries the frame:
+  the later of "the thread that pushes it returned from its previous push on that pad" and
+  "the last frame of that buffer entered the stage". Service = exit - ready, wait = ready -
+  enter (:mod:`probes.delays`). ``code`` = how many frames the output buffer holds (at most
+  127), so that a batch's work is counted once in a stage's busy time;
+- ``capture``: the frame's capture time as its source knows it (an RTSP camera's RTCP sender
+  reports), at the origin stage: a point before ``origin``;
+- ``drop``: the frame was dropped at ``stage``, ``code`` = reason (:data:`DROP_REASONS`);
+- ``fact``: not a frame but a value: ``code`` = kind (:data:`FACT_KINDS`), ``frame`` = value,
+  ``source`` = the source it is about (0 for a stage fact), ``stage`` = the stage.
+
+The first :data:`FRAME_POINTS` points are per-frame timestamps, paired into the frame table.
 """
 
 from __future__ import annotations
@@ -13,13 +30,30 @@ from typing import Protocol
 
 import numpy as np
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_FORMATS = (1, 2)
+"""Trace formats this dcuscope reads: 1 (origin, enter, exit only) and 2."""
 
-ORIGIN, ENTER, EXIT = 0, 1, 2
-POINT_NAMES = ("origin", "enter", "exit")
+ORIGIN, ENTER, EXIT, READY, CAPTURE, DROP, FACT = range(7)
+POINT_NAMES = ("origin", "enter", "exit", "ready", "capture", "drop", "fact")
+FRAME_POINTS = 5
+"""Points 0..4 (origin, enter, exit, ready, capture) are timestamps of one frame at one stage."""
+
+DROP_REASONS = {0: "unknown", 1: "late", 2: "qos", 3: "queue full", 4: "error"}
+"""``code`` of a ``drop`` event -> why the frame was dropped."""
+LATE = 1
+
+FACT_THREAD, FACT_NOMINAL_MHZ, FACT_LOST_UPSTREAM, FACT_DECODER_DROPPED = 1, 2, 3, 4
+FACT_KINDS = {FACT_THREAD: "thread", FACT_NOMINAL_MHZ: "nominal_mhz", FACT_LOST_UPSTREAM: "lost_upstream",
+              FACT_DECODER_DROPPED: "decoder_dropped"}
+"""``code`` of a ``fact`` event -> what its ``frame`` field holds: ``thread``, the number of the
+streaming thread that pushes a stage's output (a stage fact, sent when it changes);
+``nominal_mhz``, a source's nominal frame rate (caps framerate) in millihertz; ``lost_upstream``,
+frames a source lost before its origin (RTP sequence gaps), cumulative; ``decoder_dropped``,
+frames its decoder dropped, cumulative."""
 
 EVENT_DTYPE = np.dtype(
-    [("ts", "<i8"), ("frame", "<i8"), ("source", "<i4"), ("stage", "<i2"), ("point", "<i1"), ("_pad", "<i1")]
+    [("ts", "<i8"), ("frame", "<i8"), ("source", "<i4"), ("stage", "<i2"), ("point", "<i1"), ("code", "<i1")]
 )
 
 

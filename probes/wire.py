@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from probes.errors import ProtocolError
-from probes.events import EVENT_DTYPE, TraceHeader
+from probes.events import DROP, DROP_REASONS, EVENT_DTYPE, FACT, FACT_KINDS, POINT_NAMES, READY, TraceHeader
 
 MAGIC = b"DCUB"
 BATCH_VERSION = 1
@@ -155,8 +155,9 @@ def _inflate(payload: bytes, size: int) -> bytes:
 
 def check_events(events: np.ndarray, n_stages: int) -> None:
     """Reject events a pipeline cannot produce (vectorised: one pass per field)."""
+    point, code = events["point"], events["code"]
     bad = (
-        (events["point"] < 0) | (events["point"] > 2) | (events["_pad"] != 0)
+        (point < 0) | (point >= len(POINT_NAMES)) | ~_code_ok(point, code)
         | (events["stage"] < 0) | (events["stage"] >= n_stages)
         | (events["source"] < 0) | (events["source"] >= SOURCE_LIMIT)
         | (events["frame"] < 0) | (events["frame"] >= FRAME_LIMIT)
@@ -169,6 +170,13 @@ def check_events(events: np.ndarray, n_stages: int) -> None:
             f"event {i} invalid: stage={e['stage']} point={e['point']} source={e['source']} "
             f"frame={e['frame']} ts={e['ts']}"
         )
+
+
+def _code_ok(point: np.ndarray, code: np.ndarray) -> np.ndarray:
+    """The ``code`` of each event is one its point allows (probes.events)."""
+    return np.where(point == READY, code >= 1, np.where(
+        point == DROP, np.isin(code, list(DROP_REASONS)), np.where(
+            point == FACT, np.isin(code, list(FACT_KINDS)), code == 0)))
 
 
 def decode_payload(payload: bytes, compressed: bool) -> np.ndarray:

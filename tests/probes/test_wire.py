@@ -70,7 +70,7 @@ def test_rejects_zlib_bomb_and_garbage():
         decode_batch(_batch(flags=1, payload=b"not zlib", length=8), N_STAGES)
 
 
-@pytest.mark.parametrize("field, value", [("stage", 8), ("stage", -1), ("point", 3), ("_pad", 1),
+@pytest.mark.parametrize("field, value", [("stage", 8), ("stage", -1), ("point", 7), ("code", 1),
                                           ("source", -1), ("frame", -5), ("ts", 0), ("frame", 1 << 50)])
 def test_rejects_impossible_events(field, value):
     ev = events(4)

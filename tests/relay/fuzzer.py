@@ -122,7 +122,7 @@ _BOMB = zlib.compress(b"\0" * (8 * 1024 * 1024), 9)
 
 def _bad_events(run: str, r: random.Random) -> bytes:
     ev = EVENTS.copy()
-    field_, value = r.choice([("stage", 99), ("stage", -3), ("point", 7), ("_pad", 1), ("ts", -5),
+    field_, value = r.choice([("stage", 99), ("stage", -3), ("point", 7), ("code", 1), ("ts", -5),
                               ("source", -1), ("frame", -1)])
     ev[field_][r.randrange(len(ev))] = value
     return encode_batch(run, r.randrange(1000), ev)
