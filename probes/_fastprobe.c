@@ -15,6 +15,19 @@
  * "frame" (guint64 array), one entry per frame the buffer holds. A batch or a collage thus
  * yields one record per frame, all with the single timestamp read for the buffer.
  *
+ * Service and wait (format 2): a GstTracer of our own, made once, hooks pad-push-post and
+ * pad-push-list-post (gst_tracing_register_hook: in-process, no GST_TRACERS needed). When a
+ * traced src pad's push returns, the pad's state notes the time: the thread that pushes on it
+ * is free again. At the next exit on that pad the probe writes, per frame, a "ready" record:
+ * the later of that time and the last enter (at this stage) of the frames the buffer holds,
+ * which a per-stage table of recent enters gives. Work on the buffer cannot have started
+ * before ready, so service = exit - ready and wait = ready - enter (probes/delays.py). A
+ * "thread" fact tells which streaming thread pushes a stage's output, when it changes.
+ *
+ * Capture (format 2): an origin buffer that carries the sender's capture time (a reference
+ * timestamp meta "timestamp/x-ntp", which rtpjitterbuffer attaches from RTCP sender reports)
+ * also yields a "capture" record with that time on the Unix epoch.
+ *
  * Build: cc -O2 -shared -fPIC _fastprobe.c $(pkg-config --cflags --libs gstreamer-1.0)
  */
 
@@ -25,8 +38,17 @@
 #include <string.h>
 #include <time.h>
 
-#define DCU_ABI_VERSION 1
+#define DCU_ABI_VERSION 2
 #define FRAMES_MEDIA_TYPE "timestamp/x-dcuscope-frames"
+#define NTP_MEDIA_TYPE "timestamp/x-ntp"
+#define NTP_TO_UNIX_NS (2208988800LL * 1000000000LL)
+
+/* Points and fact kinds: probes/events.py. */
+enum { P_ORIGIN = 0, P_ENTER = 1, P_EXIT = 2, P_READY = 3, P_CAPTURE = 4, P_FACT = 6 };
+enum { FACT_THREAD = 1 };
+#define MAX_STAGES 256
+#define ENTER_SLOTS 1024 /* recent enters remembered per stage: more than any batch or queue */
+#define MAX_GROUP 127
 
 typedef struct {
   int64_t ts;
@@ -34,10 +56,22 @@ typedef struct {
   int32_t source;
   int16_t stage;
   int8_t point;
-  int8_t pad;
+  int8_t code;
 } DcuEvent;
 
 _Static_assert(sizeof(DcuEvent) == 24, "DcuEvent must match probes.events.EVENT_DTYPE");
+
+/* The last enter of recent frames at one stage, by frame key: written by enter probes, read by
+ * exit probes. A slot is (key, ts); a reader checks the key before and after reading ts, so a
+ * slot overwritten meanwhile reads as absent, never as another frame's time. */
+typedef struct {
+  _Atomic uint64_t key;
+  _Atomic int64_t ts;
+} DcuEnterSlot;
+
+typedef struct {
+  DcuEnterSlot slots[ENTER_SLOTS];
+} DcuStageEnters;
 
 /* One slot: the record plus its sequence number (Vyukov). seq == pos: free for the producer
  * of position pos; seq == pos + 1: filled, readable by the consumer. */
@@ -56,18 +90,29 @@ typedef struct {
   _Atomic uint64_t dropped;
   _Atomic uint64_t unidentified;
   _Atomic int refcount;
+  DcuStageEnters *_Atomic enters[MAX_STAGES];
 } DcuRing;
+
+/* Per traced src pad (object data of the pad, freed with it): when its last push returned,
+ * and which thread pushed last. */
+typedef struct {
+  _Atomic int64_t last_post;
+  _Atomic int last_thread;
+  clockid_t clock;
+} DcuPadState;
 
 typedef struct {
   DcuRing *ring;
   clockid_t clock;
   int16_t stage;
   int8_t point;
+  DcuStageEnters *enters; /* the stage's table (enter and exit probes) */
+  DcuPadState *pad_state; /* exit probes only */
 } DcuProbe;
 
 /* Interned once: comparing quarks is an integer compare, where matching the caps with
  * gst_caps_is_subset for every buffer would walk structures. */
-static GQuark frames_quark, source_quark, frame_quark;
+static GQuark frames_quark, source_quark, frame_quark, ntp_quark, pad_state_quark;
 /* What a sink pad does with a buffer list when its element has no chain-list function: it
  * splits the list and chains (and probes) each buffer again. */
 static GstPadChainListFunction default_chain_list;
@@ -78,6 +123,8 @@ static void init_once(void) {
     frames_quark = g_quark_from_static_string(FRAMES_MEDIA_TYPE);
     source_quark = g_quark_from_static_string("source");
     frame_quark = g_quark_from_static_string("frame");
+    ntp_quark = g_quark_from_static_string(NTP_MEDIA_TYPE);
+    pad_state_quark = g_quark_from_static_string("dcuscope-pad-state");
     GstPad *dummy = gst_pad_new("dcu-probe-dummy", GST_PAD_SINK);
     default_chain_list = GST_PAD_CHAINLISTFUNC(dummy);
     gst_object_unref(dummy);
@@ -118,6 +165,7 @@ uint64_t dcu_ring_capacity(DcuRing *ring) { return ring->mask + 1; }
 
 static void ring_unref(DcuRing *ring) {
   if (atomic_fetch_sub_explicit(&ring->refcount, 1, memory_order_acq_rel) == 1) {
+    for (int i = 0; i < MAX_STAGES; i++) free(atomic_load(&ring->enters[i]));
     free(ring->cells);
     free(ring);
   }
@@ -217,6 +265,53 @@ static const GstStructure *frames_structure(GstBuffer *buf) {
   return NULL;
 }
 
+static inline uint64_t frame_key(int64_t source, int64_t frame) {
+  /* +1: key 0 marks an empty slot. */
+  return (((uint64_t)source << 40) | ((uint64_t)frame & ((1ULL << 40) - 1))) + 1;
+}
+
+static inline DcuEnterSlot *enter_slot(DcuStageEnters *t, uint64_t key) {
+  return &t->slots[(key * 0x9E3779B97F4A7C15ULL) >> 54]; /* Fibonacci hash, 10 bits */
+}
+
+static void remember_enter(DcuStageEnters *t, uint64_t key, int64_t ts) {
+  DcuEnterSlot *slot = enter_slot(t, key);
+  atomic_store_explicit(&slot->key, 0, memory_order_relaxed);
+  atomic_thread_fence(memory_order_release);
+  atomic_store_explicit(&slot->ts, ts, memory_order_relaxed);
+  atomic_store_explicit(&slot->key, key, memory_order_release);
+}
+
+static int64_t recall_enter(DcuStageEnters *t, uint64_t key) {
+  DcuEnterSlot *slot = enter_slot(t, key);
+  if (atomic_load_explicit(&slot->key, memory_order_acquire) != key) return 0;
+  int64_t ts = atomic_load_explicit(&slot->ts, memory_order_relaxed);
+  atomic_thread_fence(memory_order_acquire);
+  return atomic_load_explicit(&slot->key, memory_order_relaxed) == key ? ts : 0;
+}
+
+/* A small number for the calling thread, the same for its whole life. */
+static _Atomic int next_thread_number = 1;
+static __thread int thread_number = 0;
+
+static inline int this_thread(void) {
+  if (thread_number == 0) thread_number = atomic_fetch_add(&next_thread_number, 1);
+  return thread_number;
+}
+
+static int64_t ntp_capture_ns(GstBuffer *buf) {
+  gpointer state = NULL;
+  GstMeta *meta;
+  while ((meta = gst_buffer_iterate_meta_filtered(buf, &state, GST_REFERENCE_TIMESTAMP_META_API_TYPE))) {
+    GstReferenceTimestampMeta *ref = (GstReferenceTimestampMeta *)meta;
+    if (ref->reference && gst_caps_get_size(ref->reference) > 0 &&
+        gst_structure_get_name_id(gst_caps_get_structure(ref->reference, 0)) == ntp_quark &&
+        ref->timestamp > (guint64)NTP_TO_UNIX_NS)
+      return (int64_t)ref->timestamp - NTP_TO_UNIX_NS;
+  }
+  return 0;
+}
+
 static void record_buffer(DcuProbe *p, GstBuffer *buf, int64_t ts) {
   DcuRing *ring = p->ring;
   const GstStructure *s = frames_structure(buf);
@@ -227,18 +322,53 @@ static void record_buffer(DcuProbe *p, GstBuffer *buf, int64_t ts) {
     atomic_fetch_add_explicit(&ring->unidentified, 1, memory_order_relaxed);
     return;
   }
-  uint64_t pos;
-  if (!ring_reserve(ring, n, &pos)) {
-    atomic_fetch_add_explicit(&ring->dropped, n, memory_order_relaxed);
+  int64_t ready = 0, capture = 0;
+  guint per_frame = 1;
+  int thread = 0;
+  if (p->point == P_EXIT && p->pad_state) {
+    /* The later of "the pushing thread came back from its last push" and the last enter. */
+    ready = atomic_load_explicit(&p->pad_state->last_post, memory_order_relaxed);
+    for (guint i = 0; i < n; i++) {
+      int64_t source = -1, frame = -1;
+      value_to_i64(field_item(sources, i), &source);
+      value_to_i64(field_item(frames, i), &frame);
+      int64_t entered = recall_enter(p->enters, frame_key(source, frame));
+      if (entered > ready) ready = entered;
+    }
+    if (ready > ts) ready = ts;
+    per_frame = ready > 0 ? 2 : 1;
+    thread = this_thread();
+    if (atomic_exchange_explicit(&p->pad_state->last_thread, thread, memory_order_relaxed) == thread) thread = 0;
+  } else if (p->point == P_ORIGIN && p->clock == CLOCK_REALTIME) {
+    capture = ntp_capture_ns(buf);
+    per_frame = capture > 0 ? 2 : 1;
+  }
+  uint64_t total = (uint64_t)n * per_frame + (thread ? 1 : 0), pos;
+  if (!ring_reserve(ring, total, &pos)) {
+    atomic_fetch_add_explicit(&ring->dropped, total, memory_order_relaxed);
     return;
   }
+  int8_t group = (int8_t)MIN(n, MAX_GROUP);
   for (guint i = 0; i < n; i++) {
     int64_t source = -1, frame = -1;
     /* A malformed entry still publishes its slot (already reserved), marked -1. */
     value_to_i64(field_item(sources, i), &source);
     value_to_i64(field_item(frames, i), &frame);
     DcuEvent ev = {ts, frame, (int32_t)source, p->stage, p->point, 0};
-    ring_publish(ring, pos + i, &ev);
+    ring_publish(ring, pos++, &ev);
+    if (p->point == P_ENTER && p->enters && source >= 0 && frame >= 0)
+      remember_enter(p->enters, frame_key(source, frame), ts);
+    if (ready > 0) {
+      DcuEvent r = {ready, frame, (int32_t)source, p->stage, P_READY, group};
+      ring_publish(ring, pos++, &r);
+    } else if (capture > 0) {
+      DcuEvent c = {capture, frame, (int32_t)source, p->stage, P_CAPTURE, 0};
+      ring_publish(ring, pos++, &c);
+    }
+  }
+  if (thread) {
+    DcuEvent f = {ts, thread, 0, p->stage, P_FACT, FACT_THREAD};
+    ring_publish(ring, pos, &f);
   }
 }
 
@@ -264,11 +394,87 @@ static void probe_free(gpointer data) {
   g_free(p);
 }
 
+/* --- the tracer: when does a traced src pad's push return? -------------------------------- */
+
+typedef struct {
+  GstTracer parent;
+} DcuTracer;
+typedef struct {
+  GstTracerClass parent_class;
+} DcuTracerClass;
+
+G_DEFINE_TYPE(DcuTracer, dcu_tracer, GST_TYPE_TRACER)
+
+static _Atomic uint64_t hook_calls;
+
+static inline void note_push_returned(GstPad *pad) {
+  DcuPadState *st = g_object_get_qdata(G_OBJECT(pad), pad_state_quark);
+  if (!st) return;
+  struct timespec t;
+  clock_gettime(st->clock, &t);
+  atomic_store_explicit(&st->last_post, (int64_t)t.tv_sec * 1000000000LL + t.tv_nsec, memory_order_relaxed);
+}
+
+static void on_push_post(GObject *self, GstClockTime ts, GstPad *pad, GstFlowReturn res) {
+  (void)self; (void)ts; (void)res;
+  atomic_fetch_add_explicit(&hook_calls, 1, memory_order_relaxed);
+  note_push_returned(pad);
+}
+
+static void dcu_tracer_init(DcuTracer *self) {
+  GstTracer *tracer = GST_TRACER(self);
+  gst_tracing_register_hook(tracer, "pad-push-post", G_CALLBACK(on_push_post));
+  gst_tracing_register_hook(tracer, "pad-push-list-post", G_CALLBACK(on_push_post));
+}
+
+static void dcu_tracer_class_init(DcuTracerClass *klass) { (void)klass; }
+
+static gsize tracer_done = 0;
+static GstTracer *the_tracer;
+
+/* Make the tracer once, for the life of the process (GStreamer keeps hooks until deinit). */
+static void ensure_tracer(void) {
+  if (g_once_init_enter(&tracer_done)) {
+    the_tracer = g_object_new(dcu_tracer_get_type(), NULL);
+    g_once_init_leave(&tracer_done, 1);
+  }
+}
+
+/* How many push-post hooks ran (all pads of the process): for benchmarks. */
+uint64_t dcu_hook_calls(void) { return atomic_load(&hook_calls); }
+
+static GMutex attach_lock;
+
+static DcuStageEnters *stage_enters(DcuRing *ring, int stage) {
+  if (stage < 0 || stage >= MAX_STAGES) return NULL;
+  g_mutex_lock(&attach_lock);
+  DcuStageEnters *t = atomic_load(&ring->enters[stage]);
+  if (!t) {
+    t = calloc(1, sizeof(DcuStageEnters));
+    atomic_store(&ring->enters[stage], t);
+  }
+  g_mutex_unlock(&attach_lock);
+  return t;
+}
+
+static DcuPadState *pad_state(GstPad *pad, clockid_t clock) {
+  g_mutex_lock(&attach_lock);
+  DcuPadState *st = g_object_get_qdata(G_OBJECT(pad), pad_state_quark);
+  if (!st) {
+    st = g_new0(DcuPadState, 1);
+    st->clock = clock;
+    g_object_set_qdata_full(G_OBJECT(pad), pad_state_quark, st, g_free);
+  }
+  g_mutex_unlock(&attach_lock);
+  return st;
+}
+
 /* Add a tracepoint on pad; returns the probe id (0 when pad is not a GstPad). The probe holds
  * a reference on the ring until it is removed. */
 gulong dcu_attach(DcuRing *ring, GstPad *pad, int stage, int point, int clock_id) {
   if (!ring || !GST_IS_PAD(pad)) return 0;
   init_once();
+  ensure_tracer();
   GstPadProbeType types = GST_PAD_PROBE_TYPE_BUFFER | GST_PAD_PROBE_TYPE_BUFFER_LIST;
   /* Such a pad would see a list twice: whole, then buffer by buffer. Keep the per-buffer
    * probes only, which also time each buffer's own entry. */
@@ -278,8 +484,24 @@ gulong dcu_attach(DcuRing *ring, GstPad *pad, int stage, int point, int clock_id
   p->clock = (clockid_t)clock_id;
   p->stage = (int16_t)stage;
   p->point = (int8_t)point;
+  if (point == P_ENTER || point == P_EXIT) p->enters = stage_enters(ring, stage);
+  if (point == P_EXIT && GST_PAD_IS_SRC(pad)) p->pad_state = pad_state(pad, p->clock);
   atomic_fetch_add(&ring->refcount, 1);
   return gst_pad_add_probe(pad, types, on_probe, p, probe_free);
+}
+
+/* Append events made elsewhere (drops and facts the node learns from the bus or from its
+ * sources) to the ring, as a producer like any probe. Returns how many went in (0 or n). */
+uint64_t dcu_push(DcuRing *ring, const void *events, uint64_t n) {
+  uint64_t pos;
+  if (n == 0) return 0;
+  if (!ring_reserve(ring, n, &pos)) {
+    atomic_fetch_add_explicit(&ring->dropped, n, memory_order_relaxed);
+    return 0;
+  }
+  const DcuEvent *src = events;
+  for (uint64_t i = 0; i < n; i++) ring_publish(ring, pos + i, &src[i]);
+  return n;
 }
 
 void dcu_detach(GstPad *pad, gulong probe_id) {

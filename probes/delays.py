@@ -10,7 +10,20 @@
   frame passed through; at the origin stage the origin timestamp stands for the exit;
 - frame delay = end of the frame's chain - origin, the paper's S; the chain ends at the exit of
   the last stage, or at its enter when that stage has no exit point (the sink). So, for every
-  complete frame, frame delay = sum of its stage delays + sum of its gaps, exactly.
+  complete frame, frame delay = sum of its stage delays + sum of its gaps, exactly;
+- service at X = exit - start, wait at X = start - enter, where start = the frame's ``ready``
+  at X (when X's pushing thread was free and the last frame of the output buffer had entered,
+  see probes.events) clamped into [enter, exit]: stage delay = service + wait, exactly. Wait is
+  time queued, waiting for a batch to form, or blocked while the thread pushed downstream;
+  service is the work on the buffer that carried the frame out (a batch's work, for each of
+  its frames);
+- busy time of X = the sum, over the output buffers of X, of their service (a batch counted
+  once); utilization = busy time / the wall span of the frames (first origin to last end);
+  a streaming thread's utilization = the sum over the stages whose output it pushes;
+- the bottleneck is the stage that limits throughput: the busiest stage on a saturated thread
+  (utilization >= :data:`SATURATED`); when no thread is saturated, the busiest stage, marked
+  not saturated, with where frames spend most time (largest share of frame delay);
+- glass-to-glass delay = end - capture, for frames whose source gave a capture time.
 
 A frame is *complete* when its chain is unbroken: it has an origin, an enter at every stage it
 passed after the origin, an exit (or origin) at every stage before the last, and it reached
@@ -26,19 +39,23 @@ CSV, the per-frame JSON and the summaries list it from there.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Iterable
 
 import numpy as np
 
 from probes.events import TraceHeader
+from probes.facts import Accounting
 from probes.frametable import MISSING, FrameTable, frame_table
 
 PERCENTILES = (50, 95, 99)
 NS_PER_MS = 1e6
-STAGE_COLUMNS = ("delay", "gap")
+STAGE_COLUMNS = ("delay", "gap", "service", "wait")
 """Per-frame, per-stage figures of :class:`FrameDelays` (``per_stage``): ``delay`` = exit -
-enter; ``gap`` = enter - exit (or origin) of the previous stage the frame passed."""
+enter; ``gap`` = enter - exit (or origin) of the previous stage the frame passed; ``service``
+and ``wait``, delay = service + wait."""
+SATURATED = 0.9
+"""Utilization of a streaming thread from which it counts as saturated: it cannot take more."""
 
 
 @dataclass
@@ -110,6 +127,8 @@ class FrameDelays:
     tracepoint it needs. Defined for incomplete frames too (the exports show them)."""
     delay: np.ndarray
     """(n,) float64 ns: end - origin of each complete frame, NaN for the others."""
+    glass: np.ndarray
+    """(n,) float64 ns: end - capture of each complete frame with a capture time, else NaN."""
 
     def __len__(self) -> int:
         return len(self.table)
@@ -125,7 +144,13 @@ def frame_delays(table: FrameTable, has_exit: np.ndarray | None = None) -> Frame
     gap_ok = (ch.prev >= 0) & (before != MISSING) & (ch.t_in != MISSING)
     gap = np.where(gap_ok, (ch.t_in - before).astype(np.float64), np.nan)
     end_to_end = np.where(ch.complete, (ch.end - table.origin).astype(np.float64), np.nan)
-    return FrameDelays(table=table, chains=ch, per_stage={"delay": delay, "gap": gap}, delay=end_to_end)
+    glass = np.where(ch.complete & (table.capture != MISSING), (ch.end - table.capture).astype(np.float64), np.nan)
+    timed = both & (table.ready != MISSING)
+    start = np.minimum(np.maximum(table.ready, table.enter), table.exit)
+    service = np.where(timed, (table.exit - start).astype(np.float64), np.nan)
+    wait = np.where(timed, (start - table.enter).astype(np.float64), np.nan)
+    return FrameDelays(table=table, chains=ch, delay=end_to_end, glass=glass,
+                       per_stage={"delay": delay, "gap": gap, "service": service, "wait": wait})
 
 
 @dataclass
@@ -138,22 +163,55 @@ class Series:
     """"A->B" -> gaps, in pipeline order of B, then of A."""
     frame: np.ndarray
     """End-to-end delays."""
+    service: dict[str, np.ndarray] = field(default_factory=dict)
+    """Stage -> service times of its frames that have one (pipeline order)."""
+    wait: dict[str, np.ndarray] = field(default_factory=dict)
+    """Stage -> wait times, the same frames as ``service``."""
+    glass: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """Glass-to-glass delays (end - capture) of the frames with a capture time."""
+    busy: dict[str, float] = field(default_factory=dict)
+    """Stage -> busy time, ns: service summed over its output buffers (a batch once)."""
+    span_ns: float = 0.0
+    """Wall time the frames cover: first origin to last end, ns."""
+    threads: dict[str, int] = field(default_factory=dict)
+    """Stage -> number of the streaming thread that pushes its output (probes.events facts)."""
 
 
-def series(fd: FrameDelays) -> Series:
-    """The stage delays, gaps and frame delays of the complete frames of ``fd``."""
+def series(fd: FrameDelays, threads: dict[str, int] | None = None) -> Series:
+    """The stage delays, gaps, service and wait times, frame delays and busy times of the
+    complete frames of ``fd``; ``threads`` as :attr:`Series.threads`."""
     ch, stages = fd.chains, fd.table.stages
     delay, gap = fd.per_stage["delay"], fd.per_stage["gap"]
-    out = Series(stages={}, gaps={}, frame=fd.delay[ch.complete])
+    out = Series(stages={}, gaps={}, frame=fd.delay[ch.complete], glass=fd.glass[~np.isnan(fd.glass)],
+                 span_ns=_span_ns(fd), threads=dict(threads or {}))
+    service, wait = fd.per_stage["service"], fd.per_stage["wait"]
     for s, name in enumerate(stages):
         if ch.has_exit[s]:
             out.stages[name] = delay[ch.complete & ~np.isnan(delay[:, s]), s]
+            timed = ch.complete & ~np.isnan(service[:, s])
+            if timed.any():
+                out.service[name], out.wait[name] = service[timed, s], wait[timed, s]
+                out.busy[name] = _busy_ns(fd.table.exit[timed, s], service[timed, s])
     for b, name_b in enumerate(stages):
         ok = ch.complete & ~np.isnan(gap[:, b])
         prev_b = ch.prev[ok, b]
         for a in np.unique(prev_b):
             out.gaps[f"{stages[a]}->{name_b}"] = gap[ok, b][prev_b == a]
     return out
+
+
+def _busy_ns(exits: np.ndarray, service: np.ndarray) -> float:
+    """Service summed over output buffers: frames that left in one buffer share its exit time
+    (one clock read per buffer), and its work is counted once."""
+    keys, which = np.unique(exits, return_inverse=True)
+    per_buffer = np.zeros(len(keys))
+    np.maximum.at(per_buffer, which.ravel(), service)
+    return float(per_buffer.sum())
+
+
+def _span_ns(fd: FrameDelays) -> float:
+    c = fd.chains.complete
+    return float(fd.chains.end[c].max() - fd.table.origin[c].min()) if c.any() else 0.0
 
 
 def summarize(values_ms: np.ndarray | Iterable[float]) -> dict:
@@ -176,8 +234,9 @@ def summarize(values_ms: np.ndarray | Iterable[float]) -> dict:
 
 
 Summarizer = Callable[[str, str, np.ndarray], dict]
-"""(kind "stages" | "gaps" | "frame", name, values in ms) -> the ``summarize`` dict of them;
-the relay's live engine passes one that adds the values of frames already finalised."""
+"""(kind "stages" | "gaps" | "frame" | "service" | "wait" | "glass", name, values in ms) -> the
+``summarize`` dict of them; the relay's live engine passes one that adds the values of frames
+already finalised."""
 
 
 def _plain(kind: str, name: str, values_ms: np.ndarray) -> dict:
@@ -185,16 +244,24 @@ def _plain(kind: str, name: str, values_ms: np.ndarray) -> dict:
 
 
 def delay_summary(s: Series, summarize_ms: Summarizer = _plain) -> dict:
-    """``{"stages", "gaps", "frame", "bottleneck"}``: a ``summarize`` dict per series, each
-    stage's with its ``share`` of the mean frame delay."""
+    """``{"stages", "gaps", "frame", "glass", "bottleneck"}``: a ``summarize`` dict per series;
+    each stage's with its ``share`` of the mean frame delay, its ``service`` and ``wait``
+    summaries, ``utilization`` (busy fraction of the span, None without service times) and
+    ``occupancy`` (mean frames inside it: its delays summed over the span)."""
     frame = summarize_ms("frame", "frame", s.frame / NS_PER_MS)
     stages = {}
     for name, values in s.stages.items():
         st = summarize_ms("stages", name, values / NS_PER_MS)
         st["share"] = share(st, frame)
+        st["service"] = summarize_ms("service", name, s.service.get(name, np.zeros(0)) / NS_PER_MS)
+        st["wait"] = summarize_ms("wait", name, s.wait.get(name, np.zeros(0)) / NS_PER_MS)
+        st["utilization"] = s.busy[name] / s.span_ns if name in s.busy and s.span_ns > 0 else None
+        st["occupancy"] = st["count"] * st["mean_ms"] * NS_PER_MS / s.span_ns if st["count"] and s.span_ns > 0 else None
         stages[name] = st
     gaps = {name: summarize_ms("gaps", name, values / NS_PER_MS) for name, values in s.gaps.items()}
-    return {"stages": stages, "gaps": gaps, "frame": frame, "bottleneck": bottleneck(stages)}
+    glass = summarize_ms("glass", "glass", s.glass / NS_PER_MS)
+    return {"stages": stages, "gaps": gaps, "frame": frame, "glass": glass,
+            "bottleneck": bottleneck(stages, s.threads)}
 
 
 def share(stage: dict, frame: dict) -> float | None:
@@ -204,13 +271,41 @@ def share(stage: dict, frame: dict) -> float | None:
     return stage["mean_ms"] / frame["mean_ms"]
 
 
-def bottleneck(stages: dict[str, dict]) -> dict | None:
-    """``{stage, mean_ms, share}`` of the stage with the largest mean delay (the first on a tie)."""
+def bottleneck(stages: dict[str, dict], threads: dict[str, int] | None = None) -> dict | None:
+    """The stage that limits throughput, and why: ``{stage, utilization, thread_utilization,
+    saturated, share, reason}`` (see the module docstring); None without any stage figure.
+
+    Without service times (format-1 traces, Python probes) it is the stage with the largest
+    share of frame delay, which says where frames spend time, not what limits them; the reason
+    says so."""
+    util = {k: v["utilization"] for k, v in stages.items() if v.get("utilization") is not None}
     means = {k: v["mean_ms"] for k, v in stages.items() if v["mean_ms"] is not None}
     if not means:
         return None
-    name = max(means, key=means.get)
-    return {"stage": name, "mean_ms": means[name], "share": stages[name]["share"]}
+    most_time = max(means, key=means.get)
+    if not util:
+        return {"stage": most_time, "utilization": None, "thread_utilization": None, "saturated": None,
+                "share": stages[most_time]["share"],
+                "reason": f"no service times (format-1 trace or Python probes): {most_time} has the largest "
+                          f"share of frame delay ({_pct(stages[most_time]['share'])}), which need not be what limits"}
+    threads = threads or {}
+    on_thread = {k: sum(u for s, u in util.items() if threads.get(s) == threads[k]) if k in threads else u
+                 for k, u in util.items()}
+    saturated = [k for k in util if on_thread[k] >= SATURATED]
+    name = max(saturated or util, key=util.get)
+    out = {"stage": name, "utilization": util[name], "thread_utilization": on_thread[name],
+           "saturated": bool(saturated), "share": stages[name]["share"]}
+    if saturated:
+        shared = f"; its streaming thread is busy {_pct(on_thread[name])}" if on_thread[name] > util[name] else ""
+        out["reason"] = f"{name} is busy {_pct(util[name])} of the time{shared}: it limits throughput"
+    else:
+        out["reason"] = (f"no stage is saturated (busiest: {name}, {_pct(util[name])}); frames spend most time in "
+                         f"{most_time} ({_pct(stages[most_time]['share'])} of frame delay)")
+    return out
+
+
+def _pct(fraction: float | None) -> str:
+    return "?" if fraction is None else f"{fraction * 100:.0f} %"
 
 
 def fps_by_source(fd: FrameDelays, sources: Iterable[int] = ()) -> dict[str, float]:
@@ -231,16 +326,22 @@ def fps_by_source(fd: FrameDelays, sources: Iterable[int] = ()) -> dict[str, flo
 
 def node_stats(header: TraceHeader, events: np.ndarray, dropped: int = 0) -> dict:
     """Statistics of one node's events; the shape ``dcuscope stats --json`` prints per node."""
-    return delay_stats(frame_delays(frame_table(header, events)), header.sources, dropped)
+    accounting = Accounting(header.stages)
+    accounting.add(events)
+    return delay_stats(frame_delays(frame_table(header, events)), header.sources, dropped, accounting)
 
 
-def delay_stats(fd: FrameDelays, sources: Iterable[int] = (), dropped: int = 0) -> dict:
+def delay_stats(fd: FrameDelays, sources: Iterable[int] = (), dropped: int = 0,
+                accounting: Accounting | None = None) -> dict:
     """``delay_summary`` of ``fd`` + ``fps`` per source, ``dropped`` events, ``frames``
-    (complete and incomplete counts)."""
+    (complete and incomplete counts), ``sources`` (every frame accounted for, per source)."""
+    accounting = accounting or Accounting(fd.table.stages)
     n_complete = int(fd.chains.complete.sum())
+    fps = fps_by_source(fd, sources)
     return {
-        **delay_summary(series(fd)),
-        "fps": fps_by_source(fd, sources),
+        **delay_summary(series(fd, accounting.threads())),
+        "fps": fps,
+        "sources": accounting.sources(fps),
         "dropped": int(dropped),
         "frames": {"complete": n_complete, "incomplete": len(fd) - n_complete},
     }

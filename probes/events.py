@@ -52,6 +52,13 @@ streaming thread that pushes a stage's output (a stage fact, sent when it change
 frames a source lost before its origin (RTP sequence gaps), cumulative; ``decoder_dropped``,
 frames its decoder dropped, cumulative."""
 
+def codes_valid(point: np.ndarray, code: np.ndarray) -> np.ndarray:
+    """Per event: its ``code`` is one its point allows (group size, reason, fact kind, or 0)."""
+    return np.where(point == READY, code >= 1, np.where(
+        point == DROP, np.isin(code, list(DROP_REASONS)), np.where(
+            point == FACT, np.isin(code, list(FACT_KINDS)), code == 0)))
+
+
 EVENT_DTYPE = np.dtype(
     [("ts", "<i8"), ("frame", "<i8"), ("source", "<i4"), ("stage", "<i2"), ("point", "<i1"), ("code", "<i1")]
 )

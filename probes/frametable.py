@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from probes.errors import TraceError
-from probes.events import ENTER, EXIT, ORIGIN, POINT_NAMES, TraceHeader
+from probes.events import CAPTURE, ENTER, EXIT, FRAME_POINTS, ORIGIN, READY, TraceHeader
 
 MISSING = -1
 """Timestamp of a tracepoint a frame never hit. Real timestamps (ns) are never negative."""
@@ -38,35 +38,52 @@ class FrameTable:
     """(n, n_stages) int64 ns, MISSING where the frame has no enter at that stage."""
     exit: np.ndarray
     """(n, n_stages) int64 ns, MISSING where the frame has no exit at that stage."""
+    ready: np.ndarray
+    """(n, n_stages) int64 ns: when the stage could start the work that carried the frame out
+    (probes.events, ``ready``), MISSING where unknown (format 1, Python probes)."""
+    capture: np.ndarray
+    """(n,) int64 ns: the source's capture time of the frame, MISSING where unknown."""
 
     def __len__(self) -> int:
         return int(self.source.shape[0])
 
 
+def frame_events(events: np.ndarray) -> np.ndarray:
+    """The events that are timestamps of a frame (not drops or facts)."""
+    point = events["point"]
+    return events if len(point) == 0 or point.max() < FRAME_POINTS else events[point < FRAME_POINTS]
+
+
 def frame_table(header: TraceHeader, events: np.ndarray) -> FrameTable:
-    """Pair events by frame identity; where a tracepoint saw a frame twice keep the earliest."""
+    """Pair the frames' events by identity; where a tracepoint saw a frame twice keep the
+    earliest. Drops and facts are not frame timestamps: they are left out here."""
     n_stages = len(header.stages)
+    events = frame_events(events)
     stage = events["stage"].astype(np.int64)
     point = events["point"].astype(np.int64)
-    if len(events) and (stage.min() < 0 or stage.max() >= n_stages or point.min() < 0 or point.max() > EXIT):
+    if len(events) and (stage.min() < 0 or stage.max() >= n_stages or point.min() < 0):
         raise TraceError(f"node {header.node}: event stage or point out of range for {n_stages} stages")
     ts = np.ascontiguousarray(events["ts"], dtype=np.int64)
     row, source, frame = _frame_rows(np.ascontiguousarray(events["source"]), np.ascontiguousarray(events["frame"]))
     n = len(source)
 
     # Earliest timestamp per (frame, stage, point): a scatter-min, no per-event Python.
-    cells = np.full(n * n_stages * len(POINT_NAMES), _NEVER, np.int64)
-    np.minimum.at(cells, (row * n_stages + stage) * len(POINT_NAMES) + point, ts)
+    cells = np.full(n * n_stages * FRAME_POINTS, _NEVER, np.int64)
+    np.minimum.at(cells, (row * n_stages + stage) * FRAME_POINTS + point, ts)
     cells[cells == _NEVER] = MISSING
-    return frame_table_from_cells(header.stages, source, frame, cells.reshape(n, n_stages, len(POINT_NAMES)))
+    return frame_table_from_cells(header.stages, source, frame, cells.reshape(n, n_stages, FRAME_POINTS))
 
 
 def frame_table_from_cells(stages: list[str], source: np.ndarray, frame: np.ndarray, cells: np.ndarray) -> FrameTable:
     """FrameTable from paired cells: ``cells[row, stage, point]`` = ts or MISSING.
 
-    Points are 0 origin, 1 enter, 2 exit; the relay pairs incrementally and builds tables here.
+    Points are 0 origin, 1 enter, 2 exit, 3 ready, 4 capture (cells of 3 points hold the first
+    three only); the relay pairs incrementally and builds tables here.
     """
     n = len(source)
+    missing = np.full(cells.shape[:2], MISSING, np.int64)
+    ready = np.ascontiguousarray(cells[:, :, READY]) if cells.shape[2] > READY else missing
+    captures = cells[:, :, CAPTURE] if cells.shape[2] > CAPTURE else missing
     origins = cells[:, :, ORIGIN]
     has_origin = origins != MISSING
     origin_stage = np.where(has_origin.any(axis=1), has_origin.argmax(axis=1), -1)
@@ -75,6 +92,7 @@ def frame_table_from_cells(stages: list[str], source: np.ndarray, frame: np.ndar
         stages=list(stages), source=np.asarray(source, np.int32), frame=np.asarray(frame, np.int64),
         origin=origin, origin_stage=origin_stage,
         enter=np.ascontiguousarray(cells[:, :, ENTER]), exit=np.ascontiguousarray(cells[:, :, EXIT]),
+        ready=ready, capture=np.where(origin_stage >= 0, captures[np.arange(n), np.maximum(origin_stage, 0)], MISSING),
     )
 
 

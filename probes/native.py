@@ -31,7 +31,7 @@ from probes.ring import RingStats
 SOURCE = Path(__file__).resolve().parent / "_fastprobe.c"
 BUILD_DIR = Path(__file__).resolve().parent / "_build"
 LIBRARY = BUILD_DIR / "libdcuprobe.so"
-ABI_VERSION = 1
+ABI_VERSION = 2
 
 _lock = threading.Lock()
 _lib: ctypes.CDLL | None = None
@@ -93,6 +93,8 @@ def _bind(lib: ctypes.CDLL) -> None:
         "dcu_attach": (ctypes.c_ulong, [p, p, i32, i32, i32]),
         "dcu_detach": (None, [p, ctypes.c_ulong]),
         "dcu_now": (ctypes.c_int64, [i32]),
+        "dcu_push": (u64, [p, p, u64]),
+        "dcu_hook_calls": (u64, []),
     }
     for name, (res, args) in sigs.items():
         fn = getattr(lib, name)
@@ -120,6 +122,12 @@ def load(build_if_missing: bool = True) -> ctypes.CDLL | None:
 def unavailable_reason() -> str | None:
     """Why :func:`load` returned None, or None when the library is loaded or not yet tried."""
     return _reason
+
+
+def hook_calls() -> int:
+    """How many times the library's push-post hooks ran in this process (all pads)."""
+    lib = load()
+    return int(lib.dcu_hook_calls()) if lib is not None else 0
 
 
 _capsule_pointer = ctypes.pythonapi.PyCapsule_GetPointer
@@ -165,6 +173,11 @@ class NativeRing:
         with self._drain_lock:
             n = self._lib.dcu_drain(self._ring, out.ctypes.data, limit)
         return out[:n].copy() if n < limit // 2 else out[:n]
+
+    def push(self, events: np.ndarray) -> int:
+        """Append events made elsewhere (drops, facts); returns how many went in (0 or all)."""
+        events = np.ascontiguousarray(events, EVENT_DTYPE)
+        return int(self._lib.dcu_push(self._ring, events.ctypes.data, len(events)))
 
     def stats(self) -> RingStats:
         w, d, u = ctypes.c_uint64(), ctypes.c_uint64(), ctypes.c_uint64()

@@ -109,6 +109,14 @@ class PythonRing:
 
         return probe
 
+    def push(self, events: np.ndarray) -> int:
+        """Append events made elsewhere (drops, facts); returns how many went in (0 or all)."""
+        if len(self._events) + len(events) > self.capacity:
+            self._drops.append(len(events))
+            return 0
+        self._events.extend(tuple(int(v) for v in e) for e in events.tolist())
+        return len(events)
+
     def drain(self, max_events: int | None = None) -> np.ndarray:
         """Events recorded since the last drain (oldest first), as EVENT_DTYPE."""
         with self._consumer:

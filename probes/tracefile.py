@@ -1,9 +1,12 @@
-"""Trace files: the events of one run of one node, as JSON Lines (format v1).
+"""Trace files: the events of one run of one node, as JSON Lines (format v2).
 
-    {"dcuscope_trace": 1, "header": {...TraceHeader.to_dict()...}}
-    {"events": [[ts, stage, point, source, frame], ...]}      one line per shipped batch
+    {"dcuscope_trace": 2, "header": {...TraceHeader.to_dict()...}}
+    {"events": [[ts, stage, point, source, frame, code], ...]}   one line per shipped batch
     ...
-    {"end": {"events": TOTAL, "dropped": DROPPED}}            absent if the run crashed
+    {"end": {"events": TOTAL, "dropped": DROPPED}}               absent if the run crashed
+
+Format 1 files (points origin, enter and exit only; events of five columns, no code) still
+read: their frames have no service/wait split (:mod:`probes.events`).
 
 Every line is flushed as it is written, so a run that dies leaves a readable file: the reader
 accepts a missing end line and a truncated last line, and says so in ``Trace.complete``.
@@ -18,12 +21,13 @@ from pathlib import Path
 import numpy as np
 
 from probes.errors import TraceError
-from probes.events import EVENT_DTYPE, FORMAT_VERSION, POINT_NAMES, TraceHeader
+from probes.events import EVENT_DTYPE, FORMAT_VERSION, POINT_NAMES, READABLE_FORMATS, TraceHeader, codes_valid
 
 MAGIC = "dcuscope_trace"
 
-# Column order of an event on an "events" line.
-COLUMNS = ("ts", "stage", "point", "source", "frame")
+# Column order of an event on an "events" line (format 1 had the first five).
+COLUMNS = ("ts", "stage", "point", "source", "frame", "code")
+V1_COLUMNS = 5
 
 
 @dataclass
@@ -41,14 +45,14 @@ class Trace:
 
 
 def events_to_rows(events: np.ndarray) -> list[list[int]]:
-    """EVENT_DTYPE array -> ``[[ts, stage, point, source, frame], ...]`` of Python ints."""
+    """EVENT_DTYPE array -> ``[[ts, stage, point, source, frame, code], ...]`` of Python ints."""
     return np.stack([events[c].astype(np.int64) for c in COLUMNS], axis=1).tolist()
 
 
 def rows_to_events(rows: np.ndarray) -> np.ndarray:
-    """An (n, 5) integer array in :data:`COLUMNS` order -> EVENT_DTYPE array."""
+    """An (n, 6) (or, format 1, (n, 5)) integer array in :data:`COLUMNS` order -> EVENT_DTYPE."""
     events = np.zeros(len(rows), dtype=EVENT_DTYPE)
-    for i, column in enumerate(COLUMNS):
+    for i, column in enumerate(COLUMNS[:rows.shape[1]]):
         events[column] = rows[:, i]
     return events
 
@@ -124,7 +128,7 @@ def read_trace(path: str | Path) -> Trace:
             raise TraceError(f"{path}:{lineno}: data after the end line")
         obj = _loads(path, lineno, line)
         if "events" in obj:
-            rows = _parse_rows(path, lineno, obj["events"], len(header.stages))
+            rows = _parse_rows(path, lineno, obj["events"], header)
             chunks.append(rows)
             count += len(rows)
         elif "end" in obj:
@@ -132,11 +136,11 @@ def read_trace(path: str | Path) -> Trace:
         else:
             raise TraceError(f"{path}:{lineno}: expected an 'events' or 'end' line, got keys {sorted(obj)}")
 
-    rows = np.concatenate(chunks) if chunks else np.zeros((0, len(COLUMNS)), np.int64)
+    rows = np.concatenate(chunks) if chunks else np.zeros((0, _width(header)), np.int64)
     # A non-empty tail is a line cut short by a crash (or a lost final newline): keep it when it
     # still parses, never fail because of it.
     if truncated_tail.strip() and end is None and lines:
-        rows, end = _salvage_tail(path, len(lines) + 1, truncated_tail, rows, len(header.stages))
+        rows, end = _salvage_tail(path, len(lines) + 1, truncated_tail, rows, header)
     dropped = end if end is not None else 0
     return Trace(header, rows_to_events(rows), dropped=dropped, complete=end is not None, path=str(path))
 
@@ -163,33 +167,44 @@ def _parse_header(path: Path, line: bytes) -> TraceHeader:
     if not isinstance(obj, dict) or MAGIC not in obj:
         raise TraceError(f"{path}: not a dcuscope trace (line 1 has no '{MAGIC}' key)")
     version = obj[MAGIC]
-    if version != FORMAT_VERSION:
-        raise TraceError(
-            f"{path}: trace format version {version!r} is not supported (this dcuscope reads {FORMAT_VERSION})"
-        )
+    if version not in READABLE_FORMATS:
+        raise TraceError(f"{path}: trace format version {version!r} is not supported (this dcuscope reads "
+                         f"{', '.join(map(str, READABLE_FORMATS))})")
     try:
         header = TraceHeader.from_dict(obj["header"])
     except (KeyError, TypeError, ValueError, AttributeError) as exc:
         raise TraceError(f"{path}:1: malformed trace header ({type(exc).__name__}: {exc})") from exc
     if not header.stages:
         raise TraceError(f"{path}:1: trace header lists no stages")
+    header.format = version
     return header
 
 
-def _parse_rows(path: Path, lineno: int, rows: object, n_stages: int) -> np.ndarray:
+def _width(header: TraceHeader) -> int:
+    """Columns of an event row in this header's format."""
+    return V1_COLUMNS if header.format == 1 else len(COLUMNS)
+
+
+def _parse_rows(path: Path, lineno: int, rows: object, header: TraceHeader) -> np.ndarray:
+    width, n_stages = _width(header), len(header.stages)
+    columns = list(COLUMNS[:width])
     try:
         arr = np.asarray(rows, dtype=np.int64)
     except (TypeError, ValueError, OverflowError) as exc:
-        raise TraceError(f"{path}:{lineno}: events must be lists of {len(COLUMNS)} integers ({_short(exc)})") from exc
+        raise TraceError(f"{path}:{lineno}: events must be lists of {width} integers ({_short(exc)})") from exc
     if arr.size == 0:
-        return np.zeros((0, len(COLUMNS)), np.int64)
-    if arr.ndim != 2 or arr.shape[1] != len(COLUMNS):
-        raise TraceError(f"{path}:{lineno}: events must be lists of {len(COLUMNS)} integers {list(COLUMNS)}")
+        return np.zeros((0, width), np.int64)
+    if arr.ndim != 2 or arr.shape[1] != width:
+        raise TraceError(f"{path}:{lineno}: events must be lists of {width} integers {columns}")
     stage, point = arr[:, 1], arr[:, 2]
     if stage.min() < 0 or stage.max() >= n_stages:
         raise TraceError(f"{path}:{lineno}: event stage index out of range 0..{n_stages - 1}")
-    if point.min() < 0 or point.max() >= len(POINT_NAMES):
-        raise TraceError(f"{path}:{lineno}: event point must be 0 origin, 1 enter or 2 exit")
+    points = POINT_NAMES[:3] if width == V1_COLUMNS else POINT_NAMES
+    if point.min() < 0 or point.max() >= len(points):
+        raise TraceError(f"{path}:{lineno}: event point must be one of "
+                         f"{', '.join(f'{i} {name}' for i, name in enumerate(points))}")
+    if width > V1_COLUMNS and not codes_valid(point, arr[:, 5]).all():
+        raise TraceError(f"{path}:{lineno}: an event's code does not fit its point (see probes/events.py)")
     return arr
 
 
@@ -201,13 +216,13 @@ def _parse_end(path: Path, lineno: int, end: object, count: int) -> int:
     return end["dropped"]
 
 
-def _salvage_tail(path: Path, lineno: int, tail: bytes, rows: np.ndarray, n_stages: int):
+def _salvage_tail(path: Path, lineno: int, tail: bytes, rows: np.ndarray, header: TraceHeader):
     try:
         obj = json.loads(tail)
     except ValueError:
         return rows, None
     if isinstance(obj, dict) and "events" in obj:
-        more = _parse_rows(path, lineno, obj["events"], n_stages)
+        more = _parse_rows(path, lineno, obj["events"], header)
         return np.concatenate([rows, more]), None
     if isinstance(obj, dict) and "end" in obj:
         return rows, _parse_end(path, lineno, obj["end"], len(rows))

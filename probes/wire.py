@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from probes.errors import ProtocolError
-from probes.events import DROP, DROP_REASONS, EVENT_DTYPE, FACT, FACT_KINDS, POINT_NAMES, READY, TraceHeader
+from probes.events import EVENT_DTYPE, POINT_NAMES, TraceHeader, codes_valid
 
 MAGIC = b"DCUB"
 BATCH_VERSION = 1
@@ -157,7 +157,7 @@ def check_events(events: np.ndarray, n_stages: int) -> None:
     """Reject events a pipeline cannot produce (vectorised: one pass per field)."""
     point, code = events["point"], events["code"]
     bad = (
-        (point < 0) | (point >= len(POINT_NAMES)) | ~_code_ok(point, code)
+        (point < 0) | (point >= len(POINT_NAMES)) | ~codes_valid(point, code)
         | (events["stage"] < 0) | (events["stage"] >= n_stages)
         | (events["source"] < 0) | (events["source"] >= SOURCE_LIMIT)
         | (events["frame"] < 0) | (events["frame"] >= FRAME_LIMIT)
@@ -170,13 +170,6 @@ def check_events(events: np.ndarray, n_stages: int) -> None:
             f"event {i} invalid: stage={e['stage']} point={e['point']} source={e['source']} "
             f"frame={e['frame']} ts={e['ts']}"
         )
-
-
-def _code_ok(point: np.ndarray, code: np.ndarray) -> np.ndarray:
-    """The ``code`` of each event is one its point allows (probes.events)."""
-    return np.where(point == READY, code >= 1, np.where(
-        point == DROP, np.isin(code, list(DROP_REASONS)), np.where(
-            point == FACT, np.isin(code, list(FACT_KINDS)), code == 0)))
 
 
 def decode_payload(payload: bytes, compressed: bool) -> np.ndarray:
