@@ -359,7 +359,8 @@ static void record_buffer(DcuProbe *p, GstBuffer *buf, int64_t ts) {
     if (p->point == P_ENTER && p->enters && source >= 0 && frame >= 0)
       remember_enter(p->enters, frame_key(source, frame), ts);
     if (ready > 0) {
-      DcuEvent r = {ready, frame, (int32_t)source, p->stage, P_READY, group};
+      /* The buffer's first frame carries its size, the others minus it: its work counted once. */
+      DcuEvent r = {ready, frame, (int32_t)source, p->stage, P_READY, (int8_t)(i == 0 ? group : -group)};
       ring_publish(ring, pos++, &r);
     } else if (capture > 0) {
       DcuEvent c = {capture, frame, (int32_t)source, p->stage, P_CAPTURE, 0};

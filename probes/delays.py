@@ -169,9 +169,10 @@ class Series:
     """Stage -> wait times, the same frames as ``service``."""
     glass: np.ndarray = field(default_factory=lambda: np.zeros(0))
     """Glass-to-glass delays (end - capture) of the frames with a capture time."""
-    busy: dict[str, float] = field(default_factory=dict)
-    """Stage -> busy time, ns: service summed over its output buffers (a batch once)."""
-    span_ns: float = 0.0
+    busy: dict[str, int] = field(default_factory=dict)
+    """Stage -> busy time, ns: service summed over its output buffers (a batch once: over the
+    first frame of each, :attr:`FrameTable.group`). Whole ns, so sums are exact in any order."""
+    span_ns: int = 0
     """Wall time the frames cover: first origin to last end, ns."""
     threads: dict[str, int] = field(default_factory=dict)
     """Stage -> number of the streaming thread that pushes its output (probes.events facts)."""
@@ -191,7 +192,7 @@ def series(fd: FrameDelays, threads: dict[str, int] | None = None) -> Series:
             timed = ch.complete & ~np.isnan(service[:, s])
             if timed.any():
                 out.service[name], out.wait[name] = service[timed, s], wait[timed, s]
-                out.busy[name] = _busy_ns(fd.table.exit[timed, s], service[timed, s])
+                out.busy[name] = int(service[timed & (fd.table.group[:, s] > 0), s].sum())
     for b, name_b in enumerate(stages):
         ok = ch.complete & ~np.isnan(gap[:, b])
         prev_b = ch.prev[ok, b]
@@ -200,18 +201,9 @@ def series(fd: FrameDelays, threads: dict[str, int] | None = None) -> Series:
     return out
 
 
-def _busy_ns(exits: np.ndarray, service: np.ndarray) -> float:
-    """Service summed over output buffers: frames that left in one buffer share its exit time
-    (one clock read per buffer), and its work is counted once."""
-    keys, which = np.unique(exits, return_inverse=True)
-    per_buffer = np.zeros(len(keys))
-    np.maximum.at(per_buffer, which.ravel(), service)
-    return float(per_buffer.sum())
-
-
-def _span_ns(fd: FrameDelays) -> float:
+def _span_ns(fd: FrameDelays) -> int:
     c = fd.chains.complete
-    return float(fd.chains.end[c].max() - fd.table.origin[c].min()) if c.any() else 0.0
+    return int(fd.chains.end[c].max() - fd.table.origin[c].min()) if c.any() else 0
 
 
 def summarize(values_ms: np.ndarray | Iterable[float]) -> dict:

@@ -13,7 +13,8 @@ Points (format 2; format 1 had only the first three):
   the later of "the thread that pushes it returned from its previous push on that pad" and
   "the last frame of that buffer entered the stage". Service = exit - ready, wait = ready -
   enter (:mod:`probes.delays`). ``code`` = how many frames the output buffer holds (at most
-  127), so that a batch's work is counted once in a stage's busy time;
+  127) on its first frame, minus that on the others, so that a batch's work is counted once
+  in a stage's busy time;
 - ``capture``: the frame's capture time as its source knows it (an RTSP camera's RTCP sender
   reports), at the origin stage: a point before ``origin``;
 - ``drop``: the frame was dropped at ``stage``, ``code`` = reason (:data:`DROP_REASONS`);
@@ -38,6 +39,10 @@ ORIGIN, ENTER, EXIT, READY, CAPTURE, DROP, FACT = range(7)
 POINT_NAMES = ("origin", "enter", "exit", "ready", "capture", "drop", "fact")
 FRAME_POINTS = 5
 """Points 0..4 (origin, enter, exit, ready, capture) are timestamps of one frame at one stage."""
+GROUP = 5
+FRAME_CELLS = 6
+"""A frame table's cells per (frame, stage): the five points' timestamps, then (at GROUP) the
+``code`` of the frame's ready event there: > 0 on the first frame of an output buffer."""
 
 DROP_REASONS = {0: "unknown", 1: "late", 2: "qos", 3: "queue full", 4: "error"}
 """``code`` of a ``drop`` event -> why the frame was dropped."""
@@ -54,7 +59,7 @@ frames its decoder dropped, cumulative."""
 
 def codes_valid(point: np.ndarray, code: np.ndarray) -> np.ndarray:
     """Per event: its ``code`` is one its point allows (group size, reason, fact kind, or 0)."""
-    return np.where(point == READY, code >= 1, np.where(
+    return np.where(point == READY, code != 0, np.where(
         point == DROP, np.isin(code, list(DROP_REASONS)), np.where(
             point == FACT, np.isin(code, list(FACT_KINDS)), code == 0)))
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from probes.errors import TraceError
-from probes.events import CAPTURE, ENTER, EXIT, FRAME_POINTS, ORIGIN, READY, TraceHeader
+from probes.events import CAPTURE, ENTER, EXIT, FRAME_CELLS, FRAME_POINTS, GROUP, ORIGIN, READY, TraceHeader
 
 MISSING = -1
 """Timestamp of a tracepoint a frame never hit. Real timestamps (ns) are never negative."""
@@ -43,6 +43,9 @@ class FrameTable:
     (probes.events, ``ready``), MISSING where unknown (format 1, Python probes)."""
     capture: np.ndarray
     """(n,) int64 ns: the source's capture time of the frame, MISSING where unknown."""
+    group: np.ndarray
+    """(n, n_stages) int64: the ready event's code, > 0 where the frame was the first of its
+    output buffer (whose work then counts once in the stage's busy time), MISSING where unknown."""
 
     def __len__(self) -> int:
         return int(self.source.shape[0])
@@ -68,22 +71,27 @@ def frame_table(header: TraceHeader, events: np.ndarray) -> FrameTable:
     n = len(source)
 
     # Earliest timestamp per (frame, stage, point): a scatter-min, no per-event Python.
-    cells = np.full(n * n_stages * FRAME_POINTS, _NEVER, np.int64)
-    np.minimum.at(cells, (row * n_stages + stage) * FRAME_POINTS + point, ts)
+    cells = np.full(n * n_stages * FRAME_CELLS, _NEVER, np.int64)
+    slot = (row * n_stages + stage) * FRAME_CELLS
+    np.minimum.at(cells, slot + point, ts)
     cells[cells == _NEVER] = MISSING
-    return frame_table_from_cells(header.stages, source, frame, cells.reshape(n, n_stages, FRAME_POINTS))
+    ready = point == READY
+    cells[slot[ready] + GROUP] = events["code"][ready]
+    return frame_table_from_cells(header.stages, source, frame, cells.reshape(n, n_stages, FRAME_CELLS))
 
 
 def frame_table_from_cells(stages: list[str], source: np.ndarray, frame: np.ndarray, cells: np.ndarray) -> FrameTable:
     """FrameTable from paired cells: ``cells[row, stage, point]`` = ts or MISSING.
 
-    Points are 0 origin, 1 enter, 2 exit, 3 ready, 4 capture (cells of 3 points hold the first
-    three only); the relay pairs incrementally and builds tables here.
+    Cells are 0 origin, 1 enter, 2 exit, 3 ready, 4 capture, 5 group (probes.events
+    FRAME_CELLS; cells of 3 hold the first three only); the relay pairs incrementally and
+    builds tables here.
     """
     n = len(source)
     missing = np.full(cells.shape[:2], MISSING, np.int64)
     ready = np.ascontiguousarray(cells[:, :, READY]) if cells.shape[2] > READY else missing
     captures = cells[:, :, CAPTURE] if cells.shape[2] > CAPTURE else missing
+    group = np.ascontiguousarray(cells[:, :, GROUP]) if cells.shape[2] > GROUP else missing
     origins = cells[:, :, ORIGIN]
     has_origin = origins != MISSING
     origin_stage = np.where(has_origin.any(axis=1), has_origin.argmax(axis=1), -1)
@@ -92,7 +100,7 @@ def frame_table_from_cells(stages: list[str], source: np.ndarray, frame: np.ndar
         stages=list(stages), source=np.asarray(source, np.int32), frame=np.asarray(frame, np.int64),
         origin=origin, origin_stage=origin_stage,
         enter=np.ascontiguousarray(cells[:, :, ENTER]), exit=np.ascontiguousarray(cells[:, :, EXIT]),
-        ready=ready, capture=np.where(origin_stage >= 0, captures[np.arange(n), np.maximum(origin_stage, 0)], MISSING),
+        ready=ready, group=group, capture=np.where(origin_stage >= 0, captures[np.arange(n), np.maximum(origin_stage, 0)], MISSING),
     )
 
 

@@ -29,8 +29,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from probes.delays import NS_PER_MS, Chains, FrameDelays, Series, chains, delay_summary, frame_delays, series
-from probes.events import EXIT, TraceHeader
-from probes.frametable import MISSING, FrameTable, frame_table_from_cells
+from probes.events import EXIT, FRAME_CELLS, GROUP, READY, TraceHeader
+from probes.facts import Accounting
+from probes.frametable import MISSING, FrameTable, frame_events, frame_table_from_cells
 from relay.runvalues import RELATIVE_ERROR, OriginSpans, RunValues
 
 KEY_SHIFT = 44  # key = source << 44 | frame; probes.wire bounds both to fit
@@ -89,7 +90,7 @@ class _Frames:
 
     source: np.ndarray
     frame: np.ndarray
-    cells: np.ndarray  # (n, n_stages, 3) int64
+    cells: np.ndarray  # (n, n_stages, FRAME_CELLS) int64
 
 
 class LiveRun:
@@ -103,7 +104,7 @@ class LiveRun:
         self._s = s
         # Open frames, sorted by key.
         self._keys = np.zeros(0, np.int64)
-        self._cells = np.zeros((0, s, 3), np.int64)
+        self._cells = np.zeros((0, s, FRAME_CELLS), np.int64)
         self._last = np.zeros(0, np.int64)
         self._shown = np.zeros(0, bool)
         self._has_exit = np.zeros(s, bool)
@@ -111,15 +112,19 @@ class LiveRun:
         self._sources = np.zeros(0, bool)
         self.newest = 0
         # Finalised frames.
-        self._stage_values: dict[str, RunValues] = {}
-        self._gap_values: dict[str, RunValues] = {}
+        self._values: dict[str, dict[str, RunValues]] = {kind: {} for kind in ("stages", "gaps", "service", "wait")}
         self._frame_values = RunValues(config.exact_values)
+        self._glass_values = RunValues(config.exact_values)
+        self._busy: dict[str, int] = {}
+        self._first_origin: int | None = None
+        self._last_end: int | None = None
+        self.accounting = Accounting(self.stages)
         self._origins = OriginSpans()
-        self._ring = {"source": Grow(np.int32), "frame": Grow(np.int64), "cells": Grow(np.int64, (s, 3)),
+        self._ring = {"source": Grow(np.int32), "frame": Grow(np.int64), "cells": Grow(np.int64, (s, FRAME_CELLS)),
                       "end": Grow(np.int64)}
         self._evicted_last = Grow(np.int64)
         self._recent = {"n": Grow(np.int64), "source": Grow(np.int32), "frame": Grow(np.int64),
-                        "cells": Grow(np.int64, (s, 3))}
+                        "cells": Grow(np.int64, (s, FRAME_CELLS))}
         self.finalised = 0
         self.evicted = 0
         self.late = 0
@@ -150,11 +155,16 @@ class LiveRun:
         self._merge(events)
 
     def _merge(self, events: np.ndarray) -> None:
+        self.accounting.add(events)
+        events = frame_events(events)
+        if len(events) == 0:
+            return
         src = events["source"].astype(np.int64)
         frame = events["frame"].astype(np.int64)
         ts = events["ts"].astype(np.int64)
         stage = events["stage"].astype(np.int64)
         point = events["point"].astype(np.int64)
+        code = events["code"].astype(np.int64)
         key = (src << KEY_SHIFT) | frame
         self.newest = max(self.newest, int(ts.max()))
         self._has_exit |= np.bincount(stage[point == EXIT], minlength=self._s)[:self._s] > 0
@@ -168,14 +178,15 @@ class LiveRun:
             if late.any():
                 self.late += int(late.sum())
                 keep = ~late
-                key, ts, stage, point = key[keep], ts[keep], stage[keep], point[keep]
+                key, ts, stage, point, code = key[keep], ts[keep], stage[keep], point[keep], code[keep]
                 found = found[keep]
             if not found.all():
                 self._open(np.unique(key[~found]))
             pos, _ = self._locate(key)
         if len(key) == 0:
             return
-        flat = (pos * self._s + stage) * 3 + point
+        slot = (pos * self._s + stage) * FRAME_CELLS
+        flat = slot + point
         order = np.lexsort((ts, flat))
         fs, tsort = flat[order], ts[order]
         first = np.ones(len(fs), bool)
@@ -184,6 +195,8 @@ class LiveRun:
         cells = self._cells.reshape(-1)
         cur = cells[fu]
         cells[fu] = np.where(cur == MISSING, tu, np.minimum(cur, tu))
+        ready = point == READY
+        cells[slot[ready] + GROUP] = code[ready]
         np.maximum.at(self._last, pos, ts)
         self._dirty = True
 
@@ -198,7 +211,7 @@ class LiveRun:
         order = np.argsort(keys, kind="stable")
         k = len(new_keys)
         self._keys = keys[order]
-        self._cells = np.concatenate([self._cells, np.full((k, self._s, 3), MISSING, np.int64)])[order]
+        self._cells = np.concatenate([self._cells, np.full((k, self._s, FRAME_CELLS), MISSING, np.int64)])[order]
         self._last = np.concatenate([self._last, np.zeros(k, np.int64)])[order]
         self._shown = np.concatenate([self._shown, np.zeros(k, bool)])[order]
 
@@ -276,12 +289,16 @@ class LiveRun:
     def _finalise(self, frames: _Frames, end: np.ndarray) -> None:
         fd = self._delays(frames)
         values = series(fd)
-        for name, v in values.stages.items():
-            self._series(self._stage_values, name).extend(v / NS_PER_MS)
-        for name, v in values.gaps.items():
-            self._series(self._gap_values, name).extend(v / NS_PER_MS)
+        for kind in self._values:
+            for name, v in getattr(values, kind).items():
+                self._series(kind, name).extend(v / NS_PER_MS)
         self._frame_values.extend(values.frame / NS_PER_MS)
+        self._glass_values.extend(values.glass / NS_PER_MS)
+        for name, busy in values.busy.items():
+            self._busy[name] = self._busy.get(name, 0) + busy
         c = fd.chains.complete
+        if c.any():
+            self._note_span(int(fd.table.origin[c].min()), int(fd.chains.end[c].max()))
         self._origins.extend(fd.table.origin[c], fd.table.source[c])
         self.finalised += int(c.sum())
         ring = self._ring
@@ -294,10 +311,15 @@ class LiveRun:
                 g.keep_last(self.config.ring_frames)
         self._raise_watermark(frames.source, frames.frame)
 
-    def _all_series(self) -> list[RunValues]:
-        return [self._frame_values, *self._stage_values.values(), *self._gap_values.values()]
+    def _note_span(self, first_origin: int, last_end: int) -> None:
+        self._first_origin = first_origin if self._first_origin is None else min(self._first_origin, first_origin)
+        self._last_end = last_end if self._last_end is None else max(self._last_end, last_end)
 
-    def _series(self, series: dict[str, RunValues], name: str) -> RunValues:
+    def _all_series(self) -> list[RunValues]:
+        return [self._frame_values, self._glass_values, *(v for d in self._values.values() for v in d.values())]
+
+    def _series(self, kind: str, name: str) -> RunValues:
+        series = self._values[kind]
         if name not in series:
             series[name] = RunValues(self.config.exact_values)
         return series[name]
@@ -313,14 +335,26 @@ class LiveRun:
         fd = self._delays(self._open_frames())
         open_values = series(fd)
         # Every series the run has seen, finalised frames' values added by _session_summary.
-        gap_names = sorted(set(self._gap_values) | set(open_values.gaps), key=self._gap_order)
-        values = Series(stages=open_values.stages, frame=open_values.frame,
+        gap_names = sorted(set(self._values["gaps"]) | set(open_values.gaps), key=self._gap_order)
+        busy = dict(self._busy)
+        for name, ns in open_values.busy.items():
+            busy[name] = busy.get(name, 0) + ns
+        first, last = self._first_origin, self._last_end
+        if open_values.span_ns:
+            c = fd.chains.complete
+            first = min(x for x in (first, int(fd.table.origin[c].min())) if x is not None)
+            last = max(x for x in (last, int(fd.chains.end[c].max())) if x is not None)
+        values = Series(stages=open_values.stages, frame=open_values.frame, service=open_values.service,
+                        wait=open_values.wait, glass=open_values.glass, busy=busy,
+                        span_ns=last - first if first is not None else 0, threads=self.accounting.threads(),
                         gaps={name: open_values.gaps.get(name, np.zeros(0)) for name in gap_names})
         c = fd.chains.complete
         n_open_complete = int(c.sum())
+        fps = self._origins.fps(self._all_sources(), fd.table.origin[c], fd.table.source[c])
         return {
             **delay_summary(values, self._session_summary),
-            "fps": self._origins.fps(self._all_sources(), fd.table.origin[c], fd.table.source[c]),
+            "fps": fps,
+            "sources": self.accounting.sources(fps),
             "dropped": int(dropped),
             "frames": {"complete": self.finalised + n_open_complete,
                        "incomplete": self.evicted + len(fd) - n_open_complete},
@@ -331,7 +365,9 @@ class LiveRun:
         """``summarize`` of the finalised values of a series and ``values_ms`` (open frames)."""
         if kind == "frame":
             return self._frame_values.summary(values_ms)
-        return self._series(self._stage_values if kind == "stages" else self._gap_values, name).summary(values_ms)
+        if kind == "glass":
+            return self._glass_values.summary(values_ms)
+        return self._series(kind, name).summary(values_ms)
 
     def window_stats(self) -> dict:
         """The same statistics over frames whose chain ended in the last ``window_s`` (node time)."""
@@ -347,10 +383,12 @@ class LiveRun:
                                   np.concatenate([ring["cells"].view[sel], open_.cells[osel]])))
         c = fd.chains.complete
         incomplete = int((self._evicted_last.view >= cutoff).sum()) + int((~och.complete & (self._last >= cutoff)).sum())
+        fps = OriginSpans().fps(self._all_sources(), fd.table.origin[c], fd.table.source[c])
         return {
             "window_s": self.config.window_s,
-            **delay_summary(series(fd)),
-            "fps": OriginSpans().fps(self._all_sources(), fd.table.origin[c], fd.table.source[c]),
+            **delay_summary(series(fd, self.accounting.threads())),
+            "fps": fps,
+            "sources": self.accounting.sources(fps),
             "frames": {"complete": int(c.sum()), "incomplete": incomplete},
         }
 

@@ -28,6 +28,7 @@ from aiohttp import web
 
 from probes.delays import FrameDelays, delay_stats, frame_delays
 from probes.events import TraceHeader
+from probes.facts import Accounting
 from probes.frametable import frame_table
 from probes.stats import unique_name
 from relay import storage as db
@@ -82,9 +83,11 @@ class StoredNode:
 def pair_run(run: db.StoredRun, name: str) -> StoredNode:
     """Pair a stored run's events into frames and their delays (:mod:`probes.delays`)."""
     fd = frame_delays(frame_table(run.header, run.events))
+    accounting = Accounting(run.header.stages)
+    accounting.add(run.events)
     ch = fd.chains
     c = np.flatnonzero(ch.complete)
-    stats = dict(delay_stats(fd, run.header.sources, run.dropped), node=name, run=run.run, session=run.session,
+    stats = dict(delay_stats(fd, run.header.sources, run.dropped, accounting), node=name, run=run.run, session=run.session,
                  lost=run.lost)
     return StoredNode(node=name, run=run.run, header=run.header, dropped=run.dropped, lost=run.lost,
                       clock=run.clock, ended=run.ended, events=len(run.events), fd=fd,

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from probes.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
+from probes.events import CAPTURE, DROP, ENTER, EVENT_DTYPE, EXIT, FACT, FACT_NOMINAL_MHZ, FACT_THREAD, ORIGIN, READY, TraceHeader
 
 STAGES = ("mux", "infer", "tiler", "convert", "osd")
 T0 = 1_700_000_000_000_000_000  # a realistic CLOCK_REALTIME value, ns
@@ -82,6 +82,8 @@ def pipeline_run(
         parts.append(_events(enter[:, j], source, frame, first + j, ENTER))
         parts.append(_events(exit_[:, j], source, frame, first + j, EXIT))
     parts.append(_events(enter[:, n_stages], source, frame, first + n_stages, ENTER))
+    parts += _format2_events(np.random.default_rng(seed + 1), source, frame, origin, enter, exit_, first,
+                             n_sources if batched_mux else 1)
     events = np.concatenate(parts)
     events = events[rng.permutation(len(events))]
     return header, events, Truth(source, frame, origin, enter, exit_)
@@ -103,12 +105,19 @@ def troubled_run(seed: int, n_frames: int = 130, node: str = "dcu1") -> tuple[Tr
     header, events, _ = pipeline_run(n_frames, n_sources, jitter_ns=int(rng.integers(1, 20_000_000)),
                                      batched_mux=bool(rng.integers(2)), node=node, seed=seed)
     n = n_sources * n_frames
+    facts = events[events["point"] == FACT]
+    events = events[events["point"] != FACT]
     row = events["source"].astype(np.int64) * n_frames + events["frame"]
     # Dropped midway: the frame stops at a random stage, half of them after entering it.
-    cut = np.where(rng.random(n) < 0.1, rng.integers(n_sources, len(header.stages), n), len(header.stages))[row]
+    frame_cut = np.where(rng.random(n) < 0.1, rng.integers(n_sources, len(header.stages), n), len(header.stages))
+    cut = frame_cut[row]
     entered_only = (rng.random(n) < 0.5)[row]
     past = (events["stage"] > cut) | ((events["stage"] == cut) & (events["point"] == EXIT) & entered_only)
     events = events[~past & (rng.random(len(events)) >= 0.01)]  # and 1 % of single events lost
+    cut_rows = np.flatnonzero(frame_cut < len(header.stages))
+    drops = _events(T0 + (cut_rows % n_frames) * 100_000_000 + 50_000_000, cut_rows // n_frames,
+                    cut_rows % n_frames, frame_cut[cut_rows], DROP, 1)
+    events = np.concatenate([facts, events, drops])
     copies = events[rng.random(len(events)) < 0.02].copy()
     copies["ts"] += rng.integers(0, 1_000_000, len(copies))
     events = np.concatenate([events, copies])
@@ -118,9 +127,30 @@ def troubled_run(seed: int, n_frames: int = 130, node: str = "dcu1") -> tuple[Tr
     return header, np.concatenate([events, early]), len(early), int(rng.integers(0, 50))
 
 
-def _events(ts, source, frame, stage, point) -> np.ndarray:
+def _format2_events(rng, source, frame, origin, enter, exit_, first, mux_group) -> list[np.ndarray]:
+    """Ready points (each stage waits a random part of its delay; a batched mux is ready when
+    the last frame of the batch entered), capture points for source 0, facts (a thread per
+    stage, the nominal rate per source)."""
+    parts = []
+    for j in range(exit_.shape[1]):
+        ready = enter[:, j] + (rng.random(len(frame)) * 0.5 * (exit_[:, j] - enter[:, j])).astype(np.int64)
+        code = np.ones(len(frame), np.int8)
+        if j == 0 and mux_group > 1:
+            ready = enter[:, 0].reshape(mux_group, -1).max(axis=0)[frame]
+            code = np.where(source == 0, mux_group, -mux_group).astype(np.int8)
+        parts.append(_events(ready, source, frame, first + j, READY, code))
+    cam = source == 0
+    parts.append(_events(origin[cam] - 5_000_000, source[cam], frame[cam], source[cam], CAPTURE))
+    stages = np.arange(first, first + exit_.shape[1], dtype=np.int64)
+    parts.append(_events(np.full(len(stages), T0), 0, np.where(stages < first + 2, 1, 2), stages, FACT, FACT_THREAD))
+    ids = np.unique(source)
+    parts.append(_events(np.full(len(ids), T0), ids, 10_000, ids, FACT, FACT_NOMINAL_MHZ))
+    return parts
+
+
+def _events(ts, source, frame, stage, point, code=0) -> np.ndarray:
     ev = np.zeros(len(ts), EVENT_DTYPE)
-    ev["ts"], ev["source"], ev["frame"], ev["stage"], ev["point"] = ts, source, frame, stage, point
+    ev["ts"], ev["source"], ev["frame"], ev["stage"], ev["point"], ev["code"] = ts, source, frame, stage, point, code
     return ev
 
 

@@ -26,7 +26,8 @@ import numpy as np
 import pytest
 
 from probes.delays import frame_delays, node_stats
-from probes.frametable import frame_table
+from probes.events import FACT
+from probes.frametable import frame_events, frame_table
 from probes.relayexport import RelayExporter
 from probes.tracefile import write_trace
 from relay.live import LiveRun
@@ -34,8 +35,8 @@ from tests.probes.synth import run_commands, troubled_run
 from tests.relay.helpers import RelayProcess, get_json, wait_for
 
 SEEDS = (0, 1, 2)
-STATS_KEYS = ("stages", "gaps", "frame", "bottleneck", "fps", "dropped", "frames")
-WINDOW_KEYS = ("window_s", "stages", "gaps", "frame", "bottleneck", "fps", "frames")
+STATS_KEYS = ("stages", "gaps", "frame", "glass", "bottleneck", "fps", "sources", "dropped", "frames")
+WINDOW_KEYS = ("window_s", "stages", "gaps", "frame", "glass", "bottleneck", "fps", "sources", "frames")
 BATCH = 97  # events per batch fed to the in-process engine: frames straddle batches
 
 
@@ -152,6 +153,7 @@ def test_window_statistics_agree_with_the_model_over_the_frames_in_the_window(wo
         assert 0 < inside.sum() < fd.chains.complete.sum()  # the window is not the whole run
         ids = set(zip(fd.table.source[inside].tolist(), fd.table.frame[inside].tolist()))
         mine = np.array([(s, f) in ids for s, f in zip(events["source"].tolist(), events["frame"].tolist())])
+        mine |= events["point"] == FACT  # the run's facts (threads) hold for its window too
         expected = _json(node_stats(header, events[mine]))
         assert _pick(window, ("stages", "gaps", "frame", "bottleneck", "fps")) == \
             _pick(expected, ("stages", "gaps", "frame", "bottleneck", "fps"))
@@ -160,7 +162,8 @@ def test_window_statistics_agree_with_the_model_over_the_frames_in_the_window(wo
 
 
 def _incomplete_seen_since(fd, events, cutoff: int) -> int:
-    """Incomplete frames whose newest event is at or after ``cutoff``."""
+    """Incomplete frames whose newest event (drops and facts are not the frame's) is at or after ``cutoff``."""
+    events = frame_events(events)
     t = fd.table
     row = np.searchsorted((t.source.astype(np.int64) << 40) | t.frame,
                           (events["source"].astype(np.int64) << 40) | events["frame"])
