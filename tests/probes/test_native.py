@@ -145,7 +145,7 @@ def test_full_ring_counts_drops_and_never_blocks(backend):
     if backend == "python":
         assert again["source"].tolist() == [2, 2, 2]
     else:  # its ready points and thread facts need more than the 4 slots
-        assert len(again) == 4 and set(again["source"][again["point"] <= EXIT].tolist()) == {2}
+        assert 1 <= len(again) <= 4 and set(again["source"][again["point"] <= EXIT].tolist()) == {2}
 
 
 @pytest.mark.parametrize("backend", ["native", "python"])
