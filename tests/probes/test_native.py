@@ -194,8 +194,9 @@ def test_many_streaming_threads_and_a_concurrent_drainer(backend, capacity):
     assert len(keys) == len(everything), "an event was delivered twice"
     ev = everything[everything["point"] <= EXIT]
     assert (ev["source"] == ev["stage"] // 3).all()
-    # Native probes add a ready point per frame at q's and a's exits and a thread fact per exit pad.
+    # Native probes add a ready point per frame at q's and a's exits where they know when its work
+    # could start (not at a pad's first push when the enter was not seen), and thread facts.
     extra = {"native": branches * (2 * frames + 2), "python": 0}[backend]
-    assert stats.written + stats.dropped == total + extra
+    assert total + extra // 2 <= stats.written + stats.dropped <= total + extra
     if capacity > total + extra:
         assert stats.dropped == 0 and len(ev) == total
