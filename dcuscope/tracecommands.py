@@ -30,7 +30,11 @@ def add_stats_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "stats", help="per-stage and per-frame delay statistics of trace files or a stored session",
         description="Per node: stage delays, gaps between stages and end-to-end frame delays "
-                    "(count, mean, p50, p95, p99, max in ms), frames/s per source, drops.",
+                    "(count, mean, p50, p95, p99, max in ms); each stage's delay split into service "
+                    "(its own work) and wait (queued, batching, blocked downstream), its busy "
+                    "fraction (utilization) and share of the frame delay; the bottleneck (the busiest "
+                    "stage of a saturated streaming thread) and why; per source, frames delivered vs "
+                    "the nominal rate, lost upstream and dropped by reason.",
     )
     p.add_argument("traces", nargs="*", metavar="TRACE", help="trace file(s) written by `dcuscope run`")
     _add_db_arguments(p)
@@ -139,25 +143,77 @@ def _origin(trace, db: str | None) -> str:
 
 def format_stats(doc: dict, origins: list[str] | None = None) -> str:
     """Readable aligned tables, one block per node (``origins``: where each came from, for the
-    titles): stages, gaps, frame, fps, drops."""
+    titles): delays (stages, gaps, frame), where the time goes (service, wait, utilization,
+    share of delay), the bottleneck and why, every source's frames, drops."""
     lines: list[str] = []
     for i, (node, st) in enumerate(doc["nodes"].items()):
         title = f"node {node}"
         if origins and i < len(origins):
             title += f"  ({origins[i]})"
-        frames = st["frames"]
-        rows = [("stage " + k, v) for k, v in st["stages"].items()]
-        rows += [("gap " + k, v) for k, v in st["gaps"].items()]
-        rows.append(("frame (end to end)", st["frame"]))
-        width = max(len(name) for name, _ in rows)
         lines.append(title)
-        lines.append("  " + " " * width + "".join(f"{c:>10}" for c in STAT_COLUMNS))
-        for name, s in rows:
-            cells = [f"{s['count']:>10}"] + [f"{'-' if s[c] is None else f'{s[c]:.3f}':>10}" for c in STAT_COLUMNS[1:]]
-            lines.append(f"  {name:<{width}}" + "".join(cells))
-        fps = "  ".join(f"src {k}: {v:.2f}" for k, v in st["fps"].items()) or "-"
-        lines.append(f"  frames/s       {fps}")
+        lines += _delay_table(st) + _split_table(st) + _bottleneck_lines(st) + _source_lines(st)
+        frames = st["frames"]
         lines.append(f"  frames         {frames['complete']} complete, {frames['incomplete']} incomplete")
         lines.append(f"  dropped events {st['dropped']}")
         lines.append("")
     return "\n".join(lines)
+
+
+def _delay_table(st: dict) -> list[str]:
+    rows = [("stage " + k, v) for k, v in st["stages"].items()]
+    rows += [("gap " + k, v) for k, v in st["gaps"].items()]
+    rows.append(("frame (end to end)", st["frame"]))
+    if st.get("glass", {}).get("count"):
+        rows.append(("frame (glass to glass)", st["glass"]))
+    width = max(len(name) for name, _ in rows)
+    lines = ["  " + " " * width + "".join(f"{c:>10}" for c in STAT_COLUMNS)]
+    for name, s in rows:
+        cells = [f"{s['count']:>10}"] + [f"{_num(s[c]):>10}" for c in STAT_COLUMNS[1:]]
+        lines.append(f"  {name:<{width}}" + "".join(cells))
+    return lines
+
+
+SPLIT_COLUMNS = ("service mean", "service p99", "wait mean", "busy", "share of delay", "in stage")
+
+
+def _split_table(st: dict) -> list[str]:
+    """Where each stage's delay goes: its own work (service) or waiting, how busy it is."""
+    if not st["stages"] or all(v.get("utilization") is None for v in st["stages"].values()):
+        return ["  (no service/wait split: a format-1 trace or Python probes)"]
+    width = max(len("stage " + k) for k in st["stages"])
+    lines = ["  " + " " * width + "".join(f"{c:>15}" for c in SPLIT_COLUMNS)]
+    for name, v in st["stages"].items():
+        cells = [_num(v["service"]["mean_ms"]), _num(v["service"]["p99_ms"]), _num(v["wait"]["mean_ms"]),
+                 _pct(v.get("utilization")), _pct(v.get("share")), _num(v.get("occupancy"), 2)]
+        lines.append(f"  {'stage ' + name:<{width}}" + "".join(f"{c:>15}" for c in cells))
+    return lines
+
+
+def _bottleneck_lines(st: dict) -> list[str]:
+    b = st.get("bottleneck")
+    if not b:
+        return []
+    head = "bottleneck" if b.get("saturated") else "busiest"
+    return [f"  {head:<14} {b['stage']}: {b['reason']}"]
+
+
+def _source_lines(st: dict) -> list[str]:
+    lines = []
+    for sid, src in st.get("sources", {}).items():
+        nominal = f" of {src['nominal_fps']:.2f} nominal" if src.get("nominal_fps") else ""
+        dropped = ", ".join(f"{reason} {n}" for reason, n in src["dropped"].items()) or "0"
+        lines.append(f"  source {sid:<7} {src['delivered']} delivered, {src['fps']:.2f} frames/s{nominal}; "
+                     f"lost upstream {src['lost_upstream']}, decoder dropped {src['decoder_dropped']}, "
+                     f"pipeline dropped {dropped}")
+    if not lines:
+        fps = "  ".join(f"src {k}: {v:.2f}" for k, v in st["fps"].items()) or "-"
+        lines.append(f"  frames/s       {fps}")
+    return lines
+
+
+def _num(value: float | None, digits: int = 3) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def _pct(value: float | None) -> str:
+    return "-" if value is None else f"{value * 100:.1f} %"

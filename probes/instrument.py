@@ -16,6 +16,7 @@ from probes.events import Exporter, TraceHeader
 from probes.relayexport import RelayExporter
 from probes.relaylink import check_token
 from probes.shipper import Shipper
+from probes.sourcewatch import SourceWatch
 from probes.tracefile import TraceFileWriter
 from probes.tracer import Tracer, attach
 
@@ -47,11 +48,14 @@ class RunProbes:
     trace: Path | None
     progress: TextIO | None
     relay: RelayExporter | None = None
+    watch: SourceWatch | None = None
 
     def stop(self) -> None:
         """Stop shipping and write the summary; raises ExportError if the relay refused the node
         (``dcuscope run`` then exits non-zero with that one line)."""
         self.shipper.stop()
+        if self.watch is not None:
+            self.watch.stop()
         tracepoints = self.tracer.tracepoints
         self.tracer.detach()
         if self.progress is not None:
@@ -89,5 +93,6 @@ def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None
         exporters.append(relay_exporter)
     if clock_offset_ns:
         exporters = [_Shifted(e, clock_offset_ns) for e in exporters]
-    shipper = Shipper(tracer, exporters).start()
-    return RunProbes(tracer, shipper, trace, progress, relay_exporter)
+    watch = SourceWatch(tracer, built.pipeline).start()
+    shipper = Shipper(tracer, exporters, before_ship=watch.poll).start()
+    return RunProbes(tracer, shipper, trace, progress, relay_exporter, watch)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import threading
-from typing import Sequence
+from typing import Callable, Sequence
 
 from probes.events import EXPORTER_CLOSE_S, Exporter
 from probes.tracer import Tracer
@@ -32,7 +32,7 @@ class Shipper:
     """Background daemon thread moving events from ``tracer`` to ``exporters``."""
 
     def __init__(self, tracer: Tracer, exporters: Sequence[Exporter], interval_s: float = DEFAULT_INTERVAL_S,
-                 batch: int = DEFAULT_BATCH):
+                 batch: int = DEFAULT_BATCH, before_ship: Callable[[], None] | None = None):
         if interval_s <= 0:
             raise ValueError(f"interval_s must be > 0, got {interval_s}")
         self.tracer = tracer
@@ -44,6 +44,8 @@ class Shipper:
         self.errors: list[str] = []
         """One line per exporter that failed and was disabled."""
         self._active = list(self.exporters)
+        self._before_ship = before_ship
+        """Called on this thread before each drain (probes.sourcewatch adds its facts there)."""
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="dcuscope-shipper", daemon=True)
 
@@ -71,6 +73,12 @@ class Shipper:
         self._each("close", self.tracer.dropped)
 
     def _ship(self) -> None:
+        if self._before_ship is not None:
+            try:
+                self._before_ship()
+            except Exception as exc:  # noqa: BLE001 - facts are extras: never stop the shipping for them
+                log.error("dcuscope: reading source counters failed: %s", exc)
+                self._before_ship = None
         while True:
             try:
                 events = self.tracer.drain(self.batch)

@@ -63,6 +63,8 @@ class Tracer:
         self._signals: list[tuple[Gst.Element, int]] = []
         self._lock = threading.Lock()  # guards the tracepoint list (attach time, not per frame)
         self._attached = True
+        self.stage_elements: dict[Gst.Element, int] = {}
+        """Each stage's element (framestamps included) -> its stage index."""
 
     @property
     def backend(self) -> str:
@@ -91,6 +93,19 @@ class Tracer:
     def drain(self, max_events: int | None = None) -> np.ndarray:
         """Events recorded since the last drain, in ring order (not sorted by time)."""
         return self.ring.drain(max_events)
+
+    def push(self, events: np.ndarray) -> int:
+        """Add events the node learned elsewhere (drops, facts) to the ring, after those
+        already in it; returns how many went in (all or, ring full, none: counted dropped)."""
+        return self.ring.push(events)
+
+    def stage_of(self, element: Gst.Element) -> int | None:
+        """The stage index of ``element`` or of the stage that contains it, None if outside."""
+        while element is not None:
+            if element in self.stage_elements:
+                return self.stage_elements[element]
+            element = element.get_parent()
+        return None
 
     def stats(self) -> RingStats:
         return self.ring.stats()
@@ -147,6 +162,7 @@ def attach(pipeline: Gst.Pipeline, node: str, clock: str = "realtime", capacity:
         versions={"gstreamer": Gst.version_string(), "probes": ring.backend}, kinds=kinds,
     )
     tracer = Tracer(header, ring, CLOCKS[clock])
+    tracer.stage_elements = {element: index for index, element in enumerate(elements)}
     for index, fs in enumerate(stamps):
         tracer.add(fs.get_static_pad("src"), index, ORIGIN)
     for index, element in enumerate(stage_elements, start=len(stamps)):

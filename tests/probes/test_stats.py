@@ -226,13 +226,23 @@ def test_stats_cli_table_has_one_aligned_block_per_node(two_traces):
     blocks = out.strip().split("\n\n")
     assert [b.splitlines()[0].split()[1] for b in blocks] == ["dcu1", "dcu2"]
     lines = blocks[0].splitlines()
-    table = [ln for ln in lines[1:] if ln.startswith(("  stage ", "  gap ", "  frame (end"))] + [lines[1]]
+    split_at = next(i for i, ln in enumerate(lines) if "service mean" in ln)
+    delays, split = lines[1:split_at], lines[split_at:split_at + 1 + len(STAGES)]
+    table = [ln for ln in delays if ln.startswith(("  stage ", "  gap ", "  frame (end"))] + [delays[0]]
     assert len(table) == len(STAGES) + 7 + 1 + 1 and len({len(ln) for ln in table}) == 1
-    infer = next(ln for ln in lines if ln.startswith("  stage infer")).split()
+    assert len({len(ln) for ln in split}) == 1 and all(ln.startswith("  stage ") for ln in split[1:])
     st = node_stats(*pipeline_run(8, n_sources=2, node="dcu1", jitter_ns=3_000_000, seed=0)[:2])
+    infer = next(ln for ln in delays if ln.startswith("  stage infer")).split()
     assert infer[2:] == [str(st["stages"]["infer"]["count"])] + [
         f"{st['stages']['infer'][k]:.3f}" for k in ("mean_ms", "p50_ms", "p95_ms", "p99_ms", "max_ms")]
-    assert "src 0: 10.00" in blocks[0] and "16 complete, 0 incomplete" in blocks[0]
+    inf = st["stages"]["infer"]
+    assert next(ln for ln in split if ln.startswith("  stage infer")).split()[2:] == [
+        f"{inf['service']['mean_ms']:.3f}", f"{inf['service']['p99_ms']:.3f}", f"{inf['wait']['mean_ms']:.3f}",
+        f"{inf['utilization'] * 100:.1f}", "%", f"{inf['share'] * 100:.1f}", "%", f"{inf['occupancy']:.2f}"]
+    b = st["bottleneck"]
+    assert f"  {'bottleneck' if b['saturated'] else 'busiest':<14} {b['stage']}: {b['reason']}" in lines
+    assert "source 0       8 delivered, 10.00 frames/s of 10.00 nominal" in blocks[0]
+    assert "16 complete, 0 incomplete" in blocks[0]
 
 
 @pytest.mark.parametrize("content", [None, b"hello\n"])
