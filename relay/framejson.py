@@ -4,7 +4,9 @@ Per frame::
 
     {"n": cursor, "source", "frame", "origin": ns, "end": ns, "complete": true,
      "enter": [ns|null per stage], "exit": [ns|null per stage], "delay_ms": end - origin,
-     "stage_delay_ms": [ms|null per stage], "stage_gap_ms": [ms|null per stage]}
+     "stage_delay_ms": [ms|null per stage], "stage_gap_ms": [ms|null per stage],
+     "stage_service_ms": [...], "stage_wait_ms": [...],
+     "capture": ns|null, "glass_ms": end - capture|null}
 
 one ``stage_<column>_ms`` list per column of the delay model (``probes.delays.STAGE_COLUMNS``),
 every figure taken from it, so that the page only draws. Timestamps are moved to the relay's
@@ -27,12 +29,13 @@ def frame_dicts(n: np.ndarray, fd: FrameDelays, correction_ns: int, rows: np.nda
     columns = {f"stage_{c}_ms": _ms_lists(fd.per_stage[c][rows]) for c in STAGE_COLUMNS}
     base = zip(np.asarray(n).tolist(), t.source[rows].tolist(), t.frame[rows].tolist(), t.origin[rows].tolist(),
                ch.end[rows].tolist(), ch.complete[rows].tolist(), t.enter[rows].tolist(), t.exit[rows].tolist(),
-               _ms_values(fd.delay[rows]))
+               _ms_values(fd.delay[rows]), t.capture[rows].tolist(), _ms_values(fd.glass[rows]))
     return [
         {"n": k, "source": s, "frame": f, "origin": o - correction_ns, "end": e - correction_ns, "complete": c,
          "enter": _corrected(en, correction_ns), "exit": _corrected(ex, correction_ns), "delay_ms": d,
+         "capture": None if cap == MISSING else cap - correction_ns, "glass_ms": g,
          **{name: values[i] for name, values in columns.items()}}
-        for i, (k, s, f, o, e, c, en, ex, d) in enumerate(base)
+        for i, (k, s, f, o, e, c, en, ex, d, cap, g) in enumerate(base)
     ]
 
 
