@@ -292,19 +292,40 @@ def test_column_coverage_is_the_share_of_each_column_under_the_union(page):
             r.add(a, b);
             pairs.push([a, b]);
         }
-        const got = Array.from(m.columnCoverage(r, 0, 100, 50));
-        let worst = 0;
-        for (let c = 0; c < 50; c++) {
-            let inside = 0;
-            for (let t = c * 2 + 0.0005; t < c * 2 + 2; t += 0.001) inside += pairs.some(([a, b]) => t >= a && t < b);
-            worst = Math.max(worst, Math.abs(inside / 2000 - got[c]));
+        // And as a lane's frames come: nearly in time order, a few out of place.
+        const near = new m.Intervals(), nearPairs = [];
+        for (let i = 0; i < 300; i++) {
+            const a = i * 0.35 + (i % 17 === 0 ? -3 : rnd() * 0.5), b = a + rnd() * 0.8;
+            near.add(a, b);
+            nearPairs.push([a, b]);
         }
+        const error = (got, pairs) => {
+            let worst = 0;
+            for (let c = 0; c < 50; c++) {
+                let inside = 0;
+                for (let t = c * 2 + 0.0005; t < c * 2 + 2; t += 0.001) inside += pairs.some(([a, b]) => t >= a && t < b);
+                worst = Math.max(worst, Math.abs(inside / 2000 - got[c]));
+            }
+            return worst;
+        };
+        const worst = Math.max(error(m.columnCoverage(r, 0, 100, 50), pairs), error(m.columnCoverage(near, 0, 100, 50), nearPairs));
+        // The sort under it: nearly sorted input (insertion), shuffled (past its budget: the native sort).
+        const sorts = [0, 5, 1000].map((shuffle) => {
+            const a = new Float64Array(2000).map((_, i) => i + rnd() * 3);
+            for (let k = 0; k < shuffle; k++) {
+                const i = Math.floor(rnd() * 2000), j = Math.floor(rnd() * 2000);
+                [a[i], a[j]] = [a[j], a[i]];
+            }
+            const want = Float64Array.from(a).sort();
+            return m.sortNearly(a).every((v, i) => v === want[i]);
+        });
         const none = Array.from(m.columnCoverage(new m.Intervals(), 0, 10, 4));
-        return {exact, worst, none, starts: [m.serviceStart(0, 10, 3), m.serviceStart(0, 10, NaN), m.serviceStart(0, 10, 20),
+        return {exact, worst, none, sorts, starts: [m.serviceStart(0, 10, 3), m.serviceStart(0, 10, NaN), m.serviceStart(0, 10, 20),
                                              m.serviceStart(0, 10, 0)]};""")
     assert out["exact"] == pytest.approx([0.75, 0.5, 0, 0.75, 1, 0.5, 0, 0, 0, 0.5], abs=1e-6)
     assert out["worst"] < 0.002, out["worst"]
     assert out["none"] == [0, 0, 0, 0]
+    assert out["sorts"] == [True, True, True]
     # Service last: 3 ms of a 10 ms bar start at 7; unknown service is the whole bar (drawn solid as before).
     assert out["starts"] == [7, 0, 0, 10]
 
