@@ -78,7 +78,7 @@ export function statsHtml(entries, colours, windowed, openGaps = new Set()) {
     const names = Object.keys(stages).sort((a, b) => order.indexOf(a) - order.indexOf(b));
     const rows = names.map((name) => stageRow(name, stages[name], colours, marked === name, split)).join("");
     const gaps = Object.entries(st.gaps ?? {}).map(([name, s]) => `<tr><td>${esc(name)}</td>${summaryCells(s)}<td></td></tr>`).join("");
-    const sources = sourcesHtml(st.sources ?? full.sources);
+    const sources = sourcesHtml(st.sources);
     const fps = Object.entries(st.fps ?? {}).map(([src, v]) => `source ${esc(src)}: ${Number(v).toFixed(1)}`).join(" · ") || "–";
     const dropped = full.dropped ?? 0;
     const lost = full.lost ?? 0;
