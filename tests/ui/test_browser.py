@@ -59,6 +59,27 @@ def live(browser, feeder_kind, tmp_path_factory):
         relay.stop()
 
 
+BACKGROUNDS = ["#ffffff", "#f4f6f8", "#fafbfc", "#fdfdf6", "#eceff1", "#cfd8dc"]  # rows and time grid
+LANE_PIXELS_JS = PIXELS_JS.replace("return out;", f"""
+    // Besides: pixels of any other colour (a column shaded by bars narrower than a pixel).
+    const plain = new Set({[int(c[1:], 16) for c in BACKGROUNDS]});
+    out.shaded = 0;
+    for (let i = 0; i < data.length; i += 4) {{
+        const v = (data[i] << 16) | (data[i + 1] << 8) | data[i + 2];
+        if (!want.has(v) && !plain.has(v)) out.shaded++;
+    }}
+    return out;""")
+
+
+def tint(page, colour: str) -> str:
+    """A stage's wait colour, as the page computes it (colours.js)."""
+    return page.evaluate("async (c) => (await import('/colours.js')).tint(c)", colour)
+
+
+# A verdict on the bottleneck was shown: a marked stage, or the relay's reason that none saturates.
+VERDICT = "#stats-body tr.bottleneck, #stats-body .bottleneck-reason"
+
+
 def frame_pixels(page, node: str) -> dict:
     return page.evaluate(PIXELS_JS, [f'.frame-panel[data-node="{node}"] canvas', 0, 340, [DEEP_RED, UNDER], PLOT_X])
 
@@ -102,12 +123,17 @@ def test_stage_view_shows_both_dcus_in_the_stage_colours(live):
     assert set(rows) == set(NODES)
     for node, row in rows.items():
         assert set(FIVE) <= set(row["lanes"])
-        pixels = page.evaluate(PIXELS_JS, ["#stage-canvas", row["y"], row["h"], list(FIVE.values())])
-        # At least one whole bar (>= 1 px wide, a lane high) of every stage colour in the row.
-        assert all(n >= 10 for n in pixels.values()), (node, pixels)
+        for stage, colour in FIVE.items():
+            # Lanes are 10 px high, 2 px apart, 6 px below the row's top (stageview.js).
+            y = row["y"] + 6 + 12 * row["lanes"].index(stage)
+            light = tint(page, colour)
+            pixels = page.evaluate(LANE_PIXELS_JS, ["#stage-canvas", y, 10, [colour, light], 150])
+            # At least one whole bar (>= 1 px wide, a lane high) in the stage's solid (service) or light
+            # (wait) colour; or, where its bars are narrower than a pixel, a column shaded by them.
+            assert pixels[colour] + pixels[light] >= 10 or pixels["shaded"] >= 10, (node, stage, pixels)
     # The time axis reads HH:MM:SS.mmm.
     assert ":" in page.locator("#relay-clock").inner_text()
-    page.wait_for_selector("#stats-body tr.bottleneck", timeout=30000)
+    page.wait_for_selector(VERDICT, timeout=30000)
     page.wait_for_selector('#nodes-body tr[data-node="DCU-2"] .dot-up', timeout=30000)
     SHOTS.mkdir(parents=True, exist_ok=True)
     page.screenshot(path=str(SHOTS / "stage-view.png"), full_page=True)
@@ -278,7 +304,9 @@ def test_stored_session_browses_like_live(live):
     assert d["window"][0] <= first and d["window"][1] >= last
     page.wait_for_selector('#nodes-body .dot-stored', timeout=10000)
     # Each node's stored statistics arrive by their own request: wait for both.
-    wait_for(lambda: page.locator("#stats-body tr.bottleneck").count() == 2, 15, 0.2, "both bottleneck rows")
+    wait_for(lambda: page.locator("#stats-body .stats-node:has(tr.bottleneck), "
+                                  "#stats-body .stats-node:has(.bottleneck-reason)").count() == 2,
+             15, 0.2, "both nodes' bottleneck verdicts")
     # Play replays at real speed from the start of the window.
     page.mouse.move(box_center(page, "#stage-canvas")[0], box_center(page, "#stage-canvas")[1])
     page.mouse.wheel(0, -600)

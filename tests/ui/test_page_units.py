@@ -28,7 +28,7 @@ def js(page, body: str, arg=None):
     return page.evaluate(
         """async ([body, arg]) => {
             const m = {};
-            for (const name of ["timefmt", "store", "colours", "panels", "stageview"]) Object.assign(m, await import(`/${name}.js`));
+            for (const name of ["timefmt", "store", "colours", "panels", "stageview", "coverage"]) Object.assign(m, await import(`/${name}.js`));
             return new Function("m", "arg", `return (async () => { ${body} })()`)(m, arg);
         }""", [body, arg])
 
@@ -231,3 +231,244 @@ def test_stats_panel_shows_the_relays_shares_and_bottleneck_and_derives_none(pag
         return {whole: html(false), window: html(true)};""")
     assert out["whole"] == [["mux", True, "13%"], ["infer", False, "25%"]]
     assert out["window"] == [["mux", False, "–"], ["infer", False, "50%"]]
+
+
+# --- service and wait (issue 11): the relay splits each stage delay; the page only draws it ------
+
+STAGE_VIEW_JS = """
+    // A stage view of `stages` on a canvas `width` px wide, over frames given as
+    // [source, {stage: [enter, exit, service, wait]}] in ms after `base` (service/wait null: unknown).
+    const base = 1.7e12;
+    const view_of = (stages, frames, width, split = true) => {
+        const store = new m.NodeStore("DCU-5", stages, 4096, 4096);
+        const ns = (t) => t === null ? null : (base + t) * 1e6;
+        store.ingest({run: "r", stages, has_exit: stages.map(() => true), frames: frames.map(([src, at], i) => {
+            const per = stages.map((s) => at[s] ?? [null, null, null, null]);
+            const f = {n: i + 1, source: src, frame: i, origin: ns(per[0][0]), end: ns(per[per.length - 1][1]),
+                enter: per.map((p) => ns(p[0])), exit: per.map((p) => ns(p[1])),
+                delay_ms: per[per.length - 1][1] - per[0][0],
+                stage_delay_ms: per.map((p) => p[1] === null ? null : p[1] - p[0])};
+            if (split) Object.assign(f, {stage_service_ms: per.map((p) => p[2]), stage_wait_ms: per.map((p) => p[3])});
+            return f;
+        })});
+        const wrap = document.createElement("div");
+        wrap.style.width = `${width}px`;
+        document.body.append(wrap);
+        const canvas = document.createElement("canvas");
+        wrap.append(canvas);
+        const colours = new m.StageColours();
+        const view = new m.StageView(canvas, {stores: () => [store], colours, expanded: () => false, describe: () => "clip"});
+        return {store, view, colours, canvas, wrap};
+    };
+    // The colour of each CSS px of a lane's middle row, from the plot's left edge.
+    const lane_pixels = (v, stage) => {
+        const row = v.view.last.rows[0], li = row.lanes.indexOf(stage);
+        const y = row.y + 6 + li * 12 + 5, dpr = v.canvas.width / v.canvas.clientWidth;
+        const d = v.canvas.getContext("2d").getImageData(0, Math.round(y * dpr), v.canvas.width, 1).data;
+        const out = [];
+        for (let x = m.GUTTER; x < v.view.cssWidth; x++) {
+            const i = 4 * Math.round(x * dpr);
+            out.push("#" + ((d[i] << 16) | (d[i + 1] << 8) | d[i + 2]).toString(16).padStart(6, "0"));
+        }
+        return {out, y};
+    };
+"""
+
+
+def test_column_coverage_is_the_share_of_each_column_under_the_union(page):
+    out = js(page, """
+        const iv = new m.Intervals(2);          // grows past its first capacity
+        // Out of order; a batch's four frames sharing one interval count once; one crosses three
+        // columns; one starts before the window, one ends after it; an empty one is no time.
+        for (const [a, b] of [[3.25, 5.5], [0.5, 1], [0.5, 1], [0.5, 1], [0.5, 1], [1.5, 2], [9.5, 12], [-3, 0.25],
+                              [4, 4], [0.75, 0.9]]) iv.add(a, b);
+        const exact = Array.from(m.columnCoverage(iv, 0, 10, 10));
+        // Random intervals against a brute-force union: 1 µs samples of 2 ms columns.
+        let seed = 7;
+        const rnd = () => ((seed = (seed * 16807) % 2147483647) / 2147483647);
+        const r = new m.Intervals(), pairs = [];
+        for (let i = 0; i < 300; i++) {
+            const a = rnd() * 110 - 5, b = a + rnd() * rnd() * 6;
+            r.add(a, b);
+            pairs.push([a, b]);
+        }
+        // And as a lane's frames come: nearly in time order, a few out of place.
+        const near = new m.Intervals(), nearPairs = [];
+        for (let i = 0; i < 300; i++) {
+            const a = i * 0.35 + (i % 17 === 0 ? -3 : rnd() * 0.5), b = a + rnd() * 0.8;
+            near.add(a, b);
+            nearPairs.push([a, b]);
+        }
+        const error = (got, pairs) => {
+            let worst = 0;
+            for (let c = 0; c < 50; c++) {
+                let inside = 0;
+                for (let t = c * 2 + 0.0005; t < c * 2 + 2; t += 0.001) inside += pairs.some(([a, b]) => t >= a && t < b);
+                worst = Math.max(worst, Math.abs(inside / 2000 - got[c]));
+            }
+            return worst;
+        };
+        const worst = Math.max(error(m.columnCoverage(r, 0, 100, 50), pairs), error(m.columnCoverage(near, 0, 100, 50), nearPairs));
+        // The sort under it: nearly sorted input (insertion), shuffled (past its budget: the native sort).
+        const sorts = [0, 5, 1000].map((shuffle) => {
+            const a = new Float64Array(2000).map((_, i) => i + rnd() * 3);
+            for (let k = 0; k < shuffle; k++) {
+                const i = Math.floor(rnd() * 2000), j = Math.floor(rnd() * 2000);
+                [a[i], a[j]] = [a[j], a[i]];
+            }
+            const want = Float64Array.from(a).sort();
+            return m.sortNearly(a).every((v, i) => v === want[i]);
+        });
+        const none = Array.from(m.columnCoverage(new m.Intervals(), 0, 10, 4));
+        return {exact, worst, none, sorts, starts: [m.serviceStart(0, 10, 3), m.serviceStart(0, 10, NaN), m.serviceStart(0, 10, 20),
+                                             m.serviceStart(0, 10, 0)]};""")
+    assert out["exact"] == pytest.approx([0.75, 0.5, 0, 0.75, 1, 0.5, 0, 0, 0, 0.5], abs=1e-6)
+    assert out["worst"] < 0.002, out["worst"]
+    assert out["none"] == [0, 0, 0, 0]
+    assert out["sorts"] == [True, True, True]
+    # Service last: 3 ms of a 10 ms bar start at 7; unknown service is the whole bar (drawn solid as before).
+    assert out["starts"] == [7, 0, 0, 10]
+
+
+def test_stage_bar_is_light_while_waiting_and_solid_while_served(page):
+    # One frame at mux: 60 ms waiting for its batch, then 20 ms of service; 1 px = 0.5 ms.
+    out = js(page, STAGE_VIEW_JS + """
+        const v = view_of(["mux"], [[0, {mux: [1000, 1080, 20, 60]}]], 150 + 200 + 10);
+        v.view.draw(base + 1000 - 10, base + 1000 + 90);
+        const {out, y} = lane_pixels(v, "mux");
+        const hit = v.view.hit(m.GUTTER + 20 + 130, y);
+        const tip = m.StageView.describeHit(hit, () => "clip");
+        v.wrap.remove();
+        return {px: out, solid: v.colours.get("mux"), light: m.tint(v.colours.get("mux")), tip,
+                lane: v.view.last.lanes["DCU-5"].mux};""")
+    px, solid, light = out["px"], out["solid"], out["light"]
+    assert light not in (solid, "#ffffff")
+    # Enter at px 20, service from px 140 (60 ms), exit at px 180 less the 1 px seam.
+    assert set(px[21:139]) == {light}, px[15:185]
+    assert set(px[141:178]) == {solid}, px[15:185]
+    assert solid not in px[:20] + px[181:] and light not in px[:20] + px[181:]
+    assert out["lane"]["bars"] == 1 and out["lane"]["narrow"] == 0
+    assert out["tip"][3].startswith("delay 80.00 ms") and out["tip"][4] == "service 20.00 ms  wait 60.00 ms", out["tip"]
+
+
+def test_zoomed_out_a_short_stage_shades_its_columns_instead_of_looking_busy(page):
+    # 40 frames 110 ms apart: "osd" serves each in 0.3 ms, "infer" in 100 ms; 1 px = 5 ms. Bars
+    # at a minimum width of 1 px would paint osd's lane solid at every frame, as if it worked 5 ms
+    # of each 110; its columns are shaded by the 6 % of them it covers instead.
+    out = js(page, STAGE_VIEW_JS + """
+        const frames = [];
+        for (let i = 0; i < 40; i++) {
+            const t = 1000 + 110 * i;
+            frames.push([0, {infer: [t, t + 100, 100, 0], osd: [t + 100, t + 100.3, 0.3, 0]}]);
+        }
+        const v = view_of(["infer", "osd"], frames, 150 + 1000 + 10);
+        v.view.draw(base + 500, base + 5500);
+        const osd = lane_pixels(v, "osd").out, infer = lane_pixels(v, "infer").out;
+        const lanes = v.view.last.lanes["DCU-5"], samples = v.view.last.samples["DCU-5"];
+        const hit = v.view.hit(samples.osd.x + 0.5, samples.osd.y + 5);
+        v.wrap.remove();
+        const count = (arr, c) => arr.filter((p) => p === c).length;
+        return {lanes, osdSolid: count(osd, v.colours.get("osd")), osdTinted: osd.filter((p) => !["#ffffff", "#fafbfc",
+                "#eceff1", "#cfd8dc"].includes(p)).length, inferSolid: count(infer, v.colours.get("infer")),
+                hit: hit && [hit.stage, hit.frame]};""")
+    lanes = out["lanes"]
+    assert lanes["osd"]["narrow"] == 40 and lanes["osd"]["bars"] == 0
+    assert out["osdSolid"] == 0 and out["osdTinted"] >= 40, out
+    # 40 frames x 0.3 ms at 5 ms per px: 2.4 px of solid in all, spread as shades.
+    assert lanes["osd"]["service"] == pytest.approx(40 * 0.3 / 5, rel=1e-3)
+    assert lanes["infer"]["bars"] == 40 and out["inferSolid"] >= 40 * 19, out
+    assert out["hit"] is not None and out["hit"][0] == "osd"
+
+
+def test_stage_bars_without_service_data_are_solid_as_before(page):
+    # An old relay (or Python-backend probes) sends no split: the whole bar is solid, the tooltip
+    # says nothing of service or wait; zoomed out, its columns are shaded by what the bars cover.
+    out = js(page, STAGE_VIEW_JS + """
+        const v = view_of(["mux"], [[0, {mux: [1000, 1080, null, null]}], [1, {mux: [1200, 1200.5, null, null]}]],
+                          150 + 200 + 10, false);
+        v.view.draw(base + 990, base + 1090);
+        const {out, y} = lane_pixels(v, "mux");
+        const tip = m.StageView.describeHit(v.view.hit(m.GUTTER + 100, y), () => "clip");
+        v.view.draw(base, base + 4000);
+        const far = v.view.last.lanes["DCU-5"].mux;
+        v.wrap.remove();
+        return {px: out, solid: v.colours.get("mux"), tip, far};""")
+    assert set(out["px"][21:178]) == {out["solid"]}
+    assert len(out["tip"]) == 4 and "service" not in "".join(out["tip"])
+    # 4 s over 200 px: 20 ms per px; the 80 ms bar is 4 px, the 0.5 ms one 0.025 px of shade.
+    assert out["far"]["bars"] == 1 and out["far"]["narrow"] == 1
+    assert out["far"]["service"] == pytest.approx(0.5 / 20, rel=1e-3)
+
+
+STATS_JS = """
+    const summary = (mean, extra = {}) => ({count: 3, mean_ms: mean, p50_ms: mean, p95_ms: mean, p99_ms: 2 * mean,
+                                            max_ms: 2 * mean, ...extra});
+    const render = (doc, windowed = false) => {
+        const div = document.createElement("div");
+        div.innerHTML = m.statsHtml([["DCU-1", doc, ["mux", "infer", "osd"]]], new m.StageColours(), windowed);
+        const rows = [...div.querySelectorAll("table.stats:not(.sources) tbody tr[data-stage]")].map((tr) =>
+            ({stage: tr.dataset.stage, marked: tr.classList.contains("bottleneck"), badge: !!tr.querySelector(".badge"),
+              cells: [...tr.children].slice(1).map((td) => td.textContent)}));
+        const head = [...div.querySelectorAll("table.stats:not(.sources) thead th")].map((th) => th.textContent);
+        const reason = div.querySelector(".bottleneck-reason");
+        const sources = [...div.querySelectorAll("table.sources tbody tr")].map((tr) =>
+            [...tr.children].map((td) => td.textContent));
+        return {rows, head, reason: reason && reason.textContent, saturated: !!reason?.classList.contains("saturated"),
+                sources, foot: div.querySelector(".stats-foot").textContent.replace(/\\s+/g, " ").trim()};
+    };
+"""
+
+
+def test_stats_panel_shows_service_wait_utilization_and_the_relays_verdict(page):
+    # The relay names the bottleneck by utilization: infer (97 % busy), though mux has the larger
+    # share of delay (it waits for infer). In the window no stage is saturated: no mark, the reason.
+    out = js(page, STATS_JS + """
+        const split = (mean, service, wait, utilization, share) => summary(mean, {share, utilization,
+            service: summary(service), wait: summary(wait)});
+        const whole = {stages: {mux: split(362, 1.5, 360.5, 0.02, 0.76), infer: split(100, 99, 1, 0.97, 0.21),
+                                osd: split(0.3, 0.3, 0, null, 0.001)},
+                       gaps: {}, frame: summary(478), fps: {"0": 5, "1": 5}, frames: {complete: 9, incomplete: 0},
+                       bottleneck: {stage: "infer", utilization: 0.97, saturated: true,
+                                    reason: "infer is busy 97 % of the time: frames wait for it upstream",
+                                    thread_utilization: 0.98},
+                       sources: {"1": {delivered: 40, fps: 4.9, nominal_fps: 5, lost_upstream: 2, decoder_dropped: 0,
+                                       dropped: {late: 3, stalled: 0, overflow: 1}},
+                                 "0": {delivered: 50, fps: 5.0, nominal_fps: null, lost_upstream: 0, decoder_dropped: 1,
+                                       dropped: {}}}};
+        const window = {...whole, window_s: 10, bottleneck: {stage: "infer", utilization: 0.4, saturated: false,
+                        reason: "no stage saturated: infer is the busiest, 40 % of the time", thread_utilization: null}};
+        return {whole: render({...whole, window}), window: render({...whole, window}, true)};""")
+    whole, window = out["whole"], out["window"]
+    assert whole["head"] == ["stage", "frames", "mean", "p50", "p95", "p99", "max", "service mean", "service p99",
+                             "wait mean", "utilization", "share of delay"]
+    rows = {r["stage"]: r for r in whole["rows"]}
+    assert [r["stage"] for r in whole["rows"]] == ["mux", "infer", "osd"]
+    assert rows["infer"]["marked"] and rows["infer"]["badge"] and not rows["mux"]["marked"]
+    assert rows["infer"]["cells"][6:] == ["99.00 ms", "198.0 ms", "1.00 ms", "97%", "21%"]
+    assert rows["mux"]["cells"][6:] == ["1.50 ms", "3.00 ms", "360.5 ms", "2%", "76%"]
+    assert rows["osd"]["cells"][9] == "–"  # utilization unknown
+    assert whole["reason"] == "infer is busy 97 % of the time: frames wait for it upstream" and whole["saturated"]
+    assert whole["sources"] == [["source 0", "50", "5.0", "0", "1", "0"],
+                                ["source 1", "40", "4.9 of 5.0", "2", "0", "late 3 · overflow 1"]]
+    assert not whole["foot"].startswith("fps")  # the sources table says it per source
+    assert not any(r["marked"] or r["badge"] for r in window["rows"])
+    assert window["reason"] == "no stage saturated: infer is the busiest, 40 % of the time" and not window["saturated"]
+
+
+def test_stats_panel_from_an_older_relay_shows_what_it_always_did(page):
+    out = js(page, STATS_JS + """
+        const old = {stages: {mux: summary(2, {share: 0.125}), infer: summary(30, {share: 0.75})}, gaps: {},
+                     frame: summary(40), fps: {"0": 29.5}, frames: {complete: 3, incomplete: 1}, dropped: 2, lost: 0,
+                     bottleneck: {stage: "infer", mean_ms: 30, share: 0.75}};
+        // A newer relay over a trace with no service data: the new fields are there, null.
+        const bare = {...old, stages: {mux: summary(2, {share: 0.125, service: null, wait: null, utilization: null}),
+                                       infer: summary(30, {share: 0.75, service: null, wait: null, utilization: null})},
+                      bottleneck: null, sources: null};
+        return {old: render(old), bare: render(bare)};""")
+    for doc in ("old", "bare"):
+        r = out[doc]
+        assert r["head"] == ["stage", "frames", "mean", "p50", "p95", "p99", "max", "share of delay"], r
+        assert [row["cells"][-1] for row in r["rows"]] == ["13%", "75%"] and r["sources"] == []
+        assert r["foot"].startswith("fps source 0: 29.5") and r["reason"] is None
+    assert [row["marked"] for row in out["old"]["rows"]] == [False, True]
+    assert not any(row["marked"] for row in out["bare"]["rows"])

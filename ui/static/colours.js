@@ -17,6 +17,15 @@ export const OVER_LIMIT = "#8b0000"; // deep red: a frame slower than the limit
 export const UNDER_LIMIT = "#78909c";
 export const LIMIT_LINE = "#ff1744";
 
+export const WAIT_TINT = 0.3; // a stage's wait: its colour at 30 % over white, service solid
+
+/** `hex` (#rrggbb) at `alpha` over white, as an opaque #rrggbb: bars stay on whole, unblended pixels. */
+export function tint(hex, alpha = WAIT_TINT) {
+  const v = parseInt(hex.slice(1), 16);
+  const mix = (shift) => Math.round(255 - alpha * (255 - ((v >> shift) & 255)));
+  return `#${((mix(16) << 16) | (mix(8) << 8) | mix(0)).toString(16).padStart(6, "0")}`;
+}
+
 /** "infer_2" -> "infer": stage names are element names, de-duplicated with _N. */
 export function baseName(stage) {
   return String(stage).replace(/_\d+$/, "");

@@ -19,9 +19,52 @@ function summaryCells(s) {
     + `<td>${ms(s.p99_ms)}</td><td>${ms(s.max_ms)}</td>`;
 }
 
+const pct = (v) => (v === null || v === undefined ? "–" : `${(100 * v).toFixed(0)}%`);
+
 /**
- * One block per node: stage rows (bottleneck highlighted), the end-to-end row, gaps, fps, drops;
- * every figure as the relay computed it (shares and bottleneck included).
+ * The relay's verdict: the stage to mark (null: none) and its reason, shown as sent. Older
+ * relays send {stage, mean_ms, share}: the stage is marked as before, with no reason.
+ */
+export function verdict(neck) {
+  if (!neck) return { stage: null, reason: null };
+  return { stage: neck.saturated === false ? null : neck.stage, reason: neck.reason ?? null };
+}
+
+/** Whether the relay split the stages' delays (service, wait, utilization): their columns show then. */
+function hasSplit(stages) {
+  return Object.values(stages).some((s) => s.service || (s.utilization !== null && s.utilization !== undefined));
+}
+
+function stageRow(name, s, colours, marked, split) {
+  const util = s.utilization === null || s.utilization === undefined ? "–" : pct(s.utilization);
+  const extra = split
+    ? `<td class="service">${ms(s.service?.mean_ms)}</td><td>${ms(s.service?.p99_ms)}</td>`
+      + `<td class="wait">${ms(s.wait?.mean_ms)}</td><td class="utilization">${util}</td>` : "";
+  return `<tr data-stage="${esc(name)}"${marked ? ' class="bottleneck"' : ""}>`
+    + `<td><span class="swatch" style="background:${colours.get(name)}"></span>${esc(name)}`
+    + `${marked ? ' <span class="badge">bottleneck</span>' : ""}</td>${summaryCells(s)}${extra}<td>${pct(s.share)}</td></tr>`;
+}
+
+const SPLIT_HEAD = `<th title="the stage's own work on the frame or its batch">service mean</th><th>service p99</th>`
+  + `<th title="queued, waiting for a batch to form, blocked downstream">wait mean</th>`
+  + `<th title="busy fraction of wall time (over 100 %: several threads)">utilization</th>`;
+
+/** Per source: frames delivered, fps against the nominal rate, what was lost before and in the pipeline. */
+function sourcesHtml(sources) {
+  const rows = Object.entries(sources ?? {}).sort(([a], [b]) => Number(a) - Number(b)).map(([src, v]) => {
+    const fps = v.fps === null || v.fps === undefined ? "–" : Number(v.fps).toFixed(1);
+    const nominal = v.nominal_fps === null || v.nominal_fps === undefined ? "" : ` of ${Number(v.nominal_fps).toFixed(1)}`;
+    const dropped = Object.entries(v.dropped ?? {}).filter(([, n]) => n).map(([why, n]) => `${esc(why)} ${int(n)}`);
+    return `<tr data-source="${esc(src)}"><td>source ${esc(src)}</td><td>${int(v.delivered)}</td><td>${fps}${nominal}</td>`
+      + `<td>${int(v.lost_upstream)}</td><td>${int(v.decoder_dropped)}</td><td class="dropped">${dropped.join(" · ") || "0"}</td></tr>`;
+  }).join("");
+  return rows ? `<table class="stats sources"><thead><tr><th>source</th><th>delivered</th><th>fps (of nominal)</th>`
+    + `<th>lost upstream</th><th>decoder dropped</th><th>dropped (by reason)</th></tr></thead><tbody>${rows}</tbody></table>` : "";
+}
+
+/**
+ * One block per node: stage rows (the relay's bottleneck marked, its reason shown), the
+ * end-to-end row, gaps, sources, fps, drops; every figure as the relay computed it.
  * `windowed`: show the relay's rolling window (``stats.window``) instead of the whole run;
  * `openGaps`: nodes whose gaps table the user opened (kept open across refreshes).
  */
@@ -29,17 +72,13 @@ export function statsHtml(entries, colours, windowed, openGaps = new Set()) {
   if (!entries.length) return `<p class="muted">No statistics yet.</p>`;
   return entries.map(([node, full, order]) => {
     const st = windowed && full.window ? full.window : full;
-    const neck = st.bottleneck;
-    const names = Object.keys(st.stages ?? {}).sort((a, b) => order.indexOf(a) - order.indexOf(b));
-    const rows = names.map((name) => {
-      const s = st.stages[name];
-      const isNeck = neck && neck.stage === name;
-      const share = s.share === null || s.share === undefined ? "–" : `${(100 * s.share).toFixed(0)}%`;
-      return `<tr data-stage="${esc(name)}"${isNeck ? ' class="bottleneck"' : ""}>`
-        + `<td><span class="swatch" style="background:${colours.get(name)}"></span>${esc(name)}`
-        + `${isNeck ? ' <span class="badge">bottleneck</span>' : ""}</td>${summaryCells(s)}<td>${share}</td></tr>`;
-    }).join("");
+    const { stage: marked, reason } = verdict(st.bottleneck);
+    const stages = st.stages ?? {};
+    const split = hasSplit(stages);
+    const names = Object.keys(stages).sort((a, b) => order.indexOf(a) - order.indexOf(b));
+    const rows = names.map((name) => stageRow(name, stages[name], colours, marked === name, split)).join("");
     const gaps = Object.entries(st.gaps ?? {}).map(([name, s]) => `<tr><td>${esc(name)}</td>${summaryCells(s)}<td></td></tr>`).join("");
+    const sources = sourcesHtml(st.sources);
     const fps = Object.entries(st.fps ?? {}).map(([src, v]) => `source ${esc(src)}: ${Number(v).toFixed(1)}`).join(" · ") || "–";
     const dropped = full.dropped ?? 0;
     const lost = full.lost ?? 0;
@@ -49,11 +88,13 @@ export function statsHtml(entries, colours, windowed, openGaps = new Set()) {
     const session = full.session ? ` · session ${esc(full.session)}` : "";
     return `<div class="stats-node" data-node="${esc(node)}">
       <h3>${esc(node)} <span class="muted">${scope}${run}${session}</span></h3>
-      <table class="stats"><thead><tr><th>stage</th><th>frames</th><th>mean</th><th>p50</th><th>p95</th><th>p99</th><th>max</th><th>share</th></tr></thead>
-      <tbody>${rows}<tr class="frame-row"><td>frame (end-to-end)</td>${summaryCells(st.frame ?? {})}<td>100%</td></tr></tbody></table>
+      <table class="stats"><thead><tr><th>stage</th><th>frames</th><th>mean</th><th>p50</th><th>p95</th><th>p99</th><th>max</th>${split ? SPLIT_HEAD : ""}<th>share of delay</th></tr></thead>
+      <tbody>${rows}<tr class="frame-row"><td>frame (end-to-end)</td>${summaryCells(st.frame ?? {})}${split ? "<td></td>".repeat(4) : ""}<td>100%</td></tr></tbody></table>
+      ${reason ? `<p class="bottleneck-reason${marked ? " saturated" : ""}">${esc(reason)}</p>` : ""}
       ${gaps ? `<details${openGaps.has(node) ? " open" : ""}><summary>gaps between stages (queueing, hand-over)</summary>
         <table class="stats"><tbody>${gaps}</tbody></table></details>` : ""}
-      <p class="stats-foot">fps ${fps}<br>drops <b class="drops">${int(dropped + lost)}</b> (probe buffer ${int(dropped)}, transport ${int(lost)})
+      ${sources}
+      <p class="stats-foot">${sources ? "" : `fps ${fps}<br>`}drops <b class="drops">${int(dropped + lost)}</b> (probe buffer ${int(dropped)}, transport ${int(lost)})
       · frames ${int(frames.complete)} complete, ${int(frames.incomplete)} incomplete</p></div>`;
   }).join("");
 }

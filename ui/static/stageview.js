@@ -1,6 +1,8 @@
 // Stage view (the paper's Figure 13): one row per DCU, or per DCU and source; in a row one lane
 // per stage, and for every frame a bar from its enter to its exit at that stage.
 
+import { tint } from "./colours.js";
+import { columnCoverage, Intervals, serviceStart } from "./coverage.js";
 import { clockTicks, formatClock, formatClockPrecise, formatDelay } from "./timefmt.js";
 
 export const GUTTER = 150;
@@ -39,6 +41,66 @@ export function joins(rx0, rx1, px0, px1) {
   return overlap > 1 || (overlap >= 0 && (px1 - px0 <= 2 || rx1 - rx0 <= 2));
 }
 
+const known = (ms) => (ms === ms ? formatDelay(ms) : "–");
+
+/** `a` twice as long, its content kept. */
+function grown(a) {
+  const b = new a.constructor(a.length * 2);
+  b.set(a);
+  return b;
+}
+
+/**
+ * The whole bars of one lane, joined into runs as they come (fewer rectangles to fill), each run
+ * light, with the solid spans of its bars' service on top.
+ */
+class Runs {
+  constructor(y, pending) {
+    this.y = y;
+    this.pend = pending; // solid spans [a, b) of the run being gathered, clipped at its end when drawn
+    this.np = 0;
+    this.rx0 = -1;
+    this.rx1 = -1;
+    this.light = new Path2D();
+    this.solid = new Path2D();
+    this.count = 0;
+    this.best = null;
+  }
+
+  /** A bar [px0, px1) whose solid part is [ps, px1). */
+  add(px0, px1, ps) {
+    if (this.rx0 >= 0 && joins(this.rx0, this.rx1, px0, px1)) {
+      this.rx0 = Math.min(this.rx0, px0);
+      this.rx1 = Math.max(this.rx1, px1);
+    } else {
+      this.flush();
+      this.rx0 = px0;
+      this.rx1 = px1;
+    }
+    if (ps < px1) {
+      if (this.np + 2 > this.pend.length) this.pend = grown(this.pend);
+      this.pend[this.np++] = ps;
+      this.pend[this.np++] = px1;
+    }
+  }
+
+  flush() {
+    const { rx0, rx1, y, pend } = this;
+    if (rx0 < 0) return;
+    // A 1 px seam between touching bars wide enough to show it keeps frames apart.
+    const w = rx1 - rx0 >= 4 ? rx1 - rx0 - 1 : rx1 - rx0;
+    this.light.rect(rx0, y, w, LANE_H);
+    for (let q = 0; q < this.np; q += 2) {
+      const b = Math.min(pend[q + 1], rx0 + w);
+      if (b > pend[q]) this.solid.rect(pend[q], y, b - pend[q], LANE_H);
+    }
+    this.np = 0;
+    this.rx0 = -1;
+    this.count++;
+    if (this.best === null || w > this.best.w) this.best = { x: rx0, y, w, h: LANE_H };
+  }
+}
+
 export class StageView {
   /**
    * @param canvas the <canvas> to draw on
@@ -53,6 +115,14 @@ export class StageView {
     this.t0 = 0;
     this.t1 = 1;
     this.scratch = new Int32Array(1024);
+    this.pending = new Int32Array(1024);
+    this.narrow = { wait: new Intervals(), service: new Intervals() };
+    this.columns = new Float32Array(0);
+    this.shade = document.createElement("canvas"); // one row: a lane's shaded columns
+    this.shade.height = 1;
+    this.shadeCtx = this.shade.getContext("2d");
+    this.shadeRow = null;
+    this.pale = new Map(); // stage colour -> its wait tint
     this.last = { bars: {}, runs: 0, samples: {}, rows: [] };
   }
 
@@ -139,54 +209,24 @@ export class StageView {
     const bars = {};
     const samples = {};
     const bySource = {};
+    const lanes = {};
     let runs = 0;
     for (const row of this.rows) {
       const store = row.store;
       this.drawLabel(row);
       if (!store.size) continue;
       const visible = this.visible(store, row.source, t0, t1);
-      const n = visible.length;
-      const S = store.S;
       const perNode = (bars[row.node] ??= {});
       row.lanes.forEach((s, li) => {
         const stage = store.stages[s];
-        const y = row.y + ROW_PAD + li * (LANE_H + LANE_GAP);
-        ctx.fillStyle = this.model.colours.get(stage);
-        let rx0 = -1;
-        let rx1 = -1;
-        let drawn = 0;
-        let best = null;
-        const flush = () => {
-          if (rx0 < 0) return;
-          // A 1 px seam between touching bars wide enough to show it keeps frames apart.
-          const w = rx1 - rx0 >= 4 ? rx1 - rx0 - 1 : rx1 - rx0;
-          ctx.fillRect(rx0, y, w, LANE_H);
-          runs++;
-          if (best === null || w > best.w) best = { x: rx0, y, w, h: LANE_H };
-        };
-        for (let j = 0; j < n; j++) {
-          const b = store.slot(visible[j]) * S + s;
-          const a = store.enter[b];
-          const e = store.exit[b];
-          if (!(e >= t0 && a <= t1)) continue; // NaN fails both: no bar
-          const px0 = Math.floor(X + Math.max(a - t0, 0) * k);
-          const px1 = Math.max(px0 + 1, Math.round(X + Math.min(e - t0, t1 - t0) * k));
-          drawn++;
-          if (rx0 >= 0 && joins(rx0, rx1, px0, px1)) {
-            rx0 = Math.min(rx0, px0);
-            rx1 = Math.max(rx1, px1);
-          } else {
-            flush();
-            rx0 = px0;
-            rx1 = px1;
-          }
-        }
-        flush();
+        const lane = this.drawLane(store, visible, s, row.y + ROW_PAD + li * (LANE_H + LANE_GAP));
+        runs += lane.runs;
         if (row.header) {
-          perNode[stage] = drawn;
-          if (best) (samples[row.node] ??= {})[stage] = best;
+          perNode[stage] = lane.drawn;
+          (lanes[row.node] ??= {})[stage] = { bars: lane.bars, narrow: lane.narrow, service: lane.service, wait: lane.wait };
+          if (lane.best) (samples[row.node] ??= {})[stage] = lane.best;
         } else {
-          ((bySource[row.node] ??= {})[row.source] ??= {})[stage] = drawn;
+          ((bySource[row.node] ??= {})[row.source] ??= {})[stage] = lane.drawn;
         }
       });
     }
@@ -197,9 +237,111 @@ export class StageView {
       ctx.fillText("Waiting for nodes: dcuscope run CONFIG --probes --relay URL --node NAME", X, AXIS_H + 20);
     }
     this.last = {
-      bars, bySource, runs, samples,
+      bars, bySource, runs, samples, lanes,
       rows: this.rows.map((r) => ({ node: r.node, source: r.source, y: r.y, h: r.h, lanes: r.lanes.map((s) => r.store.stages[s]) })),
     };
+  }
+
+  /**
+   * One lane: every frame's bar from its enter to its exit at stage `s`, its wait light and its
+   * service solid (service comes last: the stage waits, then works, then the frame exits). Bars
+   * narrower than a pixel, and service parts narrower than a pixel, are not drawn at a minimum
+   * width but as the share of each pixel column they cover (coverage.js).
+   * Returns what was drawn: frames, whole bars, narrow ones, covered columns (px), the widest run.
+   */
+  drawLane(store, visible, s, y) {
+    const { t0, t1 } = this;
+    const k = this.plotWidth / (t1 - t0);
+    const S = store.S;
+    const { wait, service } = this.narrow;
+    wait.clear();
+    service.clear();
+    const runs = new Runs(y, this.pending);
+    const out = { drawn: 0, bars: 0, narrow: 0, runs: 0, best: null, service: 0, wait: 0 };
+    for (let j = 0; j < visible.length; j++) {
+      const b = store.slot(visible[j]) * S + s;
+      const a = store.enter[b];
+      const e = store.exit[b];
+      if (!(e >= t0 && a <= t1)) continue; // NaN fails both: no bar
+      out.drawn++;
+      const ca = Math.max(a, t0);
+      const ce = Math.min(e, t1);
+      const cs = Math.max(ca, Math.min(ce, serviceStart(a, e, store.stageService[b])));
+      if ((ce - ca) * k < 1) {
+        out.narrow++;
+        wait.add(ca, cs);
+        service.add(cs, ce);
+        continue;
+      }
+      out.bars++;
+      const px0 = Math.floor(GUTTER + (ca - t0) * k);
+      const px1 = Math.max(px0 + 1, Math.round(GUTTER + (ce - t0) * k));
+      let ps = px1; // no solid part drawn whole: a service under a pixel is shaded as narrow bars are
+      if ((ce - cs) * k < 1) service.add(cs, ce);
+      else ps = Math.max(px0, Math.min(px1, Math.round(GUTTER + (cs - t0) * k)));
+      runs.add(px0, px1, ps);
+    }
+    runs.flush();
+    this.pending = runs.pend;
+    out.runs = runs.count;
+    out.best = runs.best;
+    this.fillLane(store.stages[s], y, runs.light, runs.solid, out);
+    return out;
+  }
+
+  /** Paint a lane: light bars, narrow waits, solid bars, narrow services, in that order. */
+  fillLane(stage, y, light, solid, out) {
+    const ctx = this.ctx;
+    const colour = this.model.colours.get(stage);
+    const pale = this.pale.get(colour) ?? this.pale.set(colour, tint(colour)).get(colour);
+    ctx.fillStyle = pale;
+    ctx.fill(light);
+    const waits = this.fillCoverage(this.narrow.wait, y, pale);
+    ctx.fillStyle = colour;
+    ctx.fill(solid);
+    const services = this.fillCoverage(this.narrow.service, y, colour);
+    out.wait = waits.sum;
+    out.service = services.sum;
+    // No whole bar to point at (tests hover the widest): the most covered column.
+    const x = services.best ?? waits.best;
+    if (out.best === null && x !== null) out.best = { x, y, w: 1, h: LANE_H };
+  }
+
+  /**
+   * Columns shaded by the share of their time `iv` covers, in `colour`: the covered sum (px) and
+   * the most covered column's x (null: none). The shades go as one row of pixels, stretched to
+   * the lane's height: one image per lane, not a fill per column.
+   */
+  fillCoverage(iv, y, colour) {
+    if (!iv.n) return { sum: 0, best: null };
+    const PW = this.plotWidth;
+    if (this.columns.length !== PW) {
+      this.columns = new Float32Array(PW);
+      this.shade.width = PW;
+      this.shadeRow = this.shadeCtx.createImageData(PW, 1);
+    }
+    const cov = columnCoverage(iv, this.t0, this.t1, PW, this.columns);
+    const v = parseInt(colour.slice(1), 16);
+    const px = this.shadeRow.data;
+    let sum = 0;
+    let top = 0;
+    let best = null;
+    for (let c = 0; c < PW; c++) {
+      px[4 * c] = v >> 16;
+      px[4 * c + 1] = (v >> 8) & 255;
+      px[4 * c + 2] = v & 255;
+      // Any share above 0 shows, however faint.
+      px[4 * c + 3] = cov[c] > 0 ? Math.max(1, Math.round(cov[c] * 255)) : 0;
+      sum += cov[c];
+      if (cov[c] > top) {
+        top = cov[c];
+        best = GUTTER + c;
+      }
+    }
+    this.shadeCtx.putImageData(this.shadeRow, 0, 0);
+    this.ctx.imageSmoothingEnabled = false;
+    this.ctx.drawImage(this.shade, 0, 0, PW, 1, GUTTER, y, PW, LANE_H);
+    return { sum, best };
   }
 
   /**
@@ -285,6 +427,7 @@ export class StageView {
     return {
       node: store.node, stage: store.stages[s], source: store.source[best], frame: store.frame[best],
       enter: a, exit: e, delay: store.stageDelay[best * store.S + s], frameDelay: store.delay[best],
+      service: store.stageService[best * store.S + s], wait: store.stageWait[best * store.S + s],
     };
   }
 
@@ -299,6 +442,9 @@ export class StageView {
       `source ${h.source} (${describe(h.node, h.source)}) · frame ${h.frame}`,
       `enter ${formatClockPrecise(h.enter)}  exit ${formatClockPrecise(h.exit)}`,
       `delay ${formatDelay(h.delay)}  (frame end-to-end ${formatDelay(h.frameDelay)})`,
+      // Absent where the relay has no split (old traces, Python probes): nothing is guessed.
+      ...(h.service === h.service || h.wait === h.wait
+        ? [`service ${known(h.service)}  wait ${known(h.wait)}`] : []),
     ];
   }
 }

@@ -61,6 +61,9 @@ export class NodeStore {
     this.enter = new Float64Array(cap * this.S);
     this.exit = new Float64Array(cap * this.S);
     this.stageDelay = new Float64Array(cap * this.S); // ms, NaN where the frame has none
+    // delay = service (the stage's own work on the frame or its batch) + wait; NaN where unknown.
+    this.stageService = new Float32Array(cap * this.S);
+    this.stageWait = new Float32Array(cap * this.S);
     this.maxEnd = new Float64Array(cap); // running maximum of `end` in arrival order: searchable
     this.head = 0;
     this.size = 0;
@@ -94,7 +97,7 @@ export class NodeStore {
 
   /**
    * Add a block shaped as GET /api/frames ({run, stages, has_exit[], frames: [{n, source, frame,
-   * origin, end, enter[], exit[], delay_ms, stage_delay_ms[]}]}); frames at or below the cursor
+   * origin, end, enter[], exit[], delay_ms, stage_delay_ms[], stage_service_ms[]?, stage_wait_ms[]?}]}); frames at or below the cursor
    * already held are skipped. Every figure comes from the relay; none is derived here.
    * Returns how many were added.
    */
@@ -142,6 +145,8 @@ export class NodeStore {
       this.enter[base + s] = a === null || a === undefined ? NaN : a / 1e6;
       this.exit[base + s] = b === null || b === undefined ? NaN : b / 1e6;
       this.stageDelay[base + s] = f.stage_delay_ms?.[s] ?? NaN;
+      this.stageService[base + s] = f.stage_service_ms?.[s] ?? NaN;
+      this.stageWait[base + s] = f.stage_wait_ms?.[s] ?? NaN;
     }
     this.newestEnd = Math.max(this.newestEnd, end);
     this.maxEnd[p] = this.newestEnd;
