@@ -83,12 +83,21 @@ def _status_line(url: str) -> str:
             frame = stats.get("frame", {})
             fps = sum((stats.get("fps") or {}).values())
             mean = frame.get("mean_ms")
-            bottleneck = (stats.get("bottleneck") or {}).get("stage") or "-"
-            parts.append(f"{name}: {fps:5.1f} fps, frame delay {mean:7.1f} ms, bottleneck {bottleneck}"
+            parts.append(f"{name}: {fps:5.1f} fps, frame delay {mean:7.1f} ms, {_verdict(stats.get('bottleneck'))}"
                          if mean is not None else f"{name}: waiting for frames")
         except OSError:
             parts.append(f"{name}: no stats yet")
     return " | ".join(parts) or "no node connected yet"
+
+
+def _verdict(b: dict | None) -> str:
+    """The bottleneck in a few words: the saturated stage and how busy it is, or that none is."""
+    if not b:
+        return "bottleneck -"
+    busy = f"{b['utilization'] * 100:.0f} % busy" if b.get("utilization") is not None else "largest share"
+    if b.get("saturated") is False:
+        return f"no stage saturated (busiest {b['stage']} {busy})"
+    return f"bottleneck {b['stage']} ({busy})"
 
 
 def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = None) -> int:

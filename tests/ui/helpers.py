@@ -19,7 +19,7 @@ ROOT = Path(__file__).resolve().parents[2]
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync", "--no-first-run"]
-REAL_PIPELINES = (ROOT / "probes" / "session.py").is_file()
+REAL_PIPELINES = (ROOT / "probes" / "instrument.py").is_file()
 """Real ``dcuscope run --probes --relay`` nodes exist once probes/instrument.py does."""
 
 
