@@ -23,7 +23,7 @@ def _run():
                  (exit_ + 1, 2, ENTER, f)]
     events = np.zeros(len(rows), EVENT_DTYPE)
     for i, (ms, stage, point, f) in enumerate(rows):
-        events[i] = (T0 + ms * MS, f, 0, stage, point, 2 if f in (2, 3) and point == READY else int(point == READY))
+        events[i] = (T0 + ms * MS, f, 0, stage, point, {2: 2, 3: -2}.get(f, 1) if point == READY else 0)
     return frame_delays(frame_table(header, events))
 
 

@@ -21,8 +21,6 @@ from tests.conftest import run_cli
 from tests.probes.synth import run_commands as _cli
 from tests.probes.synth import STAGES, pipeline_run
 
-EPS_US = 1e-6
-
 
 def _doc(*runs):
     doc = perfetto_document([(h, e) for h, e, _ in runs])
@@ -32,6 +30,12 @@ def _doc(*runs):
 
 def _by_phase(doc, ph):
     return [e for e in doc["traceEvents"] if e["ph"] == ph]
+
+
+def _stage_slices(doc):
+    """The slice of each frame at each stage (not the wait and service parts nested in it, nor
+    the capture slices)."""
+    return [e for e in _by_phase(doc, "X") if e["name"].startswith("frame ")]
 
 
 def _thread_names(doc):
@@ -54,7 +58,9 @@ def test_required_fields_and_one_named_process_per_node(two_nodes):
             assert isinstance(e["ts"], (int, float)) and e["ts"] >= 0
         if e["ph"] == "X":
             assert isinstance(e["dur"], (int, float)) and e["dur"] >= 0
-            assert {"source", "frame", "delay_ms"} <= set(e["args"])
+            assert {"source", "frame"} <= set(e["args"])
+            if e["name"].startswith("frame "):
+                assert {"delay_ms", "gap_ms", "service_ms", "wait_ms", "complete"} <= set(e["args"])
         if e["ph"] == "i":
             assert e["s"] == "t"
     procs = {e["pid"]: e["args"]["name"] for e in _by_phase(doc, "M") if e["name"] == "process_name"}
@@ -73,7 +79,7 @@ def test_slices_are_in_microseconds_relative_to_the_earliest_event(two_nodes):
     names = _thread_names(doc)
     infer = STAGES.index("infer")
     row = int(np.flatnonzero((truth.source == 1) & (truth.frame == 5))[0])
-    [s] = [e for e in _by_phase(doc, "X")
+    [s] = [e for e in _stage_slices(doc)
            if e["pid"] == 1 and names[(1, e["tid"])] == "infer · src 1" and e["args"]["frame"] == 5]
     assert s["name"] == "frame 5" and s["args"]["source"] == 1
     assert s["ts"] == pytest.approx((truth.enter[row, infer] - t0) / 1e3, abs=1e-3)
@@ -81,19 +87,27 @@ def test_slices_are_in_microseconds_relative_to_the_earliest_event(two_nodes):
     assert s["args"]["delay_ms"] == pytest.approx(s["dur"] / 1e3)
     assert s["args"]["gap_ms"] == pytest.approx((truth.enter[row, infer] - truth.exit[row, infer - 1]) / 1e6)
     # One slice per frame per stage with an exit; origins and sink arrivals are instants.
-    assert len(_by_phase(doc, "X")) == (24 + 21) * len(STAGES)
+    assert len(_stage_slices(doc)) == (24 + 21) * len(STAGES)
     assert len(_by_phase(doc, "i")) == (24 + 21) * 2
 
 
 def _assert_slices_nest_per_thread(doc):
-    per_thread = defaultdict(list)
+    """Slices on one thread are disjoint or nested (in ns as Perfetto reads them); returns the
+    stage slices' spans per thread."""
+    per_thread, stage_spans = defaultdict(list), defaultdict(list)
     for e in _by_phase(doc, "X"):
-        per_thread[(e["pid"], e["tid"])].append((e["ts"], e["ts"] + e["dur"]))
+        span = (_ns(e["ts"]), _ns(e["ts"]) + _ns(e["dur"]))
+        per_thread[(e["pid"], e["tid"])].append(span)
+        if e["name"].startswith("frame "):
+            stage_spans[(e["pid"], e["tid"])].append(span)
     for spans in per_thread.values():
-        spans.sort()
-        for (_, end), (start, _) in zip(spans, spans[1:]):
-            assert start >= end - EPS_US
-    return per_thread
+        open_ends: list[int] = []  # ends of the slices enclosing the current one
+        for start, end in sorted(spans, key=lambda span: (span[0], -span[1])):
+            while open_ends and open_ends[-1] <= start:
+                open_ends.pop()
+            assert not open_ends or end <= open_ends[-1], (start, end, open_ends)
+            open_ends.append(end)
+    return stage_spans
 
 
 def test_batched_frames_sit_on_per_source_tracks_that_never_overlap(two_nodes):
@@ -102,7 +116,7 @@ def test_batched_frames_sit_on_per_source_tracks_that_never_overlap(two_nodes):
     names = _thread_names(doc)
     # A batch: frame i of both sources leaves the mux at one instant, on two different tracks.
     mux_exits = defaultdict(set)
-    for e in _by_phase(doc, "X"):
+    for e in _stage_slices(doc):
         if e["pid"] == 1 and e["cat"] == "mux":
             mux_exits[round(e["ts"] + e["dur"], 3)].add(names[(1, e["tid"])])
     assert all(v == {"mux · src 0", "mux · src 1"} for v in mux_exits.values()) and len(mux_exits) == 12
@@ -135,7 +149,7 @@ def test_flows_follow_each_frame_across_its_stages(two_nodes):
             flows[e["id"]].append(e)
     assert len(flows) == 24 + 21  # one per frame, ids unique across nodes
     slices = defaultdict(list)
-    for e in _by_phase(doc, "X"):
+    for e in _stage_slices(doc):
         slices[(e["pid"], e["tid"])].append(e)
     for events in flows.values():
         assert [e["ph"] for e in events] == ["s"] + ["t"] * (len(STAGES) - 2) + ["f"]
