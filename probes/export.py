@@ -168,7 +168,10 @@ def _capture_events(fd: FrameDelays, tracks: _Tracks, t0_ns: int) -> list[dict]:
         rows = np.flatnonzero((table.source == sid) & (table.capture != MISSING) & (table.origin != MISSING))
         if not len(rows):
             continue
-        start, end = table.capture[rows], table.origin[rows]
+        # A capture clock ahead of the node's would give a negative duration, which viewers
+        # reject: such a slice shrinks to an instant at the capture time.
+        start = table.capture[rows]
+        end = np.maximum(table.origin[rows], start)
         lane = assign_lanes(start, end)
         tids = [tracks.add(f"capture · src {sid}" + (f" #{k + 1}" if k else "")) for k in range(int(lane.max()) + 1)]
         columns = (rows.tolist(), lane.tolist(), _us(start - t0_ns).tolist(), _us(end - start).tolist(),
