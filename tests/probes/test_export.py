@@ -468,6 +468,15 @@ def test_capture_slices_and_glass_to_glass_where_frames_have_a_capture_time(tmp_
             assert r["capture_ns"] == r["glass_ms"] == ""
 
 
+def test_a_capture_time_after_the_origin_gives_an_instant_wide_slice_never_a_negative_one():
+    header, events, truth = _with_capture(pipeline_run(3, n_sources=2, seed=8), -3_000_000, source=1)
+    doc = _doc((header, events, truth))
+    t0 = doc["otherData"]["t0_ns"]
+    late = [e for e in _by_phase(doc, "X") if e["cat"] == "capture" and e["args"]["source"] == 1]
+    assert len(late) == 3 and all(e["dur"] == 0 for e in late)
+    assert sorted(t0 + _ns(e["ts"]) for e in late) == sorted((truth.origin[truth.source == 1] + 3_000_000).tolist())
+
+
 def test_export_cli_takes_the_utilization_bucket_width(tmp_path, real_trace):
     write_trace(tmp_path / "t.trace", real_trace.header, real_trace.events)
     rc, _, err = _cli("export", str(tmp_path / "t.trace"), "--bucket-ms", "50", "-o", str(tmp_path / "t.json"))
