@@ -13,13 +13,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from contextlib import contextmanager
 from pathlib import Path
 
 from core.errors import DcuscopeError
-from probes.export import perfetto_document, write_csv
+from probes.export import BUCKET_NS, perfetto_document, write_csv
 from probes.stats import stats_document
 from probes.tracefile import Trace, read_trace
 
@@ -47,14 +48,17 @@ def add_export_parser(subparsers) -> argparse.ArgumentParser:
     p = subparsers.add_parser(
         "export", help="convert trace files to Perfetto/Chrome trace JSON or CSV",
         description="perfetto: Chrome Trace Event JSON for ui.perfetto.dev or chrome://tracing "
-                    "(a process per node, a track per stage and source, a slice per frame, flows "
-                    "following each frame; µs since the earliest event). csv: one row per frame "
-                    "per stage.",
+                    "(a process per node, a track per stage and source, a slice per frame split "
+                    "into its wait and service, flows following each frame, counters of each "
+                    "stage's utilization and of the frames inside it; µs since the earliest "
+                    "event). csv: one row per frame per stage.",
     )
     p.add_argument("traces", nargs="*", metavar="TRACE", help="trace file(s) written by `dcuscope run`")
     _add_db_arguments(p)
     p.add_argument("--format", choices=("perfetto", "csv"), default="perfetto", help="output format (default perfetto)")
     p.add_argument("-o", "--output", required=True, metavar="OUT", help="output file, - for stdout")
+    p.add_argument("--bucket-ms", type=float, default=BUCKET_NS / 1e6, metavar="MS",
+                   help=f"perfetto: width of the utilization counters' buckets (default {BUCKET_NS / 1e6:g})")
     p.set_defaults(func=run_export)
     return p
 
@@ -78,14 +82,23 @@ def run_stats(args: argparse.Namespace) -> int:
 
 def run_export(args: argparse.Namespace) -> int:
     with _user_errors() as failed:
+        bucket_ns = _bucket_ns(args.bucket_ms)
         nodes = [(t.header, t.events) for t in _inputs(args, "export")]
         with _open_output(args.output) as out:
             if args.format == "csv":
                 write_csv(out, nodes)
             else:
-                json.dump(perfetto_document(nodes), out, separators=(",", ":"), ensure_ascii=False)
+                json.dump(perfetto_document(nodes, bucket_ns), out, separators=(",", ":"), ensure_ascii=False)
                 out.write("\n")
     return 2 if failed else 0
+
+
+def _bucket_ns(ms: float) -> int:
+    """--bucket-ms in whole ns; a bad value is the user's error."""
+    ns = ms * 1e6
+    if not math.isfinite(ns) or round(ns) < 1:
+        raise DcuscopeError(f"export: --bucket-ms must be a positive number of milliseconds, got {ms:g}")
+    return round(ns)
 
 
 def _inputs(args: argparse.Namespace, command: str) -> list:

@@ -201,6 +201,77 @@ def series(fd: FrameDelays, threads: dict[str, int] | None = None) -> Series:
     return out
 
 
+@dataclass
+class Timeline:
+    """Busy time of each stage per time bucket, from the service intervals of its output
+    buffers (a batch counted once), over the span of :func:`series` (first origin to last
+    end of the complete frames): summed over the buckets, busy time is ``Series.busy``."""
+
+    edges: np.ndarray
+    """(n + 1,) int64 ns: bucket k is [edges[k], edges[k + 1]); the last one may be shorter."""
+    busy: dict[str, np.ndarray]
+    """Stage -> (n,) int64 ns of service inside each bucket."""
+
+    def utilization(self, stage: str) -> np.ndarray:
+        """Busy fraction of ``stage`` per bucket (above 1 only if its buffers' work overlaps)."""
+        return self.busy[stage] / np.diff(self.edges)
+
+
+def busy_timeline(fd: FrameDelays, bucket_ns: int) -> Timeline:
+    """Busy time per ``bucket_ns`` bucket of every stage with service times, of the complete
+    frames (those the utilization of :func:`delay_summary` counts)."""
+    if bucket_ns <= 0:
+        raise ValueError(f"bucket_ns must be positive, got {bucket_ns}")
+    ch, service = fd.chains, fd.per_stage["service"]
+    c = ch.complete
+    if not c.any():
+        return Timeline(edges=np.zeros(1, np.int64), busy={})
+    first, last = int(fd.table.origin[c].min()), int(ch.end[c].max())
+    edges = np.append(np.arange(first, last, bucket_ns, dtype=np.int64), np.int64(last))
+    busy = {}
+    for s, name in enumerate(fd.table.stages):
+        timed = c & ~np.isnan(service[:, s])
+        if ch.has_exit[s] and timed.any():
+            # Each output buffer's work once, on its first frame, as in series().
+            first_of_buffer = timed & (fd.table.group[:, s] > 0)
+            ends = fd.table.exit[first_of_buffer, s] - first
+            starts = ends - service[first_of_buffer, s].astype(np.int64)
+            busy[name] = np.diff(_time_inside_before(starts, ends, edges - first))
+    return Timeline(edges=edges, busy=busy)
+
+
+def _time_inside_before(starts: np.ndarray, ends: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """For each ``t``: the total length of the intervals [start, end) before it, int64 ns.
+
+    Sum over intervals of clip(t - start, 0, end - start) = sum over starts before t of
+    (t - start) - the same over ends: prefix sums, no loop over intervals. Times relative to
+    the span's start keep the sums far inside int64.
+    """
+    a, b = np.sort(starts), np.sort(ends)
+    ca = np.concatenate(([0], np.cumsum(a)))
+    cb = np.concatenate(([0], np.cumsum(b)))
+    na, nb = np.searchsorted(a, t, side="right"), np.searchsorted(b, t, side="right")
+    return (na * t - ca[na]) - (nb * t - cb[nb])
+
+
+def fill_levels(fd: FrameDelays, stage: int) -> tuple[np.ndarray, np.ndarray]:
+    """Frames inside stage ``stage`` over time: (times, levels), the level from each time on.
+
+    +1 at a frame's enter, -1 at its exit, of every frame with both there (one lost on the way
+    has no known leaving time, so it is left out, not counted inside for ever); at one
+    instant exits count before enters, and each time appears once, with the level after all
+    its changes. Empty for a stage without exits (the sink).
+    """
+    enter, exit_ = fd.table.enter[:, stage], fd.table.exit[:, stage]
+    both = (enter != MISSING) & (exit_ != MISSING)
+    times = np.concatenate((exit_[both], enter[both]))
+    steps = np.concatenate((np.full(both.sum(), -1), np.full(both.sum(), 1)))
+    order = np.lexsort((steps, times))
+    times, levels = times[order], np.cumsum(steps[order])
+    last_of_time = np.append(times[1:] != times[:-1], True)[:len(times)]
+    return times[last_of_time], levels[last_of_time]
+
+
 def _span_ns(fd: FrameDelays) -> int:
     c = fd.chains.complete
     return int(fd.chains.end[c].max() - fd.table.origin[c].min()) if c.any() else 0

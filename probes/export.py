@@ -1,7 +1,8 @@
 """Exports of probe events: Chrome Trace Event JSON (ui.perfetto.dev, chrome://tracing) and CSV.
 
 Both take ``(header, events)`` pairs, one per node, so that the trace files and the relay's
-store can feed them alike.
+store can feed them alike. Every figure comes from :mod:`probes.delays`; nothing is derived
+here.
 
 Perfetto/Chrome JSON layout: one process per node, one thread (track) per stage and source
 ("infer · src 2"), one complete slice ("ph": "X") per frame per stage from its enter to its
@@ -11,6 +12,15 @@ earliest event of the export, whose absolute time (ns, the node's clock) is in
 ``otherData.t0_ns``. Slices on one thread must nest, so when a stage holds two frames of one
 source at once (a queue in front of an aggregator), the later frame goes to a second lane,
 "infer · src 2 #2".
+
+Where the model has service times (format-2 traces), each stage slice holds two nested
+slices, "wait" (enter .. enter + wait) and "service" (the rest, to the exit), none of zero
+length; the args of every slice carry ``delay_ms``, ``gap_ms``, ``service_ms``, ``wait_ms``
+where defined. Frames with a capture time get a slice capture .. origin on a track
+"capture · src N", their glass-to-glass delay in its args. Counter tracks per node:
+"utilization <stage>" (busy fraction per bucket, 100 ms unless told) and "frames in <stage>"
+(frames between enter and exit). ``ts`` and ``dur`` are chosen so that int(µs * 1000), how
+Perfetto reads them, gives back the exact ns: the parts nest in their slice exactly.
 """
 
 from __future__ import annotations
@@ -20,19 +30,23 @@ from typing import IO, Iterable, Iterator
 
 import numpy as np
 
-from probes.delays import NS_PER_MS, STAGE_COLUMNS, frame_delays
+from probes.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays, busy_timeline, fill_levels, frame_delays
 from probes.events import TraceHeader
 from probes.frametable import MISSING, frame_table
 from probes.stats import unique_name
 
 FLOW_CATEGORY = "frame"
-CSV_COLUMNS = ("node", "source", "frame", "stage", "enter_ns", "exit_ns", *(f"{c}_ms" for c in STAGE_COLUMNS), "complete")
+BUCKET_NS = 100_000_000
+"""Width of the utilization counters' buckets unless told otherwise: 100 ms."""
+CSV_COLUMNS = ("node", "source", "frame", "stage", "enter_ns", "exit_ns", *(f"{c}_ms" for c in STAGE_COLUMNS), "complete",
+               "capture_ns", "glass_ms")
 
 NodeEvents = tuple[TraceHeader, np.ndarray]
 
 
-def perfetto_document(nodes: Iterable[NodeEvents]) -> dict:
-    """The whole Chrome Trace Event JSON object for the events of one or more nodes."""
+def perfetto_document(nodes: Iterable[NodeEvents], bucket_ns: int = BUCKET_NS) -> dict:
+    """The whole Chrome Trace Event JSON object for the events of one or more nodes, their
+    utilization counters per ``bucket_ns``."""
     nodes = list(nodes)
     non_empty = [ev["ts"].min() for _, ev in nodes if len(ev)]
     t0 = int(min(non_empty)) if non_empty else 0
@@ -42,7 +56,8 @@ def perfetto_document(nodes: Iterable[NodeEvents]) -> dict:
     for pid, (header, events) in enumerate(nodes, start=1):
         name = unique_name(header.node, names)
         names[name] = pid
-        trace_events += node_trace_events(header, events, pid=pid, name=name, t0_ns=t0, flow_ids=flow_ids)
+        trace_events += node_trace_events(header, events, pid=pid, name=name, t0_ns=t0, flow_ids=flow_ids,
+                                          bucket_ns=bucket_ns)
     return {
         "traceEvents": trace_events,
         "displayTimeUnit": "ms",
@@ -53,62 +68,148 @@ def perfetto_document(nodes: Iterable[NodeEvents]) -> dict:
 
 def node_trace_events(
     header: TraceHeader, events: np.ndarray, *, pid: int, t0_ns: int, name: str | None = None,
-    flow_ids: Iterator[int] | None = None,
+    flow_ids: Iterator[int] | None = None, bucket_ns: int = BUCKET_NS,
 ) -> list[dict]:
-    """Trace events of one node as process ``pid``; flow ids come from ``flow_ids``."""
+    """Trace events of one node as process ``pid``; flow ids come from ``flow_ids``;
+    utilization counters per ``bucket_ns``."""
     flow_ids = flow_ids if flow_ids is not None else iter(range(1, 1 << 62))
     fd = frame_delays(frame_table(header, events))
-    table, ch = fd.table, fd.chains
-    delay_ns, gap_ms = fd.per_stage["delay"], fd.per_stage["gap"] / NS_PER_MS
-    stages = table.stages
-    out: list[dict] = [
+    tracks = _Tracks(pid, [
         _meta("process_name", pid, 0, name=name or header.node),
         _meta("process_sort_index", pid, 0, sort_index=pid),
-    ]
-
-    def us(ns):
-        return np.round((ns - t0_ns) / 1e3, 3)
-
-    # slices[f] collects (stage, tid, start_us, dur_us) of frame f, in stage order.
-    slices: list[list[tuple]] = [[] for _ in range(len(table))]
-    tid_of: dict[tuple[int, int, int], int] = {}
-    for s, stage in enumerate(stages):
-        for sid in np.unique(table.source[ch.passed[:, s]]):
-            rows = np.flatnonzero(ch.passed[:, s] & (table.source == sid))
-            enter, exit_ = table.enter[rows, s], table.exit[rows, s]
-            is_slice = (enter != MISSING) & (exit_ != MISSING)
-            lane = np.zeros(len(rows), np.int64)
-            lane[is_slice] = assign_lanes(enter[is_slice], exit_[is_slice])
-            for k in range(int(lane.max()) + 1):
-                tid = len(tid_of) + 1
-                tid_of[(s, int(sid), k)] = tid
-                label = f"{stage} · src {sid}" + (f" #{k + 1}" if k else "")
-                out.append(_meta("thread_name", pid, tid, name=label))
-                out.append(_meta("thread_sort_index", pid, tid, sort_index=tid))
-            for i, r in enumerate(rows.tolist()):
-                tid = tid_of[(s, int(sid), int(lane[i]))]
-                args = {"source": int(sid), "frame": int(table.frame[r]), "complete": bool(ch.complete[r])}
-                gap = float(gap_ms[r, s])
-                if gap == gap:  # not NaN: the frame has a previous exit there
-                    args["gap_ms"] = gap
-                if is_slice[i]:
-                    start, dur = float(us(enter[i])), float(delay_ns[r, s]) / 1e3
-                    args["delay_ms"] = float(delay_ns[r, s]) / NS_PER_MS
-                    out.append({"ph": "X", "name": f"frame {table.frame[r]}", "cat": stage, "pid": pid,
-                                "tid": tid, "ts": start, "dur": dur, "args": args})
-                    if dur > 0:
-                        slices[r].append((tid, start, dur))
-                else:
-                    # Origin, sink, or a tracepoint whose pair was lost: a point in time.
-                    ts_ns = ch.t_out[r, s] if enter[i] == MISSING else enter[i]
-                    what = "origin" if table.origin_stage[r] == s else ("enter" if enter[i] != MISSING else "exit")
-                    args["point"] = what
-                    out.append({"ph": "i", "s": "t", "name": f"frame {table.frame[r]}", "cat": stage,
-                                "pid": pid, "tid": tid, "ts": float(us(ts_ns)), "args": args})
-    for r, chain in enumerate(slices):
+    ])
+    # chains[f] collects (tid, start_us, dur_us) of frame f's slices, in stage order.
+    chains: list[list[tuple]] = [[] for _ in range(len(fd))]
+    out: list[dict] = []
+    for s in range(len(fd.table.stages)):
+        for sid in np.unique(fd.table.source[fd.chains.passed[:, s]]):
+            out += _stage_source_events(fd, s, int(sid), tracks, t0_ns, chains)
+    out += _capture_events(fd, tracks, t0_ns)
+    out += _counter_events(fd, pid, t0_ns, bucket_ns)
+    for chain in chains:
         if len(chain) >= 2:
             out += _flow(pid, next(flow_ids), chain)
+    return tracks.events + out
+
+
+class _Tracks:
+    """Thread tracks of one process: each new one gets the next tid and its name events."""
+
+    def __init__(self, pid: int, events: list[dict]):
+        self.pid, self.events, self.count = pid, events, 0
+
+    def add(self, label: str) -> int:
+        self.count += 1
+        self.events.append(_meta("thread_name", self.pid, self.count, name=label))
+        self.events.append(_meta("thread_sort_index", self.pid, self.count, sort_index=self.count))
+        return self.count
+
+
+def _stage_source_events(fd: FrameDelays, s: int, sid: int, tracks: _Tracks, t0_ns: int,
+                         chains: list[list[tuple]]) -> list[dict]:
+    """The slices (with their wait and service parts) and instants of one source at stage ``s``,
+    on as many lanes as it needs; appends each frame's slice to its chain for the flows."""
+    table, ch, stage = fd.table, fd.chains, fd.table.stages[s]
+    rows = np.flatnonzero(ch.passed[:, s] & (table.source == sid))
+    enter, exit_ = table.enter[rows, s], table.exit[rows, s]
+    is_slice = (enter != MISSING) & (exit_ != MISSING)
+    lane = np.zeros(len(rows), np.int64)
+    lane[is_slice] = assign_lanes(enter[is_slice], exit_[is_slice])
+    tids = [tracks.add(f"{stage} · src {sid}" + (f" #{k + 1}" if k else "")) for k in range(int(lane.max()) + 1)]
+    # Instants: origin, sink, or a tracepoint whose pair was lost.
+    point_ns = np.where(enter == MISSING, ch.t_out[rows, s], enter)
+    columns = (rows.tolist(), lane.tolist(), is_slice.tolist(), _us(enter - t0_ns).tolist(),
+               _us(fd.per_stage["delay"][rows, s]).tolist(), _us(point_ns - t0_ns).tolist())
+    out = []
+    for r, k, sliced, start, dur, point in zip(*columns):
+        base = {"name": f"frame {table.frame[r]}", "cat": stage, "pid": tracks.pid, "tid": tids[k]}
+        args = _frame_args(fd, r, s)
+        if sliced:
+            out.append({"ph": "X", **base, "ts": start, "dur": dur, "args": args})
+            out += _parts(fd, r, s, {**base, "args": {"source": sid, "frame": args["frame"]}}, t0_ns)
+            if dur > 0:
+                chains[r].append((tids[k], start, dur))
+        else:
+            what = "origin" if table.origin_stage[r] == s else ("enter" if table.enter[r, s] != MISSING else "exit")
+            out.append({"ph": "i", "s": "t", **base, "ts": point, "args": {**args, "point": what}})
     return out
+
+
+def _frame_args(fd: FrameDelays, r: int, s: int) -> dict:
+    """Args of frame ``r``'s slice or instant at stage ``s``: its identity, completeness and
+    each per-stage figure it has (``delay_ms``, ``gap_ms``, ``service_ms``, ``wait_ms``)."""
+    args = {"source": int(fd.table.source[r]), "frame": int(fd.table.frame[r]), "complete": bool(fd.chains.complete[r])}
+    for name in STAGE_COLUMNS:
+        value = float(fd.per_stage[name][r, s])
+        if value == value:  # not NaN: the frame has the tracepoints this figure needs
+            args[f"{name}_ms"] = value / NS_PER_MS
+    return args
+
+
+def _parts(fd: FrameDelays, r: int, s: int, base: dict, t0_ns: int) -> list[dict]:
+    """The "wait" (enter .. enter + wait) and "service" (the rest, to the exit) slices nested
+    in frame ``r``'s slice at stage ``s``; none where the model has no service time, and none
+    of zero length."""
+    wait, service = fd.per_stage["wait"][r, s], fd.per_stage["service"][r, s]
+    if wait != wait:
+        return []
+    enter = int(fd.table.enter[r, s])
+    parts = (("wait", enter, int(wait)), ("service", enter + int(wait), int(service)))
+    return [{"ph": "X", **base, "name": name, "ts": float(_us(start - t0_ns)), "dur": float(_us(ns)),
+             "args": {**base["args"], f"{name}_ms": ns / NS_PER_MS}} for name, start, ns in parts if ns > 0]
+
+
+def _capture_events(fd: FrameDelays, tracks: _Tracks, t0_ns: int) -> list[dict]:
+    """Per source whose frames have a capture time, a track "capture · src N" with a slice per
+    frame from its capture to its origin, its glass-to-glass delay (end - capture) in args."""
+    table = fd.table
+    out = []
+    for sid in np.unique(table.source[table.capture != MISSING]).tolist():
+        rows = np.flatnonzero((table.source == sid) & (table.capture != MISSING) & (table.origin != MISSING))
+        if not len(rows):
+            continue
+        # A capture clock ahead of the node's would give a negative duration, which viewers
+        # reject: such a slice shrinks to an instant at the capture time.
+        start = table.capture[rows]
+        end = np.maximum(table.origin[rows], start)
+        lane = assign_lanes(start, end)
+        tids = [tracks.add(f"capture · src {sid}" + (f" #{k + 1}" if k else "")) for k in range(int(lane.max()) + 1)]
+        columns = (rows.tolist(), lane.tolist(), _us(start - t0_ns).tolist(), _us(end - start).tolist(),
+                   (fd.glass[rows] / NS_PER_MS).tolist())
+        for r, k, ts, dur, glass in zip(*columns):
+            args = {"source": sid, "frame": int(table.frame[r]), "complete": bool(fd.chains.complete[r])}
+            if glass == glass:
+                args["glass_ms"] = glass
+            out.append({"ph": "X", "name": "capture", "cat": "capture", "pid": tracks.pid, "tid": tids[k],
+                        "ts": ts, "dur": dur, "args": args})
+    return out
+
+
+def _counter_events(fd: FrameDelays, pid: int, t0_ns: int, bucket_ns: int) -> list[dict]:
+    """Counter tracks: "utilization <stage>" (busy fraction per bucket, from
+    :func:`probes.delays.busy_timeline`; back to 0 at the end of the span) and "frames in
+    <stage>" (:func:`probes.delays.fill_levels`)."""
+    out = []
+    timeline = busy_timeline(fd, bucket_ns)
+    if timeline.busy:
+        ts = _us(timeline.edges - t0_ns).tolist()
+        util = {stage: [*timeline.utilization(stage).tolist(), 0.0] for stage in timeline.busy}
+        out += [{"ph": "C", "name": "utilization", "cat": "counter", "pid": pid, "tid": 0, "ts": t,
+                 "args": {stage: values[i] for stage, values in util.items()}} for i, t in enumerate(ts)]
+    for s, stage in enumerate(fd.table.stages):
+        times, levels = fill_levels(fd, s)
+        out += [{"ph": "C", "name": "frames in", "cat": "counter", "pid": pid, "tid": 0, "ts": t, "args": {stage: n}}
+                for t, n in zip(_us(times - t0_ns).tolist(), levels.tolist())]
+    return out
+
+
+def _us(ns: np.ndarray | float) -> np.ndarray:
+    """Integer ns -> float µs that reads back to the same ns: viewers take int(µs * 1000)
+    (Perfetto truncates), so where the nearest double falls short, take the next one up;
+    then nested slices stay nested to the nanosecond. NaN stays NaN."""
+    ns = np.asarray(ns, dtype=np.float64)
+    us = ns / 1e3
+    return np.where(us * 1e3 < ns, np.nextafter(us, np.inf), us)
 
 
 def assign_lanes(start: np.ndarray, end: np.ndarray) -> np.ndarray:
@@ -158,6 +259,8 @@ def csv_rows(header: TraceHeader, events: np.ndarray, node: str | None = None) -
     """One row per frame per stage it passed (CSV_COLUMNS), by source, frame, stage order.
 
     At the origin stage ``exit_ns`` is the origin timestamp; missing values are empty.
+    ``capture_ns`` (the source's capture time) and ``glass_ms`` (glass-to-glass delay) are
+    the frame's, on each of its rows.
     """
     fd = frame_delays(frame_table(header, events))
     table, ch = fd.table, fd.chains
@@ -166,11 +269,12 @@ def csv_rows(header: TraceHeader, events: np.ndarray, node: str | None = None) -
     figures = [_ms_cells(fd.per_stage[name][rows, stages]) for name in STAGE_COLUMNS]
     columns = zip(
         table.source[rows].tolist(), table.frame[rows].tolist(), stages.tolist(), ch.t_in[rows, stages].tolist(),
-        ch.t_out[rows, stages].tolist(), ch.complete[rows].tolist(), *figures,
+        ch.t_out[rows, stages].tolist(), ch.complete[rows].tolist(), table.capture[rows].tolist(),
+        _ms_cells(fd.glass[rows]), *figures,
     )
-    for src, frm, s, e, x, complete, *cells in columns:
+    for src, frm, s, e, x, complete, capture, glass, *cells in columns:
         yield [node, src, frm, table.stages[s], "" if e == MISSING else e, "" if x == MISSING else x, *cells,
-               int(complete)]
+               int(complete), "" if capture == MISSING else capture, glass]
 
 
 def _ms_cells(ns: np.ndarray) -> list[str]:

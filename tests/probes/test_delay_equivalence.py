@@ -193,10 +193,11 @@ def _csv_cells(text: str) -> dict:
 
 
 def _perfetto_cells(doc: dict) -> dict:
-    """(node, source, frame, stage) -> args of its slice or instant."""
+    """(node, source, frame, stage) -> args of its slice or instant (not of the wait and service
+    parts nested in the slice, nor of capture slices)."""
     names = {e["pid"]: e["args"]["name"] for e in doc["traceEvents"] if e.get("name") == "process_name"}
     return {(names[e["pid"]], e["args"]["source"], e["args"]["frame"], e["cat"]): e["args"]
-            for e in doc["traceEvents"] if e["ph"] in ("X", "i")}
+            for e in doc["traceEvents"] if e["ph"] in ("X", "i") and e["name"].startswith("frame ")}
 
 
 def _perfetto_by_node(doc: dict) -> list[str]:
@@ -226,7 +227,8 @@ def test_exports_agree_with_each_other_and_with_the_frames_the_relay_sends(world
     for key, row in cells.items():  # every frame, complete or not
         args = slices[key]
         assert row["complete"] == str(int(args["complete"])), key
-        assert row["delay_ms"] == _ms6(args.get("delay_ms")) and row["gap_ms"] == _ms6(args.get("gap_ms")), key
+        for figure in ("delay_ms", "gap_ms", "service_ms", "wait_ms"):
+            assert row[figure] == _ms6(args.get(figure)), (key, figure)
     for node, (header, _, _, _) in world.runs.items():
         complete = {k[1:3] for k, r in cells.items() if k[0] == node and r["complete"] == "1"}
         frames = world.stored_frames[node]["frames"]

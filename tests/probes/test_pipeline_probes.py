@@ -122,7 +122,24 @@ def test_perfetto_and_csv_exports_of_a_real_trace(tmp_path):
     starts = {e["id"] for e in events if e["ph"] == "s"}
     ends = {e["id"] for e in events if e["ph"] == "f"}
     assert starts and starts == ends
+    # Each stage slice splits into its wait and service, to the nanosecond as Perfetto reads
+    # them (int(µs * 1000)); the mux makes frames wait for their batch.
+    parts = {}
+    for e in slices:
+        if e["name"] in ("wait", "service"):
+            parts[e["tid"], e["args"]["source"], e["args"]["frame"], e["cat"], e["name"]] = int(e["dur"] * 1000)
+    stage_slices = [e for e in slices if e["name"].startswith("frame ")]
+    for e in stage_slices:
+        key = (e["tid"], e["args"]["source"], e["args"]["frame"], e["cat"])
+        wait, service = parts.get((*key, "wait"), 0), parts.get((*key, "service"), 0)
+        assert (wait, service) == (round(e["args"]["wait_ms"] * 1e6), round(e["args"]["service_ms"] * 1e6))
+        assert wait + service == int(e["dur"] * 1000)
+    assert sum(1 for k in parts if k[3] == "mux" and k[4] == "wait") >= 20
+    assert {k[3] for k in parts if k[4] == "service"} == set(FIVE)
+    counters = {e["name"] for e in events if e["ph"] == "C"}
+    assert counters == {"utilization", "frames in"}
     csv = tmp_path / "t.csv"
     assert run_cli("export", tmp_path / "t.jsonl", "--format", "csv", "-o", csv, cwd=tmp_path).returncode == 0
     header, *rows = csv.read_text().splitlines()
     assert header.startswith("node,source,frame,stage") and len(rows) >= 40 * 5
+    assert "service_ms,wait_ms" in header and "capture_ns,glass_ms" in header
