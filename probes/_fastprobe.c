@@ -21,8 +21,11 @@
  * is free again. At the next exit on that pad the probe writes, per frame, a "ready" record:
  * the later of that time and the last enter (at this stage) of the frames the buffer holds,
  * which a per-stage table of recent enters gives. Work on the buffer cannot have started
- * before ready, so service = exit - ready and wait = ready - enter (probes/delays.py). A
- * "thread" fact tells which streaming thread pushes a stage's output, when it changes.
+ * before ready, so service = exit - ready and wait = ready - enter (probes/delays.py). Where
+ * the frames came in on another thread than the one that pushes them out (queue, aggregator),
+ * ready is also no earlier than exit minus the CPU time the pushing thread used since its last
+ * push returned (CLOCK_THREAD_CPUTIME_ID): waking up is not work. A "thread" fact tells which
+ * streaming thread pushes a stage's output, when it changes.
  *
  * Capture (format 2): an origin buffer that carries the sender's capture time (a reference
  * timestamp meta "timestamp/x-ntp", which rtpjitterbuffer attaches from RTCP sender reports)
@@ -67,6 +70,7 @@ _Static_assert(sizeof(DcuEvent) == 24, "DcuEvent must match probes.events.EVENT_
 typedef struct {
   _Atomic uint64_t key;
   _Atomic int64_t ts;
+  _Atomic int thread; /* the thread that brought the frame in */
 } DcuEnterSlot;
 
 typedef struct {
@@ -97,6 +101,8 @@ typedef struct {
  * and which thread pushed last. */
 typedef struct {
   _Atomic int64_t last_post;
+  _Atomic int64_t cpu_at_post; /* CPU time of the pushing thread when its last push returned */
+  _Atomic int post_thread;     /* ...and which thread that was */
   _Atomic int last_thread;
   clockid_t clock;
 } DcuPadState;
@@ -274,20 +280,29 @@ static inline DcuEnterSlot *enter_slot(DcuStageEnters *t, uint64_t key) {
   return &t->slots[(key * 0x9E3779B97F4A7C15ULL) >> 54]; /* Fibonacci hash, 10 bits */
 }
 
-static void remember_enter(DcuStageEnters *t, uint64_t key, int64_t ts) {
+static void remember_enter(DcuStageEnters *t, uint64_t key, int64_t ts, int thread) {
   DcuEnterSlot *slot = enter_slot(t, key);
   atomic_store_explicit(&slot->key, 0, memory_order_relaxed);
   atomic_thread_fence(memory_order_release);
   atomic_store_explicit(&slot->ts, ts, memory_order_relaxed);
+  atomic_store_explicit(&slot->thread, thread, memory_order_relaxed);
   atomic_store_explicit(&slot->key, key, memory_order_release);
 }
 
-static int64_t recall_enter(DcuStageEnters *t, uint64_t key) {
+/* The enter time of the frame (0 if forgotten) and the thread that brought it in. */
+static int64_t recall_enter(DcuStageEnters *t, uint64_t key, int *thread) {
   DcuEnterSlot *slot = enter_slot(t, key);
   if (atomic_load_explicit(&slot->key, memory_order_acquire) != key) return 0;
   int64_t ts = atomic_load_explicit(&slot->ts, memory_order_relaxed);
+  *thread = atomic_load_explicit(&slot->thread, memory_order_relaxed);
   atomic_thread_fence(memory_order_acquire);
   return atomic_load_explicit(&slot->key, memory_order_relaxed) == key ? ts : 0;
+}
+
+static inline int64_t thread_cpu_ns(void) {
+  struct timespec t;
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
+  return (int64_t)t.tv_sec * 1000000000LL + t.tv_nsec;
 }
 
 /* A small number for the calling thread, the same for its whole life. */
@@ -327,17 +342,30 @@ static void record_buffer(DcuProbe *p, GstBuffer *buf, int64_t ts) {
   int thread = 0;
   if (p->point == P_EXIT && p->pad_state) {
     /* The later of "the pushing thread came back from its last push" and the last enter. */
-    ready = atomic_load_explicit(&p->pad_state->last_post, memory_order_relaxed);
+    DcuPadState *st = p->pad_state;
+    ready = atomic_load_explicit(&st->last_post, memory_order_relaxed);
+    thread = this_thread();
+    gboolean handed_over = FALSE;
     for (guint i = 0; i < n; i++) {
       int64_t source = -1, frame = -1;
+      int came_on = 0;
       value_to_i64(field_item(sources, i), &source);
       value_to_i64(field_item(frames, i), &frame);
-      int64_t entered = recall_enter(p->enters, frame_key(source, frame));
+      int64_t entered = recall_enter(p->enters, frame_key(source, frame), &came_on);
       if (entered > ready) ready = entered;
+      if (entered > 0 && came_on != thread) handed_over = TRUE;
+    }
+    /* A stage that hands frames to a thread of its own (a queue, an aggregator's src thread)
+     * works only while that thread runs: its work on this buffer is at most the CPU time the
+     * thread spent since its last push returned. Waking up, or sleeping on a batch timeout,
+     * is waiting. */
+    if (handed_over && ready > 0 && atomic_load_explicit(&st->post_thread, memory_order_relaxed) == thread) {
+      int64_t since = atomic_load_explicit(&st->cpu_at_post, memory_order_relaxed);
+      int64_t busy_from = ts - (thread_cpu_ns() - since);
+      if (since > 0 && busy_from > ready) ready = busy_from;
     }
     if (ready > ts) ready = ts;
     per_frame = ready > 0 ? 2 : 1;
-    thread = this_thread();
     if (atomic_exchange_explicit(&p->pad_state->last_thread, thread, memory_order_relaxed) == thread) thread = 0;
   } else if (p->point == P_ORIGIN && p->clock == CLOCK_REALTIME) {
     capture = ntp_capture_ns(buf);
@@ -357,7 +385,7 @@ static void record_buffer(DcuProbe *p, GstBuffer *buf, int64_t ts) {
     DcuEvent ev = {ts, frame, (int32_t)source, p->stage, p->point, 0};
     ring_publish(ring, pos++, &ev);
     if (p->point == P_ENTER && p->enters && source >= 0 && frame >= 0)
-      remember_enter(p->enters, frame_key(source, frame), ts);
+      remember_enter(p->enters, frame_key(source, frame), ts, this_thread());
     if (ready > 0) {
       /* The buffer's first frame carries its size, the others minus it: its work counted once. */
       DcuEvent r = {ready, frame, (int32_t)source, p->stage, P_READY, (int8_t)(i == 0 ? group : -group)};
@@ -414,6 +442,8 @@ static inline void note_push_returned(GstPad *pad) {
   struct timespec t;
   clock_gettime(st->clock, &t);
   atomic_store_explicit(&st->last_post, (int64_t)t.tv_sec * 1000000000LL + t.tv_nsec, memory_order_relaxed);
+  atomic_store_explicit(&st->cpu_at_post, thread_cpu_ns(), memory_order_relaxed);
+  atomic_store_explicit(&st->post_thread, this_thread(), memory_order_relaxed);
 }
 
 static void on_push_post(GObject *self, GstClockTime ts, GstPad *pad, GstFlowReturn res) {
