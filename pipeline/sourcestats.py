@@ -77,8 +77,8 @@ class SourceStats:
 
 
 def source_counters(pipeline: Gst.Pipeline, stats: SourceStats | None = None) -> dict[int, SourceCounters]:
-    """Counters of every source of ``pipeline``, by framestamp ``source-id``. ``stats``: the
-    bus watcher that counts decoder drops (``decoder_dropped`` is 0 without one)."""
+    """Counters of every source of ``pipeline``, by framestamp ``source-id`` (in that order).
+    ``stats``: the bus watcher that counts decoder drops (``decoder_dropped`` is 0 without one)."""
     counters = {}
     for stamp in _recursive(pipeline, _is_framestamp):
         elements = _source_elements(stamp, pipeline)
@@ -87,7 +87,7 @@ def source_counters(pipeline: Gst.Pipeline, stats: SourceStats | None = None) ->
             lost_upstream=sum(_packets_lost(e) for e in elements if _factory(e) == JITTERBUFFER),
             decoder_dropped=stats.decoder_dropped(elements) if stats is not None else 0,
         )
-    return counters
+    return dict(sorted(counters.items()))
 
 
 def nominal_fps(pad: Gst.Pad) -> float | None:
