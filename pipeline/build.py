@@ -34,6 +34,8 @@ def build_pipeline(config: PipelineConfig) -> BuiltPipeline:
         raise config.document.error(("stages", 0), "with several sources the first stage must be a mux")
 
     clock_id = CLOCKS[config.probes.clock]
+    if mux is not None:
+        mux.set_property("clock-id", clock_id)  # its max-latency ages frames on the framestamps' clock
     sources, scaled_to = [], []
     for index, source in enumerate(config.sources):
         if mux is not None and source.width is None and source.height is None:

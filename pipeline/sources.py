@@ -78,8 +78,7 @@ class SourceBin(Gst.Bin):
         if cfg.kind == "uri":
             element = _make("uridecodebin", f"decode{self.index}")
             element.set_property("uri", cfg.location)
-            if cfg.latency_ms is not None:
-                element.connect("source-setup", self._on_source_setup)
+            element.connect("source-setup", self._on_source_setup)
         elif cfg.kind == "camera":
             element = _make("v4l2src", f"camera{self.index}")
             element.set_property("device", cfg.location)
@@ -90,8 +89,13 @@ class SourceBin(Gst.Bin):
         return element
 
     def _on_source_setup(self, _decodebin, source: Gst.Element) -> None:
-        if source.find_property("latency") is not None:
+        if self.config.latency_ms is not None and source.find_property("latency") is not None:
             source.set_property("latency", self.config.latency_ms)
+        if source.find_property("add-reference-timestamp-meta") is not None:
+            # rtspsrc: its jitter buffer then attaches each frame's capture time on the sender's
+            # clock (timestamp/x-ntp, from RTCP sender reports, once the first has come), which
+            # depayloader and decoder carry to the frame: plugins.frames.capture_ns reads it.
+            source.set_property("add-reference-timestamp-meta", True)
 
     @property
     def frames(self) -> int:

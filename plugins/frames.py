@@ -10,6 +10,10 @@ meta holds a whole batch, so no per-meta iteration is needed (PyGObject cannot i
 - detections ``timestamp/x-dcuscope-objects``: ``slot``, ``class``, ``score``, ``x1``, ``y1``,
   ``x2``, ``y2``, ``label`` arrays, boxes in pixels of the buffer they are attached to.
 
+A frame from an RTSP camera may also carry its capture time on the sender's clock, as
+GStreamer's jitter buffer attaches it: a ``GstReferenceTimestampMeta`` with caps
+``timestamp/x-ntp`` (ns since 1900), read by :func:`capture_ns`.
+
 A batch (caps ``video/x-dcuscope-batch``) holds one ``GstMemory`` per frame, each a packed
 RGB image of ``width`` x ``height`` (stride = width * 3), in slot order.
 """
@@ -27,6 +31,9 @@ from core.gst import Gst, GstVideo
 BATCH_MEDIA_TYPE = "video/x-dcuscope-batch"
 FRAMES_MEDIA_TYPE = "timestamp/x-dcuscope-frames"
 OBJECTS_MEDIA_TYPE = "timestamp/x-dcuscope-objects"
+NTP_CAPS = Gst.Caps.from_string("timestamp/x-ntp")
+NTP_UNIX_OFFSET_NS = 2_208_988_800 * 1_000_000_000
+"""From the NTP epoch (1900) to the Unix epoch (1970)."""
 FRAMES_CAPS = Gst.Caps.from_string(FRAMES_MEDIA_TYPE)
 OBJECTS_CAPS = Gst.Caps.from_string(OBJECTS_MEDIA_TYPE)
 BATCH_TEMPLATE_CAPS = Gst.Caps.from_string(
@@ -107,6 +114,14 @@ def read_frames(buf: Gst.Buffer) -> list[FrameId]:
     s = meta.reference.get_structure(0)
     sources, frames, origins = s.get_value("source"), s.get_value("frame"), s.get_value("origin")
     return [FrameId(int(a), int(b), int(c)) for a, b, c in zip(sources, frames, origins)]
+
+
+def capture_ns(buf: Gst.Buffer) -> int | None:
+    """When the frame in ``buf`` was captured, on its sender's clock, as CLOCK_REALTIME ns: the
+    ``timestamp/x-ntp`` meta an RTSP source's jitter buffer attaches (derived from the sender's
+    RTCP reports: none before the first); None without it."""
+    meta = buf.get_reference_timestamp_meta(NTP_CAPS)
+    return None if meta is None else meta.timestamp - NTP_UNIX_OFFSET_NS
 
 
 def write_objects(buf: Gst.Buffer, dets: Detections) -> None:

@@ -8,6 +8,13 @@ A stream that reaches EOS drops out while the others go on. With live sources th
 pushed after ``batched-push-timeout`` even if some cameras have nothing (a dead camera does
 not stall the others).
 
+With ``max-latency`` (ms, 0: off) a frame older than that when the mux would take it into a
+batch (age = now - its origin timestamp, on the framestamp's clock, ``clock-id``) is dropped
+instead, so that a live pipeline that cannot keep up stays real-time rather than falling ever
+further behind. Each dropped frame is posted on the bus as an element message
+``dcuscope-drop, source=(int), frame=(guint64), reason=(string)late, age-ns=(gint64)``; a batch
+left without frames is not pushed.
+
     gst-launch-1.0 mux name=m batch-size=2 width=640 height=360 ! fakesink \\
         videotestsrc num-buffers=30 ! video/x-raw,format=RGB ! m.sink_0 \\
         videotestsrc num-buffers=30 pattern=ball ! video/x-raw,format=RGB ! m.sink_1
@@ -31,6 +38,11 @@ DEFAULT_PUSH_TIMEOUT_US = 40000
 DEFAULT_WIDTH = 1280
 DEFAULT_HEIGHT = 720
 DEFAULT_LIVE_SOURCE = False
+DEFAULT_MAX_LATENCY_MS = 0  # off
+DEFAULT_CLOCK_ID = 0  # CLOCK_REALTIME, the framestamp's default
+DROP_MESSAGE = "dcuscope-drop"
+"""Name of the element message posted for each frame the mux drops."""
+LATE = "late"
 
 SINK_CAPS = Gst.Caps.from_string("video/x-raw, format=(string)RGB")
 
@@ -71,6 +83,11 @@ class Mux(AttributeProperties, GstBase.Aggregator):
                    GObject.ParamFlags.READWRITE),
         "live-source": (bool, "Live source", "The sources are live: push batches on the timeout", DEFAULT_LIVE_SOURCE,
                         GObject.ParamFlags.READWRITE),
+        "max-latency": (int, "Max latency",
+                        "Drop a frame older than this many milliseconds (now - its origin) instead of batching it "
+                        "(0: never)", 0, 2**31 - 1, DEFAULT_MAX_LATENCY_MS, GObject.ParamFlags.READWRITE),
+        "clock-id": (int, "Clock id", "Linux clock of the frames' origin timestamps, as the framestamp's clock-id: "
+                     "0 realtime, 1 monotonic, 11 tai", 0, 11, DEFAULT_CLOCK_ID, GObject.ParamFlags.READWRITE),
     }
 
     def __init__(self):
@@ -135,16 +152,33 @@ class Mux(AttributeProperties, GstBase.Aggregator):
             self._caps_sent = True
 
         out = Gst.Buffer.new()
-        ids = []
+        ids, taken = [], []
+        now = time.clock_gettime_ns(self.clock_id) if self.max_latency > 0 else 0
         for index in chosen:
             pad = pads[index]
             buf = pad.pop_buffer()
+            frames = read_frames(buf) or [self._own_identity(pad)]
+            if self.max_latency > 0 and self._dropped_late(frames, now):
+                continue
             out.append_memory(self._frame_memory(pad, buf))
-            ids.extend(read_frames(buf) or [self._own_identity(pad)])
+            ids.extend(frames)
+            taken.append(index)
+        if not taken:
+            return Gst.FlowReturn.OK  # every frame was late: no batch
         write_frames(out, ids)
-        out.pts = self._stamp(min(rt for rt, i in heads if i in chosen))
+        out.pts = self._stamp(min(rt for rt, i in heads if i in taken))
         out.duration = self._period_ns() or Gst.CLOCK_TIME_NONE
         return self.finish_buffer(out)
+
+    def _dropped_late(self, frames: list[FrameId], now: int) -> bool:
+        """Whether the input buffer holding ``frames`` is older than ``max-latency`` (by its oldest
+        frame); if so, each of its frames is posted as dropped."""
+        age = now - min(f.origin_ns for f in frames)
+        if age <= self.max_latency * 1_000_000:
+            return False
+        for f in frames:
+            self.post_message(Gst.Message.new_element(self, drop_structure(f, LATE, now - f.origin_ns)))
+        return True
 
     def _stamp(self, running_time: int) -> int:
         """The batch's PTS: its earliest frame's running time, but at least MIN_PTS_STEP_NS after
@@ -180,6 +214,13 @@ class Mux(AttributeProperties, GstBase.Aggregator):
         mem = Gst.Allocator.find(None).alloc(self.width * self.height * 3, None)
         scale_into(buf, info, mem, self.width, self.height)
         return mem
+
+
+def drop_structure(frame: FrameId, reason: str, age_ns: int) -> Gst.Structure:
+    """The ``dcuscope-drop`` message body for ``frame``, dropped for ``reason`` at ``age_ns``."""
+    return Gst.Structure.from_string(
+        f"{DROP_MESSAGE}, source=(int){frame.source}, frame=(guint64){frame.frame}, reason=(string){reason}, "
+        f"age-ns=(gint64){age_ns}")[0]
 
 
 def scale_into(buf: Gst.Buffer, info: GstVideo.VideoInfo, mem: Gst.Memory, width: int, height: int) -> None:

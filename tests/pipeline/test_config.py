@@ -185,3 +185,12 @@ def test_building_and_overrides_leave_the_config_as_it_was(tmp_path, gst_registe
     new = apply_overrides(cfg, args)
     assert (new.node, new.probes.enabled, new.probes.clock, new.sink.kind) == ("N", True, "tai", "file")
     assert repr(cfg) == before
+
+
+def test_max_latency_reaches_the_mux_which_ages_frames_on_the_probes_clock(tmp_path, gst_registered):
+    cfg = load_config(write(tmp_path, "sources: [{test: ball}]\nstages:\n  - mux: {max-latency: 150}\n"
+                                      "probes: {clock: tai}\n"))
+    built = build_pipeline(cfg)
+    mux, stamp = built.stages[0], built.sources[0].stamp
+    assert mux.get_property("max-latency") == 150
+    assert mux.get_property("clock-id") == stamp.get_property("clock-id") == 11

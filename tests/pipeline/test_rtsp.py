@@ -230,3 +230,42 @@ def test_a_wrong_rtsp_path_is_named_while_the_others_go_on(tmp_path):
     assert result.returncode == 0, result.stderr
     assert (f"source 0 (uri:rtsp://127.0.0.1:{port}/cam7) failed: Not found (Not Found (404)): the server at "
             f"127.0.0.1:{port} has no stream at /cam7: check the path; the other sources go on") in result.stderr, result.stderr
+
+
+def test_an_rtsp_frame_carries_its_capture_time_to_its_framestamp(tmp_path, gst_registered):
+    """The sender's capture time (RTCP sender reports -> the jitter buffer's timestamp/x-ntp meta)
+    survives depayloading, decoding and conversion: a realtime value just before the origin."""
+    from core.gst import Gst
+    from pipeline.build import build_pipeline
+    from pipeline.config import load_config
+    from plugins.frames import capture_ns, read_frames
+
+    port = free_port()
+    started = time.clock_gettime_ns(time.CLOCK_REALTIME)
+    server = serve(VTEST, port=port)
+    config = tmp_path / "capture.yaml"
+    config.write_text(f"sources:\n  - uri: rtsp://127.0.0.1:{port}/cam0\n    latency: 200\nstages:\n  - queue: {{}}\n")
+    built = build_pipeline(load_config(config))
+    seen = []  # (capture or None, origin, arrival)
+
+    def stamped(_pad, info):
+        buf = info.get_buffer()
+        seen.append((capture_ns(buf), read_frames(buf)[0].origin_ns, time.clock_gettime_ns(time.CLOCK_REALTIME)))
+        return Gst.PadProbeReturn.OK
+
+    built.sources[0].stamp.get_static_pad("src").add_probe(Gst.PadProbeType.BUFFER, stamped)
+    try:
+        built.pipeline.set_state(Gst.State.PLAYING)
+        deadline = time.monotonic() + 30
+        while sum(c is not None for c, _, _ in seen) < 20 and time.monotonic() < deadline:
+            time.sleep(0.1)
+    finally:
+        built.pipeline.set_state(Gst.State.NULL)
+        server.send_signal(signal.SIGINT)
+        server.wait(10)
+    timed = [(c, o, a) for c, o, a in seen if c is not None]
+    assert len(timed) >= 20, f"{len(timed)} of {len(seen)} frames had a capture time"
+    assert all(started < c < o <= a for c, o, a in timed)  # before its origin, after the server started
+    # One per frame, 100 ms apart as the server's 10 fps clip: the sender's frame times, not its reports'.
+    steps = np.diff([c for c, _, _ in timed])
+    assert abs(np.median(steps) - 100_000_000) < 1_000_000, steps

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -136,3 +138,74 @@ def test_every_batch_of_a_late_camera_keeps_its_own_frame_in_an_mp4(tmp_path):
     assert msg is not None and msg.type == Gst.MessageType.EOS, msg and msg.parse_error()
     assert len(batches) > 10  # the delay made the mux push without camera 1
     assert len(decode_video(path)) == len(batches)
+
+
+LATE_LIMIT_MS = 100
+LATE_FRAMES = 80  # per camera: 1.6 s at 50 frames/s, twice what the slow stage can take
+
+
+def run_behind(max_latency: int) -> tuple[list[tuple[int, list]], list[Gst.Structure], int]:
+    """Two live 50 fps cameras, each queued without bound after its framestamp, into a mux whose
+    batches a 40 ms stage takes: the pipeline cannot keep up. Returns the batches as the sink got
+    them (realtime ns on arrival, frame ids), the drop messages, and how many frames were stamped."""
+    import plugins
+
+    plugins.register()
+    camera = ("videotestsrc is-live=true num-buffers={n} ! video/x-raw,format=RGB,width=64,height=48,framerate=50/1 "
+              "! framestamp source-id={i} ! queue max-size-buffers=0 max-size-bytes=0 max-size-time=0 ! m.sink_{i} ")
+    pipeline = Gst.parse_launch(
+        f"mux name=m width=64 height=48 live-source=true max-latency={max_latency} "
+        "! identity sleep-time=40000 ! fakesink name=out sync=false "
+        + "".join(camera.format(n=LATE_FRAMES, i=i) for i in (0, 1)))
+    arrivals = []
+
+    def arrived(_pad, info):
+        arrivals.append((time.clock_gettime_ns(time.CLOCK_REALTIME), read_frames(info.get_buffer())))
+        return Gst.PadProbeReturn.OK
+
+    pipeline.get_by_name("out").get_static_pad("sink").add_probe(Gst.PadProbeType.BUFFER, arrived)
+    pipeline.set_state(Gst.State.PLAYING)
+    drops = []
+    while True:
+        msg = pipeline.get_bus().timed_pop_filtered(
+            60 * Gst.SECOND, Gst.MessageType.EOS | Gst.MessageType.ERROR | Gst.MessageType.ELEMENT)
+        if msg is None or msg.type != Gst.MessageType.ELEMENT:
+            break
+        if msg.get_structure().get_name() == "dcuscope-drop":
+            assert msg.src == pipeline.get_by_name("m")
+            drops.append(msg.get_structure())
+    pipeline.set_state(Gst.State.NULL)
+    assert msg is not None and msg.type == Gst.MessageType.EOS, msg and msg.parse_error()
+    return arrivals, drops, 2 * LATE_FRAMES
+
+
+def late_by(arrivals) -> list[int]:
+    """For each batch after the first: how much older than the previous batch's arrival its
+    oldest frame is. The mux takes a batch only after it has pushed the previous one (its push
+    returns once the sink has it), so with max-latency this never exceeds the limit."""
+    return [prev - min(f.origin_ns for f in ids) for (prev, _), (_, ids) in zip(arrivals, arrivals[1:])]
+
+
+def test_max_latency_drops_late_frames_and_keeps_the_delay_bounded():
+    arrivals, drops, stamped = run_behind(LATE_LIMIT_MS)
+    limit = LATE_LIMIT_MS * 1_000_000
+    delivered = [(f.source, f.frame) for _, ids in arrivals for f in ids]
+    dropped = [(d.get_value("source"), d.get_value("frame")) for d in drops]
+    assert drops and all(d.get_value("reason") == "late" and d.get_value("age-ns") > limit for d in drops)
+    # Every frame is accounted for: delivered or dropped, never both, never lost.
+    assert sorted(delivered + dropped) == [(s, f) for s in (0, 1) for f in range(LATE_FRAMES)]
+    assert len(delivered) + len(dropped) == stamped
+    assert max(late_by(arrivals)) <= limit
+    # So a frame's delay at the sink is at most the limit plus one batch's trip (measured here).
+    cycles = [b - a for (a, _), (b, _) in zip(arrivals, arrivals[1:])]
+    delays = [[t - f.origin_ns for f in ids] for t, ids in arrivals[1:]]
+    assert all(max(d) <= limit + c for d, c in zip(delays, cycles))
+
+
+def test_without_max_latency_every_frame_is_batched_and_the_delay_grows():
+    arrivals, drops, stamped = run_behind(0)
+    assert drops == [] and sum(len(ids) for _, ids in arrivals) == stamped
+    late = late_by(arrivals)
+    assert max(late) > LATE_LIMIT_MS * 1_000_000  # what max-latency prevents does happen here
+    quarter = len(late) // 4
+    assert np.mean(late[-quarter:]) > np.mean(late[:quarter]) + LATE_LIMIT_MS * 1_000_000
