@@ -216,7 +216,7 @@ def _source_lines(st: dict) -> list[str]:
         nominal = f" of {src['nominal_fps']:.2f} nominal" if src.get("nominal_fps") else ""
         dropped = ", ".join(f"{reason} {n}" for reason, n in src["dropped"].items()) or "0"
         lines.append(f"  source {sid:<7} {src['delivered']} delivered, {src['fps']:.2f} frames/s{nominal}; "
-                     f"lost upstream {src['lost_upstream']}, decoder dropped {src['decoder_dropped']}, "
+                     f"RTP packets lost {src['lost_upstream']}, decoder dropped {src['decoder_dropped']}, "
                      f"pipeline dropped {dropped}")
     if not lines:
         fps = "  ".join(f"src {k}: {v:.2f}" for k, v in st["fps"].items()) or "-"

@@ -4,20 +4,19 @@
   message ``dcuscope-drop`` (``source``, ``frame``, ``reason``) on the bus; it becomes a
   ``drop`` event at the posting element's stage. Taken as a sync message, in the posting
   thread, so no main loop is needed and none is held up.
-- Facts, read once a second on the shipping thread: each source's nominal frame rate (the
-  framerate of the caps on its framestamp's src pad), and the counters ``counters`` gives
-  (frames lost upstream, decoder drops); a fact is written when its value changes.
+- Facts, read once a second on the shipping thread from :mod:`pipeline.sourcestats`: each
+  source's nominal frame rate (the caps framerate at its framestamp), RTP packets its jitter
+  buffer lost, frames its decoder dropped; a fact is written when its value changes.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
 from core.gst import Gst
+from pipeline.sourcestats import SourceStats, source_counters
 from probes.events import (DROP, DROP_REASONS, EVENT_DTYPE, FACT, FACT_DECODER_DROPPED, FACT_LOST_UPSTREAM,
                            FACT_NOMINAL_MHZ)
 from probes.tracer import Tracer
@@ -27,33 +26,30 @@ POLL_S = 1.0
 _REASON_CODES = {name: code for code, name in DROP_REASONS.items()}
 
 
-@dataclass(frozen=True)
-class Counters:
-    """What a source's pipeline knows of the frames it lost before they got an identity."""
-
-    lost_upstream: int = 0
-    decoder_dropped: int = 0
-
-
 class SourceWatch:
     """Writes drop events and source facts of ``tracer``'s pipeline into its ring."""
 
-    def __init__(self, tracer: Tracer, pipeline: Gst.Pipeline,
-                 counters: Callable[[], dict[int, Counters]] | None = None) -> None:
-        self.tracer, self.pipeline, self.counters = tracer, pipeline, counters
-        self._stamps = [(e, i) for e, i in tracer.stage_elements.items() if i < _origin_count(tracer)]
+    def __init__(self, tracer: Tracer, pipeline: Gst.Pipeline) -> None:
+        self.tracer, self.pipeline = tracer, pipeline
+        self._origin_stage = {e.get_property("source-id"): i for e, i in tracer.stage_elements.items()
+                              if e.find_property("source-id") is not None}
+        self._stats: SourceStats | None = None
         self._last: dict[tuple[int, int], int] = {}
         self._next_poll = 0.0
         self._bus: Gst.Bus | None = None
         self._handler = 0
 
     def start(self) -> "SourceWatch":
+        self._stats = SourceStats(self.pipeline)
         self._bus = self.pipeline.get_bus()
         self._bus.enable_sync_message_emission()
         self._handler = self._bus.connect("sync-message::element", self._on_element)
         return self
 
     def stop(self) -> None:
+        if self._stats is not None:
+            self._stats.close()
+            self._stats = None
         if self._bus is not None:
             self._bus.disconnect(self._handler)
             self._bus.disable_sync_message_emission()
@@ -78,14 +74,10 @@ class SourceWatch:
             return
         self._next_poll = now + POLL_S
         facts = []
-        for stamp, stage in self._stamps:
-            source = stamp.get_property("source-id")
-            mhz = _nominal_mhz(stamp.get_static_pad("src"))
-            if mhz:
-                facts.append((source, stage, FACT_NOMINAL_MHZ, mhz))
-        by_stage = {stamp.get_property("source-id"): stage for stamp, stage in self._stamps}
-        for source, c in (self.counters() if self.counters else {}).items():
-            stage = by_stage.get(source, 0)
+        for source, c in source_counters(self.pipeline, self._stats).items():
+            stage = self._origin_stage.get(source, 0)
+            if c.nominal_fps:
+                facts.append((source, stage, FACT_NOMINAL_MHZ, round(c.nominal_fps * 1000)))
             facts += [(source, stage, FACT_LOST_UPSTREAM, c.lost_upstream),
                       (source, stage, FACT_DECODER_DROPPED, c.decoder_dropped)]
         changed = [f for f in facts if self._last.get((f[0], f[2])) != f[3]]
@@ -97,19 +89,6 @@ class SourceWatch:
 
     def _now(self) -> int:
         return self.tracer.ring.now(self.tracer.clock_id)
-
-
-def _origin_count(tracer: Tracer) -> int:
-    """Stages before the first non-origin stage: the framestamps (attach puts them first)."""
-    return sum(1 for e in tracer.stage_elements if e.get_factory() and e.get_factory().get_name() == "framestamp")
-
-
-def _nominal_mhz(pad: Gst.Pad | None) -> int:
-    caps = pad.get_current_caps() if pad is not None else None
-    if caps is None or caps.get_size() == 0:
-        return 0
-    ok, num, den = caps.get_structure(0).get_fraction("framerate")
-    return num * 1000 // den if ok and num > 0 and den > 0 else 0
 
 
 def _event(ts: int, frame: int, source: int, stage: int, point: int, code: int) -> np.ndarray:

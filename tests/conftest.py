@@ -10,6 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from tests.pipeline.lossylink import lossy_link  # noqa: F401 - a fixture, for the tests of every package
+
 REPO = Path(__file__).resolve().parents[1]
 ASSETS = REPO / "assets"
 VTEST = ASSETS / "media" / "vtest.avi"

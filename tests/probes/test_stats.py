@@ -241,7 +241,7 @@ def test_stats_cli_table_has_one_aligned_block_per_node(two_traces):
         f"{inf['utilization'] * 100:.1f}", "%", f"{inf['share'] * 100:.1f}", "%", f"{inf['occupancy']:.2f}"]
     b = st["bottleneck"]
     assert f"  {'bottleneck' if b['saturated'] else 'busiest':<14} {b['stage']}: {b['reason']}" in lines
-    assert "source 0       8 delivered, 10.00 frames/s of 10.00 nominal" in blocks[0]
+    assert "source 0       8 delivered, 10.00 frames/s of 10.00 nominal; RTP packets lost 0" in blocks[0]
     assert "16 complete, 0 incomplete" in blocks[0]
 
 
