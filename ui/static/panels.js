@@ -59,7 +59,7 @@ function sourcesHtml(sources) {
       + `<td>${int(v.lost_upstream)}</td><td>${int(v.decoder_dropped)}</td><td class="dropped">${dropped.join(" · ") || "0"}</td></tr>`;
   }).join("");
   return rows ? `<table class="stats sources"><thead><tr><th>source</th><th>delivered</th><th>fps (of nominal)</th>`
-    + `<th>lost upstream</th><th>decoder dropped</th><th>dropped (by reason)</th></tr></thead><tbody>${rows}</tbody></table>` : "";
+    + `<th>RTP packets lost</th><th>decoder dropped</th><th>dropped (by reason)</th></tr></thead><tbody>${rows}</tbody></table>` : "";
 }
 
 /**
