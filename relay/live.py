@@ -49,7 +49,7 @@ class LiveConfig:
     recent_frames: int = 4096
     """Complete frames kept for the UI and /api/frames."""
     max_open_frames: int = 200_000
-    """Open frames at most (~40 MB with 8 stages): beyond, the stalest are evicted, so that a
+    """Open frames at most (~77 MB with 8 stages, 6 cells each): beyond, the stalest are evicted, so that a
     node whose timestamps stand still cannot make the relay grow without bound."""
     exact_values: int = 262_144
     """Values per series kept exactly for whole-run percentiles (2 MB each); past it, a log

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -70,12 +71,19 @@ def test_demo_runs_two_dcus_that_report_all_five_stages(tmp_path):
         assert set(seen) == {"DCU-1", "DCU-2"}, seen.keys()
         for stats in seen.values():
             assert stats["frame"]["count"] > 0 and stats["frame"]["mean_ms"] > 0
+            # Native probes: every stage's delay splits into service and wait; the verdict is by utilization.
+            infer = stats["stages"]["infer"]
+            assert infer["service"]["count"] > 0 and infer["utilization"] is not None
+            assert stats["bottleneck"]["reason"] and stats["bottleneck"]["utilization"] is not None
         output, _ = demo.communicate(timeout=90)
     finally:
         if demo.poll() is None:
             demo.kill()
     assert demo.returncode == 0, output
     assert f"open {url}/" in output and "demo: stopped" in output and "Traceback" not in output
+    # The status line says which stage limits each DCU and how busy it is (or that none is saturated).
+    verdict = r"(bottleneck \w+ \(\d+ % busy\)|no stage saturated \(busiest \w+ \d+ % busy\))"
+    assert re.search(rf"DCU-[12]: +[\d.]+ fps, frame delay +[\d.]+ ms, {verdict}", output), output
 
 
 @pytest.mark.parametrize("how", ["SIGTERM", "SIGKILL"])
