@@ -11,7 +11,7 @@ from core.errors import PipelineError
 from core.gst import Gst
 from plugins.frames import FrameId, write_frames
 from probes import native, tracer as tracer_mod
-from probes.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
+from probes.events import ENTER, EVENT_DTYPE, EXIT, FACT, FACT_THREAD, ORIGIN, READY, TraceHeader
 from probes.ring import PythonRing
 from probes.shipper import Shipper
 from probes.tracer import attach
@@ -72,6 +72,29 @@ def test_one_event_per_frame_per_tracepoint_in_pipeline_order(backend):
         ts_along_path = mine["ts"][np.argsort(order)]
         assert (np.diff(ts_along_path) >= 0).all(), f"frame {f}: timestamps go back along the pipeline"
     assert (ev["ts"] >= h.started_ns).all()
+
+
+def test_native_exits_have_one_ready_point_each_and_thread_facts_tell_the_threads_apart():
+    tracer, ev = traced_run(MAIN, "native")
+    a, q = tracer.header.stages.index("a"), tracer.header.stages.index("q")
+
+    def at(stage, point):
+        """ts by frame of one tracepoint; each frame once."""
+        here = ev[(ev["stage"] == stage) & (ev["point"] == point)]
+        assert (here["source"] == 3).all() and sorted(here["frame"].tolist()) == list(range(20)), (stage, point)
+        return here["ts"][np.argsort(here["frame"])]
+
+    for stage in (a, q):
+        enter, ready, exit_ = at(stage, ENTER), at(stage, READY), at(stage, EXIT)
+        assert ((enter <= ready) & (ready <= exit_)).all(), stage
+        assert (ev["code"][(ev["stage"] == stage) & (ev["point"] == READY)] == 1).all()  # one frame per buffer
+    # identity works in the thread that brings the frame: nothing to wait for.
+    assert (at(a, READY) == at(a, ENTER)).all()
+    assert set(ev["stage"][ev["point"] == READY].tolist()) == {a, q}  # exits only (not origin, not sink)
+    facts = ev[(ev["point"] == FACT) & (ev["code"] == FACT_THREAD)]
+    thread = dict(zip(facts["stage"].tolist(), facts["frame"].tolist()))
+    assert len(facts) == 2 and set(thread) == {a, q}  # told once: neither stage's pushing thread changed
+    assert thread[a] != thread[q] and min(thread.values()) >= 1  # the queue pushes from its own thread
 
 
 def test_both_backends_record_the_same_events():
