@@ -1,28 +1,44 @@
-"""What a tracepoint costs: native vs Python probes, side by side.
+"""What a tracepoint and a push-post hook cost: native vs Python probes, side by side.
 
-Runs the same pipeline with no probes, with native probes and with Python probes, in
-interleaved repetitions (the order rotates every repetition, so drifting machine load hits
-every mode alike), and reports medians:
+Runs the same pipeline in four modes, each run in a fresh process, in interleaved repetitions
+(the order rotates every repetition, so drifting machine load hits every mode alike), and
+reports medians:
 
-- µs per tracepoint = (time with probes - time without) / (frames x tracepoints per frame),
-  from wall time and from the process's CPU time (steadier on a shared machine);
-- throughput lost in % = 1 - fps with probes / fps without.
+- ``none``: no probes, and no dcuscope tracer object in the process;
+- ``hooks``: the tracer exists (made by attaching probes to a throwaway pipeline, then
+  detaching them), the measured pipeline has no probes: every push of every pad runs the
+  push-post hook, whose pad-state lookup misses. The hooks cannot be switched off while the
+  native probes are on (the tracer lives as long as the process), so this is how their own
+  cost shows: ns per hook call = (time hooks - time none) / hook calls (``native.hook_calls``);
+- ``native``: the native pad probes on every stage, and the hooks (hitting on traced pads);
+  ``native`` against ``hooks`` is then what the pad probes alone add;
+- ``python``: Python pad probes (PyGObject), no tracer.
+
+Per mode: µs per tracepoint = (time with probes - time without) / (frames x tracepoints per
+frame), from wall time and from the process's CPU time (steadier on a shared machine);
+throughput lost in % = 1 - fps with probes / fps without.
 
 Scenarios: ``identity20`` (videotestsrc -> framestamp -> 20 x identity -> fakesink, 16x16
 frames: nearly free stages, so the probes' own cost shows) and ``video`` (640x480 frames
 through real conversion and scaling stages: a pipeline that does some work per frame).
 
-    PYTHONPATH=. .venv/bin/python benchmarks/bench_probes.py [--frames 2000] [--reps 5]
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_probes.py [--frames N] [--reps 5]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
 import statistics
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 from core.gst import Gst
 from probes import native
+from probes.events import EXIT
 from probes.tracer import attach
 
 SCENARIOS = {
@@ -33,7 +49,10 @@ SCENARIOS = {
              "video/x-raw,width=320,height=240 ! queue name=queue ! videoflip name=flip method=horizontal-flip ! "
              "fakesink name=sink sync=false",
 }
-MODES = ("none", "native", "python")
+FRAMES = {"identity20": 10000, "video": 2000}
+"""Default frames per run: enough for a run of the near-free chain to last about half a second."""
+MODES = ("none", "hooks", "native", "python")
+REPO = Path(__file__).resolve().parents[1]
 
 
 def register_framestamp() -> None:
@@ -44,16 +63,19 @@ def register_framestamp() -> None:
         Gst.Element.register(None, name, rank, cls.__gtype__)
 
 
-def run_once(description: str, mode: str, frames: int) -> tuple[float, float, int]:
-    """(wall s, CPU s, tracepoints per frame) of one run from PLAYING to EOS."""
+def run_once(description: str, mode: str, frames: int) -> dict:
+    """``{wall, cpu, points, hooks}`` of one run from PLAYING to EOS: seconds, tracepoints per
+    frame, push-post hook calls during the run."""
     pipe = Gst.parse_launch(description.format(frames=frames))
     tracer = None
-    if mode != "none":
+    if mode in ("native", "python"):
         tracer = attach(pipe, "bench", backend=mode, capacity=frames * 64)
+    hooks = native.hook_calls()
     wall, cpu = time.perf_counter(), time.process_time()
     pipe.set_state(Gst.State.PLAYING)
     msg = pipe.get_bus().timed_pop_filtered(600 * Gst.SECOND, Gst.MessageType.EOS | Gst.MessageType.ERROR)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    hooks = native.hook_calls() - hooks
     pipe.set_state(Gst.State.NULL)
     if msg is None or msg.type != Gst.MessageType.EOS:
         raise SystemExit(f"{mode}: pipeline failed: {msg.parse_error() if msg else 'timeout'}")
@@ -62,55 +84,91 @@ def run_once(description: str, mode: str, frames: int) -> tuple[float, float, in
         points = tracer.tracepoints
         events, stats = tracer.drain(), tracer.stats()
         tracer.detach()
-        # Every tracepoint must have fired once per frame, or the cost per tracepoint is wrong.
-        if len(events) != frames * points or stats.dropped or stats.unidentified:
-            raise SystemExit(f"{mode}: {len(events)} events for {frames} frames x {points} tracepoints, "
+        # Every tracepoint must have fired once per frame, or the cost per tracepoint is wrong
+        # (native probes also write ready points and thread facts: not tracepoint hits).
+        hits = int((events["point"] <= EXIT).sum())
+        if hits != frames * points or stats.dropped or stats.unidentified:
+            raise SystemExit(f"{mode}: {hits} events for {frames} frames x {points} tracepoints, "
                              f"{stats.dropped} dropped, {stats.unidentified} unidentified")
-    return wall, cpu, points
+    return {"wall": wall, "cpu": cpu, "points": points, "hooks": hooks}
+
+
+def child(scenario: str, mode: str, frames: int) -> None:
+    """One measured run in this (fresh) process; prints its figures as JSON."""
+    register_framestamp()
+    description = SCENARIOS[scenario]
+    if mode == "hooks":
+        # Make the tracer (its hooks stay for the life of the process), then trace nothing.
+        throwaway = Gst.parse_launch(description.format(frames=1))
+        attach(throwaway, "bench", backend="native").detach()
+    run_once(description, "none" if mode == "hooks" else mode, 20)  # warm-up: plugins, first calls
+    print(json.dumps(run_once(description, "none" if mode == "hooks" else mode, frames)))
+
+
+def spawn(scenario: str, mode: str, frames: int) -> dict:
+    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    res = subprocess.run([sys.executable, __file__, "--child", scenario, mode, str(frames)],
+                         capture_output=True, text=True, env=env, cwd=REPO)
+    if res.returncode != 0:
+        raise SystemExit(f"{scenario}/{mode}: {res.stderr.strip() or res.stdout.strip()}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def per_unit(samples: dict, mode: str, base: str, units: float, key: str) -> list[float]:
+    """µs per unit of (mode - base), paired by repetition: slow drifts of the machine's load
+    cancel out; the spread shows what is left of the noise."""
+    return [(s[key] - b[key]) / units * 1e6 for s, b in zip(samples[mode], samples[base])]
+
+
+def report(name: str, frames: int, samples: dict) -> None:
+    med = {m: statistics.median(s["wall"] for s in runs) for m, runs in samples.items()}
+    points = samples["native"][0]["points"]
+    hooks = statistics.median(s["hooks"] for s in samples["hooks"])
+    reps = len(samples["none"])
+    print(f"\n== {name}: {frames} frames, {points} tracepoints and {hooks / frames:.0f} push-post hook calls per "
+          f"frame, {reps} interleaved repetitions (a fresh process each), medians")
+    print(f"no-probe time per frame: {med['none'] / frames * 1e6:.1f} µs")
+    print(f"{'mode':7} {'fps':>8} {'x none':>7} {'lost %':>7} {'cost per unit, wall [min..max]':>34} {'CPU':>8}")
+    print(f"{'none':7} {frames / med['none']:8.0f} {1:7.3f}")
+    units = {"hooks": ("ns/hook", hooks, 1000), "native": ("µs/tracepoint", frames * points, 1),
+             "python": ("µs/tracepoint", frames * points, 1)}
+    for m, (label, n, scale) in units.items():
+        wall = [v * scale for v in per_unit(samples, m, "none", n, "wall")]
+        cpu = statistics.median(per_unit(samples, m, "none", n, "cpu")) * scale
+        spread = f"{label} {statistics.median(wall):.2f} [{min(wall):.2f}..{max(wall):.2f}]"
+        print(f"{m:7} {frames / med[m]:8.0f} {med['none'] / med[m]:7.3f} {(1 - med['none'] / med[m]) * 100:7.2f} "
+              f"{spread:>34} {cpu:8.2f}")
+    pads = per_unit(samples, "native", "hooks", frames * points, "wall")
+    pads_cpu = statistics.median(per_unit(samples, "native", "hooks", frames * points, "cpu"))
+    print(f"pad probes alone (native - hooks): {statistics.median(pads):.3f} µs/tracepoint wall, {pads_cpu:.3f} CPU; "
+          f"fps native / hooks {med['hooks'] / med['native']:.3f}")
+    native_us = statistics.median(per_unit(samples, "native", "none", frames * points, "cpu"))
+    python_us = statistics.median(per_unit(samples, "python", "none", frames * points, "cpu"))
+    if native_us > 0:
+        print(f"python / native cost per tracepoint: {python_us / native_us:.0f}x (CPU)")
 
 
 def bench(name: str, frames: int, reps: int) -> None:
-    description = SCENARIOS[name]
-    run_once(description, "native", 20)  # warm-up: plugin loading, first-call costs
     samples = {m: [] for m in MODES}
-    points = 0
     for rep in range(reps):
-        order = MODES[rep % 3:] + MODES[: rep % 3]
-        for mode in order:
-            wall, cpu, p = run_once(description, mode, frames)
-            samples[mode].append((wall, cpu))
-            points = p or points
-    wall = {m: statistics.median(w for w, _ in s) for m, s in samples.items()}
-    print(f"\n== {name}: {frames} frames, {points} tracepoints per frame, {reps} interleaved repetitions, medians")
-    print(f"no-probe time per frame: {wall['none'] / frames * 1e6:.1f} µs")
-    print(f"{'mode':8} {'fps':>8} {'lost %':>7} {'µs/tracepoint wall [min..max]':>31} {'µs/tracepoint CPU':>18}")
-    print(f"{'none':8} {frames / wall['none']:8.0f}")
-    per_point = {}
-    for m in MODES[1:]:
-        # Paired with the no-probe run of the same repetition: slow drifts of the machine's
-        # load cancel out; the spread shows what is left of the noise.
-        us_wall = [(w - w0) / (frames * points) * 1e6 for (w, _), (w0, _) in zip(samples[m], samples["none"])]
-        us_cpu = [(c - c0) / (frames * points) * 1e6 for (_, c), (_, c0) in zip(samples[m], samples["none"])]
-        per_point[m] = (statistics.median(us_wall), statistics.median(us_cpu))
-        lost = (1 - wall["none"] / wall[m]) * 100
-        spread = f"{per_point[m][0]:.2f} [{min(us_wall):.2f}..{max(us_wall):.2f}]"
-        print(f"{m:8} {frames / wall[m]:8.0f} {lost:7.1f} {spread:>31} {per_point[m][1]:18.2f}")
-    (nw, nc), (pw, pc) = per_point["native"], per_point["python"]
-    if nw > 0 and nc > 0:
-        print(f"python / native cost per tracepoint: {pw / nw:.0f}x (wall), {pc / nc:.0f}x (CPU)")
+        for mode in MODES[rep % len(MODES):] + MODES[: rep % len(MODES)]:
+            samples[mode].append(spawn(name, mode, frames))
+    report(name, frames, samples)
 
 
 def main() -> None:
+    if len(sys.argv) == 5 and sys.argv[1] == "--child":
+        child(sys.argv[2], sys.argv[3], int(sys.argv[4]))
+        return
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--frames", type=int, default=2000)
+    parser.add_argument("--frames", type=int, help=f"frames per run (default: {FRAMES})")
     parser.add_argument("--reps", type=int, default=5)
     parser.add_argument("--scenario", choices=[*SCENARIOS, "all"], default="all")
     args = parser.parse_args()
     if native.load() is None:
         raise SystemExit(f"native probes unavailable: {native.unavailable_reason()}")
-    register_framestamp()
     for name in SCENARIOS if args.scenario == "all" else [args.scenario]:
-        bench(name, args.frames, args.reps)
+        bench(name, args.frames or FRAMES[name], args.reps)
 
 
 if __name__ == "__main__":

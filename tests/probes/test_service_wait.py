@@ -19,7 +19,9 @@ import pytest
 from probes.delays import SATURATED, frame_delays, node_stats
 from probes.frametable import MISSING, frame_table
 from probes.tracefile import Trace, read_trace
-from tests.conftest import ASSETS, BIKES, VTEST, run_cli
+from tests.conftest import BIKES, VTEST, run_cli
+
+pytestmark = pytest.mark.slow  # four runs of the real model, ~50 s in all
 
 CLIPS = f"""\
 sources:
@@ -29,9 +31,9 @@ sources:
   - {{uri: {BIKES}, loop: true, rate: 10}}
 """
 """configs/quad.yaml's four cameras: clips decoded as fast as the pipeline takes them."""
-SLEEP_US = 150_000
+SLEEP_US = 200_000
 """(b): the inserted identity's sleep: several times what CenterNet costs per frame when it runs
-on one batch in four (``interval: 3``), even on a loaded machine."""
+on one batch in five (``interval: 4``), even on a loaded machine."""
 
 
 def probed_run(directory: Path, yaml: str, *limit: str) -> Trace:
@@ -70,37 +72,37 @@ stages:
 
 @pytest.fixture(scope="module")
 def slow_identity(tmp_path_factory) -> dict:
-    """(b): one small camera, infer on one frame in four, an identity sleeping SLEEP_US after the tiler."""
+    """(b): one small camera, infer on one frame in five, an identity sleeping SLEEP_US after the tiler."""
     trace = probed_run(tmp_path_factory.mktemp("slow"), f"""\
 sources:
   - {{uri: {VTEST}, loop: true}}
 stages:
   - mux: {{batch-size: 1, width: 320, height: 240}}
-  - infer: {{threshold: 0.3, interval: 3}}
+  - infer: {{threshold: 0.3, interval: 4}}
   - tiler: {{rows: 1, columns: 1, width: 320, height: 240}}
   - factory: identity
     name: slow
     properties: {{sleep-time: {SLEEP_US}}}
   - convert: {{format: RGBA}}
   - osd: {{}}
-""", "--num-frames", "40")
+""", "--num-frames", "30")
     return stats(trace)
 
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory) -> dict:
-    """(c): two live cameras at 2 frames/s, small frames: CenterNet keeps up."""
+    """(c): a live camera at 1 frame/s, small frames: CenterNet keeps up, even on a machine loaded
+    so that it takes 5x as long (270 ms a frame, measured at a load average of 12 on 2 cores)."""
     trace = probed_run(tmp_path_factory.mktemp("live"), """\
 sources:
-  - {test: ball, live: true, width: 320, height: 240, rate: 2}
-  - {test: smpte, live: true, width: 320, height: 240, rate: 2}
+  - {test: ball, live: true, width: 320, height: 240, rate: 1}
 stages:
-  - mux: {batch-size: 2, width: 320, height: 240}
+  - mux: {batch-size: 1, width: 320, height: 240}
   - infer: {threshold: 0.3}
-  - tiler: {rows: 1, columns: 2, width: 640, height: 240}
+  - tiler: {rows: 1, columns: 1, width: 320, height: 240}
   - convert: {format: RGBA}
   - osd: {}
-""", "--duration", "6")
+""", "--duration", "7")
     return stats(trace)
 
 
@@ -134,8 +136,10 @@ def test_quad_bottleneck_is_infer_saturated_not_the_mux_where_frames_wait(quad):
     stages, neck = node["stages"], node["bottleneck"]
     assert node["frames"]["complete"] >= 40
     assert neck["stage"] == "infer", neck
-    assert neck["saturated"] is True and neck["utilization"] >= SATURATED, neck
-    assert "limits throughput" in neck["reason"]
+    # Saturated: its thread (infer, then tiler, convert and osd) is busy >= 90 % of the time, and
+    # infer's own work is nearly all of it (0.95 of the time on a quiet machine).
+    assert neck["saturated"] is True and neck["thread_utilization"] >= SATURATED, neck
+    assert neck["utilization"] >= 0.8 and "limits throughput" in neck["reason"]
     # Where frames spend their time is the mux: waiting for infer, not working.
     mux = stages["mux"]
     assert mux["mean_ms"] > stages["infer"]["mean_ms"]
@@ -161,7 +165,7 @@ def test_the_identity_service_is_its_sleep_and_the_waits_pile_up_upstream(slow_i
     assert slow["count"] >= 30
     # Its thread is free when a frame comes (nothing to wait for); the sleep lies in its service.
     assert mean(slow, "wait") < 0.01
-    assert slow["service"]["p50_ms"] - sleep_ms == pytest.approx(0.25, abs=0.25)
+    assert 0 <= slow["service"]["p50_ms"] - sleep_ms < 1.0
     assert mean(slow, "service") >= sleep_ms
     # Upstream, frames wait for the thread that sleeps: at the mux, most of a cycle.
     assert mean(stages["mux"], "wait") > 0.5 * sleep_ms
@@ -174,7 +178,7 @@ def test_the_identity_service_is_its_sleep_and_the_waits_pile_up_upstream(slow_i
 
 def test_live_sources_the_machine_keeps_up_with_saturate_no_stage(live):
     neck = live["bottleneck"]
-    assert live["frames"]["complete"] >= 10
+    assert live["frames"]["complete"] >= 5
     assert neck["saturated"] is False, neck
     assert neck["thread_utilization"] < SATURATED
     assert neck["reason"].startswith("no stage is saturated"), neck["reason"]
@@ -189,7 +193,8 @@ def test_a_queue_upstream_of_the_bottleneck_only_waits(queued):
     assert neck["stage"] == "infer" and neck["saturated"] is True, neck
     before = stages["before"]
     assert before["mean_ms"] > stages["infer"]["mean_ms"]  # full: the largest share, yet no work
-    assert mean(before, "service") < 1.0 and mean(before, "service") < 0.01 * before["mean_ms"]
+    assert mean(before, "service") < 0.01 * before["mean_ms"]
+    assert mean(before, "service") < 0.01 * mean(stages["infer"], "service")
     assert before["utilization"] < 0.05
 
 
