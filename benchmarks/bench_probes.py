@@ -1,6 +1,6 @@
 """What a tracepoint and a push-post hook cost: native vs Python probes, side by side.
 
-Runs the same pipeline in four modes, each run in a fresh process, in interleaved repetitions
+Runs the same pipeline in five modes, each run in a fresh process, in interleaved repetitions
 (the order rotates every repetition, so drifting machine load hits every mode alike), and
 reports medians:
 
@@ -10,6 +10,10 @@ reports medians:
   push-post hook, whose pad-state lookup misses. The hooks cannot be switched off while the
   native probes are on (the tracer lives as long as the process), so this is how their own
   cost shows: ns per hook call = (time hooks - time none) / hook calls (``native.hook_calls``);
+- ``tracing``: no probes, GStreamer's tracing switched on by a tracer of its own that hooks
+  no data flow (``GST_TRACERS=factories``: element creation only). Once any tracer hook exists,
+  every hook site of the core (pushes, chains, queries, buffer refs) looks up its hooks; so
+  ``hooks`` against ``tracing`` is what our hook's body adds to that;
 - ``native``: the native pad probes on every stage, and the hooks (hitting on traced pads);
   ``native`` against ``hooks`` is then what the pad probes alone add;
 - ``python``: Python pad probes (PyGObject), no tracer.
@@ -51,7 +55,7 @@ SCENARIOS = {
 }
 FRAMES = {"identity20": 10000, "video": 2000}
 """Default frames per run: enough for a run of the near-free chain to last about half a second."""
-MODES = ("none", "hooks", "native", "python")
+MODES = ("none", "tracing", "hooks", "native", "python")
 REPO = Path(__file__).resolve().parents[1]
 
 
@@ -101,12 +105,15 @@ def child(scenario: str, mode: str, frames: int) -> None:
         # Make the tracer (its hooks stay for the life of the process), then trace nothing.
         throwaway = Gst.parse_launch(description.format(frames=1))
         attach(throwaway, "bench", backend="native").detach()
-    run_once(description, "none" if mode == "hooks" else mode, 20)  # warm-up: plugins, first calls
-    print(json.dumps(run_once(description, "none" if mode == "hooks" else mode, frames)))
+    run_once(description, "none" if mode in ("hooks", "tracing") else mode, 20)  # warm-up: plugins, first calls
+    print(json.dumps(run_once(description, "none" if mode in ("hooks", "tracing") else mode, frames)))
 
 
 def spawn(scenario: str, mode: str, frames: int) -> dict:
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    env.pop("GST_TRACERS", None)
+    if mode == "tracing":
+        env["GST_TRACERS"] = "factories"
     res = subprocess.run([sys.executable, __file__, "--child", scenario, mode, str(frames)],
                          capture_output=True, text=True, env=env, cwd=REPO)
     if res.returncode != 0:
@@ -130,7 +137,7 @@ def report(name: str, frames: int, samples: dict) -> None:
     print(f"no-probe time per frame: {med['none'] / frames * 1e6:.1f} µs")
     print(f"{'mode':7} {'fps':>8} {'x none':>7} {'lost %':>7} {'cost per unit, wall [min..max]':>34} {'CPU':>8}")
     print(f"{'none':7} {frames / med['none']:8.0f} {1:7.3f}")
-    units = {"hooks": ("ns/hook", hooks, 1000), "native": ("µs/tracepoint", frames * points, 1),
+    units = {"tracing": ("ns/hook", hooks, 1000), "hooks": ("ns/hook", hooks, 1000), "native": ("µs/tracepoint", frames * points, 1),
              "python": ("µs/tracepoint", frames * points, 1)}
     for m, (label, n, scale) in units.items():
         wall = [v * scale for v in per_unit(samples, m, "none", n, "wall")]
@@ -138,6 +145,10 @@ def report(name: str, frames: int, samples: dict) -> None:
         spread = f"{label} {statistics.median(wall):.2f} [{min(wall):.2f}..{max(wall):.2f}]"
         print(f"{m:7} {frames / med[m]:8.0f} {med['none'] / med[m]:7.3f} {(1 - med['none'] / med[m]) * 100:7.2f} "
               f"{spread:>34} {cpu:8.2f}")
+    body = per_unit(samples, "hooks", "tracing", hooks, "wall")
+    body_cpu = statistics.median(per_unit(samples, "hooks", "tracing", hooks, "cpu"))
+    print(f"our hook's body (hooks - tracing): {statistics.median(body) * 1000:.1f} ns/hook wall, "
+          f"{body_cpu * 1000:.1f} CPU; fps hooks / tracing {med['tracing'] / med['hooks']:.3f}")
     pads = per_unit(samples, "native", "hooks", frames * points, "wall")
     pads_cpu = statistics.median(per_unit(samples, "native", "hooks", frames * points, "cpu"))
     print(f"pad probes alone (native - hooks): {statistics.median(pads):.3f} µs/tracepoint wall, {pads_cpu:.3f} CPU; "
