@@ -50,7 +50,8 @@
 enum { P_ORIGIN = 0, P_ENTER = 1, P_EXIT = 2, P_READY = 3, P_CAPTURE = 4, P_FACT = 6 };
 enum { FACT_THREAD = 1 };
 #define MAX_STAGES 256
-#define ENTER_SLOTS 1024 /* recent enters remembered per stage: more than any batch or queue */
+#define ENTER_SETS 256 /* recent enters remembered per stage: 256 sets of 4 slots */
+#define ENTER_WAYS 4
 #define MAX_GROUP 127
 
 typedef struct {
@@ -65,8 +66,10 @@ typedef struct {
 _Static_assert(sizeof(DcuEvent) == 24, "DcuEvent must match probes.events.EVENT_DTYPE");
 
 /* The last enter of recent frames at one stage, by frame key: written by enter probes, read by
- * exit probes. A slot is (key, ts); a reader checks the key before and after reading ts, so a
- * slot overwritten meanwhile reads as absent, never as another frame's time. */
+ * exit probes. 4-way sets: a frame's enter is lost only when four frames of its set entered
+ * after it and it has still not left. A slot is (key, ts); a reader checks the key before and
+ * after reading ts, so a slot overwritten meanwhile reads as absent, never as another frame's
+ * time. Two enter probes of one stage racing for one slot may lose one of the two frames. */
 typedef struct {
   _Atomic uint64_t key;
   _Atomic int64_t ts;
@@ -74,7 +77,7 @@ typedef struct {
 } DcuEnterSlot;
 
 typedef struct {
-  DcuEnterSlot slots[ENTER_SLOTS];
+  DcuEnterSlot slots[ENTER_SETS][ENTER_WAYS];
 } DcuStageEnters;
 
 /* One slot: the record plus its sequence number (Vyukov). seq == pos: free for the producer
@@ -276,12 +279,25 @@ static inline uint64_t frame_key(int64_t source, int64_t frame) {
   return (((uint64_t)source << 40) | ((uint64_t)frame & ((1ULL << 40) - 1))) + 1;
 }
 
-static inline DcuEnterSlot *enter_slot(DcuStageEnters *t, uint64_t key) {
-  return &t->slots[(key * 0x9E3779B97F4A7C15ULL) >> 54]; /* Fibonacci hash, 10 bits */
+static inline DcuEnterSlot *enter_set(DcuStageEnters *t, uint64_t key) {
+  return t->slots[(key * 0x9E3779B97F4A7C15ULL) >> 56]; /* Fibonacci hash, 8 bits */
+}
+
+/* Where to write key: its own slot, else an empty one, else the oldest of the set (the frame
+ * most likely gone already). */
+static DcuEnterSlot *slot_for(DcuStageEnters *t, uint64_t key) {
+  DcuEnterSlot *set = enter_set(t, key), *oldest = &set[0];
+  for (int w = 0; w < ENTER_WAYS; w++) {
+    uint64_t k = atomic_load_explicit(&set[w].key, memory_order_relaxed);
+    if (k == key || k == 0) return &set[w];
+    if (atomic_load_explicit(&set[w].ts, memory_order_relaxed) < atomic_load_explicit(&oldest->ts, memory_order_relaxed))
+      oldest = &set[w];
+  }
+  return oldest;
 }
 
 static void remember_enter(DcuStageEnters *t, uint64_t key, int64_t ts, int thread) {
-  DcuEnterSlot *slot = enter_slot(t, key);
+  DcuEnterSlot *slot = slot_for(t, key);
   atomic_store_explicit(&slot->key, 0, memory_order_relaxed);
   atomic_thread_fence(memory_order_release);
   atomic_store_explicit(&slot->ts, ts, memory_order_relaxed);
@@ -291,12 +307,16 @@ static void remember_enter(DcuStageEnters *t, uint64_t key, int64_t ts, int thre
 
 /* The enter time of the frame (0 if forgotten) and the thread that brought it in. */
 static int64_t recall_enter(DcuStageEnters *t, uint64_t key, int *thread) {
-  DcuEnterSlot *slot = enter_slot(t, key);
-  if (atomic_load_explicit(&slot->key, memory_order_acquire) != key) return 0;
-  int64_t ts = atomic_load_explicit(&slot->ts, memory_order_relaxed);
-  *thread = atomic_load_explicit(&slot->thread, memory_order_relaxed);
-  atomic_thread_fence(memory_order_acquire);
-  return atomic_load_explicit(&slot->key, memory_order_relaxed) == key ? ts : 0;
+  DcuEnterSlot *set = enter_set(t, key);
+  for (int w = 0; w < ENTER_WAYS; w++) {
+    DcuEnterSlot *slot = &set[w];
+    if (atomic_load_explicit(&slot->key, memory_order_acquire) != key) continue;
+    int64_t ts = atomic_load_explicit(&slot->ts, memory_order_relaxed);
+    *thread = atomic_load_explicit(&slot->thread, memory_order_relaxed);
+    atomic_thread_fence(memory_order_acquire);
+    if (atomic_load_explicit(&slot->key, memory_order_relaxed) == key) return ts;
+  }
+  return 0;
 }
 
 static inline int64_t thread_cpu_ns(void) {
