@@ -4,7 +4,8 @@
 
 One panel per series (input kind x frame rate x bitrate), one row per input kind, each with a
 stacked bar per stream count (the stages in the legend colours of the UI: mux red, infer blue,
-tiler yellow, convert green, osd purple; the waits between stages grey) and the A = S/n line.
+tiler yellow, convert green, osd purple; the waits between stages grey) and the A = S/n line;
+under each bar the frames/s per stream; inside its foot the share of frames the mux dropped late.
 Drawn with OpenCV so that the project needs no plotting library.
 """
 
@@ -97,6 +98,9 @@ def draw_panel(img: np.ndarray, x0: int, y0: int, results: list[dict], counts: l
         sat = r.get("saturated")
         _text(img, f"{r['achieved_fps']:.1f} fps{' saturated' if sat else ''}", (cx, lower + 36), 0.38,
               SATURATED if sat else INK, anchor="center")
+        late, delivered = sum((r.get("late") or {}).values()), sum((r.get("delivered") or {}).values())
+        if late and delivered and base > 0:  # inside the bar's foot: the axis labels leave no room
+            _text(img, f"{late / delivered:.0%} late", (cx, lower - 8), 0.42, (255, 255, 255), anchor="center")
     for (xa, ya, _), (xb, yb, _) in zip(points, points[1:]):
         cv2.line(img, (xa, ya), (xb, yb), INK, 2, cv2.LINE_AA)
     for x, y, r in points:

@@ -1,25 +1,36 @@
 """Streams sweep: the paper's Tables 4-6 (A = S/n per stream count) and Figure 12 (per-stage
-delays vs stream count), measured on this machine.
+delays vs stream count), measured on this machine, with each stage's delay split into service
+and wait and the stage that limits throughput.
 
     .venv/bin/python benchmarks/streams_sweep.py                  # full sweep (long)
     .venv/bin/python benchmarks/streams_sweep.py --quick          # 3982 kbit/s, 30 fps, 1-2 streams, 8 s runs
-    benchmarks/streams_sweep --model ssd --rates 30,60 --bitrates-at 60=3982 --max-streams 3 \\
-        --all-streams --duration 15 --plot docs/streams_sweep.png   # BENCHMARKS.md's run, ~15 min
+    benchmarks/streams_sweep --model ssd --rates 30 --bitrates 4971 --max-streams 3 --all-streams \\
+        --kinds file,rtsp,rtsp-late --duration 15 --warmup 5 --plot docs/streams_sweep.png   # BENCHMARKS.md's run
 
 1. Clips. 1920x1080 H.264 clips at each frame rate and bitrate are made from the shipped
    clips (vtest.avi, bikes.mp4) with GStreamer (videoscale, videorate, x264enc, mp4mux) into
    a cache folder (default build/sweep-clips/); clips already there are kept.
 2. Runs. For each input kind (``file``: local files played in real time by a synchronised
-   sink; ``rtsp``: the same clips served live by ``dcuscope serve-rtsp`` on loopback), frame
-   rate, bitrate and stream count 1..N, a config mux(batch-size=N, 1920x1080) -> infer ->
-   tiler -> convert -> osd -> fakesink is written and run by ``dcuscope run --probes`` for
-   ``--duration`` seconds, in its own process. The first ``--warmup`` seconds of frames are
-   left out; the rest give A = S/n (the mean frame delay), p95, fps per stream and the mean
-   delay of every stage. A series stops at the first stream count whose fps per stream is
-   under 90 % of the clip's rate (saturated) unless ``--all-streams``.
+   sink; ``rtsp``: the same clips served live by ``dcuscope serve-rtsp`` on loopback;
+   ``rtsp-late``: the same, with the mux's ``max-latency`` set to ``--late-ms``, so that it
+   drops frames older than that instead of batching them), frame rate, bitrate and stream
+   count 1..N, a config mux(batch-size=N, 1920x1080) -> infer -> tiler -> convert -> osd ->
+   fakesink is written and run by ``dcuscope run --probes`` for ``--duration`` seconds, in its
+   own process. The first ``--warmup`` seconds of frames are left out; the rest give, through
+   ``probes.delays.node_stats``: A = S/n (the mean frame delay of the frames that reached the
+   sink), p95, fps per stream, every stage's mean delay, mean service and mean wait (delay =
+   service + wait) and utilization, the bottleneck (the stage that limits throughput), and
+   the frames each stream lost to ``max-latency``. A series stops at the first stream count
+   whose fps per stream is under 90 % of the clip's rate (saturated) unless ``--all-streams``.
 3. Output. Markdown tables (one per bitrate like the paper's Tables 4-6, and the per-stage
    data of Figure 12) on stdout and in ``--out``; the raw results as JSON next to it; a PNG
    plot (``--plot``, drawn by benchmarks/plot.py).
+
+``--late-ms`` defaults to 200 ms: 6 frame periods at 30 fps. A live pipeline that keeps up
+holds a frame far less than that between its decoder and the mux (BENCHMARKS.md: under 1 ms
+mean, 10 ms at p99, with 200 ms of rtspsrc latency; under 100 ms at p99 with its default
+2000 ms), while one that falls behind builds a backlog of seconds; 200 ms lets the first
+through untouched and cuts the second.
 """
 
 from __future__ import annotations
@@ -47,7 +58,7 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
 from probes.delays import node_stats  # noqa: E402
-from probes.events import ORIGIN  # noqa: E402
+from probes.events import DROP_REASONS, FACT, LATE, ORIGIN  # noqa: E402
 from probes.tracefile import Trace, read_trace  # noqa: E402
 
 MEDIA = ROOT / "assets" / "media"
@@ -55,7 +66,10 @@ MODELS = {"centernet": ROOT / "assets" / "models" / "centernet_mobilenetv3_coco8
           "ssd": ROOT / "assets" / "models" / "ssdlite_mobilenetv2_person.onnx"}
 CLIP_SOURCES = ("vtest.avi", "bikes.mp4")
 """Stream i plays a clip made from CLIP_SOURCES[i % 2]."""
-KINDS = ("file", "rtsp")
+KINDS = ("file", "rtsp", "rtsp-late")
+"""Input kinds: local files; RTSP on loopback; RTSP with the mux dropping late frames."""
+DEFAULT_LATE_MS = 200
+"""The mux's max-latency of the ``rtsp-late`` kind (module docstring: why 200)."""
 BITRATES = (3982, 4971, 7955)
 """kbit/s of the paper's clips; its Tables 4, 5 and 6."""
 RATES = (30, 60)
@@ -169,8 +183,9 @@ def grid(streams: int) -> tuple[int, int]:
     return math.ceil(streams / columns), columns
 
 
-def config_text(kind: str, uris: list[str], fps: int, model: str) -> str:
-    """A dcuscope YAML config for one run: the paper's chain over ``uris`` at 1080p."""
+def config_text(kind: str, uris: list[str], fps: int, model: str, late_ms: int = DEFAULT_LATE_MS) -> str:
+    """A dcuscope YAML config for one run: the paper's chain over ``uris`` at 1080p; ``late_ms``
+    is the mux's max-latency of the ``rtsp-late`` kind."""
     n = len(uris)
     rows, columns = grid(n)
     if kind == "file":
@@ -181,8 +196,9 @@ def config_text(kind: str, uris: list[str], fps: int, model: str) -> str:
     else:
         sources = "\n".join(f"  - {{uri: '{u}'}}" for u in uris)
         # nvstreammux's advice: batched-push-timeout = one frame period of the fastest source.
+        late = f", max-latency: {late_ms}" if kind == "rtsp-late" else ""
         mux = (f"{{batch-size: {n}, width: {WIDTH}, height: {HEIGHT}, live-source: true, "
-               f"batched-push-timeout: {1_000_000 // fps}}}")
+               f"batched-push-timeout: {1_000_000 // fps}{late}}}")
         # Live sources pace themselves; a synchronised sink would only add the jitter buffer's
         # latency as a wait after the last tracepoint, as in configs/rtsp.yaml.
         sink = "{type: fake}"
@@ -298,7 +314,9 @@ def run_pipeline(config: Path, trace: Path, duration: float) -> tuple[int, str]:
 
 # -- measurement (pure) ------------------------------------------------------------------------
 def after_warmup(events: np.ndarray, warmup_s: float) -> np.ndarray:
-    """The events of the frames that originated ``warmup_s`` or more after the first origin."""
+    """The events of the frames that originated ``warmup_s`` or more after the first origin, and
+    every fact (which thread pushes each stage: the bottleneck needs it; facts are sent when
+    they change, mostly at the start)."""
     origins = events[events["point"] == ORIGIN]
     if len(origins) == 0 or warmup_s <= 0:
         return events
@@ -306,7 +324,7 @@ def after_warmup(events: np.ndarray, warmup_s: float) -> np.ndarray:
     late = origins[origins["ts"] >= cutoff]
     keys = (events["source"].astype(np.int64) << 40) | events["frame"].astype(np.int64)
     keep = (late["source"].astype(np.int64) << 40) | late["frame"].astype(np.int64)
-    return events[np.isin(keys, keep)]
+    return events[np.isin(keys, keep) | (events["point"] == FACT)]
 
 
 @dataclass
@@ -322,18 +340,41 @@ class Measurement:
     """A minus the sum of the stage means: waits between stages (hand-over, back-pressure)."""
     frames: int
     incomplete: int
+    service_ms: dict[str, float] = field(default_factory=dict)
+    """Mean service of each of STAGES that has one: its own work on the buffer that carried the frame out."""
+    wait_ms: dict[str, float] = field(default_factory=dict)
+    """Mean wait of the same stages (queued, waiting for a batch, blocked downstream): delay = service + wait."""
+    utilization: dict[str, float] = field(default_factory=dict)
+    """Busy fraction of the run's span of each stage with service times."""
+    bottleneck: dict | None = None
+    """``{stage, utilization, thread_utilization, saturated}`` of probes.delays.bottleneck."""
+    delivered: dict[str, int] = field(default_factory=dict)
+    """Source id -> frames that reached their origin (decoded and stamped)."""
+    late: dict[str, int] = field(default_factory=dict)
+    """Source id -> of those, frames the mux dropped as older than its max-latency."""
+
+
+BOTTLENECK_KEYS = ("stage", "utilization", "thread_utilization", "saturated")
 
 
 def measure(trace: Trace, warmup_s: float) -> Measurement:
     stats = node_stats(trace.header, after_warmup(trace.events, warmup_s), trace.dropped)
-    frame = stats["frame"]
-    stages = {s: stats["stages"][s]["mean_ms"] for s in STAGES if s in stats["stages"]}
+    frame, per_stage = stats["frame"], {s: stats["stages"][s] for s in STAGES if s in stats["stages"]}
+    stages = {s: st["mean_ms"] for s, st in per_stage.items()}
     fps = list(stats["fps"].values())
     a_ms = frame["mean_ms"]
     queues = a_ms - sum(v for v in stages.values() if v is not None) if a_ms is not None else 0.0
-    return Measurement(a_ms=a_ms, p95_ms=frame["p95_ms"], fps=float(np.mean(fps)) if fps else 0.0,
-                       stages_ms=stages, queues_ms=queues, frames=stats["frames"]["complete"],
-                       incomplete=stats["frames"]["incomplete"])
+    timed = {s: st for s, st in per_stage.items() if st["service"]["count"]}
+    neck = stats["bottleneck"]
+    return Measurement(
+        a_ms=a_ms, p95_ms=frame["p95_ms"], fps=float(np.mean(fps)) if fps else 0.0, stages_ms=stages,
+        queues_ms=queues, frames=stats["frames"]["complete"], incomplete=stats["frames"]["incomplete"],
+        service_ms={s: st["service"]["mean_ms"] for s, st in timed.items()},
+        wait_ms={s: st["wait"]["mean_ms"] for s, st in timed.items()},
+        utilization={s: st["utilization"] for s, st in timed.items() if st["utilization"] is not None},
+        bottleneck={k: neck[k] for k in BOTTLENECK_KEYS} if neck else None,
+        delivered={sid: src["delivered"] for sid, src in stats["sources"].items()},
+        late={sid: src["dropped"].get(DROP_REASONS[LATE], 0) for sid, src in stats["sources"].items()})
 
 
 def saturated(fps: float, rate: float) -> bool:
@@ -371,6 +412,51 @@ class Result:
     """RTSP: CPU cores that serve-rtsp (decoding and re-encoding on this machine) used."""
     runs: int = 1
     """Repetitions the figures are the median of."""
+    service_ms: dict[str, float] = field(default_factory=dict)
+    wait_ms: dict[str, float] = field(default_factory=dict)
+    utilization: dict[str, float] = field(default_factory=dict)
+    bottleneck: dict | None = None
+    delivered: dict[str, int] = field(default_factory=dict)
+    late: dict[str, int] = field(default_factory=dict)
+    """These six as :class:`Measurement`'s."""
+    max_latency_ms: int = 0
+    """The mux's max-latency of the run (0: off)."""
+
+    def take(self, m: Measurement) -> None:
+        """Copy the figures of ``m``."""
+        self.a_ms, self.p95_ms, self.achieved_fps, self.stages_ms = m.a_ms, m.p95_ms, m.fps, m.stages_ms
+        self.queues_ms, self.frames, self.incomplete = m.queues_ms, m.frames, m.incomplete
+        self.service_ms, self.wait_ms, self.utilization = m.service_ms, m.wait_ms, m.utilization
+        self.bottleneck = m.bottleneck
+        self.delivered, self.late = m.delivered, m.late
+        self.saturated = saturated(m.fps, self.fps)
+
+
+def _median(values) -> float:
+    return float(np.median(values))
+
+
+def _medians(dicts: list[dict]) -> dict:
+    """Key -> the median of its values over the dicts that have it (keys in first-seen order)."""
+    keys = dict.fromkeys(k for d in dicts for k in d)
+    return {k: _median([d[k] for d in dicts if k in d]) for k in keys}
+
+
+def combine_bottleneck(necks: list[dict | None]) -> dict | None:
+    """The stage named most often (the earliest on a tie), with the medians of its figures over
+    the runs that named it; saturated when most of those runs said so."""
+    named = [b for b in necks if b]
+    if not named:
+        return None
+    stages = [b["stage"] for b in named]
+    stage = max(dict.fromkeys(stages), key=stages.count)
+    same = [b for b in named if b["stage"] == stage]
+
+    def figure(key: str) -> float | None:
+        return _median([b[key] for b in same]) if all(b[key] is not None for b in same) else None
+
+    return {"stage": stage, "utilization": figure("utilization"), "thread_utilization": figure("thread_utilization"),
+            "saturated": 2 * sum(bool(b["saturated"]) for b in same) > len(same)}
 
 
 def combine(results: list[Result]) -> Result:
@@ -378,17 +464,20 @@ def combine(results: list[Result]) -> Result:
     ok = [r for r in results if r.a_ms is not None]
     if not ok:
         return results[0]
-    med = lambda values: float(np.median(values))  # noqa: E731
     first = ok[0]
     cores = [r.server_cores for r in ok if r.server_cores is not None]
     return Result(
-        first.kind, first.fps, first.bitrate, first.streams, a_ms=med([r.a_ms for r in ok]),
-        p95_ms=med([r.p95_ms for r in ok]), achieved_fps=med([r.achieved_fps for r in ok]),
-        stages_ms={s: med([r.stages_ms[s] for r in ok if s in r.stages_ms]) for s in first.stages_ms},
-        queues_ms=med([r.queues_ms for r in ok]), frames=sum(r.frames for r in ok),
-        incomplete=sum(r.incomplete for r in ok), saturated=saturated(med([r.achieved_fps for r in ok]), first.fps),
+        first.kind, first.fps, first.bitrate, first.streams, a_ms=_median([r.a_ms for r in ok]),
+        p95_ms=_median([r.p95_ms for r in ok]), achieved_fps=_median([r.achieved_fps for r in ok]),
+        stages_ms=_medians([r.stages_ms for r in ok]), queues_ms=_median([r.queues_ms for r in ok]),
+        frames=sum(r.frames for r in ok), incomplete=sum(r.incomplete for r in ok),
+        saturated=saturated(_median([r.achieved_fps for r in ok]), first.fps),
         error="; ".join(dict.fromkeys(r.error for r in results if r.error)), wall_s=sum(r.wall_s for r in results),
-        load=med([r.load for r in ok]), server_cores=med(cores) if cores else None, runs=len(ok))
+        load=_median([r.load for r in ok]), server_cores=_median(cores) if cores else None, runs=len(ok),
+        service_ms=_medians([r.service_ms for r in ok]), wait_ms=_medians([r.wait_ms for r in ok]),
+        utilization=_medians([r.utilization for r in ok]), bottleneck=combine_bottleneck([r.bottleneck for r in ok]),
+        delivered=_medians([r.delivered for r in ok]), late=_medians([r.late for r in ok]),
+        max_latency_ms=first.max_latency_ms)
 
 
 def series(kinds, rates, bitrates, bitrates_at: dict[int, list[int]] | None = None) -> Iterator[tuple[str, int, int]]:
@@ -401,8 +490,9 @@ def series(kinds, rates, bitrates, bitrates_at: dict[int, list[int]] | None = No
 
 
 def run_point(point: Point, clips: list[Path], model: str, duration: float, warmup: float, workdir: Path,
-              rep: int = 1) -> Result:
-    result = Result(point.kind, point.fps, point.bitrate, point.streams)
+              rep: int = 1, late_ms: int = DEFAULT_LATE_MS) -> Result:
+    result = Result(point.kind, point.fps, point.bitrate, point.streams,
+                    max_latency_ms=late_ms if point.kind == "rtsp-late" else 0)
     started = time.monotonic()
     tag = f"{point.kind}-{point.fps}-{point.bitrate}-{point.streams}-{rep}"
     config, trace = workdir / f"{tag}.yaml", workdir / f"{tag}.jsonl"
@@ -412,15 +502,13 @@ def run_point(point: Point, clips: list[Path], model: str, duration: float, warm
             status, stderr = run_pipeline(config, trace, duration)
         else:
             with RtspServer(clips, point.bitrate) as server:
-                config.write_text(config_text("rtsp", server.uris, point.fps, model))
+                config.write_text(config_text(point.kind, server.uris, point.fps, model, late_ms))
                 status, stderr = run_pipeline(config, trace, duration)
             result.server_cores = server.cores
         if not trace.is_file():
             raise RuntimeError(f"no trace (exit status {status}): {stderr.strip()}")
         m = measure(read_trace(trace), warmup)
-        result.a_ms, result.p95_ms, result.achieved_fps = m.a_ms, m.p95_ms, m.fps
-        result.stages_ms, result.queues_ms, result.frames, result.incomplete = m.stages_ms, m.queues_ms, m.frames, m.incomplete
-        result.saturated = saturated(m.fps, point.fps)
+        result.take(m)
         if status != 0:
             result.error = f"exit status {status}: {stderr.strip().splitlines()[-1] if stderr.strip() else ''}"
         if m.a_ms is None:
@@ -489,7 +577,7 @@ def sweep(args: argparse.Namespace, log: Callable[[str], None],
         log(f"[run {done + 1}, at most {runs_left} left, eta <= {fmt_duration(runs_left * per_run)}] "
             f"{point.kind} {point.fps} fps {point.bitrate} kbit/s, {point.streams} stream(s), {args.duration:g} s"
             + (f", repetition {rep}/{args.repeat}" if args.repeat > 1 else ""))
-        r = run_point(point, clips, args.model, args.duration, args.warmup, workdir, rep)
+        r = run_point(point, clips, args.model, args.duration, args.warmup, workdir, rep, args.late_ms)
         runs.setdefault((point.kind, point.fps, point.bitrate, point.streams), []).append(r)
         done, runs_left, spent = done + 1, runs_left - 1, spent + r.wall_s
         per_run = spent / done
@@ -521,10 +609,11 @@ def sweep(args: argparse.Namespace, log: Callable[[str], None],
 def describe(r: Result) -> str:
     if r.a_ms is None:
         return f"failed: {r.error}"
-    stages = " ".join(f"{s} {v:.1f}" for s, v in r.stages_ms.items())
+    stages = " ".join(f"{s} {_split(r, s)}" for s in r.stages_ms)
     text = (f"A {r.a_ms:.1f} ms, p95 {r.p95_ms:.1f} ms, {r.achieved_fps:.1f} fps/stream"
-            f"{' SATURATED' if r.saturated else ''} | {stages} queues {r.queues_ms:.1f} ms | "
-            f"{r.frames} frames, {r.wall_s:.0f} s, load {r.load:.1f}"
+            f"{' SATURATED' if r.saturated else ''} | limit {_limit(r.bottleneck)} | service/wait {stages} "
+            f"between {r.queues_ms:.1f} ms | late drops {_late(r)} | {r.frames} frames, {r.wall_s:.0f} s, "
+            f"load {r.load:.1f}"
             + (f", serve-rtsp {r.server_cores:.2f} cores" if r.server_cores is not None else ""))
     return text + (f" | {r.error}" if r.error else "")
 
@@ -538,9 +627,35 @@ def _cell(r: Result | None) -> str:
     return f"{r.a_ms:.1f} (p95 {r.p95_ms:.0f}) @ {r.achieved_fps:.1f}{'*' if r.saturated else ''}"
 
 
-def markdown(results: list[Result], model: str, preamble: list[str] = ()) -> str:
-    """Tables 4-6 (one per bitrate) and the per-stage data of Figure 12, after ``preamble`` lines."""
-    out = [*preamble, ""] if preamble else []
+def _split(r: Result, stage: str) -> str:
+    """"service/wait" in ms, or the delay alone when the stage has no service times."""
+    if stage in r.service_ms:
+        return f"{r.service_ms[stage]:.1f}/{r.wait_ms[stage]:.1f}"
+    delay = r.stages_ms.get(stage)
+    return "–" if delay is None else f"{delay:.1f}"
+
+
+def _limit(neck: dict | None) -> str:
+    """The bottleneck as "infer 97 % sat." or "infer 62 % (thread 97 %) sat."."""
+    if not neck or neck["utilization"] is None:
+        return "?" if not neck else f"{neck['stage']} ?"
+    thread = neck["thread_utilization"]
+    shared = f" (thread {thread:.0%})" if thread is not None and thread >= neck["utilization"] + 0.005 else ""
+    return f"{neck['stage']} {neck['utilization']:.0%}{shared}{' sat.' if neck['saturated'] else ''}"
+
+
+def _late(r: Result) -> str:
+    """Frames dropped late per stream, and their share of the frames delivered; – without max-latency."""
+    if not r.max_latency_ms and not any(r.late.values()):
+        return "–"
+    per_stream = ", ".join(f"{n:.0f}" for n in r.late.values()) or "0"
+    delivered = sum(r.delivered.values())
+    return per_stream + (f" ({sum(r.late.values()) / delivered:.0%})" if delivered else "")
+
+
+def _a_tables(results: list[Result], model: str) -> list[str]:
+    """Tables 4-6: A = S/n per stream count, one table per bitrate, a column per kind and rate."""
+    out = []
     columns = [(k, f) for k in KINDS for f in RATES if any(r.kind == k and r.fps == f for r in results)]
     paper_table = {b: f"Table {4 + i}" for i, b in enumerate(BITRATES)}
     for bitrate in sorted({r.bitrate for r in results}):
@@ -554,24 +669,46 @@ def markdown(results: list[Result], model: str, preamble: list[str] = ()) -> str
                                 None)) for k, f in columns]
             out.append(f"| {n} | " + " | ".join(cells) + " |")
         out.append("")
-    out += ["Cells: A in ms (p95 in ms) @ achieved frames/s per stream; * saturated (under "
-            f"{SATURATION:.0%} of the clip's rate); – not run.", ""]
-    out += [f"#### Per-stage mean delay (ms), Figure 12's data, model {model}", "",
-            "| input | fps | kbit/s | streams | " + " | ".join(STAGES)
-            + " | queues | A | p95 | fps/stream | load | serve-rtsp cores |",
-            "|---|---:|---:|---:|" + "---:|" * (len(STAGES) + 6)]
-    for r in sorted(results, key=lambda r: (r.kind, r.fps, r.bitrate, r.streams)):
+    return out + ["Cells: A in ms (p95 in ms) @ achieved frames/s per stream; * saturated (under "
+                  f"{SATURATION:.0%} of the clip's rate); – not run.", ""]
+
+
+def _stage_table(results: list[Result], model: str) -> list[str]:
+    """Figure 12's data: per run the limiting stage, service/wait of every stage, late drops."""
+    out = [f"#### Per-stage mean service/wait (ms), Figure 12's data, model {model}", "",
+           "| input | fps | kbit/s | streams | limiting stage | " + " | ".join(STAGES)
+           + " | between | A | p95 | fps/stream | late drops | load | serve-rtsp cores |",
+           "|---|---:|---:|---:|---|" + "---:|" * (len(STAGES) + 7)]
+    def order(r: Result) -> tuple:
+        return KINDS.index(r.kind) if r.kind in KINDS else len(KINDS), r.fps, r.bitrate, r.streams
+
+    for r in sorted(results, key=order):
         if r.a_ms is None:
             continue
-        stages = " | ".join(f"{r.stages_ms.get(s, float('nan')):.1f}" for s in STAGES)
-        out.append(f"| {r.kind} | {r.fps} | {r.bitrate} | {r.streams} | {stages} | {r.queues_ms:.1f} | "
-                   f"{r.a_ms:.1f} | {r.p95_ms:.1f} | {r.achieved_fps:.1f}{'*' if r.saturated else ''} | "
-                   f"{r.load:.1f} | {'–' if r.server_cores is None else f'{r.server_cores:.2f}'} |")
+        stages = " | ".join(_split(r, s) for s in STAGES)
+        out.append(f"| {r.kind} | {r.fps} | {r.bitrate} | {r.streams} | {_limit(r.bottleneck)} | {stages} | "
+                   f"{r.queues_ms:.1f} | {r.a_ms:.1f} | {r.p95_ms:.1f} | "
+                   f"{r.achieved_fps:.1f}{'*' if r.saturated else ''} | {_late(r)} | {r.load:.1f} | "
+                   f"{'–' if r.server_cores is None else f'{r.server_cores:.2f}'} |")
     runs = sorted({r.runs for r in results})
-    out += ["", "queues = A minus the sum of the stage means: the waits between stages (source -> mux "
-            "back-pressure, hand-over). load: 1-minute load average after the run. serve-rtsp cores: CPU the "
-            "RTSP server (decoding and re-encoding every stream on this same machine) used."
-            + (f" Figures are medians of {'/'.join(map(str, runs))} runs per point." if runs != [1] else "")]
+    late_ms = sorted({r.max_latency_ms for r in results if r.max_latency_ms})
+    return out + ["", "Stage cells: mean service/wait in ms (delay = service + wait; service is the stage's own "
+                  "work on the buffer that carried the frame out, wait is queued, waiting for a batch or blocked "
+                  "downstream). limiting stage: probes.delays' bottleneck with its utilization (busy fraction of "
+                  "the run), its streaming thread's when other stages share it, sat. when that thread is saturated "
+                  "(>= 90 %). between = A minus the sum of the stage delays: gaps between stages. late drops: "
+                  "frames per stream the mux dropped as older than its max-latency"
+                  + (f" ({'/'.join(map(str, late_ms))} ms)" if late_ms else "")
+                  + ", and their share of the frames decoded. load: 1-minute load average after the run. "
+                  "serve-rtsp cores: CPU the RTSP server (decoding and re-encoding every stream on this same "
+                  "machine) used."
+                  + (f" Figures are medians of {'/'.join(map(str, runs))} runs per point." if runs != [1] else "")]
+
+
+def markdown(results: list[Result], model: str, preamble: list[str] = ()) -> str:
+    """Tables 4-6 (one per bitrate) and the per-stage data of Figure 12, after ``preamble`` lines."""
+    out = [*preamble, ""] if preamble else []
+    out += _a_tables(results, model) + _stage_table(results, model)
     failed = [r for r in results if r.error]
     if failed:
         out += ["", "Notes:"] + [f"- {r.kind} {r.fps} fps {r.bitrate} kbit/s {r.streams} stream(s): {r.error}"
@@ -595,7 +732,11 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                    help="short run: one bitrate (3982), 30 fps only, at most 2 streams, 8 s runs, 3 s warm-up")
     p.add_argument("--model", choices=sorted(MODELS), default="centernet",
                    help="detector: centernet (80 classes, the product's default) or ssd (persons, much faster)")
-    p.add_argument("--kinds", type=lambda t: t.split(","), default=list(KINDS), help="file,rtsp (default both)")
+    p.add_argument("--kinds", type=lambda t: t.split(","), default=list(KINDS[:2]),
+                   help="input kinds, of file, rtsp and rtsp-late (RTSP with the mux's max-latency at --late-ms); "
+                        "default file,rtsp")
+    p.add_argument("--late-ms", type=int, default=DEFAULT_LATE_MS,
+                   help=f"max-latency of the mux for rtsp-late, ms (default {DEFAULT_LATE_MS}: 6 frame periods at 30 fps)")
     p.add_argument("--rates", type=_ints, default=list(RATES), help="clip frame rates (default 30,60)")
     p.add_argument("--bitrates", type=_ints, default=list(BITRATES), help="clip bitrates, kbit/s (default 3982,4971,7955)")
     p.add_argument("--bitrates-at", type=_rate_bitrates, action="append", default=[], metavar="FPS=KBPS[+KBPS]",
@@ -618,8 +759,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.bitrates, args.rates = args.bitrates[:1], [30]
         args.max_streams, args.duration, args.warmup = min(args.max_streams, 2), 8.0, 3.0
     bad = [k for k in args.kinds if k not in KINDS]
-    if bad or args.max_streams < 1 or args.repeat < 1 or args.warmup >= args.duration:
-        p.error(f"unknown kinds {bad}" if bad else "need --max-streams >= 1, --repeat >= 1 and --warmup < --duration")
+    if bad or args.max_streams < 1 or args.repeat < 1 or args.warmup >= args.duration or args.late_ms < 1:
+        p.error(f"unknown kinds {bad} (known: {', '.join(KINDS)})" if bad else
+                "need --max-streams >= 1, --repeat >= 1, --late-ms >= 1 and --warmup < --duration")
     args.plot = args.plot or args.out.with_suffix(".png")
     args.bitrates_at = dict(args.bitrates_at)
     return args
@@ -636,7 +778,8 @@ def main(argv: list[str] | None = None) -> int:
     preamble = [f"- command: `{command}`", f"- date: {time.strftime('%Y-%m-%d %H:%M %Z')}",
                 f"- machine at the start: {machine()}",
                 f"- runs: {args.duration:g} s each, first {args.warmup:g} s of frames left out; clips "
-                f"{args.clip_seconds} s, x264 {args.preset}, looped; model {args.model}"]
+                f"{args.clip_seconds} s, x264 {args.preset}, looped; model {args.model}"
+                + (f"; rtsp-late: the mux's max-latency {args.late_ms} ms" if "rtsp-late" in args.kinds else "")]
     args.out.parent.mkdir(parents=True, exist_ok=True)
 
     def save(results: list[Result], final: bool = False) -> str:
@@ -645,7 +788,8 @@ def main(argv: list[str] | None = None) -> int:
         text = markdown(results, args.model, lines)
         args.out.write_text(text)
         args.out.with_suffix(".json").write_text(json.dumps(
-            {"model": args.model, "duration_s": args.duration, "warmup_s": args.warmup, "command": command,
+            {"model": args.model, "duration_s": args.duration, "warmup_s": args.warmup, "late_ms": args.late_ms,
+             "command": command,
              "results": [asdict(r) for r in results]}, indent=1))
         return text
 

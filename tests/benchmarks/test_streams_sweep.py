@@ -8,14 +8,16 @@ import subprocess
 import sys
 
 import cv2
+import numpy as np
+import pytest
 
 from benchmarks.plot import STAGE_COLOURS, draw_sweep, nice_step
 from benchmarks.streams_sweep import (
-    STAGES, ClipSpec, Result, after_warmup, combine, config_text, grid, make_clip, markdown, measure, saturated,
+    STAGES, ClipSpec, Result, after_warmup, combine, combine_bottleneck, config_text, grid, make_clip, markdown, measure, saturated,
     series,
 )
 from pipeline.config import load_config
-from probes.events import EXIT
+from probes.events import DROP, EXIT, FACT, LATE
 from probes.tracefile import Trace
 from tests.conftest import REPO, VTEST, cli_env
 from tests.probes.synth import pipeline_run
@@ -33,12 +35,15 @@ def slow_start_run():
     return Trace(header, events, dropped=0, complete=True)
 
 
-def test_after_warmup_keeps_every_event_of_the_frames_that_started_after_the_cutoff():
+def test_after_warmup_keeps_every_event_of_the_frames_that_started_after_the_cutoff_and_every_fact():
     trace = slow_start_run()
     kept = after_warmup(trace.events, 1.0)
-    assert sorted(set(kept["frame"].tolist())) == list(range(10, 30))
-    per_frame = len(trace.events) // 60
-    assert len(kept) == 40 * per_frame  # whole frames: their late exits stay with them
+    is_fact = trace.events["point"] == FACT
+    assert is_fact.sum() == 7 and sorted(kept[kept["point"] == FACT].tolist()) == sorted(trace.events[is_fact].tolist())
+    frames = kept[kept["point"] != FACT]
+    assert sorted(set(frames["frame"].tolist())) == list(range(10, 30))
+    # whole frames: their late exits stay with them
+    assert len(frames) == (~is_fact & (trace.events["frame"] >= 10)).sum()
     assert after_warmup(trace.events, 0).shape == trace.events.shape
 
 
@@ -48,9 +53,33 @@ def test_measure_leaves_out_the_warmup_and_gives_a_as_the_mean_frame_delay():
     assert steady.stages_ms == {"mux": 2.0, "infer": 30.0, "tiler": 3.0, "convert": 1.0, "osd": 4.0}
     assert steady.a_ms == 40.0 and steady.queues_ms == 0.0 and steady.frames == 40
     assert steady.fps == 10.0
+    for stage, delay in steady.stages_ms.items():  # the split adds up; some of each delay is wait
+        assert steady.service_ms[stage] + steady.wait_ms[stage] == pytest.approx(delay)
+        assert 0.5 * delay <= steady.service_ms[stage] <= delay
+    assert steady.delivered == {"0": 20, "1": 20} and steady.late == {"0": 0, "1": 0}
     everything = measure(trace, 0)
     assert everything.stages_ms["infer"] == (10 * 330 + 20 * 30) / 30
     assert everything.a_ms == 40.0 + 100.0
+
+
+def test_measure_names_the_bottleneck_with_its_threads_utilization():
+    """mux and infer share a streaming thread (the synthetic run's facts, sent at its start):
+    the bottleneck is infer, its thread busy with both; the warm-up cut keeps the facts."""
+    steady = measure(slow_start_run(), 1.0)
+    neck, util = steady.bottleneck, steady.utilization
+    assert set(neck) == {"stage", "utilization", "thread_utilization", "saturated"}
+    assert neck["stage"] == "infer" and neck["utilization"] == util["infer"] and not neck["saturated"]
+    assert neck["thread_utilization"] == pytest.approx(util["mux"] + util["infer"])
+    assert 0 < util["mux"] < util["infer"] < 1
+
+
+def test_measure_counts_late_drops_per_stream_after_the_warmup():
+    trace = slow_start_run()
+    origins = trace.events[(trace.events["point"] == 0) & (trace.events["source"] == 1)]
+    drops = origins[origins["frame"] % 5 == 0].copy()  # frames 0, 5, ... of stream 1: 2 before the cut, 4 after
+    drops["point"], drops["code"], drops["stage"] = DROP, LATE, 2
+    m = measure(Trace(trace.header, np.concatenate([trace.events, drops]), dropped=0, complete=True), 1.0)
+    assert m.late == {"0": 0, "1": 4} and m.delivered == {"0": 20, "1": 20}
 
 
 def test_saturation_is_under_90_percent_of_the_clip_rate():
@@ -78,12 +107,25 @@ def test_configs_are_valid_dcuscope_configurations(tmp_path):
     mux = config.stages[0].properties
     assert mux["live-source"] is True and mux["batched-push-timeout"] == 16666
     assert config.sources[0].location == "rtsp://127.0.0.1:9/cam0" and not config.sink.sync
+    assert "max-latency" not in mux
+
+    rtsp_cfg.write_text(config_text("rtsp-late", ["rtsp://127.0.0.1:9/cam0"], 30, "ssd", late_ms=150))
+    mux = load_config(rtsp_cfg).stages[0].properties
+    assert mux["max-latency"] == 150 and mux["live-source"] is True and mux["batched-push-timeout"] == 33333
 
 
 def result(kind, fps, streams, a_ms, sat=False, bitrate=3982):
     stages = {"mux": a_ms * 0.5, "infer": a_ms * 0.3, "tiler": a_ms * 0.1, "convert": a_ms * 0.05, "osd": a_ms * 0.05}
+    service = {s: d * (0.1 if s == "mux" else 0.8) for s, d in stages.items()}
+    late = kind == "rtsp-late"
     return Result(kind, fps, bitrate, streams, a_ms=a_ms, p95_ms=a_ms * 1.5, achieved_fps=fps * (0.5 if sat else 1),
-                  stages_ms=stages, queues_ms=0.0, frames=100, saturated=sat)
+                  stages_ms=stages, queues_ms=0.0, frames=100, saturated=sat, service_ms=service,
+                  wait_ms={s: stages[s] - v for s, v in service.items()},
+                  utilization={s: v * fps / 1000 for s, v in service.items()},
+                  bottleneck={"stage": "infer", "utilization": 0.9 if sat else 0.5,
+                              "thread_utilization": 0.95 if sat else 0.5, "saturated": sat},
+                  delivered={str(i): 150 for i in range(streams)},
+                  late={str(i): 15 * (i + 1) * late for i in range(streams)}, max_latency_ms=200 * late)
 
 
 def test_markdown_has_one_table_per_bitrate_and_the_per_stage_data():
@@ -95,7 +137,19 @@ def test_markdown_has_one_table_per_bitrate_and_the_per_stage_data():
     assert "| streams | file 30 fps | rtsp 30 fps |" in text
     assert "| 1 | 40.0 (p95 60) @ 30.0 | 120.0 (p95 180) @ 30.0 |" in text
     assert "| 2 | 90.0 (p95 135) @ 15.0* | – |" in text
-    assert "| file | 30 | 3982 | 2 | 45.0 | 27.0 | 9.0 | 4.5 | 4.5 | 0.0 | 90.0 | 135.0 | 15.0* | 0.0 | – |" in text
+    assert ("| file | 30 | 3982 | 2 | infer 90% (thread 95%) sat. | 4.5/40.5 | 21.6/5.4 | 7.2/1.8 | 3.6/0.9 | 3.6/0.9 "
+            "| 0.0 | 90.0 | 135.0 | 15.0* | – | 0.0 | – |") in text
+    assert "| rtsp | 30 | 3982 | 1 | infer 50% | 6.0/54.0 |" in text
+
+
+def test_markdown_shows_late_drops_per_stream_and_orders_rows_by_kind():
+    results = [result("rtsp-late", 30, 2, 150.0), result("rtsp", 30, 1, 900.0), result("file", 30, 1, 40.0)]
+    text = markdown(results, "ssd")
+    assert "| streams | file 30 fps | rtsp 30 fps | rtsp-late 30 fps |" in text
+    assert "| 150.0 | 225.0 | 30.0 | 15, 30 (15%) | 0.0 | – |" in text
+    assert "max-latency (200 ms)" in text
+    rows = [line.split(" | ")[0] for line in text.splitlines() if line.startswith("| file |") or line.startswith("| rtsp")]
+    assert rows == ["| file", "| rtsp", "| rtsp-late"]
 
 
 def test_repetitions_combine_to_medians_and_failed_runs_are_left_out():
@@ -106,7 +160,18 @@ def test_repetitions_combine_to_medians_and_failed_runs_are_left_out():
     c = combine(runs)
     assert (c.a_ms, c.p95_ms, c.achieved_fps, c.load, c.runs, c.frames) == (50.0, 75.0, 30.0, 2.0, 3, 300)
     assert c.stages_ms["mux"] == 25.0 and not c.saturated and c.error == "serve-rtsp did not start"
+    assert c.service_ms["infer"] == 12.0 and c.wait_ms["mux"] == 22.5 and c.utilization["infer"] == 0.36
+    assert c.bottleneck == {"stage": "infer", "utilization": 0.5, "thread_utilization": 0.5, "saturated": False}
     assert combine(runs[3:]) is runs[3]
+
+
+def test_bottlenecks_of_repetitions_combine_to_the_stage_named_most_often():
+    named = [{"stage": "infer", "utilization": u, "thread_utilization": u + 0.1, "saturated": u > 0.85}
+             for u in (0.8, 0.9, 0.95)] + [{"stage": "mux", "utilization": 0.99, "thread_utilization": 0.99,
+                                           "saturated": True}, None]
+    assert combine_bottleneck(named) == {"stage": "infer", "utilization": 0.9, "thread_utilization": 1.0,
+                                         "saturated": True}
+    assert combine_bottleneck([None]) is None
 
 
 def test_plot_draws_the_stage_colours_and_a_panel_per_series(tmp_path):
