@@ -32,6 +32,9 @@ BATCH_MEDIA_TYPE = "video/x-dcuscope-batch"
 FRAMES_MEDIA_TYPE = "timestamp/x-dcuscope-frames"
 OBJECTS_MEDIA_TYPE = "timestamp/x-dcuscope-objects"
 NTP_CAPS = Gst.Caps.from_string("timestamp/x-ntp")
+DROP_MESSAGE = "dcuscope-drop"
+"""Name of the element message an element posts for each frame it drops on purpose (see
+:func:`drop_structure`); the probes turn it into a drop event."""
 NTP_UNIX_OFFSET_NS = 2_208_988_800 * 1_000_000_000
 """From the NTP epoch (1900) to the Unix epoch (1970)."""
 FRAMES_CAPS = Gst.Caps.from_string(FRAMES_MEDIA_TYPE)
@@ -231,3 +234,10 @@ def mapped_video(buf: Gst.Buffer, info: GstVideo.VideoInfo, write: bool = False)
     finally:
         del raw, frame
         buf.unmap(mapinfo)
+
+
+def drop_structure(frame: FrameId, reason: str, age_ns: int) -> Gst.Structure:
+    """The ``dcuscope-drop`` message body for ``frame``, dropped for ``reason`` at ``age_ns``."""
+    return Gst.Structure.from_string(
+        f"{DROP_MESSAGE}, source=(int){frame.source}, frame=(guint64){frame.frame}, reason=(string){reason}, "
+        f"age-ns=(gint64){age_ns}")[0]

@@ -28,7 +28,8 @@ import cv2
 import numpy as np
 
 from core.gst import GObject, Gst, GstBase, GstVideo
-from plugins.frames import BATCH_TEMPLATE_CAPS, FrameId, batch_caps, mapped_video, read_frames, write_frames
+from plugins.frames import (BATCH_TEMPLATE_CAPS, FrameId, batch_caps, drop_structure, mapped_video, read_frames,
+                            write_frames)
 from plugins.properties import AttributeProperties
 
 DEFAULT_BATCH_SIZE = 0  # 0: as many as there are sink pads
@@ -40,7 +41,6 @@ DEFAULT_HEIGHT = 720
 DEFAULT_LIVE_SOURCE = False
 DEFAULT_MAX_LATENCY_MS = 0  # off
 DEFAULT_CLOCK_ID = 0  # CLOCK_REALTIME, the framestamp's default
-DROP_MESSAGE = "dcuscope-drop"
 """Name of the element message posted for each frame the mux drops."""
 LATE = "late"
 
@@ -214,13 +214,6 @@ class Mux(AttributeProperties, GstBase.Aggregator):
         mem = Gst.Allocator.find(None).alloc(self.width * self.height * 3, None)
         scale_into(buf, info, mem, self.width, self.height)
         return mem
-
-
-def drop_structure(frame: FrameId, reason: str, age_ns: int) -> Gst.Structure:
-    """The ``dcuscope-drop`` message body for ``frame``, dropped for ``reason`` at ``age_ns``."""
-    return Gst.Structure.from_string(
-        f"{DROP_MESSAGE}, source=(int){frame.source}, frame=(guint64){frame.frame}, reason=(string){reason}, "
-        f"age-ns=(gint64){age_ns}")[0]
 
 
 def scale_into(buf: Gst.Buffer, info: GstVideo.VideoInfo, mem: Gst.Memory, width: int, height: int) -> None:

@@ -17,11 +17,11 @@ import numpy as np
 
 from core.gst import Gst
 from pipeline.sourcestats import SourceStats, source_counters
+from plugins.frames import DROP_MESSAGE
 from probes.events import (DROP, DROP_REASONS, EVENT_DTYPE, FACT, FACT_DECODER_DROPPED, FACT_LOST_UPSTREAM,
                            FACT_NOMINAL_MHZ)
 from probes.tracer import Tracer
 
-DROP_MESSAGE = "dcuscope-drop"
 POLL_S = 1.0
 _REASON_CODES = {name: code for code, name in DROP_REASONS.items()}
 
@@ -83,7 +83,8 @@ class SourceWatch:
         changed = [f for f in facts if self._last.get((f[0], f[2])) != f[3]]
         if changed:
             ts = self._now()
-            events = np.concatenate([_event(ts, value, source, stage, FACT, kind) for source, stage, kind, value in changed])
+            events = np.concatenate([_event(ts, value, source, stage, FACT, kind)
+                                     for source, stage, kind, value in changed])
             if self.tracer.push(events):
                 self._last.update({(f[0], f[2]): f[3] for f in changed})
 
