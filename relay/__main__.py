@@ -6,10 +6,12 @@ import sys
 from core import signals
 from core.errors import DcuscopeError
 from relay.commands import add_relay_arguments, run_relay
+from relay.limits import limits_help
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m relay", description="dcuscope relay")
+    parser = argparse.ArgumentParser(prog="python -m relay", description="dcuscope relay", epilog=limits_help(),
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     add_relay_arguments(parser)
     args = parser.parse_args(argv)
     signals.hold()  # a Ctrl-C while starting stops the relay once it is up

@@ -9,6 +9,7 @@ import os
 from core.ports import check_port_free
 from relay.clock import CLOCK_MODES
 from relay.errors import RelayError
+from relay.limits import Limits, limits_help
 
 TOKEN_ENV = "DCUSCOPE_TOKEN"
 
@@ -19,7 +20,8 @@ def add_relay_parser(subparsers) -> argparse.ArgumentParser:
         "relay", help="run the monitoring host: ingest from nodes, live delays, storage, API and UI",
         description="Receive probe events from dcuscope nodes (dcuscope run ... --relay URL), estimate "
                     "their clock offsets, compute per-stage and per-frame delays live, store every "
-                    "session in SQLite and serve the HTTP API and the UI.")
+                    "session in SQLite and serve the HTTP API and the UI.",
+        epilog=limits_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     add_relay_arguments(p)
     p.set_defaults(func=run_relay, holds_signals=True)
     return p
@@ -34,6 +36,8 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--clock", choices=CLOCK_MODES, default="auto",
                    help="ptp: never correct node timestamps; estimate: subtract each node's estimated "
                         "offset; auto: trust PTP where the node reports it locked, else estimate (default auto)")
+    p.add_argument("--limit", action="append", default=[], metavar="NAME=VALUE",
+                   help="change one of the bounds listed below (repeatable), e.g. --limit connections_per_peer=64")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
                    help="how much the relay logs to stderr: WARNING its failures and warnings, INFO also "
                         "the connections it closes (malformed packets, refused messages), DEBUG everything "
@@ -46,6 +50,10 @@ def run_relay(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     if not 0 <= args.port <= 65535:
         raise RelayError(f"--port must be 0..65535, not {args.port}")
+    try:
+        limits = Limits().with_values(args.limit)
+    except ValueError as exc:
+        raise RelayError(f"--limit: {exc}") from None
     check_port_free(args.host, args.port)
-    serve(args.host, args.port, args.db, args.token, args.clock)
+    serve(args.host, args.port, args.db, args.token, args.clock, limits=limits)
     return 0

@@ -38,7 +38,6 @@ from relay.errors import RelayError
 from relay.limits import Limits, TokenBucket
 from relay.state import RelayState, RunState
 
-DEFAULT_MAX_CONNECTIONS = 1024
 MAX_STORING = 256
 """Batches of one connection being stored at once (a node keeps 64 in flight)."""
 CLOSE_TIMEOUT_S = 2.0
@@ -59,12 +58,10 @@ class _Conn:
 class Ingest:
     """The ``/ingest`` handler and the connections it holds."""
 
-    def __init__(self, state: RelayState, token: str | None, limits: Limits = Limits(),
-                 max_connections: int = DEFAULT_MAX_CONNECTIONS) -> None:
+    def __init__(self, state: RelayState, token: str | None, limits: Limits = Limits()) -> None:
         self.state = state
         self._token = token
         self._limits = limits
-        self._max_connections = max_connections
         self._conns: dict[str, _Conn] = {}
         self._ids = itertools.count(1)
         self.rejected = 0
@@ -73,7 +70,7 @@ class Ingest:
     async def handle(self, request: web.Request) -> web.StreamResponse:
         if not token_matches(self._token, http_token(request.headers, request.query)):
             raise web.HTTPUnauthorized(text="unauthorized: wrong or missing token")
-        if len(self._conns) >= self._max_connections:
+        if len(self._conns) >= self._limits.connections:
             raise web.HTTPServiceUnavailable(text="too many connections")
         ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=HEARTBEAT_S, timeout=CLOSE_TIMEOUT_S)
         if not ws.can_prepare(request):

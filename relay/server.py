@@ -22,7 +22,7 @@ from probes.wire import INGEST_PATH, MAX_MESSAGE_BYTES
 from relay.api import add_routes
 from relay.clock import CLOCK_MODES
 from relay.errors import RelayError
-from relay.ingest import DEFAULT_MAX_CONNECTIONS, Ingest
+from relay.ingest import Ingest
 from relay.limits import Limits
 from relay.live import LiveConfig
 from relay.sessionapi import add_session_routes
@@ -65,14 +65,13 @@ class Relay:
 
 
 def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *, limits: Limits = Limits(),
-               live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ,
-               max_connections: int = DEFAULT_MAX_CONNECTIONS) -> tuple[web.Application, Relay]:
+               live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ) -> tuple[web.Application, Relay]:
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     storage = Storage(db)
     state = RelayState(storage, clock, live)
     sio = create_sio()
-    ingest = Ingest(state, token, limits, max_connections)
+    ingest = Ingest(state, token, limits)
     ui = UiNamespace(state, token)
     sio.register_namespace(ui)
     app = web.Application(client_max_size=MAX_MESSAGE_BYTES, middlewares=[sio_errors])
@@ -80,7 +79,8 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     sio.attach(app)
     ticker = Ticker(state, ui, push_hz)
     add_routes(app, state, token, lambda: {"rejected": ingest.rejected, "pushes": ticker.pushes,
-                                           "commits": storage.commits, "batches": storage.batches_written})
+                                           "commits": storage.commits, "batches": storage.batches_written,
+                                           "limits": limits.as_dict()})
     add_session_routes(app, state)
     _add_ui(app)
     return app, Relay(state, storage, sio, ingest, ui, ticker)
@@ -129,15 +129,15 @@ async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path 
 
 
 def serve(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db", token: str | None = None,
-          clock: str = "auto") -> None:
+          clock: str = "auto", limits: Limits = Limits()) -> None:
     """Run the relay until SIGINT or SIGTERM."""
     if host not in LOOPBACK and token is None:
         log.warning("relay listens on %s without --token: anyone who can reach it may feed or read it", host)
-    asyncio.run(_serve(host, port, db, token, clock))
+    asyncio.run(_serve(host, port, db, token, clock, limits))
 
 
-async def _serve(host: str, port: int, db: str | Path, token: str | None, clock: str) -> None:
-    relay = await start_relay(host, port, db, token, clock)
+async def _serve(host: str, port: int, db: str | Path, token: str | None, clock: str, limits: Limits) -> None:
+    relay = await start_relay(host, port, db, token, clock, limits=limits)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -47,8 +47,8 @@ class RelayProcess:
     """``python -m relay`` in a subprocess; ``url`` once it listens."""
 
     def __init__(self, db: Path, port: int = 0, token: str | None = None, clock: str = "auto",
-                 log: Path | None = None) -> None:
-        cmd = [sys.executable, "-m", "relay", "--port", str(port), "--db", str(db), "--clock", clock]
+                 log: Path | None = None, args: list[str] | None = None) -> None:
+        cmd = [sys.executable, "-m", "relay", "--port", str(port), "--db", str(db), "--clock", clock, *(args or [])]
         if token:
             cmd += ["--token", token]
         self.log = log or db.with_suffix(".relay.log")
@@ -80,6 +80,16 @@ class RelayProcess:
 
     def alive(self) -> bool:
         return self.proc.poll() is None
+
+    def rss_mb(self, field: str = "VmRSS") -> float:
+        """The relay's resident memory now (``VmRSS``) or its high-water mark (``VmHWM``), MiB."""
+        for line in Path(f"/proc/{self.proc.pid}/status").read_text().splitlines():
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) / 1024
+        raise AssertionError(f"no {field} for the relay process")
+
+    def peak_rss_mb(self) -> float:
+        return self.rss_mb("VmHWM")
 
 
 def _readline(proc: subprocess.Popen, timeout: float) -> str:

@@ -74,7 +74,7 @@ def test_a_reconnecting_run_takes_over_its_old_connection(tmp_path):
 
 def test_connections_beyond_the_cap_are_refused_before_the_upgrade(tmp_path):
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db", max_connections=1)
+        relay = await start_relay(port=0, db=tmp_path / "r.db", limits=Limits(connections=1))
         url = f"http://127.0.0.1:{relay.port}"
         try:
             first = await HandNode.open(url, "A", uuid.uuid4().hex)
