@@ -12,7 +12,11 @@ def token_matches(expected: str | None, presented: object) -> bool:
         return True
     if not isinstance(presented, str):
         return False
-    return hmac.compare_digest(presented.encode(), expected.encode())
+    try:
+        given = presented.encode()
+    except UnicodeEncodeError:  # a header's undecodable bytes (surrogate escapes), a lone surrogate: not the token
+        return False
+    return hmac.compare_digest(given, expected.encode())
 
 
 def socket_token(auth: object, environ: dict) -> object:

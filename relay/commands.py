@@ -36,6 +36,9 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--clock", choices=CLOCK_MODES, default="auto",
                    help="ptp: never correct node timestamps; estimate: subtract each node's estimated "
                         "offset; auto: trust PTP where the node reports it locked, else estimate (default auto)")
+    p.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+                   help="without --token, also answer requests (Host and browser Origin) naming this host "
+                        "(repeatable); by default only IP addresses and localhost, against DNS rebinding")
     p.add_argument("--limit", action="append", default=[], metavar="NAME=VALUE",
                    help="change one of the bounds listed below (repeatable), e.g. --limit connections_per_peer=64")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
@@ -55,5 +58,5 @@ def run_relay(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise RelayError(f"--limit: {exc}") from None
     check_port_free(args.host, args.port)
-    serve(args.host, args.port, args.db, args.token, args.clock, limits=limits)
+    serve(args.host, args.port, args.db, args.token, args.clock, limits=limits, allow_hosts=args.allow_host)
     return 0

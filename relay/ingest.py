@@ -66,6 +66,13 @@ class Ingest:
         self._ids = itertools.count(1)
         self.rejected = 0
         """Connections closed for a bad payload or rate (the fuzz test reads it via /api/health)."""
+        self.hello_timeouts = 0
+        """Connections closed for not saying hello in time (counted in ``rejected`` too)."""
+
+    @property
+    def connected(self) -> int:
+        """Ingest WebSocket connections held now."""
+        return len(self._conns)
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
         if not token_matches(self._token, http_token(request.headers, request.query)):
@@ -83,9 +90,12 @@ class Ingest:
             raise web.HTTPBadRequest(text="connection closed during the handshake") from None
         conn = _Conn(f"ws{next(self._ids)}", ws, TokenBucket(self._limits))
         self._conns[conn.sid] = conn
+        # A connection that never says hello would hold one of the few ingest places for ever.
+        expiry = asyncio.get_running_loop().call_later(self._limits.hello_timeout_s, self._hello_overdue, conn)
         try:
             await self._serve(conn)
         finally:
+            expiry.cancel()
             self._conns.pop(conn.sid, None)
             if conn.run is not None:
                 self.state.detach(conn.run, conn.sid)
@@ -93,6 +103,13 @@ class Ingest:
                 # Batches being stored finish (their acknowledgements have nowhere to go).
                 await asyncio.gather(*conn.tasks, return_exceptions=True)
         return ws
+
+    def _hello_overdue(self, conn: _Conn) -> None:
+        if conn.run is None and not conn.closing:
+            self.hello_timeouts += 1
+            task = asyncio.ensure_future(self._reject(conn, f"no hello within {self._limits.hello_timeout_s:g} s"))
+            conn.tasks.add(task)
+            task.add_done_callback(conn.tasks.discard)
 
     async def close_all(self) -> None:
         for conn in list(self._conns.values()):

@@ -11,6 +11,8 @@ import asyncio
 import logging
 import signal
 import sys
+from collections import Counter
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,9 +21,12 @@ from aiohttp import web
 
 from core import signals
 from probes.wire import INGEST_PATH, MAX_MESSAGE_BYTES
+from relay import lograte
 from relay.api import add_routes
 from relay.clock import CLOCK_MODES
 from relay.errors import RelayError
+from relay.guard import ConnGuard, GuardedSite, fit_descriptors
+from relay.hostcheck import HostCheck
 from relay.ingest import Ingest
 from relay.limits import Limits
 from relay.live import LiveConfig
@@ -33,6 +38,8 @@ from relay.uiapi import DEFAULT_PUSH_HZ, Ticker, UiNamespace
 
 UI_DIR = Path(__file__).resolve().parents[1] / "ui" / "static"
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
+LOG_FLUSH_S = 10.0
+REFUSALS = ("peer_cap", "tcp_cap", "header_timeout", "hello_timeout", "host")
 PLACEHOLDER = """<!doctype html><html><head><meta charset="utf-8"><title>dcuscope relay</title></head>
 <body><h1>dcuscope relay</h1><p>The UI is not installed (ui/static/index.html). The JSON API is at
 <a href="/api/nodes">/api/nodes</a>, <a href="/api/sessions">/api/sessions</a>,
@@ -49,6 +56,7 @@ class Relay:
     ingest: Ingest
     ui: UiNamespace
     ticker: Ticker
+    guard: ConnGuard
     runner: web.AppRunner | None = None
     port: int = 0
     _task: asyncio.Task | None = None
@@ -65,25 +73,41 @@ class Relay:
 
 
 def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *, limits: Limits = Limits(),
-               live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ) -> tuple[web.Application, Relay]:
+               live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ,
+               allow_hosts: Iterable[str] = ()) -> tuple[web.Application, Relay]:
+    """The relay's app; without a token, requests must name an IP, localhost or one of ``allow_hosts``
+    (:mod:`relay.hostcheck`)."""
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
+    limits = fit_descriptors(limits)
     storage = Storage(db)
     state = RelayState(storage, clock, live)
     sio = create_sio()
     ingest = Ingest(state, token, limits)
     ui = UiNamespace(state, token)
     sio.register_namespace(ui)
-    app = web.Application(client_max_size=MAX_MESSAGE_BYTES, middlewares=[sio_errors])
+    refused: Counter = Counter()
+    guard = ConnGuard(limits, refused)
+    # The guard's first: a request refused further in still counts as one the connection sent.
+    middlewares = [guard.middleware]
+    if token is None:
+        middlewares.append(HostCheck(allow_hosts, refused).middleware)
+    app = web.Application(client_max_size=MAX_MESSAGE_BYTES, middlewares=[*middlewares, sio_errors])
     app.router.add_get(INGEST_PATH, ingest.handle)
     sio.attach(app)
     ticker = Ticker(state, ui, push_hz)
-    add_routes(app, state, token, lambda: {"rejected": ingest.rejected, "pushes": ticker.pushes,
-                                           "commits": storage.commits, "batches": storage.batches_written,
-                                           "limits": limits.as_dict()})
+
+    def counters() -> dict:
+        refused["hello_timeout"] = ingest.hello_timeouts
+        return {"rejected": ingest.rejected, "refused": {k: refused[k] for k in REFUSALS},
+                "connections": {"tcp": guard.open, "ingest": ingest.connected},
+                "pushes": ticker.pushes, "commits": storage.commits, "batches": storage.batches_written,
+                "limits": limits.as_dict()}
+
+    add_routes(app, state, token, counters)
     add_session_routes(app, state)
     _add_ui(app)
-    return app, Relay(state, storage, sio, ingest, ui, ticker)
+    return app, Relay(state, storage, sio, ingest, ui, ticker, guard)
 
 
 def _add_ui(app: web.Application) -> None:
@@ -113,9 +137,10 @@ async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path 
     """Start a relay on the running loop; ``port=0`` picks a free port (see ``Relay.port``)."""
     app, relay = create_app(db, token, clock, **options)
     relay.storage.start(asyncio.get_running_loop())
-    runner = web.AppRunner(app, access_log=None, handle_signals=False)
+    runner = web.AppRunner(app, access_log=None, handle_signals=False,
+                           keepalive_timeout=relay.guard.limits.keepalive_s)
     await runner.setup()
-    site = web.TCPSite(runner, host, port)
+    site = GuardedSite(runner, host, port, relay.guard)
     try:
         await site.start()
     except OSError as exc:
@@ -123,21 +148,24 @@ async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path 
         relay.storage.stop()
         raise RelayError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from exc
     relay.runner = runner
-    relay.port = runner.addresses[0][1]
+    relay.port = site.port
     relay._task = asyncio.create_task(relay.ticker.run())
     return relay
 
 
 def serve(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db", token: str | None = None,
-          clock: str = "auto", limits: Limits = Limits()) -> None:
+          clock: str = "auto", limits: Limits = Limits(), allow_hosts: Iterable[str] = ()) -> None:
     """Run the relay until SIGINT or SIGTERM."""
     if host not in LOOPBACK and token is None:
         log.warning("relay listens on %s without --token: anyone who can reach it may feed or read it", host)
-    asyncio.run(_serve(host, port, db, token, clock, limits))
+    rate = lograte.install(limits.log_repeats_per_min)
+    asyncio.run(_serve(host, port, db, token, clock, limits, allow_hosts, rate))
 
 
-async def _serve(host: str, port: int, db: str | Path, token: str | None, clock: str, limits: Limits) -> None:
-    relay = await start_relay(host, port, db, token, clock, limits=limits)
+async def _serve(host: str, port: int, db: str | Path, token: str | None, clock: str, limits: Limits,
+                 allow_hosts: Iterable[str], rate: lograte.RateFilter) -> None:
+    relay = await start_relay(host, port, db, token, clock, limits=limits, allow_hosts=allow_hosts)
+    flusher = asyncio.create_task(_flush_log(rate))
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
@@ -148,5 +176,14 @@ async def _serve(host: str, port: int, db: str | Path, token: str | None, clock:
     try:
         await stop.wait()
     finally:
+        flusher.cancel()
         await relay.stop()
+        rate.flush(everything=True)
         print("dcuscope relay: stopped", file=sys.stderr, flush=True)
+
+
+async def _flush_log(rate: lograte.RateFilter) -> None:
+    """Summarise the messages the log's rate bound held back, now and then."""
+    while True:
+        await asyncio.sleep(LOG_FLUSH_S)
+        rate.flush()

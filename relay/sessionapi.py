@@ -41,6 +41,8 @@ CACHED_SESSIONS = 3
 LIVE_TTL_S = 2.0
 MAX_FRAMES_PER_REQUEST = 10000
 """More than /api/frames allows: a page loads a whole stored session in a few requests."""
+MAX_SESSION_DIGITS = 18
+"""Longer ids name no session: SQLite integers stop at 19 digits, Python's int() at 4,300."""
 ROUTES = ("/api/sessions/{session:\\d+}/nodes", "/api/sessions/{session:\\d+}/frames",
           "/api/sessions/{session:\\d+}/stats")
 
@@ -139,8 +141,12 @@ def add_session_routes(app: web.Application, state: RelayState) -> SessionCache:
     cache = SessionCache(state.storage.path)
 
     async def session_nodes(request: web.Request) -> list[StoredNode]:
+        text = request.match_info["session"]
+        if len(text) > MAX_SESSION_DIGITS or not text.isascii():
+            raise http_error(web.HTTPNotFound, f"no session {text[:20]!r}: a session id is at most "
+                                               f"{MAX_SESSION_DIGITS} digits 0-9")
         try:
-            return await cache.get(int(request.match_info["session"]))
+            return await cache.get(int(text))
         except RelayError as exc:
             raise http_error(web.HTTPNotFound, str(exc)) from exc
 
