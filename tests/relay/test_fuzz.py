@@ -16,7 +16,8 @@ UI_PAYLOADS = 500
 
 
 def test_fuzz_while_a_node_streams(tmp_path):
-    relay = RelayProcess(tmp_path / "relay.db", token="t0k")
+    # 16 fuzzing workers and the good node share one address: above the default per-peer cap.
+    relay = RelayProcess(tmp_path / "relay.db", token="t0k", args=["--limit", "connections_per_peer=64"])
     try:
         node = start_node(relay.url, "good", tmp_path / "good.npz", frames=1500, sources=2, fps=50, paced=True,
                           drop_rate=0.01, token="t0k")
