@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from probes.errors import ProtocolError
+from probes.errors import LimitExceeded, ProtocolError
 from probes.events import EVENT_DTYPE, POINT_NAMES, TraceHeader, codes_valid
 
 MAGIC = b"DCUB"
@@ -199,6 +199,15 @@ def _str(obj: object, what: str, limit: int = MAX_NAME) -> str:
     return obj
 
 
+def _name(obj: object, what: str, limit: int) -> str:
+    """A node or stage name: a printable string, at most ``limit`` characters (the relay's)."""
+    text = _str(obj, what)
+    if len(text) > limit:
+        raise LimitExceeded("name_chars", f"{what} has {len(text)} characters, more than this relay takes "
+                                          f"({limit}: --limit name_chars=N)")
+    return text
+
+
 def _run_id(obj: object) -> str:
     text = _str(obj, "run", 64)
     try:
@@ -208,9 +217,12 @@ def _run_id(obj: object) -> str:
     return value.hex
 
 
-def decode_hello(obj: object, node: str | None = None) -> Hello:
+def decode_hello(obj: object, node: str | None = None, *, max_stages: int = MAX_STAGES,
+                 max_name: int = MAX_NAME) -> Hello:
     """A node's first message on a connection: who it is and how to read its events (its
-    header must name ``node`` when given)."""
+    header must name ``node`` when given). ``max_stages`` and ``max_name`` are the relay's
+    bounds on stages and on node and stage name length (at most the protocol's); beyond them,
+    :class:`LimitExceeded` names the limit."""
     d = _dict(obj, "hello")
     proto = _int(d.get("proto"), "hello.proto", 0, 1 << 16)
     if proto != PROTOCOL_VERSION:
@@ -218,10 +230,14 @@ def decode_hello(obj: object, node: str | None = None) -> Hello:
     run = _run_id(d.get("run"))
     h = _dict(d.get("header"), "hello.header")
     stages = h.get("stages")
-    if not isinstance(stages, list) or not 0 < len(stages) <= MAX_STAGES:
-        raise ProtocolError(f"hello.header.stages must be a list of 1..{MAX_STAGES} names")
+    max_stages, max_name = min(max_stages, MAX_STAGES), min(max_name, MAX_NAME)
+    if not isinstance(stages, list) or not stages:
+        raise ProtocolError(f"hello.header.stages must be a list of 1..{max_stages} names")
+    if len(stages) > max_stages:
+        raise LimitExceeded("stages", f"hello declares {len(stages)} stages, more than this relay takes "
+                                      f"({max_stages}: --limit stages=N)")
     for s in stages:
-        _str(s, "stage name")
+        _name(s, "stage name", max_name)
     sources = _dict(h.get("sources", {}), "hello.header.sources")
     if len(sources) > MAX_SOURCES:
         raise ProtocolError(f"hello.header.sources holds more than {MAX_SOURCES} entries")
@@ -237,7 +253,7 @@ def decode_hello(obj: object, node: str | None = None) -> Hello:
     kinds = _dict(h.get("kinds", {}), "hello.header.kinds")
     if not (kinds.keys() <= set(stages) and all(isinstance(v, str) and len(v) <= MAX_NAME for v in kinds.values())):
         raise ProtocolError("hello.header.kinds must map stage names to element factory names")
-    header_node = _str(h.get("node"), "hello.header.node")
+    header_node = _name(h.get("node"), "hello.header.node", max_name)
     if node is not None and header_node != node:
         raise ProtocolError(f"hello names node {header_node!r} but the connection is {node!r}")
     _str(h.get("clock"), "hello.header.clock", 32)

@@ -30,7 +30,7 @@ from dataclasses import dataclass, field
 from aiohttp import WSCloseCode, WSMsgType, web
 
 from probes import envelope
-from probes.errors import ProtocolError
+from probes.errors import LimitExceeded, ProtocolError
 from probes.wire import HEARTBEAT_S, MAX_MESSAGE_BYTES, Batch, decode_batch, decode_clock, decode_end, decode_hello
 from relay import storage as db
 from relay.auth import http_token, token_matches
@@ -114,6 +114,8 @@ class Ingest:
                     self._count_rejection(conn, f"bad frame: {msg.data}")
                     return
             except ProtocolError as exc:
+                if isinstance(exc, LimitExceeded):
+                    self.state.refused[exc.limit] = self.state.refused.get(exc.limit, 0) + 1
                 await self._reject(conn, str(exc))
                 return
 
@@ -165,7 +167,7 @@ class Ingest:
     async def _on_hello(self, conn: _Conn, data: object) -> dict:
         if conn.run is not None:
             raise ProtocolError("hello twice on one connection")
-        hello = decode_hello(data)
+        hello = decode_hello(data, max_stages=self._limits.stages, max_name=self._limits.name_chars)
         try:
             rs, previous = await self.state.attach(hello, conn.sid)
         except RelayError as exc:  # storage refused the run (another node's id), or failed
@@ -214,6 +216,10 @@ class Ingest:
         batch = decode_batch(data, len(rs.header.stages))
         if batch.run != rs.run:
             raise ProtocolError("batch of another run on this connection")
+        named = rs.live.admit_sources(batch.events["source"], self._limits.sources)
+        if named > self._limits.sources:
+            raise LimitExceeded("sources", f"run {rs.run} would name {named} distinct source ids, more than this "
+                                           f"relay takes ({self._limits.sources}: --limit sources=N)")
         rs.last_seen = time.time()
         # Stored concurrently, so that the batches in flight commit together.
         task = asyncio.create_task(self._store(conn, rs, batch))

@@ -48,6 +48,27 @@ class RunValues:
     def count(self) -> int:
         return self._count + self._n_exact
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the arrays held (the exact values' buffer or the histogram)."""
+        return self._exact.nbytes + (self._hist.nbytes if self._hist is not None else 0)
+
+    def lower_limit(self, exact_limit: int) -> None:
+        """Keep at most ``exact_limit`` values exactly from now on (a run's share of memory
+        shrank): values beyond it move into the histogram now, and the buffer shrinks to fit."""
+        if exact_limit >= self.exact_limit:
+            return
+        self.exact_limit = exact_limit
+        if self._hist is None and self._n_exact > exact_limit:
+            self._spill()
+        elif len(self._exact) > max(64, exact_limit):
+            self._exact = self._exact[:max(64, self._n_exact)].copy()
+
+    def _spill(self) -> None:
+        self._hist = np.zeros((2, _BUCKETS), np.int64)
+        self._add(self._exact[:self._n_exact])
+        self._exact, self._n_exact = np.zeros(0), 0
+
     def extend(self, values: np.ndarray) -> None:
         values = np.asarray(values, np.float64).ravel()
         if not len(values):
@@ -61,9 +82,7 @@ class RunValues:
             self._n_exact += len(values)
             return
         if self._hist is None:
-            self._hist = np.zeros((2, _BUCKETS), np.int64)
-            self._add(self._exact[:self._n_exact])
-            self._exact, self._n_exact = np.zeros(0), 0
+            self._spill()
         self._add(values)
 
     def summary(self, extra: np.ndarray | None = None) -> dict:

@@ -69,7 +69,7 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     storage = Storage(db)
-    state = RelayState(storage, clock, live)
+    state = RelayState(storage, clock, live, limits)
     sio = create_sio()
     ingest = Ingest(state, token, limits)
     ui = UiNamespace(state, token)
@@ -80,7 +80,8 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     ticker = Ticker(state, ui, push_hz)
     add_routes(app, state, token, lambda: {"rejected": ingest.rejected, "pushes": ticker.pushes,
                                            "commits": storage.commits, "batches": storage.batches_written,
-                                           "limits": limits.as_dict()})
+                                           "limits": limits.as_dict(), "memory": state.memory_view(),
+                                           "refused": dict(state.refused)})
     add_session_routes(app, state)
     _add_ui(app)
     return app, Relay(state, storage, sio, ingest, ui, ticker)

@@ -16,6 +16,7 @@ from probes.wire import Hello
 from relay import storage as db
 from relay.clock import ClockEstimator, correction_ns
 from relay.framejson import block, frame_dicts
+from relay.limits import MIB, Limits
 from relay.live import LiveConfig, LiveRun
 from relay.seqset import SeqSet
 from relay.storage import Storage
@@ -72,10 +73,14 @@ class RunState:
 
 
 class RelayState:
-    def __init__(self, storage: Storage, clock_mode: str, live_config: LiveConfig = LiveConfig()) -> None:
+    def __init__(self, storage: Storage, clock_mode: str, live_config: LiveConfig = LiveConfig(),
+                 limits: Limits = Limits()) -> None:
         self.storage = storage
         self.clock_mode = clock_mode
         self.live_config = live_config
+        self.limits = limits
+        self.refused: dict[str, int] = {"sources": 0, "stages": 0, "name_chars": 0}
+        """Payloads refused for exceeding a limit, per limit (the ingest counts them)."""
         self.runs: dict[str, RunState] = {}
         self.nodes: dict[str, str] = {}
         """Node name -> its newest run."""
@@ -105,6 +110,7 @@ class RelayState:
                     # A node's older run leaves memory once a newer one starts (it stays stored,
                     # and comes back from storage should it reconnect).
                     del self.runs[current]
+            self.rebalance()
             previous, rs.sid = rs.sid, sid
             rs.lost = max(rs.lost, hello.lost)
             rs.ptp = hello.ptp
@@ -116,7 +122,7 @@ class RelayState:
         session, first_seen_ns = await self.storage.call(db.register_run, hello.run, header.node, header.to_dict(),
                                                          self.live_session())
         seqs = SeqSet(await self.storage.call(db.stored_seqs, hello.run))
-        live = LiveRun(header, self.live_config)
+        live = LiveRun(header, self.live_config, self.run_budget(len(self.runs) + 1))
         if seqs:
             # The relay restarted while this run went on: rebuild its live state from storage,
             # in slices, so that only the frames of one slice are ever open at once.
@@ -126,6 +132,25 @@ class RelayState:
                 live.maintain()
         return RunState(run=hello.run, node=header.node, session=session, header=header, live=live, seqs=seqs,
                         first_seen=first_seen_ns / 1e9)
+
+    # --- memory -------------------------------------------------------------------------------
+
+    def run_budget(self, runs: int) -> int:
+        """Bytes each run's live state may hold when ``runs`` runs hold one: an equal share of
+        ``live_mb``, at most ``run_mb``."""
+        return int(min(self.limits.run_mb, self.limits.live_mb / max(1, runs)) * MIB)
+
+    def rebalance(self) -> None:
+        """Give every run its share again (call whenever runs join or leave memory)."""
+        budget = self.run_budget(len(self.runs))
+        for rs in self.runs.values():
+            rs.live.set_budget(budget)
+
+    def memory_view(self) -> dict:
+        """What the live states hold, for /api/health."""
+        return {"live_bytes": sum(rs.live.nbytes for rs in self.runs.values()),
+                "live_budget_bytes": int(self.limits.live_mb * MIB), "run_budget_bytes": self.run_budget(len(self.runs)),
+                "runs_with_live_state": len(self.runs)}
 
     def detach(self, run: str, sid: str) -> None:
         rs = self.runs.get(run)

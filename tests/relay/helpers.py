@@ -181,11 +181,13 @@ class HandNode:
         self.session, self.link, self.acks = session, link, acks
 
     @classmethod
-    async def open(cls, url: str, node: str, run: str, token: str | None = None, stages: int = 1) -> "HandNode":
+    async def open(cls, url: str, node: str, run: str, token: str | None = None, stages: int = 1,
+                   header: TraceHeader | None = None) -> "HandNode":
+        """Say hello as ``node`` with ``header``, by default that of a simulated node of ``stages`` sources."""
         session = aiohttp.ClientSession()
         acks: asyncio.Queue = asyncio.Queue()
         link = await Link.open(session, url, token, acks.put_nowait)
-        hello = {"proto": 2, "run": run, "header": header_for(node, stages).to_dict(), "lost": 0}
+        hello = {"proto": 2, "run": run, "header": (header or header_for(node, stages)).to_dict(), "lost": 0}
         reply = await link.call("hello", hello, 5)
         assert reply["ok"], reply
         return cls(session, link, acks)
