@@ -154,10 +154,11 @@ def test_far_source_ids_cost_no_memory_and_too_many_are_refused(tmp_path):
         good = _good_node(relay, tmp_path)
         watch = Watch(relay)
         asyncio.run(_source_bombs(relay.url, 150))
+        _check_good_node(relay, good, tmp_path)
+        _check_memory(relay, watch, "150 runs with source id 524287")
         error = asyncio.run(_too_many_sources(relay.url, 257))
         assert "257 distinct source ids" in error and "--limit sources=N" in error, error
-        _check_good_node(relay, good, tmp_path)
-        health = _check_memory(relay, watch, "150 runs with source id 524287")
+        health = get_json(f"{relay.url}/api/health")
         assert health["refused"]["sources"] == 1
         assert health["memory"]["runs_with_live_state"] >= 151
         listed = {n["node"]: n for n in get_json(f"{relay.url}/api/nodes")}
