@@ -230,9 +230,8 @@ def decode_hello(obj: object, node: str | None = None, *, max_stages: int = MAX_
     run = _run_id(d.get("run"))
     h = _dict(d.get("header"), "hello.header")
     stages = h.get("stages")
-    max_stages, max_name = min(max_stages, MAX_STAGES), min(max_name, MAX_NAME)
-    if not isinstance(stages, list) or not stages:
-        raise ProtocolError(f"hello.header.stages must be a list of 1..{max_stages} names")
+    if not isinstance(stages, list) or not 0 < len(stages) <= MAX_STAGES:
+        raise ProtocolError(f"hello.header.stages must be a list of 1..{MAX_STAGES} names")
     if len(stages) > max_stages:
         raise LimitExceeded("stages", f"hello declares {len(stages)} stages, more than this relay takes "
                                       f"({max_stages}: --limit stages=N)")
