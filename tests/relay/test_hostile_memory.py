@@ -148,6 +148,15 @@ async def _too_many_sources(url: str, sources: int) -> str:
         await node.close()
 
 
+async def _too_many_stages(url: str, stages: int) -> str:
+    header = TraceHeader(node="many-stages", clock="realtime", stages=[f"s{i}" for i in range(stages)])
+    try:
+        await HandNode.open(url, "many-stages", uuid.uuid4().hex, header=header)
+    except ConnectionError as exc:
+        return str(exc)
+    raise AssertionError("a hello beyond the stage limit was taken")
+
+
 def test_far_source_ids_cost_no_memory_and_too_many_are_refused(tmp_path):
     relay = RelayProcess(tmp_path / "relay.db")
     try:
@@ -158,8 +167,10 @@ def test_far_source_ids_cost_no_memory_and_too_many_are_refused(tmp_path):
         _check_memory(relay, watch, "150 runs with source id 524287")
         error = asyncio.run(_too_many_sources(relay.url, 257))
         assert "257 distinct source ids" in error and "--limit sources=N" in error, error
+        error = asyncio.run(_too_many_stages(relay.url, 65))
         health = get_json(f"{relay.url}/api/health")
-        assert health["refused"]["sources"] == 1
+        assert "65 stages" in error and "--limit stages=N" in error, error
+        assert health["refused"]["sources"] == 1 and health["refused"]["stages"] == 1, health["refused"]
         assert health["memory"]["runs_with_live_state"] >= 151
         listed = {n["node"]: n for n in get_json(f"{relay.url}/api/nodes")}
         assert listed["far-source-149"]["events"] == 1 and "many-sources" in listed
