@@ -72,7 +72,7 @@ class LiveConfig:
     exact_values: int = 262_144
     """Values per series kept exactly for whole-run percentiles (2 MB each); past it, a log
     histogram with percentiles within 1 % (relay.runvalues), so a run of days stays bounded. The
-    run's byte budget may lower it (default relay: 64 MiB a run, ~120,000 values a series at 8 stages)."""
+    run's byte budget may lower it (default relay: 64 MiB a run, ~110,000 values a series at 8 stages)."""
     evicted_kept: int = 65_536
     """Eviction times kept for the rolling window's incomplete count (older ones are outside it)."""
 
@@ -264,22 +264,9 @@ class LiveRun:
         self._has_exit |= np.bincount(stage[point == EXIT], minlength=self._s)[:self._s] > 0
         self._framed[self._src_index(src)] = True
 
-        pos, found = self._locate(key)
-        if not found.all():
-            nf = ~found
-            late = np.zeros(len(key), bool)
-            late[nf] = frame[nf] <= self._watermark[self._src_index(src[nf])]
-            if late.any():
-                self.late += int(late.sum())
-                keep = ~late
-                key, ts, stage, point, code = key[keep], ts[keep], stage[keep], point[keep], code[keep]
-                found = found[keep]
-            if not found.all():
-                new, inv = np.unique(key[~found], return_inverse=True)
-                self._open(new[~self._make_room(new, ts[~found], inv)])
-            pos, found = self._locate(key)
-            if not found.all():  # frames evicted to make room: their events go with them
-                pos, ts, stage, point, code = pos[found], ts[found], stage[found], point[found], code[found]
+        pos, placed = self._place(key, frame, src, ts)
+        if not placed.all():
+            pos, ts, stage, point, code = pos[placed], ts[placed], stage[placed], point[placed], code[placed]
         if len(pos) == 0:
             return
         slot = (pos * self._s + stage) * FRAME_CELLS
@@ -296,6 +283,23 @@ class LiveRun:
         cells[slot[ready] + GROUP] = code[ready]
         np.maximum.at(self._last, pos, ts)
         self._dirty = True
+
+    def _place(self, key: np.ndarray, frame: np.ndarray, src: np.ndarray,
+               ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Open the frames of these events that are new; returns each event's row in the open
+        table and which events have one: not those of a frame finalised or evicted before (late,
+        counted), nor those of a frame evicted now to make room."""
+        pos, found = self._locate(key)
+        if found.all():
+            return pos, found
+        late = np.zeros(len(key), bool)
+        late[~found] = frame[~found] <= self._watermark[self._src_index(src[~found])]
+        self.late += int(late.sum())
+        opening = ~found & ~late
+        if opening.any():
+            new, inv = np.unique(key[opening], return_inverse=True)
+            self._open(new[~self._make_room(new, ts[opening], inv)])
+        return self._locate(key)
 
     def _locate(self, key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pos = np.searchsorted(self._keys, key)
