@@ -296,7 +296,10 @@ class RelayExporter:
             if isinstance(reply.get("secret"), str):
                 self._secret = reply["secret"]
         except (ConnectionError, TimeoutError, aiohttp.ClientError, ExportError) as exc:
-            self._note_error(f"cannot reach relay {self.url}: {link.error or _describe(exc)}")
+            # The relay said why (e.g. another live run holds this node's name): it is asked again later.
+            said = f"relay {self.url} refused this node for now: {link.error}" if link.error.startswith("relay error")\
+                else f"cannot reach relay {self.url}: {link.error or _describe(exc)}"
+            self._note_error(said)
             await link.close()
             return None
         return link
