@@ -15,3 +15,12 @@ class ExportError(DcuscopeError):
 class ProtocolError(DcuscopeError):
     """A payload of the node <-> relay protocol is malformed, truncated, oversize or of another
     version (:mod:`probes.wire`, :mod:`probes.envelope`)."""
+
+
+class LimitExceeded(ProtocolError):
+    """A well-formed payload beyond one of the relay's limits (``limit`` names it, as
+    ``--limit NAME=VALUE`` sets it), so that the relay can count refusals per limit."""
+
+    def __init__(self, limit: str, message: str) -> None:
+        super().__init__(message)
+        self.limit = limit

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from probes.errors import ProtocolError
+from probes.errors import LimitExceeded, ProtocolError
 from probes.events import EVENT_DTYPE, POINT_NAMES, TraceHeader, codes_valid
 
 MAGIC = b"DCUB"
@@ -60,6 +60,8 @@ SOURCE_LIMIT = 1 << 19
 FRAME_LIMIT = 1 << 44
 """Source ids and frame numbers must fit these so that (source, frame) packs in one int64 key."""
 INT64_MAX = (1 << 63) - 1
+SECRET_CHARS = 32
+"""Length of a run's resume secret (hex), issued by the relay in the reply to its first hello."""
 
 
 @dataclass(frozen=True)
@@ -82,6 +84,8 @@ class Hello:
     ptp: dict = field(default_factory=dict)
     floor: int = 0
     """Every batch below this sequence number was acknowledged or given up by the node."""
+    secret: str | None = None
+    """The resume secret the relay issued at the run's first hello; required to resume it."""
 
 
 @dataclass(frozen=True)
@@ -199,6 +203,15 @@ def _str(obj: object, what: str, limit: int = MAX_NAME) -> str:
     return obj
 
 
+def _name(obj: object, what: str, limit: int) -> str:
+    """A node or stage name: a printable string, at most ``limit`` characters (the relay's)."""
+    text = _str(obj, what)
+    if len(text) > limit:
+        raise LimitExceeded("name_chars", f"{what} has {len(text)} characters, more than this relay takes "
+                                          f"({limit}: --limit name_chars=N)")
+    return text
+
+
 def _run_id(obj: object) -> str:
     text = _str(obj, "run", 64)
     try:
@@ -208,9 +221,12 @@ def _run_id(obj: object) -> str:
     return value.hex
 
 
-def decode_hello(obj: object, node: str | None = None) -> Hello:
+def decode_hello(obj: object, node: str | None = None, *, max_stages: int = MAX_STAGES,
+                 max_name: int = MAX_NAME) -> Hello:
     """A node's first message on a connection: who it is and how to read its events (its
-    header must name ``node`` when given)."""
+    header must name ``node`` when given). ``max_stages`` and ``max_name`` are the relay's
+    bounds on stages and on node and stage name length (at most the protocol's); beyond them,
+    :class:`LimitExceeded` names the limit."""
     d = _dict(obj, "hello")
     proto = _int(d.get("proto"), "hello.proto", 0, 1 << 16)
     if proto != PROTOCOL_VERSION:
@@ -220,8 +236,11 @@ def decode_hello(obj: object, node: str | None = None) -> Hello:
     stages = h.get("stages")
     if not isinstance(stages, list) or not 0 < len(stages) <= MAX_STAGES:
         raise ProtocolError(f"hello.header.stages must be a list of 1..{MAX_STAGES} names")
+    if len(stages) > max_stages:
+        raise LimitExceeded("stages", f"hello declares {len(stages)} stages, more than this relay takes "
+                                      f"({max_stages}: --limit stages=N)")
     for s in stages:
-        _str(s, "stage name")
+        _name(s, "stage name", max_name)
     sources = _dict(h.get("sources", {}), "hello.header.sources")
     if len(sources) > MAX_SOURCES:
         raise ProtocolError(f"hello.header.sources holds more than {MAX_SOURCES} entries")
@@ -237,7 +256,7 @@ def decode_hello(obj: object, node: str | None = None) -> Hello:
     kinds = _dict(h.get("kinds", {}), "hello.header.kinds")
     if not (kinds.keys() <= set(stages) and all(isinstance(v, str) and len(v) <= MAX_NAME for v in kinds.values())):
         raise ProtocolError("hello.header.kinds must map stage names to element factory names")
-    header_node = _str(h.get("node"), "hello.header.node")
+    header_node = _name(h.get("node"), "hello.header.node", max_name)
     if node is not None and header_node != node:
         raise ProtocolError(f"hello names node {header_node!r} but the connection is {node!r}")
     _str(h.get("clock"), "hello.header.clock", 32)
@@ -248,7 +267,11 @@ def decode_hello(obj: object, node: str | None = None) -> Hello:
     except (KeyError, TypeError, ValueError) as exc:
         raise ProtocolError(f"hello.header unreadable: {exc}") from exc
     lost = _int(d.get("lost", 0), "hello.lost")
-    return Hello(run, header, lost, sanitize_ptp(d.get("ptp")), _int(d.get("floor", 0), "hello.floor"))
+    secret = d.get("secret")
+    if secret is not None and not (isinstance(secret, str) and len(secret) == SECRET_CHARS
+                                   and all(c in "0123456789abcdef" for c in secret)):
+        raise ProtocolError(f"hello.secret must be {SECRET_CHARS} hex digits")
+    return Hello(run, header, lost, sanitize_ptp(d.get("ptp")), _int(d.get("floor", 0), "hello.floor"), secret)
 
 
 def decode_clock(obj: object) -> ClockReport:

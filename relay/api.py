@@ -1,6 +1,7 @@
 """HTTP JSON API of the relay (aiohttp routes); a token, when set, guards every ``/api`` route.
 
-- ``GET /api/health``: {ok, uptime_s, runs, rejected}
+- ``GET /api/health``: {ok, uptime_s, runs, rejected, limits, memory {live_bytes, live_budget_bytes,
+  run_budget_bytes, runs_with_live_state}, refused {LIMIT: payloads refused for exceeding it}}
 - ``GET /api/nodes``: [{node, run, session, connected, clock {offset_us, uncertainty_us, ...},
   ptp, events, dropped, lost, drops, ...}], one per node (its newest run)
 - ``GET /api/stats?node=NAME``: ``probes.delays.node_stats`` of the node's newest run (stage

@@ -30,10 +30,10 @@ from dataclasses import dataclass, field
 from aiohttp import WSCloseCode, WSMsgType, web
 
 from probes import envelope
-from probes.errors import ProtocolError
+from probes.errors import LimitExceeded, ProtocolError
 from probes.wire import HEARTBEAT_S, MAX_MESSAGE_BYTES, Batch, decode_batch, decode_clock, decode_end, decode_hello
 from relay import storage as db
-from relay.auth import http_token, token_matches
+from relay.auth import http_token, node_for_token, token_matches
 from relay.errors import RelayError
 from relay.limits import Limits, TokenBucket
 from relay.state import RelayState, RunState
@@ -50,6 +50,8 @@ class _Conn:
     sid: str
     ws: web.WebSocketResponse
     bucket: TokenBucket
+    node: str | None = None
+    """The only node name this connection may use (it presented that node's own token)."""
     run: str | None = None
     closing: bool = False
     tasks: set[asyncio.Task] = field(default_factory=set)
@@ -58,9 +60,11 @@ class _Conn:
 class Ingest:
     """The ``/ingest`` handler and the connections it holds."""
 
-    def __init__(self, state: RelayState, token: str | None, limits: Limits = Limits()) -> None:
+    def __init__(self, state: RelayState, token: str | None, limits: Limits = Limits(),
+                 node_tokens: dict[str, str] | None = None) -> None:
         self.state = state
         self._token = token
+        self._node_tokens = node_tokens or {}
         self._limits = limits
         self._conns: dict[str, _Conn] = {}
         self._ids = itertools.count(1)
@@ -75,8 +79,7 @@ class Ingest:
         return len(self._conns)
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
-        if not token_matches(self._token, http_token(request.headers, request.query)):
-            raise web.HTTPUnauthorized(text="unauthorized: wrong or missing token")
+        node = self._authorise(http_token(request.headers, request.query))
         if len(self._conns) >= self._limits.connections:
             raise web.HTTPServiceUnavailable(text="too many connections")
         ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=HEARTBEAT_S, timeout=CLOSE_TIMEOUT_S)
@@ -88,7 +91,7 @@ class Ingest:
             # The node went away during the handshake (stopped as it started). A plain answer,
             # which aiohttp fails to write quietly, ends the request without a logged traceback.
             raise web.HTTPBadRequest(text="connection closed during the handshake") from None
-        conn = _Conn(f"ws{next(self._ids)}", ws, TokenBucket(self._limits))
+        conn = _Conn(f"ws{next(self._ids)}", ws, TokenBucket(self._limits), node)
         self._conns[conn.sid] = conn
         # A connection that never says hello would hold one of the few ingest places for ever.
         expiry = asyncio.get_running_loop().call_later(self._limits.hello_timeout_s, self._hello_overdue, conn)
@@ -103,6 +106,18 @@ class Ingest:
                 # Batches being stored finish (their acknowledgements have nowhere to go).
                 await asyncio.gather(*conn.tasks, return_exceptions=True)
         return ws
+
+    def _authorise(self, presented: object) -> str | None:
+        """The node name a connection is bound to (None: any), or HTTP 401. The shared token
+        lets a node use any name; a node's own token (--node-tokens) only its own."""
+        if self._token is None and not self._node_tokens:
+            return None
+        if self._token is not None and token_matches(self._token, presented):
+            return None
+        node = node_for_token(self._node_tokens, presented)
+        if node is None:
+            raise web.HTTPUnauthorized(text="unauthorized: wrong or missing token")
+        return node
 
     def _hello_overdue(self, conn: _Conn) -> None:
         if conn.run is None and not conn.closing:
@@ -129,10 +144,19 @@ class Ingest:
                 elif msg.type == WSMsgType.ERROR:
                     # aiohttp already closes with 1009 (too big) or 1002 (not WebSocket).
                     self._count_rejection(conn, f"bad frame: {msg.data}")
+                    await self._reject_run(conn, f"bad frame: {msg.data}")
                     return
             except ProtocolError as exc:
+                if isinstance(exc, LimitExceeded):
+                    self.state.refused[exc.limit] = self.state.refused.get(exc.limit, 0) + 1
                 await self._reject(conn, str(exc))
+                await self._reject_run(conn, str(exc))
                 return
+            if conn.run is not None:
+                # Heard from: the run holds its node's name (Limits.silent_s).
+                run = self.state.runs.get(conn.run)
+                if run is not None and run.sid == conn.sid:
+                    run.last_seen = time.time()
 
     def _take(self, conn: _Conn, nbytes: int) -> None:
         if not conn.bucket.take(nbytes):
@@ -153,6 +177,11 @@ class Ingest:
             pass
         # A close reason holds at most 123 bytes.
         await conn.ws.close(code=WSCloseCode.POLICY_VIOLATION, message=message[:100].encode("ascii", "replace"))
+
+    async def _reject_run(self, conn: _Conn, reason: str) -> None:
+        """The run of a connection closed for what it sent is kept apart (relay.state.reject)."""
+        if conn.run is not None:
+            await self.state.reject(conn.run, reason)
 
     async def _send(self, conn: _Conn, text: str) -> None:
         try:
@@ -182,18 +211,26 @@ class Ingest:
     async def _on_hello(self, conn: _Conn, data: object) -> dict:
         if conn.run is not None:
             raise ProtocolError("hello twice on one connection")
-        hello = decode_hello(data)
+        hello = decode_hello(data, conn.node, max_stages=self._limits.stages, max_name=self._limits.name_chars)
         try:
-            rs, previous = await self.state.attach(hello, conn.sid)
-        except RelayError as exc:  # storage refused the run (another node's id), or failed
+            attached = await self.state.attach(hello, conn.sid)
+        except RelayError as exc:  # storage failed
             raise ProtocolError(str(exc)) from exc
+        rs = attached.run
         conn.run = rs.run
         rs.seqs.advance(hello.floor)
-        old = self._conns.get(previous) if previous is not None else None
+        old = self._conns.get(attached.previous) if attached.previous is not None else None
         if old is not None:
             # The node reconnected before the relay noticed its old connection died.
             await self._reject(old, "superseded by a newer connection of this run")
-        return {"ok": True, "run": rs.run, "session": rs.session}
+        silent = self._conns.get(attached.displaced) if attached.displaced is not None else None
+        if silent is not None:
+            # The node restarted while its former run's connection stayed open, silent.
+            await self._reject(silent, f"superseded by a new run of node {rs.node!r}")
+        answer = {"ok": True, "run": rs.run, "session": rs.session}
+        if attached.secret is not None:
+            answer["secret"] = attached.secret
+        return answer
 
     async def _on_clock(self, rs: RunState, data: object) -> dict:
         report = decode_clock(data)
@@ -231,6 +268,10 @@ class Ingest:
         batch = decode_batch(data, len(rs.header.stages))
         if batch.run != rs.run:
             raise ProtocolError("batch of another run on this connection")
+        named = rs.live.admit_sources(batch.events["source"], self._limits.sources)
+        if named > self._limits.sources:
+            raise LimitExceeded("sources", f"run {rs.run} would name {named} distinct source ids, more than this "
+                                           f"relay takes ({self._limits.sources}: --limit sources=N)")
         rs.last_seen = time.time()
         # Stored concurrently, so that the batches in flight commit together.
         task = asyncio.create_task(self._store(conn, rs, batch))

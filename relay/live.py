@@ -17,6 +17,13 @@ after a relay restart ages nothing. Events for a frame already finalised or evic
 below the source's watermark) are counted as ``late`` and ignored. Frames show up for the UI as
 soon as their chain is complete (:meth:`LiveRun.recent`).
 
+Memory is bounded in bytes (:meth:`LiveRun.set_budget`): the budget is split between the open
+table, the window's ring, the recent frames and the exact values, and each part's cap in frames or
+values follows from the run's row size, so a run declaring many stages holds fewer frames, not more
+bytes. A batch that would open more frames than the cap evicts the stalest open frames first, and
+opens only its newest ones if it holds more new frames than the cap (the rest count as evicted).
+Source ids are kept in a sorted array of those seen (never an array sized by an id).
+
 Whether a stage has an exit point at all is the one fact of a chain that spans frames; the
 engine keeps the run's value of it and hands it to ``chains``, so that every subset of frames
 is judged by the exits the whole run has seen.
@@ -37,6 +44,16 @@ from relay.runvalues import RELATIVE_ERROR, OriginSpans, RunValues
 KEY_SHIFT = 44  # key = source << 44 | frame; probes.wire bounds both to fit
 FINALISE_PERIOD_NS = 500_000_000
 """Node time between two finalisation/eviction passes."""
+MERGE_EVENTS = 65536
+"""Queued events merged at once at most (one batch's worth), so a merge's transient arrays stay small."""
+FRAME_OVERHEAD = 32
+"""Bytes an open frame holds besides its cells (key, last timestamp, shown flag, merge copies)."""
+RING_OVERHEAD = 20
+"""Bytes a kept frame holds besides its cells (source, frame, end)."""
+SHARES = {"open": 0.25, "ring": 0.2, "recent": 0.05, "exact": 0.45, "evicted": 0.05}
+"""How a run's byte budget is split between its parts."""
+MIN_FRAMES = 16
+"""Frames every part may hold whatever the budget."""
 
 
 @dataclass(frozen=True)
@@ -50,29 +67,50 @@ class LiveConfig:
     """Complete frames kept for the UI and /api/frames."""
     max_open_frames: int = 200_000
     """Open frames at most (~77 MB with 8 stages, 6 cells each): beyond, the stalest are evicted, so that a
-    node whose timestamps stand still cannot make the relay grow without bound."""
+    node whose timestamps stand still cannot make the relay grow without bound. The run's byte budget
+    (``LiveRun.set_budget``) may lower it, as it lowers the ring, the recent frames and exact values."""
     exact_values: int = 262_144
     """Values per series kept exactly for whole-run percentiles (2 MB each); past it, a log
-    histogram with percentiles within 1 % (relay.runvalues), so a run of days stays bounded."""
+    histogram with percentiles within 1 % (relay.runvalues), so a run of days stays bounded. The
+    run's byte budget may lower it (default relay: 64 MiB a run, ~110,000 values a series at 8 stages)."""
     evicted_kept: int = 65_536
     """Eviction times kept for the rolling window's incomplete count (older ones are outside it)."""
 
 
 class Grow:
-    """A numpy array with amortised appends along axis 0."""
+    """A numpy array with amortised appends along axis 0, keeping (with a ``cap``) the newest
+    ``cap`` to ``2 * cap`` rows in at most ``2 * cap`` rows of memory."""
 
-    def __init__(self, dtype, tail: tuple = ()) -> None:
+    def __init__(self, dtype, tail: tuple = (), cap: int | None = None) -> None:
         self._a = np.zeros((64, *tail), dtype)
         self.n = 0
+        self.cap = cap
 
     def extend(self, values: np.ndarray) -> None:
+        if self.cap is not None and self.n + len(values) > 2 * self.cap:
+            values = values[-self.cap:]
+            self.keep_last(self.cap - len(values))
         k = len(values)
         if self.n + k > len(self._a):
-            bigger = np.zeros((max(2 * len(self._a), self.n + k), *self._a.shape[1:]), self._a.dtype)
+            size = max(2 * len(self._a), self.n + k)
+            bigger = np.zeros((size if self.cap is None else min(size, 2 * self.cap), *self._a.shape[1:]),
+                              self._a.dtype)
             bigger[:self.n] = self._a[:self.n]
             self._a = bigger
         self._a[self.n:self.n + k] = values
         self.n += k
+
+    def set_cap(self, cap: int) -> None:
+        """Keep the newest ``cap`` rows from now on; memory shrinks to ``2 * cap`` rows now."""
+        self.cap = cap
+        if self.n > 2 * cap:
+            self.keep_last(cap)
+        if len(self._a) > 2 * cap:
+            self._a = self._a[:max(self.n, 2 * cap)].copy()
+
+    @property
+    def nbytes(self) -> int:
+        return self._a.nbytes
 
     def keep_last(self, k: int) -> None:
         if self.n > k:
@@ -96,7 +134,7 @@ class _Frames:
 class LiveRun:
     """Live pairing and statistics of one run of one node."""
 
-    def __init__(self, header: TraceHeader, config: LiveConfig = LiveConfig()) -> None:
+    def __init__(self, header: TraceHeader, config: LiveConfig = LiveConfig(), budget: int | None = None) -> None:
         self.header = header
         self.stages = list(header.stages)
         self.config = config
@@ -108,11 +146,16 @@ class LiveRun:
         self._last = np.zeros(0, np.int64)
         self._shown = np.zeros(0, bool)
         self._has_exit = np.zeros(s, bool)
-        self._watermark = np.full(0, -1, np.int64)
-        self._sources = np.zeros(0, bool)
+        # Source ids seen, sorted, with what is kept per id alongside.
+        self._src_ids = np.zeros(0, np.int64)
+        self._watermark = np.zeros(0, np.int64)
+        self._framed = np.zeros(0, bool)
+        """Sources with frame timestamps (not only drops or facts)."""
         self.newest = 0
         # Finalised frames.
         self._values: dict[str, dict[str, RunValues]] = {kind: {} for kind in ("stages", "gaps", "service", "wait")}
+        self._open_cap = config.max_open_frames
+        self._exact_limit = config.exact_values
         self._frame_values = RunValues(config.exact_values)
         self._glass_values = RunValues(config.exact_values)
         self._busy: dict[str, int] = {}
@@ -120,11 +163,12 @@ class LiveRun:
         self._last_end: int | None = None
         self.accounting = Accounting(self.stages)
         self._origins = OriginSpans()
-        self._ring = {"source": Grow(np.int32), "frame": Grow(np.int64), "cells": Grow(np.int64, (s, FRAME_CELLS)),
-                      "end": Grow(np.int64)}
-        self._evicted_last = Grow(np.int64)
-        self._recent = {"n": Grow(np.int64), "source": Grow(np.int32), "frame": Grow(np.int64),
-                        "cells": Grow(np.int64, (s, FRAME_CELLS))}
+        ring, recent = config.ring_frames, config.recent_frames
+        self._ring = {"source": Grow(np.int32, cap=ring), "frame": Grow(np.int64, cap=ring),
+                      "cells": Grow(np.int64, (s, FRAME_CELLS), ring), "end": Grow(np.int64, cap=ring)}
+        self._evicted_last = Grow(np.int64, cap=config.evicted_kept)
+        self._recent = {"n": Grow(np.int64, cap=recent), "source": Grow(np.int32, cap=recent),
+                        "frame": Grow(np.int64, cap=recent), "cells": Grow(np.int64, (s, FRAME_CELLS), recent)}
         self.finalised = 0
         self.evicted = 0
         self.late = 0
@@ -134,6 +178,54 @@ class LiveRun:
         self._dirty = False
         self._pending: list[np.ndarray] = []
         self._next_finalise = 0
+        if budget is not None:
+            self.set_budget(budget)
+
+    # --- memory ---------------------------------------------------------------------------------
+
+    def set_budget(self, budget: int) -> None:
+        """Hold at most about ``budget`` bytes from now on: each part's cap follows from its share
+        and the run's row size; what is over a lowered cap goes now (open frames evicted, the
+        oldest kept frames dropped, exact values moved into histograms)."""
+        c, row = self.config, self._s * FRAME_CELLS * 8
+        share = {part: int(budget * f) for part, f in SHARES.items()}
+        self._open_cap = min(c.max_open_frames, max(MIN_FRAMES, share["open"] // (row + FRAME_OVERHEAD)))
+        ring = min(c.ring_frames, max(MIN_FRAMES, share["ring"] // (2 * (row + RING_OVERHEAD))))
+        recent = min(c.recent_frames, max(MIN_FRAMES, share["recent"] // (2 * (row + RING_OVERHEAD))))
+        for g in self._ring.values():
+            g.set_cap(ring)
+        for g in self._recent.values():
+            g.set_cap(recent)
+        self._evicted_last.set_cap(min(c.evicted_kept, max(MIN_FRAMES, share["evicted"] // 16)))
+        # Series: per stage its delays, service, wait and the gap to the next, plus frame and glass.
+        self._exact_limit = min(c.exact_values, max(64, share["exact"] // (8 * (4 * self._s + 1))))
+        for v in self._all_series():
+            v.lower_limit(self._exact_limit)
+        excess = len(self._keys) - self._open_cap
+        if excess > 0:
+            self._evict_open(np.argsort(self._last, kind="stable")[:excess])
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the arrays this run holds (they dominate its memory)."""
+        arrays = (self._keys, self._cells, self._last, self._shown, self._src_ids, self._watermark, self._framed,
+                  *self._pending)
+        grows = (*self._ring.values(), *self._recent.values(), self._evicted_last)
+        return sum(a.nbytes for a in arrays) + sum(g.nbytes for g in grows) + sum(v.nbytes for v in self._all_series())
+
+    @property
+    def open_cap(self) -> int:
+        """Open frames this run may hold now."""
+        return self._open_cap
+
+    def admit_sources(self, sources: np.ndarray, limit: int) -> int:
+        """Note the source ids of a batch unless the run would then name more than ``limit``
+        distinct ones; returns how many it would name (nothing is noted when over)."""
+        new = np.setdiff1d(np.unique(sources), self._src_ids, assume_unique=True)
+        total = len(self._src_ids) + len(new)
+        if total <= limit:
+            self._note_sources(new)
+        return total
 
     # --- ingest -------------------------------------------------------------------------------
 
@@ -144,15 +236,17 @@ class LiveRun:
         until the next :meth:`maintain` (the relay's tick) or read, and merge as one.
         """
         if len(events):
+            self._note_sources(np.setdiff1d(np.unique(events["source"]), self._src_ids, assume_unique=True))
             self._pending.append(events)
             self.events += len(events)
 
     def _merge_pending(self) -> None:
-        if not self._pending:
-            return
-        events = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
-        self._pending = []
-        self._merge(events)
+        while self._pending:
+            take, n = [], 0
+            while self._pending and (not take or n + len(self._pending[0]) <= MERGE_EVENTS):
+                take.append(self._pending.pop(0))
+                n += len(take[-1])
+            self._merge(np.concatenate(take) if len(take) > 1 else take[0])
 
     def _merge(self, events: np.ndarray) -> None:
         self.accounting.add(events)
@@ -168,22 +262,12 @@ class LiveRun:
         key = (src << KEY_SHIFT) | frame
         self.newest = max(self.newest, int(ts.max()))
         self._has_exit |= np.bincount(stage[point == EXIT], minlength=self._s)[:self._s] > 0
-        self._note_sources(src)
+        self._framed[self._src_index(src)] = True
 
-        pos, found = self._locate(key)
-        if not found.all():
-            nf = ~found
-            late = np.zeros(len(key), bool)
-            late[nf] = frame[nf] <= self._watermark[src[nf]]  # _note_sources sized it
-            if late.any():
-                self.late += int(late.sum())
-                keep = ~late
-                key, ts, stage, point, code = key[keep], ts[keep], stage[keep], point[keep], code[keep]
-                found = found[keep]
-            if not found.all():
-                self._open(np.unique(key[~found]))
-            pos, _ = self._locate(key)
-        if len(key) == 0:
+        pos, placed = self._place(key, frame, src, ts)
+        if not placed.all():
+            pos, ts, stage, point, code = pos[placed], ts[placed], stage[placed], point[placed], code[placed]
+        if len(pos) == 0:
             return
         slot = (pos * self._s + stage) * FRAME_CELLS
         flat = slot + point
@@ -200,6 +284,23 @@ class LiveRun:
         np.maximum.at(self._last, pos, ts)
         self._dirty = True
 
+    def _place(self, key: np.ndarray, frame: np.ndarray, src: np.ndarray,
+               ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Open the frames of these events that are new; returns each event's row in the open
+        table and which events have one: not those of a frame finalised or evicted before (late,
+        counted), nor those of a frame evicted now to make room."""
+        pos, found = self._locate(key)
+        if found.all():
+            return pos, found
+        late = np.zeros(len(key), bool)
+        late[~found] = frame[~found] <= self._watermark[self._src_index(src[~found])]
+        self.late += int(late.sum())
+        opening = ~found & ~late
+        if opening.any():
+            new, inv = np.unique(key[opening], return_inverse=True)
+            self._open(new[~self._make_room(new, ts[opening], inv)])
+        return self._locate(key)
+
     def _locate(self, key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         pos = np.searchsorted(self._keys, key)
         if len(self._keys) == 0:
@@ -215,12 +316,50 @@ class LiveRun:
         self._last = np.concatenate([self._last, np.zeros(k, np.int64)])[order]
         self._shown = np.concatenate([self._shown, np.zeros(k, bool)])[order]
 
-    def _note_sources(self, src: np.ndarray) -> None:
-        top = int(src.max()) + 1
-        if top > len(self._sources):
-            self._sources = np.concatenate([self._sources, np.zeros(top - len(self._sources), bool)])
-            self._watermark = np.concatenate([self._watermark, np.full(top - len(self._watermark), -1, np.int64)])
-        self._sources[src] = True
+    def _make_room(self, new: np.ndarray, ts: np.ndarray, inv: np.ndarray) -> np.ndarray:
+        """Keep the open table within its cap before ``new`` keys (sorted; ``ts`` their events'
+        times, ``inv`` each event's key) open: the stalest open frames are evicted first; if the
+        new ones alone are over the cap, only the newest open. Returns which new keys do not."""
+        cap = self._open_cap
+        dropped = np.zeros(len(new), bool)
+        if len(new) > cap:
+            newest = np.full(len(new), np.iinfo(np.int64).min)
+            np.maximum.at(newest, inv, ts)
+            dropped[np.argsort(newest, kind="stable")[:len(new) - cap]] = True
+            self._count_evicted(new[dropped] >> KEY_SHIFT, new[dropped] & ((1 << KEY_SHIFT) - 1), newest[dropped])
+        excess = len(self._keys) + len(new) - int(dropped.sum()) - cap
+        if excess > 0:
+            self._evict_open(np.argsort(self._last, kind="stable")[:excess])
+        return dropped
+
+    def _evict_open(self, rows: np.ndarray) -> None:
+        """Evict these open frames now (the open table is over its cap)."""
+        gone = np.zeros(len(self._keys), bool)
+        gone[rows] = True
+        keys = self._keys[gone]
+        self._count_evicted(keys >> KEY_SHIFT, keys & ((1 << KEY_SHIFT) - 1), self._last[gone])
+        keep = ~gone
+        self._keys, self._cells = self._keys[keep], self._cells[keep]
+        self._last, self._shown = self._last[keep], self._shown[keep]
+
+    def _count_evicted(self, source: np.ndarray, frame: np.ndarray, last: np.ndarray) -> None:
+        self.evicted += len(source)
+        self._evicted_last.extend(last)
+        self._raise_watermark(source, frame)
+
+    def _note_sources(self, new: np.ndarray) -> None:
+        """Add source ids not seen before (``new``, unique)."""
+        if not len(new):
+            return
+        ids = np.concatenate([self._src_ids, new.astype(np.int64)])
+        order = np.argsort(ids, kind="stable")
+        self._src_ids = ids[order]
+        self._watermark = np.concatenate([self._watermark, np.full(len(new), -1, np.int64)])[order]
+        self._framed = np.concatenate([self._framed, np.zeros(len(new), bool)])[order]
+
+    def _src_index(self, source: np.ndarray) -> np.ndarray:
+        """Where each of these (noted) source ids sits in the per-source arrays."""
+        return np.searchsorted(self._src_ids, source)
 
     # --- periodic: completion, finalisation, eviction -------------------------------------------
 
@@ -243,28 +382,21 @@ class LiveRun:
             r["frame"].extend(open_.frame[shown])
             r["cells"].extend(open_.cells[shown])
             self.visible += k
-            if r["n"].n > 2 * self.config.recent_frames:
-                for g in r.values():
-                    g.keep_last(self.config.recent_frames)
 
         # Finalising costs as much as showing; settled frames can wait a little longer.
-        if self.newest < self._next_finalise and len(self._keys) <= self.config.max_open_frames:
+        if self.newest < self._next_finalise and len(self._keys) <= self._open_cap:
             return k
         self._next_finalise = self.newest + FINALISE_PERIOD_NS
         done = complete & (end <= self.newest - int(self.config.settle_s * 1e9))
         stale = ~complete & (self._last < self.newest - int(self.config.evict_s * 1e9))
-        excess = len(self._keys) - int(done.sum()) - int(stale.sum()) - self.config.max_open_frames
+        excess = len(self._keys) - int(done.sum()) - int(stale.sum()) - self._open_cap
         if excess > 0:
             candidates = np.flatnonzero(~done & ~stale)
             stale[candidates[np.argsort(self._last[candidates], kind="stable")[:excess]]] = True
         if done.any():
             self._finalise(_Frames(open_.source[done], open_.frame[done], open_.cells[done]), end[done])
         if stale.any():
-            self.evicted += int(stale.sum())
-            self._evicted_last.extend(self._last[stale])
-            if self._evicted_last.n > 2 * self.config.evicted_kept:
-                self._evicted_last.keep_last(self.config.evicted_kept)
-            self._raise_watermark(open_.source[stale], open_.frame[stale])
+            self._count_evicted(open_.source[stale], open_.frame[stale], self._last[stale])
         gone = done | stale
         if gone.any():
             keep = ~gone
@@ -306,9 +438,6 @@ class LiveRun:
         ring["frame"].extend(frames.frame)
         ring["cells"].extend(frames.cells)
         ring["end"].extend(end)
-        if ring["end"].n > 2 * self.config.ring_frames:
-            for g in ring.values():
-                g.keep_last(self.config.ring_frames)
         self._raise_watermark(frames.source, frames.frame)
 
     def _note_span(self, first_origin: int, last_end: int) -> None:
@@ -321,11 +450,11 @@ class LiveRun:
     def _series(self, kind: str, name: str) -> RunValues:
         series = self._values[kind]
         if name not in series:
-            series[name] = RunValues(self.config.exact_values)
+            series[name] = RunValues(self._exact_limit)
         return series[name]
 
     def _raise_watermark(self, source: np.ndarray, frame: np.ndarray) -> None:
-        np.maximum.at(self._watermark, source.astype(np.int64), frame.astype(np.int64))
+        np.maximum.at(self._watermark, self._src_index(source.astype(np.int64)), frame.astype(np.int64))
 
     # --- statistics -----------------------------------------------------------------------------
 
@@ -393,7 +522,7 @@ class LiveRun:
         }
 
     def _all_sources(self) -> list[int]:
-        return sorted(set(int(k) for k in self.header.sources) | set(np.flatnonzero(self._sources).tolist()))
+        return sorted(set(int(k) for k in self.header.sources) | set(self._src_ids[self._framed].tolist()))
 
     def _gap_order(self, name: str) -> tuple[int, int]:
         a, _, b = name.partition("->")

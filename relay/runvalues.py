@@ -6,7 +6,8 @@ would grow without bound (13 values a frame: ~270 MB an hour for one DCU at 360 
 - :class:`RunValues` keeps the values themselves up to ``exact_limit``, so statistics of
   runs of that size are exactly ``probes.delays.summarize``'s. Past it, the values move into
   a histogram with logarithmic buckets (as DDSketch): count, mean and max stay exact, and
-  each percentile is within ``RELATIVE_ERROR`` of the exact one.
+  each percentile is within ``RELATIVE_ERROR`` of the exact one. Only the buckets that hold
+  values are kept (10 bytes each: ~1 KB for delays spanning a decade, 32 KB at most).
 - :class:`OriginSpans` keeps, per source, what frames/s needs: count, first and last origin.
 """
 
@@ -34,8 +35,10 @@ class RunValues:
         self.exact_limit = exact_limit
         self._exact = np.zeros(64)
         self._n_exact = 0
-        self._hist: np.ndarray | None = None  # (2, _BUCKETS): negative, positive magnitudes
-        self._zeros = 0
+        # Occupied buckets, ascending: -(i + 1) for negative values in bucket i, 0 for (near)
+        # zeros, i + 1 for positive ones; that order is the values' order.
+        self._hist: np.ndarray | None = None
+        self._counts = np.zeros(0, np.int64)
         self._count = 0
         self._sum = 0.0
         self._max = -math.inf
@@ -47,6 +50,27 @@ class RunValues:
     @property
     def count(self) -> int:
         return self._count + self._n_exact
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the arrays held (the exact values' buffer or the histogram)."""
+        return self._exact.nbytes + (self._hist.nbytes + self._counts.nbytes if self._hist is not None else 0)
+
+    def lower_limit(self, exact_limit: int) -> None:
+        """Keep at most ``exact_limit`` values exactly from now on (a run's share of memory
+        shrank): values beyond it move into the histogram now, and the buffer shrinks to fit."""
+        if exact_limit >= self.exact_limit:
+            return
+        self.exact_limit = exact_limit
+        if self._hist is None and self._n_exact > exact_limit:
+            self._spill()
+        elif len(self._exact) > max(64, exact_limit):
+            self._exact = self._exact[:max(64, self._n_exact)].copy()
+
+    def _spill(self) -> None:
+        self._hist = np.zeros(0, np.int16)
+        self._add(self._exact[:self._n_exact])
+        self._exact, self._n_exact = np.zeros(0), 0
 
     def extend(self, values: np.ndarray) -> None:
         values = np.asarray(values, np.float64).ravel()
@@ -61,9 +85,7 @@ class RunValues:
             self._n_exact += len(values)
             return
         if self._hist is None:
-            self._hist = np.zeros((2, _BUCKETS), np.int64)
-            self._add(self._exact[:self._n_exact])
-            self._exact, self._n_exact = np.zeros(0), 0
+            self._spill()
         self._add(values)
 
     def summary(self, extra: np.ndarray | None = None) -> dict:
@@ -71,46 +93,44 @@ class RunValues:
         extra = np.zeros(0) if extra is None else np.asarray(extra, np.float64).ravel()
         if self._hist is None:
             return summarize(np.concatenate([self._exact[:self._n_exact], extra]))
-        hist, zeros = self._hist.copy(), self._zeros
-        if len(extra):
-            zeros += _bucket_into(hist, extra)
+        keys, counts = _merge(self._hist, self._counts, extra)
         count = self._count + len(extra)
         top = max(self._max, float(extra.max()) if len(extra) else -math.inf)
-        p50, p95, p99 = (min(top, _quantile(hist, zeros, count, p / 100)) for p in PERCENTILES)
+        p50, p95, p99 = (min(top, _quantile(keys, counts, count, p / 100)) for p in PERCENTILES)
         return {"count": count, "mean_ms": (self._sum + float(extra.sum())) / count,
                 "p50_ms": p50, "p95_ms": p95, "p99_ms": p99, "max_ms": top}
 
     def _add(self, values: np.ndarray) -> None:
         if not len(values):
             return
-        self._zeros += _bucket_into(self._hist, values)
+        self._hist, self._counts = _merge(self._hist, self._counts, values)
         self._count += len(values)
         self._sum += float(values.sum())
         self._max = max(self._max, float(values.max()))
 
 
-def _bucket_into(hist: np.ndarray, values: np.ndarray) -> int:
-    """Add ``values`` to ``hist``; returns how many were (near) zero."""
+def _merge(keys: np.ndarray, counts: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The buckets ``keys`` with ``counts``, and ``values`` added to them."""
+    if not len(values):
+        return keys, counts
     magnitude = np.abs(values)
-    small = magnitude < _SMALLEST
-    index = np.ceil(np.log(magnitude[~small] / _SMALLEST) / _LOG_GAMMA).astype(np.int64)
+    index = np.ceil(np.log(np.maximum(magnitude, _SMALLEST) / _SMALLEST) / _LOG_GAMMA).astype(np.int64)
     np.clip(index, 0, _BUCKETS - 1, out=index)
-    side = (values[~small] > 0).astype(np.int64)
-    np.add.at(hist, (side, index), 1)
-    return int(small.sum())
+    signed = np.where(magnitude < _SMALLEST, 0, np.where(values > 0, index + 1, -(index + 1)))
+    new, n = np.unique(signed, return_counts=True)
+    merged, at = np.unique(np.concatenate([keys, new]), return_inverse=True)
+    total = np.zeros(len(merged), np.int64)
+    np.add.at(total, at, np.concatenate([counts, n]))
+    return merged.astype(np.int16), total
 
 
-def _quantile(hist: np.ndarray, zeros: int, count: int, q: float) -> float:
+def _quantile(keys: np.ndarray, counts: np.ndarray, count: int, q: float) -> float:
     """The value at rank q * (count - 1), from most negative to most positive."""
     rank = q * (count - 1)
-    # Order: negative buckets from the largest magnitude down, the zeros, positive buckets up.
-    counts = np.concatenate([hist[0][::-1], [zeros], hist[1]])
-    k = int(np.searchsorted(np.cumsum(counts), math.floor(rank) + 1))
-    if k == _BUCKETS:
+    key = int(keys[min(len(keys) - 1, int(np.searchsorted(np.cumsum(counts), math.floor(rank) + 1)))])
+    if key == 0:
         return 0.0
-    if k < _BUCKETS:
-        return -_representative(_BUCKETS - 1 - k)
-    return _representative(k - _BUCKETS - 1)
+    return _representative(key - 1) if key > 0 else -_representative(-key - 1)
 
 
 def _representative(index: int) -> float:

@@ -74,6 +74,7 @@ class Relay:
 
 def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *, limits: Limits = Limits(),
                live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ,
+               node_tokens: dict[str, str] | None = None,
                allow_hosts: Iterable[str] = ()) -> tuple[web.Application, Relay]:
     """The relay's app; without a token, requests must name an IP, localhost or one of ``allow_hosts``
     (:mod:`relay.hostcheck`)."""
@@ -81,9 +82,9 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     limits = fit_descriptors(limits)
     storage = Storage(db)
-    state = RelayState(storage, clock, live)
+    state = RelayState(storage, clock, live, limits)
     sio = create_sio()
-    ingest = Ingest(state, token, limits)
+    ingest = Ingest(state, token, limits, node_tokens)
     ui = UiNamespace(state, token)
     sio.register_namespace(ui)
     refused: Counter = Counter()
@@ -91,7 +92,8 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     # The guard's first: a request refused further in still counts as one the connection sent.
     middlewares = [guard.middleware]
     if token is None:
-        middlewares.append(HostCheck(allow_hosts, refused).middleware)
+        # Nodes' own tokens (node_tokens) guard /ingest, not the API or the page.
+        middlewares.append(HostCheck(allow_hosts, refused, INGEST_PATH if node_tokens else None).middleware)
     app = web.Application(client_max_size=MAX_MESSAGE_BYTES, middlewares=[*middlewares, sio_errors])
     app.router.add_get(INGEST_PATH, ingest.handle)
     sio.attach(app)
@@ -99,10 +101,10 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
 
     def counters() -> dict:
         refused["hello_timeout"] = ingest.hello_timeouts
-        return {"rejected": ingest.rejected, "refused": {k: refused[k] for k in REFUSALS},
+        return {"rejected": ingest.rejected, "refused": {**state.refused, **{k: refused[k] for k in REFUSALS}},
                 "connections": {"tcp": guard.open, "ingest": ingest.connected},
                 "pushes": ticker.pushes, "commits": storage.commits, "batches": storage.batches_written,
-                "limits": limits.as_dict()}
+                "limits": limits.as_dict(), "released_runs": state.released, "memory": state.memory_view()}
 
     add_routes(app, state, token, counters)
     add_session_routes(app, state)
@@ -154,17 +156,19 @@ async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path 
 
 
 def serve(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db", token: str | None = None,
-          clock: str = "auto", limits: Limits = Limits(), allow_hosts: Iterable[str] = ()) -> None:
+          clock: str = "auto", limits: Limits = Limits(), node_tokens: dict[str, str] | None = None,
+          allow_hosts: Iterable[str] = ()) -> None:
     """Run the relay until SIGINT or SIGTERM."""
-    if host not in LOOPBACK and token is None:
+    if host not in LOOPBACK and token is None and not node_tokens:
         log.warning("relay listens on %s without --token: anyone who can reach it may feed or read it", host)
     rate = lograte.install(limits.log_repeats_per_min)
-    asyncio.run(_serve(host, port, db, token, clock, limits, allow_hosts, rate))
+    asyncio.run(_serve(host, port, db, token, clock, rate, limits=limits, node_tokens=node_tokens,
+                       allow_hosts=allow_hosts))
 
 
-async def _serve(host: str, port: int, db: str | Path, token: str | None, clock: str, limits: Limits,
-                 allow_hosts: Iterable[str], rate: lograte.RateFilter) -> None:
-    relay = await start_relay(host, port, db, token, clock, limits=limits, allow_hosts=allow_hosts)
+async def _serve(host: str, port: int, db: str | Path, token: str | None, clock: str, rate: lograte.RateFilter,
+                 **options) -> None:
+    relay = await start_relay(host, port, db, token, clock, **options)
     flusher = asyncio.create_task(_flush_log(rate))
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()

@@ -9,7 +9,7 @@ import zlib
 import numpy as np
 import pytest
 
-from probes.errors import ProtocolError
+from probes.errors import LimitExceeded, ProtocolError
 from probes.events import EVENT_DTYPE
 from probes.wire import (HEADER, HEADER_SIZE, MAX_BATCH_EVENTS, decode_batch, decode_clock, decode_end,
                             decode_hello, decode_payload, encode_batch, sanitize_ptp)
@@ -135,6 +135,21 @@ def test_hello():
 def test_hello_rejects(data, message):
     with pytest.raises(ProtocolError, match=message):
         decode_hello(data, "n1")
+
+
+def test_hello_beyond_the_relays_limits_names_the_limit():
+    header = {**header_for("n1", 2).to_dict(), "kinds": {}}
+    decode_hello(hello(header={**header, "stages": ["x" * 100] * 64}), "n1", max_stages=64, max_name=100)
+    with pytest.raises(LimitExceeded, match=r"65 stages, more than this relay takes \(64: --limit stages=N\)") as e:
+        decode_hello(hello(header={**header, "stages": [f"s{i}" for i in range(65)]}), "n1", max_stages=64)
+    assert e.value.limit == "stages"
+    with pytest.raises(LimitExceeded, match=r"stage name has 101 characters.*--limit name_chars=N") as e:
+        decode_hello(hello(header={**header, "stages": ["x" * 101]}), "n1", max_name=100)
+    assert e.value.limit == "name_chars"
+    with pytest.raises(LimitExceeded, match="hello.header.node has 3 characters"):
+        decode_hello(hello(header={**header, "node": "abc", "stages": ["a"]}), max_name=2)
+    with pytest.raises(ProtocolError, match="1..256 names"):  # the protocol's bound whatever the relay's
+        decode_hello(hello(header={**header, "stages": ["x"] * 300}), "n1", max_stages=1000)
 
 
 def test_clock_and_end_messages():

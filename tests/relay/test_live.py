@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from probes.delays import node_stats
-from probes.events import ENTER, EXIT
+from probes.events import ENTER, EVENT_DTYPE, EXIT, TraceHeader
 from probes.simnode import header_for, synth_events
+from probes.wire import SOURCE_LIMIT
 from relay.live import LiveConfig, LiveRun
 from tests.probes.synth import pipeline_run
 from tests.relay.helpers import assert_stats_equal
@@ -132,3 +133,64 @@ def test_open_frames_are_bounded_when_timestamps_stand_still():
     feed(run, events, 1000)
     assert len(run._keys) <= 500 and run.evicted >= 2500
     assert run.run_stats()["frames"] == {"complete": 0, "incomplete": 3000}
+
+
+def test_a_paper_sized_run_stays_exact_on_the_smallest_default_share():
+    # 4 sources, 11 stages, 1,200 frames with a few hundred open at once, on a 256 MiB relay
+    # holding 64 runs (4 MiB each): nothing evicted, every figure equal to node_stats.
+    header = header_for("n", 4)
+    events = synth_events(300, 4, 30.0, T0, drop_rate=0.02, seed=6)
+    run = LiveRun(header, budget=4 * 2**20)
+    feed(run, events, 2000, maintain_every=4)
+    assert run.open_cap > 1000 and run.evicted == 0
+    assert_stats_equal(node_stats(header, events), run.run_stats())
+    assert run.nbytes <= 4 * 2**20
+
+
+def test_a_batch_of_more_new_frames_than_fit_opens_only_its_newest():
+    stages = 64
+    header = TraceHeader(node="n", clock="realtime", stages=[f"s{i}" for i in range(stages)])
+    n = 65536
+    ev = np.zeros(n, EVENT_DTYPE)
+    ev["ts"], ev["frame"], ev["stage"], ev["point"] = T0 + np.arange(n), np.arange(n), np.arange(n) % stages, ENTER
+    budget = 8 * 2**20
+    run = LiveRun(header, budget=budget)
+    cap = run.open_cap
+    assert cap < 2000  # frames cost bytes: 64 stages x 6 cells
+    run.add(ev)
+    run.maintain()
+    assert len(run._keys) == cap and run.evicted == n - cap
+    assert run._keys.min() == n - cap  # the newest frames are those kept
+    assert run.nbytes <= budget
+    late = ev[:10].copy()  # events of frames evicted on arrival are late now
+    run.add(late)
+    run.maintain()
+    assert run.late == 10 and run.run_stats()["frames"] == {"complete": 0, "incomplete": n}
+
+
+def test_a_smaller_share_spills_exact_values_and_keeps_counts():
+    header = header_for("n", 2)
+    events = synth_events(600, 2, 30.0, T0, seed=7)
+    run = LiveRun(header)
+    feed(run, events, 500)
+    before = run.run_stats()
+    assert before["percentile_error"] == 0.0
+    run.set_budget(256 * 1024)
+    assert run.nbytes <= 256 * 1024
+    after = run.run_stats()
+    assert after["percentile_error"] > 0 and after["frames"] == before["frames"]
+    assert after["frame"]["count"] == before["frame"]["count"] and after["frame"]["max_ms"] == before["frame"]["max_ms"]
+
+
+def test_far_source_ids_cost_no_memory_and_their_number_is_bounded():
+    header = header_for("n", 1)
+    run = LiveRun(header)
+    held = run.nbytes
+    ev = synth_events(5, 1, 25.0, T0, seed=1)
+    ev["source"] = SOURCE_LIMIT - 1
+    assert run.admit_sources(ev["source"], 2) == 1
+    feed(run, ev, 100)
+    assert run.nbytes - held < 64 * 1024
+    assert run.run_stats()["frames"]["complete"] == 5 and list(run.run_stats()["fps"]) == ["0", str(SOURCE_LIMIT - 1)]
+    assert run.admit_sources(np.array([1, 2, SOURCE_LIMIT - 1]), 2) == 3  # refused: nothing noted
+    assert run.admit_sources(np.array([7]), 2) == 2

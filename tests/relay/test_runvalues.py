@@ -72,3 +72,18 @@ def test_a_long_run_past_the_limit_agrees_with_node_stats_within_one_percent():
         for name in want[group]:
             close(want[group][name], got[group][name])
     close(want["frame"], got["frame"])
+
+
+def test_a_lowered_limit_spills_into_the_histogram_and_frees_the_buffer():
+    rng = np.random.default_rng(3)
+    values = rng.lognormal(2, 1, 50_000)
+    series = RunValues(exact_limit=100_000)
+    series.extend(values)
+    assert series.exact and series.nbytes >= 8 * 50_000
+    series.lower_limit(60_000)  # still fits: stays exact, the buffer shrinks to what it holds
+    assert series.exact and series.summary() == summarize(values) and series.nbytes <= 8 * 50_000
+    series.lower_limit(1000)
+    assert not series.exact and series.nbytes < 8 * 1000
+    close(summarize(values), series.summary())
+    series.extend(values[:10])
+    close(summarize(np.concatenate([values, values[:10]])), series.summary())
