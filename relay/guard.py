@@ -247,6 +247,8 @@ class GuardedSite(web.BaseSite):
             raise
         factory = self._runner.server
         self._tasks = [asyncio.create_task(self._guard.accept_loop(s, factory)) for s in self._socks]
+        for task in self._tasks:
+            task.add_done_callback(_report_end)
 
     async def stop(self) -> None:
         for task in self._tasks:
@@ -275,3 +277,9 @@ class GuardedSite(web.BaseSite):
     def _close_sockets(self) -> None:
         for sock in self._socks:
             sock.close()
+
+
+def _report_end(task: asyncio.Task) -> None:
+    # An accept loop ends only when the site stops; any other end leaves the relay deaf: say so.
+    if not task.cancelled() and task.exception() is not None:
+        log.error("the relay stopped accepting connections", exc_info=task.exception())
