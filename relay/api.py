@@ -49,8 +49,9 @@ def add_routes(app: web.Application, state: RelayState, token: str | None, count
 
     async def health(request: web.Request) -> web.Response:
         storage = state.storage.health()  # not ok while writes fail (a full disk)
-        return web.json_response({"ok": storage["ok"], "uptime_s": time.time() - state.started, "runs": len(state.runs),
-                                  "clock": state.clock_mode, "storage": storage, **counters()})
+        return web.json_response({"ok": storage["ok"], "uptime_s": time.time() - state.started,
+                                  "runs": len(state.runs), "clock": state.clock_mode, "storage": storage,
+                                  **counters()})
 
     async def nodes(request: web.Request) -> web.Response:
         return web.json_response(state.nodes_view())

@@ -125,7 +125,7 @@ class Storage:
         self.commits = 0
         self.batches_written = 0
         self._failure: dict | None = None
-        """While writes fail: {error, since (epoch s), failed_writes}; None when they work."""
+        """While writes fail: {error, since (epoch s), failed_writes, failed}; None when they work."""
 
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
@@ -150,9 +150,10 @@ class Storage:
         return await future
 
     def health(self) -> dict:
-        """{ok} or, while writes fail, {ok: false, error, since, failed_writes} (for /api/health)."""
+        """{ok} or, while writes fail, {ok: false, error, since, failed_writes, failed {what: count}}
+        (for /api/health)."""
         failure = self._failure
-        return {"ok": True} if failure is None else dict(failure, ok=False)
+        return {"ok": True} if failure is None else dict(failure, ok=False, failed=dict(failure["failed"]))
 
     def retry_ms(self) -> int:
         """How long a node should hold its batches now (storage failing)."""
@@ -164,12 +165,14 @@ class Storage:
         # Logged once when writes start failing and once when they work again, not per write
         # (a full disk fails every write, many a second).
         text = f"{type(exc).__name__}: {exc}"
-        if self._failure is None:
-            self._failure = {"error": text, "since": time.time(), "failed_writes": 0}
+        failure = self._failure
+        if failure is None:
+            failure = self._failure = {"error": text, "since": time.time(), "failed_writes": 0, "failed": {}}
             log.error("%s: storage failing (%s); batches are held by their nodes until it works again",
                       self.path, text)
-        self._failure["failed_writes"] += 1
-        self._failure["error"] = text
+        failure["failed_writes"] += 1
+        failure["failed"][what] = failure["failed"].get(what, 0) + 1
+        failure["error"] = text
         return RelayError(f"{self.path}: cannot {what}: {text}")
 
     def _worked(self) -> None:
@@ -289,7 +292,10 @@ def register_run(conn: sqlite3.Connection, run: str, node: str, header: dict,
         stored = json.loads(row[2])
         if row[1] != node or stored.get("stages") != header.get("stages"):
             raise RelayError(f"run {run} belongs to node {row[1]!r} with other stages")
-        conn.execute("UPDATE runs SET last_seen_ns = ? WHERE id = ?", (now, run))
+        try:
+            conn.execute("UPDATE runs SET last_seen_ns = ? WHERE id = ?", (now, run))
+        except sqlite3.OperationalError:  # a full disk: the node may still resume its run
+            _rollback(conn)
         return int(row[0]), int(row[3])
     conn.execute("BEGIN")
     try:
