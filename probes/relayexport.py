@@ -344,7 +344,8 @@ class RelayExporter:
         if ack.get("ok") is not True:
             self._hold(ack)
             self._retries += 1
-            self._note_error(f"relay could not store batch {seq}: {str(ack.get('error'))[:100]}; holding batches")
+            # One line while it lasts (no seq in it): every batch fails alike.
+            self._note_error(f"relay could not store batches: {str(ack.get('error'))[:100]}; holding them")
             self._to_send.append(seq)  # sent again, on this connection, once the hold ends
             self._progress.set()
             return
