@@ -88,6 +88,9 @@ class RelayExporter:
         self._sync_interval, self._ptp_interval = sync_interval_s, ptp_interval_s
         self._close_timeout, self._backoff = close_timeout_s, backoff_s
         self.run_id = uuid.uuid4().hex
+        self._secret: str | None = None
+        """The relay's resume secret for this run (its first hello's reply): only with it may a
+        connection resume the run."""
         self._header: dict | None = None
 
         # Shared with the caller's thread: only these, under the lock.
@@ -239,8 +242,11 @@ class RelayExporter:
             await asyncio.sleep(self._ptp_interval)
 
     def _hello(self) -> dict:
-        return {"proto": PROTOCOL_VERSION, "run": self.run_id, "header": self._header,
-                "lost": self.lost, "floor": self._floor(), "ptp": self._ptp}
+        hello = {"proto": PROTOCOL_VERSION, "run": self.run_id, "header": self._header,
+                 "lost": self.lost, "floor": self._floor(), "ptp": self._ptp}
+        if self._secret is not None:
+            hello["secret"] = self._secret
+        return hello
 
     def _floor(self) -> int:
         """Every batch below this was acknowledged or evicted: the relay need not wait for it."""
@@ -291,8 +297,13 @@ class RelayExporter:
             reply = await link.call("hello", self._hello(), HELLO_TIMEOUT_S)
             if not (isinstance(reply, dict) and reply.get("ok")):
                 raise ExportError(f"relay refused hello: {reply!r}")
+            if isinstance(reply.get("secret"), str):
+                self._secret = reply["secret"]
         except (ConnectionError, TimeoutError, aiohttp.ClientError, ExportError) as exc:
-            self._note_error(f"cannot reach relay {self.url}: {link.error or _describe(exc)}")
+            # The relay said why (e.g. another live run holds this node's name): it is asked again later.
+            said = f"relay {self.url} refused this node for now: {link.error}" if link.error.startswith("relay error")\
+                else f"cannot reach relay {self.url}: {link.error or _describe(exc)}"
+            self._note_error(said)
             await link.close()
             return None
         return link

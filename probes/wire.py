@@ -60,6 +60,8 @@ SOURCE_LIMIT = 1 << 19
 FRAME_LIMIT = 1 << 44
 """Source ids and frame numbers must fit these so that (source, frame) packs in one int64 key."""
 INT64_MAX = (1 << 63) - 1
+SECRET_CHARS = 32
+"""Length of a run's resume secret (hex), issued by the relay in the reply to its first hello."""
 
 
 @dataclass(frozen=True)
@@ -82,6 +84,8 @@ class Hello:
     ptp: dict = field(default_factory=dict)
     floor: int = 0
     """Every batch below this sequence number was acknowledged or given up by the node."""
+    secret: str | None = None
+    """The resume secret the relay issued at the run's first hello; required to resume it."""
 
 
 @dataclass(frozen=True)
@@ -258,7 +262,11 @@ def decode_hello(obj: object, node: str | None = None) -> Hello:
     except (KeyError, TypeError, ValueError) as exc:
         raise ProtocolError(f"hello.header unreadable: {exc}") from exc
     lost = _int(d.get("lost", 0), "hello.lost")
-    return Hello(run, header, lost, sanitize_ptp(d.get("ptp")), _int(d.get("floor", 0), "hello.floor"))
+    secret = d.get("secret")
+    if secret is not None and not (isinstance(secret, str) and len(secret) == SECRET_CHARS
+                                   and all(c in "0123456789abcdef" for c in secret)):
+        raise ProtocolError(f"hello.secret must be {SECRET_CHARS} hex digits")
+    return Hello(run, header, lost, sanitize_ptp(d.get("ptp")), _int(d.get("floor", 0), "hello.floor"), secret)
 
 
 def decode_clock(obj: object) -> ClockReport:

@@ -7,6 +7,7 @@ import logging
 import os
 
 from core.ports import check_port_free
+from relay.auth import load_node_tokens
 from relay.clock import CLOCK_MODES
 from relay.errors import RelayError
 from relay.limits import Limits, limits_help
@@ -33,6 +34,9 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", default="dcuscope.db", help="SQLite database file (default ./dcuscope.db)")
     p.add_argument("--token", default=os.environ.get(TOKEN_ENV),
                    help=f"shared secret nodes and browsers must present (default ${TOKEN_ENV})")
+    p.add_argument("--node-tokens", metavar="FILE",
+                   help="per-node credentials: a file of 'NODE TOKEN' lines; a node presenting its own token "
+                        "may stream under its own name only (beside --token, which lets a node use any name)")
     p.add_argument("--clock", choices=CLOCK_MODES, default="auto",
                    help="ptp: never correct node timestamps; estimate: subtract each node's estimated "
                         "offset; auto: trust PTP where the node reports it locked, else estimate (default auto)")
@@ -54,6 +58,7 @@ def run_relay(args: argparse.Namespace) -> int:
         limits = Limits().with_values(args.limit)
     except ValueError as exc:
         raise RelayError(f"--limit: {exc}") from None
+    node_tokens = load_node_tokens(args.node_tokens) if args.node_tokens else None
     check_port_free(args.host, args.port)
-    serve(args.host, args.port, args.db, args.token, args.clock, limits=limits)
+    serve(args.host, args.port, args.db, args.token, args.clock, limits=limits, node_tokens=node_tokens)
     return 0

@@ -44,7 +44,7 @@ from probes.errors import ProtocolError
 from probes.wire import (HEARTBEAT_S, MAX_MESSAGE_BYTES, Batch, decode_batch, decode_clock, decode_end, decode_hello,
                          declared_bytes)
 from relay import storage as db
-from relay.auth import http_token, token_matches
+from relay.auth import http_token, node_for_token, token_matches
 from relay.clock import ntp_sample, sample_fault
 from relay.errors import RelayError
 from relay.limits import ByteBucket, Limits, TokenBucket
@@ -69,6 +69,8 @@ class _Conn:
     ws: web.WebSocketResponse
     bucket: TokenBucket
     bytes: ByteBucket
+    node: str | None = None
+    """The only node name this connection may use (it presented that node's own token)."""
     run: str | None = None
     syncs: dict[tuple[int, int], None] = field(default_factory=dict)
     """(t2, t3) of the sync replies sent and not yet reported, oldest first."""
@@ -79,9 +81,11 @@ class _Conn:
 class Ingest:
     """The ``/ingest`` handler and the connections it holds."""
 
-    def __init__(self, state: RelayState, token: str | None, limits: Limits = Limits()) -> None:
+    def __init__(self, state: RelayState, token: str | None, limits: Limits = Limits(),
+                 node_tokens: dict[str, str] | None = None) -> None:
         self.state = state
         self._token = token
+        self._node_tokens = node_tokens or {}
         self._limits = limits
         self._conns: dict[str, _Conn] = {}
         self._ids = itertools.count(1)
@@ -95,8 +99,7 @@ class Ingest:
         """Times a connection was held back for its byte rate (or all connections' together)."""
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
-        if not token_matches(self._token, http_token(request.headers, request.query)):
-            raise web.HTTPUnauthorized(text="unauthorized: wrong or missing token")
+        node = self._authorise(http_token(request.headers, request.query))
         if len(self._conns) >= self._limits.connections:
             raise web.HTTPServiceUnavailable(text="too many connections")
         ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=HEARTBEAT_S, timeout=CLOSE_TIMEOUT_S)
@@ -109,7 +112,8 @@ class Ingest:
             # which aiohttp fails to write quietly, ends the request without a logged traceback.
             raise web.HTTPBadRequest(text="connection closed during the handshake") from None
         lim = self._limits
-        conn = _Conn(f"ws{next(self._ids)}", ws, TokenBucket(lim), ByteBucket(lim.bytes_per_s, lim.byte_burst))
+        conn = _Conn(f"ws{next(self._ids)}", ws, TokenBucket(lim), ByteBucket(lim.bytes_per_s, lim.byte_burst),
+                     node)
         self._conns[conn.sid] = conn
         try:
             await self._serve(conn)
@@ -121,6 +125,18 @@ class Ingest:
                 # Batches being stored finish (their acknowledgements have nowhere to go).
                 await asyncio.gather(*conn.tasks, return_exceptions=True)
         return ws
+
+    def _authorise(self, presented: object) -> str | None:
+        """The node name a connection is bound to (None: any), or HTTP 401. The shared token
+        lets a node use any name; a node's own token (--node-tokens) only its own."""
+        if self._token is None and not self._node_tokens:
+            return None
+        if self._token is not None and token_matches(self._token, presented):
+            return None
+        node = node_for_token(self._node_tokens, presented)
+        if node is None:
+            raise web.HTTPUnauthorized(text="unauthorized: wrong or missing token")
+        return node
 
     async def close_all(self) -> None:
         if self._retry is not None:
@@ -144,10 +160,17 @@ class Ingest:
                 elif msg.type == WSMsgType.ERROR:
                     # aiohttp already closes with 1009 (too big) or 1002 (not WebSocket).
                     self._count_rejection(conn, f"bad frame: {msg.data}")
+                    await self._reject_run(conn, f"bad frame: {msg.data}")
                     return
             except ProtocolError as exc:
                 await self._reject(conn, str(exc))
+                await self._reject_run(conn, str(exc))
                 return
+            if conn.run is not None:
+                # Heard from: the run holds its node's name (Limits.silent_s).
+                run = self.state.runs.get(conn.run)
+                if run is not None and run.sid == conn.sid:
+                    run.last_seen = time.time()
 
     def _take(self, conn: _Conn) -> None:
         if not conn.bucket.take():
@@ -176,6 +199,11 @@ class Ingest:
             pass
         # A close reason holds at most 123 bytes.
         await conn.ws.close(code=WSCloseCode.POLICY_VIOLATION, message=message[:100].encode("ascii", "replace"))
+
+    async def _reject_run(self, conn: _Conn, reason: str) -> None:
+        """The run of a connection closed for what it sent is kept apart (relay.state.reject)."""
+        if conn.run is not None:
+            await self.state.reject(conn.run, reason)
 
     async def _send(self, conn: _Conn, text: str) -> None:
         try:
@@ -209,18 +237,26 @@ class Ingest:
     async def _on_hello(self, conn: _Conn, data: object) -> dict:
         if conn.run is not None:
             raise ProtocolError("hello twice on one connection")
-        hello = decode_hello(data)
+        hello = decode_hello(data, conn.node)
         try:
-            rs, previous = await self.state.attach(hello, conn.sid)
-        except RelayError as exc:  # storage refused the run (another node's id), or failed
+            attached = await self.state.attach(hello, conn.sid)
+        except RelayError as exc:  # storage failed
             raise ProtocolError(str(exc)) from exc
+        rs = attached.run
         conn.run = rs.run
         rs.seqs.advance(hello.floor)
-        old = self._conns.get(previous) if previous is not None else None
+        old = self._conns.get(attached.previous) if attached.previous is not None else None
         if old is not None:
             # The node reconnected before the relay noticed its old connection died.
             await self._reject(old, "superseded by a newer connection of this run")
-        return {"ok": True, "run": rs.run, "session": rs.session}
+        silent = self._conns.get(attached.displaced) if attached.displaced is not None else None
+        if silent is not None:
+            # The node restarted while its former run's connection stayed open, silent.
+            await self._reject(silent, f"superseded by a new run of node {rs.node!r}")
+        answer = {"ok": True, "run": rs.run, "session": rs.session}
+        if attached.secret is not None:
+            answer["secret"] = attached.secret
+        return answer
 
     async def _on_clock(self, conn: _Conn, rs: RunState, data: object) -> dict:
         report = decode_clock(data)

@@ -56,6 +56,9 @@ class Limits:
     """Memory one run's live state may hold (open frames, rolling window, recent frames, exact values)."""
     live_mb: float = 256.0
     """Memory all runs' live states may hold together; each run gets an equal share, at most run_mb."""
+    silent_s: float = 8.0
+    """A connected run silent this long (a node syncs its clock every 2 s) no longer holds its node's name:
+    a new run of that name takes over and the old connection is closed; until then a new run is refused."""
     runs_held: int = 64
     """Runs whose live state the relay keeps in memory (ended and superseded runs leave first; they stay stored)."""
     # --- values ---

@@ -65,13 +65,14 @@ class Relay:
 
 
 def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *, limits: Limits = Limits(),
-               live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ) -> tuple[web.Application, Relay]:
+               live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ,
+               node_tokens: dict[str, str] | None = None) -> tuple[web.Application, Relay]:
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     storage = Storage(db)
-    state = RelayState(storage, clock, live)
+    state = RelayState(storage, clock, live, limits)
     sio = create_sio()
-    ingest = Ingest(state, token, limits)
+    ingest = Ingest(state, token, limits, node_tokens)
     ui = UiNamespace(state, token)
     sio.register_namespace(ui)
     app = web.Application(client_max_size=MAX_MESSAGE_BYTES, middlewares=[sio_errors])
@@ -81,7 +82,8 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     add_routes(app, state, token, lambda: {"rejected": ingest.rejected, "clock_rejected": ingest.clock_rejected,
                                            "paused": ingest.paused, "pushes": ticker.pushes,
                                            "commits": storage.commits, "batches": storage.batches_written,
-                                           "limits": limits.as_dict()})
+                                           "limits": limits.as_dict(), "released_runs": state.released,
+                                           "refused_hellos": dict(state.refused)})
     add_session_routes(app, state)
     _add_ui(app)
     return app, Relay(state, storage, sio, ingest, ui, ticker)
@@ -130,15 +132,15 @@ async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path 
 
 
 def serve(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db", token: str | None = None,
-          clock: str = "auto", limits: Limits = Limits()) -> None:
+          clock: str = "auto", limits: Limits = Limits(), node_tokens: dict[str, str] | None = None) -> None:
     """Run the relay until SIGINT or SIGTERM."""
-    if host not in LOOPBACK and token is None:
+    if host not in LOOPBACK and token is None and not node_tokens:
         log.warning("relay listens on %s without --token: anyone who can reach it may feed or read it", host)
-    asyncio.run(_serve(host, port, db, token, clock, limits))
+    asyncio.run(_serve(host, port, db, token, clock, limits=limits, node_tokens=node_tokens))
 
 
-async def _serve(host: str, port: int, db: str | Path, token: str | None, clock: str, limits: Limits) -> None:
-    relay = await start_relay(host, port, db, token, clock, limits=limits)
+async def _serve(host: str, port: int, db: str | Path, token: str | None, clock: str, **options) -> None:
+    relay = await start_relay(host, port, db, token, clock, **options)
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):

@@ -15,7 +15,9 @@ from probes.events import TraceHeader
 from probes.wire import Hello
 from relay import storage as db
 from relay.clock import ClockEstimator, correction_ns
+from relay.errors import RelayError
 from relay.framejson import block, frame_dicts
+from relay.limits import Limits
 from relay.live import LiveConfig, LiveRun
 from relay.seqset import SeqSet
 from relay.storage import Storage
@@ -75,13 +77,34 @@ class RunState:
     pushed: int = 0
     """Cursor of the newest frame pushed to the UI."""
     whole: WholeRunStats = field(default_factory=WholeRunStats)
+    secret_hash: str | None = None
+    """Hash of the resume secret issued at the run's first hello."""
+    conflicts: int = 0
+    """Hellos of other runs refused because this run held the node's name."""
+    conflict_at: float | None = None
+
+
+@dataclass(frozen=True)
+class Attached:
+    run: RunState
+    previous: str | None
+    """This run's former connection, still open (the node reconnected before it was seen to go)."""
+    displaced: str | None
+    """The connection of the node's former run, silent for Limits.silent_s, that this run takes over from."""
+    secret: str | None
+    """The resume secret to hand the node (its first hello only)."""
 
 
 class RelayState:
-    def __init__(self, storage: Storage, clock_mode: str, live_config: LiveConfig = LiveConfig()) -> None:
+    def __init__(self, storage: Storage, clock_mode: str, live_config: LiveConfig = LiveConfig(),
+                 limits: Limits = Limits()) -> None:
         self.storage = storage
         self.clock_mode = clock_mode
         self.live_config = live_config
+        self.limits = limits
+        self.released = 0
+        """Runs whose live state left memory (ended, superseded, refused or beyond runs_held)."""
+        self.refused: dict[str, int] = {"name_taken": 0, "runs_held": 0, "resume_secret": 0}
         self.runs: dict[str, RunState] = {}
         self.nodes: dict[str, str] = {}
         """Node name -> its newest run."""
@@ -94,33 +117,95 @@ class RelayState:
                 return rs.session
         return None
 
-    async def attach(self, hello: Hello, sid: str) -> tuple[RunState, str | None]:
-        """Bind a run to connection ``sid``; returns it and the connection it took over, if any."""
+    async def attach(self, hello: Hello, sid: str) -> Attached:
+        """Bind a run to connection ``sid``; ProtocolError when the hello may not have it.
+
+        Only whoever created a run may resume it (the secret issued at its first hello). A new
+        run whose node name is held by a live run (connected, not ended, heard from within
+        Limits.silent_s) is refused and counted as a conflict of the live one: it never replaces it.
+        """
         async with self._attach_lock:
             rs = self.runs.get(hello.run)
-            if rs is None:
-                rs = await self._load(hello)
+            displaced = None
+            issued = None
+            if rs is not None:
+                if rs.node != hello.header.node or rs.header.stages != hello.header.stages:
+                    raise ProtocolError(f"run {hello.run} belongs to node {rs.node!r} with other stages")
+                if not db.secret_matches(rs.secret_hash, hello.secret):
+                    self.refused["resume_secret"] += 1
+                    raise ProtocolError(f"run {hello.run} exists: resuming it takes the secret issued at its "
+                                        "first hello")
+            else:
+                holder = self.node_run(hello.header.node)
+                if hello.secret is None and holder is not None and self._holds_name(holder):
+                    holder.conflicts += 1
+                    holder.conflict_at = time.time()
+                    self.refused["name_taken"] += 1
+                    raise ProtocolError(f"node {holder.node!r} is streaming run {holder.run}: a second live "
+                                        "run under the same name is refused")
+                self._make_room()
+                try:
+                    rs, issued = await self._load(hello)
+                except RelayError as exc:
+                    if isinstance(exc, db.ResumeRefused):
+                        self.refused["resume_secret"] += 1
+                    raise ProtocolError(str(exc)) from exc
                 self.runs[hello.run] = rs
-            elif rs.node != hello.header.node or rs.header.stages != hello.header.stages:
-                raise ProtocolError(f"run {hello.run} belongs to node {rs.node!r} with other stages")
-            current = self.nodes.get(rs.node)
-            if current is None or self.runs[current].first_seen <= rs.first_seen:
-                self.nodes[rs.node] = rs.run
-                old = self.runs.get(current) if current != rs.run else None
-                if old is not None and old.sid is None:
-                    # A node's older run leaves memory once a newer one starts (it stays stored,
-                    # and comes back from storage should it reconnect).
-                    del self.runs[current]
+                if holder is not None and holder.sid is not None and not holder.ended and rs.first_seen >= holder.first_seen:
+                    displaced = holder.sid
+            self._make_current(rs)
             previous, rs.sid = rs.sid, sid
             rs.lost = max(rs.lost, hello.lost)
             rs.ptp = hello.ptp
             rs.last_seen = time.time()
-            return rs, previous if previous != sid else None
+            return Attached(rs, previous if previous != sid else None, displaced, issued)
 
-    async def _load(self, hello: Hello) -> RunState:
+    def _holds_name(self, rs: RunState) -> bool:
+        # Longer than a short network stall (tests/relay/test_netcut.py holds one for 5 s).
+        return rs.sid is not None and not rs.ended and time.time() - rs.last_seen < self.limits.silent_s
+
+    def _make_current(self, rs: RunState) -> None:
+        """The node's newest run is its current one; its former run leaves memory once detached."""
+        current = self.nodes.get(rs.node)
+        if current is None or current not in self.runs or self.runs[current].first_seen <= rs.first_seen:
+            self.nodes[rs.node] = rs.run
+            old = self.runs.get(current) if current != rs.run else None
+            if old is not None and old.sid is None:
+                self.release(old.run)
+
+    def _make_room(self) -> None:
+        """Release detached runs, least recently heard first, until a new one fits runs_held."""
+        if len(self.runs) < self.limits.runs_held:
+            return
+        detached = sorted((rs for rs in self.runs.values() if rs.sid is None), key=lambda rs: rs.last_seen)
+        for rs in detached[:len(self.runs) - self.limits.runs_held + 1]:
+            self.release(rs.run)
+        if len(self.runs) >= self.limits.runs_held:
+            self.refused["runs_held"] += 1
+            raise ProtocolError(f"the relay holds {len(self.runs)} connected runs, its limit "
+                                "(--limit runs_held)")
+
+    def release(self, run: str) -> None:
+        """Drop a run's live state (it stays stored, and comes back from storage if resumed)."""
+        rs = self.runs.pop(run, None)
+        if rs is None:
+            return
+        self.released += 1
+        if self.nodes.get(rs.node) == run:
+            del self.nodes[rs.node]
+
+    async def reject(self, run: str, reason: str) -> None:
+        """A run the relay closed for what it sent: kept apart from sessions, out of memory."""
+        self.release(run)
+        try:
+            await self.storage.call(db.mark_rejected, run, reason)
+        except RelayError:  # storage failing is reported where it fails; the run is out of memory
+            pass
+
+    async def _load(self, hello: Hello) -> tuple[RunState, str | None]:
         header = hello.header
-        session, first_seen_ns = await self.storage.call(db.register_run, hello.run, header.node, header.to_dict(),
-                                                         self.live_session())
+        session, first_seen_ns, issued = await self.storage.call(db.register_run, hello.run, header.node,
+                                                                 header.to_dict(), self.live_session(), hello.secret)
         seqs = SeqSet(await self.storage.call(db.stored_seqs, hello.run))
         live = LiveRun(header, self.live_config)
         if seqs:
@@ -130,14 +215,18 @@ class RelayState:
             for i in range(0, len(events), RELOAD_SLICE):
                 live.add(events[i:i + RELOAD_SLICE])
                 live.maintain()
+        secret_hash = db.secret_hash(issued if issued is not None else hello.secret)
         return RunState(run=hello.run, node=header.node, session=session, header=header, live=live, seqs=seqs,
-                        first_seen=first_seen_ns / 1e9)
+                        first_seen=first_seen_ns / 1e9, secret_hash=secret_hash), issued
 
     def detach(self, run: str, sid: str) -> None:
+        """Connection ``sid`` of ``run`` ended; a run that is not its node's current one leaves memory."""
         rs = self.runs.get(run)
         if rs is not None and rs.sid == sid:
             rs.sid = None
             rs.last_seen = time.time()
+            if self.nodes.get(rs.node) != run:
+                self.release(run)
 
     def node_run(self, node: str) -> RunState | None:
         run = self.nodes.get(node)
@@ -172,6 +261,7 @@ class RelayState:
             "clock": self.clock_view(rs), "ptp": rs.ptp,
             "events": live.events, "duplicates": rs.duplicates, "written": rs.written,
             "dropped": rs.dropped, "lost": rs.lost, "drops": rs.dropped + rs.lost,
+            "conflicts": rs.conflicts, "conflict_at": rs.conflict_at,
             "frames": {"shown": live.visible, "finalised": live.finalised, "evicted": live.evicted,
                        "late_events": live.late},
             "last_seen": rs.last_seen,

@@ -18,9 +18,12 @@ acknowledged to its node only after the transaction holding it committed.
 from __future__ import annotations
 
 import asyncio
+import hashlib
+import hmac
 import json
 import logging
 import queue
+import secrets
 import sqlite3
 import threading
 import time
@@ -35,7 +38,8 @@ from probes.wire import decode_payload
 from relay.clock import stored_correction
 from relay.errors import RelayError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+"""2 added runs.secret (hash of the run's resume secret) and runs.rejected (why the relay refused it)."""
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS sessions (id INTEGER PRIMARY KEY AUTOINCREMENT, created_ns INTEGER NOT NULL);
@@ -51,7 +55,9 @@ CREATE TABLE IF NOT EXISTS runs (
     written INTEGER,
     dropped INTEGER NOT NULL DEFAULT 0,
     lost INTEGER NOT NULL DEFAULT 0,
-    clock TEXT NOT NULL DEFAULT '{}'
+    clock TEXT NOT NULL DEFAULT '{}',
+    secret TEXT,
+    rejected TEXT
 );
 CREATE INDEX IF NOT EXISTS runs_by_session ON runs(session);
 CREATE TABLE IF NOT EXISTS batches (
@@ -86,6 +92,9 @@ def connect(path: str | Path, create: bool = True) -> sqlite3.Connection:
         conn.execute("PRAGMA synchronous=NORMAL")
         conn.executescript(SCHEMA)
         row = conn.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
+        if row is not None and row[0] == "1":
+            _migrate_from_1(conn)
+            row = (str(SCHEMA_VERSION),)
         if row is None:
             conn.execute("INSERT OR IGNORE INTO meta VALUES ('schema', ?)", (str(SCHEMA_VERSION),))
         elif row[0] != str(SCHEMA_VERSION):
@@ -93,6 +102,21 @@ def connect(path: str | Path, create: bool = True) -> sqlite3.Connection:
     except sqlite3.DatabaseError as exc:
         raise RelayError(f"{path}: not a usable relay database: {exc}") from exc
     return conn
+
+
+def _migrate_from_1(conn: sqlite3.Connection) -> None:
+    """Schema 1 -> 2: runs stored before have no resume secret (they cannot be resumed)."""
+    conn.execute("BEGIN")
+    try:
+        columns = {r[1] for r in conn.execute("PRAGMA table_info(runs)")}
+        for column in ("secret", "rejected"):
+            if column not in columns:
+                conn.execute(f"ALTER TABLE runs ADD COLUMN {column} TEXT")
+        conn.execute("UPDATE meta SET value = ? WHERE key = 'schema'", (str(SCHEMA_VERSION),))
+        conn.execute("COMMIT")
+    except BaseException:
+        _rollback(conn)
+        raise
 
 
 @dataclass
@@ -279,37 +303,64 @@ def _rollback(conn: sqlite3.Connection) -> None:
 
 # --- operations run in the database thread (Storage.call) or on a connection of one's own ---
 
-def register_run(conn: sqlite3.Connection, run: str, node: str, header: dict,
-                 live_session: int | None) -> tuple[int, int]:
-    """Record a run at its (first or renewed) hello; returns its session and first-seen time (ns).
+def register_run(conn: sqlite3.Connection, run: str, node: str, header: dict, live_session: int | None,
+                 secret: str | None) -> tuple[int, int, str | None]:
+    """Record a run at its (first or renewed) hello; returns its session, first-seen time (ns)
+    and, for a new run, the resume secret to hand its node (only its hash is stored).
 
-    A run id already stored must come from the same node with the same stages, else the hello
-    is refused: its batches would be read against the wrong stage list.
+    A run id already stored must come from the same node with the same stages, and present
+    the secret issued at its first hello, else the hello is refused: its batches would be read
+    against the wrong stage list, or stored in another node's run.
     """
     now = time.time_ns()
-    row = conn.execute("SELECT session, node, header, first_seen_ns FROM runs WHERE id = ?", (run,)).fetchone()
+    row = conn.execute("SELECT session, node, header, first_seen_ns, secret FROM runs WHERE id = ?",
+                       (run,)).fetchone()
     if row is not None:
         stored = json.loads(row[2])
         if row[1] != node or stored.get("stages") != header.get("stages"):
             raise RelayError(f"run {run} belongs to node {row[1]!r} with other stages")
+        if not secret_matches(row[4], secret):
+            raise ResumeRefused(f"run {run} exists: resuming it takes the secret issued at its first hello")
         try:
             conn.execute("UPDATE runs SET last_seen_ns = ? WHERE id = ?", (now, run))
         except sqlite3.OperationalError:  # a full disk: the node may still resume its run
             _rollback(conn)
-        return int(row[0]), int(row[3])
+        return int(row[0]), int(row[3]), None
+    issued = secrets.token_hex(16)
     conn.execute("BEGIN")
     try:
         session = live_session
         if session is None:
             session = conn.execute("INSERT INTO sessions (created_ns) VALUES (?)", (now,)).lastrowid
-        conn.execute("INSERT INTO runs (id, session, node, header, first_seen_ns, last_seen_ns) "
-                     "VALUES (?, ?, ?, ?, ?, ?)",
-                     (run, session, node, json.dumps(header), now, now))
+        conn.execute("INSERT INTO runs (id, session, node, header, first_seen_ns, last_seen_ns, secret) "
+                     "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                     (run, session, node, json.dumps(header), now, now, secret_hash(issued)))
         conn.execute("COMMIT")
     except BaseException:
         _rollback(conn)
         raise
-    return int(session), now
+    return int(session), now, issued
+
+
+class ResumeRefused(RelayError):
+    """A hello for a stored run without the secret issued at the run's first hello."""
+
+
+def secret_matches(stored_hash: str | None, presented: str | None) -> bool:
+    """Whether ``presented`` is the secret whose hash is stored (constant time); a run stored
+    without one (by a relay before schema 2) cannot be resumed."""
+    if not stored_hash or not isinstance(presented, str):
+        return False
+    return hmac.compare_digest(stored_hash, secret_hash(presented))
+
+
+def secret_hash(secret: str) -> str:
+    return hashlib.sha256(secret.encode()).hexdigest()
+
+
+def mark_rejected(conn: sqlite3.Connection, run: str, reason: str) -> None:
+    """Keep a run the relay refused apart: sessions and exports leave it out."""
+    conn.execute("UPDATE runs SET rejected = ? WHERE id = ? AND rejected IS NULL", (reason[:200], run))
 
 
 def update_run(conn: sqlite3.Connection, run: str, **fields: Any) -> None:
@@ -321,7 +372,7 @@ def update_run(conn: sqlite3.Connection, run: str, **fields: Any) -> None:
     conn.execute(f"UPDATE runs SET {', '.join(f'{k} = ?' for k in fields)} WHERE id = ?", (*values, run))
 
 
-WRITES = (register_run, update_run)
+WRITES = (register_run, update_run, mark_rejected)
 """Calls whose success shows that storage works again."""
 
 
@@ -341,12 +392,13 @@ def list_sessions(conn: sqlite3.Connection) -> list[dict]:
     runs: dict[int, list[dict]] = {}
     for (rid, session, node, first, last, ended, events, written, dropped, lost, clock) in conn.execute(
             "SELECT id, session, node, first_seen_ns, last_seen_ns, ended_ns, events, written, dropped, lost, clock "
-            "FROM runs ORDER BY first_seen_ns"):
+            "FROM runs WHERE rejected IS NULL ORDER BY first_seen_ns"):
         runs.setdefault(session, []).append({
             "run": rid, "node": node, "first_seen_ns": first, "last_seen_ns": last, "ended_ns": ended,
             "events": events, "written": written, "dropped": dropped, "lost": lost, "clock": json.loads(clock)})
-    return [{"session": sid, "created_ns": created, "runs": runs.get(sid, [])}
-            for sid, created in conn.execute("SELECT id, created_ns FROM sessions ORDER BY id DESC")]
+    # A session of refused runs only is not a session anybody recorded.
+    return [{"session": sid, "created_ns": created, "runs": runs[sid]}
+            for sid, created in conn.execute("SELECT id, created_ns FROM sessions ORDER BY id DESC") if sid in runs]
 
 
 @dataclass
@@ -372,8 +424,8 @@ def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> 
         key = str(session_id).strip()
         cols = "id, session, header, dropped, lost, clock, ended_ns"
         if key.isdigit():
-            rows = conn.execute(f"SELECT {cols} FROM runs WHERE session = ? ORDER BY first_seen_ns",
-                                (int(key),)).fetchall()
+            rows = conn.execute(f"SELECT {cols} FROM runs WHERE session = ? AND rejected IS NULL "
+                                "ORDER BY first_seen_ns", (int(key),)).fetchall()
         elif len(key) >= 6 and all(c in "0123456789abcdef" for c in key.lower()):
             rows = conn.execute(f"SELECT {cols} FROM runs WHERE id LIKE ? ORDER BY first_seen_ns",
                                 (key.lower() + "%",)).fetchall()

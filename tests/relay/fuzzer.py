@@ -54,6 +54,8 @@ class Case:
 
     def __init__(self, rng: random.Random, run: str, node: str) -> None:
         self.rng, self.run, self.node = rng, run, node
+        self.secret: str | None = None
+        """The run's resume secret, issued at its first hello: later connections present it."""
 
     def pick(self) -> tuple[bool, str, list]:
         needs_hello, kind, make = self.rng.choice(self._choices())
@@ -104,7 +106,10 @@ class Case:
         ]
 
     def hello(self) -> dict:
-        return {"proto": V, "run": self.run, "header": header_for(self.node, 2).to_dict(), "lost": 0}
+        hello = {"proto": V, "run": self.run, "header": header_for(self.node, 2).to_dict(), "lost": 0}
+        if self.secret is not None:
+            hello["secret"] = self.secret
+        return hello
 
     def good(self) -> bytes:
         return encode_batch(self.run, self.rng.randrange(1 << 40), EVENTS)
@@ -147,6 +152,7 @@ async def _one(session: aiohttp.ClientSession, url: str, token: str | None, case
             await ws.send_str(_msg("hello", case.hello()))
             reply = await ws.receive(timeout)
             assert reply.type == aiohttp.WSMsgType.TEXT and json.loads(reply.data)["data"]["ok"] is True, reply
+            case.secret = json.loads(reply.data)["data"].get("secret", case.secret)
         report.sent += 1
         try:
             for frame in frames:

@@ -179,18 +179,28 @@ class HandNode:
     """A node driven by hand on one ingest WebSocket (:class:`probes.relaylink.Link`), for in-process
     tests that send exactly the messages they mean to."""
 
-    def __init__(self, session, link, acks) -> None:
+    def __init__(self, session, link, acks, secret: str | None) -> None:
         self.session, self.link, self.acks = session, link, acks
+        self.secret = secret
+        """The run's resume secret: issued at its first hello, or the one presented."""
 
     @classmethod
-    async def open(cls, url: str, node: str, run: str, token: str | None = None, stages: int = 1) -> "HandNode":
+    async def open(cls, url: str, node: str, run: str, token: str | None = None, stages: int = 1,
+                   secret: str | None = None) -> "HandNode":
+        """Say hello for ``run``; resuming a run takes the ``secret`` its first hello was given."""
         session = aiohttp.ClientSession()
         acks: asyncio.Queue = asyncio.Queue()
-        link = await Link.open(session, url, token, acks.put_nowait)
-        hello = {"proto": 2, "run": run, "header": header_for(node, stages).to_dict(), "lost": 0}
-        reply = await link.call("hello", hello, 5)
+        try:
+            link = await Link.open(session, url, token, acks.put_nowait)
+            hello = {"proto": 2, "run": run, "header": header_for(node, stages).to_dict(), "lost": 0}
+            if secret is not None:
+                hello["secret"] = secret
+            reply = await link.call("hello", hello, 5)
+        except BaseException:
+            await session.close()
+            raise
         assert reply["ok"], reply
-        return cls(session, link, acks)
+        return cls(session, link, acks, reply.get("secret", secret))
 
     async def batch(self, data: bytes) -> dict:
         """Send one batch and wait for its acknowledgement."""

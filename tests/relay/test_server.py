@@ -56,7 +56,7 @@ def test_a_reconnecting_run_takes_over_its_old_connection(tmp_path):
         run = uuid.uuid4().hex
         try:
             old = await HandNode.open(url, "A", run)
-            new = await HandNode.open(url, "A", run)
+            new = await HandNode.open(url, "A", run, secret=old.secret)
             await asyncio.wait_for(old.link.closed(), 5)
             assert not old.connected and "superseded" in old.link.error
             events = synth_events(10, 1, 25.0, T0)
@@ -162,12 +162,13 @@ def test_a_nodes_newest_run_is_its_current_one(tmp_path):
         events = synth_events(10, 1, 25.0, T0)
         try:
             c1 = await HandNode.open(url, "A", first)
+            secret = c1.secret
             assert (await c1.batch(encode_batch(first, 0, events)))["ok"]
             await c1.close()
             await asyncio.sleep(0.2)
             c2 = await HandNode.open(url, "A", second)
             assert relay.state.nodes["A"] == second and first not in relay.state.runs  # the old run left memory
-            c1 = await HandNode.open(url, "A", first)  # the old run comes back: from storage
+            c1 = await HandNode.open(url, "A", first, secret=secret)  # the old run comes back: from storage
             assert relay.state.runs[first].live.events == len(events) and relay.state.nodes["A"] == second
             # Nothing was live when the second run began: it opened a session of its own.
             assert (relay.state.runs[first].session, relay.state.runs[second].session) == (1, 2)

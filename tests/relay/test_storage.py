@@ -31,9 +31,10 @@ def test_batches_sessions_and_reload(tmp_path):
     async def scenario():
         s = db.Storage(path)
         s.start(asyncio.get_running_loop())
-        s1, first = await s.call(db.register_run, r1, "a", h1.to_dict(), None)
-        s2, _ = await s.call(db.register_run, r2, "b", h2.to_dict(), s1)  # joins the live session
-        assert await s.call(db.register_run, r1, "a", h1.to_dict(), None) == (1, first)  # a renewed hello
+        s1, first, secret = await s.call(db.register_run, r1, "a", h1.to_dict(), None, None)
+        s2, _, _ = await s.call(db.register_run, r2, "b", h2.to_dict(), s1, None)  # joins the live session
+        # A renewed hello, with the secret issued at the first
+        assert await s.call(db.register_run, r1, "a", h1.to_dict(), None, secret) == (1, first, None)
         assert s1 == s2 == 1
         halves = np.array_split(ev1, 3)
         results = await asyncio.gather(*(s.put_batch(r1, i, len(p), i == 1, payload(r1, i, p, i == 1))
@@ -44,8 +45,8 @@ def test_batches_sessions_and_reload(tmp_path):
         await s.call(db.update_run, r2, clock={"correction_ns": 1000}, ended_ns=5, dropped=2, lost=1)
         assert await s.call(db.stored_seqs, r1) == {0, 1, 2}
         with pytest.raises(RelayError, match="belongs to node 'a'"):
-            await s.call(db.register_run, r1, "b", h1.to_dict(), None)
-        s3, _ = await s.call(db.register_run, r3, "a", h1.to_dict(), None)  # nothing live: a new session
+            await s.call(db.register_run, r1, "b", h1.to_dict(), None, secret)
+        s3, _, _ = await s.call(db.register_run, r3, "a", h1.to_dict(), None, None)  # nothing live: a new session
         assert s3 == 2
         assert s.commits >= 2
         s.stop()
@@ -94,7 +95,7 @@ def test_a_batch_sqlite_cannot_bind_fails_alone_and_the_writer_keeps_serving(tmp
         s = db.Storage(tmp_path / "r.db")
         s.start(asyncio.get_running_loop())
         try:
-            await s.call(db.register_run, run, "a", header_for("a", 1).to_dict(), None)
+            await s.call(db.register_run, run, "a", header_for("a", 1).to_dict(), None, None)
             with pytest.raises(RelayError, match="cannot store batches: OverflowError"):
                 await asyncio.wait_for(s.put_batch(run, 1 << 64, len(events), False, payload(run, 0, events, False)), 10)
             stored = await asyncio.wait_for(s.put_batch(run, 0, len(events), False, payload(run, 0, events, False)), 10)

@@ -125,8 +125,11 @@ export function nodesHtml(nodes, stored) {
     const corr = clock.applied ? `${esc(clock.applied)}${clock.correction_us ? ` (${formatDelay(clock.correction_us / 1000)})` : ""}` : "–";
     const frames = stored ? n.frames : n.frames?.shown;
     const drops = stored ? (n.dropped ?? 0) + (n.lost ?? 0) : n.drops;
+    // Another run tried to stream under this name while it was live: refused, and said here.
+    const conflict = n.conflicts ? ` <span class="conflict" title="hellos of other runs under this name, refused">`
+      + `${int(n.conflicts)} name conflict${n.conflicts > 1 ? "s" : ""}</span>` : "";
     return `<tr data-node="${esc(n.node)}"><td><b>${esc(n.node)}</b></td>`
-      + `<td><span class="dot dot-${cls}"></span><span class="conn-state">${state}</span></td>`
+      + `<td><span class="dot dot-${cls}"></span><span class="conn-state">${state}</span>${conflict}</td>`
       + `<td class="clock-offset">${offsetText(clock)}</td><td class="wrap">${corr}</td><td class="wrap">${ptpText(n.ptp ?? clock.ptp)}</td>`
       + `<td>${int(n.events)}</td><td>${int(frames)}</td><td>${int(drops)}</td>`
       + `<td class="muted">${esc(String(n.run).slice(0, 8))}</td></tr>`;
