@@ -79,7 +79,8 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     app.router.add_get(INGEST_PATH, ingest.handle)
     sio.attach(app)
     ticker = Ticker(state, ui, push_hz)
-    add_routes(app, state, token, lambda: {"rejected": ingest.rejected, "pushes": ticker.pushes,
+    add_routes(app, state, token, lambda: {"rejected": ingest.rejected, "clock_rejected": ingest.clock_rejected,
+                                           "paused": ingest.paused, "pushes": ticker.pushes,
                                            "commits": storage.commits, "batches": storage.batches_written,
                                            "limits": limits.as_dict(), "released_runs": state.released,
                                            "memory": state.memory_view(), "refused": dict(state.refused)})

@@ -47,8 +47,10 @@ class RelayProcess:
     """``python -m relay`` in a subprocess; ``url`` once it listens."""
 
     def __init__(self, db: Path, port: int = 0, token: str | None = None, clock: str = "auto",
-                 log: Path | None = None, args: list[str] | None = None) -> None:
-        cmd = [sys.executable, "-m", "relay", "--port", str(port), "--db", str(db), "--clock", clock, *(args or [])]
+                 log: Path | None = None, args: list[str] | None = None, prefix: list[str] | None = None) -> None:
+        """``prefix``: a command that execs the relay's command line it is given (``unshare ...``)."""
+        cmd = [*(prefix or []), sys.executable, "-m", "relay", "--port", str(port), "--db", str(db), "--clock", clock,
+               *(args or [])]
         if token:
             cmd += ["--token", token]
         self.log = log or db.with_suffix(".relay.log")
