@@ -7,7 +7,8 @@ Text frames hold one JSON object each::
     node -> relay  {"v": 2, "type": "hello" | "sync" | "clock" | "end", "id": 7, "data": {...}}
     relay -> node  {"v": 2, "type": "reply", "id": 7, "data": {...}}      answer to a message with an id
                    {"v": 2, "type": "ack", "seq": 12, "ok": true[, "dup": true]}
-                   {"v": 2, "type": "ack", "seq": 12, "ok": false, "error": "..."}   not stored: send again
+                   {"v": 2, "type": "ack", "seq": 12, "ok": false, "error": "...", "retry_ms": 500}
+                                                     not stored: hold every batch that long, then send again
                    {"v": 2, "type": "error", "error": "..."}                 then the relay closes
 
 ``v`` is :data:`probes.wire.PROTOCOL_VERSION`; a message of another version, of an unknown
@@ -80,12 +81,15 @@ def reply(ident: int, data: object) -> str:
     return json.dumps({"v": PROTOCOL_VERSION, "type": "reply", "id": ident, "data": data})
 
 
-def ack(seq: int, ok: bool = True, *, dup: bool = False, error: str = "") -> str:
+def ack(seq: int, ok: bool = True, *, dup: bool = False, error: str = "", retry_ms: int = 0) -> str:
+    """``retry_ms``: with ``ok: false``, how long the node should hold all its batches (storage failing)."""
     d: dict = {"v": PROTOCOL_VERSION, "type": "ack", "seq": seq, "ok": ok}
     if dup:
         d["dup"] = True
     if error:
         d["error"] = error
+    if retry_ms:
+        d["retry_ms"] = retry_ms
     return json.dumps(d)
 
 

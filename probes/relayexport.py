@@ -5,7 +5,8 @@ pending list under a short lock and returns: it never waits for the network. A t
 own runs an asyncio loop with an aiohttp WebSocket to the relay's ``/ingest`` (:mod:`probes.relaylink`)
 that cuts the pending events into numbered batches (:mod:`probes.wire`), keeps every batch
 until the relay acknowledges it (the relay acknowledges after its database committed the
-batch), sends again at once a batch the relay could not store, resends what is not
+batch), holds all sending for a while when the relay could not store a batch (the time the relay
+asks, ``retry_ms``, growing while failures go on, capped) then sends it again, resends what is not
 acknowledged after a reconnect, and reconnects with exponential backoff. The buffer of
 unacknowledged events is bounded (``max_buffer_events``); beyond it the oldest batches are
 dropped and counted as ``lost``, a count the relay receives with the next ``hello``/``clock``
@@ -111,6 +112,9 @@ class RelayExporter:
         self._connected = False
         self._last_error = ""
         self._retries = 0
+        self._hold_s = 0.0
+        """How long sending is held after the relay could not store a batch (0: it could)."""
+        self._hold_until = 0.0
         self._ptp: dict = {"state": "unavailable", "reason": "not read yet"}
         self._link: Link | None = None
         self.refused: str | None = None
@@ -327,6 +331,9 @@ class RelayExporter:
     async def _sender(self, link: Link) -> None:
         while True:
             while self._to_send and len(self._inflight) < self._window:
+                if time.monotonic() < self._hold_until:  # the relay's storage fails: hold every batch
+                    await asyncio.sleep(self._hold_until - time.monotonic())
+                    continue
                 seq = self._to_send.popleft()
                 item = self._unacked.get(seq)
                 if item is None or seq in self._inflight:
@@ -346,21 +353,31 @@ class RelayExporter:
             return
         del self._inflight[seq]
         if ack.get("ok") is not True:
-            # Not stored (the relay's storage failed): send it again shortly, on this connection.
+            self._hold(ack)
             self._retries += 1
-            self._note_error(f"relay could not store batch {seq}: {str(ack.get('error'))[:100]}; sending it again")
-            self._loop.call_later(self._backoff[0], self._resend, seq)
+            # One line while it lasts (no seq in it): every batch fails alike.
+            self._note_error(f"relay could not store batches: {str(ack.get('error'))[:100]}; holding them")
+            self._to_send.append(seq)  # sent again, on this connection, once the hold ends
+            self._progress.set()
             return
+        self._hold_s = 0.0
         item = self._unacked.pop(seq, None)
         if item is not None:
             self._unacked_n -= item[1]
             self._acked += item[1]
         self._progress.set()
 
-    def _resend(self, seq: int) -> None:
-        if seq in self._unacked and seq not in self._inflight:
-            self._to_send.append(seq)
-            self._progress.set()
+    def _hold(self, ack: dict) -> None:
+        """Hold all sending after a batch was not stored: for what the relay asks, doubling with
+        every failed round (the window's batches fail together: one round), capped."""
+        now = time.monotonic()
+        if now < self._hold_until:
+            return
+        asked = ack.get("retry_ms")
+        asked_s = asked / 1000 if isinstance(asked, int) and not isinstance(asked, bool) and asked > 0 else 0.0
+        grown = max(self._backoff[0], asked_s, 2 * self._hold_s)
+        self._hold_s = min(grown, self._backoff[1])
+        self._hold_until = now + self._hold_s
 
     async def _syncer(self, link: Link) -> None:
         burst = SYNC_BURST_FIRST

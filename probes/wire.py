@@ -145,6 +145,16 @@ def decode_batch(data: object, n_stages: int, max_events: int = MAX_BATCH_EVENTS
     return Batch(uuid.UUID(bytes=run).hex, int(seq), events, payload, bool(flags & FLAG_ZLIB))
 
 
+def declared_bytes(data: bytes) -> int:
+    """What a batch will weigh once inflated, read from its header before anything is inflated:
+    header + event count x 24 (the count capped at MAX_BATCH_EVENTS: a larger one is refused
+    anyway), at least the message's own length."""
+    if len(data) < HEADER_SIZE:
+        return len(data)
+    count = HEADER.unpack_from(data)[6]
+    return max(len(data), HEADER_SIZE + min(count, MAX_BATCH_EVENTS) * EVENT_DTYPE.itemsize)
+
+
 def _inflate(payload: bytes, size: int) -> bytes:
     # Bounded: a few bytes that inflate to gigabytes must not get past max_length.
     inflater = zlib.decompressobj()

@@ -1,7 +1,8 @@
 """HTTP JSON API of the relay (aiohttp routes); a token, when set, guards every ``/api`` route.
 
-- ``GET /api/health``: {ok, uptime_s, runs, rejected, limits, memory {live_bytes, live_budget_bytes,
-  run_budget_bytes, runs_with_live_state}, refused {LIMIT: payloads refused for exceeding it}}
+- ``GET /api/health``: {ok, uptime_s, runs, rejected, clock_rejected, paused, storage {ok[, error, since,
+  failed_writes]}, limits, memory {live_bytes, live_budget_bytes, run_budget_bytes, runs_with_live_state},
+  refused {LIMIT or reason: what it refused}, ...}; ok is false while storage fails
 - ``GET /api/nodes``: [{node, run, session, connected, clock {offset_us, uncertainty_us, ...},
   ptp, events, dropped, lost, drops, ...}], one per node (its newest run)
 - ``GET /api/stats?node=NAME``: ``probes.delays.node_stats`` of the node's newest run (stage
@@ -48,8 +49,10 @@ def add_routes(app: web.Application, state: RelayState, token: str | None, count
         return rs
 
     async def health(request: web.Request) -> web.Response:
-        return web.json_response({"ok": True, "uptime_s": time.time() - state.started, "runs": len(state.runs),
-                                  "clock": state.clock_mode, **counters()})
+        storage = state.storage.health()  # not ok while writes fail (a full disk)
+        return web.json_response({"ok": storage["ok"], "uptime_s": time.time() - state.started,
+                                  "runs": len(state.runs), "clock": state.clock_mode, "storage": storage,
+                                  **counters()})
 
     async def nodes(request: web.Request) -> web.Response:
         return web.json_response(state.nodes_view())

@@ -18,6 +18,10 @@ from dataclasses import dataclass
 
 CLOCK_MODES = ("ptp", "estimate", "auto")
 DEFAULT_WINDOW = 32
+MAX_CORRECTION_NS = 10**17
+"""The largest correction ever applied (~3 years), whatever ``--limit clock_offset_s`` says: a
+timestamp of this era (~1.7e18 ns) moved by it stays far inside int64, so no arithmetic on
+corrected timestamps can overflow. A stored one beyond it (an older relay's) is ignored."""
 
 
 @dataclass(frozen=True)
@@ -50,13 +54,37 @@ class ClockEstimator:
         self._samples: deque[ClockSample] = deque(maxlen=window)
 
     def add(self, t1: int, t2: int, t3: int, t4: int) -> None:
-        self._samples.append(ntp_sample(t1, t2, t3, t4))
+        self.add_sample(ntp_sample(t1, t2, t3, t4))
+
+    def add_sample(self, sample: ClockSample) -> None:
+        self._samples.append(sample)
 
     def estimate(self) -> ClockEstimate | None:
         if not self._samples:
             return None
         best = min(self._samples, key=lambda s: s.rtt_ns)
         return ClockEstimate(best.offset_ns, (best.rtt_ns + 1) // 2, best.rtt_ns, len(self._samples))
+
+
+def sample_fault(sample: ClockSample, max_offset_ns: int, max_rtt_ns: int) -> str | None:
+    """Why a sample cannot be true (its offset or round trip beyond the bounds), or None."""
+    if abs(sample.offset_ns) > min(max_offset_ns, MAX_CORRECTION_NS):
+        return f"offset {sample.offset_ns} ns beyond {min(max_offset_ns, MAX_CORRECTION_NS)} ns"
+    if sample.rtt_ns > max_rtt_ns:
+        return f"round trip {sample.rtt_ns} ns beyond {max_rtt_ns} ns"
+    return None
+
+
+def stored_correction(clock: object) -> tuple[int, str | None]:
+    """The correction a stored clock view calls for, and why it is ignored (then 0), if it is."""
+    value = clock.get("correction_ns", 0) if isinstance(clock, dict) else None
+    if value is None:
+        return 0, None if isinstance(clock, dict) else "not a clock record"
+    if not isinstance(value, int) or isinstance(value, bool):
+        return 0, f"correction {str(value)[:40]!r} is not an integer"
+    if abs(value) > MAX_CORRECTION_NS:
+        return 0, f"correction {value} ns beyond {MAX_CORRECTION_NS} ns"
+    return value, None
 
 
 def correction_ns(mode: str, estimate: ClockEstimate | None, ptp: dict) -> tuple[int, str]:
@@ -71,4 +99,6 @@ def correction_ns(mode: str, estimate: ClockEstimate | None, ptp: dict) -> tuple
         return 0, "ptp"
     if estimate is None:
         return 0, "none"
+    if abs(estimate.offset_ns) > MAX_CORRECTION_NS:  # samples are checked: a bug, never applied
+        return 0, "ignored"
     return estimate.offset_ns, "estimate"

@@ -9,14 +9,24 @@ and so is a connection beyond the cap (503). Then, in the envelope of :mod:`prob
   (or was stored before), then its events reach the live state; ``ok: false`` if storage failed
   (the node sends it again);
 - ``sync`` -> reply {t2, t3}: relay receive and send times (ns, CLOCK_REALTIME);
-- ``clock`` {samples, lost, floor, ptp}: the node's completed NTP samples and state;
+- ``clock`` {samples, lost, floor, ptp}: the node's completed NTP samples and state. A sample
+  counts only if its t2/t3 are a pair this relay sent on this connection (each once) and its
+  offset and round trip are within ``clock_offset_s``/``clock_rtt_s``; others are counted
+  (``clock.rejected``) and dropped;
 - ``end`` {events, dropped, lost} -> reply {ok}.
 
 ``floor``: every batch below it was acknowledged or given up by the node, so the relay stops
 waiting for the ones it never got. Anything else (unknown type, wrong version or shape, a
 malformed, truncated, oversize or wrong-version batch, a batch before ``hello``, a rate above
-the connection's bounds) gets an ``error`` message and the connection closed (1008; 1009 for a
-message over the size bound); it never touches another run's state.
+the connection's message rate) gets an ``error`` message and the connection closed (1008; 1009
+for a message over the size bound); it never touches another run's state. Beyond its
+decompressed byte rate (a batch weighs its event count x 24 from its header, before inflating),
+or beyond that of all connections together, a connection is not closed: the relay stops reading
+from it for a while, so TCP holds the node back.
+
+While storage fails (a full disk), batches are acknowledged ``ok: false`` with ``retry_ms``, how
+long the node should hold them; a run's clock and end are kept in memory and written once
+storage works again; the connection stays open.
 """
 
 from __future__ import annotations
@@ -31,16 +41,24 @@ from aiohttp import WSCloseCode, WSMsgType, web
 
 from probes import envelope
 from probes.errors import LimitExceeded, ProtocolError
-from probes.wire import HEARTBEAT_S, MAX_MESSAGE_BYTES, Batch, decode_batch, decode_clock, decode_end, decode_hello
+from probes.wire import (HEARTBEAT_S, MAX_MESSAGE_BYTES, Batch, decode_batch, decode_clock, decode_end, decode_hello,
+                         declared_bytes)
 from relay import storage as db
 from relay.auth import http_token, node_for_token, token_matches
+from relay.clock import ntp_sample, sample_fault
 from relay.errors import RelayError
-from relay.limits import Limits, TokenBucket
+from relay.limits import ByteBucket, Limits, TokenBucket
 from relay.state import RelayState, RunState
 
 MAX_STORING = 256
 """Batches of one connection being stored at once (a node keeps 64 in flight)."""
 CLOSE_TIMEOUT_S = 2.0
+SYNCS_KEPT = 256
+"""Sync replies (t2, t3) of one connection remembered for its clock report (a node reports
+each burst of 4-8 after it)."""
+SAVE_RETRY_S = 1.0
+"""Run fields storage failed to write are tried again this often."""
+STORAGE_FAILED = "relay storage failing"
 
 log = logging.getLogger(__name__)
 
@@ -50,9 +68,12 @@ class _Conn:
     sid: str
     ws: web.WebSocketResponse
     bucket: TokenBucket
+    bytes: ByteBucket
     node: str | None = None
     """The only node name this connection may use (it presented that node's own token)."""
     run: str | None = None
+    syncs: dict[tuple[int, int], None] = field(default_factory=dict)
+    """(t2, t3) of the sync replies sent and not yet reported, oldest first."""
     closing: bool = False
     tasks: set[asyncio.Task] = field(default_factory=set)
 
@@ -68,8 +89,14 @@ class Ingest:
         self._limits = limits
         self._conns: dict[str, _Conn] = {}
         self._ids = itertools.count(1)
+        self._total = ByteBucket(limits.total_bytes_per_s, limits.total_bytes_per_s)
+        self._retry: asyncio.Task | None = None
         self.rejected = 0
         """Connections closed for a bad payload or rate (the fuzz test reads it via /api/health)."""
+        self.clock_rejected = 0
+        """Clock samples refused, all runs."""
+        self.paused = 0
+        """Times a connection was held back for its byte rate (or all connections' together)."""
         self.hello_timeouts = 0
         """Connections closed for not saying hello in time (counted in ``rejected`` too)."""
 
@@ -91,7 +118,9 @@ class Ingest:
             # The node went away during the handshake (stopped as it started). A plain answer,
             # which aiohttp fails to write quietly, ends the request without a logged traceback.
             raise web.HTTPBadRequest(text="connection closed during the handshake") from None
-        conn = _Conn(f"ws{next(self._ids)}", ws, TokenBucket(self._limits), node)
+        lim = self._limits
+        conn = _Conn(f"ws{next(self._ids)}", ws, TokenBucket(lim), ByteBucket(lim.bytes_per_s, lim.byte_burst),
+                     node)
         self._conns[conn.sid] = conn
         # A connection that never says hello would hold one of the few ingest places for ever.
         expiry = asyncio.get_running_loop().call_later(self._limits.hello_timeout_s, self._hello_overdue, conn)
@@ -127,6 +156,8 @@ class Ingest:
             task.add_done_callback(conn.tasks.discard)
 
     async def close_all(self) -> None:
+        if self._retry is not None:
+            self._retry.cancel()
         for conn in list(self._conns.values()):
             await conn.ws.close(code=WSCloseCode.GOING_AWAY, message=b"relay stopping")
 
@@ -136,10 +167,12 @@ class Ingest:
                 return
             try:
                 if msg.type == WSMsgType.BINARY:
-                    self._take(conn, len(msg.data))
+                    self._take(conn)
+                    await self._pace(conn, declared_bytes(msg.data))
                     await self._on_batch(conn, msg.data)
                 elif msg.type == WSMsgType.TEXT:
-                    self._take(conn, len(msg.data))
+                    self._take(conn)
+                    await self._pace(conn, len(msg.data))
                     await self._on_message(conn, envelope.decode_request(msg.data))
                 elif msg.type == WSMsgType.ERROR:
                     # aiohttp already closes with 1009 (too big) or 1002 (not WebSocket).
@@ -158,9 +191,17 @@ class Ingest:
                 if run is not None and run.sid == conn.sid:
                     run.last_seen = time.time()
 
-    def _take(self, conn: _Conn, nbytes: int) -> None:
-        if not conn.bucket.take(nbytes):
+    def _take(self, conn: _Conn) -> None:
+        if not conn.bucket.take():
             raise ProtocolError("rate limit exceeded")
+
+    async def _pace(self, conn: _Conn, nbytes: int) -> None:
+        """Hold the connection back while it (or all together) is beyond its byte rate: not
+        reading its socket meanwhile is what slows the node, through TCP."""
+        wait = max(conn.bytes.charge(nbytes), self._total.charge(nbytes))
+        if wait > 0:
+            self.paused += 1
+            await asyncio.sleep(wait)
 
     def _count_rejection(self, conn: _Conn, message: str) -> None:
         conn.closing = True
@@ -195,14 +236,18 @@ class Ingest:
         if msg.type == "sync":
             t2 = time.time_ns()
             if msg.id is not None:
-                await self._send(conn, envelope.reply(msg.id, {"t2": t2, "t3": time.time_ns()}))
+                t3 = time.time_ns()
+                conn.syncs[(t2, t3)] = None
+                if len(conn.syncs) > SYNCS_KEPT:
+                    del conn.syncs[next(iter(conn.syncs))]
+                await self._send(conn, envelope.reply(msg.id, {"t2": t2, "t3": t3}))
             return
         if msg.type == "hello":
             answer = await self._on_hello(conn, msg.data)
         elif conn.run is None:
             raise ProtocolError(f"{msg.type} before hello")
         elif msg.type == "clock":
-            answer = await self._on_clock(self.state.runs[conn.run], msg.data)
+            answer = await self._on_clock(conn, self.state.runs[conn.run], msg.data)
         else:
             answer = await self._on_end(self.state.runs[conn.run], msg.data)
         if msg.id is not None:
@@ -232,15 +277,33 @@ class Ingest:
             answer["secret"] = attached.secret
         return answer
 
-    async def _on_clock(self, rs: RunState, data: object) -> dict:
+    async def _on_clock(self, conn: _Conn, rs: RunState, data: object) -> dict:
         report = decode_clock(data)
         for sample in report.samples:
-            rs.clock.add(*sample)
+            self._add_sample(conn, rs, sample)
         rs.ptp = report.ptp
         rs.lost = max(rs.lost, report.lost)
         rs.seqs.advance(report.floor)
         clock = dict(self.state.clock_view(rs), ptp=rs.ptp)
         return await self._update_run(rs, clock=clock, lost=rs.lost)
+
+    def _add_sample(self, conn: _Conn, rs: RunState, times: tuple[int, int, int, int]) -> None:
+        t1, t2, t3, t4 = times
+        sample = ntp_sample(t1, t2, t3, t4)
+        if (t2, t3) not in conn.syncs:
+            fault = "t2/t3 not from this relay's sync replies on this connection"
+        else:
+            del conn.syncs[(t2, t3)]  # a pair counts once: no replaying it
+            lim = self._limits
+            fault = sample_fault(sample, int(lim.clock_offset_s * 1e9), int(lim.clock_rtt_s * 1e9))
+        if fault is None:
+            rs.clock.add_sample(sample)
+            return
+        if not rs.clock_rejected:
+            log.warning("ingest: run %s (%s): clock sample rejected: %s", rs.run, rs.node, fault)
+        rs.clock_rejected += 1
+        rs.clock_fault = fault
+        self.clock_rejected += 1
 
     async def _on_end(self, rs: RunState, data: object) -> dict:
         written, dropped, lost = decode_end(data)
@@ -250,12 +313,25 @@ class Ingest:
                                       clock=clock)
 
     async def _update_run(self, rs: RunState, **fields) -> dict:
+        """Write run fields; if storage fails, keep them (and any not written before) in memory
+        and write them once it works: the node's data is not at fault, its connection stays."""
+        rs.unsaved.update(fields)
+        fields, rs.unsaved = rs.unsaved, {}
         try:
             await self.state.storage.call(db.update_run, rs.run, **fields)
-        except RelayError as exc:  # the node's data is not at fault: keep the connection
-            log.error("%s", exc)
-            return {"ok": False, "error": "relay storage failed"}
+        except RelayError:  # storage logs that it fails, once
+            rs.unsaved = {**fields, **rs.unsaved}  # newer values, set meanwhile, win
+            if self._retry is None or self._retry.done():
+                self._retry = asyncio.create_task(self._save_later())
+            return {"ok": False, "error": STORAGE_FAILED, "retry_ms": self.state.storage.retry_ms()}
         return {"ok": True}
+
+    async def _save_later(self) -> None:
+        while any(rs.unsaved for rs in self.state.runs.values()):
+            await asyncio.sleep(SAVE_RETRY_S)
+            for rs in [rs for rs in self.state.runs.values() if rs.unsaved]:
+                if not (await self._update_run(rs))["ok"]:
+                    break
 
     # --- batches --------------------------------------------------------------------------------
 
@@ -292,7 +368,7 @@ class Ingest:
                 rs.duplicates += 1
                 await self._send(conn, envelope.ack(seq, dup=True))
             else:
-                await self._send(conn, envelope.ack(seq, False, error="relay storage failed"))
+                await self._send(conn, self._refused(seq))
             return
         await self._send(conn, await self._commit(rs, batch))
 
@@ -305,9 +381,8 @@ class Ingest:
         try:
             new = await self.state.storage.put_batch(rs.run, batch.seq, len(batch.events), batch.compressed,
                                                      batch.payload)
-        except RelayError as exc:
-            log.error("%s", exc)
-            return envelope.ack(batch.seq, False, error="relay storage failed")
+        except RelayError:  # storage logs that it fails, once
+            return self._refused(batch.seq)
         finally:
             rs.storing.pop(batch.seq, None)
             done.set_result(new is not None)
@@ -317,6 +392,9 @@ class Ingest:
         else:  # stored before this relay's run state knew it: already in the live state
             rs.duplicates += 1
         return envelope.ack(batch.seq, dup=not new)
+
+    def _refused(self, seq: int) -> str:
+        return envelope.ack(seq, False, error=STORAGE_FAILED, retry_ms=self.state.storage.retry_ms())
 
 
 def _report_failure(task: asyncio.Task) -> None:

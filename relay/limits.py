@@ -4,7 +4,8 @@
 events/s, about 100 KB/s decompressed) with wide headroom; ``dcuscope relay --limit NAME=VALUE``
 sets any of them, ``relay --help`` lists them (:func:`limits_help`) and ``/api/health`` shows
 them with the counts of what they refused. The largest WebSocket message is
-:data:`probes.wire.MAX_MESSAGE_BYTES`; the rate of one connection is :class:`TokenBucket`'s.
+:data:`probes.wire.MAX_MESSAGE_BYTES`; the message rate of one connection is :class:`TokenBucket`'s, its
+decompressed byte rate (and that of all together) :class:`ByteBucket`'s.
 """
 
 from __future__ import annotations
@@ -113,23 +114,38 @@ def _docs() -> dict[str, str]:
 
 
 class TokenBucket:
-    """Two token buckets (messages and bytes) refilled continuously; ``take`` never blocks."""
+    """The message bucket of one connection, refilled continuously; ``take`` never blocks."""
 
     def __init__(self, limits: Limits) -> None:
         self._limits = limits
         self._messages = limits.message_burst
-        self._bytes = limits.byte_burst
         self._at = time.monotonic()
 
-    def take(self, nbytes: int) -> bool:
-        """Spend one message of ``nbytes``; False when the connection exceeds its rate."""
+    def take(self) -> bool:
+        """Spend one message; False when the connection exceeds its message rate."""
         now = time.monotonic()
         dt, self._at = now - self._at, now
         lim = self._limits
         self._messages = min(lim.message_burst, self._messages + dt * lim.messages_per_s)
-        self._bytes = min(lim.byte_burst, self._bytes + dt * lim.bytes_per_s)
-        if self._messages < 1 or self._bytes < nbytes:
+        if self._messages < 1:
             return False
         self._messages -= 1
-        self._bytes -= nbytes
         return True
+
+
+class ByteBucket:
+    """Decompressed bytes at ``rate`` per second with ``burst`` at once. ``charge`` always takes the
+    bytes, running into debt, and says how long the caller must wait for the debt to be paid: the
+    caller stops reading from its connection meanwhile (back-pressure through TCP)."""
+
+    def __init__(self, rate: float, burst: float) -> None:
+        self._rate, self._burst = rate, burst
+        self._tokens = burst
+        self._at = time.monotonic()
+
+    def charge(self, nbytes: int) -> float:
+        """Take ``nbytes``; seconds to wait before the next read (0 within the rate)."""
+        now = time.monotonic()
+        dt, self._at = now - self._at, now
+        self._tokens = min(self._burst, self._tokens + dt * self._rate) - nbytes
+        return max(0.0, -self._tokens / self._rate)

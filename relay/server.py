@@ -101,7 +101,8 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
 
     def counters() -> dict:
         refused["hello_timeout"] = ingest.hello_timeouts
-        return {"rejected": ingest.rejected, "refused": {**state.refused, **{k: refused[k] for k in REFUSALS}},
+        return {"rejected": ingest.rejected, "clock_rejected": ingest.clock_rejected, "paused": ingest.paused,
+                "refused": {**state.refused, **{k: refused[k] for k in REFUSALS}},
                 "connections": {"tcp": guard.open, "ingest": ingest.connected},
                 "pushes": ticker.pushes, "commits": storage.commits, "batches": storage.batches_written,
                 "limits": limits.as_dict(), "released_runs": state.released, "memory": state.memory_view()}

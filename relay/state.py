@@ -59,6 +59,12 @@ class RunState:
     storing: dict[int, asyncio.Future] = field(default_factory=dict)
     """Batches being stored: seq -> future of "stored"."""
     clock: ClockEstimator = field(default_factory=ClockEstimator)
+    clock_rejected: int = 0
+    """Clock samples refused (not from this relay's sync replies, or offset/round trip out of bounds)."""
+    clock_fault: str = ""
+    """Why the last one was refused."""
+    unsaved: dict = field(default_factory=dict)
+    """Run fields (clock, end) storage failed to write: written again once it works."""
     ptp: dict = field(default_factory=lambda: {"state": "unavailable"})
     sid: str | None = None
     ended: bool = False
@@ -258,7 +264,10 @@ class RelayState:
     def clock_view(self, rs: RunState) -> dict:
         est = rs.clock.estimate()
         corr, applied = self.correction(rs)
-        view = {"mode": self.clock_mode, "applied": applied, "correction_ns": corr, "correction_us": corr / 1e3}
+        view = {"mode": self.clock_mode, "applied": applied, "correction_ns": corr, "correction_us": corr / 1e3,
+                "rejected": rs.clock_rejected}
+        if rs.clock_fault:
+            view["rejected_why"] = rs.clock_fault
         if est is not None:
             view.update(offset_ns=est.offset_ns, offset_us=est.offset_ns / 1e3,
                         uncertainty_ns=est.uncertainty_ns, uncertainty_us=est.uncertainty_ns / 1e3,

@@ -21,6 +21,7 @@ import asyncio
 import hashlib
 import hmac
 import json
+import logging
 import queue
 import secrets
 import sqlite3
@@ -34,6 +35,7 @@ import numpy as np
 
 from probes.events import EVENT_DTYPE, TraceHeader
 from probes.wire import decode_payload
+from relay.clock import stored_correction
 from relay.errors import RelayError
 
 SCHEMA_VERSION = 2
@@ -70,6 +72,11 @@ CREATE TABLE IF NOT EXISTS batches (
 """
 GROUP_LIMIT = 2000
 """Batches committed in one transaction at most."""
+RETRY_MS = (250, 5000)
+"""What nodes are told to hold their batches for while storage fails: from the first, growing
+with how long it has failed (half of it), to the second."""
+
+log = logging.getLogger(__name__)
 
 
 def connect(path: str | Path, create: bool = True) -> sqlite3.Connection:
@@ -141,6 +148,8 @@ class Storage:
         self._thread = threading.Thread(target=self._worker, name="dcuscope-relay-db", daemon=True)
         self.commits = 0
         self.batches_written = 0
+        self._failure: dict | None = None
+        """While writes fail: {error, since (epoch s), failed_writes, failed}; None when they work."""
 
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         self._loop = loop
@@ -163,6 +172,38 @@ class Storage:
         future = self._future()
         self._queue.put(_Call(fn, args, kwargs, future))
         return await future
+
+    def health(self) -> dict:
+        """{ok} or, while writes fail, {ok: false, error, since, failed_writes, failed {what: count}}
+        (for /api/health)."""
+        failure = self._failure
+        return {"ok": True} if failure is None else dict(failure, ok=False, failed=dict(failure["failed"]))
+
+    def retry_ms(self) -> int:
+        """How long a node should hold its batches now (storage failing)."""
+        failure = self._failure
+        failing_s = time.time() - failure["since"] if failure is not None else 0.0
+        return int(min(RETRY_MS[1], max(RETRY_MS[0], failing_s * 500)))
+
+    def _failed(self, what: str, exc: BaseException) -> RelayError:
+        # Logged once when writes start failing and once when they work again, not per write
+        # (a full disk fails every write, many a second).
+        text = f"{type(exc).__name__}: {exc}"
+        failure = self._failure
+        if failure is None:
+            failure = self._failure = {"error": text, "since": time.time(), "failed_writes": 0, "failed": {}}
+            log.error("%s: storage failing (%s); batches are held by their nodes until it works again",
+                      self.path, text)
+        failure["failed_writes"] += 1
+        failure["failed"][what] = failure["failed"].get(what, 0) + 1
+        failure["error"] = text
+        return RelayError(f"{self.path}: cannot {what}: {text}")
+
+    def _worked(self) -> None:
+        failure, self._failure = self._failure, None
+        if failure is not None:
+            log.warning("%s: storage works again after %d failed writes in %.1f s (%s)", self.path,
+                        failure["failed_writes"], time.time() - failure["since"], failure["error"])
 
     def _future(self) -> asyncio.Future:
         # A queue nobody reads would leave the caller waiting for ever.
@@ -205,13 +246,21 @@ class Storage:
                 group.append(nxt)
             self._write_batches([g for g in group if isinstance(g, _Batch)])
             for call in (g for g in group if isinstance(g, _Call)):
-                try:
-                    value = call.fn(self._conn, *call.args, **call.kwargs)
-                except Exception as exc:  # noqa: BLE001 - handed to the awaiting coroutine
-                    _rollback(self._conn)
-                    self._resolve(call.future, error=exc)
-                else:
-                    self._resolve(call.future, value)
+                self._run_call(call)
+
+    def _run_call(self, call: _Call) -> None:
+        try:
+            value = call.fn(self._conn, *call.args, **call.kwargs)
+        except (sqlite3.Error, OSError) as exc:  # the database failed (a full disk), not the caller
+            _rollback(self._conn)
+            self._resolve(call.future, error=self._failed(getattr(call.fn, "__name__", "write"), exc))
+        except Exception as exc:  # noqa: BLE001 - handed to the awaiting coroutine
+            _rollback(self._conn)
+            self._resolve(call.future, error=exc)
+        else:
+            if call.fn in WRITES:
+                self._worked()
+            self._resolve(call.future, value)
 
     def _write_batches(self, batches: list[_Batch]) -> None:
         if not batches:
@@ -235,9 +284,10 @@ class Storage:
             # Any failure fails this group's batches (their nodes send them again); the thread
             # goes on serving the next ones.
             _rollback(conn)
-            err = RelayError(f"{self.path}: cannot store batches: {type(exc).__name__}: {exc}")
+            err = self._failed("store batches", exc)
             self._resolve_all([(b.future, None, err) for b in batches])
             return
+        self._worked()
         self.commits += 1
         self.batches_written += sum(inserted)
         self._resolve_all([(b.future, ok, None) for b, ok in zip(batches, inserted)])
@@ -271,7 +321,10 @@ def register_run(conn: sqlite3.Connection, run: str, node: str, header: dict, li
             raise RelayError(f"run {run} belongs to node {row[1]!r} with other stages")
         if not secret_matches(row[4], secret):
             raise ResumeRefused(f"run {run} exists: resuming it takes the secret issued at its first hello")
-        conn.execute("UPDATE runs SET last_seen_ns = ? WHERE id = ?", (now, run))
+        try:
+            conn.execute("UPDATE runs SET last_seen_ns = ? WHERE id = ?", (now, run))
+        except sqlite3.OperationalError:  # a full disk: the node may still resume its run
+            _rollback(conn)
         return int(row[0]), int(row[3]), None
     issued = secrets.token_hex(16)
     conn.execute("BEGIN")
@@ -317,6 +370,10 @@ def update_run(conn: sqlite3.Connection, run: str, **fields: Any) -> None:
         raise ValueError(f"unknown run fields {sorted(fields.keys() - allowed)}")
     values = [json.dumps(v) if k == "clock" else v for k, v in fields.items()]
     conn.execute(f"UPDATE runs SET {', '.join(f'{k} = ?' for k in fields)} WHERE id = ?", (*values, run))
+
+
+WRITES = (register_run, update_run, mark_rejected)
+"""Calls whose success shows that storage works again."""
 
 
 def stored_seqs(conn: sqlite3.Connection, run: str) -> set[int]:
@@ -379,8 +436,8 @@ def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> 
         out = []
         for rid, session, header, dropped, lost, clock, ended in rows:
             events = run_events(conn, rid)
-            clock = json.loads(clock)
-            shift = int(clock.get("correction_ns", 0)) if corrected else 0
+            clock, shift = _run_clock(rid, clock)
+            shift = shift if corrected else 0
             if shift and len(events):
                 events = events.copy()
                 events["ts"] -= shift
@@ -391,6 +448,22 @@ def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> 
         raise RelayError(f"{db}: cannot read session {session_id!r}: {exc}") from exc
     finally:
         conn.close()
+
+
+def _run_clock(run: str, text: str) -> tuple[dict, int]:
+    """A stored run's clock view and the correction to apply. A correction no relay could have
+    computed (written by an older relay from a forged sample) is ignored, with one warning and
+    ``ignored`` in the view: the other runs of the session load as usual."""
+    try:
+        clock = json.loads(text)
+    except ValueError:
+        clock = None
+    shift, fault = stored_correction(clock)
+    if fault is None:
+        return clock, shift
+    log.warning("run %s: stored clock %s; its correction is ignored", run, fault)
+    clock = clock if isinstance(clock, dict) else {}
+    return dict(clock, applied="ignored", ignored=fault, correction_ns=0, correction_us=0.0), 0
 
 
 def load_session(db: str | Path, session_id: int | str, corrected: bool = True) -> list[tuple[TraceHeader, np.ndarray]]:

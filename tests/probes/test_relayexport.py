@@ -1,10 +1,11 @@
 """RelayExporter: write never blocks, the buffer is bounded, losses are counted; a batch the relay
-could not store is sent again at once; evicted batches leave no gap at the relay; the probe
-shipper waits for its close."""
+could not store is sent again, once the hold the relay asks for (growing, capped) has passed;
+evicted batches leave no gap at the relay; the probe shipper waits for its close."""
 
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 
 import numpy as np
@@ -91,7 +92,7 @@ def test_batches_evicted_before_the_relay_came_leave_no_gap_in_its_seqs(tmp_path
     asyncio.run(scenario())
 
 
-def test_a_batch_the_relay_could_not_store_is_sent_again_at_once(tmp_path):
+def test_a_batch_the_relay_could_not_store_is_sent_again(tmp_path):
     """An ``ok: false`` acknowledgement used to leave its batch in flight until a 30 s timeout."""
     async def scenario():
         relay = await start_relay(port=0, db=tmp_path / "r.db")
@@ -105,6 +106,38 @@ def test_a_batch_the_relay_could_not_store_is_sent_again_at_once(tmp_path):
             await until(lambda: "store" in exporter.counters()["last_error"], what="a refused batch")
             await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = OFF"))
             await asyncio.to_thread(exporter.close, 0)
+            c = exporter.counters()
+            assert c["acked"] == len(events) and c["connects"] == 1 and c["lost"] == 0
+            assert relay.state.runs[exporter.run_id].live.events == len(events)
+        finally:
+            await relay.stop()
+
+    asyncio.run(scenario())
+
+
+def test_a_node_holds_its_batches_while_the_relays_storage_fails(tmp_path):
+    """Refused batches used to be sent again every 0.1 s for as long as storage failed (a full
+    disk): now every batch waits out a hold that grows with each failed round, so each is refused
+    at most once per round: 2 + log2(T / 0.1 s) rounds in T seconds, not T / 0.1 s."""
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        exporter = RelayExporter(f"http://127.0.0.1:{relay.port}", "A", batch_events=100, close_timeout_s=20.0,
+                                 backoff_s=(0.1, 5.0))
+        try:
+            exporter.start(header_for("A", 2))
+            await until(lambda: exporter.counters()["connected"], what="connection")
+            await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = ON"))  # commits now fail
+            events = synth_events(100, 2, 25.0, T0)  # 2,400 events, 24 batches
+            exporter.write(events)
+            await until(lambda: exporter.counters()["retries"] > 0, what="a refused batch")
+            failing_since = time.monotonic()
+            await until(lambda: time.monotonic() - failing_since > 2.0, what="2 s of failing storage")
+            retries, failing_s = exporter.counters()["retries"], time.monotonic() - failing_since
+            await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = OFF"))
+            await asyncio.to_thread(exporter.close, 0)
+            batches = exporter._next_seq
+            rounds = 2 + math.log2(failing_s / 0.1)
+            assert retries <= batches * rounds, (retries, batches, failing_s)
             c = exporter.counters()
             assert c["acked"] == len(events) and c["connects"] == 1 and c["lost"] == 0
             assert relay.state.runs[exporter.run_id].live.events == len(events)

@@ -12,7 +12,6 @@ import asyncio
 import json
 import os
 import re
-import resource
 import signal
 import socket
 import subprocess
@@ -48,16 +47,15 @@ class RelayProcess:
     """``python -m relay`` in a subprocess; ``url`` once it listens."""
 
     def __init__(self, db: Path, port: int = 0, token: str | None = None, clock: str = "auto",
-                 log: Path | None = None, args: list[str] | None = None, nofile: int | None = None) -> None:
-        """``nofile``: the relay's RLIMIT_NOFILE, soft and hard (a machine's usual 1024)."""
-        cmd = [sys.executable, "-m", "relay", "--port", str(port), "--db", str(db), "--clock", clock, *(args or [])]
+                 log: Path | None = None, args: list[str] | None = None, prefix: list[str] | None = None) -> None:
+        """``prefix``: a command that execs the relay's command line it is given (``unshare ...``)."""
+        cmd = [*(prefix or []), sys.executable, "-m", "relay", "--port", str(port), "--db", str(db), "--clock", clock,
+               *(args or [])]
         if token:
             cmd += ["--token", token]
         self.log = log or db.with_suffix(".relay.log")
         self._log = open(self.log, "ab")
-        limit = (lambda: resource.setrlimit(resource.RLIMIT_NOFILE, (nofile, nofile))) if nofile else None
-        self.proc = subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=self._log,
-                                     preexec_fn=limit)
+        self.proc = subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=self._log)
         line = _readline(self.proc, 30)
         m = re.search(r"http://127\.0\.0\.1:(\d+)", line)
         if not m:

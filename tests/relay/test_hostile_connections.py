@@ -191,7 +191,7 @@ def test_silent_connections_do_not_exhaust_descriptors(tmp_path):
         if hard != resource.RLIM_INFINITY and hard < need:
             pytest.skip(f"the test needs {need} file descriptors, the hard limit is {hard}")
         resource.setrlimit(resource.RLIMIT_NOFILE, (need, hard))
-    relay = RelayProcess(tmp_path / "relay.db", nofile=nofile)
+    relay = RelayProcess(tmp_path / "relay.db", prefix=["prlimit", f"--nofile={nofile}:{nofile}"])
     socks: list[socket.socket] = []
     try:
         node = good_node(relay.url, tmp_path)
