@@ -42,9 +42,11 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
                         "offset; auto: trust PTP where the node reports it locked, else estimate (default auto)")
     p.add_argument("--allow-host", action="append", default=[], metavar="NAME",
                    help="without --token, also answer requests (Host and browser Origin) naming this host "
-                        "(repeatable); by default only IP addresses and localhost, against DNS rebinding")
+                        "(repeatable); by default only IP addresses and localhost, against DNS rebinding "
+                        "(nodes may use any name)")
     p.add_argument("--limit", action="append", default=[], metavar="NAME=VALUE",
-                   help="change one of the bounds listed below (repeatable), e.g. --limit connections_per_peer=64")
+                   help="change one of the bounds listed below (repeatable), e.g. --limit connections_per_peer=64; "
+                        "by default each has the default given there")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
                    help="how much the relay logs to stderr: WARNING its failures and warnings, INFO also "
                         "the connections it closes (malformed packets, refused messages), DEBUG everything "

@@ -6,7 +6,9 @@ must not be able to. A page of ``evil.example`` whose name is made to resolve to
 sends its own ``Origin``. So every request (API, page, ``/ingest``, Socket.IO) must name as
 Host an IP address, ``localhost`` or a name given with ``--allow-host``, and a browser's
 ``Origin``, when present, must be the relay itself (same host and port as Host) or an allowed
-name. With a token set, the token is the guard and these checks are off.
+name. One exception: an ``/ingest`` upgrade without ``Origin`` comes from a node, not a page
+(browsers send ``Origin`` with every WebSocket handshake), so nodes may name the relay by any
+host name. With a token set, the token is the guard and these checks are off.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ from collections.abc import Iterable
 
 from aiohttp import web
 
+from probes.wire import INGEST_PATH
 from relay.api import http_error
 
 
@@ -59,8 +62,10 @@ class HostCheck:
     def host_allowed(self, name: str) -> bool:
         return name == "localhost" or name in self.allowed or _is_ip(name)
 
-    def problem(self, headers) -> str | None:
-        """Why a request with these headers is refused, or None."""
+    def problem(self, headers, path: str = "/") -> str | None:
+        """Why a request for ``path`` with these headers is refused, or None."""
+        if path == INGEST_PATH and "Origin" not in headers:
+            return None
         host = headers.get("Host")
         # No Host: HTTP/1.0 scripts; browsers always send one.
         if host is not None and not self.host_allowed(host_name(host)):
@@ -78,7 +83,7 @@ class HostCheck:
 
     @web.middleware
     async def middleware(self, request: web.Request, handler) -> web.StreamResponse:
-        problem = self.problem(request.headers) if request.path != self.exempt else None
+        problem = self.problem(request.headers, request.path) if request.path != self.exempt else None
         if problem is not None:
             self.refused["host"] += 1
             raise http_error(web.HTTPForbidden, problem)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import ast
 import inspect
+import textwrap
 import time
 from dataclasses import dataclass, fields, replace
 
@@ -48,7 +49,7 @@ class Limits:
     # --- what one run may declare and hold ---
     stages: int = 64
     """Stages one run may declare."""
-    name_chars: int = 100
+    name_chars: int = 200
     """Characters of a node or stage name."""
     sources: int = 256
     """Distinct source ids one run's events may name."""
@@ -98,7 +99,8 @@ def limits_help(limits: Limits = Limits()) -> str:
     lines = ["limits (--limit NAME=VALUE; counted in /api/health):"]
     for name, value in limits.as_dict().items():
         shown = f"{value / MIB:g} MiB" if name.startswith(("bytes", "byte_", "total_bytes")) else f"{value:g}"
-        lines.append(f"  {name} = {shown}: {docs.get(name, '')}")
+        lines.append(textwrap.fill(f"{name} = {shown}: {docs.get(name, '')}", width=100, initial_indent="  ",
+                                   subsequent_indent="      "))
     return "\n".join(lines)
 
 

@@ -309,7 +309,8 @@ def test_host_and_origin_are_checked_without_a_token(tmp_path):
         sio = "/socket.io/?EIO=4&transport=polling"
         refused = [("/api/health", "evil.example", {}), ("/api/nodes", f"evil.example:{port}", {}),
                    ("/", f"evil.example:{port}", {}), (sio, f"evil.example:{port}", {}),
-                   ("/ingest", f"evil.example:{port}", upgrade_headers()),
+                   # A page of a rebound name is its own origin: its Host gives it away.
+                   ("/ingest", f"evil.example:{port}", upgrade_headers({"Origin": f"http://evil.example:{port}"})),
                    ("/ingest", f"127.0.0.1:{port}", upgrade_headers({"Origin": "http://evil.example"})),
                    ("/api/nodes", f"127.0.0.1:{port}", {"Origin": f"http://evil.example:{port}"}),
                    ("/api/nodes", f"127.0.0.1:{port}", {"Origin": "null"}),
@@ -327,6 +328,8 @@ def test_host_and_origin_are_checked_without_a_token(tmp_path):
             assert raw_get(port, path, host=host, headers=headers)[0] == 200, (path, host, headers)
         assert raw_get(port, "/ingest", host=f"localhost:{port}",
                        headers=upgrade_headers({"Origin": f"http://localhost:{port}"}))[0] == 101
+        # A node (no Origin: not a browser) may name the relay by any host name.
+        assert raw_get(port, "/ingest", host=f"monitor.example:{port}", headers=upgrade_headers())[0] == 101
         check_good_node(relay, node, tmp_path)
         assert health(relay)["refused"]["host"] == len(refused)
         assert_quiet_log(relay)

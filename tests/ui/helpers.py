@@ -1,8 +1,7 @@
 """Helpers of the UI tests: a relay on a thread of its own, feeders (simulated or real nodes), Chromium.
 
-The relay is the real one (``relay.server.create_app``, aiohttp + python-socketio on 127.0.0.1)
-run on its own event loop in a background thread, with the stored-session routes of
-``relay.sessionapi`` added when ``create_app`` does not add them itself yet.
+The relay is the real one (``relay.server.start_relay``, aiohttp + python-socketio on 127.0.0.1,
+behind its connection guard) run on its own event loop in a background thread.
 """
 
 from __future__ import annotations
@@ -14,6 +13,8 @@ import sys
 import threading
 from dataclasses import dataclass, field
 from pathlib import Path
+
+from relay.server import start_relay
 
 ROOT = Path(__file__).resolve().parents[2]
 CHROMIUM = "/usr/bin/chromium"
@@ -36,8 +37,6 @@ class RelayThread:
     database) is that relay restarted."""
 
     def __init__(self, db: Path, token: str | None = None, push_hz: float = 10.0, port: int = 0) -> None:
-        from relay.server import create_app  # noqa: F401 - fail here, not in the thread, if missing
-
         self._db, self._token, self._push_hz = db, token, push_hz
         self._ready = threading.Event()
         self._error: BaseException | None = None
@@ -54,23 +53,10 @@ class RelayThread:
         asyncio.run(self._serve())
 
     async def _serve(self) -> None:
-        from aiohttp import web
-
-        from relay.server import create_app
-        from relay.sessionapi import add_session_routes, has_session_routes
-
         try:
-            app, relay = create_app(self._db, self._token, push_hz=self._push_hz)
-            if not has_session_routes(app):
-                add_session_routes(app, relay.state)
-            relay.storage.start(asyncio.get_running_loop())
-            runner = web.AppRunner(app, access_log=None, handle_signals=False)
-            await runner.setup()
-            site = web.TCPSite(runner, "127.0.0.1", self.port)
-            await site.start()
-            relay.runner = runner
-            self.port = runner.addresses[0][1]
-            relay._task = asyncio.create_task(relay.ticker.run())
+            # The relay as `dcuscope relay` starts it: its guarded site included.
+            relay = await start_relay("127.0.0.1", self.port, self._db, self._token, push_hz=self._push_hz)
+            self.port = relay.port
             self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()
         except BaseException as exc:  # noqa: BLE001 - reported to the constructor
             self._error = exc
