@@ -109,6 +109,8 @@ def test_a_second_live_run_under_a_streaming_name_is_refused(tmp_path):
             asyncio.run(HandNode.open(relay.url, "good", uuid.uuid4().hex, evil_token, stages=2))
         assert [n["run"] for n in get_json(f"{relay.url}/api/nodes", TOKEN) if n["node"] == "good"] == [seen["run"]]
         assert get_json(f"{relay.url}/api/health", TOKEN)["refused"]["name_taken"] == 1
+        print(f"impersonation: relay peak RSS {relay.peak_rss_mb():.0f} MB")
+        assert relay.peak_rss_mb() < RSS_BOUND_MB
     finally:
         assert relay.stop() == 0
     assert "Traceback" not in relay.log.read_text()
@@ -202,6 +204,7 @@ def test_a_refused_run_is_kept_out_of_the_good_nodes_session(tmp_path):
         stored = get_json(f"{relay.url}/api/sessions/{sessions[0]['session']}/nodes", TOKEN)
         assert [n["node"] for n in stored] == ["good"]
         assert [n["node"] for n in get_json(f"{relay.url}/api/nodes", TOKEN)] == ["good"]
+        print(f"hostile run in the session: relay peak RSS {relay.peak_rss_mb():.0f} MB")
     finally:
         assert relay.stop() == 0
     assert [r.header.node for r in load_runs(tmp_path / "r.db", 1)] == ["good"]
