@@ -140,7 +140,7 @@ class RelayState:
                                         "first hello")
             else:
                 holder = self.node_run(hello.header.node)
-                if hello.secret is None and holder is not None and self._holds_name(holder):
+                if holder is not None and self._holds_name(holder) and not await self._resumes(hello):
                     holder.conflicts += 1
                     holder.conflict_at = time.time()
                     self.refused["name_taken"] += 1
@@ -163,6 +163,11 @@ class RelayState:
             rs.ptp = hello.ptp
             rs.last_seen = time.time()
             return Attached(rs, previous if previous != sid else None, displaced, issued)
+
+    async def _resumes(self, hello: Hello) -> bool:
+        """Whether ``hello`` claims a stored run (kept apart from its node's live run if it is
+        resumed) rather than a new one; a secret presented for a run never stored claims nothing."""
+        return hello.secret is not None and await self.storage.call(db.run_stored, hello.run)
 
     def _holds_name(self, rs: RunState) -> bool:
         # Longer than a short network stall (tests/relay/test_netcut.py holds one for 5 s).

@@ -363,6 +363,10 @@ def mark_rejected(conn: sqlite3.Connection, run: str, reason: str) -> None:
     conn.execute("UPDATE runs SET rejected = ? WHERE id = ? AND rejected IS NULL", (reason[:200], run))
 
 
+def run_stored(conn: sqlite3.Connection, run: str) -> bool:
+    return conn.execute("SELECT 1 FROM runs WHERE id = ?", (run,)).fetchone() is not None
+
+
 def update_run(conn: sqlite3.Connection, run: str, **fields: Any) -> None:
     """Set ``ended_ns``, ``written``, ``dropped``, ``lost`` or ``clock`` (a dict) of a run."""
     allowed = {"ended_ns", "written", "dropped", "lost", "clock"}

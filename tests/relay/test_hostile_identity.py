@@ -92,6 +92,9 @@ def test_a_second_live_run_under_a_streaming_name_is_refused(tmp_path):
         async def attack() -> tuple[str, str]:
             with pytest.raises(ConnectionError) as shared:
                 await HandNode.open(relay.url, "good", uuid.uuid4().hex, TOKEN, stages=2)
+            # A secret presented for a run never stored claims no resume: still a second live run.
+            with pytest.raises(ConnectionError, match="a second live run under the same name is refused"):
+                await HandNode.open(relay.url, "good", uuid.uuid4().hex, TOKEN, stages=2, secret=uuid.uuid4().hex)
             with pytest.raises(ConnectionError) as own:
                 await HandNode.open(relay.url, "good", uuid.uuid4().hex, evil_token, stages=2)
             evil = await HandNode.open(relay.url, "evil", uuid.uuid4().hex, evil_token, stages=2)
@@ -102,13 +105,13 @@ def test_a_second_live_run_under_a_streaming_name_is_refused(tmp_path):
         assert "a second live run under the same name is refused" in shared
         assert "hello names node 'good' but the connection is 'evil'" in own
         view = [n for n in get_json(f"{relay.url}/api/nodes", TOKEN) if n["node"] == "good"]
-        assert len(view) == 1 and view[0]["run"] == seen["run"] and view[0]["conflicts"] == 1
+        assert len(view) == 1 and view[0]["run"] == seen["run"] and view[0]["conflicts"] == 2
         _check_good(relay, tmp_path, node)
         # Ended: the name is free again, but only for a holder of the node's own token or the shared one.
         with pytest.raises(ConnectionError, match="hello names node 'good' but the connection is 'evil'"):
             asyncio.run(HandNode.open(relay.url, "good", uuid.uuid4().hex, evil_token, stages=2))
         assert [n["run"] for n in get_json(f"{relay.url}/api/nodes", TOKEN) if n["node"] == "good"] == [seen["run"]]
-        assert get_json(f"{relay.url}/api/health", TOKEN)["refused"]["name_taken"] == 1
+        assert get_json(f"{relay.url}/api/health", TOKEN)["refused"]["name_taken"] == 2
         print(f"impersonation: relay peak RSS {relay.peak_rss_mb():.0f} MB")
         assert relay.peak_rss_mb() < RSS_BOUND_MB
     finally:
