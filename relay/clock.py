@@ -16,6 +16,10 @@ from __future__ import annotations
 from collections import deque
 from dataclasses import dataclass
 
+import numpy as np
+
+from probes.frametable import MISSING
+
 CLOCK_MODES = ("ptp", "estimate", "auto")
 DEFAULT_WINDOW = 32
 MAX_CORRECTION_NS = 10**17
@@ -38,6 +42,8 @@ class ClockEstimate:
     uncertainty_ns: int
     rtt_ns: int
     samples: int
+    at_ns: int | None = None
+    """Node-clock time the estimate holds at (the best sample's relay time t2 plus its offset)."""
 
 
 def ntp_sample(t1: int, t2: int, t3: int, t4: int) -> ClockSample:
@@ -63,7 +69,8 @@ class ClockEstimator:
         if not self._samples:
             return None
         best = min(self._samples, key=lambda s: s.rtt_ns)
-        return ClockEstimate(best.offset_ns, (best.rtt_ns + 1) // 2, best.rtt_ns, len(self._samples))
+        return ClockEstimate(best.offset_ns, (best.rtt_ns + 1) // 2, best.rtt_ns, len(self._samples),
+                             best.at_ns + best.offset_ns)
 
 
 def sample_fault(sample: ClockSample, max_offset_ns: int, max_rtt_ns: int) -> str | None:
@@ -102,3 +109,92 @@ def correction_ns(mode: str, estimate: ClockEstimate | None, ptp: dict) -> tuple
     if abs(estimate.offset_ns) > MAX_CORRECTION_NS:  # samples are checked: a bug, never applied
         return 0, "ignored"
     return estimate.offset_ns, "estimate"
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One estimate of a node's clock, in force for node timestamps from ``from_ns`` on (the
+    first segment of a history also before): offset(ts) = offset_ns + drift_ppb * (ts - ref_ns) / 1e9,
+    true within uncertainty_ns + growth_ppb * |ts - ref_ns| / 1e9."""
+    from_ns: int
+    ref_ns: int
+    offset_ns: int
+    drift_ppb: int = 0
+    uncertainty_ns: int = 0
+    growth_ppb: int = 0
+
+    def to_dict(self) -> dict:
+        return {"from_ns": self.from_ns, "ref_ns": self.ref_ns, "offset_ns": self.offset_ns,
+                "drift_ppb": self.drift_ppb, "uncertainty_ns": self.uncertainty_ns, "growth_ppb": self.growth_ppb}
+
+
+@dataclass(frozen=True)
+class Correction:
+    """What is subtracted from one run's node timestamps to bring them to the relay's clock, per
+    timestamp (a history of estimates, each with its drift), and how far it may be off.
+
+    ``applied``: ptp (PTP trusted, nothing subtracted), estimate, none (no estimate yet),
+    ignored (a stored correction no relay could compute), raw (asked for uncorrected times).
+    No segments: nothing subtracted, uncertainty ``base_uncertainty_ns`` (unknown: 0 with applied none).
+    """
+    applied: str
+    why: str = ""
+    segments: tuple[Segment, ...] = ()
+    base_uncertainty_ns: int = 0
+
+    def _index(self, ts: np.ndarray) -> np.ndarray:
+        starts = np.array([s.from_ns for s in self.segments], dtype=np.int64)
+        return np.maximum(np.searchsorted(starts, ts, side="right") - 1, 0)
+
+    def offsets(self, ts: np.ndarray) -> np.ndarray:
+        """(n,) int64 ns to subtract from each node timestamp of ``ts``."""
+        ts = np.asarray(ts, dtype=np.int64)
+        if not self.segments:
+            return np.zeros(ts.shape, dtype=np.int64)
+        seg = self._index(ts)
+        off = np.array([s.offset_ns for s in self.segments], dtype=np.int64)[seg]
+        drift = np.array([s.drift_ppb for s in self.segments], dtype=np.float64)[seg]
+        ref = np.array([s.ref_ns for s in self.segments], dtype=np.int64)[seg]
+        return off + np.rint(drift * (ts - ref).astype(np.float64) / 1e9).astype(np.int64)
+
+    def uncertainties(self, ts: np.ndarray) -> np.ndarray:
+        """(n,) int64 ns: bound on |true offset - applied offset| at each timestamp."""
+        ts = np.asarray(ts, dtype=np.int64)
+        if not self.segments:
+            return np.full(ts.shape, self.base_uncertainty_ns, dtype=np.int64)
+        seg = self._index(ts)
+        unc = np.array([s.uncertainty_ns for s in self.segments], dtype=np.int64)[seg]
+        growth = np.array([s.growth_ppb for s in self.segments], dtype=np.float64)[seg]
+        ref = np.array([s.ref_ns for s in self.segments], dtype=np.int64)[seg]
+        return unc + self.base_uncertainty_ns + np.ceil(growth * np.abs(ts - ref).astype(np.float64) / 1e9).astype(np.int64)
+
+    def at(self, ts: int) -> tuple[int, int]:
+        """(offset, uncertainty) in ns at one node timestamp."""
+        a = np.array([ts], dtype=np.int64)
+        return int(self.offsets(a)[0]), int(self.uncertainties(a)[0])
+
+    def correct(self, ts: np.ndarray) -> np.ndarray:
+        """Node timestamps moved to the relay's clock (MISSING kept as it is)."""
+        ts = np.asarray(ts, dtype=np.int64)
+        return np.where(ts == MISSING, ts, ts - self.offsets(ts))
+
+    def to_dict(self) -> dict:
+        return {"applied": self.applied, "why": self.why, "base_uncertainty_ns": self.base_uncertainty_ns,
+                "segments": [s.to_dict() for s in self.segments]}
+
+
+NO_CORRECTION = Correction("none", "no clock estimate yet")
+
+
+def correction_of(mode: str, estimate: ClockEstimate | None, ptp: dict, now_ns: int | None = None) -> Correction:
+    """The :class:`Correction` ``--clock mode`` calls for (see :func:`correction_ns`)."""
+    value, applied = correction_ns(mode, estimate, ptp)
+    if applied == "ptp":
+        offset = ptp.get("master_offset_ns") if isinstance(ptp, dict) else None
+        unc = abs(offset) if isinstance(offset, int) and not isinstance(offset, bool) else 0
+        return Correction("ptp", "PTP trusted" if mode == "auto" else "--clock ptp", (), unc)
+    if applied != "estimate" or estimate is None:
+        return Correction(applied, "no clock estimate yet" if applied == "none" else "estimate ignored")
+    at = estimate.at_ns if estimate.at_ns is not None else (now_ns or 0)
+    return Correction("estimate", "offset estimated by the relay",
+                      (Segment(from_ns=at, ref_ns=at, offset_ns=value, uncertainty_ns=estimate.uncertainty_ns),))

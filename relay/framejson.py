@@ -6,11 +6,12 @@ Per frame::
      "enter": [ns|null per stage], "exit": [ns|null per stage], "delay_ms": end - origin,
      "stage_delay_ms": [ms|null per stage], "stage_gap_ms": [ms|null per stage],
      "stage_service_ms": [...], "stage_wait_ms": [...],
-     "capture": ns|null, "glass_ms": end - capture|null}
+     "capture": ns|null, "glass_ms": end - capture|null,
+     "clock_ns": offset subtracted at the origin, "clock_uncertainty_ns": its bound}
 
 one ``stage_<column>_ms`` list per column of the delay model (``probes.delays.STAGE_COLUMNS``),
 every figure taken from it, so that the page only draws. Timestamps are moved to the relay's
-clock by the run's correction. A block adds the node, run, stages, their kinds, ``has_exit``
+clock by the run's correction (:class:`relay.clock.Correction`, per timestamp). A block adds the node, run, stages, their kinds, ``has_exit``
 (per stage: it has an exit point, so its frames have bars), the clock and the paging cursor.
 """
 
@@ -20,22 +21,26 @@ import numpy as np
 
 from probes.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays
 from probes.frametable import MISSING
+from relay.clock import Correction
 
 
-def frame_dicts(n: np.ndarray, fd: FrameDelays, correction_ns: int, rows: np.ndarray | None = None) -> list[dict]:
-    """One dict per row of ``fd`` (or per index in ``rows``), ``n`` the cursor of each."""
+def frame_dicts(n: np.ndarray, fd: FrameDelays, corr: Correction, rows: np.ndarray | None = None) -> list[dict]:
+    """One dict per row of ``fd`` (or per index in ``rows``), ``n`` the cursor of each; every node
+    timestamp moved by ``corr`` (per timestamp), each frame with the offset subtracted at its
+    origin (``clock_ns``) and its bound (``clock_uncertainty_ns``)."""
     rows = np.arange(len(fd)) if rows is None else rows
     t, ch = fd.table, fd.chains
     columns = {f"stage_{c}_ms": _ms_lists(fd.per_stage[c][rows]) for c in STAGE_COLUMNS}
-    base = zip(np.asarray(n).tolist(), t.source[rows].tolist(), t.frame[rows].tolist(), t.origin[rows].tolist(),
-               ch.end[rows].tolist(), ch.complete[rows].tolist(), t.enter[rows].tolist(), t.exit[rows].tolist(),
-               _ms_values(fd.delay[rows]), t.capture[rows].tolist(), _ms_values(fd.glass[rows]))
+    origin = t.origin[rows]
+    base = zip(np.asarray(n).tolist(), t.source[rows].tolist(), t.frame[rows].tolist(), corr.correct(origin).tolist(),
+               corr.correct(ch.end[rows]).tolist(), ch.complete[rows].tolist(), _lists(corr.correct(t.enter[rows])),
+               _lists(corr.correct(t.exit[rows])), _ms_values(fd.delay[rows]), corr.correct(t.capture[rows]).tolist(),
+               _ms_values(fd.glass[rows]), corr.offsets(origin).tolist(), corr.uncertainties(origin).tolist())
     return [
-        {"n": k, "source": s, "frame": f, "origin": o - correction_ns, "end": e - correction_ns, "complete": c,
-         "enter": _corrected(en, correction_ns), "exit": _corrected(ex, correction_ns), "delay_ms": d,
-         "capture": None if cap == MISSING else cap - correction_ns, "glass_ms": g,
+        {"n": k, "source": s, "frame": f, "origin": o, "end": e, "complete": c, "enter": en, "exit": ex, "delay_ms": d,
+         "capture": None if cap == MISSING else cap, "glass_ms": g, "clock_ns": off, "clock_uncertainty_ns": unc,
          **{name: values[i] for name, values in columns.items()}}
-        for i, (k, s, f, o, e, c, en, ex, d, cap, g) in enumerate(base)
+        for i, (k, s, f, o, e, c, en, ex, d, cap, g, off, unc) in enumerate(base)
     ]
 
 
@@ -56,5 +61,5 @@ def _ms_lists(ns: np.ndarray) -> list[list[float | None]]:
     return [[None if v != v else v for v in row] for row in (ns / NS_PER_MS).tolist()]
 
 
-def _corrected(values: list[int], corr: int) -> list[int | None]:
-    return [None if v == MISSING else v - corr for v in values]
+def _lists(values: np.ndarray) -> list[list[int | None]]:
+    return [[None if v == MISSING else v for v in row] for row in values.tolist()]

@@ -34,6 +34,7 @@ from probes.stats import unique_name
 from relay import storage as db
 from relay.api import http_error, int_arg
 from relay.errors import RelayError
+from relay.clock import Correction
 from relay.framejson import block, frame_dicts
 from relay.state import RelayState
 
@@ -45,6 +46,10 @@ MAX_SESSION_DIGITS = 18
 """Longer ids name no session: SQLite integers stop at 19 digits, Python's int() at 4,300."""
 ROUTES = ("/api/sessions/{session:\\d+}/nodes", "/api/sessions/{session:\\d+}/frames",
           "/api/sessions/{session:\\d+}/stats")
+
+
+STORED = Correction("stored", "corrected when loaded")
+"""Stored events are already corrected by :func:`relay.storage.load_runs`."""
 
 
 @dataclass
@@ -77,7 +82,7 @@ class StoredNode:
     def frames_view(self, since: int, limit: int) -> dict:
         """Frames at positions since+1 .. since+limit, shaped as ``RelayState.frames_view``."""
         lo, hi = min(since, len(self.order)), min(since + limit, len(self.order))
-        frames = frame_dicts(np.arange(lo + 1, hi + 1), self.fd, 0, self.order[lo:hi])
+        frames = frame_dicts(np.arange(lo + 1, hi + 1), self.fd, STORED, self.order[lo:hi])
         return block(self.node, self.run, self.header.stages, self.header.kinds, self.fd.chains.has_exit, frames,
                      self.clock.get("applied", "stored"), cursor=hi, total=len(self.order))
 

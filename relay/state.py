@@ -14,7 +14,7 @@ from probes.errors import ProtocolError
 from probes.events import TraceHeader
 from probes.wire import Hello
 from relay import storage as db
-from relay.clock import ClockEstimator, correction_ns
+from relay.clock import ClockEstimator, Correction, correction_of
 from relay.errors import RelayError
 from relay.framejson import block, frame_dicts
 from relay.limits import MIB, Limits
@@ -263,13 +263,16 @@ class RelayState:
 
     # --- views ----------------------------------------------------------------------------------
 
-    def correction(self, rs: RunState) -> tuple[int, str]:
-        return correction_ns(self.clock_mode, rs.clock.estimate(), rs.ptp)
+    def correction(self, rs: RunState) -> Correction:
+        """What is subtracted from ``rs``'s timestamps, per timestamp, and its bound."""
+        return correction_of(self.clock_mode, rs.clock.estimate(), rs.ptp)
 
     def clock_view(self, rs: RunState) -> dict:
         est = rs.clock.estimate()
-        corr, applied = self.correction(rs)
-        view = {"mode": self.clock_mode, "applied": applied, "correction_ns": corr, "correction_us": corr / 1e3,
+        correction = self.correction(rs)
+        corr, bound = correction.at(time.time_ns())
+        view = {"mode": self.clock_mode, "applied": correction.applied, "why": correction.why,
+                "correction_ns": corr, "correction_us": corr / 1e3, "correction_uncertainty_ns": bound,
                 "rejected": rs.clock_rejected}
         if rs.clock_fault:
             view["rejected_why"] = rs.clock_fault
@@ -314,7 +317,9 @@ class RelayState:
         """Complete frames after cursor ``since``, clock-corrected, as the UI draws them: the
         first ``limit`` of them (paging), or with ``newest`` the last ``limit`` (pushes)."""
         n, fd = rs.live.recent(since, limit, newest)
-        corr, applied = self.correction(rs)
-        frames = frame_dicts(n, fd, corr)
-        return block(rs.node, rs.run, rs.header.stages, rs.header.kinds, fd.chains.has_exit, frames, applied,
-                     cursor=frames[-1]["n"] if frames else since, newest=rs.live.visible, correction_ns=corr)
+        correction = self.correction(rs)
+        frames = frame_dicts(n, fd, correction)
+        corr, bound = correction.at(frames[-1]["end"] if frames else time.time_ns())
+        return block(rs.node, rs.run, rs.header.stages, rs.header.kinds, fd.chains.has_exit, frames, correction.applied,
+                     cursor=frames[-1]["n"] if frames else since, newest=rs.live.visible, correction_ns=corr,
+                     uncertainty_ns=bound)
