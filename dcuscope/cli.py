@@ -36,6 +36,9 @@ Exit status: 0 done, 1 the pipeline failed, 2 bad configuration or arguments.
 """
 
 
+MAX_DRIFT_PPM = 1000.0
+"""Beyond any quartz (tens of ppm): a larger --clock-drift-ppm is a typo."""
+
 PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
 
 
@@ -76,6 +79,10 @@ def build_parser() -> argparse.ArgumentParser:
     probes.add_argument("--token", metavar="TOKEN", help="token the relay asks for")
     probes.add_argument("--clock-offset-ms", type=float, default=0.0, metavar="MS",
                         help="TESTING AID: shift this node's clock by MS milliseconds, to check clock alignment (default 0)")
+    probes.add_argument("--clock-drift-ppm", type=_drift_ppm, default=0.0, metavar="PPM",
+                        help="TESTING AID: make this node's clock run PPM parts per million fast (negative: slow) "
+                             "from the start of the run, on top of --clock-offset-ms, for its events and its clock "
+                             "exchanges alike: the relay must recover both offset and drift (default 0)")
     run.set_defaults(func=_run, holds_signals=True)
 
     demo = sub.add_parser("demo", help="run a relay and two DCU pipelines with probes on the shipped clips",
@@ -106,6 +113,13 @@ def _positive_int(text: str) -> int:
     value = int(text)
     if value <= 0:
         raise argparse.ArgumentTypeError("must be a positive integer")
+    return value
+
+
+def _drift_ppm(text: str) -> float:
+    value = float(text)
+    if not abs(value) <= MAX_DRIFT_PPM:
+        raise argparse.ArgumentTypeError(f"must be within +-{MAX_DRIFT_PPM:g} ppm")
     return value
 
 

@@ -70,7 +70,8 @@ def run_command(args: argparse.Namespace) -> int:
         from probes.instrument import start_probes
 
         probing = start_probes(built, config, relay=args.relay, token=args.token,
-                               clock_offset_ns=int(args.clock_offset_ms * 1e6), progress=progress)
+                               clock_offset_ns=int(args.clock_offset_ms * 1e6), progress=progress,
+                               clock_drift_ppm=args.clock_drift_ppm)
     try:
         result = runner.run()
     finally:

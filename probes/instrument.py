@@ -9,6 +9,7 @@ from typing import TextIO
 
 import numpy as np
 
+from core.clocks import CLOCKS, PretendClock
 from pipeline.build import BuiltPipeline
 from pipeline.config import PipelineConfig
 from probes.errors import ExportError
@@ -22,19 +23,20 @@ from probes.tracer import Tracer, attach
 
 
 class _Shifted:
-    """Exporter wrapper that moves every timestamp by ``offset_ns``: the --clock-offset-ms
-    testing aid, so that a node can pretend its clock is off and the relay must notice."""
+    """Exporter wrapper that moves every timestamp through ``pretend``: the --clock-offset-ms and
+    --clock-drift-ppm testing aids, so that a node can pretend its clock is off (and runs fast or
+    slow) and the relay must notice. The relay exporter's clock exchanges read the same clock."""
 
-    def __init__(self, inner: Exporter, offset_ns: int):
-        self.inner, self.offset_ns = inner, offset_ns
+    def __init__(self, inner: Exporter, pretend: PretendClock):
+        self.inner, self.pretend = inner, pretend
 
     def start(self, header: TraceHeader) -> None:
-        header.started_ns += self.offset_ns
+        header.started_ns = self.pretend.of(header.started_ns)
         self.inner.start(header)
 
     def write(self, events: np.ndarray) -> None:
         shifted = events.copy()
-        shifted["ts"] += self.offset_ns
+        shifted["ts"] = self.pretend.shift(events["ts"])
         self.inner.write(shifted)
 
     def close(self, dropped: int) -> None:
@@ -74,8 +76,9 @@ def default_trace_path(node: str) -> Path:
 
 
 def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None = None, token: str | None = None,
-                 clock_offset_ns: int = 0, progress: TextIO | None = None) -> RunProbes:
-    """Attach tracepoints to every element of ``built`` (not yet playing) and start shipping."""
+                 clock_offset_ns: int = 0, progress: TextIO | None = None, clock_drift_ppm: float = 0.0) -> RunProbes:
+    """Attach tracepoints to every element of ``built`` (not yet playing) and start shipping.
+    ``clock_offset_ns`` and ``clock_drift_ppm``: testing aids (:class:`core.clocks.PretendClock`)."""
     if relay is not None:
         check_token(relay, token)  # a wrong token ends the run before it starts, not after
     sources = {s.index: s.config.description for s in built.sources}
@@ -86,13 +89,13 @@ def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None
     exporters: list[Exporter] = []
     if trace is not None:
         exporters.append(TraceFileWriter(trace))
+    pretend = PretendClock(int(clock_offset_ns), float(clock_drift_ppm), CLOCKS[config.probes.clock])
     relay_exporter = None
     if relay is not None:
-        relay_exporter = RelayExporter(relay, config.node, token=token, clock=config.probes.clock,
-                                       clock_offset_ns=clock_offset_ns)
+        relay_exporter = RelayExporter(relay, config.node, token=token, clock=config.probes.clock, pretend=pretend)
         exporters.append(relay_exporter)
-    if clock_offset_ns:
-        exporters = [_Shifted(e, clock_offset_ns) for e in exporters]
+    if pretend.shifts:
+        exporters = [_Shifted(e, pretend) for e in exporters]
     watch = SourceWatch(tracer, built.pipeline).start()
     shipper = Shipper(tracer, exporters, before_ship=watch.poll).start()
     return RunProbes(tracer, shipper, trace, progress, relay_exporter, watch)

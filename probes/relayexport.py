@@ -14,8 +14,10 @@ message and with ``end`` (with the lowest batch it still holds, so that the rela
 waiting for the dropped ones). A relay that refuses the token (HTTP 401) is not asked again:
 :attr:`RelayExporter.refused` says so (``dcuscope run`` ends with it as its error).
 
-On each connection it also measures the clock offset to the relay (NTP-style exchanges,
-``sync``) and reports them with the node's linuxptp state (``clock``); the relay estimates.
+On each connection it also measures the clock offset to the relay and reports the samples with
+the node's linuxptp state (``clock``); the relay estimates. The exchanges go over UDP beside the
+WebSocket when the relay offers it (:mod:`probes.udpclock`: kernel timestamps, bursts of 16),
+else, or when UDP gets no answer, over the WebSocket (``sync``): said once.
 """
 
 from __future__ import annotations
@@ -30,12 +32,14 @@ from collections import OrderedDict, deque
 
 import aiohttp
 import numpy as np
+from yarl import URL
 
-from core.clocks import CLOCKS
+from core.clocks import CLOCKS, PretendClock
 from probes.errors import ExportError
 from probes.events import EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
 from probes.ptp import read_ptp_state
 from probes.relaylink import Link, Refused
+from probes.udpclock import UdpClock, parse_offer
 from probes.wire import MAX_BATCH_EVENTS, PROTOCOL_VERSION, encode_batch
 
 DEFAULT_BATCH_EVENTS = 8192
@@ -48,6 +52,8 @@ SYNC_BURST_FIRST, SYNC_BURST = 8, 4
 ACK_TIMEOUT_S = 30.0
 HELLO_TIMEOUT_S = 10.0
 SYNC_TIMEOUT_S = 10.0
+UDP_RETRY_S = 30.0
+"""After a UDP burst got no answer, the WebSocket exchanges serve this long before UDP is tried again."""
 END_TIMEOUT_S = 2.0
 """Of ``close_timeout_s``, kept to say ``end``."""
 TEARDOWN_S = 1.5
@@ -60,13 +66,13 @@ class RelayExporter:
     """Ships events to ``url`` (``http://HOST:PORT``) as node ``node``.
 
     ``clock`` names the clock the probes read (``probes.events.CLOCKS``): the NTP exchanges
-    must read the same one. ``clock_offset_ns`` is a testing aid: it shifts every clock reading
-    of this client, as the probes shift event timestamps, to inject a known skew.
+    must read the same one. ``pretend`` is a testing aid: every clock reading of this client
+    goes through it, as the probes' event timestamps do, to inject a known offset and drift.
     ``close_timeout_s`` bounds ``close`` as a whole (waiting for acknowledgements included).
     """
 
     def __init__(self, url: str, node: str, token: str | None = None, clock: str = "realtime",
-                 clock_offset_ns: int = 0, *, compress: bool = False,
+                 pretend: PretendClock | None = None, *, compress: bool = False,
                  batch_events: int = DEFAULT_BATCH_EVENTS, flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
                  max_buffer_events: int = DEFAULT_MAX_BUFFER_EVENTS, window: int = DEFAULT_WINDOW,
                  sync_interval_s: float = 2.0, ptp_interval_s: float = 10.0,
@@ -79,7 +85,9 @@ class RelayExporter:
         if not node:
             raise ExportError("relay exporter: the node needs a name")
         self.url, self.node, self._token = url.rstrip("/"), node, token
-        self._clock_id, self._offset = CLOCKS[clock], int(clock_offset_ns)
+        self._pretend = pretend if pretend is not None else PretendClock(clock_id=CLOCKS[clock])
+        if self._pretend.clock_id != CLOCKS[clock]:
+            raise ExportError(f"relay exporter: the pretend clock reads clock {self._pretend.clock_id}, not {clock}")
         self._compress = compress
         self._batch_events = max(1, min(int(batch_events), MAX_BATCH_EVENTS))
         self._flush_interval = flush_interval_s
@@ -117,6 +125,12 @@ class RelayExporter:
         self._hold_until = 0.0
         self._ptp: dict = {"state": "unavailable", "reason": "not read yet"}
         self._link: Link | None = None
+        self._offer: tuple[int, bytes] | None = None
+        """(port, key) of the UDP clock exchange the relay offered on this connection."""
+        self._udp_failed_at: float | None = None
+        self._udp_said = False
+        self.clock_via = ""
+        """How the last clock samples travelled: udp or websocket."""
         self.refused: str | None = None
         """Why the relay refused this node (a wrong or missing token), if it did."""
 
@@ -178,7 +192,7 @@ class RelayExporter:
             "run": self.run_id, "connected": self._connected, "connects": self._connects,
             "written": self._written, "sent": self._sent, "acked": self._acked, "lost": self.lost,
             "buffered": self._unacked_n + self._pending_n, "retries": self._retries,
-            "last_error": self._last_error,
+            "last_error": self._last_error, "clock_via": self.clock_via,
         }
 
     # --- loop thread --------------------------------------------------------------------------
@@ -199,7 +213,7 @@ class RelayExporter:
             loop.close()
 
     def _now(self) -> int:
-        return time.clock_gettime_ns(self._clock_id) + self._offset
+        return self._pretend.now()
 
     async def _main(self) -> None:
         tasks = [asyncio.create_task(self._flush_loop()), asyncio.create_task(self._ptp_loop())]
@@ -299,6 +313,7 @@ class RelayExporter:
                 raise ExportError(f"relay refused hello: {reply!r}")
             if isinstance(reply.get("secret"), str):
                 self._secret = reply["secret"]
+            self._offer = parse_offer(reply)
         except (ConnectionError, TimeoutError, aiohttp.ClientError, ExportError) as exc:
             # The relay said why (e.g. another live run holds this node's name): it is asked again later.
             said = f"relay {self.url} refused this node for now: {link.error}" if link.error.startswith("relay error")\
@@ -380,19 +395,63 @@ class RelayExporter:
         self._hold_until = now + self._hold_s
 
     async def _syncer(self, link: Link) -> None:
+        udp = await self._open_udp()
         burst = SYNC_BURST_FIRST
-        while True:
-            samples = []
-            for _ in range(burst):
-                t1 = self._now()
-                reply = await link.call("sync", None, SYNC_TIMEOUT_S)
-                t4 = self._now()
-                if isinstance(reply, dict) and isinstance(reply.get("t2"), int) and isinstance(reply.get("t3"), int):
-                    samples.append([t1, reply["t2"], reply["t3"], t4])
-            await link.tell("clock", {"samples": samples, "lost": self.lost, "floor": self._floor(), "ptp": self._ptp})
-            self._synced.set()
-            burst = SYNC_BURST
-            await asyncio.sleep(self._sync_interval)
+        try:
+            while True:
+                report = {"lost": self.lost, "floor": self._floor(), "ptp": self._ptp}
+                samples = await self._udp_burst(udp) if udp is not None else []
+                if samples:
+                    report.update(samples=samples, via="udp")
+                else:
+                    report["samples"] = await self._ws_burst(link, burst)
+                self.clock_via = report.get("via", "websocket")
+                await link.tell("clock", report)
+                self._synced.set()
+                burst = SYNC_BURST
+                await asyncio.sleep(self._sync_interval)
+        finally:
+            if udp is not None:
+                udp.close()
+
+    async def _open_udp(self) -> UdpClock | None:
+        if self._offer is None:
+            self._say_once("the relay offers no UDP clock exchange (an older relay, or --clock-port 0)")
+            return None
+        host = URL(self.url).host or ""
+        try:
+            return await UdpClock.open(host, self._offer[0], self._offer[1], self._pretend)
+        except OSError as exc:
+            self._say_once(f"cannot open the UDP clock exchange to {host}:{self._offer[0]}: {_describe(exc)}")
+            return None
+
+    async def _udp_burst(self, udp: UdpClock) -> list[list[int]]:
+        if self._udp_failed_at is not None and time.monotonic() - self._udp_failed_at < UDP_RETRY_S:
+            return []
+        samples = await udp.burst()
+        if samples:
+            self._udp_failed_at = None
+            return samples
+        self._udp_failed_at = time.monotonic()
+        self._say_once(f"no answer to UDP clock exchanges on port {self._offer[0] if self._offer else '?'} "
+                       f"(blocked?)")
+        return []
+
+    def _say_once(self, why: str) -> None:
+        """Falling back to the WebSocket exchange is said once per run, not per connection."""
+        if not self._udp_said:
+            self._udp_said = True
+            log.warning("relay exporter %s: %s; clock samples go over the WebSocket", self.node, why)
+
+    async def _ws_burst(self, link: Link, burst: int) -> list[list[int]]:
+        samples = []
+        for _ in range(burst):
+            t1 = self._now()
+            reply = await link.call("sync", None, SYNC_TIMEOUT_S)
+            t4 = self._now()
+            if isinstance(reply, dict) and isinstance(reply.get("t2"), int) and isinstance(reply.get("t3"), int):
+                samples.append([t1, reply["t2"], reply["t3"], t4])
+        return samples
 
     def _note_error(self, message: str) -> None:
         if message != self._last_error:

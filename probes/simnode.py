@@ -4,8 +4,9 @@ For tests and benchmarks of the relay where a real pipeline is not the point (an
 stand-in a real ``dcuscope run --probes --relay`` process replaces at integration). Events
 follow the shape the tracer produces: one origin per frame at the source's framestamp stage,
 enter/exit at mux, infer, tiler, convert, osd, enter at the sink; a fraction of frames is
-dropped midway (incomplete). Timestamps are true times plus ``clock_offset_ns``, as on a node
-whose clock is off by that much.
+dropped midway (incomplete). Timestamps are true times moved by ``--clock-offset-ns`` and
+``--clock-drift-ppm`` (:class:`core.clocks.PretendClock`), as on a node whose clock is off by that
+much and runs that much fast; its clock exchanges with the relay read the same pretend clock.
 
 ``python -m probes.simnode --relay URL --node NAME [--paced] ...`` writes the events it shipped
 to ``--out`` (.npz with the header) so a test can compute ``node_stats`` over exactly them.
@@ -20,6 +21,7 @@ import time
 
 import numpy as np
 
+from core.clocks import PretendClock
 from probes.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
 from probes.relayexport import RelayExporter
 
@@ -69,14 +71,15 @@ def _events(ts, source, frame, stage, point) -> np.ndarray:
     return ev
 
 
-def feed(exporter: RelayExporter, events: np.ndarray, *, paced: bool, offset_ns: int = 0,
+def feed(exporter: RelayExporter, events: np.ndarray, *, paced: bool, clock: PretendClock | None = None,
          tick_s: float = 0.01, max_buffered: int = 200_000, chunk: int = 4096) -> None:
-    """Write ``events`` (node-clock times): paced, each once its time came; else as fast as the
-    exporter's buffer drains (throughput tests)."""
+    """Write ``events`` (node-clock times: ``clock``'s): paced, each once its time came; else as
+    fast as the exporter's buffer drains (throughput tests)."""
+    clock = clock or PretendClock()
     if paced:
         i = 0
         while i < len(events):
-            now = time.clock_gettime_ns(time.CLOCK_REALTIME) + offset_ns
+            now = clock.now()
             j = int(np.searchsorted(events["ts"], now, side="right"))
             if j > i:
                 exporter.write(events[i:j])
@@ -98,7 +101,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fps", type=float, default=25.0, help="frames per second per source")
     p.add_argument("--frames", type=int, default=100, help="frames per source")
     p.add_argument("--t0-ns", type=int, default=0, help="true time of frame 0 (default: now + 0.2 s)")
-    p.add_argument("--clock-offset-ns", type=int, default=0)
+    p.add_argument("--clock-offset-ns", type=int, default=0, help="testing aid: the node's clock is off by this much")
+    p.add_argument("--clock-drift-ppm", type=float, default=0.0,
+                   help="testing aid: the node's clock runs this many ppm fast (negative: slow) from the start")
     p.add_argument("--drop-rate", type=float, default=0.0)
     p.add_argument("--paced", action="store_true", help="write each event when its time comes")
     p.add_argument("--seed", type=int, default=0)
@@ -109,16 +114,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", help="write header and shipped events here (.npz)")
     args = p.parse_args(argv)
 
+    pretend = PretendClock(args.clock_offset_ns, args.clock_drift_ppm)
     t0 = args.t0_ns or time.clock_gettime_ns(time.CLOCK_REALTIME) + 200_000_000
     events = synth_events(args.frames, args.sources, args.fps, t0, drop_rate=args.drop_rate, seed=args.seed)
-    events["ts"] += args.clock_offset_ns
-    header = header_for(args.node, args.sources, t0 + args.clock_offset_ns)
-    exporter = RelayExporter(args.relay, args.node, token=args.token, clock_offset_ns=args.clock_offset_ns,
+    events["ts"] = pretend.shift(events["ts"])
+    header = header_for(args.node, args.sources, pretend.of(t0))
+    exporter = RelayExporter(args.relay, args.node, token=args.token, pretend=pretend,
                              batch_events=args.batch_events, flush_interval_s=args.flush_interval,
                              max_buffer_events=args.max_buffer_events, close_timeout_s=args.close_timeout)
     started = time.monotonic()
     exporter.start(header)
-    feed(exporter, events, paced=args.paced, offset_ns=args.clock_offset_ns)
+    feed(exporter, events, paced=args.paced, clock=pretend)
     exporter.close(dropped=0)
     if args.out:
         np.savez(args.out, events=events, header=json.dumps(header.to_dict()))

@@ -31,6 +31,10 @@ def add_relay_parser(subparsers) -> argparse.ArgumentParser:
 def add_relay_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default: loopback only)")
     p.add_argument("--port", type=int, default=3000, help="TCP port (default 3000; 0 picks a free one)")
+    p.add_argument("--clock-port", type=int, metavar="N",
+                   help="UDP port of the light clock exchange nodes use beside their WebSocket (kernel "
+                        "timestamps, tighter offset estimates); default: the same number as --port; 0 turns it "
+                        "off (nodes then exchange over the WebSocket)")
     p.add_argument("--db", default="dcuscope.db", help="SQLite database file (default ./dcuscope.db)")
     p.add_argument("--token", default=os.environ.get(TOKEN_ENV),
                    help=f"shared secret nodes and browsers must present (default ${TOKEN_ENV})")
@@ -59,6 +63,8 @@ def run_relay(args: argparse.Namespace) -> int:
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     if not 0 <= args.port <= 65535:
         raise RelayError(f"--port must be 0..65535, not {args.port}")
+    if args.clock_port is not None and not 0 <= args.clock_port <= 65535:
+        raise RelayError(f"--clock-port must be 0..65535, not {args.clock_port}")
     try:
         limits = Limits().with_values(args.limit)
     except ValueError as exc:
@@ -66,5 +72,5 @@ def run_relay(args: argparse.Namespace) -> int:
     node_tokens = load_node_tokens(args.node_tokens) if args.node_tokens else None
     check_port_free(args.host, args.port)
     serve(args.host, args.port, args.db, args.token, args.clock, limits=limits, node_tokens=node_tokens,
-          allow_hosts=args.allow_host)
+          allow_hosts=args.allow_host, clock_port=args.clock_port)
     return 0

@@ -4,13 +4,15 @@ A node opens ``ws://HOST:PORT/ingest`` with ``Authorization: Bearer TOKEN`` (or 
 when the relay has a token: a wrong or missing one is refused with HTTP 401 before the upgrade,
 and so is a connection beyond the cap (503). Then, in the envelope of :mod:`probes.envelope`:
 
-- ``hello`` {proto, run, header, lost, floor, ptp} -> reply {ok, run, session}; first, once;
+- ``hello`` {proto, run, header, lost, floor, ptp} -> reply {ok, run, session[, clock_port, clock_key]};
+  first, once; ``clock_key`` (hex) lets this connection use the UDP clock exchange on ``clock_port``
+  (:mod:`relay.clockudp`), whose answered (t2, t3) pairs join the connection's sync replies;
 - a binary batch (:mod:`probes.wire`) -> ``ack`` {seq, ok[, dup]} once the batch is committed
   (or was stored before), then its events reach the live state; ``ok: false`` if storage failed
   (the node sends it again);
 - ``sync`` -> reply {t2, t3}: relay receive and send times (ns, CLOCK_REALTIME);
-- ``clock`` {samples, lost, floor, ptp}: the node's completed NTP samples and state. A sample
-  counts only if its t2/t3 are a pair this relay sent on this connection (each once) and its
+- ``clock`` {samples, lost, floor, ptp[, via]}: the node's completed NTP samples and state. A sample
+  counts only if its t2/t3 are a pair this relay sent on this connection or to its UDP key (each once) and its
   offset and round trip are within ``clock_offset_s``/``clock_rtt_s``; others are counted
   (``clock.rejected``) and dropped;
 - ``end`` {events, dropped, lost} -> reply {ok}.
@@ -46,6 +48,7 @@ from probes.wire import (HEARTBEAT_S, MAX_MESSAGE_BYTES, Batch, decode_batch, de
 from relay import storage as db
 from relay.auth import http_token, node_for_token, token_matches
 from relay.clock import ntp_sample, sample_fault
+from relay.clockudp import ClockUdp
 from relay.errors import RelayError
 from relay.limits import ByteBucket, Limits, TokenBucket
 from relay.state import RelayState, RunState
@@ -55,7 +58,7 @@ MAX_STORING = 256
 CLOSE_TIMEOUT_S = 2.0
 SYNCS_KEPT = 256
 """Sync replies (t2, t3) of one connection remembered for its clock report (a node reports
-each burst of 4-8 after it)."""
+each burst of 4-8 WebSocket or 16 UDP exchanges after it)."""
 SAVE_RETRY_S = 1.0
 """Run fields storage failed to write are tried again this often."""
 STORAGE_FAILED = "relay storage failing"
@@ -73,7 +76,9 @@ class _Conn:
     """The only node name this connection may use (it presented that node's own token)."""
     run: str | None = None
     syncs: dict[tuple[int, int], None] = field(default_factory=dict)
-    """(t2, t3) of the sync replies sent and not yet reported, oldest first."""
+    """(t2, t3) of the sync replies sent (WebSocket and UDP) and not yet reported, oldest first."""
+    clock_key: bytes | None = None
+    """This connection's key to the UDP clock exchange (given with the hello reply)."""
     closing: bool = False
     tasks: set[asyncio.Task] = field(default_factory=set)
 
@@ -99,6 +104,8 @@ class Ingest:
         """Times a connection was held back for its byte rate (or all connections' together)."""
         self.hello_timeouts = 0
         """Connections closed for not saying hello in time (counted in ``rejected`` too)."""
+        self.clock_udp: ClockUdp | None = None
+        """The UDP clock exchange, once the server listens for it (None: not offered)."""
 
     @property
     def connected(self) -> int:
@@ -129,6 +136,8 @@ class Ingest:
         finally:
             expiry.cancel()
             self._conns.pop(conn.sid, None)
+            if conn.clock_key is not None and self.clock_udp is not None:
+                self.clock_udp.forget(conn.clock_key)
             if conn.run is not None:
                 self.state.detach(conn.run, conn.sid)
             if conn.tasks:
@@ -275,6 +284,9 @@ class Ingest:
         answer = {"ok": True, "run": rs.run, "session": rs.session}
         if attached.secret is not None:
             answer["secret"] = attached.secret
+        if self.clock_udp is not None:
+            conn.clock_key = self.clock_udp.register(conn.syncs)
+            answer.update(clock_port=self.clock_udp.port, clock_key=conn.clock_key.hex())
         return answer
 
     async def _on_clock(self, conn: _Conn, rs: RunState, data: object) -> dict:

@@ -67,6 +67,11 @@ class Limits:
     """Largest clock offset (node - relay) a sample or correction may state; beyond, the sample is rejected."""
     clock_rtt_s: float = 10.0
     """Largest round trip of a clock sample; beyond, the sample is rejected."""
+    clock_packets_per_s: float = 64.0
+    """UDP clock exchanges per second one connection's key may ask for (a node sends 16 every ~2 s); beyond,
+    datagrams are dropped unanswered and counted (/api/health clock_udp.rate_key)."""
+    total_clock_packets_per_s: float = 4096.0
+    """UDP clock exchanges per second of all keys together; beyond, dropped unanswered (clock_udp.rate_total)."""
     # --- the relay's own log ---
     log_repeats_per_min: int = 10
     """Times a minute the same warning or error may be logged; the rest are counted and summarised."""

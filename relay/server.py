@@ -2,7 +2,9 @@
 Socket.IO server (``/ui``), the HTTP API and storage.
 
 ``serve(host, port, db, token, clock)`` runs it until SIGINT/SIGTERM; ``start_relay`` starts it
-on a running loop (tests, benchmarks). The page of ``ui/static/`` is served at ``/``.
+on a running loop (tests, benchmarks). The page of ``ui/static/`` is served at ``/``. Beside it,
+the UDP clock exchange (:mod:`relay.clockudp`) listens on ``clock_port``: by default the HTTP
+port's number, 0 turns it off.
 """
 
 from __future__ import annotations
@@ -24,10 +26,11 @@ from probes.wire import INGEST_PATH, MAX_MESSAGE_BYTES
 from relay import lograte
 from relay.api import add_routes
 from relay.clock import CLOCK_MODES
+from relay.clockudp import ClockUdp
 from relay.errors import RelayError
 from relay.guard import ConnGuard, GuardedSite, fit_descriptors
 from relay.hostcheck import HostCheck
-from relay.ingest import Ingest
+from relay.ingest import SYNCS_KEPT, Ingest
 from relay.limits import Limits
 from relay.live import LiveConfig
 from relay.sessionapi import add_session_routes
@@ -61,9 +64,16 @@ class Relay:
     port: int = 0
     _task: asyncio.Task | None = None
 
+    @property
+    def clock_port(self) -> int:
+        """The UDP clock exchange's port (0: not offered)."""
+        return self.ingest.clock_udp.port if self.ingest.clock_udp is not None else 0
+
     async def stop(self) -> None:
         if self._task is not None:
             self._task.cancel()
+        if self.ingest.clock_udp is not None:
+            self.ingest.clock_udp.stop()
         # Close every client's websocket first: the web runner would wait out their pings.
         await self.ingest.close_all()
         await self.sio.shutdown()
@@ -101,7 +111,9 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
 
     def counters() -> dict:
         refused["hello_timeout"] = ingest.hello_timeouts
+        udp = ingest.clock_udp
         return {"rejected": ingest.rejected, "clock_rejected": ingest.clock_rejected, "paused": ingest.paused,
+                "clock_udp": dict(udp.counts, port=udp.port, keys=udp.keys) if udp is not None else None,
                 "refused": {**state.refused, **{k: refused[k] for k in REFUSALS}},
                 "connections": {"tcp": guard.open, "ingest": ingest.connected},
                 "pushes": ticker.pushes, "commits": storage.commits, "batches": storage.batches_written,
@@ -136,8 +148,10 @@ def _add_ui(app: web.Application) -> None:
 
 
 async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db",
-                      token: str | None = None, clock: str = "auto", **options) -> Relay:
-    """Start a relay on the running loop; ``port=0`` picks a free port (see ``Relay.port``)."""
+                      token: str | None = None, clock: str = "auto", clock_port: int | None = None,
+                      **options) -> Relay:
+    """Start a relay on the running loop; ``port=0`` picks a free port (see ``Relay.port``).
+    ``clock_port``: UDP port of the clock exchange (None: the HTTP port's number; 0: none)."""
     app, relay = create_app(db, token, clock, **options)
     relay.storage.start(asyncio.get_running_loop())
     runner = web.AppRunner(app, access_log=None, handle_signals=False,
@@ -152,19 +166,43 @@ async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path 
         raise RelayError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from exc
     relay.runner = runner
     relay.port = site.port
+    try:
+        _start_clock_udp(relay, host, clock_port)
+    except RelayError:
+        await runner.cleanup()
+        relay.storage.stop()
+        raise
     relay._task = asyncio.create_task(relay.ticker.run())
     return relay
 
 
+def _start_clock_udp(relay: Relay, host: str, clock_port: int | None) -> None:
+    """Listen for UDP clock exchanges. A port asked for that cannot be had is an error; the
+    default one (the HTTP port's number) taken leaves nodes on the WebSocket exchange, said once."""
+    if clock_port == 0:
+        return
+    udp = ClockUdp(relay.guard.limits, SYNCS_KEPT)
+    try:
+        udp.start(host, relay.port if clock_port is None else clock_port)
+    except OSError as exc:
+        if clock_port is not None:
+            raise RelayError(f"--clock-port {clock_port}: cannot listen on UDP {host}:{clock_port}: "
+                             f"{exc.strerror or exc}") from exc
+        log.warning("no UDP clock exchange: cannot listen on UDP %s:%d (%s); nodes exchange clock samples over "
+                    "their WebSocket (--clock-port N picks another port)", host, relay.port, exc.strerror or exc)
+        return
+    relay.ingest.clock_udp = udp
+
+
 def serve(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db", token: str | None = None,
           clock: str = "auto", limits: Limits = Limits(), node_tokens: dict[str, str] | None = None,
-          allow_hosts: Iterable[str] = ()) -> None:
+          allow_hosts: Iterable[str] = (), clock_port: int | None = None) -> None:
     """Run the relay until SIGINT or SIGTERM."""
     if host not in LOOPBACK and token is None and not node_tokens:
         log.warning("relay listens on %s without --token: anyone who can reach it may feed or read it", host)
     rate = lograte.install(limits.log_repeats_per_min)
     asyncio.run(_serve(host, port, db, token, clock, rate, limits=limits, node_tokens=node_tokens,
-                       allow_hosts=allow_hosts))
+                       allow_hosts=allow_hosts, clock_port=clock_port))
 
 
 async def _serve(host: str, port: int, db: str | Path, token: str | None, clock: str, rate: lograte.RateFilter,
@@ -177,7 +215,8 @@ async def _serve(host: str, port: int, db: str | Path, token: str | None, clock:
         loop.add_signal_handler(sig, stop.set)
     if signals.held() is not None:  # Ctrl-C while starting up
         stop.set()
-    print(f"dcuscope relay: listening on http://{host}:{relay.port} (db {db}, clock {clock})", flush=True)
+    udp = f"UDP clock exchange on port {relay.clock_port}" if relay.clock_port else "no UDP clock exchange"
+    print(f"dcuscope relay: listening on http://{host}:{relay.port} (db {db}, clock {clock}; {udp})", flush=True)
     try:
         await stop.wait()
     finally:

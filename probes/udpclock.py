@@ -1,0 +1,203 @@
+"""The light clock exchange over UDP, beside the event stream: its datagrams and the node's side.
+
+The relay's hello reply names ``clock_port`` and a ``clock_key`` (16 random bytes, hex) tied to
+that WebSocket connection. The node sends requests to the relay's host on that port and the relay
+answers each with its receive and send times; the node reports the completed samples in its
+``clock`` message (``"via": "udp"``), where the relay checks each (t2, t3) against the pairs it
+answered for that key, as it does for the WebSocket ``sync``. Both datagrams are 32 bytes (an
+answer is never larger than its request: no amplification)::
+
+    request  magic b"DCUQ", version, 3 zero bytes, key (16), nonce (8)
+    answer   magic b"DCUA", version, 3 zero bytes, nonce (8), t2 (8, signed), t3 (8, signed)
+
+Both ends take their receive time from the kernel (``SO_TIMESTAMPNS``: CLOCK_REALTIME when the
+datagram arrived, not when Python read it) and read their send time just before ``sendto``:
+t1 node send, t2 relay kernel receive, t3 relay send, t4 node kernel receive. The node's two
+times are moved to the probes' clock (tai, monotonic: the difference to CLOCK_REALTIME read at
+each receipt) and through its :class:`~core.clocks.PretendClock`, as its events are.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import secrets
+import socket
+import struct
+import time
+
+from core.clocks import CLOCKS, PretendClock
+
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+"""Linux's value (SO_TIMESTAMPNS_OLD, also SCM_TIMESTAMPNS); Python's socket module lacks it."""
+TIMESPEC = struct.Struct("@qq")
+VERSION = 1
+REQUEST = struct.Struct("<4sB3x16sQ")
+ANSWER = struct.Struct("<4sB3xQqq")
+REQUEST_MAGIC, ANSWER_MAGIC = b"DCUQ", b"DCUA"
+DATAGRAM_BYTES = REQUEST.size
+assert REQUEST.size == ANSWER.size == 32
+KEY_BYTES = 16
+RECV_BYTES = 2048
+"""Read buffer: a longer datagram is seen as truncated (MSG_TRUNC) and dropped as oversize."""
+BURST = 16
+"""Exchanges per report; the minimum-delay filter needs many, most see no queueing at all."""
+SPACING_S = 0.02
+"""Between the exchanges of a burst: spread over ~0.3 s, clear of one another."""
+ANSWER_TIMEOUT_S = 0.25
+GIVE_UP_AFTER = 3
+"""A burst ends when its first exchanges all went unanswered (UDP blocked, no relay listening)."""
+
+
+def encode_request(key: bytes, nonce: int) -> bytes:
+    return REQUEST.pack(REQUEST_MAGIC, VERSION, key, nonce)
+
+
+def decode_request(data: bytes) -> tuple[bytes, int] | None:
+    """(key, nonce) of a well-formed request, else None."""
+    if len(data) != REQUEST.size:
+        return None
+    magic, version, key, nonce = REQUEST.unpack(data)
+    return (key, nonce) if magic == REQUEST_MAGIC and version == VERSION else None
+
+
+def encode_answer(nonce: int, t2: int, t3: int) -> bytes:
+    return ANSWER.pack(ANSWER_MAGIC, VERSION, nonce, t2, t3)
+
+
+def decode_answer(data: bytes) -> tuple[int, int, int] | None:
+    """(nonce, t2, t3) of a well-formed answer, else None."""
+    if len(data) != ANSWER.size:
+        return None
+    magic, version, nonce, t2, t3 = ANSWER.unpack(data)
+    return (nonce, t2, t3) if magic == ANSWER_MAGIC and version == VERSION else None
+
+
+def enable_rx_timestamps(sock: socket.socket) -> None:
+    sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+
+
+def recv_stamped(sock: socket.socket) -> tuple[bytes, object, int, bool]:
+    """One datagram: (data, sender, kernel receive time in CLOCK_REALTIME ns, truncated).
+    Without a kernel timestamp (never on Linux once enabled) the time of reading stands in."""
+    data, ancillary, flags, sender = sock.recvmsg(RECV_BYTES, socket.CMSG_SPACE(TIMESPEC.size))
+    stamp = None
+    for level, kind, payload in ancillary:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(payload) >= TIMESPEC.size:
+            sec, nsec = TIMESPEC.unpack_from(payload)
+            stamp = sec * 1_000_000_000 + nsec
+    if stamp is None:
+        stamp = time.time_ns()
+    return data, sender, stamp, bool(flags & socket.MSG_TRUNC)
+
+
+def new_key() -> bytes:
+    return secrets.token_bytes(KEY_BYTES)
+
+
+def parse_offer(reply: dict) -> tuple[int, bytes] | None:
+    """(port, key) of a hello reply that offers the UDP exchange, else None (an older relay, or
+    one started with --clock-port 0)."""
+    port, key = reply.get("clock_port"), reply.get("clock_key")
+    if not (isinstance(port, int) and not isinstance(port, bool) and 0 < port < 65536 and isinstance(key, str)):
+        return None
+    try:
+        raw = bytes.fromhex(key)
+    except ValueError:
+        return None
+    return (port, raw) if len(raw) == KEY_BYTES else None
+
+
+class UdpClock:
+    """The node's end of the exchange with one relay connection (``key``)."""
+
+    def __init__(self, sock: socket.socket, key: bytes, pretend: PretendClock) -> None:
+        self._sock, self._key, self._pretend = sock, key, pretend
+        self._realtime = pretend.clock_id == CLOCKS["realtime"]
+        self._waiting: dict[int, asyncio.Future] = {}
+        self.refused = False
+        """The relay's host said nothing listens there (ICMP port unreachable)."""
+        asyncio.get_running_loop().add_reader(sock.fileno(), self._readable)
+
+    @classmethod
+    async def open(cls, host: str, port: int, key: bytes, pretend: PretendClock) -> "UdpClock":
+        """Raises OSError when ``host`` cannot be resolved or reached."""
+        loop = asyncio.get_running_loop()
+        family, _, _, _, addr = (await loop.getaddrinfo(host, port, type=socket.SOCK_DGRAM))[0]
+        sock = socket.socket(family, socket.SOCK_DGRAM)
+        try:
+            sock.setblocking(False)
+            enable_rx_timestamps(sock)
+            sock.connect(addr)  # answers from anyone but the relay's address are not even read
+        except OSError:
+            sock.close()
+            raise
+        return cls(sock, key, pretend)
+
+    def close(self) -> None:
+        with contextlib.suppress(ValueError, OSError):
+            asyncio.get_running_loop().remove_reader(self._sock.fileno())
+        self._sock.close()
+        for waiter in self._waiting.values():
+            waiter.cancel()
+
+    async def burst(self, count: int = BURST, spacing_s: float = SPACING_S,
+                    timeout_s: float = ANSWER_TIMEOUT_S) -> list[list[int]]:
+        """Completed samples [t1, t2, t3, t4] of up to ``count`` exchanges (none if no answer came)."""
+        samples: list[list[int]] = []
+        for i in range(count):
+            if i == GIVE_UP_AFTER and not samples or self.refused:
+                break
+            sample = await self._exchange(timeout_s)
+            if sample is not None:
+                samples.append(sample)
+            await asyncio.sleep(spacing_s)
+        return samples
+
+    async def _exchange(self, timeout_s: float) -> list[int] | None:
+        nonce = secrets.randbits(64)
+        waiter = asyncio.get_running_loop().create_future()
+        self._waiting[nonce] = waiter
+        try:
+            packet = encode_request(self._key, nonce)
+            t1 = self._pretend.now()
+            self._sock.send(packet)
+            t2, t3, t4 = await asyncio.wait_for(waiter, timeout_s)
+            return [t1, t2, t3, t4]
+        except ConnectionRefusedError:
+            self.refused = True
+            return None
+        except (OSError, asyncio.TimeoutError):
+            return None
+        finally:
+            self._waiting.pop(nonce, None)
+
+    def _readable(self) -> None:
+        while True:
+            try:
+                data, _, rx_ns, truncated = recv_stamped(self._sock)
+            except (BlockingIOError, InterruptedError):
+                return
+            except ConnectionRefusedError:
+                self.refused = True
+                return
+            except OSError:
+                return
+            answer = None if truncated else decode_answer(data)
+            if answer is None:
+                continue
+            waiter = self._waiting.get(answer[0])
+            if waiter is not None and not waiter.done():
+                waiter.set_result((answer[1], answer[2], self._pretend.of(self._to_clock(rx_ns))))
+
+    def _to_clock(self, realtime_ns: int) -> int:
+        """A CLOCK_REALTIME kernel time on the probes' clock: the two clocks' difference, read
+        around one CLOCK_REALTIME reading so that the reads' own cost cancels."""
+        if self._realtime:
+            return realtime_ns
+        clock_id = self._pretend.clock_id
+        before = time.clock_gettime_ns(clock_id)
+        real = time.time_ns()
+        after = time.clock_gettime_ns(clock_id)
+        return realtime_ns + (before + after) // 2 - real
+
