@@ -179,8 +179,10 @@ class HandNode:
     """A node driven by hand on one ingest WebSocket (:class:`probes.relaylink.Link`), for in-process
     tests that send exactly the messages they mean to."""
 
-    def __init__(self, session, link, acks, secret: str | None) -> None:
+    def __init__(self, session, link, acks, secret: str | None, reply: dict | None = None) -> None:
         self.session, self.link, self.acks = session, link, acks
+        self.reply = reply or {}
+        """The relay's hello reply (its UDP clock offer among it)."""
         self.secret = secret
         """The run's resume secret: issued at its first hello, or the one presented."""
 
@@ -201,7 +203,7 @@ class HandNode:
             await session.close()
             raise
         assert reply["ok"], reply
-        return cls(session, link, acks, reply.get("secret", secret))
+        return cls(session, link, acks, reply.get("secret", secret), reply)
 
     async def batch(self, data: bytes) -> dict:
         """Send one batch and wait for its acknowledgement."""

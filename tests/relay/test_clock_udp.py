@@ -1,0 +1,236 @@
+"""The UDP clock exchange on a real relay process with real nodes on loopback: samples arrive over
+UDP and the relay's correction holds the injected truth (offset and drift) within its stated
+bound; hostile datagrams and forged or replayed samples are dropped and counted, unanswered,
+and a good node's estimate is unaffected; without UDP a node falls back to the WebSocket."""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import socket
+import subprocess
+import sys
+import time
+import uuid
+
+import pytest
+
+from probes.events import ORIGIN
+from probes.relayexport import RelayExporter
+from probes.simnode import header_for, synth_events
+from probes.udpclock import decode_answer, enable_rx_timestamps, encode_request, recv_stamped
+from relay.server import start_relay
+from tests.relay.helpers import (ROOT, HandNode, RelayProcess, env, finish_node, get_json, start_node, wait_for)
+
+FRAMES, SOURCES, FPS, SEED = 250, 2, 50.0, 5
+
+
+def _start(relay: RelayProcess, tmp_path, node: str, offset_ns: int, drift_ppm: float):
+    t0 = time.clock_gettime_ns(time.CLOCK_REALTIME) + 500_000_000
+    proc = start_node(relay.url, node, tmp_path / f"{node}.npz", frames=FRAMES, sources=SOURCES, fps=FPS,
+                      paced=True, t0_ns=t0, seed=SEED, offset_ns=offset_ns,
+                      extra=["--clock-drift-ppm", str(drift_ppm)])
+    return proc, t0
+
+
+def _frames_hold_the_truth(relay: RelayProcess, node: str, t0: int) -> dict:
+    """Every frame's corrected origin equals its true time within the bound it carries; the node's
+    clock view."""
+    truth = synth_events(FRAMES, SOURCES, FPS, t0, seed=SEED)
+    truth = truth[truth["point"] == ORIGIN]
+    true_origin = {(int(s), int(f)): int(t) for s, f, t in zip(truth["source"], truth["frame"], truth["ts"])}
+    got = get_json(f"{relay.url}/api/frames?node={node}&limit=2000")
+    assert got["clock"] == "estimate", got["clock"]
+    frames = got["frames"]
+    assert len(frames) == FRAMES * SOURCES
+    worst = max(abs(f["origin"] - true_origin[(f["source"], f["frame"])]) - f["clock_uncertainty_ns"] for f in frames)
+    assert worst <= 0, f"a frame's corrected time is {worst} ns beyond its stated bound"
+    return next(n for n in get_json(f"{relay.url}/api/nodes") if n["node"] == node)["clock"]
+
+
+@pytest.mark.parametrize("offset_ns,drift_ppm", [(37_000_000, 0.0), (-2_500_000_000, 50.0)])
+def test_samples_arrive_over_udp_and_the_correction_holds_the_truth(tmp_path, offset_ns, drift_ppm):
+    relay = RelayProcess(tmp_path / "relay.db", clock="estimate")
+    try:
+        proc, t0 = _start(relay, tmp_path, "B", offset_ns, drift_ppm)
+        counters = finish_node(proc, 60)
+        assert counters["clock_via"] == "udp"
+        udp = get_json(f"{relay.url}/api/health")["clock_udp"]
+        assert udp["answered"] >= 32 and udp["port"] == relay.port
+        clock = _frames_hold_the_truth(relay, "B", t0)
+        assert clock["rejected"] == 0 and clock["samples"] >= 16
+        # Loopback with kernel timestamps: far tighter than the WebSocket exchange's ~120 us.
+        assert clock["correction_uncertainty_ns"] < 100_000, clock
+    finally:
+        relay.stop()
+
+
+def _udp_socket() -> socket.socket:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.setblocking(False)
+    enable_rx_timestamps(s)
+    return s
+
+
+def _answers(s: socket.socket) -> list[tuple[int, int, int, int]]:
+    """(nonce, t2, t3, t4) of every answer waiting on ``s``."""
+    out = []
+    while True:
+        try:
+            data, _, t4, _ = recv_stamped(s)
+        except BlockingIOError:
+            return out
+        answer = decode_answer(data)
+        if answer is not None:
+            out.append((*answer, t4))
+
+
+def _health_udp(relay: RelayProcess) -> dict:
+    return get_json(f"{relay.url}/api/health")["clock_udp"]
+
+
+def test_hostile_datagrams_are_dropped_counted_and_never_answered(tmp_path):
+    relay = RelayProcess(tmp_path / "relay.db", clock="estimate")
+    attacker = _udp_socket()
+    target = ("127.0.0.1", relay.port)
+    try:
+        proc, t0 = _start(relay, tmp_path, "B", 37_000_000, 0.0)
+        wait_for(lambda: _health_udp(relay)["answered"] > 0, 20, what="the good node's first UDP exchange")
+        for i in range(40):
+            attacker.sendto(os.urandom(32), target)  # garbage of the right size
+            attacker.sendto(b"DCUQ\x01", target)  # truncated
+            attacker.sendto(encode_request(os.urandom(16), i), target)  # a key nobody was given
+            attacker.sendto(b"x" * 4000, target)  # oversize
+            time.sleep(0.002)  # within the socket buffer: each of these is counted
+        wait_for(lambda: _health_udp(relay)["oversize"] >= 40, 10, what="the oversize datagrams counted")
+        udp = _health_udp(relay)
+        assert udp["malformed"] == 80 and udp["oversize"] == 40 and udp["unknown_key"] == 40, udp
+        flood = encode_request(os.urandom(16), 7)
+        for _ in range(20_000):
+            try:
+                attacker.sendto(flood, target)
+            except BlockingIOError:
+                time.sleep(0.001)
+        counters = finish_node(proc, 60)
+        udp = _health_udp(relay)
+        assert 40 < udp["unknown_key"] <= 40 + 20_000
+        assert _answers(attacker) == []  # nothing was ever answered
+        assert counters["clock_via"] == "udp"
+        clock = _frames_hold_the_truth(relay, "B", t0)
+        assert clock["rejected"] == 0 and clock["correction_uncertainty_ns"] < 100_000, clock
+    finally:
+        attacker.close()
+        relay.stop()
+
+
+async def _exchange(s: socket.socket, port: int, key: bytes, nonce: int) -> list[int]:
+    t1 = time.time_ns()
+    s.sendto(encode_request(key, nonce), ("127.0.0.1", port))
+    for _ in range(100):
+        answers = _answers(s)
+        if answers:
+            n, t2, t3, t4 = answers[0]
+            assert n == nonce
+            return [t1, t2, t3, t4]
+        await asyncio.sleep(0.01)
+    raise AssertionError("no answer from the relay")
+
+
+def _clock_of(relay: RelayProcess, run: str) -> dict:
+    return next(n for n in get_json(f"{relay.url}/api/nodes") if n["run"] == run)["clock"]
+
+
+def test_forged_replayed_and_foreign_samples_are_rejected_and_a_key_is_rate_bound(tmp_path):
+    relay = RelayProcess(tmp_path / "relay.db", clock="estimate", args=["--limit", "clock_packets_per_s=20"])
+    s = _udp_socket()
+
+    async def scenario():
+        a_run, b_run = uuid.uuid4().hex, uuid.uuid4().hex
+        a = await HandNode.open(relay.url, "A", a_run)
+        b = await HandNode.open(relay.url, "B", b_run)
+        try:
+            assert a.reply["clock_port"] == relay.port and a.reply["clock_key"] != b.reply["clock_key"]
+            key_a, key_b = bytes.fromhex(a.reply["clock_key"]), bytes.fromhex(b.reply["clock_key"])
+            good = await _exchange(s, relay.port, key_a, 1)
+            foreign = await _exchange(s, relay.port, key_b, 2)  # answered for B's connection
+            await a.link.call("clock", {"samples": [good], "via": "udp"}, 5)
+            assert _clock_of(relay, a_run)["samples"] == 1
+            forged = [good[0], good[1] + 1_000, good[2] + 1_000, good[3]]
+            for sample in (good, forged, foreign):  # a replay, a forgery, another connection's pair
+                await a.link.call("clock", {"samples": [sample], "via": "udp"}, 5)
+            clock = _clock_of(relay, a_run)
+            assert clock["samples"] == 1 and clock["rejected"] == 3, clock
+            # A key holder beyond its rate: the surplus is dropped, not answered.
+            for n in range(200):
+                s.sendto(encode_request(key_a, 100 + n), ("127.0.0.1", relay.port))
+            await asyncio.sleep(0.5)
+            answered = len(_answers(s))
+            assert 0 < answered <= 20 + 12, answered  # one second's worth, plus what refilled meanwhile
+            assert _health_udp(relay)["rate_key"] >= 200 - answered
+        finally:
+            await a.close()
+        # The connection is gone: so is its key.
+        await asyncio.sleep(0.3)
+        before = _health_udp(relay)["unknown_key"]
+        s.sendto(encode_request(key_a, 999), ("127.0.0.1", relay.port))
+        await asyncio.sleep(0.3)
+        assert _answers(s) == [] and _health_udp(relay)["unknown_key"] == before + 1
+        await b.close()
+
+    try:
+        asyncio.run(scenario())
+    finally:
+        s.close()
+        relay.stop()
+
+
+def test_without_udp_a_node_falls_back_to_the_websocket(tmp_path):
+    relay = RelayProcess(tmp_path / "relay.db", clock="estimate", args=["--clock-port", "0"])
+    try:
+        proc, t0 = _start(relay, tmp_path, "B", 37_000_000, 0.0)
+        _, err = proc.communicate(timeout=60)
+        assert proc.returncode == 0, err.decode()[-2000:]
+        assert err.decode().count("clock samples go over the WebSocket") == 1
+        assert get_json(f"{relay.url}/api/health")["clock_udp"] is None
+        clock = _frames_hold_the_truth(relay, "B", t0)
+        assert clock["samples"] >= 8
+    finally:
+        relay.stop()
+
+
+def test_a_clock_port_the_relay_cannot_have_is_a_one_line_error(tmp_path):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        port = taken.getsockname()[1]
+        for value, said in ((str(port), "cannot listen on UDP"), ("70000", "--clock-port must be 0..65535")):
+            done = subprocess.run([sys.executable, "-m", "relay", "--port", "0", "--db", str(tmp_path / "r.db"),
+                                   "--clock-port", value], cwd=ROOT, env=env(), capture_output=True, text=True,
+                                  timeout=30)
+            assert done.returncode == 2 and said in done.stderr, done.stderr
+            assert len(done.stderr.strip().splitlines()) == 1, done.stderr
+
+
+def test_a_node_whose_udp_goes_unanswered_falls_back_to_the_websocket(tmp_path, caplog):
+    """The relay offers UDP, but its datagrams vanish (a firewall): a silent socket holds the port."""
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db", clock="estimate")
+        port = relay.clock_port
+        relay.ingest.clock_udp.stop()  # the offer stays, the answers stop
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
+            silent.bind(("127.0.0.1", port))
+            exporter = RelayExporter(f"http://127.0.0.1:{relay.port}", "A", close_timeout_s=8.0)
+            try:
+                exporter.start(header_for("A", 2))
+                deadline = time.monotonic() + 20
+                while exporter.counters()["clock_via"] != "websocket":
+                    assert time.monotonic() < deadline, "no clock report over the WebSocket"
+                    await asyncio.sleep(0.05)
+                await asyncio.to_thread(exporter.close, 0)
+                assert relay.state.runs[exporter.run_id].clock.estimate().samples >= 8
+                assert silent.recv(64)  # the node did try UDP
+            finally:
+                await relay.stop()
+
+    asyncio.run(scenario())
+    said = [r.getMessage() for r in caplog.records if "clock samples go over the WebSocket" in r.getMessage()]
+    assert len(said) == 1 and "no answer to UDP clock exchanges" in said[0], said
