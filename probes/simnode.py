@@ -104,6 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--clock-offset-ns", type=int, default=0, help="testing aid: the node's clock is off by this much")
     p.add_argument("--clock-drift-ppm", type=float, default=0.0,
                    help="testing aid: the node's clock runs this many ppm fast (negative: slow) from the start")
+    p.add_argument("--clock-start-ns", type=int, default=-1,
+                   help="CLOCK_REALTIME the drift counts from (default: when the node starts)")
     p.add_argument("--drop-rate", type=float, default=0.0)
     p.add_argument("--paced", action="store_true", help="write each event when its time comes")
     p.add_argument("--seed", type=int, default=0)
@@ -114,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", help="write header and shipped events here (.npz)")
     args = p.parse_args(argv)
 
-    pretend = PretendClock(args.clock_offset_ns, args.clock_drift_ppm)
+    pretend = PretendClock(args.clock_offset_ns, args.clock_drift_ppm, start_ns=args.clock_start_ns)
     t0 = args.t0_ns or time.clock_gettime_ns(time.CLOCK_REALTIME) + 200_000_000
     events = synth_events(args.frames, args.sources, args.fps, t0, drop_rate=args.drop_rate, seed=args.seed)
     events["ts"] = pretend.shift(events["ts"])

@@ -1,0 +1,264 @@
+"""Clock estimator benchmark: the relay's correction against an injected truth, UDP vs WebSocket.
+
+Each case runs a relay (``python -m relay --clock estimate``) and a simulated node
+(``python -m probes.simnode --paced``) whose pretend clock is off by OFFSET and runs DRIFT ppm
+fast from a start the benchmark fixes (``--clock-start-ns``), so that the true offset at any
+moment is known: true(t) = OFFSET + DRIFT * 1e-6 * (t - start). Every ``--every`` seconds after
+a warm-up it reads the relay's clock view of the node (``/api/nodes``: ``correction_ns`` and
+``correction_uncertainty_ns``, the correction in force now and its stated bound) and compares:
+error = correction - truth; the truth is inside the bound when |error| <= stated.
+
+Transports, side by side (two relays and two nodes at once, same load): ``udp`` (the relay's
+UDP clock exchange, kernel timestamps) and ``websocket`` (the relay started with
+``--clock-port 0``: the node falls back to its WebSocket ``sync``).
+
+Paths: ``loopback`` (127.0.0.1), with offsets 0, 37 ms, -2.5 s and drifts 0, +50, -100 ppm;
+``sym-2ms`` and ``asym-1/3ms``: the relay and the node in two network namespaces joined through
+a third that forwards every Ethernet frame after a delay (:mod:`benchmarks.delaybridge`, a
+userspace bridge on AF_PACKET sockets: ``tc netem`` is not available on this kernel), 2 ms each
+way with +-0.5 ms jitter, or 1 ms node->relay and 3 ms relay->node. Needs root for those;
+without it they are skipped.
+
+``--minutes M``: one long run instead (loopback, UDP, 37 ms, +50 ppm), sampled every
+``--every`` seconds (default 5), summarised per minute.
+
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_clock.py [--seconds 12] [--paths loopback sym-2ms asym-1/3ms]
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_clock.py --minutes 10
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.request
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+OFFSETS_NS = (0, 37_000_000, -2_500_000_000)
+DRIFTS_PPM = (0.0, 50.0, -100.0)
+NETNS_CASE = (37_000_000, 50.0)
+PATHS = {"loopback": None, "sym-2ms": (2.0, 2.0, 0.5), "asym-1/3ms": (1.0, 3.0, 0.0)}
+"""name -> (node->relay ms, relay->node ms, jitter ms) of the bridge; None: loopback."""
+NS_RELAY, NS_BRIDGE, NS_NODE = "dcsclk-r", "dcsclk-b", "dcsclk-n"
+RELAY_IP, NODE_IP = "10.213.7.1", "10.213.7.2"
+WARMUP_S = 4.0
+FPS = 10.0
+
+
+def _env() -> dict:
+    e = dict(os.environ)
+    e["PYTHONPATH"] = str(ROOT) + os.pathsep + e.get("PYTHONPATH", "")
+    return e
+
+
+def _netns(name: str | None) -> list[str]:
+    return ["ip", "netns", "exec", name] if name else []
+
+
+@dataclass
+class Run:
+    """One relay and one node with a pretend clock, and what was read of the relay meanwhile."""
+    transport: str
+    offset_ns: int
+    drift_ppm: float
+    path: str
+    seconds: float
+    errors_ns: list[int] = field(default_factory=list)
+    stated_ns: list[int] = field(default_factory=list)
+    via: str = ""
+
+    def start(self, db: Path) -> None:
+        netns = PATHS[self.path] is not None
+        host = RELAY_IP if netns else "127.0.0.1"
+        cmd = [*_netns(NS_RELAY if netns else None), sys.executable, "-m", "relay", "--host", host,
+               "--port", "0", "--db", str(db), "--clock", "estimate"]
+        if self.transport == "websocket":
+            cmd += ["--clock-port", "0"]
+        self.relay = subprocess.Popen(cmd, cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        line = self.relay.stdout.readline().decode()
+        m = re.search(r"http://[\d.]+:(\d+)", line)
+        if not m:
+            raise RuntimeError(f"relay did not start: {line!r}")
+        self.url = f"http://{host}:{m.group(1)}"
+        self.netns = NS_RELAY if netns else None
+        self.start_ns = time.clock_gettime_ns(time.CLOCK_REALTIME)
+        frames = int(self.seconds * FPS)
+        self.node = subprocess.Popen(
+            [*_netns(NS_NODE if netns else None), sys.executable, "-m", "probes.simnode", "--relay", self.url,
+             "--node", "N", "--frames", str(frames), "--sources", "1", "--fps", str(FPS), "--paced",
+             "--clock-offset-ns", str(self.offset_ns), "--clock-drift-ppm", str(self.drift_ppm),
+             "--clock-start-ns", str(self.start_ns)],
+            cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+
+    def truth_at_node_time(self, ts: int) -> float:
+        """The true offset at node timestamp ``ts`` (pretend(real) = ts solved for real)."""
+        d = self.drift_ppm * 1e-6
+        real = (ts - self.offset_ns + d * self.start_ns) / (1 + d)
+        return ts - real
+
+    def sample(self) -> None:
+        before = time.time_ns()
+        nodes = self._get("/api/nodes")
+        after = time.time_ns()
+        clock = next((n["clock"] for n in nodes if n["node"] == "N"), None)
+        if clock is None or clock.get("applied") != "estimate":
+            return
+        # The relay evaluates its correction at its own now, taken as a node timestamp.
+        truth = self.truth_at_node_time((before + after) // 2)
+        self.errors_ns.append(int(round(clock["correction_ns"] - truth)))
+        self.stated_ns.append(int(clock["correction_uncertainty_ns"]))
+        self.via = clock.get("via", self.via)
+
+    def _get(self, path: str):
+        if self.netns is None:
+            with urllib.request.urlopen(self.url + path, timeout=10) as r:
+                return json.loads(r.read())
+        out = subprocess.run([*_netns(self.netns), "curl", "-sf", "--max-time", "10", self.url + path],
+                             capture_output=True, check=True)
+        return json.loads(out.stdout)
+
+    def finish(self) -> None:
+        out, _ = self.node.communicate(timeout=self.seconds + 60)
+        counters = json.loads(out.decode().strip().splitlines()[-1])
+        self.via = self.via or counters.get("clock_via", "")
+        self.relay.terminate()
+        self.relay.wait(15)
+
+    def row(self) -> dict:
+        err, stated = np.abs(np.array(self.errors_ns, dtype=np.int64)), np.array(self.stated_ns, dtype=np.int64)
+        if len(err) == 0:
+            return {"path": self.path, "transport": self.transport, "samples": 0}
+        return {"path": self.path, "transport": self.transport, "via": self.via,
+                "offset_ms": self.offset_ns / 1e6, "drift_ppm": self.drift_ppm, "reads": len(err),
+                "err_med_us": float(np.median(err)) / 1e3, "err_max_us": float(err.max()) / 1e3,
+                "stated_med_us": float(np.median(stated)) / 1e3, "stated_max_us": float(stated.max()) / 1e3,
+                "inside": bool((err <= stated).all())}
+
+
+def run_together(runs: list[Run], every_s: float, tmp: Path) -> None:
+    for i, r in enumerate(runs):
+        r.start(tmp / f"r{i}-{time.monotonic_ns()}.db")
+    deadline = time.monotonic() + runs[0].seconds
+    time.sleep(WARMUP_S)
+    while time.monotonic() < deadline:
+        for r in runs:
+            r.sample()
+        time.sleep(every_s)
+    for r in runs:
+        r.finish()
+
+
+def netns_up(path: str) -> subprocess.Popen:
+    """Relay and node namespaces joined through a bridge namespace delaying each frame."""
+    netns_down()
+    sh = ["set -e"]
+    for ns in (NS_RELAY, NS_BRIDGE, NS_NODE):
+        sh += [f"ip netns add {ns}", f"ip -n {ns} link set lo up"]
+    sh += [f"ip link add r0 netns {NS_RELAY} type veth peer name br0 netns {NS_BRIDGE}",
+           f"ip link add n0 netns {NS_NODE} type veth peer name br1 netns {NS_BRIDGE}",
+           f"ip -n {NS_RELAY} addr add {RELAY_IP}/24 dev r0", f"ip -n {NS_NODE} addr add {NODE_IP}/24 dev n0"]
+    for ns, dev in ((NS_RELAY, "r0"), (NS_BRIDGE, "br0"), (NS_BRIDGE, "br1"), (NS_NODE, "n0")):
+        sh.append(f"ip -n {ns} link set {dev} up")
+    subprocess.run(["sh", "-c", "\n".join(sh)], check=True)
+    bridge = [sys.executable, str(ROOT / "benchmarks" / "delaybridge.py")]
+    for ns, devs in ((NS_RELAY, ["r0"]), (NS_NODE, ["n0"]), (NS_BRIDGE, ["br0", "br1"])):
+        subprocess.run([*_netns(ns), *bridge, "--offloads-off", *devs], check=True)
+    to_relay, to_node, jitter = PATHS[path]
+    proc = subprocess.Popen([*_netns(NS_BRIDGE), *bridge, "br0", "br1", "--a-to-b-ms", str(to_node),
+                             "--b-to-a-ms", str(to_relay), "--jitter-ms", str(jitter)], stdout=subprocess.PIPE)
+    proc.stdout.readline()
+    return proc
+
+
+def netns_down() -> None:
+    for ns in (NS_RELAY, NS_BRIDGE, NS_NODE):
+        subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+def cases(paths: list[str]) -> list[tuple[str, int, float]]:
+    out = []
+    for path in paths:
+        grid = [(o, d) for o in OFFSETS_NS for d in DRIFTS_PPM] if PATHS[path] is None else [NETNS_CASE]
+        out += [(path, o, d) for o, d in grid]
+    return out
+
+
+def print_table(rows: list[dict]) -> None:
+    head = ("path", "transport", "via", "offset_ms", "drift_ppm", "reads", "err_med_us", "err_max_us",
+            "stated_med_us", "stated_max_us", "inside")
+    print(" | ".join(head))
+    print(" | ".join("---" for _ in head))
+    for r in rows:
+        print(" | ".join(f"{r.get(k, ''):.1f}" if isinstance(r.get(k), float) else str(r.get(k, "")) for k in head),
+              flush=True)
+
+
+def bench_grid(args: argparse.Namespace, tmp: Path) -> list[dict]:
+    rows = []
+    for path, offset, drift in cases(args.paths):
+        bridge = None
+        if PATHS[path] is not None:
+            if os.geteuid() != 0:
+                print(f"# {path}: skipped (network namespaces need root)", flush=True)
+                continue
+            bridge = netns_up(path)
+        try:
+            runs = [Run(t, offset, drift, path, args.seconds) for t in ("websocket", "udp")]
+            run_together(runs, args.every or 1.0, tmp)
+            rows += [r.row() for r in runs]
+            for r in rows[-2:]:
+                print(json.dumps(r), flush=True)
+        finally:
+            if bridge is not None:
+                bridge.terminate()
+                bridge.wait(5)
+                netns_down()
+    return rows
+
+
+def bench_long(args: argparse.Namespace, tmp: Path) -> list[dict]:
+    run = Run("udp", 37_000_000, 50.0, "loopback", args.minutes * 60)
+    run_together([run], args.every or 5.0, tmp)
+    err = np.abs(np.array(run.errors_ns, dtype=np.int64))
+    stated = np.array(run.stated_ns, dtype=np.int64)
+    per_minute = max(1, int(60 / (args.every or 5.0)))
+    rows = []
+    for m in range(0, len(err), per_minute):
+        e, s = err[m:m + per_minute], stated[m:m + per_minute]
+        rows.append({"path": f"minute {m // per_minute + 1}", "transport": "udp", "via": run.via,
+                     "offset_ms": 37.0, "drift_ppm": 50.0, "reads": len(e), "err_med_us": float(np.median(e)) / 1e3,
+                     "err_max_us": float(e.max()) / 1e3, "stated_med_us": float(np.median(s)) / 1e3,
+                     "stated_max_us": float(s.max()) / 1e3, "inside": bool((e <= s).all())})
+    return rows + [dict(run.row(), path="whole run")]
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--seconds", type=float, default=12.0, help="length of each case (default 12)")
+    p.add_argument("--every", type=float, help="seconds between reads of the relay (default 1; 5 with --minutes)")
+    p.add_argument("--paths", nargs="+", choices=list(PATHS), default=list(PATHS))
+    p.add_argument("--minutes", type=float, help="one long run (loopback, UDP, 37 ms, +50 ppm) instead of the grid")
+    p.add_argument("--json", type=Path, help="also write the rows here")
+    args = p.parse_args(argv)
+    print(f"# bench_clock on {os.uname().nodename}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}",
+          flush=True)
+    with tempfile.TemporaryDirectory() as tmp:
+        rows = bench_long(args, Path(tmp)) if args.minutes else bench_grid(args, Path(tmp))
+    print()
+    print_table(rows)
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+    return 0 if all(r.get("inside") for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
