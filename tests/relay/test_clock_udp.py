@@ -18,7 +18,10 @@ import pytest
 from probes.events import ORIGIN
 from probes.relayexport import RelayExporter
 from probes.simnode import header_for, synth_events
-from probes.udpclock import decode_answer, enable_rx_timestamps, encode_request, recv_stamped
+from core.clocks import CLOCKS, PretendClock
+from probes.udpclock import (BURST, UdpClock, decode_answer, enable_rx_timestamps, encode_request, parse_offer,
+                             recv_stamped)
+from relay.clock import ntp_sample
 from relay.server import start_relay
 from tests.relay.helpers import (ROOT, HandNode, RelayProcess, env, finish_node, get_json, start_node, wait_for)
 
@@ -234,3 +237,29 @@ def test_a_node_whose_udp_goes_unanswered_falls_back_to_the_websocket(tmp_path, 
     asyncio.run(scenario())
     said = [r.getMessage() for r in caplog.records if "clock samples go over the WebSocket" in r.getMessage()]
     assert len(said) == 1 and "no answer to UDP clock exchanges" in said[0], said
+
+
+@pytest.mark.parametrize("clock", ["monotonic", "tai"])
+def test_kernel_receive_times_are_moved_to_the_probes_clock(tmp_path, clock):
+    """The kernel stamps CLOCK_REALTIME; a node on another clock reports t1 and t4 on its own:
+    each sample's offset is that clock's distance to CLOCK_REALTIME, within half its round trip."""
+    clock_id = CLOCKS[clock]
+
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db", clock="estimate")
+        node = await HandNode.open(f"http://127.0.0.1:{relay.port}", "A", uuid.uuid4().hex)
+        port, key = parse_offer(node.reply)
+        udp = await UdpClock.open("127.0.0.1", port, key, PretendClock(clock_id=clock_id))
+        try:
+            samples = await udp.burst()
+            truth = time.clock_gettime_ns(clock_id) - time.time_ns()
+        finally:
+            udp.close()
+            await node.close()
+            await relay.stop()
+        assert len(samples) == BURST
+        for t1, t2, t3, t4 in samples:
+            s = ntp_sample(t1, t2, t3, t4)
+            assert 0 <= s.rtt_ns < 50_000_000 and abs(s.offset_ns - truth) <= s.rtt_ns // 2 + 2_000, (s, truth)
+
+    asyncio.run(scenario())
