@@ -16,6 +16,7 @@ The report (sent in the node's hello and every clock message)::
 from __future__ import annotations
 
 import asyncio
+import os
 import re
 import shutil
 import tempfile
@@ -105,28 +106,57 @@ def parse_time_status(text: str) -> dict:
 async def run_pmc(socket: str = DEFAULT_UDS, timeout_s: float = PMC_TIMEOUT_S) -> tuple[str | None, str]:
     """pmc's output for :data:`QUERIES` to the ptp4l answering at ``socket``, or (None, why not).
 
+    pmc runs interactively: given its commands as arguments it exits once 100 ms pass without an
+    answer, which a busy machine exceeds (answers lost); fed on stdin, it waits as long as stdin
+    is open, closed here once every query got its answer or ``timeout_s`` passed.
     pmc binds a socket of its own (default ``/var/run/pmc.PID``, writable by root only): it gets
     one in a private temporary folder instead, so that a node not run as root can ask too."""
     if shutil.which("pmc") is None:
         return None, "pmc not installed (Debian package linuxptp)"
+    if not os.path.exists(socket):
+        return None, f"no ptp4l socket at {socket} (is ptp4l running? its uds_address?)"
+    if not os.access(socket, os.W_OK):
+        return None, f"no permission to write {socket} (run as root or in the socket's group, see README)"
     with tempfile.TemporaryDirectory(prefix="dcuscope-pmc-") as tmp:
         try:
             proc = await asyncio.create_subprocess_exec(
-                "pmc", "-u", "-b", "0", "-s", socket, "-i", str(Path(tmp) / "pmc"), *QUERIES,
+                "pmc", "-u", "-b", "0", "-s", socket, "-i", str(Path(tmp) / "pmc"), stdin=asyncio.subprocess.PIPE,
                 stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
         except OSError as exc:
             return None, f"pmc failed: {exc}"
         try:
-            out, err = await asyncio.wait_for(proc.communicate(), timeout_s)
+            text, err = await asyncio.wait_for(_converse(proc, timeout_s), timeout_s + 2)
         except asyncio.TimeoutError:
             proc.kill()
             await proc.wait()
             return None, "pmc timed out"
-    text = out.decode(errors="replace")
     if "RESPONSE" not in text:
-        problem = err.decode(errors="replace").strip().splitlines()
+        problem = err.strip().splitlines()
         return None, f"no answer from ptp4l at {socket}" + (f": {problem[-1][:120]}" if problem else "")
     return text, ""
+
+
+async def _converse(proc: asyncio.subprocess.Process, timeout_s: float) -> tuple[str, str]:
+    """One query at a time: pmc reads stdin with stdio, so lines written together would wait in
+    its buffer, unseen by its poll, until stdin closes."""
+    lines: list[str] = []
+    try:
+        async with asyncio.timeout(timeout_s):
+            for query in QUERIES:
+                proc.stdin.write(f"{query}\n".encode())
+                await proc.stdin.drain()
+                while True:
+                    line = (await proc.stdout.readline()).decode(errors="replace")
+                    if not line:
+                        raise TimeoutError  # pmc ended
+                    lines.append(line)
+                    if (head := _RESPONSE.match(line)) is not None and head.group(2) == query.split()[1]:
+                        break
+    except TimeoutError:
+        pass  # what came is used; a missing TIME_STATUS_NP makes it "unavailable"
+    proc.stdin.close()  # pmc then waits 100 ms for stragglers and exits
+    rest, err = await proc.communicate()
+    return "".join(lines) + rest.decode(errors="replace"), err.decode(errors="replace")
 
 
 async def read_ptp_state(socket: str = DEFAULT_UDS, timeout_s: float = PMC_TIMEOUT_S) -> dict:
