@@ -131,13 +131,13 @@ class Ptp4lSetup:
     interfaces: tuple[str, ...] = field(default=())
 
 
-def ptp4l_setup(p: Proc, read_config=lambda path: Path(path).read_text()) -> Ptp4lSetup:
+def ptp4l_setup(p: Proc) -> Ptp4lSetup:
     """Command-line options override the ``-f`` config file's ``[global]`` section, as in ptp4l."""
     opts = _options(p.argv, "fimplsq")
     conf: dict[str, str] = {}
     if opts.get("f"):
         try:
-            conf = config_globals(read_config(opts["f"][-1]))
+            conf = config_globals(Path(opts["f"][-1]).read_text())
         except OSError:
             conf = {}
     conf.update({k: v[-1] for k, v in opts.items() if len(k) > 1})

@@ -46,11 +46,12 @@ def test_grandmaster_reports_itself_master(net):
 @pytest.mark.parametrize("config", ["grandmaster-hw.cfg", "dcu-hw.cfg", "grandmaster-sw.cfg", "dcu-sw.cfg"])
 def test_shipped_configs_load_in_ptp4l(net, config, tmp_path):
     """Each config runs ptp4l up to a listening port (software timestamping forced with -S, which
-    a veth has; free-running: no clock is touched); hardware ones also get past the parser
-    (ptp4l rejects unknown options) to the timestamping check a veth fails."""
+    a veth has; free-running: no clock is touched; PTP domain 1: the test's grandmaster and client,
+    in domain 0, never hear it); hardware ones also get past the parser (ptp4l rejects unknown
+    options) to the timestamping check a veth fails."""
     uds = tmp_path / "cfg.sock"
     argv = ["ptp4l", "-f", str(CONFIGS / config), "-i", net.gm_iface, "-m", "--free_running", "1",
-            "--uds_address", str(uds)]
+            "--domainNumber", "1", "--uds_address", str(uds)]
     proc = net.spawn(net.gm_ns, argv + ["-S"], f"load-{config}")
     deadline = time.monotonic() + 15
     while "to LISTENING" not in net.log(f"load-{config}") and time.monotonic() < deadline:
