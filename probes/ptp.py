@@ -106,9 +106,9 @@ def parse_time_status(text: str) -> dict:
 async def run_pmc(socket: str = DEFAULT_UDS, timeout_s: float = PMC_TIMEOUT_S) -> tuple[str | None, str]:
     """pmc's output for :data:`QUERIES` to the ptp4l answering at ``socket``, or (None, why not).
 
-    pmc runs interactively: given its commands as arguments it exits once 100 ms pass without an
-    answer, which a busy machine exceeds (answers lost); fed on stdin, it waits as long as stdin
-    is open, closed here once every query got its answer or ``timeout_s`` passed.
+    pmc runs interactively: given its commands as arguments it exits once its last command got
+    no answer for 100 ms, which a busy machine exceeds (answers lost); fed on stdin, it waits as
+    long as stdin is open, closed here once every query got its answer or ``timeout_s`` passed.
     pmc binds a socket of its own (default ``/var/run/pmc.PID``, writable by root only): it gets
     one in a private temporary folder instead, so that a node not run as root can ask too."""
     if shutil.which("pmc") is None:
@@ -152,7 +152,7 @@ async def _converse(proc: asyncio.subprocess.Process, timeout_s: float) -> tuple
                     lines.append(line)
                     if (head := _RESPONSE.match(line)) is not None and head.group(2) == query.split()[1]:
                         break
-    except TimeoutError:
+    except (TimeoutError, BrokenPipeError, ConnectionResetError):
         pass  # what came is used; a missing TIME_STATUS_NP makes it "unavailable"
     proc.stdin.close()  # pmc then waits 100 ms for stragglers and exits
     rest, err = await proc.communicate()
