@@ -21,11 +21,15 @@ def net(tmp_path_factory):
 
 
 def test_node_reads_grandmaster_port_and_offset(net):
-    state = asyncio.run(read_ptp_state(str(net.client_uds)))
-    assert state["gm_identity"] == net.gm_identity() and state["gm_present"] is True
-    assert (state["state"], state["port_state"], state["interface"], state["timestamping"]) == (
-        "locked", "SLAVE", net.client_iface, "software")
-    assert abs(state["master_offset_ns"]) < 10_000
+    offsets = []
+    for _ in range(3):  # a Sync each second: three measurements, judged by their median
+        state = asyncio.run(read_ptp_state(str(net.client_uds)))
+        assert state["gm_identity"] == net.gm_identity() and state["gm_present"] is True
+        assert (state["state"], state["port_state"], state["interface"], state["timestamping"]) == (
+            "locked", "SLAVE", net.client_iface, "software")
+        offsets.append(abs(state["master_offset_ns"]))
+        time.sleep(1)
+    assert sorted(offsets)[1] < 10_000, offsets
 
 
 def test_locked_but_system_clock_not_disciplined_is_not_trusted(net):
