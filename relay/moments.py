@@ -96,15 +96,20 @@ def shared_sources(a: dict[int, str], b: dict[int, str], uri: str | None = None)
     if uri is not None:
         pick = {v for v in (uri, f"uri:{uri}") if v in a.values() and v in b.values()}
         if not pick:
-            raise MomentsError(f"source {uri[:200]!r} is not a source of both nodes "
-                               f"(first: {sorted(a.values())}, second: {sorted(b.values())})")
+            raise MomentsError(f"source {uri[:200]!r} is not a source of both nodes (a: {_listed(a)}; b: {_listed(b)})")
     else:
         pick = set(a.values()) & set(b.values())
         if not pick:
-            raise MomentsError(f"the two nodes share no source (first: {sorted(a.values())}, second: "
-                               f"{sorted(b.values())}): name one with source=URI, or source_a=ID&source_b=ID")
+            raise MomentsError(f"the two nodes share no source (a: {_listed(a)}; b: {_listed(b)}): name one "
+                               "with source=URI, or source_a=ID&source_b=ID")
     by_uri_b = {v: k for k, v in b.items()}
     return [(k, by_uri_b[v], v) for k, v in sorted(a.items()) if v in pick]
+
+
+def _listed(sources: dict[int, str], most: int = 8) -> str:
+    """A header's sources for an error message, the first ``most`` of them."""
+    items = [f"{k}={v[:120]}" for k, v in sorted(sources.items())[:most]]
+    return ", ".join(items) + (f", ... ({len(sources)} in all)" if len(sources) > most else "") or "none"
 
 
 def _ms(ns) -> float:
@@ -174,8 +179,7 @@ def pairs_of(a: Side, b: Side, uri: str | None = None,
     if ids is not None:
         for side, sid in zip((a, b), ids):
             if sid not in side.sources:
-                raise MomentsError(f"node {side.node!r} has no source {sid} (its sources: "
-                                   f"{ {k: side.sources[k] for k in sorted(side.sources)} })")
+                raise MomentsError(f"node {side.node!r} has no source {sid} (its sources: {_listed(side.sources)})")
         chosen = [(ids[0], ids[1], a.sources[ids[0]])]
     else:
         chosen = shared_sources(a.sources, b.sources, uri)
