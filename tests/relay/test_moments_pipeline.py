@@ -97,7 +97,9 @@ def test_corrected_difference_per_moment_agrees_with_the_truth_within_its_error_
     judged = 0
     for m in out["moments"]:
         (cap_a, end_a), (cap_b, end_b) = a[m["a"]["frame"]], b[m["b"]["frame"]]
-        assert cap_a == cap_b == m["capture"]  # one stream: the very same capture time on both DCUs
+        # One stream: the same capture time on both DCUs (equal in every run so far; a frame mapped
+        # through a newer sender report on one DCU than on the other might differ by microseconds).
+        assert cap_a == m["capture"] and abs(cap_a - cap_b) <= 100_000
         truth = (end_b - end_a) / 1e6
         assert abs(m["diff_ms"] - truth) <= m["error_ms"], (m, truth)
         assert abs(m["diff_ms"] - (truth + OFFSET_MS)) > OFFSET_MS - 2 * m["error_ms"]  # uncorrected: 37 ms off
@@ -105,7 +107,7 @@ def test_corrected_difference_per_moment_agrees_with_the_truth_within_its_error_
             judged += 1
             assert m["first"] == ("DCU-1" if truth > 0 else "DCU-2") and m["significant"]
     assert judged >= s["matched"] // 2 and 0 < s["error_ms"]["max"] < 2, s
-    assert s["capture_spread_us"] == 0 and sum(s["first_share"].values()) <= 1
+    assert s["capture_spread_us"] <= 100 and sum(s["first_share"].values()) <= 1
     assert s["frames"]["DCU-1"] - s["unmatched"]["DCU-1"] == s["matched"]
     named = get_json(f"{relay.url}/api/moments?a=DCU-1&b=DCU-2&limit=5&source={urllib.request.quote(url)}")
     assert named["summary"]["matched"] == s["matched"] and len(named["moments"]) == 5
