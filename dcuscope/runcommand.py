@@ -71,7 +71,7 @@ def run_command(args: argparse.Namespace) -> int:
 
         probing = start_probes(built, config, relay=args.relay, token=args.token,
                                clock_offset_ns=int(args.clock_offset_ms * 1e6), progress=progress,
-                               clock_drift_ppm=args.clock_drift_ppm)
+                               clock_drift_ppm=args.clock_drift_ppm, ptp_socket=args.ptp_socket)
     try:
         result = runner.run()
     finally:

@@ -13,19 +13,23 @@ from core.clocks import CLOCKS, PretendClock
 from pipeline.build import BuiltPipeline
 from pipeline.config import PipelineConfig
 from probes.errors import ExportError
-from probes.events import Exporter, TraceHeader
+from probes.events import CAPTURE, Exporter, TraceHeader
 from probes.relayexport import RelayExporter
 from probes.relaylink import check_token
 from probes.shipper import Shipper
 from probes.sourcewatch import SourceWatch
+from probes.sysclock import DEFAULT_UDS
 from probes.tracefile import TraceFileWriter
 from probes.tracer import Tracer, attach
 
 
 class _Shifted:
-    """Exporter wrapper that moves every timestamp through ``pretend``: the --clock-offset-ms and
-    --clock-drift-ppm testing aids, so that a node can pretend its clock is off (and runs fast or
-    slow) and the relay must notice. The relay exporter's clock exchanges read the same clock."""
+    """Exporter wrapper that moves every timestamp the node's clock took through ``pretend``: the
+    --clock-offset-ms and --clock-drift-ppm testing aids, so that a node can pretend its clock is
+    off (and runs fast or slow) and the relay must notice; the relay exporter's clock exchanges
+    read the same pretend clock. Capture times are left as they are: they are the camera's clock
+    (an RTSP sender's reports), which a node whose own clock is off still receives unchanged, and
+    which two DCUs of one camera must share for their frames to be matched (relay.moments)."""
 
     def __init__(self, inner: Exporter, pretend: PretendClock):
         self.inner, self.pretend = inner, pretend
@@ -36,7 +40,8 @@ class _Shifted:
 
     def write(self, events: np.ndarray) -> None:
         shifted = events.copy()
-        shifted["ts"] = self.pretend.shift(events["ts"])
+        own = shifted["point"] != CAPTURE
+        shifted["ts"][own] = self.pretend.shift(events["ts"][own])
         self.inner.write(shifted)
 
     def close(self, dropped: int) -> None:
@@ -76,7 +81,8 @@ def default_trace_path(node: str) -> Path:
 
 
 def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None = None, token: str | None = None,
-                 clock_offset_ns: int = 0, progress: TextIO | None = None, clock_drift_ppm: float = 0.0) -> RunProbes:
+                 clock_offset_ns: int = 0, progress: TextIO | None = None, clock_drift_ppm: float = 0.0,
+                 ptp_socket: str = DEFAULT_UDS) -> RunProbes:
     """Attach tracepoints to every element of ``built`` (not yet playing) and start shipping.
     ``clock_offset_ns`` and ``clock_drift_ppm``: testing aids (:class:`core.clocks.PretendClock`)."""
     if relay is not None:
@@ -92,7 +98,8 @@ def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None
     pretend = PretendClock(int(clock_offset_ns), float(clock_drift_ppm), CLOCKS[config.probes.clock])
     relay_exporter = None
     if relay is not None:
-        relay_exporter = RelayExporter(relay, config.node, token=token, clock=config.probes.clock, pretend=pretend)
+        relay_exporter = RelayExporter(relay, config.node, token=token, clock=config.probes.clock, pretend=pretend,
+                                       ptp_socket=ptp_socket)
         exporters.append(relay_exporter)
     if pretend.shifts:
         exporters = [_Shifted(e, pretend) for e in exporters]

@@ -37,9 +37,10 @@ from yarl import URL
 from core.clocks import CLOCKS, PretendClock
 from probes.errors import ExportError
 from probes.events import EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
-from probes.ptp import read_ptp_state
+from probes.ptp import POLL_INTERVAL_S, PtpWatch
 from probes.relaylink import Link, Refused
 from probes.udpclock import UdpClock, parse_offer
+from probes.sysclock import DEFAULT_UDS
 from probes.wire import MAX_BATCH_EVENTS, PROTOCOL_VERSION, encode_batch
 
 DEFAULT_BATCH_EVENTS = 8192
@@ -69,13 +70,15 @@ class RelayExporter:
     must read the same one. ``pretend`` is a testing aid: every clock reading of this client
     goes through it, as the probes' event timestamps do, to inject a known offset and drift.
     ``close_timeout_s`` bounds ``close`` as a whole (waiting for acknowledgements included).
+    ``ptp_socket``: the UDS of the local ptp4l, read every ``ptp_interval_s`` with pmc.
     """
 
     def __init__(self, url: str, node: str, token: str | None = None, clock: str = "realtime",
                  pretend: PretendClock | None = None, *, compress: bool = False,
                  batch_events: int = DEFAULT_BATCH_EVENTS, flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
                  max_buffer_events: int = DEFAULT_MAX_BUFFER_EVENTS, window: int = DEFAULT_WINDOW,
-                 sync_interval_s: float = 2.0, ptp_interval_s: float = 10.0,
+                 sync_interval_s: float = 2.0, ptp_interval_s: float = POLL_INTERVAL_S,
+                 ptp_socket: str = DEFAULT_UDS,
                  close_timeout_s: float = EXPORTER_CLOSE_S,
                  backoff_s: tuple[float, float] = (0.1, 5.0)) -> None:
         if clock not in CLOCKS:
@@ -124,6 +127,7 @@ class RelayExporter:
         """How long sending is held after the relay could not store a batch (0: it could)."""
         self._hold_until = 0.0
         self._ptp: dict = {"state": "unavailable", "reason": "not read yet"}
+        self._ptp_watch = PtpWatch(ptp_socket)
         self._link: Link | None = None
         self._offer: tuple[int, bytes] | None = None
         """(port, key) of the UDP clock exchange the relay offered on this connection."""
@@ -252,7 +256,7 @@ class RelayExporter:
 
     async def _ptp_loop(self) -> None:
         while True:
-            self._ptp = await read_ptp_state()
+            self._ptp = await self._ptp_watch.read()
             await asyncio.sleep(self._ptp_interval)
 
     def _hello(self) -> dict:
