@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from core.clocks import PretendClock
 from probes.delays import frame_delays
 from probes.events import CAPTURE, ENTER, EXIT, ORIGIN, TraceHeader
 from probes.frametable import frame_table
@@ -121,7 +122,7 @@ class _Keep:
 
 def test_the_clock_offset_aid_shifts_the_nodes_timestamps_but_not_the_cameras_capture_times():
     inner = _Keep()
-    shifted = _Shifted(inner, 37_000_000)
+    shifted = _Shifted(inner, PretendClock(37_000_000))
     src = np.zeros(2, np.int32)
     events = np.concatenate([_events(np.array([T0, T0 + 1]), src, np.arange(2), 0, CAPTURE),
                              _events(np.array([T0 + 5, T0 + 6]), src, np.arange(2), 0, ORIGIN)])
