@@ -7,13 +7,12 @@ runs 37 ms ahead has offset +37 ms), so a node timestamp is brought to the relay
 subtracting it. From the four NTP timestamps (t1 node send, t2 relay receive, t3 relay send,
 t4 node receive) NTP's theta = ((t2 - t1) + (t3 - t4)) / 2 is relay minus node: offset = -theta.
 The true offset lies within +-RTT/2 of any sample's estimate (RTT = (t4 - t1) - (t3 - t2)),
-whatever the asymmetry of the two paths; the minimum-RTT sample of a window has the tightest
-bound, which is the uncertainty reported.
+whatever the asymmetry of the two paths. :mod:`relay.clockmodel` fits offset and drift over
+many samples, with a bound that holds at every timestamp, and keeps the history of its estimates.
 """
 
 from __future__ import annotations
 
-from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -21,7 +20,6 @@ import numpy as np
 from probes.frametable import MISSING
 
 CLOCK_MODES = ("ptp", "estimate", "auto")
-DEFAULT_WINDOW = 32
 MAX_CORRECTION_NS = 10**17
 """The largest correction ever applied (~3 years), whatever ``--limit clock_offset_s`` says: a
 timestamp of this era (~1.7e18 ns) moved by it stays far inside int64, so no arithmetic on
@@ -34,43 +32,44 @@ class ClockSample:
     rtt_ns: int
     at_ns: int
     """Relay time of the sample (t2)."""
+    node_ns: int = 0
+    """Node time of the sample: (t1 + t4) / 2."""
+    via: str = "websocket"
+    """Transport of the exchange: websocket (the ingest connection) or udp."""
 
 
 @dataclass(frozen=True)
 class ClockEstimate:
+    """A node's offset (node - relay) at node time ``at_ns``, true within ``uncertainty_ns`` there
+    and within uncertainty_ns + growth_ppb * |ts - at_ns| / 1e9 at any node time ts, drifting by
+    ``drift_ppb`` (:mod:`relay.clockmodel`)."""
     offset_ns: int
     uncertainty_ns: int
     rtt_ns: int
     samples: int
     at_ns: int | None = None
-    """Node-clock time the estimate holds at (the best sample's relay time t2 plus its offset)."""
+    """Node-clock time the estimate holds at (its reference point)."""
+    drift_ppb: int = 0
+    growth_ppb: int = 0
+    """Bound on |drift - true drift|, ppb."""
+    via: str = "websocket"
+    """Transport of the sample the bound rests on."""
+    points: int = 1
+    newest_ns: int | None = None
+    """Node time of the newest point the estimate rests on."""
+
+    def segment(self, from_ns: int) -> Segment:
+        """The estimate in force for node timestamps from ``from_ns`` on."""
+        ref = self.at_ns if self.at_ns is not None else from_ns
+        return Segment(from_ns=from_ns, ref_ns=ref, offset_ns=self.offset_ns, drift_ppb=self.drift_ppb,
+                       uncertainty_ns=self.uncertainty_ns, growth_ppb=self.growth_ppb)
 
 
-def ntp_sample(t1: int, t2: int, t3: int, t4: int) -> ClockSample:
+def ntp_sample(t1: int, t2: int, t3: int, t4: int, via: str = "websocket") -> ClockSample:
     """Offset (node - relay) and round-trip delay of one exchange."""
     theta2 = (t2 - t1) + (t3 - t4)
     rtt = (t4 - t1) - (t3 - t2)
-    return ClockSample(offset_ns=-theta2 // 2, rtt_ns=max(rtt, 0), at_ns=t2)
-
-
-class ClockEstimator:
-    """Keeps the last ``window`` samples of one node; the estimate is the minimum-RTT one."""
-
-    def __init__(self, window: int = DEFAULT_WINDOW) -> None:
-        self._samples: deque[ClockSample] = deque(maxlen=window)
-
-    def add(self, t1: int, t2: int, t3: int, t4: int) -> None:
-        self.add_sample(ntp_sample(t1, t2, t3, t4))
-
-    def add_sample(self, sample: ClockSample) -> None:
-        self._samples.append(sample)
-
-    def estimate(self) -> ClockEstimate | None:
-        if not self._samples:
-            return None
-        best = min(self._samples, key=lambda s: s.rtt_ns)
-        return ClockEstimate(best.offset_ns, (best.rtt_ns + 1) // 2, best.rtt_ns, len(self._samples),
-                             best.at_ns + best.offset_ns)
+    return ClockSample(offset_ns=-theta2 // 2, rtt_ns=max(rtt, 0), at_ns=t2, node_ns=(t1 + t4) // 2, via=via)
 
 
 def sample_fault(sample: ClockSample, max_offset_ns: int, max_rtt_ns: int) -> str | None:
@@ -186,8 +185,10 @@ class Correction:
 NO_CORRECTION = Correction("none", "no clock estimate yet")
 
 
-def correction_of(mode: str, estimate: ClockEstimate | None, ptp: dict, now_ns: int | None = None) -> Correction:
-    """The :class:`Correction` ``--clock mode`` calls for (see :func:`correction_ns`)."""
+def correction_of(mode: str, estimate: ClockEstimate | None, ptp: dict, now_ns: int | None = None,
+                  history: tuple[Segment, ...] | list[Segment] = ()) -> Correction:
+    """The :class:`Correction` ``--clock mode`` calls for (see :func:`correction_ns`): under an
+    estimate, the ``history`` of estimates (each in force from its ``from_ns``), else the estimate alone."""
     value, applied = correction_ns(mode, estimate, ptp)
     if applied == "ptp":
         offset = ptp.get("master_offset_ns") if isinstance(ptp, dict) else None
@@ -195,6 +196,7 @@ def correction_of(mode: str, estimate: ClockEstimate | None, ptp: dict, now_ns: 
         return Correction("ptp", "PTP trusted" if mode == "auto" else "--clock ptp", (), unc)
     if applied != "estimate" or estimate is None:
         return Correction(applied, "no clock estimate yet" if applied == "none" else "estimate ignored")
+    if history:
+        return Correction("estimate", "offset estimated by the relay", tuple(history))
     at = estimate.at_ns if estimate.at_ns is not None else (now_ns or 0)
-    return Correction("estimate", "offset estimated by the relay",
-                      (Segment(from_ns=at, ref_ns=at, offset_ns=value, uncertainty_ns=estimate.uncertainty_ns),))
+    return Correction("estimate", "offset estimated by the relay", (estimate.segment(at),))
