@@ -145,12 +145,13 @@ class Correction:
         starts = np.array([s.from_ns for s in self.segments], dtype=np.int64)
         return np.maximum(np.searchsorted(starts, ts, side="right") - 1, 0)
 
-    def offsets(self, ts: np.ndarray) -> np.ndarray:
-        """(n,) int64 ns to subtract from each node timestamp of ``ts``."""
+    def offsets(self, ts: np.ndarray, at: np.ndarray | None = None) -> np.ndarray:
+        """(n,) int64 ns to subtract from each node timestamp of ``ts``, by the segment in force at
+        ``ts`` or, given ``at`` (same shape), at ``at`` (a frame's start: one estimate per frame)."""
         ts = np.asarray(ts, dtype=np.int64)
         if not self.segments:
             return np.zeros(ts.shape, dtype=np.int64)
-        seg = self._index(ts)
+        seg = self._index(ts if at is None else np.asarray(at, dtype=np.int64))
         off = np.array([s.offset_ns for s in self.segments], dtype=np.int64)[seg]
         drift = np.array([s.drift_ppb for s in self.segments], dtype=np.float64)[seg]
         ref = np.array([s.ref_ns for s in self.segments], dtype=np.int64)[seg]
@@ -172,10 +173,10 @@ class Correction:
         a = np.array([ts], dtype=np.int64)
         return int(self.offsets(a)[0]), int(self.uncertainties(a)[0])
 
-    def correct(self, ts: np.ndarray) -> np.ndarray:
-        """Node timestamps moved to the relay's clock (MISSING kept as it is)."""
+    def correct(self, ts: np.ndarray, at: np.ndarray | None = None) -> np.ndarray:
+        """Node timestamps moved to the relay's clock (MISSING kept as it is); ``at`` as in :meth:`offsets`."""
         ts = np.asarray(ts, dtype=np.int64)
-        return np.where(ts == MISSING, ts, ts - self.offsets(ts))
+        return np.where(ts == MISSING, ts, ts - self.offsets(ts, at))
 
     def to_dict(self) -> dict:
         return {"applied": self.applied, "why": self.why, "base_uncertainty_ns": self.base_uncertainty_ns,

@@ -7,8 +7,10 @@
 - ``GET /api/sessions/{session}/stats?node=NAME``: ``probes.delays.node_stats`` over the node's
   stored events (stage shares and bottleneck included)
 
-Timestamps are moved to the relay's clock by each run's last stored clock correction, as
-``dcuscope export`` does (:func:`relay.storage.load_runs`). A session is paired once, in a
+Timestamps are moved to the relay's clock as ``dcuscope export`` moves them: each by the estimate
+in force at its time, from the run's stored clock history (:func:`relay.storage.load_runs`); as
+live, runs are paired on their node's own clock and only the frames' times are moved, each frame
+with its offset and bound (``clock_ns``, ``clock_uncertainty_ns``). A session is paired once, in a
 worker thread with its own read connection (WAL: ingest keeps writing meanwhile), and kept
 for the next requests; a session still being recorded is re-read after ``LIVE_TTL_S``.
 
@@ -48,10 +50,6 @@ ROUTES = ("/api/sessions/{session:\\d+}/nodes", "/api/sessions/{session:\\d+}/fr
           "/api/sessions/{session:\\d+}/stats")
 
 
-STORED = Correction("stored", "corrected when loaded")
-"""Stored events are already corrected by :func:`relay.storage.load_runs`."""
-
-
 @dataclass
 class StoredNode:
     """One run of a stored session, paired: its frames' delays and the order of its complete
@@ -66,6 +64,8 @@ class StoredNode:
     ended: bool
     events: int
     fd: FrameDelays
+    correction: Correction
+    """The run's stored clock correction, applied to the frames' times shown (pairing is on the node's clock)."""
     order: np.ndarray
     """Rows of ``fd`` of the complete frames, by chain end: position k is cursor k + 1."""
     stats: dict
@@ -73,16 +73,17 @@ class StoredNode:
     def summary(self) -> dict:
         n = len(self.order)
         t, ch = self.fd.table, self.fd.chains
+        first, last = self.correction.correct(t.origin[self.order]), self.correction.correct(ch.end[self.order])
         return {"node": self.node, "run": self.run, "stages": self.header.stages, "kinds": self.header.kinds,
                 "sources": {str(k): v for k, v in self.header.sources.items()}, "frames": n, "events": self.events,
-                "first_ns": int(t.origin[self.order].min()) if n else None,
-                "last_ns": int(ch.end[self.order].max()) if n else None,
+                "first_ns": int(first.min()) if n else None,
+                "last_ns": int(last.max()) if n else None,
                 "dropped": self.dropped, "lost": self.lost, "clock": self.clock, "ended": self.ended}
 
     def frames_view(self, since: int, limit: int) -> dict:
         """Frames at positions since+1 .. since+limit, shaped as ``RelayState.frames_view``."""
         lo, hi = min(since, len(self.order)), min(since + limit, len(self.order))
-        frames = frame_dicts(np.arange(lo + 1, hi + 1), self.fd, STORED, self.order[lo:hi])
+        frames = frame_dicts(np.arange(lo + 1, hi + 1), self.fd, self.correction, self.order[lo:hi])
         return block(self.node, self.run, self.header.stages, self.header.kinds, self.fd.chains.has_exit, frames,
                      self.clock.get("applied", "stored"), cursor=hi, total=len(self.order))
 
@@ -97,7 +98,7 @@ def pair_run(run: db.StoredRun, name: str) -> StoredNode:
     stats = dict(delay_stats(fd, run.header.sources, run.dropped, accounting), node=name, run=run.run, session=run.session,
                  lost=run.lost)
     return StoredNode(node=name, run=run.run, header=run.header, dropped=run.dropped, lost=run.lost,
-                      clock=run.clock, ended=run.ended, events=len(run.events), fd=fd,
+                      clock=run.clock, ended=run.ended, events=len(run.events), fd=fd, correction=run.correction,
                       order=c[np.argsort(ch.end[c], kind="stable")], stats=stats)
 
 
@@ -105,7 +106,7 @@ def load_session_nodes(path, session: int) -> list[StoredNode]:
     """Every run of a stored session, paired (blocking: call it in a worker thread)."""
     nodes: list[StoredNode] = []
     taken: set[str] = set()
-    for run in db.load_runs(path, session):
+    for run in db.load_runs(path, session, corrected=False):
         name = unique_name(run.header.node, taken)
         taken.add(name)
         nodes.append(pair_run(run, name))

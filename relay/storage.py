@@ -8,8 +8,8 @@ that comes back after a relay restart keeps its session. Sessions are numbered 1
 
 Events are stored as they arrived, one row per batch (the payload blob, compressed or not),
 keyed by (run, seq): a resent batch is ignored by the primary key, so every event is stored
-exactly once. Timestamps are stored raw (node clock); each run keeps its last clock estimate,
-whose correction :func:`load_session` applies.
+exactly once. Timestamps are stored raw (node clock); each run keeps its last clock view and the
+history of its clock estimates (``clock_history``), which :func:`load_runs` applies per timestamp.
 
 All writes go through one thread that owns the connection and commits in groups: a batch is
 acknowledged to its node only after the transaction holding it committed.
@@ -460,7 +460,8 @@ class StoredRun:
     clock: dict
     ended: bool
     correction: Correction = NO_CORRECTION
-    """What moved the events to the relay's clock (with ``corrected``), per timestamp, and its bound."""
+    """What brings the run's node timestamps to the relay's clock, per timestamp, and its bound
+    (already applied to ``events`` when loaded ``corrected``)."""
 
 
 def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> list[StoredRun]:
@@ -490,10 +491,9 @@ def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> 
             clock, correction = _run_clock(rid, clock, run_history(conn, rid))
             if corrected and correction.segments and len(events):
                 events = events.copy()
-                events["ts"] = correction.correct(events["ts"])
+                events["ts"] = correction.correct(events["ts"], frame_starts(events))
             out.append(StoredRun(rid, int(session), TraceHeader.from_dict(json.loads(header)), events,
-                                 int(dropped), int(lost), clock, ended is not None,
-                                 correction if corrected else RAW))
+                                 int(dropped), int(lost), clock, ended is not None, correction))
         return out
     except sqlite3.DatabaseError as exc:
         raise RelayError(f"{db}: cannot read session {session_id!r}: {exc}") from exc
@@ -501,7 +501,15 @@ def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> 
         conn.close()
 
 
-RAW = Correction("raw", "uncorrected times asked for")
+def frame_starts(events: np.ndarray) -> np.ndarray:
+    """Per event, the earliest timestamp of its frame (source, frame): every event of a frame is
+    corrected by the estimate in force at its start, so that a new estimate arriving while a frame
+    went through the pipeline leaves its delays as measured on the node's clock."""
+    _, group = np.unique(events[["source", "frame"]], return_inverse=True)
+    group = group.reshape(-1)
+    first = np.full(int(group.max()) + 1, np.iinfo(np.int64).max, dtype=np.int64)
+    np.minimum.at(first, group, events["ts"])
+    return first[group]
 
 
 def _run_clock(run: str, text: str, history: list[Segment]) -> tuple[dict, Correction]:
