@@ -157,12 +157,12 @@ class Correction:
         ref = np.array([s.ref_ns for s in self.segments], dtype=np.int64)[seg]
         return off + np.rint(drift * (ts - ref).astype(np.float64) / 1e9).astype(np.int64)
 
-    def uncertainties(self, ts: np.ndarray) -> np.ndarray:
-        """(n,) int64 ns: bound on |true offset - applied offset| at each timestamp."""
+    def uncertainties(self, ts: np.ndarray, at: np.ndarray | None = None) -> np.ndarray:
+        """(n,) int64 ns: bound on |true offset - applied offset| at each timestamp (``at`` as in :meth:`offsets`)."""
         ts = np.asarray(ts, dtype=np.int64)
         if not self.segments:
             return np.full(ts.shape, self.base_uncertainty_ns, dtype=np.int64)
-        seg = self._index(ts)
+        seg = self._index(ts if at is None else np.asarray(at, dtype=np.int64))
         unc = np.array([s.uncertainty_ns for s in self.segments], dtype=np.int64)[seg]
         growth = np.array([s.growth_ppb for s in self.segments], dtype=np.float64)[seg]
         ref = np.array([s.ref_ns for s in self.segments], dtype=np.int64)[seg]
