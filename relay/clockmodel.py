@@ -29,6 +29,7 @@ predecessor predicts best goes.
 
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass, field, replace
 
@@ -122,10 +123,10 @@ class ClockEstimator:
     """Estimates in force from their ``from_ns`` (node time), oldest first."""
     restarts: int = 0
     """Windows restarted because a sample fell outside the bound (a step)."""
-    _estimate: ClockEstimate | None = None
-    _appended_ns: int | None = None
+    _estimate: ClockEstimate | None = field(default=None, init=False, repr=False)
+    _appended_ns: int | None = field(default=None, init=False, repr=False)
     """Relay time of the newest sample when the last history segment was appended."""
-    _restarted: bool = False
+    _restarted: bool = field(default=False, init=False, repr=False)
 
     def add(self, t1: int, t2: int, t3: int, t4: int, via: str = "websocket") -> None:
         self.add_samples([ntp_sample(t1, t2, t3, t4, via)])
@@ -150,12 +151,14 @@ class ClockEstimator:
             self.points = [p for p in self.points if p.relay_ns > s.at_ns]
             self._estimate, self._restarted = None, True
             self.restarts += 1
-        for p in reversed(self.points):
-            if p.start_ns <= s.node_ns < p.start_ns + POINT_SPAN_NS:
+        new = point_of(s)
+        for p in reversed(self.points):  # sorted by slot: samples mostly join the newest
+            if p.start_ns == new.start_ns:
                 p.take(s)
                 return
-        self.points.append(point_of(s))
-        self.points.sort(key=lambda p: p.start_ns)
+            if p.start_ns < new.start_ns:
+                break
+        bisect.insort(self.points, new, key=lambda p: p.start_ns)
 
     def estimate(self) -> ClockEstimate | None:
         return self._estimate
