@@ -21,9 +21,10 @@ Steps. A sample outside the current bound (its interval disjoint from the fit's)
 clock was not linear over the window (stepped, or changed its frequency): the window restarts
 at that sample.
 
-History. Each new estimate becomes a :class:`Segment` in force from the node time of its newest
-point (after a restart: its first point); one made within ``HISTORY_MIN_NS`` (relay time) of the
-last appended replaces that one. At most ``MAX_HISTORY`` are kept: beyond, the segment its
+History. Each new estimate becomes a :class:`Segment` in force from the node time of the newest
+point before its report (the times since then it interpolates, those after it extrapolates; after
+a restart: from its first point); one made within ``HISTORY_MIN_NS`` (relay time) of the last
+appended replaces that one. At most ``MAX_HISTORY`` are kept: beyond, the segment its
 predecessor predicts best goes.
 """
 
@@ -138,12 +139,14 @@ class ClockEstimator:
         """Take the samples of one report, then estimate again and note the estimate in the history."""
         if not samples:
             return
+        before = self.points[-1].node_ns if self.points else None
         for s in samples:
             self._take(s)
         newest = max(p.node_ns for p in self.points)
         self.points = [p for p in self.points if p.node_ns >= newest - WINDOW_NS][-MAX_POINTS:]
         self._estimate = fit(self.points)
-        self._note(max(s.at_ns for s in samples))
+        self._note(self.points[0].node_ns if before is None or self._restarted else before,
+                   max(s.at_ns for s in samples))
 
     def _take(self, s: ClockSample) -> None:
         if self._estimate is not None and _outside(self._estimate, s):
@@ -163,10 +166,8 @@ class ClockEstimator:
     def estimate(self) -> ClockEstimate | None:
         return self._estimate
 
-    def _note(self, relay_ns: int) -> None:
-        est = self._estimate
-        start = self.points[0].node_ns if self._restarted else est.newest_ns
-        seg = est.segment(start)
+    def _note(self, from_ns: int, relay_ns: int) -> None:
+        seg = self._estimate.segment(from_ns)
         last = self.history[-1] if self.history else None
         recent = self._appended_ns is not None and relay_ns - self._appended_ns < HISTORY_MIN_NS
         if last is not None and recent and not self._restarted:
