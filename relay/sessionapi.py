@@ -5,10 +5,13 @@
 - ``GET /api/sessions/{session}/frames?node=NAME&since=CURSOR&limit=N``: the node's complete
   frames in the order their chains ended, shaped as ``GET /api/frames`` (cursor = position, from 1)
 - ``GET /api/sessions/{session}/stats?node=NAME``: ``probes.delays.node_stats`` over the node's
-  stored events (stage shares and bottleneck included)
+  stored events (stage shares and bottleneck included), and the ``clock`` entry of
+  :mod:`relay.clockentry` (the correction applied, at the run's last event, and its bound)
 
 Timestamps are moved to the relay's clock by each run's last stored clock correction, as
-``dcuscope export`` does (:func:`relay.storage.load_runs`). A session is paired once, in a
+``dcuscope export`` does (:func:`relay.storage.load_runs`); each frame carries the offset that
+was subtracted at its origin (``clock_ns``) and its bound (``clock_uncertainty_ns``), a frames
+block the correction and bound at its last frame (``correction_ns``, ``uncertainty_ns``). A session is paired once, in a
 worker thread with its own read connection (WAL: ingest keeps writing meanwhile), and kept
 for the next requests; a session still being recorded is re-read after ``LIVE_TTL_S``.
 
@@ -35,6 +38,7 @@ from relay import storage as db
 from relay.api import http_error, int_arg
 from relay.errors import RelayError
 from relay.clock import Correction
+from relay.clockentry import clock_entry, stored_run_correction
 from relay.framejson import block, frame_dicts
 from relay.state import RelayState
 
@@ -69,6 +73,8 @@ class StoredNode:
     order: np.ndarray
     """Rows of ``fd`` of the complete frames, by chain end: position k is cursor k + 1."""
     stats: dict
+    correction: Correction
+    """What :func:`relay.storage.load_runs` subtracted from the run's timestamps, and its bound."""
 
     def summary(self) -> dict:
         n = len(self.order)
@@ -82,9 +88,19 @@ class StoredNode:
     def frames_view(self, since: int, limit: int) -> dict:
         """Frames at positions since+1 .. since+limit, shaped as ``RelayState.frames_view``."""
         lo, hi = min(since, len(self.order)), min(since + limit, len(self.order))
-        frames = frame_dicts(np.arange(lo + 1, hi + 1), self.fd, STORED, self.order[lo:hi])
+        rows = self.order[lo:hi]
+        frames = frame_dicts(np.arange(lo + 1, hi + 1), self.fd, STORED, rows)
+        # The events are corrected already: the offset and bound at each frame's origin come
+        # from the run's correction, evaluated at the corrected origin (off from the node-time
+        # value by drift x offset at most: 2 ns for 50 ppm and 37 ms).
+        origin = self.fd.table.origin[rows]
+        for f, off, unc in zip(frames, self.correction.offsets(origin).tolist(),
+                               self.correction.uncertainties(origin).tolist()):
+            f["clock_ns"], f["clock_uncertainty_ns"] = off, unc
+        last = frames[-1]["end"] if frames else 0
+        corr, bound = self.correction.at(last)
         return block(self.node, self.run, self.header.stages, self.header.kinds, self.fd.chains.has_exit, frames,
-                     self.clock.get("applied", "stored"), cursor=hi, total=len(self.order))
+                     self.correction.applied, cursor=hi, total=len(self.order), correction_ns=corr, uncertainty_ns=bound)
 
 
 def pair_run(run: db.StoredRun, name: str) -> StoredNode:
@@ -94,11 +110,13 @@ def pair_run(run: db.StoredRun, name: str) -> StoredNode:
     accounting.add(run.events)
     ch = fd.chains
     c = np.flatnonzero(ch.complete)
+    correction = stored_run_correction(run.clock)
+    last = int(run.events["ts"].max()) if len(run.events) else 0
     stats = dict(delay_stats(fd, run.header.sources, run.dropped, accounting), node=name, run=run.run, session=run.session,
-                 lost=run.lost)
+                 lost=run.lost, clock=clock_entry(correction, last))
     return StoredNode(node=name, run=run.run, header=run.header, dropped=run.dropped, lost=run.lost,
                       clock=run.clock, ended=run.ended, events=len(run.events), fd=fd,
-                      order=c[np.argsort(ch.end[c], kind="stable")], stats=stats)
+                      order=c[np.argsort(ch.end[c], kind="stable")], stats=stats, correction=correction)
 
 
 def load_session_nodes(path, session: int) -> list[StoredNode]:
