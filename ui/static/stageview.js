@@ -519,7 +519,8 @@ export class StageView {
       // Absent where the relay has no split (old traces, Python probes): nothing is guessed.
       ...(h.service === h.service || h.wait === h.wait
         ? [`service ${known(h.service)}  wait ${known(h.wait)}`] : []),
-      StageView.describeClock(h),
+      // Absent where the relay sent no clock (an older relay): nothing is guessed.
+      ...(h.bound === h.bound || h.applied ? [StageView.describeClock(h)] : []),
     ];
   }
 
@@ -527,6 +528,9 @@ export class StageView {
   static describeClock(h) {
     const offset = `${h.clock >= 0 ? "+" : "−"}${Math.abs(h.clock).toFixed(3)} ms`;
     const bound = h.bound === h.bound ? ` ${formatBound(h.bound)}` : "";
+    if (h.applied === "none" || h.applied === "ignored") {
+      return `${h.raw ? "raw node clock" : "not corrected"}: the relay has no usable clock estimate (${h.applied})`;
+    }
     if (h.raw) return `raw node clock (the relay subtracts ${offset}${bound})`;
     return `corrected to the relay's clock (${h.applied ?? "?"}: ${offset} subtracted${bound})`;
   }
