@@ -172,7 +172,8 @@ def _origin(trace, db: str | None) -> str:
 def format_stats(doc: dict, origins: list[str] | None = None) -> str:
     """Readable aligned tables, one block per node (``origins``: where each came from, for the
     titles): delays (stages, gaps, frame), where the time goes (service, wait, utilization,
-    share of delay), the bottleneck and why, every source's frames, drops."""
+    share of delay), the bottleneck and why, every source's frames, drops, and for a stored run
+    the clock correction its timestamps were moved by, with its bound."""
     lines: list[str] = []
     for i, (node, st) in enumerate(doc["nodes"].items()):
         title = f"node {node}"

@@ -6,9 +6,12 @@
 - ``GET /api/nodes``: [{node, run, session, connected, clock {offset_us, uncertainty_us, ...},
   ptp, events, dropped, lost, drops, ...}], one per node (its newest run)
 - ``GET /api/stats?node=NAME``: ``probes.delays.node_stats`` of the node's newest run (stage
-  shares and bottleneck included), plus the same figures over the rolling ``window``
+  shares and bottleneck included), plus the same figures over the rolling ``window``, and
+  ``clock`` {applied, why, correction_ns, uncertainty_ns, at_ns}: the correction applied to its
+  timestamps and its bound (:mod:`relay.clockentry`)
 - ``GET /api/frames?node=NAME&since=CURSOR&limit=N``: complete frames after the cursor, each
-  with every figure the page draws (:mod:`relay.framejson`)
+  with every figure the page draws, its clock offset ``clock_ns`` and bound
+  ``clock_uncertainty_ns`` included (:mod:`relay.framejson`)
 - ``GET /api/sessions``: stored sessions and their runs, newest first
 - ``GET /api/sessions/ID/{nodes,stats,frames}``: a stored session browsed like a live one
   (:mod:`relay.sessionapi`)
