@@ -12,7 +12,7 @@ import numpy as np
 from pipeline.build import BuiltPipeline
 from pipeline.config import PipelineConfig
 from probes.errors import ExportError
-from probes.events import Exporter, TraceHeader
+from probes.events import CAPTURE, Exporter, TraceHeader
 from probes.relayexport import RelayExporter
 from probes.relaylink import check_token
 from probes.shipper import Shipper
@@ -22,8 +22,11 @@ from probes.tracer import Tracer, attach
 
 
 class _Shifted:
-    """Exporter wrapper that moves every timestamp by ``offset_ns``: the --clock-offset-ms
-    testing aid, so that a node can pretend its clock is off and the relay must notice."""
+    """Exporter wrapper that moves every timestamp the node's clock took by ``offset_ns``: the
+    --clock-offset-ms testing aid, so that a node can pretend its clock is off and the relay must
+    notice. Capture times are left as they are: they are the camera's clock (an RTSP sender's
+    reports), which a node whose own clock is off still receives unchanged, and which two DCUs
+    of one camera must share for their frames to be matched (relay.moments)."""
 
     def __init__(self, inner: Exporter, offset_ns: int):
         self.inner, self.offset_ns = inner, offset_ns
@@ -34,7 +37,7 @@ class _Shifted:
 
     def write(self, events: np.ndarray) -> None:
         shifted = events.copy()
-        shifted["ts"] += self.offset_ns
+        shifted["ts"][shifted["point"] != CAPTURE] += self.offset_ns
         self.inner.write(shifted)
 
     def close(self, dropped: int) -> None:

@@ -12,6 +12,14 @@
 - ``GET /api/frames?node=NAME&since=CURSOR&limit=N``: complete frames after the cursor, each
   with every figure the page draws, its clock offset ``clock_ns`` and bound
   ``clock_uncertainty_ns`` included (:mod:`relay.framejson`)
+- ``GET /api/moments?a=NODE&b=NODE[&source=URI | &source_a=ID&source_b=ID][&limit=N]``: the same
+  moments of one camera on two nodes (their complete frames matched by capture time, within
+  ``relay.moments.MATCH_TOLERANCE_NS``, 1 ms): per moment the capture time, each node's corrected origin
+  and end, ``diff_ms`` (end of b - end of a: > 0 when a finished first), ``first``, ``error_ms``
+  (both clock bounds summed); ``summary``: matched, unmatched and frames per node, mean/p50/p95 of
+  the difference, the share each node finished first, and whether the mean exceeds the error bar
+  (:mod:`relay.moments`). Sources are those both run headers name by URI unless given; the newest
+  ``limit`` (200, at most 2000) moments are listed, the summary covers every kept frame
 - ``GET /api/sessions``: stored sessions and their runs, newest first
 - ``GET /api/sessions/ID/{nodes,stats,frames}``: a stored session browsed like a live one
   (:mod:`relay.sessionapi`)
@@ -24,6 +32,7 @@ import time
 
 from aiohttp import web
 
+from relay import moments as mo
 from relay import storage as db
 from relay.auth import http_token, token_matches
 from relay.state import RelayState
@@ -42,10 +51,10 @@ def add_routes(app: web.Application, state: RelayState, token: str | None, count
 
     app.middlewares.append(guard)
 
-    def run_of(request: web.Request):
-        node = request.query.get("node")
+    def run_of(request: web.Request, key: str = "node"):
+        node = request.query.get(key)
         if not node:
-            raise http_error(web.HTTPBadRequest, "node=NAME is required")
+            raise http_error(web.HTTPBadRequest, f"{key}=NAME is required")
         rs = state.node_run(node)
         if rs is None:
             raise http_error(web.HTTPNotFound, f"no node named {node[:100]!r}")
@@ -70,6 +79,24 @@ def add_routes(app: web.Application, state: RelayState, token: str | None, count
         rs.live.maintain()
         return web.json_response(state.frames_view(rs, since, limit))
 
+    async def moments(request: web.Request) -> web.Response:
+        a, b = run_of(request, "a"), run_of(request, "b")
+        if a.node == b.node:
+            raise http_error(web.HTTPBadRequest, "a and b must name two different nodes")
+        limit = int_arg(request, "limit", mo.DEFAULT_LIMIT, 1, mo.MAX_LIMIT)
+        ids = None
+        if "source_a" in request.query or "source_b" in request.query:
+            if "source_a" not in request.query or "source_b" not in request.query or "source" in request.query:
+                raise http_error(web.HTTPBadRequest, "give source_a=ID and source_b=ID together, or source=URI")
+            ids = (int_arg(request, "source_a", 0, -(1 << 62), 1 << 62), int_arg(request, "source_b", 0, -(1 << 62), 1 << 62))
+        sides = [mo.Side(rs.node, rs.header.sources, rs.live.recent(0, state.live_config.recent_frames, newest=True)[1],
+                         state.correction(rs)) for rs in (a, b)]
+        try:
+            pairs = mo.pairs_of(*sides, uri=request.query.get("source"), ids=ids)
+        except mo.MomentsError as exc:
+            raise http_error(web.HTTPNotFound, str(exc)) from None
+        return web.json_response(mo.compare(pairs, limit))
+
     async def sessions(request: web.Request) -> web.Response:
         return web.json_response(await state.storage.call(db.list_sessions))
 
@@ -77,6 +104,7 @@ def add_routes(app: web.Application, state: RelayState, token: str | None, count
     app.router.add_get("/api/nodes", nodes)
     app.router.add_get("/api/stats", stats)
     app.router.add_get("/api/frames", frames)
+    app.router.add_get("/api/moments", moments)
     app.router.add_get("/api/sessions", sessions)
 
 

@@ -6,7 +6,7 @@ Per frame::
      "enter": [ns|null per stage], "exit": [ns|null per stage], "delay_ms": end - origin,
      "stage_delay_ms": [ms|null per stage], "stage_gap_ms": [ms|null per stage],
      "stage_service_ms": [...], "stage_wait_ms": [...],
-     "capture": ns|null, "glass_ms": end - capture|null,
+     "capture": ns|null (the camera's clock: never corrected), "glass_ms": corrected end - capture|null,
      "clock_ns": offset subtracted at the origin, "clock_uncertainty_ns": its bound}
 
 one ``stage_<column>_ms`` list per column of the delay model (``probes.delays.STAGE_COLUMNS``),
@@ -31,11 +31,14 @@ def frame_dicts(n: np.ndarray, fd: FrameDelays, corr: Correction, rows: np.ndarr
     rows = np.arange(len(fd)) if rows is None else rows
     t, ch = fd.table, fd.chains
     columns = {f"stage_{c}_ms": _ms_lists(fd.per_stage[c][rows]) for c in STAGE_COLUMNS}
-    origin = t.origin[rows]
+    origin, end = t.origin[rows], ch.end[rows]
+    # The capture time is the camera's clock (RTCP sender reports), not the node's: it is left as
+    # it is, and glass-to-glass is taken from the node's corrected end.
+    glass = fd.glass[rows] - corr.offsets(end).astype(np.float64)
     base = zip(np.asarray(n).tolist(), t.source[rows].tolist(), t.frame[rows].tolist(), corr.correct(origin).tolist(),
-               corr.correct(ch.end[rows]).tolist(), ch.complete[rows].tolist(), _lists(corr.correct(t.enter[rows])),
-               _lists(corr.correct(t.exit[rows])), _ms_values(fd.delay[rows]), corr.correct(t.capture[rows]).tolist(),
-               _ms_values(fd.glass[rows]), corr.offsets(origin).tolist(), corr.uncertainties(origin).tolist())
+               corr.correct(end).tolist(), ch.complete[rows].tolist(), _lists(corr.correct(t.enter[rows])),
+               _lists(corr.correct(t.exit[rows])), _ms_values(fd.delay[rows]), t.capture[rows].tolist(),
+               _ms_values(glass), corr.offsets(origin).tolist(), corr.uncertainties(origin).tolist())
     return [
         {"n": k, "source": s, "frame": f, "origin": o, "end": e, "complete": c, "enter": en, "exit": ex, "delay_ms": d,
          "capture": None if cap == MISSING else cap, "glass_ms": g, "clock_ns": off, "clock_uncertainty_ns": unc,

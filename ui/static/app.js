@@ -4,6 +4,7 @@
 import { baseName, StageColours } from "./colours.js";
 import { Api, LiveFeed, listSessions, loadSession, SESSION_CAPACITY, tokenFromUrl } from "./feed.js";
 import { FrameView } from "./frameview.js";
+import { MomentView } from "./momentview.js";
 import { nodesHtml, setHtml, statsHtml } from "./panels.js";
 import { GUTTER, StageView } from "./stageview.js";
 import { DELAY_CAPACITY, LIVE_CAPACITY, NodeStore } from "./store.js";
@@ -63,6 +64,7 @@ const model = {
 };
 const stageView = new StageView($("#stage-canvas"), model);
 const frameView = new FrameView($("#frame-panels"), model);
+const momentView = new MomentView($("#moments-view"), api, () => [...live.nodes.keys()].sort());
 
 // --- relay clock ---------------------------------------------------------------------------
 
@@ -444,6 +446,8 @@ function setTab(tab) {
   for (const b of document.querySelectorAll(".tab")) b.classList.toggle("active", b.dataset.tab === tab);
   $("#stage-view").hidden = tab !== "stage";
   $("#frame-view").hidden = tab !== "frame";
+  $("#moments-view").hidden = tab !== "moments";
+  momentView.show(tab === "moments");
   mouse = null;
   hideTooltip();
   view.dirty = true;
@@ -523,7 +527,7 @@ function frame(ts) {
   if (view.dirty || view.follow || mouse?.fresh) {
     view.dirty = false;
     if (view.tab === "stage") stageView.draw(view.end - view.width, view.end);
-    else frameView.draw(view.end, view.frameCount);
+    else if (view.tab === "frame") frameView.draw(view.end, view.frameCount);
     updateTooltip();
     if (mouse) mouse.fresh = false;
     updateLegend();
@@ -606,7 +610,7 @@ window.dcuscope = {
       paused: !view.follow, tab: view.tab, window: [view.end - view.width, view.end], limit: view.limit,
       clock: view.raw ? "raw" : "corrected",
       transport: feed.transport, stores, colours: Object.fromEntries(colours.entries()),
-      stage: stageView.last, frame: frameView.last, perf: perf.summary(),
+      stage: stageView.last, frame: frameView.last, moments: momentView.last, perf: perf.summary(),
       tooltip: tip.hidden ? null : tip.textContent,
       stats: Object.fromEntries(current.stats), nodes: [...current.nodes.values()],
     };
