@@ -112,10 +112,12 @@ def test_ui_pushes_frames_and_stats_throttled(tmp_path):
 
 
 def raw(frame: dict, correction: int) -> dict:
-    """A pushed frame with its clock correction undone (it changes as estimates improve)."""
+    """A pushed frame with its clock correction undone, and without the offset and bound it carries
+    (they change as estimates improve)."""
     def back(values):
         return [None if v is None else v + correction for v in values]
-    return dict(frame, origin=frame["origin"] + correction, end=frame["end"] + correction, enter=back(frame["enter"]),
+    kept = {k: v for k, v in frame.items() if k not in ("clock_ns", "clock_uncertainty_ns")}
+    return dict(kept, origin=frame["origin"] + correction, end=frame["end"] + correction, enter=back(frame["enter"]),
                 exit=back(frame["exit"]))
 
 
