@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from probes.frametable import MISSING
+from probes.ptp import ptp_trusted, ptp_uncertainty_ns
 
 CLOCK_MODES = ("ptp", "estimate", "auto")
 DEFAULT_WINDOW = 32
@@ -98,11 +99,12 @@ def correction_ns(mode: str, estimate: ClockEstimate | None, ptp: dict) -> tuple
     """What to subtract from the node's timestamps under ``--clock mode``, and why.
 
     ptp: never correct (PTP is trusted); estimate: always subtract the estimated offset;
-    auto: trust PTP when the node reports it locked, else subtract the estimate.
+    auto: trust PTP where :func:`probes.ptp.ptp_trusted` does (a locked slave port *and*
+    CLOCK_REALTIME following it), else subtract the estimate.
     """
     if mode not in CLOCK_MODES:
         raise ValueError(f"clock mode must be one of {CLOCK_MODES}, not {mode!r}")
-    if mode == "ptp" or (mode == "auto" and ptp.get("state") == "locked"):
+    if mode == "ptp" or (mode == "auto" and ptp_trusted(ptp)[0]):
         return 0, "ptp"
     if estimate is None:
         return 0, "none"
@@ -189,12 +191,13 @@ NO_CORRECTION = Correction("none", "no clock estimate yet")
 def correction_of(mode: str, estimate: ClockEstimate | None, ptp: dict, now_ns: int | None = None) -> Correction:
     """The :class:`Correction` ``--clock mode`` calls for (see :func:`correction_ns`)."""
     value, applied = correction_ns(mode, estimate, ptp)
+    reason = ptp_trusted(ptp)[1] if mode == "auto" else ""
     if applied == "ptp":
-        offset = ptp.get("master_offset_ns") if isinstance(ptp, dict) else None
-        unc = abs(offset) if isinstance(offset, int) and not isinstance(offset, bool) else 0
-        return Correction("ptp", "PTP trusted" if mode == "auto" else "--clock ptp", (), unc)
+        unc = ptp_uncertainty_ns(ptp) if isinstance(ptp, dict) else 0
+        return Correction("ptp", reason if mode == "auto" else "--clock ptp", (), unc)
+    untrusted = f"PTP not trusted: {reason}; " if mode == "auto" else ""
     if applied != "estimate" or estimate is None:
-        return Correction(applied, "no clock estimate yet" if applied == "none" else "estimate ignored")
+        return Correction(applied, untrusted + ("no clock estimate yet" if applied == "none" else "estimate ignored"))
     at = estimate.at_ns if estimate.at_ns is not None else (now_ns or 0)
-    return Correction("estimate", "offset estimated by the relay",
+    return Correction("estimate", untrusted + "estimate applied" if mode == "auto" else "offset estimated by the relay",
                       (Segment(from_ns=at, ref_ns=at, offset_ns=value, uncertainty_ns=estimate.uncertainty_ns),))
