@@ -11,6 +11,7 @@ from pathlib import Path
 from core import signals
 from core.errors import DcuscopeError, PipelineError
 from dcuscope.tracecommands import add_export_parser, add_stats_parser
+from probes.sysclock import DEFAULT_UDS
 from relay.commands import add_relay_parser
 
 DESCRIPTION = """\
@@ -76,6 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
     probes.add_argument("--token", metavar="TOKEN", help="token the relay asks for")
     probes.add_argument("--clock-offset-ms", type=float, default=0.0, metavar="MS",
                         help="TESTING AID: shift this node's clock by MS milliseconds, to check clock alignment (default 0)")
+    probes.add_argument("--ptp-socket", default=DEFAULT_UDS, metavar="PATH",
+                        help=f"the local ptp4l's UDS (its uds_address), read with pmc for the relay (default {DEFAULT_UDS})")
     run.set_defaults(func=_run, holds_signals=True)
 
     demo = sub.add_parser("demo", help="run a relay and two DCU pipelines with probes on the shipped clips",

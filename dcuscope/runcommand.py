@@ -70,7 +70,8 @@ def run_command(args: argparse.Namespace) -> int:
         from probes.instrument import start_probes
 
         probing = start_probes(built, config, relay=args.relay, token=args.token,
-                               clock_offset_ns=int(args.clock_offset_ms * 1e6), progress=progress)
+                               clock_offset_ns=int(args.clock_offset_ms * 1e6), progress=progress,
+                               ptp_socket=args.ptp_socket)
     try:
         result = runner.run()
     finally:

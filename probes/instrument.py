@@ -17,6 +17,7 @@ from probes.relayexport import RelayExporter
 from probes.relaylink import check_token
 from probes.shipper import Shipper
 from probes.sourcewatch import SourceWatch
+from probes.sysclock import DEFAULT_UDS
 from probes.tracefile import TraceFileWriter
 from probes.tracer import Tracer, attach
 
@@ -77,7 +78,8 @@ def default_trace_path(node: str) -> Path:
 
 
 def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None = None, token: str | None = None,
-                 clock_offset_ns: int = 0, progress: TextIO | None = None) -> RunProbes:
+                 clock_offset_ns: int = 0, progress: TextIO | None = None,
+                 ptp_socket: str = DEFAULT_UDS) -> RunProbes:
     """Attach tracepoints to every element of ``built`` (not yet playing) and start shipping."""
     if relay is not None:
         check_token(relay, token)  # a wrong token ends the run before it starts, not after
@@ -92,7 +94,7 @@ def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None
     relay_exporter = None
     if relay is not None:
         relay_exporter = RelayExporter(relay, config.node, token=token, clock=config.probes.clock,
-                                       clock_offset_ns=clock_offset_ns)
+                                       clock_offset_ns=clock_offset_ns, ptp_socket=ptp_socket)
         exporters.append(relay_exporter)
     if clock_offset_ns:
         exporters = [_Shifted(e, clock_offset_ns) for e in exporters]

@@ -34,8 +34,9 @@ import numpy as np
 from core.clocks import CLOCKS
 from probes.errors import ExportError
 from probes.events import EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
-from probes.ptp import read_ptp_state
+from probes.ptp import POLL_INTERVAL_S, PtpWatch
 from probes.relaylink import Link, Refused
+from probes.sysclock import DEFAULT_UDS
 from probes.wire import MAX_BATCH_EVENTS, PROTOCOL_VERSION, encode_batch
 
 DEFAULT_BATCH_EVENTS = 8192
@@ -63,13 +64,15 @@ class RelayExporter:
     must read the same one. ``clock_offset_ns`` is a testing aid: it shifts every clock reading
     of this client, as the probes shift event timestamps, to inject a known skew.
     ``close_timeout_s`` bounds ``close`` as a whole (waiting for acknowledgements included).
+    ``ptp_socket``: the UDS of the local ptp4l, read every ``ptp_interval_s`` with pmc.
     """
 
     def __init__(self, url: str, node: str, token: str | None = None, clock: str = "realtime",
                  clock_offset_ns: int = 0, *, compress: bool = False,
                  batch_events: int = DEFAULT_BATCH_EVENTS, flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
                  max_buffer_events: int = DEFAULT_MAX_BUFFER_EVENTS, window: int = DEFAULT_WINDOW,
-                 sync_interval_s: float = 2.0, ptp_interval_s: float = 10.0,
+                 sync_interval_s: float = 2.0, ptp_interval_s: float = POLL_INTERVAL_S,
+                 ptp_socket: str = DEFAULT_UDS,
                  close_timeout_s: float = EXPORTER_CLOSE_S,
                  backoff_s: tuple[float, float] = (0.1, 5.0)) -> None:
         if clock not in CLOCKS:
@@ -116,6 +119,7 @@ class RelayExporter:
         """How long sending is held after the relay could not store a batch (0: it could)."""
         self._hold_until = 0.0
         self._ptp: dict = {"state": "unavailable", "reason": "not read yet"}
+        self._ptp_watch = PtpWatch(ptp_socket)
         self._link: Link | None = None
         self.refused: str | None = None
         """Why the relay refused this node (a wrong or missing token), if it did."""
@@ -238,7 +242,7 @@ class RelayExporter:
 
     async def _ptp_loop(self) -> None:
         while True:
-            self._ptp = await read_ptp_state()
+            self._ptp = await self._ptp_watch.read()
             await asyncio.sleep(self._ptp_interval)
 
     def _hello(self) -> dict:

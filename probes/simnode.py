@@ -22,6 +22,7 @@ import numpy as np
 
 from probes.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
 from probes.relayexport import RelayExporter
+from probes.sysclock import DEFAULT_UDS
 
 STAGES = ("mux", "infer", "tiler", "convert", "osd")
 STAGE_MEAN_NS = (2_000_000, 30_000_000, 3_000_000, 1_000_000, 4_000_000)
@@ -106,6 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--flush-interval", type=float, default=0.05)
     p.add_argument("--max-buffer-events", type=int, default=2_000_000)
     p.add_argument("--close-timeout", type=float, default=30.0)
+    p.add_argument("--ptp-socket", default=DEFAULT_UDS, help=f"the local ptp4l's UDS, read with pmc (default {DEFAULT_UDS})")
     p.add_argument("--out", help="write header and shipped events here (.npz)")
     args = p.parse_args(argv)
 
@@ -115,7 +117,8 @@ def main(argv: list[str] | None = None) -> int:
     header = header_for(args.node, args.sources, t0 + args.clock_offset_ns)
     exporter = RelayExporter(args.relay, args.node, token=args.token, clock_offset_ns=args.clock_offset_ns,
                              batch_events=args.batch_events, flush_interval_s=args.flush_interval,
-                             max_buffer_events=args.max_buffer_events, close_timeout_s=args.close_timeout)
+                             max_buffer_events=args.max_buffer_events, close_timeout_s=args.close_timeout,
+                             ptp_socket=args.ptp_socket)
     started = time.monotonic()
     exporter.start(header)
     feed(exporter, events, paced=args.paced, offset_ns=args.clock_offset_ns)

@@ -316,21 +316,49 @@ def decode_end(obj: object) -> tuple[int, int, int]:
             _int(d.get("lost", 0), "end.lost"))
 
 
+PTP_STATES = ("unavailable", "unlocked", "locked", "lost")
+
+
+def _text(value: object, limit: int) -> str | None:
+    """A string cut to ``limit``, any control character made a space (it is shown in pages)."""
+    return "".join(c if c.isprintable() else " " for c in value[:limit]) if isinstance(value, str) else None
+
+
+def _finite_int(value: object) -> int | None:
+    if isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value):
+        return int(max(-INT64_MAX, min(INT64_MAX, value)))
+    return None
+
+
 def sanitize_ptp(obj: object) -> dict:
     """Keep only the PTP fields the relay knows, with their types; anything else is dropped."""
     if not isinstance(obj, dict):
         return {"state": "unavailable"}
     state = obj.get("state")
-    out: dict = {"state": state if state in ("unavailable", "unlocked", "locked") else "unavailable"}
-    reason = obj.get("reason")
-    if isinstance(reason, str):
-        out["reason"] = reason[:200]
-    offset = obj.get("master_offset_ns")
-    if isinstance(offset, (int, float)) and not isinstance(offset, bool) and math.isfinite(offset):
-        out["master_offset_ns"] = int(max(-INT64_MAX, min(INT64_MAX, offset)))
+    out: dict = {"state": state if state in PTP_STATES else "unavailable"}
+    for key, limit in (("reason", 200), ("gm_identity", 64), ("port_state", 32), ("interface", 64)):
+        if (text := _text(obj.get(key), limit)) is not None:
+            out[key] = text
+    if (offset := _finite_int(obj.get("master_offset_ns"))) is not None:
+        out["master_offset_ns"] = offset
     if isinstance(obj.get("gm_present"), bool):
         out["gm_present"] = obj["gm_present"]
-    identity = obj.get("gm_identity")
-    if isinstance(identity, str) and len(identity) <= 64 and identity.isprintable():
-        out["gm_identity"] = identity
+    if obj.get("timestamping") in ("software", "hardware"):
+        out["timestamping"] = obj["timestamping"]
+    if isinstance(obj.get("system_clock"), dict):
+        out["system_clock"] = _sanitize_system_clock(obj["system_clock"])
+    return out
+
+
+def _sanitize_system_clock(obj: dict) -> dict:
+    out: dict = {"synced": obj.get("synced") is True, "follows_ptp": obj.get("follows_ptp") is True,
+                 "by": obj.get("by") if obj.get("by") in ("phc2sys", "ptp4l", "chrony", "ntpd", "timesyncd") else None}
+    for key in ("maxerror_us", "esterror_us"):
+        if (value := _finite_int(obj.get(key))) is not None:
+            out[key] = value
+    freq = obj.get("freq_ppm")
+    if isinstance(freq, (int, float)) and not isinstance(freq, bool) and math.isfinite(freq):
+        out["freq_ppm"] = float(freq)
+    if (detail := _text(obj.get("detail"), 200)) is not None:
+        out["detail"] = detail
     return out

@@ -13,11 +13,12 @@ many samples, with a bound that holds at every timestamp, and keeps the history 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from probes.frametable import MISSING
+from probes.ptp import ptp_trusted, ptp_uncertainty_ns
 
 CLOCK_MODES = ("ptp", "estimate", "auto")
 MAX_CORRECTION_NS = 10**17
@@ -97,11 +98,12 @@ def correction_ns(mode: str, estimate: ClockEstimate | None, ptp: dict) -> tuple
     """What to subtract from the node's timestamps under ``--clock mode``, and why.
 
     ptp: never correct (PTP is trusted); estimate: always subtract the estimated offset;
-    auto: trust PTP when the node reports it locked, else subtract the estimate.
+    auto: trust PTP where :func:`probes.ptp.ptp_trusted` does (a locked slave port *and*
+    CLOCK_REALTIME following it), else subtract the estimate.
     """
     if mode not in CLOCK_MODES:
         raise ValueError(f"clock mode must be one of {CLOCK_MODES}, not {mode!r}")
-    if mode == "ptp" or (mode == "auto" and ptp.get("state") == "locked"):
+    if mode == "ptp" or (mode == "auto" and ptp_trusted(ptp)[0]):
         return 0, "ptp"
     if estimate is None:
         return 0, "none"
@@ -178,6 +180,15 @@ class Correction:
         ts = np.asarray(ts, dtype=np.int64)
         return np.where(ts == MISSING, ts, ts - self.offsets(ts, at))
 
+    def on_relay_clock(self) -> Correction:
+        """The same correction looked up by corrected times (for timestamps already moved): each
+        segment starts where its own start lands on the relay's clock, its drift per relay ns. Off
+        by the drift's rounding (1 ns per s from the reference), and ambiguous within a jump of the
+        offset from one segment to the next (microseconds; a step's size) of a segment's start."""
+        moved = tuple(replace(s, from_ns=s.from_ns - self.at(s.from_ns)[0], ref_ns=s.ref_ns - s.offset_ns,
+                              drift_ppb=round(s.drift_ppb / (1 - s.drift_ppb / 1e9))) for s in self.segments)
+        return replace(self, segments=moved)
+
     def to_dict(self) -> dict:
         return {"applied": self.applied, "why": self.why, "base_uncertainty_ns": self.base_uncertainty_ns,
                 "segments": [s.to_dict() for s in self.segments]}
@@ -191,13 +202,15 @@ def correction_of(mode: str, estimate: ClockEstimate | None, ptp: dict, now_ns: 
     """The :class:`Correction` ``--clock mode`` calls for (see :func:`correction_ns`): under an
     estimate, the ``history`` of estimates (each in force from its ``from_ns``), else the estimate alone."""
     value, applied = correction_ns(mode, estimate, ptp)
+    reason = ptp_trusted(ptp)[1] if mode == "auto" else ""
     if applied == "ptp":
-        offset = ptp.get("master_offset_ns") if isinstance(ptp, dict) else None
-        unc = abs(offset) if isinstance(offset, int) and not isinstance(offset, bool) else 0
-        return Correction("ptp", "PTP trusted" if mode == "auto" else "--clock ptp", (), unc)
+        unc = ptp_uncertainty_ns(ptp) if isinstance(ptp, dict) else 0
+        return Correction("ptp", reason if mode == "auto" else "--clock ptp", (), unc)
+    untrusted = f"PTP not trusted: {reason}; " if mode == "auto" else ""
     if applied != "estimate" or estimate is None:
-        return Correction(applied, "no clock estimate yet" if applied == "none" else "estimate ignored")
+        return Correction(applied, untrusted + ("no clock estimate yet" if applied == "none" else "estimate ignored"))
+    why = untrusted + "estimate applied" if mode == "auto" else "offset estimated by the relay"
     if history:
-        return Correction("estimate", "offset estimated by the relay", tuple(history))
+        return Correction("estimate", why, tuple(history))
     at = estimate.at_ns if estimate.at_ns is not None else (now_ns or 0)
-    return Correction("estimate", "offset estimated by the relay", (estimate.segment(at),))
+    return Correction("estimate", why, (estimate.segment(at),))

@@ -101,9 +101,10 @@ def fit(points: list[Point]) -> ClockEstimate:
     prior = MAX_DRIFT_PPB / 1e9 + abs(drift)
     growth = min((e[p] + e[q]) / float(t[q] - t[p]), prior) if t[q] > t[p] else prior
     offset_q = int(o[best]) + round(level + drift * dt[q])
-    return ClockEstimate(offset_ns=offset_q, uncertainty_ns=math.ceil(e[q]), rtt_ns=points[q].rtt_ns,
+    # +1: the offset and drift are rounded to whole ns and ppb.
+    return ClockEstimate(offset_ns=offset_q, uncertainty_ns=math.ceil(e[q]) + 1, rtt_ns=points[q].rtt_ns,
                          samples=sum(pt.samples for pt in points), at_ns=int(t[q]), drift_ppb=round(drift * 1e9),
-                         growth_ppb=math.ceil(growth * 1e9), via=points[q].via, points=len(points),
+                         growth_ppb=math.ceil(growth * 1e9) + 1, via=points[q].via, points=len(points),
                          newest_ns=int(t[-1]))
 
 

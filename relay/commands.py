@@ -39,7 +39,8 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
                         "may stream under its own name only (beside --token, which lets a node use any name)")
     p.add_argument("--clock", choices=CLOCK_MODES, default="auto",
                    help="ptp: never correct node timestamps; estimate: subtract each node's estimated "
-                        "offset; auto: trust PTP where the node reports it locked, else estimate (default auto)")
+                        "offset; auto: trust PTP where the node reports it locked and its system clock following it, "
+                        "else estimate and say why (default auto)")
     p.add_argument("--allow-host", action="append", default=[], metavar="NAME",
                    help="without --token, also answer requests (Host and browser Origin) naming this host "
                         "(repeatable); by default only IP addresses and localhost, against DNS rebinding "

@@ -5,12 +5,14 @@
 - ``GET /api/sessions/{session}/frames?node=NAME&since=CURSOR&limit=N``: the node's complete
   frames in the order their chains ended, shaped as ``GET /api/frames`` (cursor = position, from 1)
 - ``GET /api/sessions/{session}/stats?node=NAME``: ``probes.delays.node_stats`` over the node's
-  stored events (stage shares and bottleneck included)
+  stored events (stage shares and bottleneck included), and the ``clock`` entry of
+  :mod:`relay.clockentry` (the correction applied, at the run's last event, and its bound)
 
 Timestamps are moved to the relay's clock as ``dcuscope export`` moves them: each by the estimate
 in force at its time, from the run's stored clock history (:func:`relay.storage.load_runs`); as
 live, runs are paired on their node's own clock and only the frames' times are moved, each frame
-with its offset and bound (``clock_ns``, ``clock_uncertainty_ns``). A session is paired once, in a
+with the offset subtracted at its origin (``clock_ns``) and its bound (``clock_uncertainty_ns``), a
+frames block the correction and bound at its last frame (``correction_ns``, ``uncertainty_ns``). A session is paired once, in a
 worker thread with its own read connection (WAL: ingest keeps writing meanwhile), and kept
 for the next requests; a session still being recorded is re-read after ``LIVE_TTL_S``.
 
@@ -37,6 +39,7 @@ from relay import storage as db
 from relay.api import http_error, int_arg
 from relay.errors import RelayError
 from relay.clock import Correction
+from relay.clockentry import clock_entry
 from relay.framejson import block, frame_dicts
 from relay.state import RelayState
 
@@ -64,11 +67,12 @@ class StoredNode:
     ended: bool
     events: int
     fd: FrameDelays
-    correction: Correction
-    """The run's stored clock correction, applied to the frames' times shown (pairing is on the node's clock)."""
     order: np.ndarray
     """Rows of ``fd`` of the complete frames, by chain end: position k is cursor k + 1."""
     stats: dict
+    correction: Correction
+    """The run's stored clock correction (:attr:`relay.storage.StoredRun.correction`), applied to the
+    frames' times shown: pairing is on the node's clock, as live."""
 
     def summary(self) -> dict:
         n = len(self.order)
@@ -83,9 +87,11 @@ class StoredNode:
     def frames_view(self, since: int, limit: int) -> dict:
         """Frames at positions since+1 .. since+limit, shaped as ``RelayState.frames_view``."""
         lo, hi = min(since, len(self.order)), min(since + limit, len(self.order))
-        frames = frame_dicts(np.arange(lo + 1, hi + 1), self.fd, self.correction, self.order[lo:hi])
+        rows = self.order[lo:hi]
+        frames = frame_dicts(np.arange(lo + 1, hi + 1), self.fd, self.correction, rows)
+        corr, bound = self.correction.at(int(self.fd.chains.end[rows[-1]]) if len(rows) else 0)
         return block(self.node, self.run, self.header.stages, self.header.kinds, self.fd.chains.has_exit, frames,
-                     self.clock.get("applied", "stored"), cursor=hi, total=len(self.order))
+                     self.correction.applied, cursor=hi, total=len(self.order), correction_ns=corr, uncertainty_ns=bound)
 
 
 def pair_run(run: db.StoredRun, name: str) -> StoredNode:
@@ -96,10 +102,10 @@ def pair_run(run: db.StoredRun, name: str) -> StoredNode:
     ch = fd.chains
     c = np.flatnonzero(ch.complete)
     stats = dict(delay_stats(fd, run.header.sources, run.dropped, accounting), node=name, run=run.run, session=run.session,
-                 lost=run.lost)
+                 lost=run.lost, clock=clock_entry(run.correction, run.last_ns))
     return StoredNode(node=name, run=run.run, header=run.header, dropped=run.dropped, lost=run.lost,
-                      clock=run.clock, ended=run.ended, events=len(run.events), fd=fd, correction=run.correction,
-                      order=c[np.argsort(ch.end[c], kind="stable")], stats=stats)
+                      clock=run.clock, ended=run.ended, events=len(run.events), fd=fd,
+                      order=c[np.argsort(ch.end[c], kind="stable")], stats=stats, correction=run.correction)
 
 
 def load_session_nodes(path, session: int) -> list[StoredNode]:

@@ -15,6 +15,7 @@ from probes.events import TraceHeader
 from probes.wire import Hello
 from relay import storage as db
 from relay.clock import Correction, correction_of
+from relay.clockentry import clock_entry
 from relay.clockmodel import ClockEstimator, segment_fault
 from relay.errors import RelayError
 from relay.framejson import block, frame_dicts
@@ -309,7 +310,8 @@ class RelayState:
         return [self.node_view(self.runs[run]) for _, run in sorted(self.nodes.items())]
 
     def stats(self, rs: RunState, fresh: bool = True) -> dict:
-        """node_stats of the run (bottleneck included) + the rolling ``window``.
+        """node_stats of the run (bottleneck included) + the rolling ``window`` + the ``clock`` entry
+        (:mod:`relay.clockentry`: the correction applied to its timestamps now, and its bound).
 
         Whole-run statistics take percentiles over every frame of the run, a cost that grows
         with it; unless ``fresh`` (the HTTP API), they are recomputed at most every
@@ -317,7 +319,7 @@ class RelayState:
         within ~2 % of the relay's time however long the run. The window is always recomputed.
         """
         return dict(rs.whole.get(rs.live, rs.dropped, fresh), window=rs.live.window_stats(), node=rs.node,
-                    run=rs.run, session=rs.session, lost=rs.lost)
+                    run=rs.run, session=rs.session, lost=rs.lost, clock=clock_entry(self.correction(rs), time.time_ns()))
 
     def frames_view(self, rs: RunState, since: int = 0, limit: int = 200, newest: bool = False) -> dict:
         """Complete frames after cursor ``since``, clock-corrected, as the UI draws them: the
@@ -325,7 +327,8 @@ class RelayState:
         n, fd = rs.live.recent(since, limit, newest)
         correction = self.correction(rs)
         frames = frame_dicts(n, fd, correction)
-        corr, bound = correction.at(frames[-1]["end"] if frames else time.time_ns())
+        # At the last frame's end on the node's clock (where its correction was looked up).
+        corr, bound = correction.at(int(fd.chains.end[-1]) if frames else time.time_ns())
         return block(rs.node, rs.run, rs.header.stages, rs.header.kinds, fd.chains.has_exit, frames, correction.applied,
                      cursor=frames[-1]["n"] if frames else since, newest=rs.live.visible, correction_ns=corr,
                      uncertainty_ns=bound)

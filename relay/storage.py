@@ -35,7 +35,8 @@ import numpy as np
 
 from probes.events import EVENT_DTYPE, TraceHeader
 from probes.wire import decode_payload
-from relay.clock import MAX_CORRECTION_NS, NO_CORRECTION, Correction, Segment, stored_correction
+from relay.clock import NO_CORRECTION, Correction, Segment, stored_correction
+from relay.clockentry import stored_run_correction
 from relay.clockmodel import segment_fault
 from relay.errors import RelayError
 
@@ -462,6 +463,8 @@ class StoredRun:
     correction: Correction = NO_CORRECTION
     """What brings the run's node timestamps to the relay's clock, per timestamp, and its bound
     (already applied to ``events`` when loaded ``corrected``)."""
+    last_ns: int = 0
+    """Node time of the run's last event (where its ``clock`` entry is evaluated), 0 without events."""
 
 
 def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> list[StoredRun]:
@@ -488,12 +491,13 @@ def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> 
         out = []
         for rid, session, header, dropped, lost, clock, ended in rows:
             events = run_events(conn, rid)
+            last = int(events["ts"].max()) if len(events) else 0
             clock, correction = _run_clock(rid, clock, run_history(conn, rid))
             if corrected and correction.segments and len(events):
                 events = events.copy()
                 events["ts"] = correction.correct(events["ts"], frame_starts(events))
             out.append(StoredRun(rid, int(session), TraceHeader.from_dict(json.loads(header)), events,
-                                 int(dropped), int(lost), clock, ended is not None, correction))
+                                 int(dropped), int(lost), clock, ended is not None, correction, last))
         return out
     except sqlite3.DatabaseError as exc:
         raise RelayError(f"{db}: cannot read session {session_id!r}: {exc}") from exc
@@ -532,11 +536,7 @@ def _run_clock(run: str, text: str, history: list[Segment]) -> tuple[dict, Corre
         if bad is None:
             return clock, Correction("estimate", "stored history of estimates", tuple(history))
         log.warning("run %s: stored clock history: %s; its last estimate is applied instead", run, bad)
-    if not shift:
-        return clock, Correction(str(clock.get("applied", "none"))[:20], "stored view")
-    unc = clock.get("uncertainty_ns")
-    unc = unc if isinstance(unc, int) and not isinstance(unc, bool) and 0 <= unc <= MAX_CORRECTION_NS else 0
-    return clock, Correction("estimate", "last stored estimate", (Segment(0, 0, shift, uncertainty_ns=unc),))
+    return clock, stored_run_correction(clock)
 
 
 def load_session(db: str | Path, session_id: int | str, corrected: bool = True) -> list[tuple[TraceHeader, np.ndarray]]:

@@ -11,7 +11,7 @@ APT_PACKAGES=(
   gstreamer1.0-plugins-base gstreamer1.0-plugins-good gstreamer1.0-plugins-ugly
   gstreamer1.0-plugins-bad gstreamer1.0-libav gstreamer1.0-tools gstreamer1.0-python3-plugin-loader
   gir1.2-gst-rtsp-server-1.0 libgstreamer1.0-dev libgstreamer-plugins-base1.0-dev
-  pkg-config gcc python3-venv python3-dev chromium iproute2 iptables
+  pkg-config gcc python3-venv python3-dev chromium iproute2 iptables linuxptp
 )
 VENV=.venv
 STAMPS=$VENV/.stamps

@@ -173,6 +173,15 @@ def test_ptp_sanitized():
     got = sanitize_ptp({"state": "locked", "master_offset_ns": -12, "gm_present": True, "gm_identity": "a.b.c",
                         "evil": {"x": 1}})
     assert got == {"state": "locked", "master_offset_ns": -12, "gm_present": True, "gm_identity": "a.b.c"}
+    full = {"state": "lost", "reason": "lost a.b.c:\tgrandmaster gone", "port_state": "MASTER", "timestamping": "software",
+            "interface": "veth1", "system_clock": {"synced": False, "by": "ptp4l", "follows_ptp": True, "maxerror_us": 16e6,
+                                                   "esterror_us": 5, "freq_ppm": -1.5, "detail": "x" * 300, "pid": 3}}
+    got = sanitize_ptp(full)
+    assert got["reason"] == "lost a.b.c: grandmaster gone" and got["port_state"] == "MASTER" and got["state"] == "lost"
+    assert got["system_clock"] == {"synced": False, "by": "ptp4l", "follows_ptp": True, "maxerror_us": 16_000_000,
+                                   "esterror_us": 5, "freq_ppm": -1.5, "detail": "x" * 200}
+    assert sanitize_ptp({"state": "locked", "timestamping": "magic", "system_clock": {"by": "me", "synced": 1}}) == {
+        "state": "locked", "system_clock": {"synced": False, "follows_ptp": False, "by": None}}
 
 
 def test_header_layout():

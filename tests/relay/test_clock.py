@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from relay.clock import ClockEstimate, correction_ns, ntp_sample
+from relay.clock import ClockEstimate, correction_ns, correction_of, ntp_sample
 from relay.clockmodel import TIMESTAMP_FLOOR_NS, WINDOW_NS, ClockEstimator
 
 
@@ -37,7 +37,7 @@ def test_estimator_keeps_min_delay_sample_of_a_point_and_the_points_of_its_windo
     est.add(*exchange(5_000_000, 10**18, 900_000, 100_000, 0))
     e = est.estimate()
     assert e.rtt_ns == 100_000 and e.samples == 3 and e.points == 1
-    assert abs(e.offset_ns - 5_000_000) <= e.uncertainty_ns == 50_000 + TIMESTAMP_FLOOR_NS
+    assert abs(e.offset_ns - 5_000_000) <= e.uncertainty_ns == 50_000 + TIMESTAMP_FLOOR_NS + 1  # +1: rounding
     for k in range(1, 5):  # later points, worse ones: the best stays while it is in the window
         est.add(*exchange(5_000_000, 10**18 + k * 2 * 10**9, 300_000, 300_000, 0))
     assert est.estimate().points == 5 and est.estimate().samples == 7
@@ -47,11 +47,22 @@ def test_estimator_keeps_min_delay_sample_of_a_point_and_the_points_of_its_windo
 
 def test_correction_policy():
     est = ClockEstimate(offset_ns=37_000, uncertainty_ns=100, rtt_ns=200, samples=3)
-    locked, unlocked, none = {"state": "locked"}, {"state": "unlocked"}, {"state": "unavailable"}
+    locked = {"state": "locked", "gm_present": True, "port_state": "SLAVE", "master_offset_ns": -80,
+              "system_clock": {"synced": True, "by": "phc2sys", "follows_ptp": True}}
+    unlocked, none = {"state": "unlocked"}, {"state": "unavailable"}
     assert correction_ns("ptp", est, unlocked) == (0, "ptp")
     assert correction_ns("estimate", est, locked) == (37_000, "estimate")
     assert correction_ns("auto", est, locked) == (0, "ptp")
     assert correction_ns("auto", est, unlocked) == (37_000, "estimate")
+    # ptp4l locked but nothing said (an older node) or nothing steering CLOCK_REALTIME: the estimate
+    assert correction_ns("auto", est, {"state": "locked"}) == (37_000, "estimate")
+    free = dict(locked, system_clock={"synced": False, "by": None, "follows_ptp": False, "detail": "ptp4l free_running"})
+    assert correction_ns("auto", est, free) == (37_000, "estimate")
+    corr = correction_of("auto", est, free)
+    assert corr.applied == "estimate" and corr.why == (
+        "PTP not trusted: ptp4l locked but CLOCK_REALTIME not disciplined by PTP (ptp4l free_running); estimate applied")
+    trusted = correction_of("auto", est, locked)
+    assert trusted.applied == "ptp" and trusted.at(10**18) == (0, 80) and "CLOCK_REALTIME by phc2sys" in trusted.why
     assert correction_ns("auto", None, none) == (0, "none")
     with pytest.raises(ValueError):
         correction_ns("bogus", est, none)

@@ -165,7 +165,7 @@ def test_one_point_grows_at_the_largest_drift_and_two_bound_the_slope():
     est = ClockEstimator()
     est.add(*exchange(clock, 0, 100_000, 100_000))
     e = est.estimate()
-    assert e.drift_ppb == 0 and e.growth_ppb == 500_000  # no slope seen: the prior
+    assert e.drift_ppb == 0 and e.growth_ppb == 500_001  # no slope seen: the prior (+1 for rounding)
     _holds(clock, correction_of("estimate", e, {}), clock.node(0) + np.arange(0, 20 * S, S, dtype=np.int64))
     est.add(*exchange(clock, 2 * S, 100_000, 100_000))
     e = est.estimate()
@@ -202,3 +202,21 @@ def test_stored_segments_out_of_range_are_named():
     assert "negative" in segment_fault(Segment(T0, T0, 0, 0, -1))
     assert "time" in segment_fault(Segment("x", T0, 0))
     assert ClockEstimate(1, 2, 3, 4, at_ns=T0).segment(T0 + 5) == Segment(T0 + 5, T0, 1, 0, 2, 0)
+
+
+def test_a_history_looked_up_by_corrected_times_gives_each_time_its_own_offset():
+    """Exports see timestamps already moved: the same history, indexed on the relay's clock."""
+    clock = Clock(-2_000_000_000, 80.0, 30_000_000, 70 * S)
+    est, times = run(clock, "udp", 140)
+    corr = Correction("estimate", "", tuple(est.history))
+    ts = np.linspace(times[0], times[-1], 5000).astype(np.int64)
+    moved = corr.correct(ts)
+    on_relay = corr.on_relay_clock()
+    # Near a segment's start, within the jump of the offset there, a moved time is ambiguous.
+    starts = np.array([s.from_ns for s in est.history])
+    jumps = np.abs(corr.offsets(starts) - corr.offsets(starts - 1))
+    clear = np.all(np.abs(ts[:, None] - starts[None, :]) > jumps[None, :] + 1_000, axis=1)
+    assert clear.mean() > 0.95 and est.restarts == 1
+    span_s = (times[-1] - times[0]) / S  # the drift's rounding: at most 1 ns per s from the reference
+    assert np.abs(on_relay.offsets(moved) - corr.offsets(ts))[clear].max() <= 2 + span_s
+    assert np.abs(on_relay.uncertainties(moved) - corr.uncertainties(ts))[clear].max() <= 2

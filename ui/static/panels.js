@@ -105,14 +105,34 @@ function offsetText(clock) {
   return `${sign}${formatDelay(Math.abs(clock.offset_us) / 1000)} ± ${formatDelay(clock.uncertainty_us / 1000)}`;
 }
 
+/** PTP as the node reads it: state, port state, master offset, grandmaster, the reason. */
 function ptpText(ptp) {
   if (!ptp || !ptp.state) return "–";
-  const parts = [`<span class="ptp ptp-${esc(ptp.state)}">${esc(ptp.state)}</span>`];
-  if (ptp.master_offset_ns !== undefined) parts.push(`offset ${esc(ptp.master_offset_ns)} ns`);
-  if (ptp.gm_identity) parts.push(`GM ${esc(ptp.gm_identity)}`);
+  const parts = [`<span class="ptp ptp-state ptp-${esc(ptp.state)}">${esc(ptp.state)}</span>`];
+  if (ptp.port_state) parts.push(`port <span class="ptp-port">${esc(ptp.port_state)}</span>`);
+  if (ptp.master_offset_ns !== undefined) parts.push(`offset <span class="ptp-offset">${esc(ptp.master_offset_ns)} ns</span>`);
+  if (ptp.gm_identity) parts.push(`<span class="ptp-gm">GM ${esc(ptp.gm_identity)}</span>`);
   if (ptp.gm_present === false) parts.push("no grandmaster");
+  if (ptp.timestamping) parts.push(`${esc(ptp.timestamping)} timestamps`);
   if (ptp.reason) parts.push(`<span class="muted">${esc(ptp.reason)}</span>`);
   return parts.join(" · ");
+}
+
+/** What disciplines the node's CLOCK_REALTIME (what its probes read), and whether that follows PTP. */
+function sysclockText(ptp) {
+  const sc = ptp?.system_clock;
+  if (!sc) return `<span class="muted">–</span>`;
+  const by = sc.by ? esc(sc.by) : "nothing";
+  const follows = sc.follows_ptp ? `<span class="sc-follows">follows PTP</span>` : `<span class="sc-not">not PTP</span>`;
+  const synced = sc.synced ? "" : ` · <span class="sc-not">unsynchronised</span>`;
+  return `${by} · ${follows}${synced}${sc.detail ? `<br><span class="muted">${esc(sc.detail)}</span>` : ""}`;
+}
+
+function driftText(clock) {
+  const d = clock?.drift_ppm;
+  if (d === null || d === undefined) return "—";
+  const unc = clock.drift_uncertainty_ppm;
+  return `${d >= 0 ? "+" : "−"}${Math.abs(d).toFixed(2)}${unc !== null && unc !== undefined ? ` ± ${Number(unc).toFixed(2)}` : ""} ppm`;
 }
 
 /** Nodes table: connection, clock offset ± uncertainty, applied correction, PTP, counters. */
@@ -122,7 +142,8 @@ export function nodesHtml(nodes, stored) {
     const state = stored ? (n.ended ? "stored" : "stored (incomplete)") : n.connected ? "connected" : n.ended ? "ended" : "disconnected";
     const cls = stored ? "stored" : n.connected ? "up" : n.ended ? "ended" : "down";
     const clock = n.clock ?? {};
-    const corr = clock.applied ? `${esc(clock.applied)}${clock.correction_us ? ` (${formatDelay(clock.correction_us / 1000)})` : ""}` : "–";
+    const corr = clock.applied ? `${esc(clock.applied)}${clock.correction_us ? ` (${formatDelay(clock.correction_us / 1000)})` : ""}`
+      + (clock.why ? `<br><span class="muted clock-why">${esc(clock.why)}</span>` : "") : "–";
     const frames = stored ? n.frames : n.frames?.shown;
     const drops = stored ? (n.dropped ?? 0) + (n.lost ?? 0) : n.drops;
     // Another run tried to stream under this name while it was live: refused, and said here.
@@ -130,10 +151,12 @@ export function nodesHtml(nodes, stored) {
       + `${int(n.conflicts)} name conflict${n.conflicts > 1 ? "s" : ""}</span>` : "";
     return `<tr data-node="${esc(n.node)}"><td><b>${esc(n.node)}</b></td>`
       + `<td><span class="dot dot-${cls}"></span><span class="conn-state">${state}</span>${conflict}</td>`
-      + `<td class="clock-offset">${offsetText(clock)}</td><td class="wrap">${corr}</td><td class="wrap">${ptpText(n.ptp ?? clock.ptp)}</td>`
+      + `<td class="clock-offset">${offsetText(clock)}</td><td class="wrap">${corr}</td><td class="drift">${driftText(clock)}</td>`
+      + `<td class="wrap ptp-cell">${ptpText(n.ptp ?? clock.ptp)}</td><td class="wrap sysclock">${sysclockText(n.ptp ?? clock.ptp)}</td>`
       + `<td>${int(n.events)}</td><td>${int(frames)}</td><td>${int(drops)}</td>`
       + `<td class="muted">${esc(String(n.run).slice(0, 8))}</td></tr>`;
   }).join("");
-  return `<table class="nodes"><thead><tr><th>DCU</th><th>state</th><th>clock offset</th><th>correction</th><th>PTP</th>`
+  return `<table class="nodes"><thead><tr><th>DCU</th><th>state</th><th>clock offset</th><th>correction</th><th>drift</th>`
+    + `<th>PTP</th><th title="what disciplines the node's CLOCK_REALTIME">system clock</th>`
     + `<th>events</th><th>frames</th><th>drops</th><th>run</th></tr></thead><tbody>${rows}</tbody></table>`;
 }
