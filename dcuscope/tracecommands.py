@@ -5,6 +5,10 @@
     add_stats_parser(subparsers); add_export_parser(subparsers)
     args = parser.parse_args(); sys.exit(args.func(args))
 
+Over a stored session each node's statistics carry the ``clock`` entry of :mod:`relay.clockentry`
+(the correction its timestamps were moved by, at its last event, and its bound), and exports carry
+it per node and per frame (:mod:`probes.export`); trace files hold the node's own clock, uncorrected.
+
 Each ``func`` returns the exit code: 0, or 2 after one ``dcuscope: error: ...`` line on stderr
 for a bad input (missing file, not a trace, no such database or session, unwritable output).
 """
@@ -23,6 +27,8 @@ from core.errors import DcuscopeError
 from probes.export import BUCKET_NS, perfetto_document, write_csv
 from probes.stats import stats_document
 from probes.tracefile import Trace, read_trace
+from relay.clock import Correction
+from relay.clockentry import clock_entry
 
 STAT_COLUMNS = ("count", "mean_ms", "p50_ms", "p95_ms", "p99_ms", "max_ms")
 
@@ -72,6 +78,9 @@ def run_stats(args: argparse.Namespace) -> int:
     with _user_errors() as failed:
         traces = _inputs(args, "stats")
         doc = stats_document(traces)
+        for st, trace, clock in zip(doc["nodes"].values(), traces, _clocks(traces)):
+            if clock is not None:
+                st["clock"] = clock_entry(trace.correction, trace.last_ns)
         with _open_output("-") as out:
             if args.json:
                 out.write(json.dumps(doc, indent=2) + "\n")
@@ -83,12 +92,13 @@ def run_stats(args: argparse.Namespace) -> int:
 def run_export(args: argparse.Namespace) -> int:
     with _user_errors() as failed:
         bucket_ns = _bucket_ns(args.bucket_ms)
-        nodes = [(t.header, t.events) for t in _inputs(args, "export")]
+        traces = _inputs(args, "export")
+        nodes, clocks = [(t.header, t.events) for t in traces], _clocks(traces)
         with _open_output(args.output) as out:
             if args.format == "csv":
-                write_csv(out, nodes)
+                write_csv(out, nodes, clocks)
             else:
-                json.dump(perfetto_document(nodes, bucket_ns), out, separators=(",", ":"), ensure_ascii=False)
+                json.dump(perfetto_document(nodes, bucket_ns, clocks), out, separators=(",", ":"), ensure_ascii=False)
                 out.write("\n")
     return 2 if failed else 0
 
@@ -114,6 +124,12 @@ def _inputs(args: argparse.Namespace, command: str) -> list:
     from relay.storage import load_runs  # the relay's modules load only for this input
 
     return load_runs(args.db, args.session)
+
+
+def _clocks(traces: list) -> list[Correction | None]:
+    """Per node the correction its timestamps were moved by, looked up by the moved times (the
+    exporters see those): a stored run's; None for a trace file."""
+    return [None if isinstance(t, Trace) else t.correction.on_relay_clock() for t in traces]
 
 
 @contextmanager
@@ -157,7 +173,8 @@ def _origin(trace, db: str | None) -> str:
 def format_stats(doc: dict, origins: list[str] | None = None) -> str:
     """Readable aligned tables, one block per node (``origins``: where each came from, for the
     titles): delays (stages, gaps, frame), where the time goes (service, wait, utilization,
-    share of delay), the bottleneck and why, every source's frames, drops."""
+    share of delay), the bottleneck and why, every source's frames, drops, and for a stored run
+    the clock correction its timestamps were moved by, with its bound."""
     lines: list[str] = []
     for i, (node, st) in enumerate(doc["nodes"].items()):
         title = f"node {node}"
@@ -168,6 +185,7 @@ def format_stats(doc: dict, origins: list[str] | None = None) -> str:
         frames = st["frames"]
         lines.append(f"  frames         {frames['complete']} complete, {frames['incomplete']} incomplete")
         lines.append(f"  dropped events {st['dropped']}")
+        lines += _clock_lines(st)
         lines.append("")
     return "\n".join(lines)
 
@@ -222,6 +240,16 @@ def _source_lines(st: dict) -> list[str]:
         fps = "  ".join(f"src {k}: {v:.2f}" for k, v in st["fps"].items()) or "-"
         lines.append(f"  frames/s       {fps}")
     return lines
+
+
+def _clock_lines(st: dict) -> list[str]:
+    """What was subtracted from the node's timestamps and its bound (stored sessions only)."""
+    c = st.get("clock")
+    if not c:
+        return []
+    why = f" ({c['why']})" if c.get("why") else ""
+    return [f"  clock          {c['applied']}: {c['correction_ns'] / 1e6:+.3f} ms subtracted "
+            f"± {c['uncertainty_ns'] / 1e3:.1f} µs{why}"]
 
 
 def _num(value: float | None, digits: int = 3) -> str:

@@ -21,12 +21,21 @@ where defined. Frames with a capture time get a slice capture .. origin on a tra
 "utilization <stage>" (busy fraction per bucket, 100 ms unless told) and "frames in <stage>"
 (frames between enter and exit). ``ts`` and ``dur`` are chosen so that int(µs * 1000), how
 Perfetto reads them, gives back the exact ns: the parts nest in their slice exactly.
+
+Clock: where the timestamps were moved to the relay's clock (a stored session), each node's
+correction goes along (a :class:`ClockCorrection`, such as ``relay.clock.Correction``).
+Perfetto: the process label reads "clock estimate: -3.000 ms ± 120.0 µs", ``otherData.clock``
+holds per node {applied, why, correction_ns, uncertainty_ns, at_ns} (at the node's last event),
+and every frame slice's args ``clock_ns`` (the offset subtracted at the frame's origin) and
+``clock_uncertainty_ns`` (its bound). CSV: columns ``clock_ns`` and ``clock_uncertainty_ns``,
+the frame's, on each of its rows. Without a correction (trace files: the node's own clock,
+nothing subtracted) ``clock_ns`` is 0 and the bound is unknown: empty, and absent from Perfetto.
 """
 
 from __future__ import annotations
 
 import csv
-from typing import IO, Iterable, Iterator
+from typing import IO, Iterable, Iterator, Protocol, Sequence
 
 import numpy as np
 
@@ -39,51 +48,86 @@ FLOW_CATEGORY = "frame"
 BUCKET_NS = 100_000_000
 """Width of the utilization counters' buckets unless told otherwise: 100 ms."""
 CSV_COLUMNS = ("node", "source", "frame", "stage", "enter_ns", "exit_ns", *(f"{c}_ms" for c in STAGE_COLUMNS), "complete",
-               "capture_ns", "glass_ms")
+               "capture_ns", "glass_ms", "clock_ns", "clock_uncertainty_ns")
 
 NodeEvents = tuple[TraceHeader, np.ndarray]
 
 
-def perfetto_document(nodes: Iterable[NodeEvents], bucket_ns: int = BUCKET_NS) -> dict:
+class ClockCorrection(Protocol):
+    """What was subtracted from a node's timestamps, per timestamp, and its bound (the relay's
+    ``relay.clock.Correction`` is one)."""
+
+    applied: str
+    why: str
+
+    def offsets(self, ts: np.ndarray) -> np.ndarray: ...
+
+    def uncertainties(self, ts: np.ndarray) -> np.ndarray: ...
+
+
+def clock_metadata(clock: ClockCorrection, at_ns: int) -> dict:
+    """{applied, why, correction_ns, uncertainty_ns, at_ns} of ``clock`` at timestamp ``at_ns``."""
+    at = np.array([at_ns], dtype=np.int64)
+    return {"applied": clock.applied, "why": clock.why, "correction_ns": int(clock.offsets(at)[0]),
+            "uncertainty_ns": int(clock.uncertainties(at)[0]), "at_ns": at_ns}
+
+
+def clock_label(meta: dict) -> str:
+    """The process label of a node's clock: "clock estimate: -3.000 ms ± 120.0 µs"."""
+    return (f"clock {meta['applied']}: {meta['correction_ns'] / NS_PER_MS:+.3f} ms "
+            f"± {meta['uncertainty_ns'] / 1e3:.1f} µs")
+
+
+def perfetto_document(nodes: Iterable[NodeEvents], bucket_ns: int = BUCKET_NS,
+                      clocks: Sequence[ClockCorrection | None] | None = None) -> dict:
     """The whole Chrome Trace Event JSON object for the events of one or more nodes, their
-    utilization counters per ``bucket_ns``."""
+    utilization counters per ``bucket_ns``; ``clocks``: per node the correction its timestamps
+    were moved by (None: none)."""
     nodes = list(nodes)
+    clocks = list(clocks) if clocks is not None else [None] * len(nodes)
     non_empty = [ev["ts"].min() for _, ev in nodes if len(ev)]
     t0 = int(min(non_empty)) if non_empty else 0
     trace_events: list[dict] = []
     names: dict[str, int] = {}
+    metadata: dict[str, dict] = {}
     flow_ids = iter(range(1, 1 << 62))
-    for pid, (header, events) in enumerate(nodes, start=1):
+    for pid, ((header, events), clock) in enumerate(zip(nodes, clocks), start=1):
         name = unique_name(header.node, names)
         names[name] = pid
         trace_events += node_trace_events(header, events, pid=pid, name=name, t0_ns=t0, flow_ids=flow_ids,
-                                          bucket_ns=bucket_ns)
+                                          bucket_ns=bucket_ns, clock=clock)
+        if clock is not None:
+            metadata[name] = clock_metadata(clock, int(events["ts"].max()) if len(events) else 0)
     return {
         "traceEvents": trace_events,
         "displayTimeUnit": "ms",
         "otherData": {"producer": "dcuscope", "t0_ns": t0, "ts": "µs since t0_ns",
-                      "clocks": {name: h.clock for name, (h, _) in zip(names, nodes)}},
+                      "clocks": {name: h.clock for name, (h, _) in zip(names, nodes)}, "clock": metadata},
     }
 
 
 def node_trace_events(
     header: TraceHeader, events: np.ndarray, *, pid: int, t0_ns: int, name: str | None = None,
-    flow_ids: Iterator[int] | None = None, bucket_ns: int = BUCKET_NS,
+    flow_ids: Iterator[int] | None = None, bucket_ns: int = BUCKET_NS, clock: ClockCorrection | None = None,
 ) -> list[dict]:
     """Trace events of one node as process ``pid``; flow ids come from ``flow_ids``;
-    utilization counters per ``bucket_ns``."""
+    utilization counters per ``bucket_ns``; ``clock``: the correction its timestamps were moved by."""
     flow_ids = flow_ids if flow_ids is not None else iter(range(1, 1 << 62))
     fd = frame_delays(frame_table(header, events))
     tracks = _Tracks(pid, [
         _meta("process_name", pid, 0, name=name or header.node),
         _meta("process_sort_index", pid, 0, sort_index=pid),
     ])
+    if clock is not None:
+        tracks.events.append(_meta("process_labels", pid, 0, labels=clock_label(
+            clock_metadata(clock, int(events["ts"].max()) if len(events) else 0))))
+    frame_clock = _frame_clock(fd, clock)
     # chains[f] collects (tid, start_us, dur_us) of frame f's slices, in stage order.
     chains: list[list[tuple]] = [[] for _ in range(len(fd))]
     out: list[dict] = []
     for s in range(len(fd.table.stages)):
         for sid in np.unique(fd.table.source[fd.chains.passed[:, s]]):
-            out += _stage_source_events(fd, s, int(sid), tracks, t0_ns, chains)
+            out += _stage_source_events(fd, s, int(sid), tracks, t0_ns, chains, frame_clock)
     out += _capture_events(fd, tracks, t0_ns)
     out += _counter_events(fd, pid, t0_ns, bucket_ns)
     for chain in chains:
@@ -105,8 +149,20 @@ class _Tracks:
         return self.count
 
 
+def _frame_clock(fd: FrameDelays, clock: ClockCorrection | None) -> tuple[list[int], list[int]] | None:
+    """Per frame of ``fd``, the offset subtracted at its origin (a frame without one: at its last
+    timestamp) and its bound; None without a correction. The events are corrected already:
+    evaluated at the corrected time, off from the node-time value by drift x offset at most
+    (2 ns for 50 ppm and 37 ms)."""
+    if clock is None:
+        return None
+    origin = fd.table.origin
+    at = np.where(origin != MISSING, origin, np.maximum(fd.chains.t_in, fd.chains.t_out).max(axis=1, initial=0))
+    return clock.offsets(at).tolist(), clock.uncertainties(at).tolist()
+
+
 def _stage_source_events(fd: FrameDelays, s: int, sid: int, tracks: _Tracks, t0_ns: int,
-                         chains: list[list[tuple]]) -> list[dict]:
+                         chains: list[list[tuple]], frame_clock: tuple[list[int], list[int]] | None) -> list[dict]:
     """The slices (with their wait and service parts) and instants of one source at stage ``s``,
     on as many lanes as it needs; appends each frame's slice to its chain for the flows."""
     table, ch, stage = fd.table, fd.chains, fd.table.stages[s]
@@ -123,7 +179,7 @@ def _stage_source_events(fd: FrameDelays, s: int, sid: int, tracks: _Tracks, t0_
     out = []
     for r, k, sliced, start, dur, point in zip(*columns):
         base = {"name": f"frame {table.frame[r]}", "cat": stage, "pid": tracks.pid, "tid": tids[k]}
-        args = _frame_args(fd, r, s)
+        args = _frame_args(fd, r, s, frame_clock)
         if sliced:
             out.append({"ph": "X", **base, "ts": start, "dur": dur, "args": args})
             out += _parts(fd, r, s, {**base, "args": {"source": sid, "frame": args["frame"]}}, t0_ns)
@@ -135,10 +191,13 @@ def _stage_source_events(fd: FrameDelays, s: int, sid: int, tracks: _Tracks, t0_
     return out
 
 
-def _frame_args(fd: FrameDelays, r: int, s: int) -> dict:
-    """Args of frame ``r``'s slice or instant at stage ``s``: its identity, completeness and
-    each per-stage figure it has (``delay_ms``, ``gap_ms``, ``service_ms``, ``wait_ms``)."""
+def _frame_args(fd: FrameDelays, r: int, s: int, frame_clock: tuple[list[int], list[int]] | None = None) -> dict:
+    """Args of frame ``r``'s slice or instant at stage ``s``: its identity, completeness, its
+    clock offset and bound (where corrected) and each per-stage figure it has (``delay_ms``,
+    ``gap_ms``, ``service_ms``, ``wait_ms``)."""
     args = {"source": int(fd.table.source[r]), "frame": int(fd.table.frame[r]), "complete": bool(fd.chains.complete[r])}
+    if frame_clock is not None:
+        args["clock_ns"], args["clock_uncertainty_ns"] = frame_clock[0][r], frame_clock[1][r]
     for name in STAGE_COLUMNS:
         value = float(fd.per_stage[name][r, s])
         if value == value:  # not NaN: the frame has the tracepoints this figure needs
@@ -255,26 +314,31 @@ def _flow(pid: int, flow_id: int, chain: list[tuple]) -> list[dict]:
     return out
 
 
-def csv_rows(header: TraceHeader, events: np.ndarray, node: str | None = None) -> Iterator[list]:
+def csv_rows(header: TraceHeader, events: np.ndarray, node: str | None = None,
+             clock: ClockCorrection | None = None) -> Iterator[list]:
     """One row per frame per stage it passed (CSV_COLUMNS), by source, frame, stage order.
 
     At the origin stage ``exit_ns`` is the origin timestamp; missing values are empty.
-    ``capture_ns`` (the source's capture time) and ``glass_ms`` (glass-to-glass delay) are
-    the frame's, on each of its rows.
+    ``capture_ns`` (the source's capture time), ``glass_ms`` (glass-to-glass delay),
+    ``clock_ns`` and ``clock_uncertainty_ns`` (what ``clock`` subtracted at its origin, and its
+    bound: 0 and empty without one) are the frame's, on each of its rows.
     """
     fd = frame_delays(frame_table(header, events))
     table, ch = fd.table, fd.chains
     node = node or header.node
     rows, stages = np.nonzero(ch.passed)
     figures = [_ms_cells(fd.per_stage[name][rows, stages]) for name in STAGE_COLUMNS]
+    frame_clock = _frame_clock(fd, clock)
+    offsets = [frame_clock[0][r] for r in rows.tolist()] if frame_clock else [0] * len(rows)
+    bounds = [frame_clock[1][r] for r in rows.tolist()] if frame_clock else [""] * len(rows)
     columns = zip(
         table.source[rows].tolist(), table.frame[rows].tolist(), stages.tolist(), ch.t_in[rows, stages].tolist(),
         ch.t_out[rows, stages].tolist(), ch.complete[rows].tolist(), table.capture[rows].tolist(),
-        _ms_cells(fd.glass[rows]), *figures,
+        _ms_cells(fd.glass[rows]), offsets, bounds, *figures,
     )
-    for src, frm, s, e, x, complete, capture, glass, *cells in columns:
+    for src, frm, s, e, x, complete, capture, glass, off, bound, *cells in columns:
         yield [node, src, frm, table.stages[s], "" if e == MISSING else e, "" if x == MISSING else x, *cells,
-               int(complete), "" if capture == MISSING else capture, glass]
+               int(complete), "" if capture == MISSING else capture, glass, off, bound]
 
 
 def _ms_cells(ns: np.ndarray) -> list[str]:
@@ -282,16 +346,18 @@ def _ms_cells(ns: np.ndarray) -> list[str]:
     return ["" if v != v else f"{v / NS_PER_MS:.6f}" for v in ns.tolist()]
 
 
-def write_csv(out: IO[str], nodes: Iterable[NodeEvents]) -> int:
-    """Write the CSV of one or more nodes to an open text file; returns the number of rows."""
+def write_csv(out: IO[str], nodes: Iterable[NodeEvents], clocks: Sequence[ClockCorrection | None] | None = None) -> int:
+    """Write the CSV of one or more nodes to an open text file (``clocks``: per node the
+    correction its timestamps were moved by, or None); returns the number of rows."""
     writer = csv.writer(out, lineterminator="\n")
     writer.writerow(CSV_COLUMNS)
     count = 0
     names: set[str] = set()
-    for header, events in nodes:
+    nodes = list(nodes)
+    for (header, events), clock in zip(nodes, list(clocks) if clocks is not None else [None] * len(nodes)):
         name = unique_name(header.node, names)
         names.add(name)
-        for row in csv_rows(header, events, node=name):
+        for row in csv_rows(header, events, node=name, clock=clock):
             writer.writerow(row)
             count += 1
     return count

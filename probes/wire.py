@@ -56,6 +56,8 @@ MAX_STAGES = 256
 MAX_NAME = 200
 MAX_SOURCES = 1024
 MAX_CLOCK_SAMPLES = 64
+CLOCK_VIAS = ("websocket", "udp")
+"""Transports a clock report's samples may come by (``clock.via``; absent: websocket)."""
 SOURCE_LIMIT = 1 << 19
 FRAME_LIMIT = 1 << 44
 """Source ids and frame numbers must fit these so that (source, frame) packs in one int64 key."""
@@ -96,6 +98,8 @@ class ClockReport:
     ptp: dict
     floor: int = 0
     """As :attr:`Hello.floor`."""
+    via: str = "websocket"
+    """Transport of the samples' exchanges (one of CLOCK_VIAS)."""
 
 
 def encode_batch(run: str, seq: int, events: np.ndarray, compress: bool = False) -> bytes:
@@ -298,8 +302,11 @@ def decode_clock(obj: object) -> ClockReport:
         if t4 < t1 or t3 < t2:
             raise ProtocolError("clock sample times out of order")
         out.append((t1, t2, t3, t4))
+    via = d.get("via", "websocket")
+    if via not in CLOCK_VIAS:
+        raise ProtocolError(f"clock.via must be one of {', '.join(CLOCK_VIAS)}, not {str(via)[:20]!r}")
     return ClockReport(out, _int(d.get("lost", 0), "clock.lost"), sanitize_ptp(d.get("ptp")),
-                       _int(d.get("floor", 0), "clock.floor"))
+                       _int(d.get("floor", 0), "clock.floor"), via)
 
 
 def decode_end(obj: object) -> tuple[int, int, int]:

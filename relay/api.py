@@ -6,9 +6,12 @@
 - ``GET /api/nodes``: [{node, run, session, connected, clock {offset_us, uncertainty_us, ...},
   ptp, events, dropped, lost, drops, ...}], one per node (its newest run)
 - ``GET /api/stats?node=NAME``: ``probes.delays.node_stats`` of the node's newest run (stage
-  shares and bottleneck included), plus the same figures over the rolling ``window``
+  shares and bottleneck included), plus the same figures over the rolling ``window``, and
+  ``clock`` {applied, why, correction_ns, uncertainty_ns, at_ns}: the correction applied to its
+  timestamps and its bound (:mod:`relay.clockentry`)
 - ``GET /api/frames?node=NAME&since=CURSOR&limit=N``: complete frames after the cursor, each
-  with every figure the page draws (:mod:`relay.framejson`)
+  with every figure the page draws, its clock offset ``clock_ns`` and bound
+  ``clock_uncertainty_ns`` included (:mod:`relay.framejson`)
 - ``GET /api/moments?a=NODE&b=NODE[&source=URI | &source_a=ID&source_b=ID][&limit=N]``: the same
   moments of one camera on two nodes (their complete frames matched by capture time, within
   ``relay.moments.MATCH_TOLERANCE_NS``, 1 ms): per moment the capture time, each node's corrected origin

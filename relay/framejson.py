@@ -11,7 +11,8 @@ Per frame::
 
 one ``stage_<column>_ms`` list per column of the delay model (``probes.delays.STAGE_COLUMNS``),
 every figure taken from it, so that the page only draws. Timestamps are moved to the relay's
-clock by the run's correction (:class:`relay.clock.Correction`, per timestamp). A block adds the node, run, stages, their kinds, ``has_exit``
+clock by the run's correction (:class:`relay.clock.Correction`, per timestamp, by the estimate in
+force at the frame's origin). A block adds the node, run, stages, their kinds, ``has_exit``
 (per stage: it has an exit point, so its frames have bars), the clock and the paging cursor.
 """
 
@@ -32,12 +33,17 @@ def frame_dicts(n: np.ndarray, fd: FrameDelays, corr: Correction, rows: np.ndarr
     t, ch = fd.table, fd.chains
     columns = {f"stage_{c}_ms": _ms_lists(fd.per_stage[c][rows]) for c in STAGE_COLUMNS}
     origin, end = t.origin[rows], ch.end[rows]
+    # Every time of a frame by the estimate in force at its origin: a new estimate arriving while
+    # the frame went through the pipeline leaves its delays as measured.
+    enter, exit_ = t.enter[rows], t.exit[rows]
+    per_stage = np.broadcast_to(origin[:, None], enter.shape)
     # The capture time is the camera's clock (RTCP sender reports), not the node's: it is left as
     # it is, and glass-to-glass is taken from the node's corrected end.
-    glass = fd.glass[rows] - corr.offsets(end).astype(np.float64)
+    glass = fd.glass[rows] - corr.offsets(end, origin).astype(np.float64)
     base = zip(np.asarray(n).tolist(), t.source[rows].tolist(), t.frame[rows].tolist(), corr.correct(origin).tolist(),
-               corr.correct(end).tolist(), ch.complete[rows].tolist(), _lists(corr.correct(t.enter[rows])),
-               _lists(corr.correct(t.exit[rows])), _ms_values(fd.delay[rows]), t.capture[rows].tolist(),
+               corr.correct(end, origin).tolist(), ch.complete[rows].tolist(),
+               _lists(corr.correct(enter, per_stage)), _lists(corr.correct(exit_, per_stage)),
+               _ms_values(fd.delay[rows]), t.capture[rows].tolist(),
                _ms_values(glass), corr.offsets(origin).tolist(), corr.uncertainties(origin).tolist())
     return [
         {"n": k, "source": s, "frame": f, "origin": o, "end": e, "complete": c, "enter": en, "exit": ex, "delay_ms": d,

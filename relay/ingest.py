@@ -47,7 +47,7 @@ from probes.wire import (HEARTBEAT_S, MAX_MESSAGE_BYTES, Batch, decode_batch, de
                          declared_bytes)
 from relay import storage as db
 from relay.auth import http_token, node_for_token, token_matches
-from relay.clock import ntp_sample, sample_fault
+from relay.clock import ClockSample, ntp_sample, sample_fault
 from relay.clockudp import ClockUdp
 from relay.errors import RelayError
 from relay.limits import ByteBucket, Limits, TokenBucket
@@ -291,17 +291,22 @@ class Ingest:
 
     async def _on_clock(self, conn: _Conn, rs: RunState, data: object) -> dict:
         report = decode_clock(data)
-        for sample in report.samples:
-            self._add_sample(conn, rs, sample)
+        accepted = [s for s in (self._check_sample(conn, rs, times, report.via) for times in report.samples) if s]
+        rs.clock.add_samples(accepted)
         rs.ptp = report.ptp
         rs.lost = max(rs.lost, report.lost)
         rs.seqs.advance(report.floor)
         clock = dict(self.state.clock_view(rs), ptp=rs.ptp)
-        return await self._update_run(rs, clock=clock, lost=rs.lost)
+        # The whole (bounded) history: storage keeps exactly it, so a write that failed and is
+        # retried later (``_update_run``) loses no segment.
+        fields = {"history": [s.to_dict() for s in rs.clock.history]} if accepted else {}
+        return await self._update_run(rs, clock=clock, lost=rs.lost, **fields)
 
-    def _add_sample(self, conn: _Conn, rs: RunState, times: tuple[int, int, int, int]) -> None:
+    def _check_sample(self, conn: _Conn, rs: RunState, times: tuple[int, int, int, int],
+                      via: str) -> ClockSample | None:
+        """The sample if it counts, else None (counted and noted as refused)."""
         t1, t2, t3, t4 = times
-        sample = ntp_sample(t1, t2, t3, t4)
+        sample = ntp_sample(t1, t2, t3, t4, via)
         if (t2, t3) not in conn.syncs:
             fault = "t2/t3 not from this relay's sync replies on this connection"
         else:
@@ -309,13 +314,13 @@ class Ingest:
             lim = self._limits
             fault = sample_fault(sample, int(lim.clock_offset_s * 1e9), int(lim.clock_rtt_s * 1e9))
         if fault is None:
-            rs.clock.add_sample(sample)
-            return
+            return sample
         if not rs.clock_rejected:
             log.warning("ingest: run %s (%s): clock sample rejected: %s", rs.run, rs.node, fault)
         rs.clock_rejected += 1
         rs.clock_fault = fault
         self.clock_rejected += 1
+        return None
 
     async def _on_end(self, rs: RunState, data: object) -> dict:
         written, dropped, lost = decode_end(data)

@@ -5,10 +5,14 @@
 - ``GET /api/sessions/{session}/frames?node=NAME&since=CURSOR&limit=N``: the node's complete
   frames in the order their chains ended, shaped as ``GET /api/frames`` (cursor = position, from 1)
 - ``GET /api/sessions/{session}/stats?node=NAME``: ``probes.delays.node_stats`` over the node's
-  stored events (stage shares and bottleneck included)
+  stored events (stage shares and bottleneck included), and the ``clock`` entry of
+  :mod:`relay.clockentry` (the correction applied, at the run's last event, and its bound)
 
-Timestamps are moved to the relay's clock by each run's last stored clock correction, as
-``dcuscope export`` does (:func:`relay.storage.load_runs`). A session is paired once, in a
+Timestamps are moved to the relay's clock as ``dcuscope export`` moves them: each by the estimate
+in force at its time, from the run's stored clock history (:func:`relay.storage.load_runs`); as
+live, runs are paired on their node's own clock and only the frames' times are moved, each frame
+with the offset subtracted at its origin (``clock_ns``) and its bound (``clock_uncertainty_ns``), a
+frames block the correction and bound at its last frame (``correction_ns``, ``uncertainty_ns``). A session is paired once, in a
 worker thread with its own read connection (WAL: ingest keeps writing meanwhile), and kept
 for the next requests; a session still being recorded is re-read after ``LIVE_TTL_S``.
 
@@ -35,6 +39,7 @@ from relay import storage as db
 from relay.api import http_error, int_arg
 from relay.errors import RelayError
 from relay.clock import Correction
+from relay.clockentry import clock_entry
 from relay.framejson import block, frame_dicts
 from relay.state import RelayState
 
@@ -46,10 +51,6 @@ MAX_SESSION_DIGITS = 18
 """Longer ids name no session: SQLite integers stop at 19 digits, Python's int() at 4,300."""
 ROUTES = ("/api/sessions/{session:\\d+}/nodes", "/api/sessions/{session:\\d+}/frames",
           "/api/sessions/{session:\\d+}/stats")
-
-
-STORED = Correction("stored", "corrected when loaded")
-"""Stored events are already corrected by :func:`relay.storage.load_runs`."""
 
 
 @dataclass
@@ -69,22 +70,28 @@ class StoredNode:
     order: np.ndarray
     """Rows of ``fd`` of the complete frames, by chain end: position k is cursor k + 1."""
     stats: dict
+    correction: Correction
+    """The run's stored clock correction (:attr:`relay.storage.StoredRun.correction`), applied to the
+    frames' times shown: pairing is on the node's clock, as live."""
 
     def summary(self) -> dict:
         n = len(self.order)
         t, ch = self.fd.table, self.fd.chains
+        first, last = self.correction.correct(t.origin[self.order]), self.correction.correct(ch.end[self.order])
         return {"node": self.node, "run": self.run, "stages": self.header.stages, "kinds": self.header.kinds,
                 "sources": {str(k): v for k, v in self.header.sources.items()}, "frames": n, "events": self.events,
-                "first_ns": int(t.origin[self.order].min()) if n else None,
-                "last_ns": int(ch.end[self.order].max()) if n else None,
+                "first_ns": int(first.min()) if n else None,
+                "last_ns": int(last.max()) if n else None,
                 "dropped": self.dropped, "lost": self.lost, "clock": self.clock, "ended": self.ended}
 
     def frames_view(self, since: int, limit: int) -> dict:
         """Frames at positions since+1 .. since+limit, shaped as ``RelayState.frames_view``."""
         lo, hi = min(since, len(self.order)), min(since + limit, len(self.order))
-        frames = frame_dicts(np.arange(lo + 1, hi + 1), self.fd, STORED, self.order[lo:hi])
+        rows = self.order[lo:hi]
+        frames = frame_dicts(np.arange(lo + 1, hi + 1), self.fd, self.correction, rows)
+        corr, bound = self.correction.at(int(self.fd.chains.end[rows[-1]]) if len(rows) else 0)
         return block(self.node, self.run, self.header.stages, self.header.kinds, self.fd.chains.has_exit, frames,
-                     self.clock.get("applied", "stored"), cursor=hi, total=len(self.order))
+                     self.correction.applied, cursor=hi, total=len(self.order), correction_ns=corr, uncertainty_ns=bound)
 
 
 def pair_run(run: db.StoredRun, name: str) -> StoredNode:
@@ -95,17 +102,17 @@ def pair_run(run: db.StoredRun, name: str) -> StoredNode:
     ch = fd.chains
     c = np.flatnonzero(ch.complete)
     stats = dict(delay_stats(fd, run.header.sources, run.dropped, accounting), node=name, run=run.run, session=run.session,
-                 lost=run.lost)
+                 lost=run.lost, clock=clock_entry(run.correction, run.last_ns))
     return StoredNode(node=name, run=run.run, header=run.header, dropped=run.dropped, lost=run.lost,
                       clock=run.clock, ended=run.ended, events=len(run.events), fd=fd,
-                      order=c[np.argsort(ch.end[c], kind="stable")], stats=stats)
+                      order=c[np.argsort(ch.end[c], kind="stable")], stats=stats, correction=run.correction)
 
 
 def load_session_nodes(path, session: int) -> list[StoredNode]:
     """Every run of a stored session, paired (blocking: call it in a worker thread)."""
     nodes: list[StoredNode] = []
     taken: set[str] = set()
-    for run in db.load_runs(path, session):
+    for run in db.load_runs(path, session, corrected=False):
         name = unique_name(run.header.node, taken)
         taken.add(name)
         nodes.append(pair_run(run, name))

@@ -14,7 +14,9 @@ from probes.errors import ProtocolError
 from probes.events import TraceHeader
 from probes.wire import Hello
 from relay import storage as db
-from relay.clock import ClockEstimator, Correction, correction_of
+from relay.clock import Correction, correction_of
+from relay.clockentry import clock_entry
+from relay.clockmodel import ClockEstimator, segment_fault
 from relay.errors import RelayError
 from relay.framejson import block, frame_dicts
 from relay.limits import MIB, Limits
@@ -226,8 +228,11 @@ class RelayState:
                 live.add(events[i:i + RELOAD_SLICE])
                 live.maintain()
         secret_hash = db.secret_hash(issued if issued is not None else hello.secret)
+        # A resumed run goes on with its stored clock history (the next write keeps exactly what is held).
+        history = [s for s in await self.storage.call(db.run_history, hello.run) if segment_fault(s) is None]
         return RunState(run=hello.run, node=header.node, session=session, header=header, live=live, seqs=seqs,
-                        first_seen=first_seen_ns / 1e9, secret_hash=secret_hash), issued
+                        first_seen=first_seen_ns / 1e9, secret_hash=secret_hash,
+                        clock=ClockEstimator(history=history)), issued
 
     # --- memory -------------------------------------------------------------------------------
 
@@ -265,12 +270,12 @@ class RelayState:
 
     def correction(self, rs: RunState) -> Correction:
         """What is subtracted from ``rs``'s timestamps, per timestamp, and its bound."""
-        return correction_of(self.clock_mode, rs.clock.estimate(), rs.ptp)
+        return correction_of(self.clock_mode, rs.clock.estimate(), rs.ptp, history=rs.clock.history)
 
     def clock_view(self, rs: RunState) -> dict:
         est = rs.clock.estimate()
         correction = self.correction(rs)
-        corr, bound = correction.at(time.time_ns())
+        corr, bound = correction.at(time.time_ns() + (est.offset_ns if est is not None else 0))
         view = {"mode": self.clock_mode, "applied": correction.applied, "why": correction.why,
                 "correction_ns": corr, "correction_us": corr / 1e3, "correction_uncertainty_ns": bound,
                 "rejected": rs.clock_rejected}
@@ -279,10 +284,12 @@ class RelayState:
         if est is not None:
             view.update(offset_ns=est.offset_ns, offset_us=est.offset_ns / 1e3,
                         uncertainty_ns=est.uncertainty_ns, uncertainty_us=est.uncertainty_ns / 1e3,
-                        rtt_us=est.rtt_ns / 1e3, samples=est.samples)
+                        rtt_us=est.rtt_ns / 1e3, samples=est.samples, points=est.points, drift_ppm=est.drift_ppb / 1e3,
+                        drift_uncertainty_ppm=est.growth_ppb / 1e3, via=est.via)
         else:
             view.update(offset_ns=None, offset_us=None, uncertainty_ns=None, uncertainty_us=None, rtt_us=None,
-                        samples=0)
+                        samples=0, points=0, drift_ppm=None, drift_uncertainty_ppm=None, via=None)
+        view.update(history=len(rs.clock.history), restarts=rs.clock.restarts)
         return view
 
     def node_view(self, rs: RunState) -> dict:
@@ -303,7 +310,8 @@ class RelayState:
         return [self.node_view(self.runs[run]) for _, run in sorted(self.nodes.items())]
 
     def stats(self, rs: RunState, fresh: bool = True) -> dict:
-        """node_stats of the run (bottleneck included) + the rolling ``window``.
+        """node_stats of the run (bottleneck included) + the rolling ``window`` + the ``clock`` entry
+        (:mod:`relay.clockentry`: the correction applied to its timestamps now, and its bound).
 
         Whole-run statistics take percentiles over every frame of the run, a cost that grows
         with it; unless ``fresh`` (the HTTP API), they are recomputed at most every
@@ -311,7 +319,7 @@ class RelayState:
         within ~2 % of the relay's time however long the run. The window is always recomputed.
         """
         return dict(rs.whole.get(rs.live, rs.dropped, fresh), window=rs.live.window_stats(), node=rs.node,
-                    run=rs.run, session=rs.session, lost=rs.lost)
+                    run=rs.run, session=rs.session, lost=rs.lost, clock=clock_entry(self.correction(rs), time.time_ns()))
 
     def frames_view(self, rs: RunState, since: int = 0, limit: int = 200, newest: bool = False) -> dict:
         """Complete frames after cursor ``since``, clock-corrected, as the UI draws them: the
@@ -319,7 +327,8 @@ class RelayState:
         n, fd = rs.live.recent(since, limit, newest)
         correction = self.correction(rs)
         frames = frame_dicts(n, fd, correction)
-        corr, bound = correction.at(frames[-1]["end"] if frames else time.time_ns())
+        # At the last frame's end on the node's clock (where its correction was looked up).
+        corr, bound = correction.at(int(fd.chains.end[-1]) if frames else time.time_ns())
         return block(rs.node, rs.run, rs.header.stages, rs.header.kinds, fd.chains.has_exit, frames, correction.applied,
                      cursor=frames[-1]["n"] if frames else since, newest=rs.live.visible, correction_ns=corr,
                      uncertainty_ns=bound)

@@ -8,8 +8,8 @@ that comes back after a relay restart keeps its session. Sessions are numbered 1
 
 Events are stored as they arrived, one row per batch (the payload blob, compressed or not),
 keyed by (run, seq): a resent batch is ignored by the primary key, so every event is stored
-exactly once. Timestamps are stored raw (node clock); each run keeps its last clock estimate,
-whose correction :func:`load_session` applies.
+exactly once. Timestamps are stored raw (node clock); each run keeps its last clock view and the
+history of its clock estimates (``clock_history``), which :func:`load_runs` applies per timestamp.
 
 All writes go through one thread that owns the connection and commits in groups: a batch is
 acknowledged to its node only after the transaction holding it committed.
@@ -35,11 +35,14 @@ import numpy as np
 
 from probes.events import EVENT_DTYPE, TraceHeader
 from probes.wire import decode_payload
-from relay.clock import stored_correction
+from relay.clock import NO_CORRECTION, Correction, Segment, stored_correction
+from relay.clockentry import stored_run_correction
+from relay.clockmodel import segment_fault
 from relay.errors import RelayError
 
-SCHEMA_VERSION = 2
-"""2 added runs.secret (hash of the run's resume secret) and runs.rejected (why the relay refused it)."""
+SCHEMA_VERSION = 3
+"""2 added runs.secret (hash of the run's resume secret) and runs.rejected (why the relay refused it);
+3 added clock_history (each run's clock estimates, each in force from a node time)."""
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE IF NOT EXISTS sessions (id INTEGER PRIMARY KEY AUTOINCREMENT, created_ns INTEGER NOT NULL);
@@ -69,7 +72,18 @@ CREATE TABLE IF NOT EXISTS batches (
     data BLOB NOT NULL,
     PRIMARY KEY (run, seq)
 );
+CREATE TABLE IF NOT EXISTS clock_history (
+    run TEXT NOT NULL,
+    from_ns INTEGER NOT NULL,
+    ref_ns INTEGER NOT NULL,
+    offset_ns INTEGER NOT NULL,
+    drift_ppb INTEGER NOT NULL,
+    uncertainty_ns INTEGER NOT NULL,
+    growth_ppb INTEGER NOT NULL,
+    PRIMARY KEY (run, from_ns)
+) WITHOUT ROWID;
 """
+HISTORY_COLUMNS = ("from_ns", "ref_ns", "offset_ns", "drift_ppb", "uncertainty_ns", "growth_ppb")
 GROUP_LIMIT = 2000
 """Batches committed in one transaction at most."""
 RETRY_MS = (250, 5000)
@@ -92,8 +106,8 @@ def connect(path: str | Path, create: bool = True) -> sqlite3.Connection:
         conn.execute("PRAGMA synchronous=NORMAL")
         conn.executescript(SCHEMA)
         row = conn.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
-        if row is not None and row[0] == "1":
-            _migrate_from_1(conn)
+        if row is not None and row[0] in ("1", "2"):
+            _migrate(conn)
             row = (str(SCHEMA_VERSION),)
         if row is None:
             conn.execute("INSERT OR IGNORE INTO meta VALUES ('schema', ?)", (str(SCHEMA_VERSION),))
@@ -104,8 +118,10 @@ def connect(path: str | Path, create: bool = True) -> sqlite3.Connection:
     return conn
 
 
-def _migrate_from_1(conn: sqlite3.Connection) -> None:
-    """Schema 1 -> 2: runs stored before have no resume secret (they cannot be resumed)."""
+def _migrate(conn: sqlite3.Connection) -> None:
+    """Schema 1 or 2 -> 3, in place: runs stored before schema 2 have no resume secret (they cannot
+    be resumed); runs stored before 3 have no clock history (their last estimate corrects them),
+    its table being made by SCHEMA."""
     conn.execute("BEGIN")
     try:
         columns = {r[1] for r in conn.execute("PRAGMA table_info(runs)")}
@@ -368,12 +384,41 @@ def run_stored(conn: sqlite3.Connection, run: str) -> bool:
 
 
 def update_run(conn: sqlite3.Connection, run: str, **fields: Any) -> None:
-    """Set ``ended_ns``, ``written``, ``dropped``, ``lost`` or ``clock`` (a dict) of a run."""
-    allowed = {"ended_ns", "written", "dropped", "lost", "clock"}
+    """Set ``ended_ns``, ``written``, ``dropped``, ``lost``, ``clock`` (a dict) or ``history`` (the
+    run's whole clock history: a list of :meth:`relay.clock.Segment.to_dict`) of a run."""
+    allowed = {"ended_ns", "written", "dropped", "lost", "clock", "history"}
     if not fields.keys() <= allowed:
         raise ValueError(f"unknown run fields {sorted(fields.keys() - allowed)}")
+    history = fields.pop("history", None)
     values = [json.dumps(v) if k == "clock" else v for k, v in fields.items()]
-    conn.execute(f"UPDATE runs SET {', '.join(f'{k} = ?' for k in fields)} WHERE id = ?", (*values, run))
+    conn.execute("BEGIN")
+    try:
+        if fields:
+            conn.execute(f"UPDATE runs SET {', '.join(f'{k} = ?' for k in fields)} WHERE id = ?", (*values, run))
+        if history is not None:
+            _put_history(conn, run, history)
+        conn.execute("COMMIT")
+    except BaseException:
+        _rollback(conn)
+        raise
+
+
+def _put_history(conn: sqlite3.Connection, run: str, history: list[dict]) -> None:
+    """Make the run's stored history ``history``, writing only the rows that changed."""
+    stored = {r[0]: r for r in conn.execute(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history WHERE run = ?",
+                                            (run,))}
+    rows = [tuple(int(seg[c]) for c in HISTORY_COLUMNS) for seg in history]
+    keep = {r[0] for r in rows}
+    conn.executemany("DELETE FROM clock_history WHERE run = ? AND from_ns = ?",
+                     [(run, t) for t in stored if t not in keep])
+    conn.executemany(f"INSERT OR REPLACE INTO clock_history (run, {', '.join(HISTORY_COLUMNS)}) VALUES (?{', ?' * 6})",
+                     [(run, *r) for r in rows if stored.get(r[0]) != r])
+
+
+def run_history(conn: sqlite3.Connection, run: str) -> list[Segment]:
+    """A run's stored clock history, oldest first (not checked: see :func:`relay.clockmodel.segment_fault`)."""
+    return [Segment(*r) for r in conn.execute(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history "
+                                               "WHERE run = ? ORDER BY from_ns", (run,))]
 
 
 WRITES = (register_run, update_run, mark_rejected)
@@ -415,13 +460,19 @@ class StoredRun:
     lost: int
     clock: dict
     ended: bool
+    correction: Correction = NO_CORRECTION
+    """What brings the run's node timestamps to the relay's clock, per timestamp, and its bound
+    (already applied to ``events`` when loaded ``corrected``)."""
+    last_ns: int = 0
+    """Node time of the run's last event (where its ``clock`` entry is evaluated), 0 without events."""
 
 
 def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> list[StoredRun]:
     """The runs of session ``session_id`` (a number), or the one run whose id starts with it.
 
-    With ``corrected`` each run's timestamps are moved to the relay's clock by the correction
-    its last clock estimate called for (see :func:`relay.clock.correction_ns`).
+    With ``corrected`` each run's timestamps are moved to the relay's clock, each by the estimate
+    in force at its time (the run's stored clock history), or, for a run stored without one, by
+    the correction its last clock estimate called for (see :func:`relay.clock.correction_ns`).
     """
     conn = connect(db, create=False)
     try:
@@ -440,13 +491,13 @@ def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> 
         out = []
         for rid, session, header, dropped, lost, clock, ended in rows:
             events = run_events(conn, rid)
-            clock, shift = _run_clock(rid, clock)
-            shift = shift if corrected else 0
-            if shift and len(events):
+            last = int(events["ts"].max()) if len(events) else 0
+            clock, correction = _run_clock(rid, clock, run_history(conn, rid))
+            if corrected and correction.segments and len(events):
                 events = events.copy()
-                events["ts"] -= shift
+                events["ts"] = correction.correct(events["ts"], frame_starts(events))
             out.append(StoredRun(rid, int(session), TraceHeader.from_dict(json.loads(header)), events,
-                                 int(dropped), int(lost), clock, ended is not None))
+                                 int(dropped), int(lost), clock, ended is not None, correction, last))
         return out
     except sqlite3.DatabaseError as exc:
         raise RelayError(f"{db}: cannot read session {session_id!r}: {exc}") from exc
@@ -454,20 +505,38 @@ def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> 
         conn.close()
 
 
-def _run_clock(run: str, text: str) -> tuple[dict, int]:
-    """A stored run's clock view and the correction to apply. A correction no relay could have
-    computed (written by an older relay from a forged sample) is ignored, with one warning and
-    ``ignored`` in the view: the other runs of the session load as usual."""
+def frame_starts(events: np.ndarray) -> np.ndarray:
+    """Per event, the earliest timestamp of its frame (source, frame): every event of a frame is
+    corrected by the estimate in force at its start, so that a new estimate arriving while a frame
+    went through the pipeline leaves its delays as measured on the node's clock."""
+    _, group = np.unique(events[["source", "frame"]], return_inverse=True)
+    group = group.reshape(-1)
+    first = np.full(int(group.max()) + 1, np.iinfo(np.int64).max, dtype=np.int64)
+    np.minimum.at(first, group, events["ts"])
+    return first[group]
+
+
+def _run_clock(run: str, text: str, history: list[Segment]) -> tuple[dict, Correction]:
+    """A stored run's clock view and the correction to apply: its history of estimates when its
+    last view applied an estimate, else that view's correction. A correction no relay could have
+    computed (written by an older relay from a forged sample, or edited) is ignored, with one
+    warning and ``ignored`` in the view: the other runs of the session load as usual."""
     try:
         clock = json.loads(text)
     except ValueError:
         clock = None
     shift, fault = stored_correction(clock)
-    if fault is None:
-        return clock, shift
-    log.warning("run %s: stored clock %s; its correction is ignored", run, fault)
-    clock = clock if isinstance(clock, dict) else {}
-    return dict(clock, applied="ignored", ignored=fault, correction_ns=0, correction_us=0.0), 0
+    if fault is not None:
+        log.warning("run %s: stored clock %s; its correction is ignored", run, fault)
+        clock = clock if isinstance(clock, dict) else {}
+        view = dict(clock, applied="ignored", ignored=fault, correction_ns=0, correction_us=0.0)
+        return view, Correction("ignored", fault)
+    if history and clock.get("applied") == "estimate":
+        bad = next((f for f in map(segment_fault, history) if f is not None), None)
+        if bad is None:
+            return clock, Correction("estimate", "stored history of estimates", tuple(history))
+        log.warning("run %s: stored clock history: %s; its last estimate is applied instead", run, bad)
+    return clock, stored_run_correction(clock)
 
 
 def load_session(db: str | Path, session_id: int | str, corrected: bool = True) -> list[tuple[TraceHeader, np.ndarray]]:

@@ -9,7 +9,7 @@ then pushes:
   shaped as ``GET /api/frames`` and holds the newest of those frames, at most ``max_frames``
   per node (``cursor`` tells how many completed in all, so a gap is visible);
 - ``stats`` {"nodes": {NODE: stats}} once a second for nodes whose events changed, each as
-  ``GET /api/stats?node=NODE`` (session statistics of long runs refresh less often, the
+  ``GET /api/stats?node=NODE``, its ``clock`` entry included (session statistics of long runs refresh less often, the
   rolling window every time; with many nodes on a busy relay, less than once a second, as
   the frames are pushed first).
 

@@ -131,6 +131,12 @@ def test_the_runs_hold_every_kind_of_trouble(world):
 def test_statistics_of_the_whole_run_agree_exactly_on_every_path(world):
     from_traces = _cli_json("stats", *world.traces, "--json")["nodes"]
     from_db = _cli_json("stats", "--db", world.db, "--session", str(world.session), "--json")["nodes"]
+    # A stored run says what was subtracted from its timestamps (--clock ptp: nothing, bound 0);
+    # a trace file holds the node's own clock and says nothing.
+    for node, st in from_db.items():
+        clock = st.pop("clock")
+        assert (clock["applied"], clock["correction_ns"], clock["uncertainty_ns"]) == ("ptp", 0, 0), node
+        assert clock == world.stored_stats[node]["clock"], node
     assert from_db == from_traces
     for node, (header, events, _, dropped) in world.runs.items():
         expected = from_traces[node]
@@ -207,6 +213,15 @@ def _perfetto_by_node(doc: dict) -> list[str]:
                   for e in doc["traceEvents"] if e.get("name") != "process_sort_index")
 
 
+def _without_clock(doc: dict) -> dict:
+    """A Perfetto document without its clock labels and the clock args of its frames."""
+    events = [e for e in doc["traceEvents"] if e.get("name") != "process_labels"]
+    for e in events:
+        if "clock_ns" in e.get("args", {}):
+            e["args"] = {k: v for k, v in e["args"].items() if k not in ("clock_ns", "clock_uncertainty_ns")}
+    return dict(doc, traceEvents=events)
+
+
 def _ms6(value) -> str:
     return "" if value is None else f"{value:.6f}"
 
@@ -219,9 +234,16 @@ def test_exports_agree_with_each_other_and_with_the_frames_the_relay_sends(world
             rc, _, err = run_commands("export", *args, "--format", fmt, "-o", str(path))
             assert (rc, err) == (0, "")
             out[source, fmt] = path.read_text()
-    # Node for node the same (the database lists its runs in the order they connected).
-    assert sorted(out["db", "csv"].splitlines()) == sorted(out["trace", "csv"].splitlines())
-    assert _perfetto_by_node(json.loads(out["db", "perfetto"])) == _perfetto_by_node(json.loads(out["trace", "perfetto"]))
+    # Node for node the same (the database lists its runs in the order they connected), but for
+    # the clock: a stored run's correction (--clock ptp: 0, bound 0), none in a trace file.
+    db_csv, trace_csv = (out[source, "csv"].splitlines() for source in ("db", "trace"))
+    assert [line.rsplit(",", 2)[1:] for line in db_csv[1:]] == [["0", "0"]] * (len(db_csv) - 1)
+    assert [line.rsplit(",", 2)[1:] for line in trace_csv[1:]] == [["0", ""]] * (len(trace_csv) - 1)
+    assert sorted(line.rsplit(",", 2)[0] for line in db_csv) == sorted(line.rsplit(",", 2)[0] for line in trace_csv)
+    db_doc = json.loads(out["db", "perfetto"])
+    assert set(db_doc["otherData"]["clock"]) == set(world.runs)
+    assert all(c["uncertainty_ns"] == 0 and c["applied"] == "ptp" for c in db_doc["otherData"]["clock"].values())
+    assert _perfetto_by_node(_without_clock(db_doc)) == _perfetto_by_node(json.loads(out["trace", "perfetto"]))
     cells, slices = _csv_cells(out["trace", "csv"]), _perfetto_cells(json.loads(out["trace", "perfetto"]))
     assert cells.keys() == slices.keys()
     for key, row in cells.items():  # every frame, complete or not
@@ -265,4 +287,8 @@ def test_stats_table_from_a_database_is_the_table_of_the_trace_files(world):
     rc, from_traces, _ = run_commands("stats", *world.traces)
     strip = [b.split("\n", 1)[1] for b in from_traces.strip().split("\n\n")]  # titles name the trace files
     by_node = {b.split("\n", 1)[0].split()[1]: b.split("\n", 1)[1] for b in from_db.strip().split("\n\n")}
+    # A stored run's block ends with its clock: what was subtracted and its bound.
+    clock = {node: block.rsplit("\n", 1)[1] for node, block in by_node.items()}
+    assert all(line == "  clock          ptp: +0.000 ms subtracted ± 0.0 µs (--clock ptp)" for line in clock.values()), clock
+    by_node = {node: block.rsplit("\n", 1)[0] for node, block in by_node.items()}
     assert sorted(by_node.values()) == sorted(strip) and set(by_node) == set(world.runs)

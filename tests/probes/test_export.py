@@ -17,6 +17,7 @@ from probes.events import CAPTURE, ENTER, EXIT, ORIGIN, READY
 from probes.export import CSV_COLUMNS, assign_lanes, perfetto_document, write_csv
 from probes.frametable import frame_table
 from probes.tracefile import read_trace, write_trace
+from relay.clock import Correction, Segment
 from tests.conftest import run_cli
 from tests.probes.synth import run_commands as _cli
 from tests.probes.synth import STAGES, pipeline_run
@@ -186,6 +187,54 @@ def test_csv_has_one_row_per_frame_per_stage_with_delays_and_gaps():
     sink = r[(1, 2, "sink")]
     assert sink["exit_ns"] == "" and sink["delay_ms"] == "" and sink["complete"] == "1"
     assert float(r[(0, 0, "mux")]["gap_ms"]) == pytest.approx((truth.enter[0, 0] - truth.origin[0]) / 1e6, abs=1e-6)
+
+
+def _drifting_clock(events):
+    """A correction of two estimates, the second from the middle of the run on, each with a drift and
+    a bound that grows away from its reference: every frame gets its own offset and bound."""
+    mid = int(np.median(events["ts"]))
+    return Correction("estimate", "offset estimated by the relay", (
+        Segment(from_ns=0, ref_ns=int(events["ts"].min()), offset_ns=3_000_000, drift_ppb=50_000, uncertainty_ns=120_000,
+                growth_ppb=2_000),
+        Segment(from_ns=mid, ref_ns=mid, offset_ns=3_100_000, drift_ppb=-20_000, uncertainty_ns=40_000, growth_ppb=1_000),
+    ))
+
+
+def test_exports_carry_each_nodes_clock_correction_and_each_frames_offset_and_bound():
+    header, events, truth = pipeline_run(30, n_sources=2, jitter_ns=2_000_000, seed=5)
+    clock = _drifting_clock(events)
+    origin = {(int(s), int(f)): int(o) for s, f, o in zip(truth.source, truth.frame, truth.origin)}
+    expected = {k: (int(clock.offsets(np.array([o]))[0]), int(clock.uncertainties(np.array([o]))[0]))
+                for k, o in origin.items()}
+    assert len(set(expected.values())) == len(expected)  # the test would see a scalar used for all
+    doc = json.loads(json.dumps(perfetto_document([(header, events)], clocks=[clock]), allow_nan=False))
+    last = int(events["ts"].max())
+    offset, bound = clock.at(last)
+    assert doc["otherData"]["clock"] == {"dcu1": {"applied": "estimate", "why": "offset estimated by the relay",
+                                                  "correction_ns": offset, "uncertainty_ns": bound, "at_ns": last}}
+    [label] = [e["args"]["labels"] for e in _by_phase(doc, "M") if e["name"] == "process_labels"]
+    assert label == f"clock estimate: {offset / 1e6:+.3f} ms ± {bound / 1e3:.1f} µs"
+    framed = [e for e in doc["traceEvents"] if e["ph"] in "Xi" and e["name"].startswith("frame ")]
+    assert len(framed) == 60 * (len(STAGES) + 2)
+    for e in framed:
+        a = e["args"]
+        assert (a["clock_ns"], a["clock_uncertainty_ns"]) == expected[a["source"], a["frame"]], e
+    out = io.StringIO()
+    write_csv(out, [(header, events)], [clock])
+    rows = _read_csv(out.getvalue())
+    assert len(rows) == 60 * (len(STAGES) + 2)
+    for r in rows:
+        assert (int(r["clock_ns"]), int(r["clock_uncertainty_ns"])) == expected[int(r["source"]), int(r["frame"])], r
+
+
+def test_exports_without_a_correction_say_nothing_was_subtracted_and_no_bound_is_known():
+    header, events, _ = pipeline_run(3, n_sources=1)
+    doc = perfetto_document([(header, events)])
+    assert doc["otherData"]["clock"] == {}
+    assert not [e for e in doc["traceEvents"] if e.get("name") == "process_labels" or "clock_ns" in e.get("args", {})]
+    out = io.StringIO()
+    write_csv(out, [(header, events)])
+    assert {(r["clock_ns"], r["clock_uncertainty_ns"]) for r in _read_csv(out.getvalue())} == {("0", "")}
 
 
 def test_csv_marks_incomplete_frames():

@@ -159,6 +159,10 @@ def test_clock_and_end_messages():
                 {"samples": [[1, 2, 3, 4]] * 100}, {"samples": [[1.5, 2, 3, 4]]}):
         with pytest.raises(ProtocolError):
             decode_clock(bad)
+    assert r.via == "websocket" and decode_clock({"samples": [], "via": "udp"}).via == "udp"
+    for via in ("tcp", ["udp"], "udp" * 100):
+        with pytest.raises(ProtocolError, match="clock.via must be one of websocket, udp"):
+            decode_clock({"via": via})
     assert decode_end({"events": 5, "dropped": 1, "lost": 2}) == (5, 1, 2)
     with pytest.raises(ProtocolError):
         decode_end({"events": "5"})

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from relay.clock import ClockEstimator, ClockEstimate, correction_ns, correction_of, ntp_sample
+from relay.clock import ClockEstimate, correction_ns, correction_of, ntp_sample
+from relay.clockmodel import TIMESTAMP_FLOOR_NS, WINDOW_NS, ClockEstimator
 
 
 def exchange(offset: int, t1_true: int, up: int, down: int, hold: int) -> tuple[int, int, int, int]:
@@ -28,17 +29,20 @@ def test_asymmetry_stays_within_half_rtt():
         assert abs(s.offset_ns - (-4_000_000)) <= (s.rtt_ns + 1) // 2
 
 
-def test_estimator_keeps_min_delay_sample_of_window():
-    est = ClockEstimator(window=4)
+def test_estimator_keeps_min_delay_sample_of_a_point_and_the_points_of_its_window():
+    est = ClockEstimator()
     assert est.estimate() is None
     est.add(*exchange(5_000_000, 10**18, 3_000_000, 100_000, 0))  # asymmetric, large RTT
     est.add(*exchange(5_000_000, 10**18, 60_000, 40_000, 0))     # the best one
     est.add(*exchange(5_000_000, 10**18, 900_000, 100_000, 0))
     e = est.estimate()
-    assert e.rtt_ns == 100_000 and abs(e.offset_ns - 5_000_000) <= e.uncertainty_ns == 50_000
-    for _ in range(4):  # the best sample leaves the window
-        est.add(*exchange(5_000_000, 10**18, 300_000, 300_000, 0))
-    assert est.estimate().rtt_ns == 600_000 and est.estimate().samples == 4
+    assert e.rtt_ns == 100_000 and e.samples == 3 and e.points == 1
+    assert abs(e.offset_ns - 5_000_000) <= e.uncertainty_ns == 50_000 + TIMESTAMP_FLOOR_NS + 1  # +1: rounding
+    for k in range(1, 5):  # later points, worse ones: the best stays while it is in the window
+        est.add(*exchange(5_000_000, 10**18 + k * 2 * 10**9, 300_000, 300_000, 0))
+    assert est.estimate().points == 5 and est.estimate().samples == 7
+    est.add(*exchange(5_000_000, 10**18 + WINDOW_NS + 10**9, 300_000, 300_000, 0))
+    assert est.estimate().rtt_ns == 600_000 and est.estimate().points == 5  # the first point left the window
 
 
 def test_correction_policy():

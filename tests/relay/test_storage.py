@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import sqlite3
 import uuid
 
@@ -12,6 +13,7 @@ import pytest
 from probes.simnode import header_for, synth_events
 from probes.wire import encode_batch
 from relay import storage as db
+from relay.clock import Segment
 from relay.errors import RelayError
 
 T0 = 1_700_000_000_000_000_000
@@ -106,3 +108,59 @@ def test_a_batch_sqlite_cannot_bind_fails_alone_and_the_writer_keeps_serving(tmp
             await s.put_batch(run, 1, len(events), False, payload(run, 1, events, False))
 
     asyncio.run(scenario())
+
+
+def _older_database(path, schema: int, run: str, events: np.ndarray, clock: dict) -> None:
+    """A database as a relay of ``schema`` 1 or 2 wrote it: one run, one batch, its last clock view."""
+    ddl = db.SCHEMA[:db.SCHEMA.index("CREATE TABLE IF NOT EXISTS clock_history")]
+    if schema == 1:
+        ddl = ddl.replace("    clock TEXT NOT NULL DEFAULT '{}',\n    secret TEXT,\n    rejected TEXT\n",
+                          "    clock TEXT NOT NULL DEFAULT '{}'\n")
+    conn = sqlite3.connect(path)
+    conn.executescript(ddl)
+    conn.execute("INSERT INTO meta VALUES ('schema', ?)", (str(schema),))
+    conn.execute("INSERT INTO sessions (created_ns) VALUES (1)")
+    conn.execute("INSERT INTO runs (id, session, node, header, first_seen_ns, last_seen_ns, clock) "
+                 "VALUES (?, 1, 'a', ?, 1, 1, ?)", (run, json.dumps(header_for("a", 1).to_dict()), json.dumps(clock)))
+    conn.execute("INSERT INTO batches VALUES (?, 0, ?, 0, 1, ?)", (run, len(events), payload(run, 0, events, False)))
+    conn.commit()
+    conn.close()
+
+
+@pytest.mark.parametrize("schema", [1, 2])
+def test_an_older_database_is_migrated_in_place_and_corrected_by_its_last_estimate(tmp_path, schema):
+    path, run = tmp_path / "r.db", uuid.uuid4().hex
+    events = synth_events(10, 1, 25.0, T0)
+    _older_database(path, schema, run, events, {"applied": "estimate", "correction_ns": 7000, "uncertainty_ns": 90})
+    (stored,) = db.load_runs(path, 1)
+    assert np.array_equal(stored.events["ts"], events["ts"] - 7000)
+    assert stored.correction.at(int(T0)) == (7000, 90)
+    conn = db.connect(path)
+    assert conn.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone() == ("3",)
+    assert {"secret", "rejected"} <= {r[1] for r in conn.execute("PRAGMA table_info(runs)")}
+    assert db.run_history(conn, run) == []
+
+
+def test_a_stored_history_corrects_each_timestamp_and_a_poisoned_one_falls_back(tmp_path, caplog):
+    path, run = tmp_path / "r.db", uuid.uuid4().hex
+    events = synth_events(50, 1, 25.0, T0)  # two seconds of frames
+    _older_database(path, 2, run, events, {"applied": "estimate", "correction_ns": 9000})
+    half = int(T0) + 1_000_000_000
+    history = [Segment(int(T0) - 10**9, int(T0), 5000, 0, 100), Segment(half, half, 9000, 1000, 50, 200)]
+    conn = db.connect(path)
+    db.update_run(conn, run, history=[s.to_dict() for s in history], ended_ns=5)
+    db.update_run(conn, run, history=[s.to_dict() for s in history])  # written again: the same rows
+    assert db.run_history(conn, run) == history
+    (stored,) = db.load_runs(path, run[:8])
+    starts = db.frame_starts(events)
+    expected = np.where(starts < half, 5000, 9000 + (events["ts"] - half) // 1_000_000)
+    assert np.abs(stored.events["ts"] - (events["ts"] - expected)).max() <= 1
+    assert (starts < half).sum() > 100 and (starts >= half).sum() > 100  # both segments in use
+    assert stored.correction.uncertainties(np.array([half + 10**9]))[0] == 50 + 200
+    # A row no relay could have written: the run's last estimate instead, with one warning.
+    conn.execute("UPDATE clock_history SET drift_ppb = ? WHERE from_ns = ?", (10**12, half))
+    conn.close()
+    (stored,) = db.load_runs(path, run[:8])
+    assert np.array_equal(stored.events["ts"], events["ts"] - 9000)
+    assert [r.message for r in caplog.records if "history" in r.message] == [
+        f"run {run}: stored clock history: drift 1000000000000 beyond 1000000; its last estimate is applied instead"]

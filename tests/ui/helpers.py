@@ -42,6 +42,7 @@ class RelayThread:
         self._error: BaseException | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._stop: asyncio.Event | None = None
+        self.relay = None
         self.port = port
         self._thread = threading.Thread(target=self._main, name="ui-test-relay", daemon=True)
         self._thread.start()
@@ -57,6 +58,7 @@ class RelayThread:
             # The relay as `dcuscope relay` starts it: its guarded site included.
             relay = await start_relay("127.0.0.1", self.port, self._db, self._token, push_hz=self._push_hz)
             self.port = relay.port
+            self.relay = relay
             self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()
         except BaseException as exc:  # noqa: BLE001 - reported to the constructor
             self._error = exc
@@ -67,6 +69,13 @@ class RelayThread:
             await self._stop.wait()
         finally:
             await relay.stop()
+
+    def call(self, fn):
+        """``fn()`` run on the relay's event loop, where its state lives; returns its result."""
+        async def run():
+            return fn()
+
+        return asyncio.run_coroutine_threadsafe(run(), self._loop).result(10)
 
     def stop(self) -> None:
         if self._loop is not None and self._stop is not None and self._thread.is_alive():

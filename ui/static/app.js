@@ -40,7 +40,7 @@ const colours = new StageColours();
 const live = new Dataset("live");
 let current = live;
 const view = {
-  follow: true, width: DEFAULT_WIDTH_MS, end: Date.now(), limit: 50, perSource: false, expanded: new Set(),
+  follow: true, width: DEFAULT_WIDTH_MS, end: Date.now(), limit: 50, perSource: false, expanded: new Set(), raw: false,
   tab: "stage", windowed: false, frameCount: 300, dirty: true, panelsDirty: true, openGaps: new Set(),
 };
 let skewSamples = [];
@@ -60,6 +60,7 @@ const model = {
   expanded: (node) => view.perSource || view.expanded.has(node),
   describe,
   limit: () => view.limit,
+  raw: () => view.raw,
 };
 const stageView = new StageView($("#stage-canvas"), model);
 const frameView = new FrameView($("#frame-panels"), model);
@@ -260,6 +261,23 @@ function togglePause() {
   updatePauseButton();
 }
 
+const CLOCK_TITLES = {
+  corrected: "Bars on the relay's clock: each node's correction applied; the band at the start of each row is "
+    + "± its uncertainty. Click for each node's raw timestamps.",
+  raw: "Bars on each node's own clock, uncorrected (raw = corrected + the offset the relay subtracts). "
+    + "Click for corrected timestamps.",
+};
+
+/** Corrected (the relay's clock) or raw (each node's own clock) timestamps in the stage view. */
+function setClockMode(raw) {
+  view.raw = raw;
+  const b = $("#clock-mode");
+  b.textContent = raw ? "Clock: raw node" : "Clock: corrected";
+  b.title = CLOCK_TITLES[raw ? "raw" : "corrected"];
+  b.setAttribute("aria-pressed", String(raw));
+  view.dirty = true;
+}
+
 function resetView() {
   if (current.kind === "live") {
     view.width = DEFAULT_WIDTH_MS;
@@ -400,7 +418,11 @@ function updateTooltip() {
   if (mouse.kind === "stage") {
     const h = stageView.hit(x, y);
     // A row's name may be cut to fit the gutter: hovering it shows it whole.
-    if (h?.gutter) lines = h.header ? [h.node] : [h.node, `source ${h.source}: ${describe(h.node, h.source)}`];
+    if (h?.gutter) {
+      lines = h.header ? [h.node] : [h.node, `source ${h.source}: ${describe(h.node, h.source)}`];
+      const band = stageView.last.bands?.[h.node];
+      if (band) lines.push(view.raw ? "raw node clock: uncorrected" : `clock ${band.applied ?? "?"}: ${band.label}`);
+    }
     else if (h) lines = StageView.describeHit(h, describe);
   } else {
     const h = frameView.hit(mouse.node, x, y);
@@ -525,6 +547,7 @@ function frame(ts) {
 
 $("#pause").addEventListener("click", togglePause);
 $("#zoom-reset").addEventListener("click", resetView);
+$("#clock-mode").addEventListener("click", () => setClockMode(!view.raw));
 $("#per-source").addEventListener("change", (ev) => {
   view.perSource = ev.target.checked;
   view.expanded.clear();
@@ -585,6 +608,7 @@ window.dcuscope = {
     return {
       mode: current.kind, session: current.id, loaded: current.kind === "live" || !!current.loaded,
       paused: !view.follow, tab: view.tab, window: [view.end - view.width, view.end], limit: view.limit,
+      clock: view.raw ? "raw" : "corrected",
       transport: feed.transport, stores, colours: Object.fromEntries(colours.entries()),
       stage: stageView.last, frame: frameView.last, moments: momentView.last, perf: perf.summary(),
       tooltip: tip.hidden ? null : tip.textContent,
@@ -595,6 +619,7 @@ window.dcuscope = {
   setLimit,
 };
 
+setClockMode(false);
 feed.start();
 refreshSessions();
 setInterval(refreshSessions, 10000);

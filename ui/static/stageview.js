@@ -1,5 +1,10 @@
 // Stage view (the paper's Figure 13): one row per DCU, or per DCU and source; in a row one lane
 // per stage, and for every frame a bar from its enter to its exit at that stage.
+//
+// Times are the relay's clock (each node's correction applied), or with `model.raw()` each node's
+// own clock: raw = corrected + the offset the relay subtracted at the frame's origin. At the start
+// of each row a band as wide as twice the node's clock uncertainty (± U, at the current zoom) says
+// how far any bar of that row may truly lie from where it is drawn, relative to other rows.
 
 import { tint } from "./colours.js";
 import { columnCoverage, Intervals, serviceStart } from "./coverage.js";
@@ -15,6 +20,16 @@ const HIT_PX = 3;
 const LANE_FONT = "9px system-ui, sans-serif";
 const LANE_LABEL_MAX = 48; // px: longer stage names are cut, leaving the row's name some room
 const LABEL_GAP = 6; // px between a row's name and its stage names
+const BAND_FILL = "rgba(255, 152, 0, 0.35)"; // the clock uncertainty band: translucent, bars show through
+const BAND_TEXT = "#e65100";
+const HEADER_MIN_H = 48;
+const HEADER_SPLIT_MIN_H = 56;
+
+/** "± 120 µs": a clock bound in ms as the band's label reads it. */
+export function formatBound(ms) {
+  const us = ms * 1000;
+  return `± ${us >= 9.95 ? Math.round(us).toLocaleString("en-US") : us.toFixed(1)} µs`;
+}
 
 /** `text` cut with an ellipsis to fit `width` px in ctx's font: its start kept, or its end. */
 export function fitText(ctx, text, width, keepEnd = false) {
@@ -105,7 +120,8 @@ export class StageView {
   /**
    * @param canvas the <canvas> to draw on
    * @param model {stores(): NodeStore[] sorted by node, colours: StageColours,
-   *               expanded(node): bool, describe(node, source): string}
+   *               expanded(node): bool, describe(node, source): string,
+   *               raw(): bool (node timestamps as they came, not corrected)}
    */
   constructor(canvas, model) {
     this.canvas = canvas;
@@ -123,7 +139,13 @@ export class StageView {
     this.shadeCtx = this.shade.getContext("2d");
     this.shadeRow = null;
     this.pale = new Map(); // stage colour -> its wait tint
-    this.last = { bars: {}, runs: 0, samples: {}, rows: [] };
+    this.last = { bars: {}, runs: 0, samples: {}, rows: [], bands: {}, raw: false };
+    this.raw = false;
+  }
+
+  /** ms to add to frame `p`'s corrected times to draw it: its clock offset in raw mode, else 0. */
+  shift(store, p) {
+    return this.raw ? store.clock[p] : 0;
   }
 
   get plotX() {
@@ -142,8 +164,10 @@ export class StageView {
       const lanes = store.lanes;
       const h = Math.max(1, lanes.length) * (LANE_H + LANE_GAP) - LANE_GAP + 2 * ROW_PAD;
       const split = this.model.expanded(store.node) && store.sources.length > 0;
-      rows.push({ store, node: store.node, source: null, y, h, lanes, header: true, split });
-      y += h;
+      // A header row holds its name, "all sources" when split, and its clock label.
+      const hh = Math.max(h, split ? HEADER_SPLIT_MIN_H : HEADER_MIN_H);
+      rows.push({ store, node: store.node, source: null, y, h: hh, lanes, header: true, split });
+      y += hh;
       if (split) {
         for (const source of store.sources) {
           rows.push({ store, node: store.node, source, y, h, lanes, header: false });
@@ -171,6 +195,7 @@ export class StageView {
     this.layout();
     this.t0 = t0;
     this.t1 = t1;
+    this.raw = !!this.model.raw?.();
     const ctx = this.ctx;
     const W = this.cssWidth;
     const H = this.cssHeight;
@@ -210,6 +235,7 @@ export class StageView {
     const samples = {};
     const bySource = {};
     const lanes = {};
+    const bands = {};
     let runs = 0;
     for (const row of this.rows) {
       const store = row.store;
@@ -229,6 +255,8 @@ export class StageView {
           ((bySource[row.node] ??= {})[row.source] ??= {})[stage] = lane.drawn;
         }
       });
+      const band = this.drawBand(row, visible);
+      if (row.header) bands[row.node] = band;
     }
     if (!this.rows.length) {
       ctx.fillStyle = "#607d8b";
@@ -237,7 +265,7 @@ export class StageView {
       ctx.fillText("Waiting for nodes: dcuscope run CONFIG --probes --relay URL --node NAME", X, AXIS_H + 20);
     }
     this.last = {
-      bars, bySource, runs, samples, lanes,
+      bars, bySource, runs, samples, lanes, bands, raw: this.raw, window: [t0, t1],
       rows: this.rows.map((r) => ({ node: r.node, source: r.source, y: r.y, h: r.h, lanes: r.lanes.map((s) => r.store.stages[s]) })),
     };
   }
@@ -259,9 +287,11 @@ export class StageView {
     const runs = new Runs(y, this.pending);
     const out = { drawn: 0, bars: 0, narrow: 0, runs: 0, best: null, service: 0, wait: 0 };
     for (let j = 0; j < visible.length; j++) {
-      const b = store.slot(visible[j]) * S + s;
-      const a = store.enter[b];
-      const e = store.exit[b];
+      const p = store.slot(visible[j]);
+      const b = p * S + s;
+      const sh = this.shift(store, p);
+      const a = store.enter[b] + sh;
+      const e = store.exit[b] + sh;
       if (!(e >= t0 && a <= t1)) continue; // NaN fails both: no bar
       out.drawn++;
       const ca = Math.max(a, t0);
@@ -345,6 +375,45 @@ export class StageView {
   }
 
   /**
+   * The row's clock band: from the plot's start edge, 2U wide on the time axis (± U, U the largest
+   * bound of the frames drawn, or of the newest frame when none is), over the row's height, drawn
+   * over the bars (translucent); its label "± N µs" in a header row's gutter. None in raw mode,
+   * whose label reads "raw clock", nor where the relay has no estimate. Returns what was drawn.
+   */
+  drawBand(row, visible) {
+    const store = row.store;
+    let u = -Infinity;
+    for (let j = 0; j < visible.length; j++) u = Math.max(u, store.clockBound[store.slot(visible[j])]);
+    if (!(u >= 0)) u = store.size ? store.clockBound[store.slot(store.size - 1)] : NaN;
+    const known = !["none", "ignored"].includes(store.clockApplied) && u >= 0;
+    const label = this.raw ? "raw clock" : known ? formatBound(u) : "no clock estimate";
+    const k = this.plotWidth / (this.t1 - this.t0);
+    const w = this.raw || !known ? 0 : Math.min(this.plotWidth, 2 * u * k);
+    const ctx = this.ctx;
+    if (w > 0) {
+      ctx.fillStyle = BAND_FILL;
+      ctx.fillRect(GUTTER, row.y, w, row.h);
+    }
+    if (row.header) {
+      ctx.font = "10px system-ui, sans-serif";
+      ctx.textAlign = "left";
+      ctx.textBaseline = "middle";
+      ctx.fillStyle = BAND_TEXT;
+      const y = row.y + Math.min(row.h / 2, 16) + (row.split ? 30 : 15);
+      ctx.fillText(fitText(ctx, label, this.labelRoom(row) - 8), 8, y);
+    }
+    return { x: GUTTER, w, uncertaintyMs: u, label, applied: store.clockApplied };
+  }
+
+  /** Room (px from the left) a row's names have before its stage names. */
+  labelRoom(row) {
+    const ctx = this.ctx;
+    ctx.font = LANE_FONT;
+    const widest = Math.max(0, ...row.lanes.map((s) => ctx.measureText(fitText(ctx, row.store.stages[s], LANE_LABEL_MAX)).width));
+    return GUTTER - 6 - widest - LABEL_GAP;
+  }
+
+  /**
    * A row's gutter: its name (node, or source and its description) on the left, its lanes'
    * stage names right-aligned against the plot. The names are cut to the room the stage
    * names leave them, so the two never overlap, however long a node or source name is.
@@ -382,13 +451,15 @@ export class StageView {
     });
   }
 
-  /** Logical indices of the frames of `source` (null: all) whose span meets [t0, t1]. */
+  /** Logical indices of the frames of `source` (null: all) whose span (shifted in raw mode) meets [t0, t1]. */
   visible(store, source, t0, t1) {
     if (this.scratch.length < store.size) this.scratch = new Int32Array(store.capacity);
     let n = 0;
-    for (let i = store.firstEndingAfter(t0); i < store.size; i++) {
+    // Raw times lie up to clockMax after the corrected ones that the search goes by.
+    for (let i = store.firstEndingAfter(t0 - (this.raw ? Math.max(0, store.clockMax) : 0)); i < store.size; i++) {
       const p = store.slot(i);
-      if (store.origin[p] > t1 || store.end[p] < t0) continue;
+      const sh = this.shift(store, p);
+      if (store.origin[p] + sh > t1 || store.end[p] + sh < t0) continue;
       if (source !== null && store.source[p] !== source) continue;
       this.scratch[n++] = i;
     }
@@ -409,11 +480,12 @@ export class StageView {
     const tol = HIT_PX / k;
     let best = -1;
     let bestDist = Infinity;
-    for (let i = store.firstEndingAfter(t - tol); i < store.size; i++) {
+    for (let i = store.firstEndingAfter(t - tol - (this.raw ? Math.max(0, store.clockMax) : 0)); i < store.size; i++) {
       const p = store.slot(i);
       if (row.source !== null && store.source[p] !== row.source) continue;
-      const a = store.enter[p * store.S + s];
-      const e = store.exit[p * store.S + s];
+      const sh = this.shift(store, p);
+      const a = store.enter[p * store.S + s] + sh;
+      const e = store.exit[p * store.S + s] + sh;
       if (!(a <= t + tol && e >= t - tol)) continue;
       const dist = t < a ? a - t : t > e ? t - e : 0;
       if (dist < bestDist || (dist === bestDist && store.stageDelay[p * store.S + s] < this._span(store, best, s))) {
@@ -422,12 +494,14 @@ export class StageView {
       }
     }
     if (best < 0) return null;
-    const a = store.enter[best * store.S + s];
-    const e = store.exit[best * store.S + s];
+    const sh = this.shift(store, best);
+    const a = store.enter[best * store.S + s] + sh;
+    const e = store.exit[best * store.S + s] + sh;
     return {
       node: store.node, stage: store.stages[s], source: store.source[best], frame: store.frame[best],
       enter: a, exit: e, delay: store.stageDelay[best * store.S + s], frameDelay: store.delay[best],
       service: store.stageService[best * store.S + s], wait: store.stageWait[best * store.S + s],
+      raw: this.raw, clock: store.clock[best], bound: store.clockBound[best], applied: store.clockApplied,
     };
   }
 
@@ -445,6 +519,19 @@ export class StageView {
       // Absent where the relay has no split (old traces, Python probes): nothing is guessed.
       ...(h.service === h.service || h.wait === h.wait
         ? [`service ${known(h.service)}  wait ${known(h.wait)}`] : []),
+      // Absent where the relay sent no clock (an older relay): nothing is guessed.
+      ...(h.bound === h.bound || h.applied ? [StageView.describeClock(h)] : []),
     ];
+  }
+
+  /** Which clock a bar's times are on: "raw node clock (...)" or "corrected: ... ± ...". */
+  static describeClock(h) {
+    const offset = `${h.clock >= 0 ? "+" : "−"}${Math.abs(h.clock).toFixed(3)} ms`;
+    const bound = h.bound === h.bound ? ` ${formatBound(h.bound)}` : "";
+    if (h.applied === "none" || h.applied === "ignored") {
+      return `${h.raw ? "raw node clock" : "not corrected"}: the relay has no usable clock estimate (${h.applied})`;
+    }
+    if (h.raw) return `raw node clock (the relay subtracts ${offset}${bound})`;
+    return `corrected to the relay's clock (${h.applied ?? "?"}: ${offset} subtracted${bound})`;
   }
 }

@@ -65,6 +65,13 @@ export class NodeStore {
     this.stageService = new Float32Array(cap * this.S);
     this.stageWait = new Float32Array(cap * this.S);
     this.maxEnd = new Float64Array(cap); // running maximum of `end` in arrival order: searchable
+    // What the relay subtracted from the frame's node timestamps at its origin (ms: raw = corrected
+    // + clock), and its bound (ms, NaN where the relay sent none).
+    this.clock = new Float64Array(cap);
+    this.clockBound = new Float64Array(cap);
+    this.clockMin = 0; // smallest and largest `clock` ever held: how far raw times may lie from corrected ones
+    this.clockMax = 0;
+    this.clockApplied = null; // the relay's correction of the newest block: estimate, ptp, none, ...
     this.head = 0;
     this.size = 0;
     this.lastN = 0;
@@ -96,8 +103,9 @@ export class NodeStore {
   }
 
   /**
-   * Add a block shaped as GET /api/frames ({run, stages, has_exit[], frames: [{n, source, frame,
-   * origin, end, enter[], exit[], delay_ms, stage_delay_ms[], stage_service_ms[]?, stage_wait_ms[]?}]}); frames at or below the cursor
+   * Add a block shaped as GET /api/frames ({run, stages, has_exit[], clock, frames: [{n, source, frame,
+   * origin, end, enter[], exit[], delay_ms, stage_delay_ms[], stage_service_ms[]?, stage_wait_ms[]?,
+   * clock_ns, clock_uncertainty_ns}]}); frames at or below the cursor
    * already held are skipped. Every figure comes from the relay; none is derived here.
    * Returns how many were added.
    */
@@ -109,6 +117,7 @@ export class NodeStore {
       this.lastN = 0;
     }
     (block.has_exit ?? []).forEach((h, s) => { if (h && s < this.S) this.barStage[s] = 1; });
+    if (block.clock !== undefined) this.clockApplied = block.clock;
     let added = 0;
     for (const f of block.frames) {
       if (f.n <= this.lastN) continue;
@@ -138,6 +147,11 @@ export class NodeStore {
     this.origin[p] = origin;
     this.end[p] = end;
     this.delay[p] = f.delay_ms;
+    const clock = (f.clock_ns ?? 0) / 1e6;
+    this.clock[p] = clock;
+    this.clockBound[p] = f.clock_uncertainty_ns === null || f.clock_uncertainty_ns === undefined ? NaN : f.clock_uncertainty_ns / 1e6;
+    this.clockMin = Math.min(this.clockMin, clock);
+    this.clockMax = Math.max(this.clockMax, clock);
     const base = p * S;
     for (let s = 0; s < S; s++) {
       const a = f.enter[s];

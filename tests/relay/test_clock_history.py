@@ -1,0 +1,99 @@
+"""A node whose clock steps mid-run, on a real relay: the relay stores the history of its
+estimates, and every stored timestamp is corrected by the estimate in force at its time (each
+part of the run by its own offset, within its bound), in `dcuscope export`'s loading and in the
+session API, not by the run's last estimate alone."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import sqlite3
+import time
+import uuid
+
+import numpy as np
+
+from probes.events import ORIGIN
+from probes.simnode import synth_events
+from probes.wire import encode_batch
+from relay.storage import frame_starts, load_runs
+from tests.relay.helpers import HandNode, RelayProcess, get_json
+
+OFFSETS = (5_000_000, 45_000_000)
+"""The node's clock minus the relay's before and after the step."""
+REPORT_S = 2.0
+
+
+async def _report(node: HandNode, offset: int) -> None:
+    """One clock report: a burst of four exchanges read on a node clock ``offset`` ahead."""
+    samples = []
+    for _ in range(4):
+        t1 = time.time_ns() + offset
+        reply = await node.link.call("sync", None, 5)
+        samples.append([t1, reply["t2"], reply["t3"], time.time_ns() + offset])
+    await node.link.tell("clock", {"samples": samples, "lost": 0, "floor": 0})
+
+
+async def _stepping_node(url: str, run: str) -> list[np.ndarray]:
+    """Two clock reports and 40 frames (1.6 s) per offset; returns each part's events at their true times."""
+    node = await HandNode.open(url, "stepper", run)
+    truths, seq = [], 0
+    try:
+        for offset in OFFSETS:
+            start = time.time_ns()
+            await _report(node, offset)
+            await asyncio.sleep(REPORT_S)
+            await _report(node, offset)
+            # Frames between the part's first report and a second after its last one.
+            events = synth_events(40, 1, 25.0, start + 200_000_000 - 40 * seq * 40_000_000, first_frame=40 * seq)
+            truths.append(events.copy())
+            events["ts"] += offset
+            assert (await node.batch(encode_batch(run, seq, events)))["ok"]
+            seq += 1
+            await asyncio.sleep(REPORT_S)
+        assert (await node.link.call("end", {"events": 80, "dropped": 0, "lost": 0}, 5))["ok"]
+    finally:
+        await node.close()
+    return truths
+
+
+def test_each_part_of_a_run_is_corrected_by_the_estimate_in_force_at_its_time(tmp_path):
+    db = tmp_path / "r.db"
+    relay = RelayProcess(db, clock="estimate")
+    run = uuid.uuid4().hex
+    try:
+        truths = asyncio.run(_stepping_node(relay.url, run))
+        clock = {n["node"]: n for n in get_json(f"{relay.url}/api/nodes")}["stepper"]["clock"]
+        assert clock["history"] == 2 and clock["restarts"] == 1 and clock["via"] == "websocket", clock
+        assert abs(clock["offset_ns"] - OFFSETS[1]) <= clock["uncertainty_ns"] and clock["drift_ppm"] == 0
+        session = get_json(f"{relay.url}/api/nodes")[0]["session"]
+        frames = get_json(f"{relay.url}/api/sessions/{session}/frames?node=stepper&limit=1000")["frames"]
+    finally:
+        relay.stop()
+    with sqlite3.connect(db) as conn:
+        assert conn.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone() == ("3",)
+        assert conn.execute("SELECT COUNT(*) FROM clock_history WHERE run = ?", (run,)).fetchone() == (2,)
+
+    # What `dcuscope export --db` loads: every event by its frame's estimate, within that estimate's bound.
+    (stored,) = load_runs(db, run)
+    (raw,) = load_runs(db, run, corrected=False)
+    assert stored.correction.applied == "estimate" and len(stored.correction.segments) == 2
+    truth = np.concatenate(truths)
+    error = np.abs(stored.events["ts"] - truth["ts"])
+    bound = stored.correction.uncertainties(raw.events["ts"], frame_starts(raw.events))
+    assert (error <= bound).all(), (error.max(), bound[np.argmax(error - bound)])
+    assert bound.max() < 5_000_000  # loopback: far under the 40 ms step
+    for seg, offset in zip(stored.correction.segments, OFFSETS):  # one estimate per part
+        assert abs(seg.offset_ns - offset) <= seg.uncertainty_ns, seg
+    # The last estimate alone would have moved the first part by the second part's offset.
+    assert (np.abs(raw.events["ts"] - OFFSETS[1] - truth["ts"])[:len(truths[0])] > 30_000_000).all()
+
+    # The session API: each frame's offset is its part's, its origin the true one, within the bound it states.
+    assert len(frames) == 80
+    origins = truth[truth["point"] == ORIGIN]
+    true_origin = dict(zip(origins["frame"].tolist(), origins["ts"].tolist()))
+    for f in frames:
+        assert abs(f["clock_ns"] - OFFSETS[f["frame"] // 40]) <= f["clock_uncertainty_ns"], f
+        assert abs(f["origin"] - true_origin[f["frame"]]) <= f["clock_uncertainty_ns"], f
+    print(json.dumps({"history": clock["history"], "bounds_us": [s.uncertainty_ns / 1e3
+                                                                for s in stored.correction.segments]}))
