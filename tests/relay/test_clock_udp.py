@@ -61,9 +61,9 @@ def test_samples_arrive_over_udp_and_the_correction_holds_the_truth(tmp_path, of
         udp = get_json(f"{relay.url}/api/health")["clock_udp"]
         assert udp["answered"] >= 32 and udp["port"] == relay.port
         clock = _frames_hold_the_truth(relay, "B", t0)
-        assert clock["rejected"] == 0 and clock["samples"] >= 16
-        # Loopback with kernel timestamps: far tighter than the WebSocket exchange's ~120 us.
-        assert clock["uncertainty_ns"] < 100_000, clock  # the best sample's own bound
+        assert clock["rejected"] == 0 and clock["samples"] >= 16 and clock["via"] == "udp", clock
+        # Loopback with kernel timestamps: the best exchange's round trip is tens of microseconds.
+        assert clock["rtt_us"] < 200, clock
     finally:
         relay.stop()
 
@@ -120,7 +120,7 @@ def test_hostile_datagrams_are_dropped_counted_and_never_answered(tmp_path):
         assert _answers(attacker) == []  # nothing was ever answered
         assert counters["clock_via"] == "udp"
         clock = _frames_hold_the_truth(relay, "B", t0)
-        assert clock["rejected"] == 0 and clock["uncertainty_ns"] < 100_000, clock
+        assert clock["rejected"] == 0 and clock["via"] == "udp" and clock["rtt_us"] < 200, clock
     finally:
         attacker.close()
         relay.stop()
@@ -196,7 +196,7 @@ def test_without_udp_a_node_falls_back_to_the_websocket(tmp_path):
         assert err.decode().count("clock samples go over the WebSocket") == 1
         assert get_json(f"{relay.url}/api/health")["clock_udp"] is None
         clock = _frames_hold_the_truth(relay, "B", t0)
-        assert clock["samples"] >= 8
+        assert clock["samples"] >= 8 and clock["via"] == "websocket", clock
     finally:
         relay.stop()
 
