@@ -47,3 +47,10 @@ def test_relay_help_describes_the_log_level_and_the_clock_default():
     text = " ".join(result.stdout.split())
     assert "--log-level" in text and "how much the relay logs to stderr" in text and "(default WARNING)" in text, text
     assert "(default auto)" in text, text
+
+
+def test_run_help_gives_both_clock_aids_as_testing_aids_and_relay_help_the_clock_port():
+    run = " ".join(run_cli("run", "--help", timeout=60).stdout.split())
+    assert "--clock-offset-ms MS TESTING AID: " in run and "--clock-drift-ppm PPM TESTING AID: " in run, run
+    relay = " ".join(run_cli("relay", "--help", timeout=60).stdout.split())
+    assert "--clock-port N" in relay and "0 turns it off" in relay and "clock_packets_per_s" in relay, relay
