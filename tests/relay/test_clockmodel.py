@@ -220,3 +220,12 @@ def test_a_history_looked_up_by_corrected_times_gives_each_time_its_own_offset()
     span_s = (times[-1] - times[0]) / S  # the drift's rounding: at most 1 ns per s from the reference
     assert np.abs(on_relay.offsets(moved) - corr.offsets(ts))[clear].max() <= 2 + span_s
     assert np.abs(on_relay.uncertainties(moved) - corr.uncertainties(ts))[clear].max() <= 2
+
+
+def test_a_history_without_a_current_estimate_still_corrects():
+    """A run resumed after a relay restart has its stored history before its first new sample."""
+    seg = Segment(T0, T0, 3_000_000, 0, 90_000, 1_000)
+    corr = correction_of("estimate", None, {}, history=[seg])
+    assert corr.applied == "estimate" and corr.at(T0 + S) == (3_000_000, 91_000)
+    assert correction_of("estimate", None, {}).applied == "none"
+    assert correction_of("ptp", None, {}, history=[seg]).applied == "ptp"
