@@ -207,7 +207,9 @@ def correction_of(mode: str, estimate: ClockEstimate | None, ptp: dict, now_ns: 
         unc = ptp_uncertainty_ns(ptp) if isinstance(ptp, dict) else 0
         return Correction("ptp", reason if mode == "auto" else "--clock ptp", (), unc)
     untrusted = f"PTP not trusted: {reason}; " if mode == "auto" else ""
-    if applied != "estimate" or estimate is None:
+    if applied == "none" and history:  # a run resumed after a relay restart: its stored estimates hold
+        applied = "estimate"
+    elif applied != "estimate" or estimate is None:
         return Correction(applied, untrusted + ("no clock estimate yet" if applied == "none" else "estimate ignored"))
     why = untrusted + "estimate applied" if mode == "auto" else "offset estimated by the relay"
     if history:

@@ -3,8 +3,8 @@ and the history of its estimates (what corrects each node timestamp).
 
 Points. Samples (t1..t4, any transport) whose node times fall in one ``POINT_SPAN_NS`` slot of
 the node's clock form a point, which keeps their minimum-RTT sample. Whatever the paths'
-asymmetry, the true offset at a point's node time lies within its offset +- r, r = RTT/2 +
-``TIMESTAMP_FLOOR_NS`` (the floor covers rounding and the drift during one exchange).
+asymmetry, the true offset at a point's node time lies within its offset +- r, r = RTT/2 + the
+drift over half the exchange (at most ``MAX_DRIFT_PPB``) + ``TIMESTAMP_FLOOR_NS`` (reading and rounding).
 
 Fit. Over the points of the last ``WINDOW_NS`` (at most ``MAX_POINTS``): offset = a + b (t - ref),
 least squares weighted by 1/r^2, b the drift (clamped to +-``MAX_DRIFT_PPB``). Over a span under
@@ -49,6 +49,11 @@ HISTORY_MIN_NS = 1_500_000_000
 MAX_HISTORY = 256
 
 
+def half_width(rtt_ns: int) -> int:
+    """r of a sample: RTT/2, what the clock may drift while half the exchange lasts, the floor."""
+    return (rtt_ns + 1) // 2 + rtt_ns * MAX_DRIFT_PPB // 2_000_000_000 + 1 + TIMESTAMP_FLOOR_NS
+
+
 @dataclass
 class Point:
     """The minimum-RTT sample of the samples taken in the POINT_SPAN_NS slot from ``start_ns`` (node time)."""
@@ -63,7 +68,7 @@ class Point:
     @property
     def half_ns(self) -> int:
         """r: the true offset at ``node_ns`` lies within offset_ns +- r."""
-        return (self.rtt_ns + 1) // 2 + TIMESTAMP_FLOOR_NS
+        return half_width(self.rtt_ns)
 
     def take(self, s: ClockSample) -> None:
         self.samples += 1
@@ -114,7 +119,7 @@ def _outside(est: ClockEstimate, s: ClockSample) -> bool:
     dt = s.node_ns - seg.ref_ns
     predicted = seg.offset_ns + seg.drift_ppb * dt / 1e9
     bound = seg.uncertainty_ns + seg.growth_ppb * abs(dt) / 1e9
-    return abs(s.offset_ns - predicted) > bound + (s.rtt_ns + 1) // 2 + TIMESTAMP_FLOOR_NS
+    return abs(s.offset_ns - predicted) > bound + half_width(s.rtt_ns)
 
 
 @dataclass

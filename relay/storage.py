@@ -509,11 +509,15 @@ def frame_starts(events: np.ndarray) -> np.ndarray:
     """Per event, the earliest timestamp of its frame (source, frame): every event of a frame is
     corrected by the estimate in force at its start, so that a new estimate arriving while a frame
     went through the pipeline leaves its delays as measured on the node's clock."""
-    _, group = np.unique(events[["source", "frame"]], return_inverse=True)
-    group = group.reshape(-1)
-    first = np.full(int(group.max()) + 1, np.iinfo(np.int64).max, dtype=np.int64)
-    np.minimum.at(first, group, events["ts"])
-    return first[group]
+    source, frame, ts = events["source"], events["frame"], events["ts"]
+    order = np.lexsort((frame, source))  # ~1 s for 10 M events (np.unique on the pair: 15 s)
+    s, f = source[order], frame[order]
+    new = np.ones(len(order), dtype=bool)
+    new[1:] = (s[1:] != s[:-1]) | (f[1:] != f[:-1])
+    first = np.minimum.reduceat(ts[order], np.flatnonzero(new))
+    out = np.empty(len(ts), dtype=np.int64)
+    out[order] = first[np.cumsum(new) - 1]
+    return out
 
 
 def _run_clock(run: str, text: str, history: list[Segment]) -> tuple[dict, Correction]:

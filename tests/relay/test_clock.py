@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from relay.clock import ClockEstimate, correction_ns, correction_of, ntp_sample
-from relay.clockmodel import TIMESTAMP_FLOOR_NS, WINDOW_NS, ClockEstimator
+from relay.clockmodel import WINDOW_NS, ClockEstimator, half_width
 
 
 def exchange(offset: int, t1_true: int, up: int, down: int, hold: int) -> tuple[int, int, int, int]:
@@ -37,7 +37,7 @@ def test_estimator_keeps_min_delay_sample_of_a_point_and_the_points_of_its_windo
     est.add(*exchange(5_000_000, 10**18, 900_000, 100_000, 0))
     e = est.estimate()
     assert e.rtt_ns == 100_000 and e.samples == 3 and e.points == 1
-    assert abs(e.offset_ns - 5_000_000) <= e.uncertainty_ns == 50_000 + TIMESTAMP_FLOOR_NS + 1  # +1: rounding
+    assert abs(e.offset_ns - 5_000_000) <= e.uncertainty_ns == half_width(100_000) + 1  # +1: rounding
     for k in range(1, 5):  # later points, worse ones: the best stays while it is in the window
         est.add(*exchange(5_000_000, 10**18 + k * 2 * 10**9, 300_000, 300_000, 0))
     assert est.estimate().points == 5 and est.estimate().samples == 7

@@ -97,3 +97,41 @@ def test_each_part_of_a_run_is_corrected_by_the_estimate_in_force_at_its_time(tm
         assert abs(f["origin"] - true_origin[f["frame"]]) <= f["clock_uncertainty_ns"], f
     print(json.dumps({"history": clock["history"], "bounds_us": [s.uncertainty_ns / 1e3
                                                                 for s in stored.correction.segments]}))
+
+
+async def _resume_after_restart(db, run: str) -> tuple[dict, dict]:
+    """Two reports and a batch, a relay killed and started again, the run resumed: what the new
+    relay shows before the run's next report, and after it."""
+    relay = RelayProcess(db, clock="estimate")
+    try:
+        node = await HandNode.open(relay.url, "resumer", run)
+        await _report(node, OFFSETS[0])
+        await asyncio.sleep(REPORT_S)
+        await _report(node, OFFSETS[0])
+        events = synth_events(20, 1, 25.0, time.time_ns() - 1_000_000_000)
+        events["ts"] += OFFSETS[0]
+        assert (await node.batch(encode_batch(run, 0, events)))["ok"]
+        await node.close()
+    finally:
+        relay.kill9()
+    relay = RelayProcess(db, clock="estimate")
+    try:
+        node = await HandNode.open(relay.url, "resumer", run, secret=node.secret)
+        before = get_json(f"{relay.url}/api/frames?node=resumer&limit=100")
+        await asyncio.sleep(REPORT_S)
+        await _report(node, OFFSETS[0])
+        await node.close()
+        return before, get_json(f"{relay.url}/api/nodes")[0]["clock"]
+    finally:
+        relay.stop()
+
+
+def test_a_run_resumed_after_a_relay_restart_keeps_its_history_and_goes_on(tmp_path):
+    db, run = tmp_path / "r.db", uuid.uuid4().hex
+    before, after = asyncio.run(_resume_after_restart(db, run))
+    # Before its next report, the resumed run's frames are corrected by its stored estimates.
+    assert before["clock"] == "estimate" and len(before["frames"]) == 20
+    assert all(abs(f["clock_ns"] - OFFSETS[0]) <= f["clock_uncertainty_ns"] for f in before["frames"])
+    assert after["history"] == 2 and after["applied"] == "estimate", after
+    with sqlite3.connect(db) as conn:
+        assert conn.execute("SELECT COUNT(*) FROM clock_history WHERE run = ?", (run,)).fetchone() == (2,)

@@ -10,8 +10,9 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from relay.clock import Correction, ClockEstimate, Segment, correction_of
-from relay.clockmodel import HISTORY_MIN_NS, MAX_HISTORY, TIMESTAMP_FLOOR_NS, ClockEstimator, segment_fault
+from relay.clock import Correction, ClockEstimate, Segment, correction_of, ntp_sample
+from relay.clockmodel import (HISTORY_MIN_NS, MAX_HISTORY, TIMESTAMP_FLOOR_NS, ClockEstimator, half_width,
+                              segment_fault)
 
 T0 = 1_790_000_000_000_000_000
 S = 1_000_000_000
@@ -50,7 +51,7 @@ def exchange(clock: Clock, tau: float, up: float, down: float, hold: float = 5_0
 
 
 def delays(rng, kind: str, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """(up, down) path delays, ns: loopback websocket, loopback UDP, netem 2 ms +- jitter, 1 ms / 3 ms."""
+    """(up, down) path delays, ns: loopback websocket, loopback UDP, netem 2 ms +- jitter, 1 ms / 3 ms, seconds."""
     if kind == "websocket":
         return rng.uniform(60_000, 150_000, n) + rng.exponential(20_000, n), rng.uniform(60_000, 150_000, n)
     if kind == "udp":
@@ -59,6 +60,8 @@ def delays(rng, kind: str, n: int) -> tuple[np.ndarray, np.ndarray]:
         return 2e6 + rng.normal(0, 200_000, n).clip(-1.9e6), 2e6 + rng.normal(0, 200_000, n).clip(-1.9e6)
     if kind == "asymmetric":
         return 1e6 + rng.exponential(50_000, n), 3e6 + rng.exponential(50_000, n)
+    if kind == "slow":  # a congested link: exchanges of seconds, over which the clock drifts too
+        return rng.uniform(0.3e9, 0.5e9, n), rng.uniform(1.0e9, 1.5e9, n)
     raise ValueError(kind)
 
 
@@ -102,7 +105,8 @@ def history_holds(clock: Clock, est: ClockEstimator, node_times: list[int], ahea
 
 @pytest.mark.parametrize("kind, offset, drift_ppm", [
     ("websocket", 3_700_000, 0.0), ("websocket", -2_500_000_000, 100.0), ("udp", 1_200_000_000, -100.0),
-    ("netem", 40_000_000, 50.0), ("asymmetric", -7_000_000, -30.0), ("asymmetric", 2_000_000_000, 100.0)])
+    ("netem", 40_000_000, 50.0), ("asymmetric", -7_000_000, -30.0), ("asymmetric", 2_000_000_000, 100.0),
+    ("slow", 300_000_000, -100.0)])
 def test_truth_inside_the_bound_live_and_by_history(kind, offset, drift_ppm):
     clock = Clock(offset, drift_ppm)
     est, times = run(clock, kind, 120)
@@ -220,3 +224,22 @@ def test_a_history_looked_up_by_corrected_times_gives_each_time_its_own_offset()
     span_s = (times[-1] - times[0]) / S  # the drift's rounding: at most 1 ns per s from the reference
     assert np.abs(on_relay.offsets(moved) - corr.offsets(ts))[clear].max() <= 2 + span_s
     assert np.abs(on_relay.uncertainties(moved) - corr.uncertainties(ts))[clear].max() <= 2
+
+
+def test_a_history_without_a_current_estimate_still_corrects():
+    """A run resumed after a relay restart has its stored history before its first new sample."""
+    seg = Segment(T0, T0, 3_000_000, 0, 90_000, 1_000)
+    corr = correction_of("estimate", None, {}, history=[seg])
+    assert corr.applied == "estimate" and corr.at(T0 + S) == (3_000_000, 91_000)
+    assert correction_of("estimate", None, {}).applied == "none"
+    assert correction_of("ptp", None, {}, history=[seg]).applied == "ptp"
+
+
+def test_a_sample_bound_covers_the_drift_while_the_exchange_lasts():
+    """All the delay one way (the offset's error is RTT/2) on a clock slow by 400 ppm: the
+    measured RTT is short of the true one by the drift over the exchange."""
+    clock = Clock(2_000_000, -400.0)
+    s = ntp_sample(*exchange(clock, 0, 0, 1e9, hold=0))
+    truth = clock.truth_at_node(np.array([s.node_ns]))[0]
+    assert abs(s.offset_ns - truth) > (s.rtt_ns + 1) // 2 + TIMESTAMP_FLOOR_NS  # RTT/2 alone falls short
+    assert abs(s.offset_ns - truth) <= half_width(s.rtt_ns)

@@ -164,3 +164,13 @@ def test_a_stored_history_corrects_each_timestamp_and_a_poisoned_one_falls_back(
     assert np.array_equal(stored.events["ts"], events["ts"] - 9000)
     assert [r.message for r in caplog.records if "history" in r.message] == [
         f"run {run}: stored clock history: drift 1000000000000 beyond 1000000; its last estimate is applied instead"]
+
+
+def test_frame_starts_are_each_frames_earliest_time_in_any_order():
+    events = synth_events(30, 3, 25.0, T0, seed=4)
+    events = events[np.random.default_rng(0).permutation(len(events))]
+    first: dict = {}
+    for s, f, t in zip(events["source"].tolist(), events["frame"].tolist(), events["ts"].tolist()):
+        first[(s, f)] = min(t, first.get((s, f), t))
+    assert db.frame_starts(events).tolist() == [first[(s, f)] for s, f in zip(events["source"].tolist(),
+                                                                               events["frame"].tolist())]
