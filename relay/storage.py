@@ -33,7 +33,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from probes.events import EVENT_DTYPE, TraceHeader
+from probes.events import CAPTURE, EVENT_DTYPE, TraceHeader
 from probes.wire import decode_payload
 from relay.clock import NO_CORRECTION, Correction, Segment, stored_correction
 from relay.clockentry import stored_run_correction
@@ -495,7 +495,10 @@ def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> 
             clock, correction = _run_clock(rid, clock, run_history(conn, rid))
             if corrected and correction.segments and len(events):
                 events = events.copy()
-                events["ts"] = correction.correct(events["ts"], frame_starts(events))
+                # A capture time is the camera's clock (RTCP sender reports), not the node's: kept.
+                node_time = events["point"] != CAPTURE
+                events["ts"] = np.where(node_time, correction.correct(events["ts"], frame_starts(events, node_time)),
+                                        events["ts"])
             out.append(StoredRun(rid, int(session), TraceHeader.from_dict(json.loads(header)), events,
                                  int(dropped), int(lost), clock, ended is not None, correction, last))
         return out
@@ -505,11 +508,14 @@ def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> 
         conn.close()
 
 
-def frame_starts(events: np.ndarray) -> np.ndarray:
-    """Per event, the earliest timestamp of its frame (source, frame): every event of a frame is
-    corrected by the estimate in force at its start, so that a new estimate arriving while a frame
-    went through the pipeline leaves its delays as measured on the node's clock."""
+def frame_starts(events: np.ndarray, counted: np.ndarray | None = None) -> np.ndarray:
+    """Per event, the earliest timestamp of its frame (source, frame) among the ``counted`` events
+    (all by default): every event of a frame is corrected by the estimate in force at its start,
+    so that a new estimate arriving while a frame went through the pipeline leaves its delays as
+    measured on the node's clock."""
     source, frame, ts = events["source"], events["frame"], events["ts"]
+    if counted is not None:  # the others never start a frame: they sort after every counted one
+        ts = np.where(counted, ts, np.iinfo(np.int64).max)
     order = np.lexsort((frame, source))  # ~1 s for 10 M events (np.unique on the pair: 15 s)
     s, f = source[order], frame[order]
     new = np.ones(len(order), dtype=bool)

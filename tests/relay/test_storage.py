@@ -10,6 +10,7 @@ import uuid
 import numpy as np
 import pytest
 
+from probes.events import CAPTURE, ORIGIN
 from probes.simnode import header_for, synth_events
 from probes.wire import encode_batch
 from relay import storage as db
@@ -174,3 +175,31 @@ def test_frame_starts_are_each_frames_earliest_time_in_any_order():
         first[(s, f)] = min(t, first.get((s, f), t))
     assert db.frame_starts(events).tolist() == [first[(s, f)] for s, f in zip(events["source"].tolist(),
                                                                                events["frame"].tolist())]
+
+
+def test_capture_times_are_the_cameras_clock_and_stay_as_stored(tmp_path):
+    """A node's correction moves its own timestamps, never a frame's capture time (the camera's
+    clock, from RTCP sender reports), nor does the capture, the earliest time of a frame, pick
+    the estimate the frame is corrected by."""
+    path, run = tmp_path / "r.db", uuid.uuid4().hex
+    events = synth_events(50, 1, 25.0, T0)
+    origins = events[events["point"] == ORIGIN]
+    captures = origins.copy()
+    captures["point"], captures["stage"] = CAPTURE, 0
+    captures["ts"] -= 2 * 10**9  # two seconds earlier: before the second segment's start
+    events = np.concatenate([events, captures])
+    _older_database(path, 2, run, events, {"applied": "estimate", "correction_ns": 9000})
+    half = int(T0) + 1_000_000_000
+    history = [Segment(int(T0) - 10**9, int(T0), 5000, 0, 100), Segment(half, half, 9000, 0, 50)]
+    conn = db.connect(path)
+    db.update_run(conn, run, history=[s.to_dict() for s in history])
+    conn.close()
+    (stored,) = db.load_runs(path, run[:8])
+    assert np.array_equal(stored.events[["source", "frame", "point"]], events[["source", "frame", "point"]])
+    is_capture = events["point"] == CAPTURE
+    assert np.array_equal(stored.events["ts"][is_capture], captures["ts"])
+    moved = events["ts"] - stored.events["ts"]
+    starts = db.frame_starts(events, ~is_capture)
+    # Each frame by the segment of its own start, not of its capture (all before the second).
+    assert np.array_equal(moved[~is_capture], np.where(starts < half, 5000, 9000)[~is_capture])
+    assert set(moved[~is_capture].tolist()) == {5000, 9000}
