@@ -478,14 +478,16 @@ def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> 
     try:
         key = str(session_id).strip()
         cols = "id, session, header, dropped, lost, clock, ended_ns"
-        if key.isdigit():
+        is_run = len(key) >= 6 and all(c in "0123456789abcdef" for c in key.lower())
+        if not key.isdigit() and not is_run:
+            raise RelayError(f"{db}: session must be a number or a run id, not {session_id!r}")
+        rows = []
+        if key.isdigit() and len(key) <= 18:
             rows = conn.execute(f"SELECT {cols} FROM runs WHERE session = ? AND rejected IS NULL "
                                 "ORDER BY first_seen_ns", (int(key),)).fetchall()
-        elif len(key) >= 6 and all(c in "0123456789abcdef" for c in key.lower()):
+        if not rows and is_run:  # a run id may begin with digits only (1 in 43 do, over 8 of them)
             rows = conn.execute(f"SELECT {cols} FROM runs WHERE id LIKE ? ORDER BY first_seen_ns",
                                 (key.lower() + "%",)).fetchall()
-        else:
-            raise RelayError(f"{db}: session must be a number or a run id, not {session_id!r}")
         if not rows:
             raise RelayError(f"{db}: no session or run {session_id!r}")
         out = []

@@ -203,3 +203,16 @@ def test_capture_times_are_the_cameras_clock_and_stay_as_stored(tmp_path):
     # Each frame by the segment of its own start, not of its capture (all before the second).
     assert np.array_equal(moved[~is_capture], np.where(starts < half, 5000, 9000)[~is_capture])
     assert set(moved[~is_capture].tolist()) == {5000, 9000}
+
+
+def test_a_run_id_whose_prefix_is_all_digits_is_found_by_it(tmp_path):
+    """1 run id in 43 begins with 8 decimal digits: its prefix read as a session number found
+    nothing ("no session or run '12812422'", which failed a test at random)."""
+    path, run = tmp_path / "r.db", "12812422" + uuid.uuid4().hex[8:]
+    events = synth_events(5, 1, 25.0, T0)
+    _older_database(path, 2, run, events, {"applied": "none", "correction_ns": 0})
+    (stored,) = db.load_runs(path, run[:8])
+    assert stored.run == run and np.array_equal(stored.events, events)
+    assert [r.run for r in db.load_runs(path, 1)] == [run]  # a session number is still one
+    with pytest.raises(RelayError, match="no session or run '999999'"):
+        db.load_runs(path, "999999")
