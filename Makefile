@@ -12,7 +12,7 @@ demo: setup
 	$(PY) -m dcuscope.cli demo --port $(PORT) $(if $(DURATION),--duration $(DURATION))
 
 test: setup
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=15
 
 test-fast: setup
 	$(PY) -m pytest -q -m "not slow"
