@@ -3,6 +3,7 @@
 // the clocks' error bar at its tip, coloured by the DCU that finished first; above it the
 // aggregate line (mean, p50, p95, who finished first how often, significant or not).
 
+import { esc } from "./panels.js";
 import { delayTicks, formatClockPrecise, formatDelay, formatTick, niceCeil } from "./timefmt.js";
 
 export const FIRST_A = "#00897b"; // teal: the first DCU (a) finished first
@@ -17,7 +18,6 @@ const POLL_MS = 1000;
 const MOMENTS = 300;
 
 const q = encodeURIComponent;
-const esc = (s) => String(s).replace(/[<&>"]/g, (c) => `&#${c.charCodeAt(0)};`);
 
 export class MomentView {
   /** @param nodes {() => string[]} the live nodes' names, sorted */

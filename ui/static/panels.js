@@ -2,7 +2,7 @@
 
 import { formatDelay } from "./timefmt.js";
 
-const esc = (s) => String(s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
+export const esc = (s) => String(s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
 const ms = (v) => (v === null || v === undefined ? "–" : formatDelay(v));
 const int = (v) => (v === null || v === undefined ? "–" : Number(v).toLocaleString("en-US"));
 
