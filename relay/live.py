@@ -31,6 +31,7 @@ is judged by the exits the whole run has seen.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -178,6 +179,9 @@ class LiveRun:
         self._dirty = False
         self._pending: list[np.ndarray] = []
         self._next_finalise = 0
+        self.on_finalise: Callable[[FrameDelays, Series], None] | None = None
+        """Called with the figures of every finalised batch of frames (all complete), exactly once
+        per frame: the exporters (``/metrics``, OTLP) take them from here, so they derive nothing again."""
         if budget is not None:
             self.set_budget(budget)
 
@@ -433,6 +437,8 @@ class LiveRun:
             self._note_span(int(fd.table.origin[c].min()), int(fd.chains.end[c].max()))
         self._origins.extend(fd.table.origin[c], fd.table.source[c])
         self.finalised += int(c.sum())
+        if self.on_finalise is not None:
+            self.on_finalise(fd, values)
         ring = self._ring
         ring["source"].extend(frames.source)
         ring["frame"].extend(frames.frame)

@@ -7,9 +7,12 @@ read it). Everything runs on the relay's event loop; only storage works in its o
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from probes.delays import FrameDelays, Series
 from probes.errors import ProtocolError
 from probes.events import TraceHeader
 from probes.wire import Hello
@@ -27,6 +30,11 @@ from relay.storage import Storage
 RELOAD_SLICE = 262_144
 STATS_MAX_AGE_S = 0.5
 """Whole-run statistics are recomputed at most this often per run (percentiles over every frame)."""
+
+FrameObserver = Callable[["RunState", FrameDelays, Series], None]
+"""Told of every finalised batch of a run's frames (see ``LiveRun.on_finalise``); it must be quick."""
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -114,6 +122,8 @@ class RelayState:
         self.nodes: dict[str, str] = {}
         """Node name -> its newest run."""
         self.started = time.time()
+        self.observers: list[FrameObserver] = []
+        """The exporters, told of every run's finalised frames (:meth:`observe`)."""
         self._attach_lock = asyncio.Lock()
 
     def live_session(self) -> int | None:
@@ -230,9 +240,19 @@ class RelayState:
         secret_hash = db.secret_hash(issued if issued is not None else hello.secret)
         # A resumed run goes on with its stored clock history (the next write keeps exactly what is held).
         history = [s for s in await self.storage.call(db.run_history, hello.run) if segment_fault(s) is None]
-        return RunState(run=hello.run, node=header.node, session=session, header=header, live=live, seqs=seqs,
-                        first_seen=first_seen_ns / 1e9, secret_hash=secret_hash,
-                        clock=ClockEstimator(history=history)), issued
+        rs = RunState(run=hello.run, node=header.node, session=session, header=header, live=live, seqs=seqs,
+                      first_seen=first_seen_ns / 1e9, secret_hash=secret_hash, clock=ClockEstimator(history=history))
+        # Frames rebuilt from storage above were exported before the relay restarted: not again.
+        live.on_finalise = lambda fd, values: self._finalised(rs, fd, values)
+        return rs, issued
+
+    def _finalised(self, rs: RunState, fd: FrameDelays, values: Series) -> None:
+        for observer in self.observers:
+            try:
+                observer(rs, fd, values)
+            except Exception:  # noqa: BLE001 - an exporter's fault must not stop the ingest
+                log.exception("exporter %s failed on %d frames of %s", getattr(observer, "__qualname__", observer),
+                              len(fd), rs.node)
 
     # --- memory -------------------------------------------------------------------------------
 

@@ -194,3 +194,19 @@ def test_far_source_ids_cost_no_memory_and_their_number_is_bounded():
     assert run.run_stats()["frames"]["complete"] == 5 and list(run.run_stats()["fps"]) == ["0", str(SOURCE_LIMIT - 1)]
     assert run.admit_sources(np.array([1, 2, SOURCE_LIMIT - 1]), 2) == 3  # refused: nothing noted
     assert run.admit_sources(np.array([7]), 2) == 2
+
+
+def test_each_finalised_frame_is_told_once_with_the_figures_the_statistics_use():
+    header = header_for("n", 3)
+    events = synth_events(400, 3, 30.0, T0, drop_rate=0.03, seed=4)
+    run = LiveRun(header)
+    told: list[tuple] = []
+    run.on_finalise = lambda fd, values: told.append((fd, values))
+    feed(run, events, 97)
+    keys = np.concatenate([fd.table.source.astype(np.int64) << 32 | fd.table.frame for fd, _ in told])
+    assert len(keys) == len(np.unique(keys)) == run.finalised  # every finalised frame, once
+    assert all(fd.chains.complete.all() for fd, _ in told)
+    frame_ms = np.concatenate([v.frame for _, v in told]) / 1e6
+    finalised = run._frame_values.summary(np.zeros(0))  # the whole-run statistics' finalised part
+    assert finalised["count"] == len(frame_ms)
+    assert np.isclose(finalised["mean_ms"], frame_ms.mean()) and np.isclose(finalised["max_ms"], frame_ms.max())
