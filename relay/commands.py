@@ -10,6 +10,7 @@ from core.ports import check_port_free
 from relay.auth import load_node_tokens
 from relay.clock import CLOCK_MODES
 from relay.errors import RelayError
+from relay.framelimits import FrameLimits
 from relay.limits import Limits, limits_help
 
 TOKEN_ENV = "DCUSCOPE_TOKEN"
@@ -52,6 +53,10 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--limit", action="append", default=[], metavar="NAME=VALUE",
                    help="change one of the bounds listed below (repeatable), e.g. --limit connections_per_peer=64; "
                         "by default each has the default given there")
+    p.add_argument("--frame-limit", action="append", default=[], metavar="[NODE=]MS",
+                   help="the longest a frame may take (origin to the end of its chain) on every node (MS) or on one "
+                        "(NODE=MS, repeatable): exported in /metrics for the shipped alert rule "
+                        "(configs/prometheus/), and frames over it are always sent with --otlp (default: no limit)")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
                    help="how much the relay logs to stderr: WARNING its failures and warnings, INFO also "
                         "the connections it closes (malformed packets, refused messages), DEBUG everything "
@@ -71,7 +76,8 @@ def run_relay(args: argparse.Namespace) -> int:
     except ValueError as exc:
         raise RelayError(f"--limit: {exc}") from None
     node_tokens = load_node_tokens(args.node_tokens) if args.node_tokens else None
+    frame_limits = FrameLimits.parse(args.frame_limit)
     check_port_free(args.host, args.port)
     serve(args.host, args.port, args.db, args.token, args.clock, limits=limits, node_tokens=node_tokens,
-          allow_hosts=args.allow_host, clock_port=args.clock_port)
+          allow_hosts=args.allow_host, clock_port=args.clock_port, frame_limits=frame_limits)
     return 0

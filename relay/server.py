@@ -28,6 +28,7 @@ from relay.api import add_routes
 from relay.clock import CLOCK_MODES
 from relay.clockudp import ClockUdp
 from relay.errors import RelayError
+from relay.framelimits import FrameLimits
 from relay.guard import ConnGuard, GuardedSite, fit_descriptors
 from relay.hostcheck import HostCheck
 from relay.ingest import SYNCS_KEPT, Ingest
@@ -84,15 +85,15 @@ class Relay:
 
 def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *, limits: Limits = Limits(),
                live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ,
-               node_tokens: dict[str, str] | None = None,
-               allow_hosts: Iterable[str] = ()) -> tuple[web.Application, Relay]:
+               node_tokens: dict[str, str] | None = None, allow_hosts: Iterable[str] = (),
+               frame_limits: FrameLimits = FrameLimits()) -> tuple[web.Application, Relay]:
     """The relay's app; without a token, requests must name an IP, localhost or one of ``allow_hosts``
     (:mod:`relay.hostcheck`)."""
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     limits = fit_descriptors(limits)
     storage = Storage(db)
-    state = RelayState(storage, clock, live, limits)
+    state = RelayState(storage, clock, live, limits, frame_limits)
     sio = create_sio()
     ingest = Ingest(state, token, limits, node_tokens)
     ui = UiNamespace(state, token)
@@ -195,14 +196,12 @@ def _start_clock_udp(relay: Relay, host: str, clock_port: int | None) -> None:
 
 
 def serve(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db", token: str | None = None,
-          clock: str = "auto", limits: Limits = Limits(), node_tokens: dict[str, str] | None = None,
-          allow_hosts: Iterable[str] = (), clock_port: int | None = None) -> None:
-    """Run the relay until SIGINT or SIGTERM."""
-    if host not in LOOPBACK and token is None and not node_tokens:
+          clock: str = "auto", limits: Limits = Limits(), **options) -> None:
+    """Run the relay until SIGINT or SIGTERM; ``options`` as :func:`start_relay`'s."""
+    if host not in LOOPBACK and token is None and not options.get("node_tokens"):
         log.warning("relay listens on %s without --token: anyone who can reach it may feed or read it", host)
     rate = lograte.install(limits.log_repeats_per_min)
-    asyncio.run(_serve(host, port, db, token, clock, rate, limits=limits, node_tokens=node_tokens,
-                       allow_hosts=allow_hosts, clock_port=clock_port))
+    asyncio.run(_serve(host, port, db, token, clock, rate, limits=limits, **options))
 
 
 async def _serve(host: str, port: int, db: str | Path, token: str | None, clock: str, rate: lograte.RateFilter,

@@ -22,6 +22,7 @@ from relay.clockentry import clock_entry
 from relay.clockmodel import ClockEstimator, segment_fault
 from relay.errors import RelayError
 from relay.framejson import block, frame_dicts
+from relay.framelimits import FrameLimits
 from relay.limits import MIB, Limits
 from relay.live import LiveConfig, LiveRun
 from relay.seqset import SeqSet
@@ -107,8 +108,9 @@ class Attached:
 
 class RelayState:
     def __init__(self, storage: Storage, clock_mode: str, live_config: LiveConfig = LiveConfig(),
-                 limits: Limits = Limits()) -> None:
+                 limits: Limits = Limits(), frame_limits: FrameLimits = FrameLimits()) -> None:
         self.storage = storage
+        self.frame_limits = frame_limits
         self.clock_mode = clock_mode
         self.live_config = live_config
         self.limits = limits
