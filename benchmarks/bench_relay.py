@@ -35,6 +35,7 @@ import sys
 import tempfile
 import time
 import urllib.request
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -52,9 +53,10 @@ def _env() -> dict:
 
 
 class Relay:
-    def __init__(self, db: Path) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", "0", "--db", str(db)], cwd=ROOT,
-                                     env=_env(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+    def __init__(self, db: Path, args: Sequence[str] = ()) -> None:
+        """``args``: more ``python -m relay`` options (bench_exporters: --otlp, --frame-limit)."""
+        self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", "0", "--db", str(db), *args],
+                                     cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         line = self.proc.stdout.readline().decode()
         m = re.search(r"http://127\.0\.0\.1:(\d+)", line)
         if not m:
@@ -104,34 +106,40 @@ def wait_nodes(procs: list[subprocess.Popen], timeout: float) -> list[dict]:
 def throughput(n: int, total: int, tmp: Path, batch_events: int) -> dict:
     relay = Relay(tmp / f"tp{n}.db")
     try:
-        per_node = total // n
-        expected = n * (per_node // (EVENTS_PER_FRAME * SOURCES)) * EVENTS_PER_FRAME * SOURCES
-        children = _children_cpu()
-        cpu0, wall0 = relay.cpu_s(), time.monotonic()
-        procs = start_nodes(relay.url, n, per_node, paced=False, fps=1000.0, batch_events=batch_events)
-        samples = []
-        deadline = time.monotonic() + 600
-        while time.monotonic() < deadline:
-            samples.append((time.monotonic(), relay.stored(), relay.cpu_s()))
-            if samples[-1][1] >= expected:
-                break
-            time.sleep(0.1)
-        relay_cpu = relay.cpu_s() - cpu0
-        wall = time.monotonic() - wall0
-        counters = wait_nodes(procs, 120)
-        t = np.array([s[0] for s in samples])
-        v = np.array([s[1] for s in samples], float)
-        c = np.array([s[2] for s in samples])
-        lo, hi = np.searchsorted(v, 0.1 * expected), min(np.searchsorted(v, 0.9 * expected), len(v) - 1)
-        ok = hi > lo and t[hi] > t[lo]
-        rate = (v[hi] - v[lo]) / (t[hi] - t[lo]) if ok else float("nan")
-        window_cpu = (c[hi] - c[lo]) / (t[hi] - t[lo]) if ok else float("nan")
-        return {"batch_events": batch_events, "events": int(v[-1]), "events_per_s": round(rate),
-                "lost": sum(c["lost"] for c in counters), "window_s": round(float(t[hi] - t[lo]), 2),
-                "relay_cpu_pct_in_window": round(100 * window_cpu), "relay_cpu_pct": round(100 * relay_cpu / wall),
-                "nodes_cpu_pct": round(100 * (_children_cpu() - children) / wall)}
+        return measure_throughput(relay, n, total, batch_events)
     finally:
         relay.stop()
+
+
+def measure_throughput(relay: Relay, n: int, total: int, batch_events: int) -> dict:
+    """The throughput phase on ``relay``, a fresh one: every event it stores is counted."""
+    per_node = total // n
+    expected = n * (per_node // (EVENTS_PER_FRAME * SOURCES)) * EVENTS_PER_FRAME * SOURCES
+    children = _children_cpu()
+    cpu0, wall0 = relay.cpu_s(), time.monotonic()
+    procs = start_nodes(relay.url, n, per_node, paced=False, fps=1000.0, batch_events=batch_events)
+    samples = []
+    deadline = time.monotonic() + 600
+    while time.monotonic() < deadline:
+        samples.append((time.monotonic(), relay.stored(), relay.cpu_s()))
+        if samples[-1][1] >= expected:
+            break
+        time.sleep(0.1)
+    relay_cpu = relay.cpu_s() - cpu0
+    wall = time.monotonic() - wall0
+    counters = wait_nodes(procs, 120)
+    t = np.array([s[0] for s in samples])
+    v = np.array([s[1] for s in samples], float)
+    c = np.array([s[2] for s in samples])
+    lo, hi = np.searchsorted(v, 0.1 * expected), min(np.searchsorted(v, 0.9 * expected), len(v) - 1)
+    ok = hi > lo and t[hi] > t[lo]
+    # ok is False when the run was too short for two samples inside 10-90 %: no rate then (None)
+    rate = round((v[hi] - v[lo]) / (t[hi] - t[lo])) if ok else None
+    window_cpu = round(100 * (c[hi] - c[lo]) / (t[hi] - t[lo])) if ok else None
+    return {"batch_events": batch_events, "events": int(v[-1]), "events_per_s": rate,
+            "lost": sum(c["lost"] for c in counters), "window_s": round(float(t[hi] - t[lo]), 2),
+            "relay_cpu_pct_in_window": window_cpu, "relay_cpu_pct": round(100 * relay_cpu / wall),
+            "nodes_cpu_pct": round(100 * (_children_cpu() - children) / wall)}
 
 
 async def _watch_ui(url: str, seconds: float) -> tuple[list[float], list[float]]:
@@ -159,36 +167,47 @@ async def _watch_ui(url: str, seconds: float) -> tuple[list[float], list[float]]
 def lag(n: int, rate: float, seconds: float, tmp: Path) -> dict:
     relay = Relay(tmp / f"lag{n}.db")
     try:
-        fps = rate / (EVENTS_PER_FRAME * SOURCES)
-        # Nodes run long enough to outlast their own start-up (Python imports: ~0.5 CPU-s
-        # each, which on 2 cores and 32 nodes is seconds); measured only once all stream.
-        procs = start_nodes(relay.url, n, int(rate * (seconds + 60)), paced=True, fps=fps)
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            nodes = relay.get("/api/nodes")
-            if len(nodes) == n and all(node["events"] > 0 for node in nodes):
-                break
-            time.sleep(0.5)
-        time.sleep(1.0)
-        cpu0, wall0 = relay.cpu_s(), time.monotonic()
-        nodes_cpu0 = sum(_proc_cpu(p.pid) for p in procs)
-        lags, transit = asyncio.run(_watch_ui(relay.url, seconds))
-        relay_cpu, wall = relay.cpu_s() - cpu0, time.monotonic() - wall0
-        nodes_cpu = sum(_proc_cpu(p.pid) for p in procs) - nodes_cpu0
-        received = sum(node["events"] for node in relay.get("/api/nodes"))
-        for p in procs:
-            p.terminate()
-        for p in procs:
-            p.wait(30)
-        a = np.array(lags)
-        return {"rate_per_node": rate, "seconds": seconds, "frames_seen": len(a), "events_received": received,
-                "lag_p50_ms": round(float(np.percentile(a, 50)), 1) if len(a) else None,
-                "lag_p99_ms": round(float(np.percentile(a, 99)), 1) if len(a) else None,
-                "push_transit_p50_ms": round(float(np.percentile(transit, 50)), 1) if transit else None,
-                "push_transit_p99_ms": round(float(np.percentile(transit, 99)), 1) if transit else None,
-                "relay_cpu_pct": round(100 * relay_cpu / wall), "nodes_cpu_pct": round(100 * nodes_cpu / wall)}
+        return measure_lag(relay, n, rate, seconds)
     finally:
         relay.stop()
+
+
+def measure_lag(relay: Relay, n: int, rate: float, seconds: float,
+                on_window: Callable[[str], None] | None = None) -> dict:
+    """The lag phase on ``relay``; ``on_window("start")`` / ``("end")`` are called as the
+    measured window opens and closes (bench_exporters samples the exporters' counters there)."""
+    fps = rate / (EVENTS_PER_FRAME * SOURCES)
+    # Nodes run long enough to outlast their own start-up (Python imports: ~0.5 CPU-s
+    # each, which on 2 cores and 32 nodes is seconds); measured only once all stream.
+    procs = start_nodes(relay.url, n, int(rate * (seconds + 60)), paced=True, fps=fps)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        nodes = relay.get("/api/nodes")
+        if len(nodes) == n and all(node["events"] > 0 for node in nodes):
+            break
+        time.sleep(0.5)
+    time.sleep(1.0)
+    if on_window:
+        on_window("start")
+    cpu0, wall0 = relay.cpu_s(), time.monotonic()
+    nodes_cpu0 = sum(_proc_cpu(p.pid) for p in procs)
+    lags, transit = asyncio.run(_watch_ui(relay.url, seconds))
+    relay_cpu, wall = relay.cpu_s() - cpu0, time.monotonic() - wall0
+    if on_window:
+        on_window("end")
+    nodes_cpu = sum(_proc_cpu(p.pid) for p in procs) - nodes_cpu0
+    received = sum(node["events"] for node in relay.get("/api/nodes"))
+    for p in procs:
+        p.terminate()
+    for p in procs:
+        p.wait(30)
+    a = np.array(lags)
+    return {"rate_per_node": rate, "seconds": seconds, "frames_seen": len(a), "events_received": received,
+            "lag_p50_ms": round(float(np.percentile(a, 50)), 1) if len(a) else None,
+            "lag_p99_ms": round(float(np.percentile(a, 99)), 1) if len(a) else None,
+            "push_transit_p50_ms": round(float(np.percentile(transit, 50)), 1) if transit else None,
+            "push_transit_p99_ms": round(float(np.percentile(transit, 99)), 1) if transit else None,
+            "relay_cpu_pct": round(100 * relay_cpu / wall), "nodes_cpu_pct": round(100 * nodes_cpu / wall)}
 
 
 def _proc_cpu(pid: int) -> float:
