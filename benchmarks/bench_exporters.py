@@ -54,6 +54,7 @@ from benchmarks.bench_relay import (
 from probes.simnode import synth_events
 
 PROMETHEUS = "/usr/bin/prometheus"
+FINAL_KEYS = ("frames_complete", "otlp_sampled", "otlp_over_limit", "otlp_dropped", "spans_exported")
 SCRAPE_JOB = "dcuscope"
 
 
@@ -210,6 +211,7 @@ class Rig:
         folder.mkdir(parents=True)
         self.sink = OtlpSink() if arm == "b" else None
         self.relay = self.prom = None
+        self.sink_spans = 0
         args = ["--frame-limit", f"{limit_ms:.3f}"] + (["--otlp", self.sink.url] if self.sink else [])
         try:
             self.relay = Relay(folder / "relay.db", args)
@@ -246,6 +248,8 @@ class Rig:
     def stop(self) -> None:
         for part in (self.prom, self.relay, self.sink):
             if part is not None:
+                if part is self.sink:  # what reached it once the relay is gone
+                    self.sink_spans = self.sink.counts()["spans"]
                 part.stop()
 
 
@@ -257,10 +261,13 @@ def run_throughput(arm: str, n: int, args: argparse.Namespace, folder: Path) -> 
         if rig.prom:
             end = rig.mark()
             time.sleep(3.0)  # the relay finalises frames ~2 s after they end: count those exported too
-            result["exporters"] = rig.between(start, end) | {"after_3s": rig.mark()["metrics"]}
-        return result
+            result["exporters"] = rig.between(start, end)
+            final = rig.mark()["metrics"]
     finally:
         rig.stop()
+    if rig.prom:
+        result["exporters"]["final"] = {key: final[key] for key in FINAL_KEYS} | {"sink_spans": rig.sink_spans}
+    return result
 
 
 def run_lag(arm: str, n: int, args: argparse.Namespace, folder: Path) -> dict:

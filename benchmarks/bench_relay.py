@@ -44,6 +44,9 @@ import socketio
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = 2
 EVENTS_PER_FRAME = 12  # origin, 5 stages x enter/exit, sink enter
+# Every simulated node connects from 127.0.0.1, where real DCUs each have their own address:
+# the per-address cap (16 by default) would refuse the 17th node and the benchmark's own requests.
+LOOPBACK = ("--limit", "connections_per_peer=256")
 
 
 def _env() -> dict:
@@ -55,7 +58,7 @@ def _env() -> dict:
 class Relay:
     def __init__(self, db: Path, args: Sequence[str] = ()) -> None:
         """``args``: more ``python -m relay`` options (bench_exporters: --otlp, --frame-limit)."""
-        self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", "0", "--db", str(db), *args],
+        self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", "0", "--db", str(db), *LOOPBACK, *args],
                                      cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         line = self.proc.stdout.readline().decode()
         m = re.search(r"http://127\.0\.0\.1:(\d+)", line)
