@@ -23,6 +23,7 @@ WINDOW_MAX_AGE_S = 1.0
 MAX_REASONS = 16
 """Drop reasons per node with series of their own; the rest count as ``reason="other"``."""
 MAX_URI_CHARS = 200
+OTHER = "other"
 NS_PER_S = 1e9
 
 SPECS = {
@@ -116,11 +117,7 @@ def _window_samples(out: Families, node: str, window: dict) -> None:
 def _source_samples(out: Families, rs: RunState, sources: dict[str, dict], max_sources: int) -> None:
     node = rs.node
     sources = dict(list(sources.items())[:max_sources])
-    totals: dict[str, int] = {}
-    for src in sources.values():
-        for reason, n in src["dropped"].items():
-            totals[reason] = totals.get(reason, 0) + n
-    kept = set(sorted(totals, key=lambda r: (-totals[r], r))[:MAX_REASONS])
+    dropped = capped_reasons({sid: src["dropped"] for sid, src in sources.items()}, MAX_REASONS)
     for sid, src in sources.items():
         uri = rs.header.sources.get(int(sid))
         if uri is not None:
@@ -131,12 +128,26 @@ def _source_samples(out: Families, rs: RunState, sources: dict[str, dict], max_s
         out.add("dcuscope_source_frames_delivered", [node, sid], src["delivered"])
         out.add("dcuscope_source_frames_lost", [node, sid, "upstream"], src["lost_upstream"])
         out.add("dcuscope_source_frames_lost", [node, sid, "decoder"], src["decoder_dropped"])
-        dropped: dict[str, int] = {}
-        for reason, n in src["dropped"].items():
-            key = reason if reason in kept else "other"
-            dropped[key] = dropped.get(key, 0) + n
-        for reason, n in sorted(dropped.items()):
+        for reason, n in dropped[sid].items():
             out.add("dcuscope_source_frames_dropped", [node, sid, reason], n)
+
+
+def capped_reasons(dropped: dict[str, dict[str, int]], limit: int) -> dict[str, dict[str, int]]:
+    """Per source, drops per reason with at most ``limit`` reasons over all sources (those that
+    dropped most frames in all); the others summed as ``other``."""
+    totals: dict[str, int] = {}
+    for reasons in dropped.values():
+        for reason, n in reasons.items():
+            totals[reason] = totals.get(reason, 0) + n
+    kept = set(sorted(totals, key=lambda r: (-totals[r], r))[:limit])
+    out = {}
+    for sid, reasons in dropped.items():
+        capped: dict[str, int] = {}
+        for reason, n in reasons.items():
+            key = reason if reason in kept else OTHER
+            capped[key] = capped.get(key, 0) + n
+        out[sid] = dict(sorted(capped.items()))
+    return out
 
 
 def _node_samples(out: Families, state: RelayState, rs: RunState) -> None:
