@@ -54,6 +54,8 @@ class RelayCollector(Collector):
         self.nodes = NodeMetrics(state)
         self.extra: list[Callable[[], Iterable[Metric]]] = []
         """More families, asked for at each scrape (the OTLP exporter's counters)."""
+        self.queues: dict[str, Callable[[], float]] = {}
+        """More queue depths, as ``dcuscope_relay_queue_depth{queue=NAME}`` (the OTLP exporter's)."""
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(self)
 
@@ -75,6 +77,8 @@ class RelayCollector(Collector):
                                   "(storage), events not yet merged into live states (live_pending)", labels=["queue"])
         depth.add_metric(["storage"], state.storage.queued)
         depth.add_metric(["live_pending"], sum(rs.live.pending_events for rs in state.runs.values()))
+        for name, depth_of in self.queues.items():
+            depth.add_metric([name], depth_of())
         yield depth
         conns = GaugeMetricFamily("dcuscope_relay_connections", "Connections held: ingest WebSockets, TCP in all",
                                   labels=["kind"])

@@ -3,8 +3,9 @@
 Every figure is one the relay already derives: the rolling window's statistics (what
 ``/api/stats`` gives as ``window``: utilization, bottleneck, fps per source, the run's drop and
 loss counts per source), the clock view (``/api/nodes`` clock), the node's PTP report and its
-counters. The window is recomputed at most every :data:`WINDOW_MAX_AGE_S` per run, so that a
-scrape every second of many nodes costs little. Drop reasons are capped per node
+counters. The window is recomputed at most every :data:`WINDOW_MAX_AGE_S` per run, and only when
+the run has new events (it is a function of the run's events alone), so that scrapes of many
+nodes cost little. Drop reasons are capped per node
 (:data:`MAX_REASONS`, the rest as ``reason="other"``); sources per node by ``--limit sources``.
 """
 
@@ -74,6 +75,7 @@ class Families:
 @dataclass
 class _Window:
     at: float
+    events: int
     stats: dict
 
 
@@ -85,11 +87,11 @@ class NodeMetrics:
         self._windows: dict[str, _Window] = {}
 
     def window(self, rs: RunState) -> dict:
-        """The run's rolling-window statistics, at most WINDOW_MAX_AGE_S old."""
+        """The run's rolling-window statistics, at most WINDOW_MAX_AGE_S older than its events."""
         now = time.monotonic()
         w = self._windows.get(rs.run)
-        if w is None or now - w.at > WINDOW_MAX_AGE_S:
-            w = self._windows[rs.run] = _Window(now, rs.live.window_stats())
+        if w is None or (now - w.at > WINDOW_MAX_AGE_S and w.events != rs.live.events):
+            w = self._windows[rs.run] = _Window(now, rs.live.events, rs.live.window_stats())
         return w.stats
 
     def families(self) -> Iterator[Metric]:

@@ -13,6 +13,7 @@ import uuid
 import aiohttp
 import numpy as np
 import pytest
+from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -330,7 +331,7 @@ def test_a_hostile_node_cannot_push_its_series_beyond_the_stated_bound(tmp_path)
 
 def test_ingest_lag_is_the_relays_now_less_the_nodes_newest_event(tmp_path):
     """Bracketed by the relay's clock read before and after the scrape (the node's clock is the
-    relay's here: no correction)."""
+    relay's here: no correction); the relay's own gauges and its extension points."""
     events = synth_events(20, 1, 25.0, time.time_ns() - 3 * 10**9)
     newest = int(events["ts"].max())
 
@@ -341,6 +342,9 @@ def test_ingest_lag_is_the_relays_now_less_the_nodes_newest_event(tmp_path):
         try:
             node = await HandNode.open(url, "A", run)
             assert (await node.batch(encode_batch(run, 0, events)))["ok"]
+            # The extension points the OTLP exporter uses.
+            relay.metrics.extra.append(lambda: [GaugeMetricFamily("dcuscope_test_gauge", "a test's", value=3)])
+            relay.metrics.queues["otlp"] = lambda: 5
             before = time.time_ns()
             fams = await scrape(url)
             after = time.time_ns()
@@ -357,7 +361,8 @@ def test_ingest_lag_is_the_relays_now_less_the_nodes_newest_event(tmp_path):
     assert (before - newest) / NS_PER_S <= lag <= (after - newest) / NS_PER_S
     assert values_of(fams, "dcuscope_relay_connections", "dcuscope_relay_connections", kind="ingest") == {(): 1.0}
     depth = values_of(fams, "dcuscope_relay_queue_depth", "dcuscope_relay_queue_depth")
-    assert depth == {(("queue", "live_pending"),): 0.0, (("queue", "storage"),): 0.0}
+    assert depth == {(("queue", "live_pending"),): 0.0, (("queue", "storage"),): 0.0, (("queue", "otlp"),): 5.0}
+    assert values_of(fams, "dcuscope_test_gauge", "dcuscope_test_gauge") == {(): 3.0}
     assert foreign_host == 403
 
 
