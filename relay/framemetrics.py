@@ -74,7 +74,9 @@ class FrameMetrics:
         # Glass-to-glass by the correction in force at each frame's origin, as the UI's frames
         # (relay.framejson): the capture time is the camera's clock, the end the node's.
         has = ~np.isnan(fd.glass)
-        glass = fd.glass[has] - self._state.correction(rs).offsets(fd.chains.end[has], fd.table.origin[has])
+        glass = fd.glass[has]
+        if len(glass):
+            glass = glass - self._state.correction(rs).offsets(fd.chains.end[has], fd.table.origin[has])
         batch = [(("frame",), values.frame), (("glass",), glass)]
         for kind in ("stage", "service", "wait"):
             batch += [((kind, name), v) for name, v in getattr(values, "stages" if kind == "stage" else kind).items()]
