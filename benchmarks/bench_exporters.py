@@ -63,6 +63,7 @@ class OtlpSink:
 
     def __init__(self) -> None:
         self.requests = self.bytes = self.spans = 0
+        self.traces: set[bytes] = set()
         self._lock = threading.Lock()
         self._server = ThreadingHTTPServer(("127.0.0.1", 0), self._handler())
         self._server.daemon_threads = True
@@ -79,9 +80,10 @@ class OtlpSink:
                 body = self.rfile.read(int(self.headers.get("Content-Length", 0)))
                 raw = gzip.decompress(body) if self.headers.get("Content-Encoding") == "gzip" else body
                 request = ExportTraceServiceRequest.FromString(raw)
-                spans = sum(len(ss.spans) for rs in request.resource_spans for ss in rs.scope_spans)
+                spans = [span for rs in request.resource_spans for ss in rs.scope_spans for span in ss.spans]
                 with sink._lock:
-                    sink.requests, sink.bytes, sink.spans = sink.requests + 1, sink.bytes + len(body), sink.spans + spans
+                    sink.requests, sink.bytes, sink.spans = sink.requests + 1, sink.bytes + len(body), sink.spans + len(spans)
+                    sink.traces.update(span.trace_id for span in spans)
                 reply = ExportTraceServiceResponse().SerializeToString()
                 self.send_response(200 if self.path == "/v1/traces" else 404)
                 self.send_header("Content-Type", "application/x-protobuf")
@@ -96,7 +98,7 @@ class OtlpSink:
 
     def counts(self) -> dict:
         with self._lock:
-            return {"requests": self.requests, "bytes": self.bytes, "spans": self.spans}
+            return {"requests": self.requests, "bytes": self.bytes, "spans": self.spans, "traces": len(self.traces)}
 
     def stop(self) -> None:
         self._server.shutdown()
@@ -214,7 +216,7 @@ class Rig:
         folder.mkdir(parents=True)
         self.sink = OtlpSink() if arm == "b" else None
         self.relay = self.prom = None
-        self.sink_spans = 0
+        self.sink_final: dict = {}
         args = ["--frame-limit", f"{limit_ms:.3f}"] + (["--otlp", self.sink.url] if self.sink else [])
         try:
             self.relay = Relay(folder / "relay.db", args)
@@ -247,13 +249,14 @@ class Rig:
                 if complete else None,
                 "spans_exported_per_s": rate("spans_exported"),
                 "sink_spans_per_s": round((end["sink"]["spans"] - start["sink"]["spans"]) / wall, 1),
+                "sink_traces_per_s": round((end["sink"]["traces"] - start["sink"]["traces"]) / wall, 1),
                 "otlp_frames_dropped": int(m1["otlp_dropped"] - m0["otlp_dropped"])}
 
     def stop(self) -> None:
         for part in (self.prom, self.relay, self.sink):
             if part is not None:
                 if part is self.sink:  # what reached it once the relay is gone
-                    self.sink_spans = self.sink.counts()["spans"]
+                    self.sink_final = self.sink.counts()
                 part.stop()
 
 
@@ -264,13 +267,17 @@ def run_throughput(arm: str, n: int, args: argparse.Namespace, folder: Path) -> 
         result = measure_throughput(rig.relay, n, args.events, args.batch_events)
         if rig.prom:
             end = rig.mark()
-            time.sleep(3.0)  # the relay finalises frames ~2 s after they end: count those exported too
+            time.sleep(args.settle_s)  # the relay finalises frames ~2 s after they end: count their export too
             result["exporters"] = rig.between(start, end)
             final = rig.mark()["metrics"]
     finally:
         rig.stop()
     if rig.prom:
-        result["exporters"]["final"] = {key: final[key] for key in FINAL_KEYS} | {"sink_spans": rig.sink_spans}
+        sink = rig.sink_final
+        result["exporters"]["final"] = {key: final[key] for key in FINAL_KEYS} | {
+            "sink_spans": sink["spans"], "sink_traces": sink["traces"],
+            "spans_per_trace": round(sink["spans"] / sink["traces"], 2) if sink["traces"] else None,
+            "bytes_per_span": round(sink["bytes"] / sink["spans"], 1) if sink["spans"] else None}
     return result
 
 
@@ -372,10 +379,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--seconds", type=float, default=12.0, help="length of the lag window")
     p.add_argument("--repeat", type=int, default=2, help="pairs of runs (a b, b a, ...) per node count")
     p.add_argument("--over-limit", type=float, default=0.05, help="share of frames over the --frame-limit given")
+    p.add_argument("--settle", dest="settle_s", type=float, default=3.0,
+                   help="seconds after a throughput run in arm b before its exporters' final counts")
     p.add_argument("--quick", action="store_true", help="a smoke test: 2 nodes, 600,000 events, a 1.5 s lag window, one pair")
     args = p.parse_args(argv)
     if args.quick:
-        args.nodes, args.events, args.seconds, args.repeat = [2], 600_000, 1.5, 1
+        args.nodes, args.events, args.seconds, args.repeat, args.settle_s = [2], 600_000, 1.5, 1, 1.0
     if not 0 < args.over_limit < 1:
         p.error(f"--over-limit must be between 0 and 1, not {args.over_limit}")
     if not Path(PROMETHEUS).exists():
