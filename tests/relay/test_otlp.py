@@ -15,9 +15,11 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
+import urllib.request
 from collections import defaultdict
 
 import pytest
+from prometheus_client.parser import text_string_to_metric_families
 
 from dcuscope.cli import main as cli_main
 from tests.conftest import cli_env
@@ -34,6 +36,14 @@ SLOW = ("node: DCU-1\nsources:\n  - {test: smpte, width: 320, height: 240, rate:
         "  - factory: identity\n    name: work\n    properties: {sleep-time: 25000}\n  - queue: {}\n")
 FAST = ("node: DCU-2\nsources:\n  - {test: ball, width: 160, height: 120, rate: 30, live: true}\nstages:\n"
         "  - mux: {batch-size: 1, width: 160, height: 120, live-source: true}\n  - queue: {}\n")
+
+
+def scrape(url: str) -> dict[tuple, float]:
+    """/metrics' samples: (name, sorted labels) -> value."""
+    with urllib.request.urlopen(f"{url}/metrics", timeout=10) as r:
+        text = r.read().decode()
+    return {(s.name, tuple(sorted(s.labels.items()))): s.value for f in text_string_to_metric_families(text)
+            for s in f.samples}
 
 
 def stop(proc: subprocess.Popen) -> None:
@@ -65,6 +75,7 @@ def exported(tmp_path_factory):
             otlp = wait_for(lambda: (lambda o: o if o["queue_frames"] == 0 and o["frames_exported"] +
                                      sum(o["dropped"].values()) == sum(o["frames"].values()) else None)(
                 get_json(f"{relay.url}/api/health")["otlp"]), 30, 0.2, "the export queue drained")
+            otlp["metrics"] = scrape(relay.url)
             views = {n["node"]: n for n in get_json(f"{relay.url}/api/nodes")}
             frames = {name: get_json(f"{relay.url}/api/frames?node={name}&limit=2000") for name in views}
             traces = defaultdict(list)
@@ -111,6 +122,13 @@ def test_the_traces_are_every_nth_finalised_frame_plus_every_frame_over_the_limi
     assert otlp["frames"]["over_limit"] == over_total
     assert otlp["frames_exported"] == len(sent) and otlp["spans_exported"] == len(receiver.spans)
     assert otlp["dropped"] == {"queue_full": 0, "export_failed": 0}
+    m = otlp["metrics"]
+    assert m[("dcuscope_otlp_frames_total", (("why", "over_limit"),))] == over_total
+    assert m[("dcuscope_otlp_frames_total", (("why", "sampled"),))] == len(sent) - over_total
+    assert m[("dcuscope_otlp_spans_exported_total", ())] == len(receiver.spans)
+    assert m[("dcuscope_otlp_frames_dropped_total", (("reason", "queue_full"),))] == 0
+    assert m[("dcuscope_otlp_queue_frames", ())] == 0 == m[("dcuscope_relay_queue_depth", (("queue", "otlp"),))]
+    assert m[("dcuscope_otlp_queue_capacity_frames", ())] == 2048
     assert receiver.requests == receiver.gzipped > 0 and not receiver.refused
 
 
@@ -151,16 +169,20 @@ def test_span_times_and_durations_equal_the_relay_s_corrected_frames(exported):
         block = frames[node]
         f = next(f for f in block["frames"] if f["frame"] == number)
         root = next(s for s in spans if not s.parent_id)
-        # The same estimate as /api/frames applies (the one in force at the frame's origin).
-        assert root.attributes["dcuscope.clock.offset_ns"] == f["clock_ns"]
-        assert root.start == f["origin"] and root.end == f["end"]
+        # The estimate in force at the frame's origin when it was sent; /api/frames asked later may
+        # correct it by a refined one (microseconds; both true within their bounds). On the node's
+        # own clock the times are the same to the nanosecond.
+        offset = root.attributes["dcuscope.clock.offset_ns"]
+        refined = f["clock_ns"] - offset
+        assert abs(refined) <= root.attributes["dcuscope.clock.uncertainty_ns"] + f["clock_uncertainty_ns"]
+        assert (root.start - refined, root.end - refined) == (f["origin"], f["end"])
         assert abs(root.end - root.start - f["delay_ms"] * 1e6) < US
         assert root.attributes["dcuscope.delay_ms"] == pytest.approx(f["delay_ms"], abs=1e-6)
         named = {s.name: s for s in spans}
         for i, stage in enumerate(block["stages"]):
             if f["stage_delay_ms"][i] is not None:
                 s = named[f"stage {stage}"]
-                assert (s.start, s.end) == (f["enter"][i], f["exit"][i])
+                assert (s.start - refined, s.end - refined) == (f["enter"][i], f["exit"][i])
                 assert abs(s.end - s.start - f["stage_delay_ms"][i] * 1e6) < US
                 if f["stage_service_ms"][i] is not None:
                     wait, service = [x for x in spans if x.parent_id == s.span_id and x.name in ("wait", "service")]
@@ -170,7 +192,7 @@ def test_span_times_and_durations_equal_the_relay_s_corrected_frames(exported):
                     assert wait.start == s.start and wait.end == service.start and service.end == s.end
             if f["stage_gap_ms"][i] is not None:
                 gap = [s for s in spans if s.name.startswith("gap ") and s.name.endswith(f"->{stage}")]
-                assert len(gap) == 1 and gap[0].end == f["enter"][i]
+                assert len(gap) == 1 and gap[0].end - refined == f["enter"][i]
                 assert abs(gap[0].end - gap[0].start - f["stage_gap_ms"][i] * 1e6) < US
                 compared += 1
     assert compared > 0
@@ -189,6 +211,7 @@ def test_a_stalled_backend_costs_counted_frames_never_the_ingest(tmp_path):
             otlp = wait_for(lambda: (lambda o: o if o["dropped"]["export_failed"] else None)(
                 get_json(f"{relay.url}/api/health")["otlp"]), 30, 0.2, "an export timed out")
             finalised = get_json(f"{relay.url}/api/nodes")[0]["frames"]["finalised"]
+            metrics = scrape(relay.url)
         finally:
             code = relay.stop()
     assert code == 0 and sent["lost"] == 0 and sent["acked"] == sent["events"] and stats["frames"]["incomplete"] == 0
@@ -197,6 +220,10 @@ def test_a_stalled_backend_costs_counted_frames_never_the_ingest(tmp_path):
     # Every finalised frame was chosen (1 in 1): queued (then lost with the stalled exports) or dropped at once.
     assert sum(otlp["frames"].values()) + otlp["dropped"]["queue_full"] == finalised
     assert receiver.spans == []
+    # Scraped after /api/health: an export may have timed out in between.
+    assert metrics[("dcuscope_otlp_frames_dropped_total", (("reason", "queue_full"),))] == otlp["dropped"]["queue_full"]
+    assert metrics[("dcuscope_otlp_frames_dropped_total", (("reason", "export_failed"),))] >= otlp["dropped"]["export_failed"]
+    assert metrics[("dcuscope_otlp_queue_capacity_frames", ())] == 16
 
 
 @pytest.mark.parametrize("args, says", [
