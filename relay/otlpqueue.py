@@ -31,7 +31,11 @@ class OtlpCounters:
     exports: int = 0
     """Export requests made (successful or not)."""
     export_seconds: float = 0.0
-    """Time the exporter spent building and sending spans (its cost)."""
+    """Wall time the exporter spent building and sending spans."""
+    cpu_seconds: float = 0.0
+    """CPU time its thread spent on it: what it takes from the ingest's interpreter."""
+    most_cpu_seconds: float = 0.0
+    """The most CPU time one export took."""
 
 
 class FrameQueue:
