@@ -15,11 +15,12 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
-from prometheus_client.core import CounterMetricFamily, HistogramMetricFamily, Metric
+from prometheus_client.core import CounterMetricFamily, Metric
 from prometheus_client.utils import floatToGoString
 
 from probes.delays import FrameDelays, Series
 from relay.buckets import Histograms
+from relay.exposition import BulkHistogram
 from relay.state import RelayState, RunState
 
 MAX_GAPS = 128
@@ -33,7 +34,8 @@ HISTOGRAMS = {
     "stage": ("dcuscope_stage_delay_seconds", "Stage delay (enter to exit)", ("stage",)),
     "service": ("dcuscope_stage_service_seconds", "Stage service time (work on the frame)", ("stage",)),
     "wait": ("dcuscope_stage_wait_seconds", "Stage wait time (queued inside the stage before its work)", ("stage",)),
-    "gap": ("dcuscope_gap_seconds", "Gap between a stage's exit and the next stage's enter", ("from_stage", "to_stage")),
+    "gap": ("dcuscope_gap_seconds", "Gap between a stage's exit and the next stage's enter",
+            ("from_stage", "to_stage")),
 }
 """Key of a series' family -> (metric name, help, labels besides ``node``)."""
 
@@ -100,15 +102,14 @@ class FrameMetrics:
         for node in list(self._nodes):
             if node not in self._state.nodes:
                 del self._nodes[node]
-        hists = {key: HistogramMetricFamily(name, doc, labels=["node", *labels])
+        hists = {key: BulkHistogram(name, doc, ["node", *labels], self._le)
                  for key, (name, doc, labels) in HISTOGRAMS.items()}
         busy = CounterMetricFamily("dcuscope_stage_busy_seconds", "Stage busy time summed (service over its "
                                    "output buffers, a batch once), finalised frames", labels=["node", "stage"])
         for node in sorted(self._state.nodes):
             nf = self._current(node)
             for key, cumulative, total_ns in nf.hist.snapshot():
-                hists[key[0]].add_metric([node, *key[1:]], list(zip(self._le, cumulative.tolist())),
-                                         total_ns / NS_PER_S)
+                hists[key[0]].add_series([node, *key[1:]], cumulative, total_ns / NS_PER_S)
             for stage, ns in nf.busy_ns.items():
                 busy.add_metric([node, stage], ns / NS_PER_S)
         yield from hists.values()
