@@ -23,6 +23,7 @@ from opentelemetry.sdk.resources import Resource
 from opentelemetry.sdk.trace.export import SpanExportResult
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
+from relay.metrics import RelayCollector
 from relay.otlpconfig import OtlpConfig
 from relay.otlpframes import FrameBatch
 from relay.otlpqueue import FrameQueue, OtlpCounters
@@ -55,6 +56,13 @@ class OtlpExporter:
         self._failing = False
         self._stop_by: float | None = None
         self._wake = threading.Event()
+        self._state = state
+
+    def attach(self, metrics: RelayCollector) -> None:
+        """Be told of every finalised frame, and show in ``/metrics``."""
+        self._state.observers.append(self.sampler)
+        metrics.extra.append(self.metric_families)
+        metrics.queues["otlp"] = lambda: self.queue.frames
 
     def start(self) -> None:
         self._thread.start()

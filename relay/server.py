@@ -122,8 +122,6 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     sio.attach(app)
     ticker = Ticker(state, ui, push_hz)
     exporter = OtlpExporter(otlp, state) if otlp is not None else None
-    if exporter is not None:
-        state.observers.append(exporter.sampler)
 
     def counters() -> dict:
         refused["hello_timeout"] = ingest.hello_timeouts
@@ -142,8 +140,7 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     add_metrics_route(app, metrics, token)
     _add_ui(app)
     if exporter is not None:
-        metrics.extra.append(exporter.metric_families)
-        metrics.queues["otlp"] = lambda: exporter.queue.frames
+        exporter.attach(metrics)
     return app, Relay(state, storage, sio, ingest, ui, ticker, guard, metrics, otlp=exporter)
 
 

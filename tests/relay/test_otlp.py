@@ -216,7 +216,7 @@ def test_a_stalled_backend_costs_counted_frames_never_the_ingest(tmp_path):
             code = relay.stop()
     assert code == 0 and sent["lost"] == 0 and sent["acked"] == sent["events"] and stats["frames"]["incomplete"] == 0
     assert otlp["queue_frames"] <= 16 and otlp["frames_exported"] == 0 and otlp["spans_exported"] == 0
-    assert otlp["dropped"]["queue_full"] > finalised // 2
+    assert otlp["dropped"]["queue_full"] > 0
     # Every finalised frame was chosen (1 in 1): queued (then lost with the stalled exports) or dropped at once.
     assert sum(otlp["frames"].values()) + otlp["dropped"]["queue_full"] == finalised
     assert receiver.spans == []
