@@ -24,6 +24,7 @@ from relay.otlpspans import node_resource, spans_of, trace_id
 from relay.seqset import SeqSet
 from relay.state import RelayState, RunState
 from relay.storage import Storage
+from tests.relay.helpers import wait_for
 from tests.relay.otlpreceiver import OtlpReceiver
 
 HEADER = header_for("DCU-1", 2)
@@ -140,3 +141,18 @@ def test_the_exporter_rests_within_its_share_of_a_core_and_stops_cleanly(tmp_pat
     # What stop() could not send in its time counts as dropped: every frame is accounted for.
     assert queued == int(fd.chains.complete.sum()) == c.frames_exported + c.dropped["export_failed"]
     assert received == c.spans_exported > 0
+
+
+def test_a_backend_answering_500_costs_its_frames_counted_as_export_failed(tmp_path):
+    (fd, values), = batches(1)
+    state = RelayState(Storage(tmp_path / "r.db"), "estimate")
+    rs = RunState(run="run-1", node="DCU-1", session=1, header=HEADER, live=LiveRun(HEADER), seqs=SeqSet())
+    with OtlpReceiver("fail") as receiver:
+        exporter = OtlpExporter(OtlpConfig(receiver.url, every=1, queue=1000, timeout_s=2), state)
+        exporter.start()
+        exporter.sampler(rs, fd, values)
+        wait_for(lambda: exporter.counters.exports, 30, 0.05, "an export answered 500")
+        asyncio.run(exporter.stop())
+    c = exporter.counters
+    assert c.exports >= 1 and c.frames_exported == c.spans_exported == 0 and receiver.spans == []
+    assert c.dropped == {"queue_full": 0, "export_failed": int(fd.chains.complete.sum())}
