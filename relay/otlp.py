@@ -36,9 +36,9 @@ EXPORT_FRAMES = 128
 LINGER_S = 1.0
 """How long a request waits for more frames before it goes with fewer."""
 MAX_BUSY = 0.05
-"""Share of one core's time the exporter may spend building and encoding spans (the SDK's encoder costs
-~30 us a span, ~0.7 ms a frame of 5 stages): past it, it rests, the queue fills and frames are
-dropped (``queue_full``), so that the ingest keeps at least 95 % of the interpreter."""
+"""Share of one core's time the exporter may spend building, encoding and posting spans (~30-40 us
+a span, mostly the SDK's encoder): past it, it rests, the queue fills and frames are dropped
+(``queue_full``), so that the ingest keeps at least 95 % of the interpreter."""
 MAX_REST_S = 5.0
 
 log = logging.getLogger(__name__)
