@@ -64,8 +64,8 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
                         "frame, a span per stage (wait, service) and per gap; 1 in --otlp-every frames plus every "
                         "frame over its --frame-limit (default: no export)")
     p.add_argument("--otlp-every", type=int, metavar="N",
-                   help=f"with --otlp: send 1 in N complete frames of each node (default {DEFAULT_EVERY}); 0: only frames "
-                        "over their --frame-limit")
+                   help=f"with --otlp: send 1 in N complete frames of each node (default {DEFAULT_EVERY}); 0: only "
+                        "frames over their --frame-limit")
     p.add_argument("--otlp-queue", type=int, metavar="N",
                    help=f"with --otlp: frames waiting for export at most (default {DEFAULT_QUEUE}); beyond, frames are "
                         "dropped and counted (dcuscope_otlp_frames_dropped_total), never waited for")

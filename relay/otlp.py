@@ -140,7 +140,8 @@ class OtlpExporter:
             dropped.add_metric([reason], n)
         yield frames
         yield dropped
-        yield CounterMetricFamily("dcuscope_otlp_spans_exported", "Spans the OTLP backend accepted", value=c.spans_exported)
+        yield CounterMetricFamily("dcuscope_otlp_spans_exported", "Spans the OTLP backend accepted",
+                                  value=c.spans_exported)
         yield GaugeMetricFamily("dcuscope_otlp_queue_frames", "Frames waiting for OTLP export", value=self.queue.frames)
         yield GaugeMetricFamily("dcuscope_otlp_queue_capacity_frames", "Frames the OTLP export queue holds at most "
                                 "(--otlp-queue)", value=self.queue.capacity)

@@ -86,7 +86,8 @@ def copy_frames(node: str, run: str, kinds: dict[str, str], uris: dict[int, str]
         node=node, run=run, stages=tuple(t.stages), kinds=dict(kinds), uris=dict(uris), clock=corr.applied,
         limit_ns=limit_ns, source=t.source[rows].copy(), frame=t.frame[rows].copy(), over=np.array(over, bool),
         origin=corr.correct(origin), end=corr.correct(end, origin), capture=t.capture[rows].copy(),
-        delay=fd.delay[rows].copy(), glass=glass, clock_ns=corr.offsets(origin), uncertainty_ns=corr.uncertainties(origin),
+        delay=fd.delay[rows].copy(), glass=glass, clock_ns=corr.offsets(origin),
+        uncertainty_ns=corr.uncertainties(origin),
         enter=corr.correct(enter, at), exit=corr.correct(exit_, at), start=corr.correct(start, at),
         before=corr.correct(before, at), prev=prev.copy(), stage_delay=per["delay"][rows].copy(), gap=gap.copy(),
         service=service.copy(), wait=per["wait"][rows].copy())

@@ -67,8 +67,8 @@ def spans_of(batch: FrameBatch, resource: Resource) -> list[ReadableSpan]:
     for i in range(len(batch)):
         ids = _Ids(trace_id(batch.run, b["source"][i], b["frame"][i]))
         root = ids.context()
-        spans.append(ReadableSpan("frame", root, None, resource, _frame_attributes(batch, b, i), start_time=b["origin"][i],
-                                  end_time=b["end"][i], instrumentation_scope=SCOPE))
+        spans.append(ReadableSpan("frame", root, None, resource, _frame_attributes(batch, b, i),
+                                  start_time=b["origin"][i], end_time=b["end"][i], instrumentation_scope=SCOPE))
         _stage_spans(batch, b, i, ids, root, resource, spans)
         _gap_spans(batch, b, i, ids, root, resource, spans)
     return spans
@@ -119,6 +119,6 @@ def _gap_spans(batch: FrameBatch, b: dict, i: int, ids: _Ids, root: SpanContext,
             continue
         src = batch.stages[prev[s]]
         spans.append(ReadableSpan(f"gap {src}->{name}", ids.context(), root, resource,
-                                  {"dcuscope.gap": f"{src}->{name}", "dcuscope.from_stage": src, "dcuscope.to_stage": name,
-                                   "dcuscope.gap_ms": gap[s] / NS_PER_MS},
+                                  {"dcuscope.gap": f"{src}->{name}", "dcuscope.from_stage": src,
+                                   "dcuscope.to_stage": name, "dcuscope.gap_ms": gap[s] / NS_PER_MS},
                                   start_time=before[s], end_time=enter[s], instrumentation_scope=SCOPE))

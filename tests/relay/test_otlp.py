@@ -59,7 +59,8 @@ def exported(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("otlp")
     with OtlpReceiver() as receiver:
         # gzip through the SDK's own variable: what a deployment would set.
-        relay = RelayProcess(tmp / "relay.db", clock="estimate", prefix=["env", "OTEL_EXPORTER_OTLP_TRACES_COMPRESSION=gzip"],
+        relay = RelayProcess(tmp / "relay.db", clock="estimate",
+                             prefix=["env", "OTEL_EXPORTER_OTLP_TRACES_COMPRESSION=gzip"],
                              args=["--otlp", receiver.url, "--otlp-every", str(EVERY), "--frame-limit", str(LIMIT_MS)])
         nodes = []
         try:
@@ -140,7 +141,8 @@ def test_spans_nest_and_carry_the_frame_s_identity_and_clock(exported):
         root = next(s for s in spans if not s.parent_id)
         f = next(f for f in frames[node]["frames"] if f["frame"] == number)
         a = root.attributes
-        assert a["dcuscope.run"] == views[node]["run"] and a["dcuscope.source.id"] == 0 and a["dcuscope.frame"] == number
+        assert a["dcuscope.run"] == views[node]["run"] and a["dcuscope.frame"] == number
+        assert a["dcuscope.source.id"] == 0
         assert a["dcuscope.source.uri"] == views[node]["sources"]["0"]
         assert a["dcuscope.over_limit"] == (f["delay_ms"] > LIMIT_MS)
         assert a["dcuscope.sampled_why"] == ("over_limit" if a["dcuscope.over_limit"] else "sampled")
@@ -222,7 +224,8 @@ def test_a_stalled_backend_costs_counted_frames_never_the_ingest(tmp_path):
     assert receiver.spans == []
     # Scraped after /api/health: an export may have timed out in between.
     assert metrics[("dcuscope_otlp_frames_dropped_total", (("reason", "queue_full"),))] == otlp["dropped"]["queue_full"]
-    assert metrics[("dcuscope_otlp_frames_dropped_total", (("reason", "export_failed"),))] >= otlp["dropped"]["export_failed"]
+    failed = metrics[("dcuscope_otlp_frames_dropped_total", (("reason", "export_failed"),))]
+    assert failed >= otlp["dropped"]["export_failed"]
     assert metrics[("dcuscope_otlp_queue_capacity_frames", ())] == 16
 
 
@@ -244,6 +247,6 @@ def test_bad_otlp_options_get_a_one_line_error_and_exit_2(tmp_path, capsys, args
 
 def test_a_non_number_is_refused_by_the_command_line_with_exit_2(tmp_path):
     out = subprocess.run([sys.executable, "-m", "dcuscope.cli", "relay", "--port", "0", "--db", str(tmp_path / "r.db"),
-                          "--otlp", "http://c:4318", "--otlp-queue", "many"], capture_output=True, text=True, timeout=60,
-                         env=cli_env())
+                          "--otlp", "http://c:4318", "--otlp-queue", "many"], capture_output=True, text=True,
+                         timeout=60, env=cli_env())
     assert out.returncode == 2 and "--otlp-queue: invalid int value: 'many'" in out.stderr

@@ -13,7 +13,7 @@ import pytest
 
 from probes.delays import frame_delays, series
 from probes.frametable import frame_table
-from probes.simnode import header_for, synth_events
+from probes.simnode import STAGES, header_for, synth_events
 from relay.framelimits import FrameLimits
 from relay.live import LiveRun
 from relay.otlp import MAX_BUSY, OtlpExporter
@@ -53,7 +53,8 @@ def run(tmp_path):
 
 def taken(queue: FrameQueue) -> list[tuple[int, int, bool]]:
     queue.close()
-    return [(s, f, o) for b in queue.take(10**6, 0) for s, f, o in zip(b.source.tolist(), b.frame.tolist(), b.over.tolist())]
+    return [(s, f, o) for b in queue.take(10**6, 0)
+            for s, f, o in zip(b.source.tolist(), b.frame.tolist(), b.over.tolist())]
 
 
 def test_every_nth_complete_frame_across_batches_and_every_frame_over_the_limit(run):
@@ -112,7 +113,7 @@ def test_a_frame_s_spans_nest_under_its_root_with_a_trace_id_of_its_identity(run
         names = Counter(s.name for s in trace)
         # simnode's probes give no ready times: stages without wait and service.
         assert names["frame"] == 1 and names["wait"] == names["service"] == 0
-        assert [n for n in names if n.startswith("stage ")] == [f"stage {s}" for s in ("mux", "infer", "tiler", "convert", "osd")]
+        assert [n for n in names if n.startswith("stage ")] == [f"stage {s}" for s in STAGES]
         assert f"gap src{source}->mux" in names and "gap osd->sink" in names and len(trace) == 1 + 5 + 6
         assert all(s.parent.span_id == root.context.span_id for s in trace if s is not root)
         assert root.end_time - root.start_time == fd.delay[fd.chains.complete][i]
