@@ -45,7 +45,8 @@ class _NodeFrames:
     run: str
     hist: Histograms
     busy_ns: dict[str, int] = field(default_factory=dict)
-    gaps: set[str] = field(default_factory=set)
+    gaps: dict[str, tuple[str, str]] = field(default_factory=dict)
+    """Gap name -> its (from_stage, to_stage) labels, for the first MAX_GAPS pairs."""
 
 
 class FrameMetrics:
@@ -73,15 +74,16 @@ class FrameMetrics:
         # Glass-to-glass by the correction in force at each frame's origin, as the UI's frames
         # (relay.framejson): the capture time is the camera's clock, the end the node's.
         has = ~np.isnan(fd.glass)
-        glass = fd.glass[has] - self._state.correction(rs).offsets(fd.chains.end[has], fd.table.origin[has])
+        glass = fd.glass[has]
+        if len(glass):
+            glass = glass - self._state.correction(rs).offsets(fd.chains.end[has], fd.table.origin[has])
         batch = [(("frame",), values.frame), (("glass",), glass)]
         for kind in ("stage", "service", "wait"):
             batch += [((kind, name), v) for name, v in getattr(values, "stages" if kind == "stage" else kind).items()]
         for name, v in values.gaps.items():
             if name not in nf.gaps and len(nf.gaps) < MAX_GAPS:
-                nf.gaps.add(name)
-            a, _, b = name.partition("->")
-            batch.append((("gap", a, b) if name in nf.gaps else ("gap", OTHER, OTHER), v))
+                nf.gaps[name] = gap_stages(name, rs.header.stages)
+            batch.append((("gap", *nf.gaps.get(name, (OTHER, OTHER))), v))
         return batch
 
     def _current(self, node: str) -> _NodeFrames | None:
@@ -114,3 +116,16 @@ class FrameMetrics:
                 busy.add_metric([node, stage], ns / NS_PER_S)
         yield from hists.values()
         yield busy
+
+
+def gap_stages(name: str, stages: list[str]) -> tuple[str, str]:
+    """The two stages of gap ``name`` ("A->B"), where stage names may hold "->" themselves."""
+    known = set(stages)
+    at = name.find("->")
+    while at >= 0:
+        a, b = name[:at], name[at + 2:]
+        if a in known and b in known:
+            return a, b
+        at = name.find("->", at + 1)
+    a, _, b = name.partition("->")
+    return a, b

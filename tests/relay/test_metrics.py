@@ -22,7 +22,7 @@ from probes.events import DROP, DROP_REASONS, ENTER, EVENT_DTYPE, EXIT, ORIGIN, 
 from probes.frametable import frame_table
 from probes.simnode import header_for, synth_events
 from probes.wire import PTP_STATES, encode_batch
-from relay.framemetrics import MAX_GAPS, NS_PER_S
+from relay.framemetrics import MAX_GAPS, NS_PER_S, gap_stages
 from relay.limits import Limits
 from relay.live import LiveConfig
 from relay.metrics import BUCKETS_S
@@ -373,9 +373,9 @@ def test_node_processes_clock_limit_and_bottleneck_as_the_api_gives_them(tmp_pat
     gauge names /api/stats' stage."""
     relay = RelayProcess(tmp_path / "relay.db", clock="estimate", args=["--frame-limit", "DCU-1=250"])
     try:
-        procs = {"DCU-1": start_node(relay.url, "DCU-1", tmp_path / "n1.npz", frames=150, fps=60, paced=True,
+        procs = {"DCU-1": start_node(relay.url, "DCU-1", tmp_path / "n1.npz", frames=300, fps=60, paced=True,
                                      offset_ns=2 * 10**9, seed=1),
-                 "DCU-2": start_node(relay.url, "DCU-2", tmp_path / "n2.npz", frames=150, fps=60, paced=True, seed=2)}
+                 "DCU-2": start_node(relay.url, "DCU-2", tmp_path / "n2.npz", frames=300, fps=60, paced=True, seed=2)}
         for p in procs.values():
             finish_node(p, 60)
         wait_for(lambda: all(not n["connected"] for n in http_json(f"{relay.url}/api/nodes")), 10, what="nodes gone")
@@ -420,3 +420,8 @@ def test_drop_reasons_beyond_the_cap_count_as_other():
     assert capped["0"]["other"] == sum(100 - k for k in range(15, 19)) and capped["1"] == {"r00": 1, "r19": 50}
     assert capped["2"] == {}
     assert [sum(r.values()) for r in capped.values()] == [sum(r.values()) for r in dropped.values()]
+
+
+def test_gap_labels_name_the_stages_even_when_stage_names_hold_an_arrow():
+    stages = ["src0", "a->b", "c", "b->c", "sink"]
+    assert [gap_stages(f"{a}->{b}", stages) for a, b in zip(stages, stages[1:])] == list(zip(stages, stages[1:]))
