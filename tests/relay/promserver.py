@@ -35,28 +35,30 @@ def require_tool(name: str) -> str:
     return str(path)
 
 
-def scrape_config(target: str, folder: Path, token: str | None, rule_files: list[Path], every_s: float) -> dict:
-    """A Prometheus configuration scraping ``target`` (host:port) as job ``dcuscope-relay``."""
-    job = {"job_name": JOB, "scrape_interval": f"{every_s}s", "scrape_timeout": f"{every_s}s",
+def scrape_config(target: str, folder: Path, token: str | None, rule_files: list[Path], every_s: float,
+                  extra_jobs: list[dict] = ()) -> dict:
+    """A Prometheus configuration scraping ``target`` (host:port) as job ``dcuscope-relay``, and ``extra_jobs``."""
+    every = f"{round(every_s * 1000)}ms"  # Prometheus' durations take no fractions
+    job = {"job_name": JOB, "scrape_interval": every, "scrape_timeout": every,
            "static_configs": [{"targets": [target]}]}
     if token is not None:
         credentials = folder / "relay.token"
         credentials.write_text(token)
         credentials.chmod(0o600)
         job["authorization"] = {"type": "Bearer", "credentials_file": str(credentials)}
-    return {"global": {"scrape_interval": f"{every_s}s", "evaluation_interval": f"{every_s}s"},
-            "rule_files": [str(p) for p in rule_files], "scrape_configs": [job]}
+    return {"global": {"scrape_interval": every, "evaluation_interval": every},
+            "rule_files": [str(p) for p in rule_files], "scrape_configs": [job, *extra_jobs]}
 
 
 class PromServer:
     """``prometheus`` in a subprocess, ready (``/-/ready``) once constructed; :meth:`stop` ends it."""
 
     def __init__(self, folder: Path, target: str, token: str | None = None, rule_files: list[Path] = (),
-                 every_s: float = 1.0) -> None:
+                 every_s: float = 1.0, extra_jobs: list[dict] = ()) -> None:
         binary = require_tool("prometheus")
         folder.mkdir(parents=True, exist_ok=True)
         self.config = folder / "prometheus.yml"
-        self.config.write_text(yaml.safe_dump(scrape_config(target, folder, token, list(rule_files), every_s)))
+        self.config.write_text(yaml.safe_dump(scrape_config(target, folder, token, list(rule_files), every_s, list(extra_jobs))))
         self.log = folder / "prometheus.log"
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
@@ -121,8 +123,12 @@ class PromServer:
         return self.proc.returncode
 
 
-def wait_scrape(prom: PromServer, after: float, timeout_s: float = 30.0) -> None:
+def wait_scrape(prom: PromServer, after: float, timeout_s: float = 15.0) -> None:
     """Until Prometheus holds a successful scrape of the relay taken after ``after`` (Unix time, s)."""
     def scraped() -> bool:
         return any(float(s["value"][1]) > after for s in prom.query(f'timestamp(up{{job="{JOB}"}} == 1)'))
-    wait_for(scraped, timeout_s, 0.2, f"a successful scrape of the relay after {after}")
+    try:
+        wait_for(scraped, timeout_s, 0.2, f"a successful scrape of the relay after {after}")
+    except AssertionError as exc:
+        errors = [t["lastError"] for t in prom.targets() if t["labels"]["job"] == JOB]
+        raise AssertionError(f"{exc}; the scrape's last error: {errors}") from None
