@@ -23,6 +23,8 @@
 - ``GET /api/sessions``: stored sessions and their runs, newest first
 - ``GET /api/sessions/ID/{nodes,stats,frames}``: a stored session browsed like a live one
   (:mod:`relay.sessionapi`)
+
+Beside them, ``GET /metrics`` (Prometheus, :mod:`relay.metrics`), guarded by the same token.
 """
 
 from __future__ import annotations

@@ -104,6 +104,9 @@ class Ingest:
         """Times a connection was held back for its byte rate (or all connections' together)."""
         self.hello_timeouts = 0
         """Connections closed for not saying hello in time (counted in ``rejected`` too)."""
+        self.events_in = 0
+        self.batches_in = 0
+        """Events and batches stored and fed to the live state (``/metrics``)."""
         self.clock_udp: ClockUdp | None = None
         """The UDP clock exchange, once the server listens for it (None: not offered)."""
 
@@ -407,6 +410,8 @@ class Ingest:
         rs.seqs.add(batch.seq)
         if new:
             rs.live.add(batch.events)
+            self.events_in += len(batch.events)
+            self.batches_in += 1
         else:  # stored before this relay's run state knew it: already in the live state
             rs.duplicates += 1
         return envelope.ack(batch.seq, dup=not new)

@@ -220,6 +220,11 @@ class LiveRun:
         return sum(a.nbytes for a in arrays) + sum(g.nbytes for g in grows) + sum(v.nbytes for v in self._all_series())
 
     @property
+    def pending_events(self) -> int:
+        """Events queued by :meth:`add`, not yet merged."""
+        return sum(len(e) for e in self._pending)
+
+    @property
     def open_cap(self) -> int:
         """Open frames this run may hold now."""
         return self._open_cap

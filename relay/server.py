@@ -2,7 +2,8 @@
 Socket.IO server (``/ui``), the HTTP API and storage.
 
 ``serve(host, port, db, token, clock)`` runs it until SIGINT/SIGTERM; ``start_relay`` starts it
-on a running loop (tests, benchmarks). The page of ``ui/static/`` is served at ``/``. Beside it,
+on a running loop (tests, benchmarks). The page of ``ui/static/`` is served at ``/``, the
+Prometheus metrics at ``/metrics`` (:mod:`relay.metrics`). Beside it,
 the UDP clock exchange (:mod:`relay.clockudp`) listens on ``clock_port``: by default the HTTP
 port's number, 0 turns it off.
 """
@@ -34,6 +35,7 @@ from relay.hostcheck import HostCheck
 from relay.ingest import SYNCS_KEPT, Ingest
 from relay.limits import Limits
 from relay.live import LiveConfig
+from relay.metrics import RelayCollector, add_metrics_route
 from relay.sessionapi import add_session_routes
 from relay.sioserver import create_sio, sio_errors
 from relay.state import RelayState
@@ -61,6 +63,8 @@ class Relay:
     ui: UiNamespace
     ticker: Ticker
     guard: ConnGuard
+    metrics: RelayCollector
+    """``/metrics``' collector; exporters add families to its ``extra``."""
     runner: web.AppRunner | None = None
     port: int = 0
     _task: asyncio.Task | None = None
@@ -122,8 +126,10 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
 
     add_routes(app, state, token, counters)
     add_session_routes(app, state)
+    metrics = RelayCollector(state, ingest, guard)
+    add_metrics_route(app, metrics, token)
     _add_ui(app)
-    return app, Relay(state, storage, sio, ingest, ui, ticker, guard)
+    return app, Relay(state, storage, sio, ingest, ui, ticker, guard, metrics)
 
 
 def _add_ui(app: web.Application) -> None:

@@ -189,6 +189,11 @@ class Storage:
         self._queue.put(_Call(fn, args, kwargs, future))
         return await future
 
+    @property
+    def queued(self) -> int:
+        """Writes and calls waiting for the database thread."""
+        return self._queue.qsize()
+
     def health(self) -> dict:
         """{ok} or, while writes fail, {ok: false, error, since, failed_writes, failed {what: count}}
         (for /api/health)."""
