@@ -108,7 +108,8 @@ def run(tmp_path_factory):
         for name in WORK_US:
             cmd = [sys.executable, "-m", "dcuscope.cli", "run", str(node_config(tmp, name)), "--probes", "--relay",
                    relay.url, "--token", TOKEN, "--duration", str(DURATION_S), "-q"]
-            nodes[name] = subprocess.Popen(cmd, cwd=tmp, env=cli_env(), stderr=open(tmp / f"{name}.log", "wb"))
+            with open(tmp / f"{name}.log", "wb") as log:
+                nodes[name] = subprocess.Popen(cmd, cwd=tmp, env=cli_env(), stderr=log)
         watch(relay, prom, nodes, seen)
         for name, proc in nodes.items():
             assert proc.wait(60) == 0, (tmp / f"{name}.log").read_text()[-3000:]
@@ -120,6 +121,7 @@ def run(tmp_path_factory):
             wait_for(lambda: frame_counts(relay, prom) is None, 20, 0.5, "the frame counts to agree")
         except AssertionError as exc:
             raise AssertionError(f"{exc}: Prometheus', /api/stats': {frame_counts(relay, prom)}") from None
+        seen["alert"] |= {(a["labels"]["node"], a["state"]) for a in prom.alerts(ALERT)}
         yield relay, prom, seen
     finally:
         for proc in nodes.values():
