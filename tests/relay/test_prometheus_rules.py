@@ -71,8 +71,8 @@ def test_a_config_whose_token_file_is_missing_fails_the_check(shipped, tmp_path)
     assert result.returncode != 0 and "relay.token" in result.stdout + result.stderr
 
 
-def test_the_grafana_dashboard_queries_only_metrics_the_relay_exports():
-    """Every metric a panel of the dashboard names is one of /metrics' or a recording rule's."""
+def test_the_grafana_dashboard_names_only_recorded_series_the_rules_define():
+    """(The live test checks that every panel has data from a real relay.)"""
     dashboard = json.loads((CONFIGS / "grafana-dashboard.json").read_text())
     exprs = [t["expr"] for p in dashboard["panels"] for t in p.get("targets", [])]
     recorded = set(re.findall(r"- record: (\S+)", (CONFIGS / RULES).read_text()))
