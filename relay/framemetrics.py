@@ -15,11 +15,12 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
-from prometheus_client.core import CounterMetricFamily, HistogramMetricFamily, Metric
+from prometheus_client.core import CounterMetricFamily, Metric
 from prometheus_client.utils import floatToGoString
 
 from probes.delays import FrameDelays, Series
 from relay.buckets import Histograms
+from relay.exposition import BulkHistogram
 from relay.state import RelayState, RunState
 
 MAX_GAPS = 128
@@ -33,7 +34,8 @@ HISTOGRAMS = {
     "stage": ("dcuscope_stage_delay_seconds", "Stage delay (enter to exit)", ("stage",)),
     "service": ("dcuscope_stage_service_seconds", "Stage service time (work on the frame)", ("stage",)),
     "wait": ("dcuscope_stage_wait_seconds", "Stage wait time (queued inside the stage before its work)", ("stage",)),
-    "gap": ("dcuscope_gap_seconds", "Gap between a stage's exit and the next stage's enter", ("from_stage", "to_stage")),
+    "gap": ("dcuscope_gap_seconds", "Gap between a stage's exit and the next stage's enter",
+            ("from_stage", "to_stage")),
 }
 """Key of a series' family -> (metric name, help, labels besides ``node``)."""
 
@@ -43,7 +45,8 @@ class _NodeFrames:
     run: str
     hist: Histograms
     busy_ns: dict[str, int] = field(default_factory=dict)
-    gaps: set[str] = field(default_factory=set)
+    gaps: dict[str, tuple[str, str]] = field(default_factory=dict)
+    """Gap name -> its (from_stage, to_stage) labels, for the first MAX_GAPS pairs."""
 
 
 class FrameMetrics:
@@ -71,15 +74,16 @@ class FrameMetrics:
         # Glass-to-glass by the correction in force at each frame's origin, as the UI's frames
         # (relay.framejson): the capture time is the camera's clock, the end the node's.
         has = ~np.isnan(fd.glass)
-        glass = fd.glass[has] - self._state.correction(rs).offsets(fd.chains.end[has], fd.table.origin[has])
+        glass = fd.glass[has]
+        if len(glass):
+            glass = glass - self._state.correction(rs).offsets(fd.chains.end[has], fd.table.origin[has])
         batch = [(("frame",), values.frame), (("glass",), glass)]
         for kind in ("stage", "service", "wait"):
             batch += [((kind, name), v) for name, v in getattr(values, "stages" if kind == "stage" else kind).items()]
         for name, v in values.gaps.items():
             if name not in nf.gaps and len(nf.gaps) < MAX_GAPS:
-                nf.gaps.add(name)
-            a, _, b = name.partition("->")
-            batch.append((("gap", a, b) if name in nf.gaps else ("gap", OTHER, OTHER), v))
+                nf.gaps[name] = gap_stages(name, rs.header.stages)
+            batch.append((("gap", *nf.gaps.get(name, (OTHER, OTHER))), v))
         return batch
 
     def _current(self, node: str) -> _NodeFrames | None:
@@ -100,16 +104,28 @@ class FrameMetrics:
         for node in list(self._nodes):
             if node not in self._state.nodes:
                 del self._nodes[node]
-        hists = {key: HistogramMetricFamily(name, doc, labels=["node", *labels])
+        hists = {key: BulkHistogram(name, doc, ["node", *labels], self._le)
                  for key, (name, doc, labels) in HISTOGRAMS.items()}
         busy = CounterMetricFamily("dcuscope_stage_busy_seconds", "Stage busy time summed (service over its "
                                    "output buffers, a batch once), finalised frames", labels=["node", "stage"])
         for node in sorted(self._state.nodes):
             nf = self._current(node)
             for key, cumulative, total_ns in nf.hist.snapshot():
-                hists[key[0]].add_metric([node, *key[1:]], list(zip(self._le, cumulative.tolist())),
-                                         total_ns / NS_PER_S)
+                hists[key[0]].add_series([node, *key[1:]], cumulative, total_ns / NS_PER_S)
             for stage, ns in nf.busy_ns.items():
                 busy.add_metric([node, stage], ns / NS_PER_S)
         yield from hists.values()
         yield busy
+
+
+def gap_stages(name: str, stages: list[str]) -> tuple[str, str]:
+    """The two stages of gap ``name`` ("A->B"), where stage names may hold "->" themselves."""
+    known = set(stages)
+    at = name.find("->")
+    while at >= 0:
+        a, b = name[:at], name[at + 2:]
+        if a in known and b in known:
+            return a, b
+        at = name.find("->", at + 1)
+    a, _, b = name.partition("->")
+    return a, b

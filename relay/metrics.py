@@ -4,8 +4,10 @@
 ``CollectorRegistry`` per relay (never the process-wide one): the per-frame histograms
 (:mod:`relay.framemetrics`), the per-node gauges and counters (:mod:`relay.nodemetrics`) and the
 relay's own figures (events and batches ingested, queue depths, connections, live bytes).
-Exporters add theirs through :attr:`RelayCollector.extra`. The route is guarded by the relay's
-token like ``/api`` (``Authorization: Bearer TOKEN`` or ``?token=``).
+Exporters add theirs through :attr:`RelayCollector.extra`. The text is what
+``generate_latest(collector.registry)`` writes, its histograms written in bulk
+(:mod:`relay.exposition`). The route is guarded by the relay's token like ``/api``
+(``Authorization: Bearer TOKEN`` or ``?token=``).
 
 Every per-node series is labelled ``node`` (its newest run only); no label holds a frame
 number, and only ``dcuscope_node_info`` a run id. Series per node, at most, with S stages
@@ -26,10 +28,11 @@ from collections.abc import Callable, Iterable, Iterator
 from aiohttp import web
 from prometheus_client import CollectorRegistry
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
-from prometheus_client.exposition import CONTENT_TYPE_LATEST, generate_latest
+from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from prometheus_client.registry import Collector
 
 from relay.auth import http_token, token_matches
+from relay.exposition import exposition
 from relay.framemetrics import FrameMetrics
 from relay.guard import ConnGuard
 from relay.ingest import Ingest
@@ -51,6 +54,8 @@ class RelayCollector(Collector):
         self.nodes = NodeMetrics(state)
         self.extra: list[Callable[[], Iterable[Metric]]] = []
         """More families, asked for at each scrape (the OTLP exporter's counters)."""
+        self.queues: dict[str, Callable[[], float]] = {}
+        """More queue depths, as ``dcuscope_relay_queue_depth{queue=NAME}`` (the OTLP exporter's)."""
         self.registry = CollectorRegistry(auto_describe=False)
         self.registry.register(self)
 
@@ -72,6 +77,8 @@ class RelayCollector(Collector):
                                   "(storage), events not yet merged into live states (live_pending)", labels=["queue"])
         depth.add_metric(["storage"], state.storage.queued)
         depth.add_metric(["live_pending"], sum(rs.live.pending_events for rs in state.runs.values()))
+        for name, depth_of in self.queues.items():
+            depth.add_metric([name], depth_of())
         yield depth
         conns = GaugeMetricFamily("dcuscope_relay_connections", "Connections held: ingest WebSockets, TCP in all",
                                   labels=["kind"])
@@ -82,7 +89,8 @@ class RelayCollector(Collector):
                                 value=state.memory_view()["live_bytes"])
 
     def exposition(self) -> bytes:
-        return generate_latest(self.registry)
+        """The text format of every family now (what ``generate_latest(self.registry)`` writes, faster)."""
+        return exposition(self.collect())
 
 
 def add_metrics_route(app: web.Application, collector: RelayCollector, token: str | None) -> None:

@@ -3,8 +3,9 @@
 Every figure is one the relay already derives: the rolling window's statistics (what
 ``/api/stats`` gives as ``window``: utilization, bottleneck, fps per source, the run's drop and
 loss counts per source), the clock view (``/api/nodes`` clock), the node's PTP report and its
-counters. The window is recomputed at most every :data:`WINDOW_MAX_AGE_S` per run, so that a
-scrape every second of many nodes costs little. Drop reasons are capped per node
+counters. The window is recomputed at most every :data:`WINDOW_MAX_AGE_S` per run, and only when
+the run has new events (it is a function of the run's events alone), so that scrapes of many
+nodes cost little. Drop reasons are capped per node
 (:data:`MAX_REASONS`, the rest as ``reason="other"``); sources per node by ``--limit sources``.
 """
 
@@ -23,6 +24,7 @@ WINDOW_MAX_AGE_S = 1.0
 MAX_REASONS = 16
 """Drop reasons per node with series of their own; the rest count as ``reason="other"``."""
 MAX_URI_CHARS = 200
+OTHER = "other"
 NS_PER_S = 1e9
 
 SPECS = {
@@ -73,6 +75,7 @@ class Families:
 @dataclass
 class _Window:
     at: float
+    events: int
     stats: dict
 
 
@@ -84,11 +87,11 @@ class NodeMetrics:
         self._windows: dict[str, _Window] = {}
 
     def window(self, rs: RunState) -> dict:
-        """The run's rolling-window statistics, at most WINDOW_MAX_AGE_S old."""
+        """The run's rolling-window statistics, at most WINDOW_MAX_AGE_S older than its events."""
         now = time.monotonic()
         w = self._windows.get(rs.run)
-        if w is None or now - w.at > WINDOW_MAX_AGE_S:
-            w = self._windows[rs.run] = _Window(now, rs.live.window_stats())
+        if w is None or (now - w.at > WINDOW_MAX_AGE_S and w.events != rs.live.events):
+            w = self._windows[rs.run] = _Window(now, rs.live.events, rs.live.window_stats())
         return w.stats
 
     def families(self) -> Iterator[Metric]:
@@ -116,11 +119,7 @@ def _window_samples(out: Families, node: str, window: dict) -> None:
 def _source_samples(out: Families, rs: RunState, sources: dict[str, dict], max_sources: int) -> None:
     node = rs.node
     sources = dict(list(sources.items())[:max_sources])
-    totals: dict[str, int] = {}
-    for src in sources.values():
-        for reason, n in src["dropped"].items():
-            totals[reason] = totals.get(reason, 0) + n
-    kept = set(sorted(totals, key=lambda r: (-totals[r], r))[:MAX_REASONS])
+    dropped = capped_reasons({sid: src["dropped"] for sid, src in sources.items()}, MAX_REASONS)
     for sid, src in sources.items():
         uri = rs.header.sources.get(int(sid))
         if uri is not None:
@@ -131,12 +130,26 @@ def _source_samples(out: Families, rs: RunState, sources: dict[str, dict], max_s
         out.add("dcuscope_source_frames_delivered", [node, sid], src["delivered"])
         out.add("dcuscope_source_frames_lost", [node, sid, "upstream"], src["lost_upstream"])
         out.add("dcuscope_source_frames_lost", [node, sid, "decoder"], src["decoder_dropped"])
-        dropped: dict[str, int] = {}
-        for reason, n in src["dropped"].items():
-            key = reason if reason in kept else "other"
-            dropped[key] = dropped.get(key, 0) + n
-        for reason, n in sorted(dropped.items()):
+        for reason, n in dropped[sid].items():
             out.add("dcuscope_source_frames_dropped", [node, sid, reason], n)
+
+
+def capped_reasons(dropped: dict[str, dict[str, int]], limit: int) -> dict[str, dict[str, int]]:
+    """Per source, drops per reason with at most ``limit`` reasons over all sources (those that
+    dropped most frames in all); the others summed as ``other``."""
+    totals: dict[str, int] = {}
+    for reasons in dropped.values():
+        for reason, n in reasons.items():
+            totals[reason] = totals.get(reason, 0) + n
+    kept = set(sorted(totals, key=lambda r: (-totals[r], r))[:limit])
+    out = {}
+    for sid, reasons in dropped.items():
+        capped: dict[str, int] = {}
+        for reason, n in reasons.items():
+            key = reason if reason in kept else OTHER
+            capped[key] = capped.get(key, 0) + n
+        out[sid] = dict(sorted(capped.items()))
+    return out
 
 
 def _node_samples(out: Families, state: RelayState, rs: RunState) -> None:

@@ -5,11 +5,15 @@ the same events (probes.delays) or against ``/api/stats`` taken at the same mome
 from __future__ import annotations
 
 import asyncio
+import json
+import time
+import urllib.request
 import uuid
 
 import aiohttp
 import numpy as np
 import pytest
+from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from prometheus_client.parser import text_string_to_metric_families
 
@@ -18,12 +22,14 @@ from probes.events import DROP, DROP_REASONS, ENTER, EVENT_DTYPE, EXIT, ORIGIN, 
 from probes.frametable import frame_table
 from probes.simnode import header_for, synth_events
 from probes.wire import PTP_STATES, encode_batch
-from relay.framemetrics import MAX_GAPS, NS_PER_S
+from relay.framemetrics import MAX_GAPS, NS_PER_S, gap_stages
 from relay.limits import Limits
 from relay.live import LiveConfig
 from relay.metrics import BUCKETS_S
+from relay.nodemetrics import capped_reasons
 from relay.server import start_relay
-from tests.relay.helpers import HandNode
+from tests.probes.synth import pipeline_run
+from tests.relay.helpers import HandNode, RelayProcess, finish_node, start_node, wait_for
 
 T0 = 1_700_000_000_000_000_000
 BOUNDS_NS = np.array([round(b * NS_PER_S) for b in BUCKETS_S])
@@ -107,9 +113,12 @@ async def finalised(relay, run: str, n: int) -> None:
 
 def test_histograms_gauges_and_counters_equal_the_delay_model_and_api_stats(tmp_path):
     """Histogram counts are the run's finalised frames, each bucket the values at or below its bound
-    (Series of the node's own events); the bottleneck, fps and counters are /api/stats' window's."""
-    header = header_for("A", 2)
-    events = synth_events(300, 2, 25.0, T0, drop_rate=0.1, seed=3)
+    (Series of the node's own events: stage delays, service and wait, gaps, frame and glass times,
+    busy time); the bottleneck, utilization, fps and counters are /api/stats' window's."""
+    # infer's service (half its delay or more) fills most of the frame period: it saturates.
+    header, events, _ = pipeline_run(150, 2, period_ns=40_000_000, jitter_ns=3_000_000, batched_mux=True,
+                                     stage_ns=(2_000_000, 50_000_000, 3_000_000, 1_000_000, 4_000_000), node="A")
+    events = events[np.argsort(events["ts"], kind="stable")]
     values = series(frame_delays(frame_table(header, events)))
 
     async def scenario():
@@ -117,7 +126,7 @@ def test_histograms_gauges_and_counters_equal_the_delay_model_and_api_stats(tmp_
         url = f"http://127.0.0.1:{relay.port}"
         run = uuid.uuid4().hex
         try:
-            node = await HandNode.open(url, "A", run, stages=2)
+            node = await HandNode.open(url, "A", run, header=header)
             await feed(node, run, events)
             await finalised(relay, run, len(values.frame))
             fams = await scrape(url)
@@ -128,26 +137,36 @@ def test_histograms_gauges_and_counters_equal_the_delay_model_and_api_stats(tmp_
         return fams, stats, run
 
     fams, stats, run = asyncio.run(scenario())
-    assert 0 < len(values.frame) < 600  # some frames were dropped: incomplete, never counted
+    assert len(values.frame) == 300 and len(values.glass) == 150 and len(values.service) == 5
     assert_histogram(fams, "dcuscope_frame_delay_seconds", values.frame, node="A")
-    assert_histogram(fams, "dcuscope_frame_glass_seconds", np.zeros(0), node="A")  # no capture times
-    for stage, v in values.stages.items():
-        assert_histogram(fams, "dcuscope_stage_delay_seconds", v, node="A", stage=stage)
+    assert_histogram(fams, "dcuscope_frame_glass_seconds", values.glass, node="A")  # no clock correction yet
+    for name, kind in [("dcuscope_stage_delay_seconds", "stages"), ("dcuscope_stage_service_seconds", "service"),
+                       ("dcuscope_stage_wait_seconds", "wait")]:
+        per_stage = getattr(values, kind)
+        assert len(values_of(fams, name, f"{name}_count")) == len(per_stage)
+        for stage, v in per_stage.items():
+            assert_histogram(fams, name, v, node="A", stage=stage)
     for gap, v in values.gaps.items():
         a, _, b = gap.partition("->")
         assert_histogram(fams, "dcuscope_gap_seconds", v, node="A", from_stage=a, to_stage=b)
-    assert len(values_of(fams, "dcuscope_stage_delay_seconds", "dcuscope_stage_delay_seconds_count")) == \
-        len(values.stages)
+    busy = values_of(fams, "dcuscope_stage_busy_seconds", "dcuscope_stage_busy_seconds_total", node="A")
+    assert busy == {(("stage", s),): pytest.approx(ns / NS_PER_S, rel=1e-12) for s, ns in values.busy.items()}
 
     window = stats["window"]
-    neck = values_of(fams, "dcuscope_bottleneck", "dcuscope_bottleneck", node="A")
-    assert neck == {(("stage", s),): float(s == window["bottleneck"]["stage"]) for s in window["stages"]}
-    assert sum(neck.values()) == 1
-    fps = values_of(fams, "dcuscope_source_fps", "dcuscope_source_fps", node="A")
-    assert fps == {(("source", sid),): src["fps"] for sid, src in window["sources"].items()}
+    neck = window["bottleneck"]
+    assert neck["stage"] == "infer" and neck["saturated"] is True
+    gauges = {name: values_of(fams, name, name, node="A") for name in
+              ("dcuscope_bottleneck", "dcuscope_stage_saturated", "dcuscope_stage_utilization")}
+    assert gauges["dcuscope_bottleneck"] == {(("stage", s),): float(s == "infer") for s in window["stages"]}
+    assert gauges["dcuscope_stage_saturated"] == gauges["dcuscope_bottleneck"]
+    assert gauges["dcuscope_stage_utilization"] == {(("stage", s),): st["utilization"]
+                                                    for s, st in window["stages"].items()}
+    for name, key in [("dcuscope_source_fps", "fps"), ("dcuscope_source_nominal_fps", "nominal_fps")]:
+        assert values_of(fams, name, name, node="A") == {(("source", sid),): src[key]
+                                                          for sid, src in window["sources"].items()}
     delivered = values_of(fams, "dcuscope_source_frames_delivered", "dcuscope_source_frames_delivered_total", node="A")
     assert delivered == {(("source", sid),): src["delivered"] for sid, src in window["sources"].items()}
-    assert sum(delivered.values()) == 601  # 300 frames of 2 sources, and the lone origin
+    assert sum(delivered.values()) == 301  # 150 frames of 2 sources, and the lone origin
     assert values_of(fams, "dcuscope_frames_complete", "dcuscope_frames_complete_total") == \
         {(("node", "A"),): len(values.frame)}
     assert values_of(fams, "dcuscope_node_info", "dcuscope_node_info") == \
@@ -221,6 +240,35 @@ def test_a_nodes_new_run_starts_its_series_afresh(tmp_path):
     assert_histogram(after, "dcuscope_frame_delay_seconds", second_values.frame, node="A")
 
 
+def test_only_the_nodes_the_relay_holds_have_series(tmp_path):
+    """A node whose run left memory (beyond --limit runs_held) leaves /metrics: nodes are bounded too."""
+    events = synth_events(30, 1, 25.0, T0)
+
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db", limits=Limits(runs_held=2),
+                                  live=LiveConfig(settle_s=0.0))
+        url = f"http://127.0.0.1:{relay.port}"
+        try:
+            for name in ("A", "B", "C"):
+                run = uuid.uuid4().hex
+                node = await HandNode.open(url, name, run)
+                await feed(node, run, events)
+                await node.close()
+                await asyncio.sleep(0.05)  # heard from in this order: A is the least recent
+            fams = await scrape(url)
+            held = sorted(relay.state.nodes)
+        finally:
+            await relay.stop()
+        return fams, held
+
+    fams, held = asyncio.run(scenario())
+    assert held == ["B", "C"]
+    for name, samples in fams.items():
+        assert {s.labels["node"] for s in samples if "node" in s.labels} <= {"B", "C"}, name
+    assert {dict(k)["node"] for k in values_of(fams, "dcuscope_frame_delay_seconds",
+                                               "dcuscope_frame_delay_seconds_count")} == {"B", "C"}
+
+
 def hostile_events(stages: int, sources: int, frames: int, rng: np.random.Generator) -> np.ndarray:
     """Complete frames of every source, each through its own random subset of the middle stages
     (so that they show hundreds of gap pairs), plus drops of every reason code."""
@@ -279,3 +327,101 @@ def test_a_hostile_node_cannot_push_its_series_beyond_the_stated_bound(tmp_path)
     assert len(samples) <= bound
     assert all(len(s.labels.get("uri", "")) <= 200 for s in samples)
     assert histogram(fams, "dcuscope_frame_delay_seconds", node="H")[2] == len(values.frame)
+
+
+def test_ingest_lag_is_the_relays_now_less_the_nodes_newest_event(tmp_path):
+    """Bracketed by the relay's clock read before and after the scrape (the node's clock is the
+    relay's here: no correction); the relay's own gauges and its extension points."""
+    events = synth_events(20, 1, 25.0, time.time_ns() - 3 * 10**9)
+    newest = int(events["ts"].max())
+
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        url = f"http://127.0.0.1:{relay.port}"
+        run = uuid.uuid4().hex
+        try:
+            node = await HandNode.open(url, "A", run)
+            assert (await node.batch(encode_batch(run, 0, events)))["ok"]
+            # The extension points the OTLP exporter uses.
+            relay.metrics.extra.append(lambda: [GaugeMetricFamily("dcuscope_test_gauge", "a test's", value=3)])
+            relay.metrics.queues["otlp"] = lambda: 5
+            before = time.time_ns()
+            fams = await scrape(url)
+            after = time.time_ns()
+            async with aiohttp.ClientSession() as http:  # no token: the Host check applies as to any route
+                async with http.get(f"{url}/metrics", headers={"Host": "evil.example"}) as r:
+                    foreign_host = r.status
+            await node.close()
+        finally:
+            await relay.stop()
+        return fams, before, after, foreign_host
+
+    fams, before, after, foreign_host = asyncio.run(scenario())
+    [lag] = values_of(fams, "dcuscope_relay_ingest_lag_seconds", "dcuscope_relay_ingest_lag_seconds", node="A").values()
+    assert (before - newest) / NS_PER_S <= lag <= (after - newest) / NS_PER_S
+    assert values_of(fams, "dcuscope_relay_connections", "dcuscope_relay_connections", kind="ingest") == {(): 1.0}
+    depth = values_of(fams, "dcuscope_relay_queue_depth", "dcuscope_relay_queue_depth")
+    assert depth == {(("queue", "live_pending"),): 0.0, (("queue", "storage"),): 0.0, (("queue", "otlp"),): 5.0}
+    assert values_of(fams, "dcuscope_test_gauge", "dcuscope_test_gauge") == {(): 3.0}
+    assert foreign_host == 403
+
+
+def test_node_processes_clock_limit_and_bottleneck_as_the_api_gives_them(tmp_path):
+    """Two probes.simnode processes (one clock 2 s ahead) feed a relay process: the clock gauges are
+    /api/nodes' estimate and its bound (which holds the true offset), the frame limit shows for
+    the node that has one, each histogram counts the frames the run finalised, the bottleneck
+    gauge names /api/stats' stage."""
+    relay = RelayProcess(tmp_path / "relay.db", clock="estimate", args=["--frame-limit", "DCU-1=250"])
+    try:
+        procs = {"DCU-1": start_node(relay.url, "DCU-1", tmp_path / "n1.npz", frames=300, fps=60, paced=True,
+                                     offset_ns=2 * 10**9, seed=1),
+                 "DCU-2": start_node(relay.url, "DCU-2", tmp_path / "n2.npz", frames=300, fps=60, paced=True, seed=2)}
+        for p in procs.values():
+            finish_node(p, 60)
+        wait_for(lambda: all(not n["connected"] for n in http_json(f"{relay.url}/api/nodes")), 10, what="nodes gone")
+        fams = {f.name: f.samples for f in text_string_to_metric_families(http_text(f"{relay.url}/metrics"))}
+        nodes = {n["node"]: n for n in http_json(f"{relay.url}/api/nodes")}
+        stats = {name: http_json(f"{relay.url}/api/stats?node={name}") for name in procs}
+    finally:
+        assert relay.stop() == 0
+
+    def gauge(name: str) -> dict[str, float]:
+        return {dict(k)["node"]: v for k, v in values_of(fams, name, name).items()}
+
+    offset, bound = gauge("dcuscope_clock_offset_seconds"), gauge("dcuscope_clock_uncertainty_seconds")
+    for name, n in nodes.items():
+        assert offset[name] == n["clock"]["offset_ns"] / NS_PER_S
+        # The bound grows with the time since the estimate (its drift's): /api/nodes was read after.
+        clock = n["clock"]
+        assert clock["uncertainty_ns"] / NS_PER_S <= bound[name] <= clock["correction_uncertainty_ns"] / NS_PER_S
+        assert abs(offset[name] - (2.0 if name == "DCU-1" else 0.0)) <= bound[name]
+        assert histogram(fams, "dcuscope_frame_delay_seconds", node=name)[2] == n["frames"]["finalised"] > 0
+        neck = values_of(fams, "dcuscope_bottleneck", "dcuscope_bottleneck", node=name)
+        assert [dict(k)["stage"] for k, v in neck.items() if v == 1] == [stats[name]["window"]["bottleneck"]["stage"]]
+    assert gauge("dcuscope_frame_delay_limit_seconds") == {"DCU-1": 0.25}
+    assert gauge("dcuscope_node_connected") == {"DCU-1": 0.0, "DCU-2": 0.0}
+
+
+def http_json(url: str):
+    with urllib.request.urlopen(url, timeout=10) as r:
+        return json.loads(r.read())
+
+
+def http_text(url: str) -> str:
+    with urllib.request.urlopen(url, timeout=10) as r:
+        return r.read().decode()
+
+
+def test_drop_reasons_beyond_the_cap_count_as_other():
+    """Nodes name only probes.events.DROP_REASONS today; the cap holds whatever a future one sends."""
+    dropped = {"0": {f"r{k:02d}": 100 - k for k in range(20)}, "1": {"r19": 50, "r00": 1}, "2": {}}
+    capped = capped_reasons(dropped, 16)  # r19 is kept: 81 + 50 drops in all, more than r15's 85
+    assert {r for reasons in capped.values() for r in reasons} == {f"r{k:02d}" for k in (*range(15), 19)} | {"other"}
+    assert capped["0"]["other"] == sum(100 - k for k in range(15, 19)) and capped["1"] == {"r00": 1, "r19": 50}
+    assert capped["2"] == {}
+    assert [sum(r.values()) for r in capped.values()] == [sum(r.values()) for r in dropped.values()]
+
+
+def test_gap_labels_name_the_stages_even_when_stage_names_hold_an_arrow():
+    stages = ["src0", "a->b", "c", "b->c", "sink"]
+    assert [gap_stages(f"{a}->{b}", stages) for a, b in zip(stages, stages[1:])] == list(zip(stages, stages[1:]))
