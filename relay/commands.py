@@ -12,6 +12,7 @@ from relay.clock import CLOCK_MODES
 from relay.errors import RelayError
 from relay.framelimits import FrameLimits
 from relay.limits import Limits, limits_help
+from relay.otlpconfig import DEFAULT_EVERY, DEFAULT_QUEUE, DEFAULT_TIMEOUT_S, OtlpConfig, otlp_config
 
 TOKEN_ENV = "DCUSCOPE_TOKEN"
 
@@ -57,6 +58,20 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
                    help="the longest a frame may take (origin to the end of its chain) on every node (MS) or on one "
                         "(NODE=MS, repeatable): exported in /metrics for the shipped alert rule "
                         "(configs/prometheus/), and frames over it are always sent with --otlp (default: no limit)")
+    p.add_argument("--otlp", metavar="URL",
+                   help="send frames as OpenTelemetry traces to this OTLP/HTTP endpoint (an OpenTelemetry Collector, "
+                        "Jaeger, Tempo), e.g. http://127.0.0.1:4318/v1/traces (no path: /v1/traces): one trace per "
+                        "frame, a span per stage (wait, service) and per gap; 1 in --otlp-every frames plus every "
+                        "frame over its --frame-limit (default: no export)")
+    p.add_argument("--otlp-every", type=int, metavar="N",
+                   help=f"with --otlp: send 1 in N complete frames of each node (default {DEFAULT_EVERY}); 0: only "
+                        "frames over their --frame-limit")
+    p.add_argument("--otlp-queue", type=int, metavar="N",
+                   help=f"with --otlp: frames waiting for export at most (default {DEFAULT_QUEUE}); beyond, frames are "
+                        "dropped and counted (dcuscope_otlp_frames_dropped_total), never waited for")
+    p.add_argument("--otlp-timeout", type=float, metavar="S",
+                   help=f"with --otlp: seconds one export request may take, retries included (default "
+                        f"{DEFAULT_TIMEOUT_S:g}); its frames are dropped and counted after it")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
                    help="how much the relay logs to stderr: WARNING its failures and warnings, INFO also "
                         "the connections it closes (malformed packets, refused messages), DEBUG everything "
@@ -77,7 +92,21 @@ def run_relay(args: argparse.Namespace) -> int:
         raise RelayError(f"--limit: {exc}") from None
     node_tokens = load_node_tokens(args.node_tokens) if args.node_tokens else None
     frame_limits = FrameLimits.parse(args.frame_limit)
+    otlp = _otlp(args, frame_limits)
     check_port_free(args.host, args.port)
     serve(args.host, args.port, args.db, args.token, args.clock, limits=limits, node_tokens=node_tokens,
-          allow_hosts=args.allow_host, clock_port=args.clock_port, frame_limits=frame_limits)
+          allow_hosts=args.allow_host, clock_port=args.clock_port, frame_limits=frame_limits, otlp=otlp)
     return 0
+
+
+def _otlp(args: argparse.Namespace, frame_limits: FrameLimits) -> OtlpConfig | None:
+    options = {"--otlp-every": args.otlp_every, "--otlp-queue": args.otlp_queue, "--otlp-timeout": args.otlp_timeout}
+    if args.otlp is None:
+        given = [name for name, value in options.items() if value is not None]
+        if given:
+            raise RelayError(f"{given[0]} needs --otlp URL")
+        return None
+    has_limit = frame_limits.default_ns is not None or bool(frame_limits.per_node_ns)
+    return otlp_config(args.otlp, DEFAULT_EVERY if args.otlp_every is None else args.otlp_every,
+                       DEFAULT_QUEUE if args.otlp_queue is None else args.otlp_queue,
+                       DEFAULT_TIMEOUT_S if args.otlp_timeout is None else args.otlp_timeout, has_limit)

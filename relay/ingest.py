@@ -328,6 +328,7 @@ class Ingest:
     async def _on_end(self, rs: RunState, data: object) -> dict:
         written, dropped, lost = decode_end(data)
         rs.ended, rs.written, rs.dropped, rs.lost = True, written, dropped, max(rs.lost, lost)
+        rs.live.finish()
         clock = dict(self.state.clock_view(rs), ptp=rs.ptp)
         return await self._update_run(rs, ended_ns=time.time_ns(), written=written, dropped=dropped, lost=rs.lost,
                                       clock=clock)

@@ -179,6 +179,8 @@ class LiveRun:
         self._dirty = False
         self._pending: list[np.ndarray] = []
         self._next_finalise = 0
+        self._settle_ns = int(config.settle_s * 1e9)
+        """How long a complete frame waits for stragglers before it is finalised (0 once the run ended)."""
         self.on_finalise: Callable[[FrameDelays, Series], None] | None = None
         """Called with the figures of every finalised batch of frames (all complete), exactly once
         per frame: the exporters (``/metrics``, OTLP) take them from here, so they derive nothing again."""
@@ -396,7 +398,7 @@ class LiveRun:
         if self.newest < self._next_finalise and len(self._keys) <= self._open_cap:
             return k
         self._next_finalise = self.newest + FINALISE_PERIOD_NS
-        done = complete & (end <= self.newest - int(self.config.settle_s * 1e9))
+        done = complete & (end <= self.newest - self._settle_ns)
         stale = ~complete & (self._last < self.newest - int(self.config.evict_s * 1e9))
         excess = len(self._keys) - int(done.sum()) - int(stale.sum()) - self._open_cap
         if excess > 0:
@@ -412,6 +414,15 @@ class LiveRun:
             self._keys, self._cells = self._keys[keep], self._cells[keep]
             self._last, self._shown = self._last[keep], self._shown[keep]
         return k
+
+    def finish(self) -> None:
+        """The node ended its run: no straggler can come, so its complete frames are finalised now
+        rather than after ``settle_s`` of a node time that no longer moves (the exporters would
+        never see a run's last seconds). Incomplete frames stay open, counted as they were."""
+        self._settle_ns = 0
+        self._next_finalise = 0
+        self._dirty = True
+        self.maintain()
 
     def _open_frames(self) -> _Frames:
         return _Frames((self._keys >> KEY_SHIFT).astype(np.int32), self._keys & ((1 << KEY_SHIFT) - 1), self._cells)

@@ -74,7 +74,8 @@ class RelayCollector(Collector):
         yield CounterMetricFamily("dcuscope_relay_batches", "Batches ingested (stored and fed to the live state)",
                                   value=ingest.batches_in)
         depth = GaugeMetricFamily("dcuscope_relay_queue_depth", "Items waiting: storage writes and calls "
-                                  "(storage), events not yet merged into live states (live_pending)", labels=["queue"])
+                                  "(storage), events not yet merged into live states (live_pending), frames waiting for "
+                                  "OTLP export (otlp)", labels=["queue"])
         depth.add_metric(["storage"], state.storage.queued)
         depth.add_metric(["live_pending"], sum(rs.live.pending_events for rs in state.runs.values()))
         for name, depth_of in self.queues.items():

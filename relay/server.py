@@ -36,6 +36,8 @@ from relay.ingest import SYNCS_KEPT, Ingest
 from relay.limits import Limits
 from relay.live import LiveConfig
 from relay.metrics import RelayCollector, add_metrics_route
+from relay.otlp import OtlpExporter
+from relay.otlpconfig import OtlpConfig
 from relay.sessionapi import add_session_routes
 from relay.sioserver import create_sio, sio_errors
 from relay.state import RelayState
@@ -67,6 +69,8 @@ class Relay:
     """``/metrics``' collector; exporters add families to its ``extra``."""
     runner: web.AppRunner | None = None
     port: int = 0
+    otlp: OtlpExporter | None = None
+    """The OTLP trace exporter (``--otlp``), if any."""
     _task: asyncio.Task | None = None
 
     @property
@@ -81,6 +85,8 @@ class Relay:
             self.ingest.clock_udp.stop()
         # Close every client's websocket first: the web runner would wait out their pings.
         await self.ingest.close_all()
+        if self.otlp is not None:
+            await self.otlp.stop()
         await self.sio.shutdown()
         if self.runner is not None:
             await self.runner.cleanup()
@@ -90,9 +96,11 @@ class Relay:
 def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *, limits: Limits = Limits(),
                live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ,
                node_tokens: dict[str, str] | None = None, allow_hosts: Iterable[str] = (),
-               frame_limits: FrameLimits = FrameLimits()) -> tuple[web.Application, Relay]:
+               frame_limits: FrameLimits = FrameLimits(), otlp: OtlpConfig | None = None
+               ) -> tuple[web.Application, Relay]:
     """The relay's app; without a token, requests must name an IP, localhost or one of ``allow_hosts``
-    (:mod:`relay.hostcheck`)."""
+    (:mod:`relay.hostcheck`). ``otlp``: export sampled frames as traces (:mod:`relay.otlp`; its
+    thread starts with :func:`start_relay`)."""
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     limits = fit_descriptors(limits)
@@ -113,6 +121,7 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     app.router.add_get(INGEST_PATH, ingest.handle)
     sio.attach(app)
     ticker = Ticker(state, ui, push_hz)
+    exporter = OtlpExporter(otlp, state) if otlp is not None else None
 
     def counters() -> dict:
         refused["hello_timeout"] = ingest.hello_timeouts
@@ -122,14 +131,17 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
                 "refused": {**state.refused, **{k: refused[k] for k in REFUSALS}},
                 "connections": {"tcp": guard.open, "ingest": ingest.connected},
                 "pushes": ticker.pushes, "commits": storage.commits, "batches": storage.batches_written,
-                "limits": limits.as_dict(), "released_runs": state.released, "memory": state.memory_view()}
+                "limits": limits.as_dict(), "released_runs": state.released, "memory": state.memory_view(),
+                "otlp": exporter.view() if exporter is not None else None}
 
     add_routes(app, state, token, counters)
     add_session_routes(app, state)
     metrics = RelayCollector(state, ingest, guard)
     add_metrics_route(app, metrics, token)
     _add_ui(app)
-    return app, Relay(state, storage, sio, ingest, ui, ticker, guard, metrics)
+    if exporter is not None:
+        exporter.attach(metrics)
+    return app, Relay(state, storage, sio, ingest, ui, ticker, guard, metrics, otlp=exporter)
 
 
 def _add_ui(app: web.Application) -> None:
@@ -180,6 +192,8 @@ async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path 
         relay.storage.stop()
         raise
     relay._task = asyncio.create_task(relay.ticker.run())
+    if relay.otlp is not None:
+        relay.otlp.start()
     return relay
 
 

@@ -210,3 +210,22 @@ def test_each_finalised_frame_is_told_once_with_the_figures_the_statistics_use()
     finalised = run._frame_values.summary(np.zeros(0))  # the whole-run statistics' finalised part
     assert finalised["count"] == len(frame_ms)
     assert np.isclose(finalised["mean_ms"], frame_ms.mean()) and np.isclose(finalised["max_ms"], frame_ms.max())
+
+
+def test_a_finished_run_finalises_its_last_complete_frames_and_its_statistics_stay():
+    """The node's time stops at its end: without ``finish`` its last ``settle_s`` of complete frames
+    would never reach the exporters (``on_finalise``)."""
+    header = header_for("n", 2)
+    events = synth_events(300, 2, 30.0, T0, drop_rate=0.03, seed=5)
+    run = LiveRun(header)
+    told: list[int] = []
+    run.on_finalise = lambda fd, values: told.append(len(values.frame))
+    feed(run, events, 97)
+    before = run.run_stats()
+    complete = before["frames"]["complete"]
+    assert 0 < run.finalised < complete  # the last seconds wait for stragglers
+    run.finish()
+    assert run.finalised == sum(told) == complete
+    assert_stats_equal(before, run.run_stats())
+    run.finish()
+    assert sum(told) == complete  # once only
