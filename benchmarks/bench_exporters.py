@@ -31,6 +31,7 @@ import json
 import math
 import os
 import socket
+import shutil
 import statistics
 import subprocess
 import sys
@@ -54,6 +55,9 @@ from benchmarks.bench_relay import (
 from probes.simnode import synth_events
 
 PROMETHEUS = "/usr/bin/prometheus"
+ARMS = {"a": (False, False), "b": (True, True), "m": (True, False), "o": (False, True)}
+"""Arm -> (Prometheus scrapes /metrics every second, --otlp on): a and b are the benchmark's,
+m and o (one exporter each) tell which of the two costs what."""
 FINAL_KEYS = ("frames_complete", "otlp_sampled", "otlp_over_limit", "otlp_dropped", "spans_exported")
 SCRAPE_JOB = "dcuscope"
 
@@ -82,7 +86,9 @@ class OtlpSink:
                 request = ExportTraceServiceRequest.FromString(raw)
                 spans = [span for rs in request.resource_spans for ss in rs.scope_spans for span in ss.spans]
                 with sink._lock:
-                    sink.requests, sink.bytes, sink.spans = sink.requests + 1, sink.bytes + len(body), sink.spans + len(spans)
+                    sink.requests += 1
+                    sink.bytes += len(body)
+                    sink.spans += len(spans)
                     sink.traces.update(span.trace_id for span in spans)
                 reply = ExportTraceServiceResponse().SerializeToString()
                 self.send_response(200 if self.path == "/v1/traces" else 404)
@@ -210,29 +216,33 @@ def frame_limit_ms(over: float, frames: int = 20_000) -> float:
 
 
 class Rig:
-    """One fresh relay; in arm b also its OTLP sink and a Prometheus scraping it."""
+    """One fresh relay; as its arm says, an OTLP sink it exports to and a Prometheus scraping it."""
 
     def __init__(self, arm: str, folder: Path, limit_ms: float) -> None:
         folder.mkdir(parents=True)
-        self.sink = OtlpSink() if arm == "b" else None
+        scrape, otlp = ARMS[arm]
+        self.sink = OtlpSink() if otlp else None
         self.relay = self.prom = None
+        self.exporting = scrape or otlp
         self.sink_final: dict = {}
         args = ["--frame-limit", f"{limit_ms:.3f}"] + (["--otlp", self.sink.url] if self.sink else [])
         try:
             self.relay = Relay(folder / "relay.db", args)
-            self.prom = Prometheus(self.relay.url, folder / "prometheus") if arm == "b" else None
+            self.prom = Prometheus(self.relay.url, folder / "prometheus") if scrape else None
         except BaseException:
             self.stop()
             raise
 
     def mark(self) -> dict:
-        """The exporters' counters now (arm b), once Prometheus scrapes the relay."""
-        self.prom.wait_for_first_scrape()
-        return {"t": time.time(), "prom_cpu": self.prom.cpu_s(), "sink": self.sink.counts(),
+        """The exporters' counters now, once Prometheus (if any) scrapes the relay."""
+        if self.prom:
+            self.prom.wait_for_first_scrape()
+        return {"t": time.time(), "prom_cpu": self.prom.cpu_s() if self.prom else 0.0,
+                "sink": self.sink.counts() if self.sink else {"spans": 0, "traces": 0},
                 "metrics": read_metrics(self.relay.url)}
 
     def between(self, start: dict, end: dict) -> dict:
-        """Arm b's figures over a window opened by ``start`` and closed by ``end`` (marks)."""
+        """The exporters' figures over a window opened by ``start`` and closed by ``end`` (marks)."""
         wall = end["t"] - start["t"]
         m0, m1 = start["metrics"], end["metrics"]
 
@@ -240,8 +250,9 @@ class Rig:
             return round((m1[key] - m0[key]) / wall, 1)
 
         complete = m1["frames_complete"] - m0["frames_complete"]
-        return {**self.prom.scrapes(start["t"], end["t"]),
-                "prometheus_cpu_pct": round(100 * (end["prom_cpu"] - start["prom_cpu"]) / wall),
+        scraped = {**self.prom.scrapes(start["t"], end["t"]),
+                   "prometheus_cpu_pct": round(100 * (end["prom_cpu"] - start["prom_cpu"]) / wall)} if self.prom else {}
+        return {**scraped,
                 "metrics_bytes": m1["bytes"], "metrics_series": m1["series"], "series_dcu1": m1["series_dcu1"],
                 "metrics_get_ms": m1["get_ms"], "frames_complete_per_s": rate("frames_complete"),
                 "otlp_frames_per_s": round(rate("otlp_sampled") + rate("otlp_over_limit"), 1),
@@ -263,16 +274,16 @@ class Rig:
 def run_throughput(arm: str, n: int, args: argparse.Namespace, folder: Path) -> dict:
     rig = Rig(arm, folder, args.frame_limit_ms)
     try:
-        start = rig.mark() if rig.prom else None
+        start = rig.mark() if rig.exporting else None
         result = measure_throughput(rig.relay, n, args.events, args.batch_events)
-        if rig.prom:
+        if rig.exporting:
             end = rig.mark()
             time.sleep(args.settle_s)  # the relay finalises frames ~2 s after they end: count their export too
             result["exporters"] = rig.between(start, end)
             final = rig.mark()["metrics"]
     finally:
         rig.stop()
-    if rig.prom:
+    if rig.sink:
         sink = rig.sink_final
         result["exporters"]["final"] = {key: final[key] for key in FINAL_KEYS} | {
             "sink_spans": sink["spans"], "sink_traces": sink["traces"],
@@ -285,9 +296,9 @@ def run_lag(arm: str, n: int, args: argparse.Namespace, folder: Path) -> dict:
     rig = Rig(arm, folder, args.frame_limit_ms)
     marks = {}
     try:
-        on_window = (lambda which: marks.__setitem__(which, rig.mark())) if rig.prom else None
+        on_window = (lambda which: marks.__setitem__(which, rig.mark())) if rig.exporting else None
         result = measure_lag(rig.relay, n, args.rate, args.seconds, on_window)
-        if rig.prom:
+        if rig.exporting:
             result["exporters"] = rig.between(marks["start"], marks["end"])
         return result
     finally:
@@ -299,30 +310,52 @@ def _median(values: list) -> float | None:
     return statistics.median(values) if values else None
 
 
-def summarise(runs: list[dict]) -> dict:
-    """Medians per arm and the ratios of b to a over the interleaved ``runs``."""
-    def med(arm: str, phase: str, key: str, sub: str | None = None) -> float | None:
-        return _median([(r[phase][sub] if sub else r[phase]).get(key) for r in runs if r["arm"] == arm])
+def _per_cpu(throughput: dict) -> float | None:
+    """Events stored per CPU-second of the relay in the 10-90 % window: less moved by other work
+    on the machine than events/s, which fall when the relay gets less CPU."""
+    cpu = throughput["relay_cpu_pct_in_window"]
+    return round(throughput["events_per_s"] / (cpu / 100)) if throughput["events_per_s"] and cpu else None
 
-    rate_a, rate_b = med("a", "throughput", "events_per_s"), med("b", "throughput", "events_per_s")
-    pairs = {}
-    for r in runs:
-        pairs.setdefault(r["rep"], {})[r["arm"]] = r["throughput"]["events_per_s"]
+
+def per_arm(runs: list[dict], arm: str) -> dict:
+    """Medians of one arm's runs, and per repetition its ingest rate (to pair with arm a's)."""
+    mine = [r for r in runs if r["arm"] == arm]
+    return {"ingest": _median([r["throughput"]["events_per_s"] for r in mine]),
+            "ingest_per_cpu_s": _median([_per_cpu(r["throughput"]) for r in mine]),
+            **{key: _median([r["lag"][key] for r in mine]) for key in ("lag_p50_ms", "lag_p99_ms", "relay_cpu_pct")},
+            "by_rep": {r["rep"]: r["throughput"]["events_per_s"] for r in mine}}
+
+
+def _lost(part: float | None, whole: float | None) -> float | None:
+    return round(1 - part / whole, 3) if part and whole else None
+
+
+def summarise(runs: list[dict]) -> dict:
+    """Medians per arm and the ratios of each arm to arm a over the interleaved ``runs``."""
+    def med(phase: str, key: str) -> float | None:
+        return _median([r[phase]["exporters"].get(key) for r in runs if r["arm"] == "b"])
+
+    arms = {arm: per_arm(runs, arm) for arm in dict.fromkeys(r["arm"] for r in runs)}
+    for arm, figures in arms.items():
+        by_rep = figures.pop("by_rep")
+        if arm != "a" and "a" in arms:
+            figures["ingest_lost"] = _lost(figures["ingest"], arms["a"]["ingest"])
+            figures["ingest_per_cpu_lost"] = _lost(figures["ingest_per_cpu_s"], arms["a"]["ingest_per_cpu_s"])
+            figures["ingest_lost_per_pair"] = [_lost(rate, per_arm(runs, "a")["by_rep"].get(rep))
+                                               for rep, rate in by_rep.items()]
+    a, b = arms.get("a", {}), arms.get("b", {})
     return {
-        "ingest_a": rate_a, "ingest_b": rate_b,
-        "ingest_lost": round(1 - rate_b / rate_a, 3) if rate_a and rate_b else None,
-        "ingest_lost_per_pair": [round(1 - p["b"] / p["a"], 3) for p in pairs.values() if p.get("a") and p.get("b")],
-        **{f"{key}_{arm}": med(arm, "lag", key) for key in ("lag_p50_ms", "lag_p99_ms", "relay_cpu_pct")
-           for arm in "ab"},
-        **{f"tp_relay_cpu_pct_{arm}": med(arm, "throughput", "relay_cpu_pct_in_window") for arm in "ab"},
-        **{key: med("b", "lag", key, "exporters") for key in (
+        "ingest_a": a.get("ingest"), "ingest_b": b.get("ingest"), "ingest_lost": b.get("ingest_lost"),
+        "ingest_lost_per_pair": b.get("ingest_lost_per_pair", []), "ingest_per_cpu_lost": b.get("ingest_per_cpu_lost"),
+        **{f"{key}_{arm}": figures.get(key) for key in ("lag_p50_ms", "lag_p99_ms", "relay_cpu_pct")
+           for arm, figures in (("a", a), ("b", b))},
+        **{key: med("lag", key) for key in (
             "scrape_ms_mean", "scrape_ms_max", "prometheus_cpu_pct", "metrics_bytes", "metrics_series",
             "series_dcu1", "spans_exported_per_s", "sink_spans_per_s", "otlp_frames_per_s", "over_limit_share",
             "otlp_frames_dropped")},
-        "tp_scrape_ms_max": med("b", "throughput", "scrape_ms_max", "exporters"),
-        "tp_scrapes_failed": _median([r["throughput"]["exporters"]["scrapes"] - r["throughput"]["exporters"]["scrapes_ok"]
-                                      for r in runs if r["arm"] == "b"]),
-        "tp_otlp_frames_dropped": med("b", "throughput", "otlp_frames_dropped", "exporters"),
+        "tp_scrape_ms_max": med("throughput", "scrape_ms_max"),
+        "tp_otlp_frames_dropped": med("throughput", "otlp_frames_dropped"),
+        "arms": arms,
     }
 
 
@@ -346,7 +379,8 @@ def table(lines: list[dict]) -> str:
         share = f"{100 * s['over_limit_share']:.1f} %" if s["over_limit_share"] is not None else "–"
         rows.append(
             f"| {line['nodes']} | {_fmt(s['ingest_a'])} / {_fmt(s['ingest_b'])} | {lost} ({per_pair}) "
-            f"| {_fmt(s['lag_p50_ms_a'])} / {_fmt(s['lag_p50_ms_b'])} ms | {_fmt(s['lag_p99_ms_a'])} / {_fmt(s['lag_p99_ms_b'])} ms "
+            f"| {_fmt(s['lag_p50_ms_a'])} / {_fmt(s['lag_p50_ms_b'])} ms "
+            f"| {_fmt(s['lag_p99_ms_a'])} / {_fmt(s['lag_p99_ms_b'])} ms "
             f"| {_fmt(s['relay_cpu_pct_a'])} / {_fmt(s['relay_cpu_pct_b'])} % "
             f"| {_fmt(s['scrape_ms_mean'])} / {_fmt(s['scrape_ms_max'])} ms | {_fmt(s['prometheus_cpu_pct'])} % "
             f"| {_fmt(s['metrics_bytes'])} / {_fmt(s['metrics_series'])} "
@@ -355,16 +389,34 @@ def table(lines: list[dict]) -> str:
     return "\n".join(rows)
 
 
+def arms_table(lines: list[dict]) -> str:
+    """Every arm's medians, ingest also per relay CPU-second, and what each lost against arm a."""
+    rows = ["| nodes | arm | ingest, events/s (lost vs a) | per relay CPU-s (lost vs a) | lag p50 / p99 "
+            "| relay CPU, lag phase |",
+            "|---|---|---|---|---|---|"]
+
+    def lost(x: float | None) -> str:
+        return f" ({100 * x:.1f} %)" if x is not None else ""
+
+    for line in lines:
+        for arm, f in line["summary"]["arms"].items():
+            rows.append(f"| {line['nodes']} | {arm} | {_fmt(f['ingest'])}{lost(f.get('ingest_lost'))} "
+                        f"| {_fmt(f['ingest_per_cpu_s'])}{lost(f.get('ingest_per_cpu_lost'))} "
+                        f"| {_fmt(f['lag_p50_ms'])} / {_fmt(f['lag_p99_ms'])} ms | {_fmt(f['relay_cpu_pct'])} % |")
+    return "\n".join(rows)
+
+
 def bench(n: int, args: argparse.Namespace, tmp: Path) -> dict:
-    """Every run at ``n`` nodes: a b, b a, a b, ... (each pair in turn reversed, against drift)."""
+    """Every run at ``n`` nodes: the arms in order, then reversed, ... (a b, b a, ...: against drift)."""
     runs = []
     load = round(os.getloadavg()[0], 1)
     for rep in range(args.repeat):
-        for arm in ("ab" if rep % 2 == 0 else "ba"):
+        for arm in (args.arms if rep % 2 == 0 else args.arms[::-1]):
             folder = tmp / f"n{n}-{rep}{arm}"
             runs.append({"arm": arm, "rep": rep,
                          "throughput": run_throughput(arm, n, args, folder / "throughput"),
                          "lag": run_lag(arm, n, args, folder / "lag")})
+            shutil.rmtree(folder)  # a throughput run's database is ~0.5 GB
     return {"nodes": n, "cpus": os.cpu_count(), "load_before": load, "frame_limit_ms": round(args.frame_limit_ms, 2),
             "events_per_frame": EVENTS_PER_FRAME, "summary": summarise(runs), "runs": runs}
 
@@ -377,14 +429,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--batch-events", type=int, default=8192, help="events per batch in the throughput phase")
     p.add_argument("--rate", type=float, default=4300.0, help="events/s per node in the lag phase (the paper's DCU)")
     p.add_argument("--seconds", type=float, default=12.0, help="length of the lag window")
-    p.add_argument("--repeat", type=int, default=2, help="pairs of runs (a b, b a, ...) per node count")
+    p.add_argument("--repeat", type=int, default=2, help="rounds of the arms (a b, then b a, ...) per node count")
+    p.add_argument("--arms", default="ab", help="a: exporters off; b: both on; m: /metrics scraped only; o: OTLP only "
+                                                "(default ab; e.g. ambo to tell the exporters' costs apart)")
     p.add_argument("--over-limit", type=float, default=0.05, help="share of frames over the --frame-limit given")
     p.add_argument("--settle", dest="settle_s", type=float, default=3.0,
                    help="seconds after a throughput run in arm b before its exporters' final counts")
-    p.add_argument("--quick", action="store_true", help="a smoke test: 2 nodes, 600,000 events, a 1.5 s lag window, one pair")
+    p.add_argument("--quick", action="store_true",
+                   help="a smoke test: 2 nodes, 600,000 events, a 1.5 s lag window, one round")
     args = p.parse_args(argv)
     if args.quick:
         args.nodes, args.events, args.seconds, args.repeat, args.settle_s = [2], 600_000, 1.5, 1, 1.0
+    if "a" not in args.arms or not set(args.arms) <= set(ARMS) or len(set(args.arms)) != len(args.arms):
+        p.error(f"--arms {args.arms!r}: give a and any of {''.join(ARMS)[1:]}, each once")
     if not 0 < args.over_limit < 1:
         p.error(f"--over-limit must be between 0 and 1, not {args.over_limit}")
     if not Path(PROMETHEUS).exists():
@@ -396,6 +453,7 @@ def main(argv: list[str] | None = None) -> int:
             lines.append(bench(n, args, Path(tmp)))
             print(json.dumps(lines[-1]), flush=True)
     print(table(lines), flush=True)
+    print(arms_table(lines), flush=True)
     return 0
 
 

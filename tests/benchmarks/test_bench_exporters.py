@@ -23,7 +23,8 @@ def test_quick_mode_runs_both_arms_and_arm_b_is_scraped_and_exports_spans():
     line = json.loads(first)  # one JSON line per node count: --quick runs 2 nodes only
     assert line["nodes"] == 2 and line["frame_limit_ms"] > 0
     assert SUMMARY_KEYS <= set(line["summary"])
-    assert table[0].startswith("| nodes |") and table[2].startswith("| 2 |") and len(table) == 3
+    assert table[0].startswith("| nodes |") and table[2].startswith("| 2 |")  # exporters' figures, a vs b
+    assert table[3].startswith("| nodes | arm |") and [row[:10] for row in table[5:]] == ["| 2 | a | ", "| 2 | b | "]
     runs = {run["arm"]: run for run in line["runs"]}
     assert sorted(runs) == ["a", "b"]
     for run in runs.values():
