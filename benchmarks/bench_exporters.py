@@ -201,7 +201,8 @@ def read_metrics(url: str) -> dict:
             "otlp_sampled": total("dcuscope_otlp_frames_total", why="sampled"),
             "otlp_over_limit": total("dcuscope_otlp_frames_total", why="over_limit"),
             "otlp_dropped": total("dcuscope_otlp_frames_dropped_total"),
-            "spans_exported": total("dcuscope_otlp_spans_exported_total")}
+            "spans_exported": total("dcuscope_otlp_spans_exported_total"),
+            "otlp_queue": total("dcuscope_otlp_queue_frames")}
 
 
 def frame_limit_ms(over: float, frames: int = 20_000) -> float:
@@ -261,7 +262,8 @@ class Rig:
                 "spans_exported_per_s": rate("spans_exported"),
                 "sink_spans_per_s": round((end["sink"]["spans"] - start["sink"]["spans"]) / wall, 1),
                 "sink_traces_per_s": round((end["sink"]["traces"] - start["sink"]["traces"]) / wall, 1),
-                "otlp_frames_dropped": int(m1["otlp_dropped"] - m0["otlp_dropped"])}
+                "otlp_frames_dropped": int(m1["otlp_dropped"] - m0["otlp_dropped"]),
+                "otlp_queue_end": int(m1["otlp_queue"])}  # a backlog here is dropped in a longer run
 
     def stop(self) -> None:
         for part in (self.prom, self.relay, self.sink):
