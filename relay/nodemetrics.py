@@ -49,6 +49,7 @@ SPECS = {
     "dcuscope_ptp_state": ("gauge", "1 for the node's PTP state, 0 for the others", ("state",)),
     "dcuscope_ptp_master_offset_seconds": ("gauge", "PTP offset from the master, as ptp4l reports it", ()),
     "dcuscope_node_connected": ("gauge", "1 while the node's newest run is connected", ()),
+    "dcuscope_node_ended": ("gauge", "1 once the node's newest run said it ended (a clean stop, not a loss)", ()),
     "dcuscope_node_last_seen_timestamp_seconds": ("gauge", "When the relay last heard from the node", ()),
     "dcuscope_node_info": ("gauge", "The node's newest run and its session", ("run", "session")),
     "dcuscope_relay_ingest_lag_seconds": ("gauge", "Relay's now - the node's newest event (clock-corrected)", ()),
@@ -173,6 +174,7 @@ def _node_samples(out: Families, state: RelayState, rs: RunState) -> None:
     if isinstance(offset, int) and not isinstance(offset, bool):
         out.add("dcuscope_ptp_master_offset_seconds", [node], offset / NS_PER_S)
     out.add("dcuscope_node_connected", [node], 1.0 if rs.sid is not None else 0.0)
+    out.add("dcuscope_node_ended", [node], 1.0 if rs.ended else 0.0)
     out.add("dcuscope_node_last_seen_timestamp_seconds", [node], rs.last_seen)
     out.add("dcuscope_node_info", [node, rs.run, str(rs.session)], 1.0)
     if live.newest:

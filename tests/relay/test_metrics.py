@@ -176,6 +176,7 @@ def test_histograms_gauges_and_counters_equal_the_delay_model_and_api_stats(tmp_
     assert values_of(fams, "dcuscope_relay_events", "dcuscope_relay_events_total") == {(): len(events) + 1}
     assert values_of(fams, "dcuscope_relay_batches", "dcuscope_relay_batches_total") == {(): 5}
     assert values_of(fams, "dcuscope_node_connected", "dcuscope_node_connected") == {(("node", "A"),): 1.0}
+    assert values_of(fams, "dcuscope_node_ended", "dcuscope_node_ended") == {(("node", "A"),): 0.0}
 
 
 def test_the_token_guards_metrics_as_it_guards_the_api(tmp_path):
@@ -400,6 +401,7 @@ def test_node_processes_clock_limit_and_bottleneck_as_the_api_gives_them(tmp_pat
         assert [dict(k)["stage"] for k, v in neck.items() if v == 1] == [stats[name]["window"]["bottleneck"]["stage"]]
     assert gauge("dcuscope_frame_delay_limit_seconds") == {"DCU-1": 0.25}
     assert gauge("dcuscope_node_connected") == {"DCU-1": 0.0, "DCU-2": 0.0}
+    assert gauge("dcuscope_node_ended") == {"DCU-1": 1.0, "DCU-2": 1.0}  # a clean end: no disconnection alert
 
 
 def http_json(url: str):
