@@ -5,8 +5,9 @@ Every figure is one the relay already derives: the rolling window's statistics (
 loss counts per source), the clock view (``/api/nodes`` clock), the node's PTP report and its
 counters. The window is recomputed at most every :data:`WINDOW_MAX_AGE_S` per run, and only when
 the run has new events (it is a function of the run's events alone), so that scrapes of many
-nodes cost little. Drop reasons are capped per node
-(:data:`MAX_REASONS`, the rest as ``reason="other"``); sources per node by ``--limit sources``.
+nodes cost little. Every source lists every drop reason a node may send
+(``probes.events.DROP_REASONS``, a closed set the wire checks), at 0 before its first drop, so that
+``increase()`` sees that drop too; sources per node are bounded by ``--limit sources``.
 """
 
 from __future__ import annotations
@@ -17,15 +18,14 @@ from dataclasses import dataclass
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
+from probes.events import DROP_REASONS
 from probes.wire import PTP_STATES
 from relay.state import RelayState, RunState
 
 WINDOW_MAX_AGE_S = 1.0
-MAX_REASONS = 16
-"""Drop reasons per node with series of their own; the rest count as ``reason="other"``."""
 MAX_URI_CHARS = 200
-OTHER = "other"
 NS_PER_S = 1e9
+REASONS = sorted(set(DROP_REASONS.values()))
 
 SPECS = {
     "dcuscope_stage_utilization": ("gauge", "Busy fraction of the stage over the rolling window", ("stage",)),
@@ -120,7 +120,6 @@ def _window_samples(out: Families, node: str, window: dict) -> None:
 def _source_samples(out: Families, rs: RunState, sources: dict[str, dict], max_sources: int) -> None:
     node = rs.node
     sources = dict(list(sources.items())[:max_sources])
-    dropped = capped_reasons({sid: src["dropped"] for sid, src in sources.items()}, MAX_REASONS)
     for sid, src in sources.items():
         uri = rs.header.sources.get(int(sid))
         if uri is not None:
@@ -131,26 +130,8 @@ def _source_samples(out: Families, rs: RunState, sources: dict[str, dict], max_s
         out.add("dcuscope_source_frames_delivered", [node, sid], src["delivered"])
         out.add("dcuscope_source_frames_lost", [node, sid, "upstream"], src["lost_upstream"])
         out.add("dcuscope_source_frames_lost", [node, sid, "decoder"], src["decoder_dropped"])
-        for reason, n in dropped[sid].items():
-            out.add("dcuscope_source_frames_dropped", [node, sid, reason], n)
-
-
-def capped_reasons(dropped: dict[str, dict[str, int]], limit: int) -> dict[str, dict[str, int]]:
-    """Per source, drops per reason with at most ``limit`` reasons over all sources (those that
-    dropped most frames in all); the others summed as ``other``."""
-    totals: dict[str, int] = {}
-    for reasons in dropped.values():
-        for reason, n in reasons.items():
-            totals[reason] = totals.get(reason, 0) + n
-    kept = set(sorted(totals, key=lambda r: (-totals[r], r))[:limit])
-    out = {}
-    for sid, reasons in dropped.items():
-        capped: dict[str, int] = {}
-        for reason, n in reasons.items():
-            key = reason if reason in kept else OTHER
-            capped[key] = capped.get(key, 0) + n
-        out[sid] = dict(sorted(capped.items()))
-    return out
+        for reason in REASONS:
+            out.add("dcuscope_source_frames_dropped", [node, sid, reason], src["dropped"].get(reason, 0))
 
 
 def _node_samples(out: Families, state: RelayState, rs: RunState) -> None:
