@@ -3,9 +3,9 @@
 Every figure is one the relay already derives: the rolling window's statistics (what
 ``/api/stats`` gives as ``window``: utilization, bottleneck, fps per source, the run's drop and
 loss counts per source), the clock view (``/api/nodes`` clock), the node's PTP report and its
-counters. The window is recomputed at most every :data:`WINDOW_MAX_AGE_S` per run, and only when
-the run has new events (it is a function of the run's events alone), so that scrapes of many
-nodes cost little. Every source lists every drop reason a node may send
+counters. The window is the one the UI's pushes use (``RunState.window``: recomputed at most every
+``relay.state.WINDOW_MAX_AGE_S`` per run, and only when the run has new events), so that scrapes
+of many nodes cost little. Every source lists every drop reason a node may send
 (``probes.events.DROP_REASONS``, a closed set the wire checks), at 0 before its first drop, so that
 ``increase()`` sees that drop too; sources per node are bounded by ``--limit sources``.
 """
@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
@@ -22,7 +21,6 @@ from probes.events import DROP_REASONS
 from probes.wire import PTP_STATES
 from relay.state import RelayState, RunState
 
-WINDOW_MAX_AGE_S = 1.0
 MAX_URI_CHARS = 200
 NS_PER_S = 1e9
 REASONS = sorted(set(DROP_REASONS.values()))
@@ -73,34 +71,17 @@ class Families:
         return iter(self._f.values())
 
 
-@dataclass
-class _Window:
-    at: float
-    events: int
-    stats: dict
-
-
 class NodeMetrics:
     """The gauge and counter families of every node's newest run."""
 
     def __init__(self, state: RelayState) -> None:
         self._state = state
-        self._windows: dict[str, _Window] = {}
-
-    def window(self, rs: RunState) -> dict:
-        """The run's rolling-window statistics, at most WINDOW_MAX_AGE_S older than its events."""
-        now = time.monotonic()
-        w = self._windows.get(rs.run)
-        if w is None or (now - w.at > WINDOW_MAX_AGE_S and w.events != rs.live.events):
-            w = self._windows[rs.run] = _Window(now, rs.live.events, rs.live.window_stats())
-        return w.stats
 
     def families(self) -> Iterator[Metric]:
         out = Families()
         runs = [self._state.runs[run] for _, run in sorted(self._state.nodes.items()) if run in self._state.runs]
-        self._windows = {rs.run: self._windows[rs.run] for rs in runs if rs.run in self._windows}
         for rs in runs:
-            window = self.window(rs)
+            window = rs.window.get(rs.live, fresh=False)
             _window_samples(out, rs.node, window)
             _source_samples(out, rs, window["sources"], self._state.limits.sources)
             _node_samples(out, self._state, rs)
