@@ -3,29 +3,27 @@
 Every figure is one the relay already derives: the rolling window's statistics (what
 ``/api/stats`` gives as ``window``: utilization, bottleneck, fps per source, the run's drop and
 loss counts per source), the clock view (``/api/nodes`` clock), the node's PTP report and its
-counters. The window is recomputed at most every :data:`WINDOW_MAX_AGE_S` per run, and only when
-the run has new events (it is a function of the run's events alone), so that scrapes of many
-nodes cost little. Drop reasons are capped per node
-(:data:`MAX_REASONS`, the rest as ``reason="other"``); sources per node by ``--limit sources``.
+counters. The window is the one the UI's pushes use (``RunState.window``: recomputed at most every
+``relay.state.WINDOW_MAX_AGE_S`` per run, and only when the run has new events), so that scrapes
+of many nodes cost little. Every source lists every drop reason a node may send
+(``probes.events.DROP_REASONS``, a closed set the wire checks), at 0 before its first drop, so that
+``increase()`` sees that drop too; sources per node are bounded by ``--limit sources``.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Iterator
-from dataclasses import dataclass
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
+from probes.events import DROP_REASONS
 from probes.wire import PTP_STATES
 from relay.state import RelayState, RunState
 
-WINDOW_MAX_AGE_S = 1.0
-MAX_REASONS = 16
-"""Drop reasons per node with series of their own; the rest count as ``reason="other"``."""
 MAX_URI_CHARS = 200
-OTHER = "other"
 NS_PER_S = 1e9
+REASONS = sorted(set(DROP_REASONS.values()))
 
 SPECS = {
     "dcuscope_stage_utilization": ("gauge", "Busy fraction of the stage over the rolling window", ("stage",)),
@@ -49,6 +47,7 @@ SPECS = {
     "dcuscope_ptp_state": ("gauge", "1 for the node's PTP state, 0 for the others", ("state",)),
     "dcuscope_ptp_master_offset_seconds": ("gauge", "PTP offset from the master, as ptp4l reports it", ()),
     "dcuscope_node_connected": ("gauge", "1 while the node's newest run is connected", ()),
+    "dcuscope_node_ended": ("gauge", "1 once the node's newest run said it ended (a clean stop, not a loss)", ()),
     "dcuscope_node_last_seen_timestamp_seconds": ("gauge", "When the relay last heard from the node", ()),
     "dcuscope_node_info": ("gauge", "The node's newest run and its session", ("run", "session")),
     "dcuscope_relay_ingest_lag_seconds": ("gauge", "Relay's now - the node's newest event (clock-corrected)", ()),
@@ -72,34 +71,17 @@ class Families:
         return iter(self._f.values())
 
 
-@dataclass
-class _Window:
-    at: float
-    events: int
-    stats: dict
-
-
 class NodeMetrics:
     """The gauge and counter families of every node's newest run."""
 
     def __init__(self, state: RelayState) -> None:
         self._state = state
-        self._windows: dict[str, _Window] = {}
-
-    def window(self, rs: RunState) -> dict:
-        """The run's rolling-window statistics, at most WINDOW_MAX_AGE_S older than its events."""
-        now = time.monotonic()
-        w = self._windows.get(rs.run)
-        if w is None or (now - w.at > WINDOW_MAX_AGE_S and w.events != rs.live.events):
-            w = self._windows[rs.run] = _Window(now, rs.live.events, rs.live.window_stats())
-        return w.stats
 
     def families(self) -> Iterator[Metric]:
         out = Families()
         runs = [self._state.runs[run] for _, run in sorted(self._state.nodes.items()) if run in self._state.runs]
-        self._windows = {rs.run: self._windows[rs.run] for rs in runs if rs.run in self._windows}
         for rs in runs:
-            window = self.window(rs)
+            window = rs.window.get(rs.live, fresh=False)
             _window_samples(out, rs.node, window)
             _source_samples(out, rs, window["sources"], self._state.limits.sources)
             _node_samples(out, self._state, rs)
@@ -119,7 +101,6 @@ def _window_samples(out: Families, node: str, window: dict) -> None:
 def _source_samples(out: Families, rs: RunState, sources: dict[str, dict], max_sources: int) -> None:
     node = rs.node
     sources = dict(list(sources.items())[:max_sources])
-    dropped = capped_reasons({sid: src["dropped"] for sid, src in sources.items()}, MAX_REASONS)
     for sid, src in sources.items():
         uri = rs.header.sources.get(int(sid))
         if uri is not None:
@@ -130,26 +111,8 @@ def _source_samples(out: Families, rs: RunState, sources: dict[str, dict], max_s
         out.add("dcuscope_source_frames_delivered", [node, sid], src["delivered"])
         out.add("dcuscope_source_frames_lost", [node, sid, "upstream"], src["lost_upstream"])
         out.add("dcuscope_source_frames_lost", [node, sid, "decoder"], src["decoder_dropped"])
-        for reason, n in dropped[sid].items():
-            out.add("dcuscope_source_frames_dropped", [node, sid, reason], n)
-
-
-def capped_reasons(dropped: dict[str, dict[str, int]], limit: int) -> dict[str, dict[str, int]]:
-    """Per source, drops per reason with at most ``limit`` reasons over all sources (those that
-    dropped most frames in all); the others summed as ``other``."""
-    totals: dict[str, int] = {}
-    for reasons in dropped.values():
-        for reason, n in reasons.items():
-            totals[reason] = totals.get(reason, 0) + n
-    kept = set(sorted(totals, key=lambda r: (-totals[r], r))[:limit])
-    out = {}
-    for sid, reasons in dropped.items():
-        capped: dict[str, int] = {}
-        for reason, n in reasons.items():
-            key = reason if reason in kept else OTHER
-            capped[key] = capped.get(key, 0) + n
-        out[sid] = dict(sorted(capped.items()))
-    return out
+        for reason in REASONS:
+            out.add("dcuscope_source_frames_dropped", [node, sid, reason], src["dropped"].get(reason, 0))
 
 
 def _node_samples(out: Families, state: RelayState, rs: RunState) -> None:
@@ -173,6 +136,7 @@ def _node_samples(out: Families, state: RelayState, rs: RunState) -> None:
     if isinstance(offset, int) and not isinstance(offset, bool):
         out.add("dcuscope_ptp_master_offset_seconds", [node], offset / NS_PER_S)
     out.add("dcuscope_node_connected", [node], 1.0 if rs.sid is not None else 0.0)
+    out.add("dcuscope_node_ended", [node], 1.0 if rs.ended else 0.0)
     out.add("dcuscope_node_last_seen_timestamp_seconds", [node], rs.last_seen)
     out.add("dcuscope_node_info", [node, rs.run, str(rs.session)], 1.0)
     if live.newest:

@@ -31,6 +31,9 @@ from relay.storage import Storage
 RELOAD_SLICE = 262_144
 STATS_MAX_AGE_S = 0.5
 """Whole-run statistics are recomputed at most this often per run (percentiles over every frame)."""
+WINDOW_MAX_AGE_S = 0.5
+"""The rolling window's, unless asked fresh (the HTTP API), at most this often: shorter than the UI's
+once-a-second pushes, so each push gets a new one, and a scrape at about the same time shares it."""
 
 FrameObserver = Callable[["RunState", FrameDelays, Series], None]
 """Told of every finalised batch of a run's frames (see ``LiveRun.on_finalise``); it must be quick."""
@@ -55,6 +58,23 @@ class WholeRunStats:
         if self.stats is None or (self.events != live.events and due):
             self.stats = live.run_stats(dropped)
             self.events, self.at, self.cost = live.events, now, time.monotonic() - now
+        return self.stats
+
+
+@dataclass
+class WindowStats:
+    """A run's rolling-window statistics, shared by the UI's pushes and ``/metrics``: a function
+    of the run's events alone (its window ends at its newest event), recomputed only when new
+    events came and, unless asked ``fresh``, at most every WINDOW_MAX_AGE_S."""
+
+    stats: dict | None = None
+    events: int = -1
+    at: float = 0.0
+
+    def get(self, live: LiveRun, fresh: bool) -> dict:
+        now = time.monotonic()
+        if self.stats is None or (self.events != live.events and (fresh or now - self.at >= WINDOW_MAX_AGE_S)):
+            self.stats, self.events, self.at = live.window_stats(), live.events, now
         return self.stats
 
 
@@ -88,6 +108,7 @@ class RunState:
     pushed: int = 0
     """Cursor of the newest frame pushed to the UI."""
     whole: WholeRunStats = field(default_factory=WholeRunStats)
+    window: WindowStats = field(default_factory=WindowStats)
     secret_hash: str | None = None
     """Hash of the resume secret issued at the run's first hello."""
     conflicts: int = 0
@@ -338,9 +359,10 @@ class RelayState:
         Whole-run statistics take percentiles over every frame of the run, a cost that grows
         with it; unless ``fresh`` (the HTTP API), they are recomputed at most every
         max(STATS_MAX_AGE_S, 50 x their last cost), so that pushing them to browsers stays
-        within ~2 % of the relay's time however long the run. The window is always recomputed.
+        within ~2 % of the relay's time however long the run. The window, unless ``fresh``, at most
+        every WINDOW_MAX_AGE_S (:class:`WindowStats`, which ``/metrics`` shares).
         """
-        return dict(rs.whole.get(rs.live, rs.dropped, fresh), window=rs.live.window_stats(), node=rs.node,
+        return dict(rs.whole.get(rs.live, rs.dropped, fresh), window=rs.window.get(rs.live, fresh), node=rs.node,
                     run=rs.run, session=rs.session, lost=rs.lost, clock=clock_entry(self.correction(rs), time.time_ns()))
 
     def frames_view(self, rs: RunState, since: int = 0, limit: int = 200, newest: bool = False) -> dict:

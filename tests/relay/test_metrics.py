@@ -26,7 +26,6 @@ from relay.framemetrics import MAX_GAPS, NS_PER_S, gap_stages
 from relay.limits import Limits
 from relay.live import LiveConfig
 from relay.metrics import BUCKETS_S
-from relay.nodemetrics import capped_reasons
 from relay.server import start_relay
 from tests.probes.synth import pipeline_run
 from tests.relay.helpers import HandNode, RelayProcess, finish_node, start_node, wait_for
@@ -176,6 +175,7 @@ def test_histograms_gauges_and_counters_equal_the_delay_model_and_api_stats(tmp_
     assert values_of(fams, "dcuscope_relay_events", "dcuscope_relay_events_total") == {(): len(events) + 1}
     assert values_of(fams, "dcuscope_relay_batches", "dcuscope_relay_batches_total") == {(): 5}
     assert values_of(fams, "dcuscope_node_connected", "dcuscope_node_connected") == {(("node", "A"),): 1.0}
+    assert values_of(fams, "dcuscope_node_ended", "dcuscope_node_ended") == {(("node", "A"),): 0.0}
 
 
 def test_the_token_guards_metrics_as_it_guards_the_api(tmp_path):
@@ -322,6 +322,7 @@ def test_a_hostile_node_cannot_push_its_series_beyond_the_stated_bound(tmp_path)
     samples = [s for family in fams.values() for s in family if s.labels.get("node") == "H"]
     gaps = values_of(fams, "dcuscope_gap_seconds", "dcuscope_gap_seconds_count", node="H")
     reasons = {s.labels["reason"] for s in fams["dcuscope_source_frames_dropped"]}
+    assert reasons == set(DROP_REASONS.values())  # every one, at 0 before its first drop
     assert len(gaps) == MAX_GAPS + 1 and sum(gaps.values()) == sum(len(v) for v in values.gaps.values())
     bound = HISTOGRAM_SAMPLES * (2 + 3 * n_stages + MAX_GAPS + 1) + 4 * n_stages + n_sources * (6 + len(reasons)) + 18
     assert len(samples) <= bound
@@ -400,6 +401,7 @@ def test_node_processes_clock_limit_and_bottleneck_as_the_api_gives_them(tmp_pat
         assert [dict(k)["stage"] for k, v in neck.items() if v == 1] == [stats[name]["window"]["bottleneck"]["stage"]]
     assert gauge("dcuscope_frame_delay_limit_seconds") == {"DCU-1": 0.25}
     assert gauge("dcuscope_node_connected") == {"DCU-1": 0.0, "DCU-2": 0.0}
+    assert gauge("dcuscope_node_ended") == {"DCU-1": 1.0, "DCU-2": 1.0}  # a clean end: no disconnection alert
 
 
 def http_json(url: str):
@@ -410,16 +412,6 @@ def http_json(url: str):
 def http_text(url: str) -> str:
     with urllib.request.urlopen(url, timeout=10) as r:
         return r.read().decode()
-
-
-def test_drop_reasons_beyond_the_cap_count_as_other():
-    """Nodes name only probes.events.DROP_REASONS today; the cap holds whatever a future one sends."""
-    dropped = {"0": {f"r{k:02d}": 100 - k for k in range(20)}, "1": {"r19": 50, "r00": 1}, "2": {}}
-    capped = capped_reasons(dropped, 16)  # r19 is kept: 81 + 50 drops in all, more than r15's 85
-    assert {r for reasons in capped.values() for r in reasons} == {f"r{k:02d}" for k in (*range(15), 19)} | {"other"}
-    assert capped["0"]["other"] == sum(100 - k for k in range(15, 19)) and capped["1"] == {"r00": 1, "r19": 50}
-    assert capped["2"] == {}
-    assert [sum(r.values()) for r in capped.values()] == [sum(r.values()) for r in dropped.values()]
 
 
 def test_gap_labels_name_the_stages_even_when_stage_names_hold_an_arrow():
