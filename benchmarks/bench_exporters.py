@@ -2,7 +2,7 @@
 
 bench_relay.py's two phases (throughput: events/s into SQLite and the live view; lag: a /ui
 Socket.IO client at the paper's rate, 4,300 events/s a node) at each node count, each run
-on a fresh relay in two arms:
+on a fresh relay in two arms (and, with ``--arms ambo``, m and o: one exporter each):
 
 - a: exporters off: no scraper, no ``--otlp``;
 - b: a real Prometheus (``/usr/bin/prometheus``, loopback, a temporary storage folder)
@@ -10,17 +10,18 @@ on a fresh relay in two arms:
   in this process (answers 200 to ``POST /v1/traces``, decodes each request with
   ``opentelemetry-proto`` to count its spans), ``--otlp-every`` at its default.
 
-Both arms get the same ``--frame-limit``: the simulated nodes' frame delay quantile that
+Every arm gets the same ``--frame-limit``: the simulated nodes' frame delay quantile that
 leaves ``--over-limit`` of the frames over it (default 5 %, more than a healthy pipeline has,
 so the exporter gets more frames than it would in service), so arm b exports 1 in N frames
-plus every frame over the limit. The arms run interleaved a b b a (``--repeat`` pairs) on this
-shared, noisy machine, and the summary compares medians: ingest lost to the exporters =
-1 - rate_b / rate_a (goal <= 5 %), lag b vs a, relay CPU, Prometheus' scrape duration and
-CPU, /metrics size (bytes, series), OTLP spans/s exported and frames dropped. Prints one JSON
-line per node count, then a Markdown summary table.
+plus every frame over the limit. The arms run interleaved (a b, then b a: ``--repeat`` rounds)
+on this shared, noisy machine, and the summary compares medians: ingest lost to the exporters
+= 1 - rate_b / rate_a (goal <= 5 %; also per CPU-second of the relay), lag b vs a, relay CPU,
+Prometheus' scrape duration and CPU, /metrics size (bytes, series), OTLP spans/s exported and
+frames dropped. Prints one JSON line per node count, then two Markdown tables (b vs a, and
+every arm against a).
 
-    PYTHONPATH=. .venv/bin/python benchmarks/bench_exporters.py [--nodes 2 8] [--events 12000000]
-        [--seconds 12] [--repeat 2] [--over-limit 0.05] [--quick]
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_exporters.py [--nodes 2 8] [--arms ab]
+        [--events 12000000] [--seconds 12] [--repeat 2] [--over-limit 0.05] [--quick]
 """
 
 from __future__ import annotations
