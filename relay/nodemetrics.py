@@ -3,9 +3,9 @@
 Every figure is one the relay already derives: the rolling window's statistics (what
 ``/api/stats`` gives as ``window``: utilization, bottleneck, fps per source, the run's drop and
 loss counts per source), the clock view (``/api/nodes`` clock), the node's PTP report and its
-counters. The window is the one the UI's pushes use (``RunState.window``: recomputed at most every
-``relay.state.WINDOW_MAX_AGE_S`` per run, and only when the run has new events), so that scrapes
-of many nodes cost little. Every source lists every drop reason a node may send
+counters. The window is the one the UI's pushes use (``RunState.window``: recomputed only when the
+run has new events, at most every ``relay.state.WINDOW_MAX_AGE_S``, and less often when windows
+are costly), so that scrapes of many nodes cost little. Every source lists every drop reason a node may send
 (``probes.events.DROP_REASONS``, a closed set the wire checks), at 0 before its first drop, so that
 ``increase()`` sees that drop too; sources per node are bounded by ``--limit sources``.
 """
@@ -81,9 +81,10 @@ class NodeMetrics:
         out = Families()
         runs = [self._state.runs[run] for _, run in sorted(self._state.nodes.items()) if run in self._state.runs]
         for rs in runs:
-            window = rs.window.get(rs.live, fresh=False)
+            window = rs.window.get(rs.live, fresh=False, runs=len(runs))
             _window_samples(out, rs.node, window)
-            _source_samples(out, rs, window["sources"], self._state.limits.sources)
+            # The counters now (cheap), the fps as of the window.
+            _source_samples(out, rs, rs.live.accounting.sources(window["fps"]), self._state.limits.sources)
             _node_samples(out, self._state, rs)
         return iter(out)
 

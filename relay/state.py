@@ -34,6 +34,8 @@ STATS_MAX_AGE_S = 0.5
 WINDOW_MAX_AGE_S = 0.5
 """The rolling window's, unless asked fresh (the HTTP API), at most this often: shorter than the UI's
 once-a-second pushes, so each push gets a new one, and a scrape at about the same time shares it."""
+WINDOW_SHARE = 0.05
+"""Share of the relay's time all runs' rolling windows may take when nobody asks for them fresh."""
 
 FrameObserver = Callable[["RunState", FrameDelays, Series], None]
 """Told of every finalised batch of a run's frames (see ``LiveRun.on_finalise``); it must be quick."""
@@ -63,18 +65,28 @@ class WholeRunStats:
 
 @dataclass
 class WindowStats:
-    """A run's rolling-window statistics, shared by the UI's pushes and ``/metrics``: a function
-    of the run's events alone (its window ends at its newest event), recomputed only when new
-    events came and, unless asked ``fresh``, at most every WINDOW_MAX_AGE_S."""
+    """A run's rolling-window statistics, shared by the UI's pushes and ``/metrics``.
+
+    They are a function of the run's events alone (the window ends at its newest event), so they
+    are recomputed only when new events came; unless asked ``fresh`` (the HTTP API, which stores
+    what it computed), at most every WINDOW_MAX_AGE_S, and no more often than keeps all runs'
+    windows within WINDOW_SHARE of the relay's time: a window over many frames (a node far above
+    the paper's rate) then refreshes less often instead of slowing the ingest."""
 
     stats: dict | None = None
     events: int = -1
+    """``LiveRun.events`` when they were computed."""
     at: float = 0.0
+    cost: float = 0.0
 
-    def get(self, live: LiveRun, fresh: bool) -> dict:
+    def get(self, live: LiveRun, fresh: bool, runs: int = 1) -> dict:
+        """``runs``: how many runs' windows are kept up to date this way (their share is split)."""
         now = time.monotonic()
-        if self.stats is None or (self.events != live.events and (fresh or now - self.at >= WINDOW_MAX_AGE_S)):
-            self.stats, self.events, self.at = live.window_stats(), live.events, now
+        if self.stats is not None and self.events == live.events:
+            return self.stats
+        if fresh or self.stats is None or now - self.at >= max(WINDOW_MAX_AGE_S, self.cost * runs / WINDOW_SHARE):
+            self.stats, self.events = live.window_stats(), live.events
+            self.at, self.cost = now, time.monotonic() - now
         return self.stats
 
 
@@ -359,10 +371,10 @@ class RelayState:
         Whole-run statistics take percentiles over every frame of the run, a cost that grows
         with it; unless ``fresh`` (the HTTP API), they are recomputed at most every
         max(STATS_MAX_AGE_S, 50 x their last cost), so that pushing them to browsers stays
-        within ~2 % of the relay's time however long the run. The window, unless ``fresh``, at most
-        every WINDOW_MAX_AGE_S (:class:`WindowStats`, which ``/metrics`` shares).
+        within ~2 % of the relay's time however long the run. The window, unless ``fresh``, as
+        :class:`WindowStats` allows (which ``/metrics`` shares).
         """
-        return dict(rs.whole.get(rs.live, rs.dropped, fresh), window=rs.window.get(rs.live, fresh), node=rs.node,
+        return dict(rs.whole.get(rs.live, rs.dropped, fresh), window=rs.window.get(rs.live, fresh, len(self.runs)), node=rs.node,
                     run=rs.run, session=rs.session, lost=rs.lost, clock=clock_entry(self.correction(rs), time.time_ns()))
 
     def frames_view(self, rs: RunState, since: int = 0, limit: int = 200, newest: bool = False) -> dict:
