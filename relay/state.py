@@ -34,7 +34,7 @@ STATS_MAX_AGE_S = 0.5
 WINDOW_MAX_AGE_S = 0.5
 """The rolling window's, unless asked fresh (the HTTP API), at most this often: shorter than the UI's
 once-a-second pushes, so each push gets a new one, and a scrape at about the same time shares it."""
-WINDOW_SHARE = 0.05
+WINDOW_SHARE = 0.02
 """Share of the relay's time all runs' rolling windows may take when nobody asks for them fresh."""
 
 FrameObserver = Callable[["RunState", FrameDelays, Series], None]
