@@ -26,7 +26,11 @@ way with +-0.5 ms jitter, or 1 ms node->relay and 3 ms relay->node. Needs root f
 without it they are skipped.
 
 ``--minutes M``: one long run instead (loopback, UDP, 37 ms, +50 ppm), sampled every
-``--every`` seconds (default 5), summarised per minute.
+``--every`` seconds (default 5), summarised per minute. ``--quick``: a smoke test, the network
+paths' case (37 ms, +50 ppm) on loopback for 8 s.
+
+A case whose relay never gave an estimate for its node shows its figures as ``n/a (reason)``
+(benchmarks/figures.py); a relay that does not start is said in one line (exit status 2).
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_clock.py [--seconds 45] [--paths loopback sym-2ms asym-1/3ms]
     PYTHONPATH=. .venv/bin/python benchmarks/bench_clock.py --minutes 10
@@ -49,6 +53,11 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: make the project importable
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks.figures import NA, CannotRun, dumps, fmt, last_line, run  # noqa: E402
+
 OFFSETS_NS = (0, 37_000_000, -2_500_000_000)
 DRIFTS_PPM = (0.0, 50.0, -100.0)
 NETNS_CASE = (37_000_000, 50.0)
@@ -58,6 +67,8 @@ NS_RELAY, NS_BRIDGE, NS_NODE = "dcsclk-r", "dcsclk-b", "dcsclk-n"
 RELAY_IP, NODE_IP = "10.213.7.1", "10.213.7.2"
 WARMUP_S = 4.0
 FPS = 10.0
+FIGURES = ("err_max_us", "err_last_us", "stated_first_us", "stated_last_us", "inside")
+"""A row's figures, from the reads of the relay's estimate."""
 
 
 def _env() -> dict:
@@ -81,6 +92,8 @@ class Run:
     errors_ns: list[int] = field(default_factory=list)
     stated_ns: list[int] = field(default_factory=list)
     via: str = ""
+    unread: str = "the relay was never read"
+    """Why the last read that gave no estimate gave none (the reason of a row without reads)."""
 
     def start(self, db: Path) -> None:
         netns = PATHS[self.path] is not None
@@ -89,11 +102,15 @@ class Run:
                "--port", "0", "--db", str(db), "--clock", "estimate"]
         if self.transport == "websocket":
             cmd += ["--clock-port", "0"]
-        self.relay = subprocess.Popen(cmd, cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+        self._errors = tempfile.TemporaryFile()  # not a pipe: nobody reads it while the relay runs
+        self.relay = subprocess.Popen(cmd, cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=self._errors)
         line = self.relay.stdout.readline().decode()
         m = re.search(r"http://[\d.]+:(\d+)", line)
         if not m:
-            raise RuntimeError(f"relay did not start: {line!r}")
+            self.relay.kill()
+            self.relay.wait(15)
+            self._errors.seek(0)
+            raise CannotRun(f"the relay did not start: {last_line(self._errors.read())}")
         self.url = f"http://{host}:{m.group(1)}"
         self.netns = NS_RELAY if netns else None
         self.start_ns = time.clock_gettime_ns(time.CLOCK_REALTIME)
@@ -115,7 +132,11 @@ class Run:
         nodes = self._get("/api/nodes")
         after = time.time_ns()
         clock = next((n["clock"] for n in nodes if n["node"] == "N"), None)
-        if clock is None or clock.get("applied") != "estimate":
+        if clock is None:
+            self.unread = "the node never reached the relay"
+            return
+        if clock.get("applied") != "estimate":
+            self.unread = f"the relay applied no estimate (applied: {clock.get('applied')})"
             return
         # The relay evaluates its correction at the node's now (its own now + the offset).
         self.errors_ns.append(int(round(clock["correction_ns"] - self.truth((before + after) // 2))))
@@ -131,19 +152,26 @@ class Run:
         return json.loads(out.stdout)
 
     def finish(self) -> None:
-        out, _ = self.node.communicate(timeout=self.seconds + 60)
-        counters = json.loads(out.decode().strip().splitlines()[-1])
+        try:
+            out, _ = self.node.communicate(timeout=self.seconds + 60)
+        except subprocess.TimeoutExpired:
+            self.node.kill()
+            out, _ = self.node.communicate()
+        lines = out.decode().strip().splitlines()
+        counters = json.loads(lines[-1]) if lines and lines[-1].startswith("{") else {}
         self.via = self.via or counters.get("clock_via", "")
         self.relay.terminate()
         self.relay.wait(15)
+        self._errors.close()
 
     def row(self, first: int = 0, last: int | None = None) -> dict:
         err = np.array(self.errors_ns[first:last], dtype=np.int64)
         stated = np.array(self.stated_ns[first:last], dtype=np.int64)
-        row = {"path": self.path, "transport": self.transport, "via": self.via, "offset_ms": self.offset_ns / 1e6,
-               "drift_ppm": self.drift_ppm, "reads": len(err)}
+        row = {"path": self.path, "transport": self.transport, "via": self.via or NA("the node did not say"),
+               "offset_ms": self.offset_ns / 1e6, "drift_ppm": self.drift_ppm, "reads": len(err)}
         if len(err) == 0:
-            return row
+            none = NA(f"no estimate read: {self.unread}")
+            return dict(row, **{key: none for key in FIGURES})
         return dict(row, err_max_us=float(np.abs(err).max()) / 1e3, err_last_us=float(err[-1]) / 1e3,
                     stated_first_us=float(stated[0]) / 1e3, stated_last_us=float(stated[-1]) / 1e3,
                     inside=bool((np.abs(err) <= stated).all()))
@@ -185,8 +213,10 @@ def netns_up(path: str) -> subprocess.Popen:
         subprocess.run([*_netns(ns), *bridge, "--offloads-off", *devs], check=True)
     to_relay, to_node, jitter = PATHS[path]
     proc = subprocess.Popen([*_netns(NS_BRIDGE), *bridge, "br0", "br1", "--a-to-b-ms", str(to_node),
-                             "--b-to-a-ms", str(to_relay), "--jitter-ms", str(jitter)], stdout=subprocess.PIPE)
-    proc.stdout.readline()
+                             "--b-to-a-ms", str(to_relay), "--jitter-ms", str(jitter)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    if not proc.stdout.readline():  # it announces its directions once it forwards
+        raise OSError(f"the delay bridge did not start: {last_line(proc.communicate()[1])}")
     return proc
 
 
@@ -195,42 +225,46 @@ def netns_down() -> None:
         subprocess.run(["ip", "netns", "del", ns], capture_output=True)
 
 
-def groups(paths: list[str]) -> list[tuple[str, list[tuple[int, float]]]]:
-    """(path, [(offset, drift)]) run together: on loopback one group per offset."""
+def groups(paths: list[str], quick: bool = False) -> list[tuple[str, list[tuple[int, float]]]]:
+    """(path, [(offset, drift)]) run together: on loopback one group per offset (``quick``: the
+    network paths' case alone)."""
     out = []
     for path in paths:
         if PATHS[path] is None:
-            out += [(path, [(o, d) for d in DRIFTS_PPM]) for o in OFFSETS_NS]
+            out += [(path, [NETNS_CASE])] if quick else [(path, [(o, d) for d in DRIFTS_PPM]) for o in OFFSETS_NS]
         else:
             out.append((path, [NETNS_CASE]))
     return out
 
 
 def print_table(rows: list[dict]) -> None:
-    head = ("path", "transport", "via", "offset_ms", "drift_ppm", "reads", "err_max_us", "err_last_us",
-            "stated_first_us", "stated_last_us", "inside")
+    head = ("path", "transport", "via", "offset_ms", "drift_ppm", "reads", *FIGURES)
     print(" | ".join(head))
     print(" | ".join("---" for _ in head))
     for r in rows:
-        print(" | ".join(f"{r.get(k, ''):.1f}" if isinstance(r.get(k), float) else str(r.get(k, "")) for k in head),
-              flush=True)
+        print(" | ".join(fmt(r.get(k), ".1f" if isinstance(r.get(k), float) else "") for k in head), flush=True)
 
 
 def bench_grid(args: argparse.Namespace, tmp: Path) -> list[dict]:
     rows = []
-    for path, grid in groups(args.paths):
+    for path, grid in groups(args.paths, args.quick):
         bridge = None
         if PATHS[path] is not None:
             if os.geteuid() != 0:
                 print(f"# {path}: skipped (network namespaces need root)", flush=True)
                 continue
-            bridge = netns_up(path)
+            try:
+                bridge = netns_up(path)
+            except (subprocess.CalledProcessError, OSError) as exc:
+                netns_down()
+                print(f"# {path}: skipped (its network namespaces could not be set up: {exc})", flush=True)
+                continue
         try:
             runs = [Run(t, offset, drift, path, args.seconds) for offset, drift in grid for t in ("websocket", "udp")]
             run_together(runs, args.every or 1.0, tmp)
             for r in runs:
                 rows.append(r.row())
-                print(json.dumps(rows[-1]), flush=True)
+                print(dumps(rows[-1]), flush=True)
         finally:
             if bridge is not None:
                 bridge.terminate()
@@ -255,7 +289,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--paths", nargs="+", choices=list(PATHS), default=list(PATHS))
     p.add_argument("--minutes", type=float, help="one long run (loopback, UDP, 37 ms, +50 ppm) instead of the grid")
     p.add_argument("--json", type=Path, help="also write the rows here")
+    p.add_argument("--quick", action="store_true", help="a smoke test: 37 ms, +50 ppm on loopback, 8 s")
     args = p.parse_args(argv)
+    if args.quick:
+        args.seconds, args.paths, args.minutes = 8.0, ["loopback"], None
+    if args.seconds <= WARMUP_S or (args.every is not None and args.every <= 0):
+        p.error(f"--seconds must be over the {WARMUP_S:g} s warm-up, --every positive")
     print(f"# bench_clock on {os.uname().nodename}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}",
           flush=True)
     with tempfile.TemporaryDirectory() as tmp:
@@ -263,9 +302,9 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print_table(rows)
     if args.json:
-        args.json.write_text(json.dumps(rows, indent=1))
-    return 0 if all(r.get("inside") for r in rows) else 1
+        args.json.write_text(dumps(rows, indent=1))
+    return 0 if rows and all(r.get("inside") for r in rows) else 1
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run(main))

@@ -8,13 +8,16 @@ machine is shared and noisy.
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_elements.py          # 5 repetitions x 200 buffers, ~2 min
     PYTHONPATH=. .venv/bin/python benchmarks/bench_elements.py --short  # 3 x 40, ~20 s
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_elements.py --quick  # 1 x 6: a smoke test
+
+A case that fails (an element missing, an error on the bus) is ``n/a (its error)`` in every
+figure that needs it (benchmarks/figures.py); the other cases are still measured.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
-import statistics
 import sys
 import textwrap
 import time
@@ -25,7 +28,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
-from core.gst import Gst  # noqa: E402
+from benchmarks.figures import NA, Figure, fmt, maximum, median, minimum, one_line, ratio  # noqa: E402
+from core.gst import GLib, Gst  # noqa: E402
 from plugins import convert, frames, tiler  # noqa: E402
 
 IN_W, IN_H = 1920, 1080
@@ -66,9 +70,13 @@ def stamped(mems: list[Gst.Memory], i: int, ids=None) -> Gst.Buffer:
     return buf
 
 
-def measure(description: str, feeds: dict[str, tuple[str, list[Gst.Buffer]]]) -> float:
-    """Frames/s of ``description`` (sink named ``sink``); ``feeds``: appsrc name -> (caps, buffers)."""
-    pipeline = Gst.parse_launch(description)
+def measure(description: str, feeds: dict[str, tuple[str, list[Gst.Buffer]]]) -> Figure:
+    """Frames/s of ``description`` (sink named ``sink``); ``feeds``: appsrc name -> (caps, buffers).
+    NA with the error when the pipeline cannot be made or fails."""
+    try:
+        pipeline = Gst.parse_launch(description)
+    except GLib.Error as exc:
+        return NA(f"cannot make the pipeline: {exc.message}")
     arrivals: list[int] = []
     end: list[int] = []
 
@@ -102,9 +110,13 @@ def measure(description: str, feeds: dict[str, tuple[str, list[Gst.Buffer]]]) ->
     pipeline.set_state(Gst.State.PLAYING)
     msg = pipeline.get_bus().timed_pop_filtered(120 * Gst.SECOND, Gst.MessageType.EOS | Gst.MessageType.ERROR)
     pipeline.set_state(Gst.State.NULL)
-    if msg is None or msg.type == Gst.MessageType.ERROR:
-        raise RuntimeError(f"{description}: {msg.parse_error() if msg else 'timed out'}")
-    return (count - 2) / ((end[0] - arrivals[1]) / 1e9)
+    if msg is None:
+        return NA("no end of stream within 120 s")
+    if msg.type == Gst.MessageType.ERROR:
+        return NA(f"error from {msg.src.get_name()}: {one_line(msg.parse_error()[0].message)}")
+    if not end or len(arrivals) < 2:
+        return NA(f"the sink saw {len(arrivals)} buffers and {'an' if end else 'no'} end of stream")
+    return ratio(count - 2, (end[0] - arrivals[1]) / 1e9, "the buffers reached the sink all at once")
 
 
 def rgb_caps(w: int = IN_W, h: int = IN_H) -> str:
@@ -145,33 +157,37 @@ def main() -> None:
     parser.add_argument("--short", action="store_true", help="3 repetitions x 40 buffers")
     parser.add_argument("--reps", type=int, help="repetitions of every case (default 5)")
     parser.add_argument("--buffers", type=int, help="buffers per run (default 200)")
+    parser.add_argument("--quick", action="store_true", help="1 repetition x 6 buffers: a smoke test")
     args = parser.parse_args()
-    reps = args.reps or (3 if args.short else 5)
-    n = max(args.buffers or (40 if args.short else 200), 3)
+    reps = args.reps or (1 if args.quick else 3 if args.short else 5)
+    n = max(args.buffers or (6 if args.quick else 40 if args.short else 200), 3)
+    if reps < 1:
+        parser.error("--reps must be at least 1")
 
     register()
     sources = [render_frames(DISTINCT, seed) for seed in range(SOURCES)]
     cases = {**tiler_cases(sources, n), **convert_cases(sources[0], n, "RGBA"), **convert_cases(sources[0], n, "I420")}
-    fps: dict[str, list[float]] = {name: [] for name in cases}
+    fps: dict[str, list[Figure]] = {name: [] for name in cases}
     print(f"{os.cpu_count()} CPUs, OpenCV {cv2.__version__} with {cv2.getNumThreads()} threads, "
           f"{Gst.version_string()}; {reps} repetitions x {n} buffers, interleaved", flush=True)
     for rep in range(reps):
         for name, (description, feeds) in cases.items():
             fps[name].append(measure(description, feeds))
         print(f"  repetition {rep + 1}/{reps} done", flush=True)
-    med = {name: statistics.median(v) for name, v in fps.items()}
+    med = {name: median(v) for name, v in fps.items()}
 
     print("\nmedian frames/s (min..max over repetitions)")
     for name, values in fps.items():
-        print(f"  {name:30s} {med[name]:8.1f}  ({min(values):.1f}..{max(values):.1f})")
+        spread = f"  ({minimum(values):.1f}..{maximum(values):.1f})" if not isinstance(med[name], NA) else ""
+        print(f"  {name:30s} {fmt(med[name], '8.1f')}{spread}")
     print("\nratios, ours / GStreamer's C element (> 1: ours is faster)")
-    print(f"  {'tiler / compositor':48s} {med['tiler'] / med['compositor']:5.2f}"
+    print(f"  {'tiler / compositor':48s} {fmt(ratio(med['tiler'], med['compositor']), '5.2f')}"
           "  4 x 1920x1080 RGB -> 2x2 grid of 640x360 tiles, 1280x720 RGB, black background")
-    for fmt in ("RGBA", "I420"):
-        for label, ref in (("default n-threads=1", f"videoconvert {fmt}"),
-                           ("n-threads=0: one per CPU", f"videoconvert n-threads=0 {fmt}")):
-            print(f"  {f'convert / videoconvert {label}':48s} {med[f'convert {fmt}'] / med[ref]:5.2f}"
-                  f"  1920x1080 RGB -> {fmt}")
+    for fourcc in ("RGBA", "I420"):
+        for label, ref in (("default n-threads=1", f"videoconvert {fourcc}"),
+                           ("n-threads=0: one per CPU", f"videoconvert n-threads=0 {fourcc}")):
+            print(f"  {f'convert / videoconvert {label}':48s} {fmt(ratio(med[f'convert {fourcc}'], med[ref]), '5.2f')}"
+                  f"  1920x1080 RGB -> {fourcc}")
     print()
     print(textwrap.fill(
         "What runs: ours are Python BaseTransforms calling OpenCV (C++, SIMD, multi-threaded), about "

@@ -18,7 +18,9 @@ on this shared, noisy machine, and the summary compares medians: ingest lost to 
 = 1 - rate_b / rate_a (goal <= 5 %; also per CPU-second of the relay), lag b vs a, relay CPU,
 Prometheus' scrape duration and CPU, /metrics size (bytes, series), OTLP spans/s exported and
 frames dropped. Prints one JSON line per node count, then two Markdown tables (b vs a, and
-every arm against a).
+every arm against a). A figure a run could not produce is ``n/a (reason)`` in the JSON, and
+``n/a [k]`` in a table with its reason under it (benchmarks/figures.py). Without Prometheus,
+or when a relay or Prometheus does not start, it says so in one line and exits with status 2.
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_exporters.py [--nodes 2 8] [--arms ab]
         [--events 12000000] [--seconds 12] [--repeat 2] [--over-limit 0.05] [--quick]
@@ -33,7 +35,6 @@ import math
 import os
 import socket
 import shutil
-import statistics
 import subprocess
 import sys
 import tempfile
@@ -50,10 +51,15 @@ from opentelemetry.proto.collector.trace.v1.trace_service_pb2 import (
 )
 from prometheus_client.parser import text_string_to_metric_families
 
-from benchmarks.bench_relay import (
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: make the project importable
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks.bench_relay import (  # noqa: E402
     EVENTS_PER_FRAME, SOURCES, Relay, _proc_cpu, measure_lag, measure_throughput,
 )
-from probes.simnode import synth_events
+from benchmarks.figures import NA, CannotRun, Notes, dumps, known, last_line, median, ratio, run  # noqa: E402
+from probes.simnode import synth_events  # noqa: E402
 
 PROMETHEUS = "/usr/bin/prometheus"
 ARMS = {"a": (False, False), "b": (True, True), "m": (True, False), "o": (False, True)}
@@ -143,7 +149,8 @@ class Prometheus:
         deadline = time.monotonic() + timeout_s
         while not self.scraping and time.monotonic() < deadline:
             if self.proc.poll() is not None:
-                raise RuntimeError(f"prometheus exited: {self.log.read_text()[-1000:]}")
+                raise CannotRun(f"prometheus exited (status {self.proc.returncode}): "
+                                f"{last_line(self.log.read_text(errors='replace'))}")
             try:
                 self.scraping = bool(self.query(f'up{{job="{SCRAPE_JOB}"}}'))
             except OSError:
@@ -151,7 +158,7 @@ class Prometheus:
             time.sleep(0.0 if self.scraping else 0.1)
         if self.scraping:
             return
-        raise RuntimeError("prometheus did not scrape the relay within a minute")
+        raise CannotRun(f"prometheus did not scrape the relay within {timeout_s:g} s")
 
     def query(self, promql: str, at: float | None = None) -> list[dict]:
         params = {"query": promql} | ({"time": f"{at:.3f}"} if at else {})
@@ -168,11 +175,11 @@ class Prometheus:
         job = f'{{job="{SCRAPE_JOB}"}}'
         total = self.value(f"count_over_time(up{job}{span})", until) or 0
         ok = self.value(f"sum_over_time(up{job}{span})", until) or 0
-        mean = self.value(f"avg_over_time(scrape_duration_seconds{job}{span})", until)
-        worst = self.value(f"max_over_time(scrape_duration_seconds{job}{span})", until)
+        none = f"Prometheus recorded no scrape of the relay in the {span} window"
+        mean = known(self.value(f"avg_over_time(scrape_duration_seconds{job}{span})", until), none)
+        worst = known(self.value(f"max_over_time(scrape_duration_seconds{job}{span})", until), none)
         return {"scrapes": int(total), "scrapes_ok": int(ok),
-                "scrape_ms_mean": round(1000 * mean, 1) if mean is not None else None,
-                "scrape_ms_max": round(1000 * worst, 1) if worst is not None else None}
+                "scrape_ms_mean": round(1000 * mean, 1), "scrape_ms_max": round(1000 * worst, 1)}
 
     def cpu_s(self) -> float:
         return _proc_cpu(self.proc.pid)
@@ -258,8 +265,8 @@ class Rig:
                 "metrics_bytes": m1["bytes"], "metrics_series": m1["series"], "series_dcu1": m1["series_dcu1"],
                 "metrics_get_ms": m1["get_ms"], "frames_complete_per_s": rate("frames_complete"),
                 "otlp_frames_per_s": round(rate("otlp_sampled") + rate("otlp_over_limit"), 1),
-                "over_limit_share": round((m1["otlp_over_limit"] - m0["otlp_over_limit"]) / complete, 4)
-                if complete else None,
+                "over_limit_share": round(ratio(m1["otlp_over_limit"] - m0["otlp_over_limit"], complete,
+                                                "no frame completed in the window"), 4),
                 "spans_exported_per_s": rate("spans_exported"),
                 "sink_spans_per_s": round((end["sink"]["spans"] - start["sink"]["spans"]) / wall, 1),
                 "sink_traces_per_s": round((end["sink"]["traces"] - start["sink"]["traces"]) / wall, 1),
@@ -290,8 +297,8 @@ def run_throughput(arm: str, n: int, args: argparse.Namespace, folder: Path) -> 
         sink = rig.sink_final
         result["exporters"]["final"] = {key: final[key] for key in FINAL_KEYS} | {
             "sink_spans": sink["spans"], "sink_traces": sink["traces"],
-            "spans_per_trace": round(sink["spans"] / sink["traces"], 2) if sink["traces"] else None,
-            "bytes_per_span": round(sink["bytes"] / sink["spans"], 1) if sink["spans"] else None}
+            "spans_per_trace": round(ratio(sink["spans"], sink["traces"], "the OTLP sink received no trace"), 2),
+            "bytes_per_span": round(ratio(sink["bytes"], sink["spans"], "the OTLP sink received no span"), 1)}
     return result
 
 
@@ -308,49 +315,54 @@ def run_lag(arm: str, n: int, args: argparse.Namespace, folder: Path) -> dict:
         rig.stop()
 
 
-def _median(values: list) -> float | None:
-    values = [v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))]
-    return statistics.median(values) if values else None
-
-
-def _per_cpu(throughput: dict) -> float | None:
+def _per_cpu(throughput: dict) -> float | NA:
     """Events stored per CPU-second of the relay in the 10-90 % window: less moved by other work
     on the machine than events/s, which fall when the relay gets less CPU."""
-    cpu = throughput["relay_cpu_pct_in_window"]
-    return round(throughput["events_per_s"] / (cpu / 100)) if throughput["events_per_s"] and cpu else None
+    cpu_s = throughput["relay_cpu_pct_in_window"] / 100
+    return round(ratio(throughput["events_per_s"], cpu_s, "the relay used no CPU in the window"))
 
 
 def per_arm(runs: list[dict], arm: str) -> dict:
     """Medians of one arm's runs, and per repetition its ingest rate (to pair with arm a's)."""
     mine = [r for r in runs if r["arm"] == arm]
-    return {"ingest": _median([r["throughput"]["events_per_s"] for r in mine]),
-            "ingest_per_cpu_s": _median([_per_cpu(r["throughput"]) for r in mine]),
-            **{key: _median([r["lag"][key] for r in mine]) for key in ("lag_p50_ms", "lag_p99_ms", "relay_cpu_pct")},
+    none = f"no run of arm {arm}"
+    return {"ingest": median([r["throughput"]["events_per_s"] for r in mine], none),
+            "ingest_per_cpu_s": median([_per_cpu(r["throughput"]) for r in mine], none),
+            **{key: median([r["lag"][key] for r in mine], none)
+               for key in ("lag_p50_ms", "lag_p99_ms", "relay_cpu_pct")},
             "by_rep": {r["rep"]: r["throughput"]["events_per_s"] for r in mine}}
 
 
-def _lost(part: float | None, whole: float | None) -> float | None:
-    return round(1 - part / whole, 3) if part and whole else None
+def _lost(part: float | NA, whole: float | NA) -> float | NA:
+    """The share of ``whole`` that ``part`` lacks: 1 - part / whole."""
+    return round(1 - ratio(part, whole, "arm a stored no event"), 3)
 
 
 def summarise(runs: list[dict]) -> dict:
     """Medians per arm and the ratios of each arm to arm a over the interleaved ``runs``."""
-    def med(phase: str, key: str) -> float | None:
-        return _median([r[phase]["exporters"].get(key) for r in runs if r["arm"] == "b"])
+    def med(phase: str, key: str) -> float | NA:
+        return median([r[phase].get("exporters", {}).get(key) for r in runs if r["arm"] == "b"],
+                      f"no {key} measured in arm b")
 
     arms = {arm: per_arm(runs, arm) for arm in dict.fromkeys(r["arm"] for r in runs)}
+    a_by_rep = per_arm(runs, "a")["by_rep"]
     for arm, figures in arms.items():
         by_rep = figures.pop("by_rep")
-        if arm != "a" and "a" in arms:
-            figures["ingest_lost"] = _lost(figures["ingest"], arms["a"]["ingest"])
-            figures["ingest_per_cpu_lost"] = _lost(figures["ingest_per_cpu_s"], arms["a"]["ingest_per_cpu_s"])
-            figures["ingest_lost_per_pair"] = [_lost(rate, per_arm(runs, "a")["by_rep"].get(rep))
+        if arm != "a":
+            figures["ingest_lost"] = _lost(figures["ingest"], per_arm(runs, "a")["ingest"])
+            figures["ingest_per_cpu_lost"] = _lost(figures["ingest_per_cpu_s"], per_arm(runs, "a")["ingest_per_cpu_s"])
+            figures["ingest_lost_per_pair"] = [_lost(rate, a_by_rep.get(rep, NA(f"no run of arm a in round {rep + 1}")))
                                                for rep, rate in by_rep.items()]
     a, b = arms.get("a", {}), arms.get("b", {})
+
+    def get(figures: dict, key: str, arm: str) -> float | NA:
+        return figures.get(key, NA(f"no run of arm {arm}"))
+
     return {
-        "ingest_a": a.get("ingest"), "ingest_b": b.get("ingest"), "ingest_lost": b.get("ingest_lost"),
-        "ingest_lost_per_pair": b.get("ingest_lost_per_pair", []), "ingest_per_cpu_lost": b.get("ingest_per_cpu_lost"),
-        **{f"{key}_{arm}": figures.get(key) for key in ("lag_p50_ms", "lag_p99_ms", "relay_cpu_pct")
+        "ingest_a": get(a, "ingest", "a"), "ingest_b": get(b, "ingest", "b"), "ingest_lost": get(b, "ingest_lost", "b"),
+        "ingest_lost_per_pair": b.get("ingest_lost_per_pair", []),
+        "ingest_per_cpu_lost": get(b, "ingest_per_cpu_lost", "b"),
+        **{f"{key}_{arm}": get(figures, key, arm) for key in ("lag_p50_ms", "lag_p99_ms", "relay_cpu_pct")
            for arm, figures in (("a", a), ("b", b))},
         **{key: med("lag", key) for key in (
             "scrape_ms_mean", "scrape_ms_max", "prometheus_cpu_pct", "metrics_bytes", "metrics_series",
@@ -362,12 +374,16 @@ def summarise(runs: list[dict]) -> dict:
     }
 
 
-def _fmt(v, unit: str = "") -> str:
-    if v is None:
-        return "–"
+def _fmt(notes: Notes, v, unit: str = "") -> str:
+    """``v`` shortened (12 k, 1.20 M) with ``unit``, or ``n/a [k]`` with its reason in ``notes``."""
     if isinstance(v, float) and abs(v) >= 1000 or isinstance(v, int) and abs(v) >= 10000:
         return f"{v / 1000:,.0f} k{unit}" if abs(v) < 1e6 else f"{v / 1e6:.2f} M{unit}"
-    return f"{v:g}{unit}"
+    return notes.cell(v, "g", unit)
+
+
+def _with_notes(rows: list[str], notes: Notes) -> str:
+    """The table, then (after a blank line, which ends a Markdown table) the reasons of its n/a cells."""
+    return "\n".join(rows + ([""] + notes.lines() if notes else []))
 
 
 def table(lines: list[dict]) -> str:
@@ -375,21 +391,25 @@ def table(lines: list[dict]) -> str:
             "| relay CPU, lag phase a / b | scrape mean / max | Prometheus CPU | /metrics bytes / series "
             "| OTLP spans/s (sink) | frames over limit | OTLP frames dropped (lag / throughput) |")
     rows = [head, "|" + "---|" * (head.count("|") - 1)]
+    notes = Notes()
     for line in lines:
         s = line["summary"]
-        lost = f"{100 * s['ingest_lost']:.1f} %" if s["ingest_lost"] is not None else "–"
-        per_pair = ", ".join(f"{100 * x:.1f}" for x in s["ingest_lost_per_pair"])
-        share = f"{100 * s['over_limit_share']:.1f} %" if s["over_limit_share"] is not None else "–"
+
+        def f(key: str, unit: str = "") -> str:
+            return _fmt(notes, s[key], unit)
+
+        lost = notes.cell(100 * known(s["ingest_lost"], "not measured"), ".1f", " %")
+        per_pair = ", ".join(notes.cell(100 * known(x, "not measured"), ".1f") for x in s["ingest_lost_per_pair"])
+        share = notes.cell(100 * known(s["over_limit_share"], "not measured"), ".1f", " %")
         rows.append(
-            f"| {line['nodes']} | {_fmt(s['ingest_a'])} / {_fmt(s['ingest_b'])} | {lost} ({per_pair}) "
-            f"| {_fmt(s['lag_p50_ms_a'])} / {_fmt(s['lag_p50_ms_b'])} ms "
-            f"| {_fmt(s['lag_p99_ms_a'])} / {_fmt(s['lag_p99_ms_b'])} ms "
-            f"| {_fmt(s['relay_cpu_pct_a'])} / {_fmt(s['relay_cpu_pct_b'])} % "
-            f"| {_fmt(s['scrape_ms_mean'])} / {_fmt(s['scrape_ms_max'])} ms | {_fmt(s['prometheus_cpu_pct'])} % "
-            f"| {_fmt(s['metrics_bytes'])} / {_fmt(s['metrics_series'])} "
-            f"| {_fmt(s['spans_exported_per_s'])} ({_fmt(s['sink_spans_per_s'])}) | {share} "
-            f"| {_fmt(s['otlp_frames_dropped'])} / {_fmt(s['tp_otlp_frames_dropped'])} |")
-    return "\n".join(rows)
+            f"| {line['nodes']} | {f('ingest_a')} / {f('ingest_b')} | {lost} ({per_pair}) "
+            f"| {f('lag_p50_ms_a')} / {f('lag_p50_ms_b')} ms | {f('lag_p99_ms_a')} / {f('lag_p99_ms_b')} ms "
+            f"| {f('relay_cpu_pct_a')} / {f('relay_cpu_pct_b')} % "
+            f"| {f('scrape_ms_mean')} / {f('scrape_ms_max')} ms | {f('prometheus_cpu_pct')} % "
+            f"| {f('metrics_bytes')} / {f('metrics_series')} "
+            f"| {f('spans_exported_per_s')} ({f('sink_spans_per_s')}) | {share} "
+            f"| {f('otlp_frames_dropped')} / {f('tp_otlp_frames_dropped')} |")
+    return _with_notes(rows, notes)
 
 
 def arms_table(lines: list[dict]) -> str:
@@ -397,16 +417,18 @@ def arms_table(lines: list[dict]) -> str:
     rows = ["| nodes | arm | ingest, events/s (lost vs a) | per relay CPU-s (lost vs a) | lag p50 / p99 "
             "| relay CPU, lag phase |",
             "|---|---|---|---|---|---|"]
+    notes = Notes()
 
-    def lost(x: float | None) -> str:
-        return f" ({100 * x:.1f} %)" if x is not None else ""
+    def lost(f: dict, key: str) -> str:  # arm a has no loss against itself
+        return f" ({notes.cell(100 * known(f[key], 'not measured'), '.1f', ' %')})" if key in f else ""
 
     for line in lines:
         for arm, f in line["summary"]["arms"].items():
-            rows.append(f"| {line['nodes']} | {arm} | {_fmt(f['ingest'])}{lost(f.get('ingest_lost'))} "
-                        f"| {_fmt(f['ingest_per_cpu_s'])}{lost(f.get('ingest_per_cpu_lost'))} "
-                        f"| {_fmt(f['lag_p50_ms'])} / {_fmt(f['lag_p99_ms'])} ms | {_fmt(f['relay_cpu_pct'])} % |")
-    return "\n".join(rows)
+            rows.append(f"| {line['nodes']} | {arm} | {_fmt(notes, f['ingest'])}{lost(f, 'ingest_lost')} "
+                        f"| {_fmt(notes, f['ingest_per_cpu_s'])}{lost(f, 'ingest_per_cpu_lost')} "
+                        f"| {_fmt(notes, f['lag_p50_ms'])} / {_fmt(notes, f['lag_p99_ms'])} ms "
+                        f"| {_fmt(notes, f['relay_cpu_pct'])} % |")
+    return _with_notes(rows, notes)
 
 
 def bench(n: int, args: argparse.Namespace, tmp: Path) -> dict:
@@ -447,18 +469,18 @@ def main(argv: list[str] | None = None) -> int:
         p.error(f"--arms {args.arms!r}: give a and any of {''.join(ARMS)[1:]}, each once")
     if not 0 < args.over_limit < 1:
         p.error(f"--over-limit must be between 0 and 1, not {args.over_limit}")
-    if not Path(PROMETHEUS).exists():
-        p.error(f"{PROMETHEUS} is missing: install Debian's prometheus (scripts/setup.sh does)")
+    if not Path(PROMETHEUS).exists() and set(args.arms) & {"b", "m"}:
+        raise CannotRun(f"{PROMETHEUS} is missing: install Debian's prometheus (scripts/setup.sh does)")
     args.frame_limit_ms = frame_limit_ms(args.over_limit)
     lines = []
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.nodes:
             lines.append(bench(n, args, Path(tmp)))
-            print(json.dumps(lines[-1]), flush=True)
-    print(table(lines), flush=True)
+            print(dumps(lines[-1]), flush=True)
+    print(table(lines) + "\n", flush=True)
     print(arms_table(lines), flush=True)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run(main))

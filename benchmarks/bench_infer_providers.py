@@ -9,17 +9,17 @@ corners within --tolerance px).
 
     .venv/bin/python benchmarks/bench_infer_providers.py \\
         [--providers CPUExecutionProvider CUDAExecutionProvider,CPUExecutionProvider] \\
-        [--model centernet|ssd] [--frames 64] [--batches 1 4] [--repeat 5]
+        [--model centernet|ssd] [--frames 64] [--batches 1 4] [--repeat 5] [--quick]
 
 A provider list this onnxruntime lacks is reported and left out (GPU providers need the
-onnxruntime-gpu package and a GPU). Needs no GStreamer.
+onnxruntime-gpu package and a GPU); when none is left it says so in one line and exits with
+status 2. A figure it cannot produce is ``"n/a (reason)"`` in its JSON (benchmarks/figures.py).
+Needs no GStreamer.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import statistics
 import sys
 import time
 from dataclasses import dataclass
@@ -30,7 +30,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from plugins.models import DEFAULT_MODEL, Detector, inspect_model, open_session, select_providers  # noqa: E402
+from benchmarks.figures import NA, CannotRun, dumps, median, ratio, run  # noqa: E402
+from plugins.models import (  # noqa: E402
+    DEFAULT_MODEL, Detector, ModelError, inspect_model, open_session, select_providers,
+)
 
 MODELS = {"centernet": DEFAULT_MODEL, "ssd": DEFAULT_MODEL.parent / "ssdlite_mobilenetv2_person.onnx"}
 CLIP = Path(__file__).resolve().parents[1] / "assets" / "media" / "vtest.avi"
@@ -49,7 +52,7 @@ def read_frames(n: int, start: int = 250) -> list[np.ndarray]:
         frames.append(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB))
     cap.release()
     if len(frames) < n:
-        raise SystemExit(f"{CLIP} gave {len(frames)} frames, {n} asked for")
+        raise CannotRun(f"{CLIP} gave {len(frames)} frames, {n} asked for")
     return frames
 
 
@@ -62,7 +65,7 @@ class Variant:
     used: list[str]
 
 
-def run_all(v: Variant, frames: list[np.ndarray], batch: int) -> tuple[float, float, list]:
+def run_all(v: Variant, frames: list[np.ndarray], batch: int) -> tuple[float | NA, float | NA, list]:
     """(ms per batch in all, ms per batch in the model, detections per frame) over ``frames``."""
     found = []
     v.timed.ms = 0.0
@@ -70,7 +73,8 @@ def run_all(v: Variant, frames: list[np.ndarray], batch: int) -> tuple[float, fl
     for i in range(0, len(frames) - batch + 1, batch):
         found += v.detector.detect(frames[i:i + batch], THRESHOLD, IOU)
     n = len(frames) // batch
-    return 1000 * (time.perf_counter() - t) / n, v.timed.ms / n, found
+    none = f"a batch of {batch} is more than the {len(frames)} frames"
+    return ratio(1000 * (time.perf_counter() - t), n, none), ratio(v.timed.ms, n, none), found
 
 
 def agreement(ref: list, other: list, tol: float) -> dict:
@@ -109,7 +113,7 @@ class TimedSession:
             self.ms += 1000 * (time.perf_counter() - t)
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--providers", nargs="+", default=["CPUExecutionProvider", "CUDAExecutionProvider,CPUExecutionProvider"],
                    help="provider lists to compare, each comma-separated in order of preference; the first is the reference")
@@ -118,25 +122,37 @@ def main() -> int:
     p.add_argument("--batches", type=int, nargs="+", default=[1, 4])
     p.add_argument("--repeat", type=int, default=5)
     p.add_argument("--tolerance", type=float, default=1.0, help="px a box may differ from the reference's")
-    args = p.parse_args()
+    p.add_argument("--quick", action="store_true", help="a smoke test: model ssd, 4 frames, batches 1 and 2, once")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.model, args.frames, args.batches, args.repeat = "ssd", 4, [1, 2], 1
+    if args.frames < 1 or args.repeat < 1 or min(args.batches) < 1:
+        p.error("--frames, --repeat and --batches must be at least 1")
 
     import onnxruntime as ort
 
-    print(json.dumps({"onnxruntime": ort.__version__, "available": ort.get_available_providers(),
-                      "model": args.model}), flush=True)
+    print(dumps({"onnxruntime": ort.__version__, "available": ort.get_available_providers(),
+                 "model": args.model}), flush=True)
     frames = read_frames(args.frames)
     variants: dict[str, Variant] = {}
+    skipped = []
     for req in args.providers:
         use, missing = select_providers(req)
         if missing:
-            print(json.dumps({"providers": req, "skipped": f"not in this onnxruntime: {', '.join(missing)}"}), flush=True)
+            why = f"not in this onnxruntime: {', '.join(missing)}"
+            skipped.append(f"{req} ({why})")
+            print(dumps({"providers": req, "skipped": why}), flush=True)
             continue
-        session = open_session(MODELS[args.model], use)
+        try:
+            session = open_session(MODELS[args.model], use)
+        except ModelError as exc:
+            raise CannotRun(str(exc)) from exc
         timed = TimedSession(session)
         variants[req] = Variant(Detector(timed, inspect_model(session, "auto", MODELS[args.model])), timed,
                                 session.get_providers())
     if not variants:
-        return 1
+        raise CannotRun(f"no provider list can run here: {'; '.join(skipped)} "
+                        f"(available: {', '.join(ort.get_available_providers())})")
     ref = next(iter(variants))
     for batch in args.batches:
         times = {req: [] for req in variants}
@@ -150,12 +166,13 @@ def main() -> int:
                 times[req].append(ms)
                 model[req].append(model_ms)
         for req, v in variants.items():
-            ms = statistics.median(times[req])
-            ref_ms = statistics.median(times[ref])
-            print(json.dumps({
+            ms = median(times[req])
+            ref_ms = median(times[ref])
+            print(dumps({
                 "providers": req, "used": v.used, "batch": batch, "ms_per_batch": round(ms, 2),
-                "model_ms_per_batch": round(statistics.median(model[req]), 2),
-                "frames_per_s": round(1000 * batch / ms, 1), "speedup_vs_" + ref.split(",")[0]: round(ref_ms / ms, 2),
+                "model_ms_per_batch": round(median(model[req]), 2),
+                "frames_per_s": round(ratio(1000 * batch, ms, "the batches took no time"), 1),
+                "speedup_vs_" + ref.split(",")[0]: round(ratio(ref_ms, ms, "the batches took no time"), 2),
                 "objects": sum(len(o.boxes) for o in found[req]),
                 "agreement": agreement(found[ref], found[req], args.tolerance),
             }), flush=True)
@@ -163,4 +180,4 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run(main))

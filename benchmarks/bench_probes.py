@@ -26,7 +26,11 @@ Scenarios: ``identity20`` (videotestsrc -> framestamp -> 20 x identity -> fakesi
 frames: nearly free stages, so the probes' own cost shows) and ``video`` (640x480 frames
 through real conversion and scaling stages: a pipeline that does some work per frame).
 
-    PYTHONPATH=. .venv/bin/python benchmarks/bench_probes.py [--frames N] [--reps 5]
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_probes.py [--frames N] [--reps 5] [--quick]
+
+A figure it cannot produce (no hook call or tracepoint counted, a cost of zero to divide by)
+is ``n/a (reason)`` (benchmarks/figures.py). Without the native probes, or when a run fails,
+it says why in one line and exits with status 2.
 """
 
 from __future__ import annotations
@@ -34,16 +38,20 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import statistics
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-from core.gst import Gst
-from probes import native
-from probes.events import EXIT
-from probes.tracer import attach
+REPO = Path(__file__).resolve().parents[1]
+if str(REPO) not in sys.path:  # run as a script: make the project importable
+    sys.path.insert(0, str(REPO))
+
+from benchmarks.figures import NA, CannotRun, Notes, fmt, last_line, maximum, median, minimum, ratio, run  # noqa: E402
+from core.gst import Gst  # noqa: E402
+from probes import native  # noqa: E402
+from probes.events import EXIT  # noqa: E402
+from probes.tracer import attach  # noqa: E402
 
 SCENARIOS = {
     "identity20": "videotestsrc num-buffers={frames} ! video/x-raw,width=16,height=16,format=RGB ! framestamp ! "
@@ -56,7 +64,6 @@ SCENARIOS = {
 FRAMES = {"identity20": 10000, "video": 2000}
 """Default frames per run: enough for a run of the near-free chain to last about half a second."""
 MODES = ("none", "tracing", "hooks", "native", "python")
-REPO = Path(__file__).resolve().parents[1]
 
 
 def register_framestamp() -> None:
@@ -117,46 +124,59 @@ def spawn(scenario: str, mode: str, frames: int) -> dict:
     res = subprocess.run([sys.executable, __file__, "--child", scenario, mode, str(frames)],
                          capture_output=True, text=True, env=env, cwd=REPO)
     if res.returncode != 0:
-        raise SystemExit(f"{scenario}/{mode}: {res.stderr.strip() or res.stdout.strip()}")
+        raise CannotRun(f"a {scenario}/{mode} run failed: {last_line(res.stderr or res.stdout)}")
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
-def per_unit(samples: dict, mode: str, base: str, units: float, key: str) -> list[float]:
+def per_unit(samples: dict, mode: str, base: str, units: float, key: str, what: str = "units") -> list:
     """µs per unit of (mode - base), paired by repetition: slow drifts of the machine's load
-    cancel out; the spread shows what is left of the noise."""
-    return [(s[key] - b[key]) / units * 1e6 for s, b in zip(samples[mode], samples[base])]
+    cancel out; the spread shows what is left of the noise. NA when no unit was counted."""
+    return [ratio(s[key] - b[key], units, f"no {what} counted") * 1e6 for s, b in zip(samples[mode], samples[base])]
 
 
 def report(name: str, frames: int, samples: dict) -> None:
-    med = {m: statistics.median(s["wall"] for s in runs) for m, runs in samples.items()}
+    med = {m: median(s["wall"] for s in runs) for m, runs in samples.items()}
     points = samples["native"][0]["points"]
-    hooks = statistics.median(s["hooks"] for s in samples["hooks"])
+    hooks = median(s["hooks"] for s in samples["hooks"])
     reps = len(samples["none"])
-    print(f"\n== {name}: {frames} frames, {points} tracepoints and {hooks / frames:.0f} push-post hook calls per "
-          f"frame, {reps} interleaved repetitions (a fresh process each), medians")
-    print(f"no-probe time per frame: {med['none'] / frames * 1e6:.1f} µs")
+    no_time = "the run took no time"
+    print(f"\n== {name}: {frames} frames, {points} tracepoints and {fmt(ratio(hooks, frames), '.0f')} push-post hook "
+          f"calls per frame, {reps} interleaved repetitions (a fresh process each), medians")
+    print(f"no-probe time per frame: {fmt(med['none'] / frames * 1e6, '.1f')} µs")
     print(f"{'mode':7} {'fps':>8} {'x none':>7} {'lost %':>7} {'cost per unit, wall [min..max]':>34} {'CPU':>8}")
-    print(f"{'none':7} {frames / med['none']:8.0f} {1:7.3f}")
-    units = {"tracing": ("ns/hook", hooks, 1000), "hooks": ("ns/hook", hooks, 1000), "native": ("µs/tracepoint", frames * points, 1),
-             "python": ("µs/tracepoint", frames * points, 1)}
-    for m, (label, n, scale) in units.items():
-        wall = [v * scale for v in per_unit(samples, m, "none", n, "wall")]
-        cpu = statistics.median(per_unit(samples, m, "none", n, "cpu")) * scale
-        spread = f"{label} {statistics.median(wall):.2f} [{min(wall):.2f}..{max(wall):.2f}]"
-        print(f"{m:7} {frames / med[m]:8.0f} {med['none'] / med[m]:7.3f} {(1 - med['none'] / med[m]) * 100:7.2f} "
-              f"{spread:>34} {cpu:8.2f}")
-    body = per_unit(samples, "hooks", "tracing", hooks, "wall")
-    body_cpu = statistics.median(per_unit(samples, "hooks", "tracing", hooks, "cpu"))
-    print(f"our hook's body (hooks - tracing): {statistics.median(body) * 1000:.1f} ns/hook wall, "
-          f"{body_cpu * 1000:.1f} CPU; fps hooks / tracing {med['tracing'] / med['hooks']:.3f}")
-    pads = per_unit(samples, "native", "hooks", frames * points, "wall")
-    pads_cpu = statistics.median(per_unit(samples, "native", "hooks", frames * points, "cpu"))
-    print(f"pad probes alone (native - hooks): {statistics.median(pads):.3f} µs/tracepoint wall, {pads_cpu:.3f} CPU; "
-          f"fps native / hooks {med['hooks'] / med['native']:.3f}")
-    native_us = statistics.median(per_unit(samples, "native", "none", frames * points, "cpu"))
-    python_us = statistics.median(per_unit(samples, "python", "none", frames * points, "cpu"))
-    if native_us > 0:
-        print(f"python / native cost per tracepoint: {python_us / native_us:.0f}x (CPU)")
+    print(f"{'none':7} {fmt(ratio(frames, med['none'], no_time), '8.0f')} {1:7.3f}")
+    units = {"tracing": ("ns/hook", hooks, 1000, "push-post hook calls"),
+             "hooks": ("ns/hook", hooks, 1000, "push-post hook calls"),
+             "native": ("µs/tracepoint", frames * points, 1, "tracepoints"),
+             "python": ("µs/tracepoint", frames * points, 1, "tracepoints")}
+    notes = Notes()  # the n/a cells' reasons, under the table
+    for m, (label, n, scale, what) in units.items():
+        wall = [v * scale for v in per_unit(samples, m, "none", n, "wall", what)]
+        cpu = median(per_unit(samples, m, "none", n, "cpu", what)) * scale
+        spread = f"{label} {notes.cell(median(wall), '.2f')}"
+        if not isinstance(median(wall), NA):
+            spread += f" [{minimum(wall):.2f}..{maximum(wall):.2f}]"
+        fps, x_none = ratio(frames, med[m], no_time), ratio(med["none"], med[m], no_time)
+        print(f"{m:7} {notes.cell(fps, '.0f'):>8} {notes.cell(x_none, '.3f'):>7} "
+              f"{notes.cell((1 - x_none) * 100, '.2f'):>7} {spread:>34} {notes.cell(cpu, '.2f'):>8}")
+    for line in notes.lines():
+        print(line)
+    body = per_unit(samples, "hooks", "tracing", hooks, "wall", "push-post hook calls")
+    body_cpu = median(per_unit(samples, "hooks", "tracing", hooks, "cpu", "push-post hook calls"))
+    print(f"our hook's body (hooks - tracing): {fmt(median(body) * 1000, '.1f')} ns/hook wall, "
+          f"{fmt(body_cpu * 1000, '.1f')} CPU; "
+          f"fps hooks / tracing {fmt(ratio(med['tracing'], med['hooks'], no_time), '.3f')}")
+    pads = per_unit(samples, "native", "hooks", frames * points, "wall", "tracepoints")
+    pads_cpu = median(per_unit(samples, "native", "hooks", frames * points, "cpu", "tracepoints"))
+    print(f"pad probes alone (native - hooks): {fmt(median(pads), '.3f')} µs/tracepoint wall, {fmt(pads_cpu, '.3f')} "
+          f"CPU; fps native / hooks {fmt(ratio(med['hooks'], med['native'], no_time), '.3f')}")
+    native_us = median(per_unit(samples, "native", "none", frames * points, "cpu", "tracepoints"))
+    python_us = median(per_unit(samples, "python", "none", frames * points, "cpu", "tracepoints"))
+    if not isinstance(native_us, (int, float)) or native_us > 0:
+        times = ratio(python_us, native_us)
+    else:  # the native probes cost nothing measurable next to the noise: no ratio to give
+        times = ratio(python_us, 0, f"the native probes' CPU cost per tracepoint was {native_us:.3f} µs, not above 0")
+    print(f"python / native cost per tracepoint: {fmt(times, '.0f', 'x')} (CPU)")
 
 
 def bench(name: str, frames: int, reps: int) -> None:
@@ -167,20 +187,26 @@ def bench(name: str, frames: int, reps: int) -> None:
     report(name, frames, samples)
 
 
-def main() -> None:
+def main() -> int:
     if len(sys.argv) == 5 and sys.argv[1] == "--child":
         child(sys.argv[2], sys.argv[3], int(sys.argv[4]))
-        return
+        return 0
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--frames", type=int, help=f"frames per run (default: {FRAMES})")
     parser.add_argument("--reps", type=int, default=5)
     parser.add_argument("--scenario", choices=[*SCENARIOS, "all"], default="all")
+    parser.add_argument("--quick", action="store_true", help="a smoke test: identity20, 300 frames, 1 repetition")
     args = parser.parse_args()
+    if args.quick:
+        args.frames, args.reps, args.scenario = 300, 1, "identity20"
+    if args.reps < 1 or (args.frames is not None and args.frames < 1):
+        parser.error("--reps and --frames must be at least 1")
     if native.load() is None:
-        raise SystemExit(f"native probes unavailable: {native.unavailable_reason()}")
+        raise CannotRun(f"the native probes are unavailable: {native.unavailable_reason()}")
     for name in SCENARIOS if args.scenario == "all" else [args.scenario]:
         bench(name, args.frames or FRAMES[name], args.reps)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(run(main))

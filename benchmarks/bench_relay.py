@@ -16,10 +16,11 @@ The relay and the node processes share this machine's cores: on a 2-core machine
 take CPU from the relay, so the figures are a floor. Each phase also reports the relay's CPU
 (% of one core: ``relay_cpu_pct``; in the throughput phase also within the 10-90 % window)
 and that of all node processes (``nodes_cpu_pct``), and ``load_before`` (1-min load average
-when it started: other work on the machine). Prints one JSON line per node count.
+when it started: other work on the machine). Prints one JSON line per node count; a figure
+a run could not produce is ``"n/a (reason)"`` there (benchmarks/figures.py).
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_relay.py [--nodes 2 8 32] [--events 2000000]
-        [--batch-events 8192] [--rate 4300] [--seconds 12]
+        [--batch-events 8192] [--rate 4300] [--seconds 12] [--quick]
 """
 
 from __future__ import annotations
@@ -42,6 +43,11 @@ import numpy as np
 import socketio
 
 ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: make the project importable
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks.figures import NA, CannotRun, dumps, last_line, percentile, run  # noqa: E402
+
 SOURCES = 2
 EVENTS_PER_FRAME = 12  # origin, 5 stages x enter/exit, sink enter
 # Every simulated node connects from 127.0.0.1, where real DCUs each have their own address:
@@ -57,13 +63,18 @@ def _env() -> dict:
 
 class Relay:
     def __init__(self, db: Path, args: Sequence[str] = ()) -> None:
-        """``args``: more ``python -m relay`` options (bench_exporters: --otlp, --frame-limit)."""
+        """``args``: more ``python -m relay`` options (bench_exporters: --otlp, --frame-limit).
+        Raises CannotRun, with the relay's last line of error, when it does not start."""
+        self._errors = tempfile.TemporaryFile()  # not a pipe: nobody reads it while the relay runs
         self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", "0", "--db", str(db), *LOOPBACK, *args],
-                                     cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+                                     cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=self._errors)
         line = self.proc.stdout.readline().decode()
         m = re.search(r"http://127\.0\.0\.1:(\d+)", line)
         if not m:
-            raise RuntimeError(f"relay did not start: {line!r}")
+            self.proc.kill()
+            self.proc.wait(15)
+            self._errors.seek(0)
+            raise CannotRun(f"the relay did not start: {last_line(self._errors.read())}")
         self.url = f"http://127.0.0.1:{m.group(1)}"
 
     def get(self, path: str):
@@ -80,6 +91,7 @@ class Relay:
     def stop(self) -> None:
         self.proc.terminate()
         self.proc.wait(30)
+        self._errors.close()
 
 
 def start_nodes(url: str, n: int, per_node_events: int, paced: bool, fps: float,
@@ -97,11 +109,17 @@ def start_nodes(url: str, n: int, per_node_events: int, paced: bool, fps: float,
 
 
 def wait_nodes(procs: list[subprocess.Popen], timeout: float) -> list[dict]:
+    """Each node's counters (its last line of output); CannotRun with its error if one failed."""
     out = []
-    for p in procs:
-        stdout, stderr = p.communicate(timeout=timeout)
-        if p.returncode != 0:
-            raise RuntimeError(stderr.decode()[-2000:])
+    for k, p in enumerate(procs):
+        try:
+            stdout, stderr = p.communicate(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            for q in procs:
+                q.kill()
+            raise CannotRun(f"simulated node DCU-{k + 1} did not finish within {timeout:g} s") from None
+        if p.returncode != 0 or not stdout.strip():
+            raise CannotRun(f"simulated node DCU-{k + 1} failed (exit status {p.returncode}): {last_line(stderr)}")
         out.append(json.loads(stdout.decode().strip().splitlines()[-1]))
     return out
 
@@ -123,10 +141,13 @@ def measure_throughput(relay: Relay, n: int, total: int, batch_events: int) -> d
     procs = start_nodes(relay.url, n, per_node, paced=False, fps=1000.0, batch_events=batch_events)
     samples = []
     deadline = time.monotonic() + 600
+    ended = None  # when every node had exited: the relay gets 2 s more to store what they sent, not 600
     while time.monotonic() < deadline:
         samples.append((time.monotonic(), relay.stored(), relay.cpu_s()))
-        if samples[-1][1] >= expected:
+        if samples[-1][1] >= expected or (ended is not None and time.monotonic() - ended > 2.0):
             break
+        if ended is None and all(p.poll() is not None for p in procs):
+            ended = time.monotonic()
         time.sleep(0.1)
     relay_cpu = relay.cpu_s() - cpu0
     wall = time.monotonic() - wall0
@@ -135,13 +156,20 @@ def measure_throughput(relay: Relay, n: int, total: int, batch_events: int) -> d
     v = np.array([s[1] for s in samples], float)
     c = np.array([s[2] for s in samples])
     lo, hi = np.searchsorted(v, 0.1 * expected), min(np.searchsorted(v, 0.9 * expected), len(v) - 1)
-    ok = hi > lo and t[hi] > t[lo]
-    # ok is False when the run was too short for two samples inside 10-90 %: no rate then (None)
-    rate = round((v[hi] - v[lo]) / (t[hi] - t[lo])) if ok else None
-    window_cpu = round(100 * (c[hi] - c[lo]) / (t[hi] - t[lo])) if ok else None
+    if v[-1] < 0.9 * expected:
+        why = NA(f"the relay stored {int(v[-1])} of {expected} events")
+    elif hi > lo and t[hi] > t[lo]:
+        why = None
+    else:  # the run was shorter than two of the 0.1 s samples inside 10-90 %
+        why = NA("no two samples of the stored count inside 10-90 % of the events: the run was too short")
+    if why is None:
+        span = float(t[hi] - t[lo])
+        rate, window_s, window_cpu = round((v[hi] - v[lo]) / span), round(span, 2), round(100 * (c[hi] - c[lo]) / span)
+    else:
+        rate = window_s = window_cpu = why
     return {"batch_events": batch_events, "events": int(v[-1]), "events_per_s": rate,
-            "lost": sum(c["lost"] for c in counters), "window_s": round(float(t[hi] - t[lo]), 2),
-            "relay_cpu_pct_in_window": window_cpu, "relay_cpu_pct": round(100 * relay_cpu / wall),
+            "lost": sum(c["lost"] for c in counters), "window_s": window_s, "relay_cpu_pct_in_window": window_cpu,
+            "relay_cpu_pct": round(100 * relay_cpu / wall),
             "nodes_cpu_pct": round(100 * (_children_cpu() - children) / wall)}
 
 
@@ -161,7 +189,10 @@ async def _watch_ui(url: str, seconds: float) -> tuple[list[float], list[float]]
                 lags.append((now - last) / 1e6)
 
     sio.on("frames", on_frames, namespace="/ui")
-    await sio.connect(url, namespaces=["/ui"], transports=["websocket"], wait_timeout=10)
+    try:
+        await sio.connect(url, namespaces=["/ui"], transports=["websocket"], wait_timeout=10)
+    except socketio.exceptions.ConnectionError as exc:
+        raise CannotRun(f"the /ui client could not connect to the relay: {exc}") from exc
     await asyncio.sleep(seconds)
     await sio.disconnect()
     return lags, transit
@@ -204,12 +235,13 @@ def measure_lag(relay: Relay, n: int, rate: float, seconds: float,
         p.terminate()
     for p in procs:
         p.wait(30)
-    a = np.array(lags)
-    return {"rate_per_node": rate, "seconds": seconds, "frames_seen": len(a), "events_received": received,
-            "lag_p50_ms": round(float(np.percentile(a, 50)), 1) if len(a) else None,
-            "lag_p99_ms": round(float(np.percentile(a, 99)), 1) if len(a) else None,
-            "push_transit_p50_ms": round(float(np.percentile(transit, 50)), 1) if transit else None,
-            "push_transit_p99_ms": round(float(np.percentile(transit, 99)), 1) if transit else None,
+    no_frame = f"no frame reached the /ui client in the {seconds:g} s window"
+    no_push = f"no push reached the /ui client in the {seconds:g} s window"
+    return {"rate_per_node": rate, "seconds": seconds, "frames_seen": len(lags), "events_received": received,
+            "lag_p50_ms": round(percentile(lags, 50, no_frame), 1),
+            "lag_p99_ms": round(percentile(lags, 99, no_frame), 1),
+            "push_transit_p50_ms": round(percentile(transit, 50, no_push), 1),
+            "push_transit_p99_ms": round(percentile(transit, 99, no_push), 1),
             "relay_cpu_pct": round(100 * relay_cpu / wall), "nodes_cpu_pct": round(100 * nodes_cpu / wall)}
 
 
@@ -226,7 +258,7 @@ def _children_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--nodes", type=int, nargs="+", default=[2, 8, 32])
     p.add_argument("--events", type=int, default=2_000_000, help="events in all for the throughput phase")
@@ -234,15 +266,20 @@ def main() -> int:
                    help="events per batch in the throughput phase (a paced DCU at 4,300/s sends ~215)")
     p.add_argument("--rate", type=float, default=4300.0, help="events/s per node in the lag phase")
     p.add_argument("--seconds", type=float, default=12.0, help="length of the lag phase")
-    args = p.parse_args()
+    p.add_argument("--quick", action="store_true", help="a smoke test: 2 nodes, 600,000 events, a 1.5 s lag phase")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.nodes, args.events, args.seconds = [2], 600_000, 1.5
+    if min(args.nodes) < 1 or args.events < 1 or args.seconds <= 0 or args.rate <= 0:
+        p.error("--nodes, --events, --seconds and --rate must be positive")
     with tempfile.TemporaryDirectory() as tmp:
         for n in args.nodes:
             result = {"nodes": n, "cpus": os.cpu_count(), "load_before": round(os.getloadavg()[0], 1),
                       "throughput": throughput(n, args.events, Path(tmp), args.batch_events),
                       "lag": lag(n, args.rate, args.seconds, Path(tmp))}
-            print(json.dumps(result), flush=True)
+            print(dumps(result), flush=True)
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run(main))

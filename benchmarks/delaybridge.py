@@ -12,6 +12,9 @@ it is a real hop, not an exact delay line. Runs until SIGTERM.
 ``python benchmarks/delaybridge.py --offloads-off IF...`` first turns off the veths' checksum and
 segmentation offloads (``SIOCETHTOOL``; there is no ethtool here): a frame read from a packet
 socket must carry its final checksum and fit the MTU to be sent on again.
+
+Packet sockets need root (CAP_NET_RAW); an interface it cannot open is said in one line (exit
+status 2), as benchmarks/figures.py has every benchmark do.
 """
 
 from __future__ import annotations
@@ -27,6 +30,13 @@ import struct
 import sys
 import time
 from collections import deque
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: make the project importable
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks.figures import CannotRun, run as run_main  # noqa: E402
 
 ETH_P_ALL = 0x0003
 PACKET_OUTGOING = 4
@@ -41,13 +51,19 @@ def offloads_off(name: str) -> None:
         value = ctypes.create_string_buffer(struct.pack("II", cmd, 0))
         ifreq = struct.pack("16sP", name.encode(), ctypes.addressof(value)).ljust(40, b"\0")
         with socket.socket() as s:
-            fcntl.ioctl(s, SIOCETHTOOL, ifreq)
+            try:
+                fcntl.ioctl(s, SIOCETHTOOL, ifreq)
+            except OSError as exc:
+                raise CannotRun(f"cannot turn off the offloads of {name}: {exc.strerror}") from exc
 
 
 def open_interface(name: str) -> socket.socket:
-    s = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_ALL))
-    s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
-    s.bind((name, 0))
+    try:
+        s = socket.socket(socket.AF_PACKET, socket.SOCK_RAW, socket.htons(ETH_P_ALL))
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+        s.bind((name, 0))
+    except OSError as exc:  # EPERM without CAP_NET_RAW, ENODEV for an unknown interface
+        raise CannotRun(f"cannot open a packet socket on {name}: {exc.strerror}") from exc
     s.setblocking(False)
     return s
 
@@ -126,4 +142,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run_main(main))

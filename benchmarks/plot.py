@@ -6,7 +6,8 @@ One panel per series (input kind x frame rate x bitrate), one row per input kind
 stacked bar per stream count (the stages in the legend colours of the UI: mux red, infer blue,
 tiler yellow, convert green, osd purple; the waits between stages grey) and the A = S/n line;
 under each bar the frames/s per stream; inside its foot the share of frames the mux dropped late.
-Drawn with OpenCV so that the project needs no plotting library.
+A run that gave no figure is marked "failed" at its place (the reasons are in the sweep's
+Markdown, under Notes). Drawn with OpenCV so that the project needs no plotting library.
 """
 
 from __future__ import annotations
@@ -14,10 +15,17 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script: make the project importable
+    sys.path.insert(0, str(ROOT))
+
+from benchmarks.figures import CannotRun, run  # noqa: E402
 
 STAGE_COLOURS = {  # BGR
     "mux": (48, 48, 220),
@@ -96,7 +104,8 @@ def draw_panel(img: np.ndarray, x0: int, y0: int, results: list[dict], counts: l
             base += ms
         points.append((int(cx), int(round(y_of(r["a_ms"]))), r))
         sat = r.get("saturated")
-        _text(img, f"{r['achieved_fps']:.1f} fps{' saturated' if sat else ''}", (cx, lower + 36), 0.38,
+        fps = "n/a" if r.get("achieved_fps") is None else f"{r['achieved_fps']:.1f}"
+        _text(img, f"{fps} fps{' saturated' if sat else ''}", (cx, lower + 36), 0.38,
               SATURATED if sat else INK, anchor="center")
         late, delivered = sum((r.get("late") or {}).values()), sum((r.get("delivered") or {}).values())
         if late and delivered and base > 0:  # inside the bar's foot: the axis labels leave no room
@@ -151,11 +160,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("results", type=Path, help="the .json a streams sweep wrote next to its --out")
     parser.add_argument("-o", "--output", type=Path, help="PNG to write (default: the results with .png)")
     args = parser.parse_args(argv)
-    data = json.loads(args.results.read_text())
-    draw_sweep(data["results"], args.output or args.results.with_suffix(".png"),
-               title=f"dcuscope streams sweep, model {data.get('model', '?')}")
+    try:
+        data = json.loads(args.results.read_text())
+        results = data["results"]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise CannotRun(f"cannot read {args.results} as the JSON of a streams sweep: {exc!r}") from exc
+    try:
+        draw_sweep(results, args.output or args.results.with_suffix(".png"),
+                   title=f"dcuscope streams sweep, model {data.get('model', '?')}")
+    except OSError as exc:
+        raise CannotRun(str(exc)) from exc
     return 0
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run(main))

@@ -24,7 +24,9 @@ and wait and the stage that limits throughput.
    whose fps per stream is under 90 % of the clip's rate (saturated) unless ``--all-streams``.
 3. Output. Markdown tables (one per bitrate like the paper's Tables 4-6, and the per-stage
    data of Figure 12) on stdout and in ``--out``; the raw results as JSON next to it; a PNG
-   plot (``--plot``, drawn by benchmarks/plot.py).
+   plot (``--plot``, drawn by benchmarks/plot.py). A figure a run could not produce is
+   ``n/a [k]`` in a table, its reason under "Notes" (benchmarks/figures.py); a clip that cannot
+   be made stops the sweep with one line (exit status 2).
 
 ``--late-ms`` defaults to 200 ms: 6 frame periods at 30 fps. A live pipeline that keeps up
 holds a frame far less than that between its decoder and the mux (BENCHMARKS.md: under 1 ms
@@ -57,6 +59,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
+from benchmarks.figures import NA, CannotRun, Notes, fmt, run  # noqa: E402
 from probes.delays import node_stats  # noqa: E402
 from probes.events import DROP_REASONS, FACT, LATE, ORIGIN  # noqa: E402
 from probes.tracefile import Trace, read_trace  # noqa: E402
@@ -432,8 +435,11 @@ class Result:
         self.saturated = saturated(m.fps, self.fps)
 
 
-def _median(values) -> float:
-    return float(np.median(values))
+def _median(values) -> float | None:
+    """The median of the values that are not None; None when every one is (kept as None in the
+    results' JSON, which benchmarks/plot.py reads; the tables say why)."""
+    present = [v for v in values if v is not None]
+    return float(np.median(present)) if present else None
 
 
 def _medians(dicts: list[dict]) -> dict:
@@ -473,7 +479,7 @@ def combine(results: list[Result]) -> Result:
         frames=sum(r.frames for r in ok), incomplete=sum(r.incomplete for r in ok),
         saturated=saturated(_median([r.achieved_fps for r in ok]), first.fps),
         error="; ".join(dict.fromkeys(r.error for r in results if r.error)), wall_s=sum(r.wall_s for r in results),
-        load=_median([r.load for r in ok]), server_cores=_median(cores) if cores else None, runs=len(ok),
+        load=_median([r.load for r in ok]), server_cores=_median(cores), runs=len(ok),
         service_ms=_medians([r.service_ms for r in ok]), wait_ms=_medians([r.wait_ms for r in ok]),
         utilization=_medians([r.utilization for r in ok]), bottleneck=combine_bottleneck([r.bottleneck for r in ok]),
         delivered=_medians([r.delivered for r in ok]), late=_medians([r.late for r in ok]),
@@ -546,6 +552,8 @@ def fmt_duration(seconds: float) -> str:
 def sweep(args: argparse.Namespace, log: Callable[[str], None],
           on_result: Callable[[list[Result]], None] = lambda _: None) -> list[Result]:
     """Make the clips, then run every point of the plan; ``on_result`` sees the results so far after each run."""
+    from core.gst import GLib
+
     plan = list(series(args.kinds, args.rates, args.bitrates, args.bitrates_at))
     specs = sorted({clip_for(i, fps, b, args.clip_seconds, args.preset)
                     for _, fps, b in plan for i in range(min(args.max_streams, len(CLIP_SOURCES)))},
@@ -555,7 +563,10 @@ def sweep(args: argparse.Namespace, log: Callable[[str], None],
     for i, spec in enumerate(missing, 1):
         t0 = time.monotonic()
         log(f"[clip {i}/{len(missing)}] {spec.name}")
-        make_clip(spec, args.cache, progress=log)
+        try:
+            make_clip(spec, args.cache, progress=log)
+        except (RuntimeError, OSError, GLib.Error) as exc:  # GLib.Error: an element of its pipeline is missing
+            raise CannotRun(f"cannot make the clip {spec.name}: {getattr(exc, 'message', exc)}") from exc
         log(f"  made in {time.monotonic() - t0:.1f} s")
 
     runs: dict[tuple, list[Result]] = {}  # point -> its repetitions, in the order first run
@@ -608,9 +619,9 @@ def sweep(args: argparse.Namespace, log: Callable[[str], None],
 
 def describe(r: Result) -> str:
     if r.a_ms is None:
-        return f"failed: {r.error}"
+        return f"failed: {_failure(r)}"
     stages = " ".join(f"{s} {_split(r, s)}" for s in r.stages_ms)
-    text = (f"A {r.a_ms:.1f} ms, p95 {r.p95_ms:.1f} ms, {r.achieved_fps:.1f} fps/stream"
+    text = (f"A {r.a_ms:.1f} ms, p95 {fmt(r.p95_ms, '.1f', ' ms', NO_P95)}, {r.achieved_fps:.1f} fps/stream"
             f"{' SATURATED' if r.saturated else ''} | limit {_limit(r.bottleneck)} | service/wait {stages} "
             f"between {r.queues_ms:.1f} ms | late drops {_late(r)} | {r.frames} frames, {r.wall_s:.0f} s, "
             f"load {r.load:.1f}"
@@ -619,26 +630,48 @@ def describe(r: Result) -> str:
 
 
 # -- report (pure) -----------------------------------------------------------------------------
-def _cell(r: Result | None) -> str:
+NO_P95 = "no p95 of the frame delay"
+
+
+class _Inline:
+    """Notes that put the reason in the cell: ``n/a (reason)`` (the run log's lines)."""
+
+    def cell(self, x, spec: str = "", unit: str = "", why: str = "not measured") -> str:
+        return fmt(x, spec, unit, why)
+
+
+def _failure(r: Result) -> str:
+    """Why a run gave no A."""
+    return r.error or "no complete frame after the warm-up"
+
+
+def _cell(r: Result | None, notes: Notes | None = None) -> str:
+    """A as "40.0 (p95 60) @ 30.0"; – for a point not run; n/a with the reason of a failed run
+    (``n/a [k]`` when ``notes`` take the reasons)."""
+    notes = _Inline() if notes is None else notes
     if r is None:
         return "–"
     if r.a_ms is None:
-        return "failed"
-    return f"{r.a_ms:.1f} (p95 {r.p95_ms:.0f}) @ {r.achieved_fps:.1f}{'*' if r.saturated else ''}"
+        return notes.cell(NA(_failure(r)))
+    p95 = notes.cell(r.p95_ms, ".0f", why=NO_P95)
+    return f"{r.a_ms:.1f} (p95 {p95}) @ {r.achieved_fps:.1f}{'*' if r.saturated else ''}"
 
 
-def _split(r: Result, stage: str) -> str:
+def _split(r: Result, stage: str, notes: Notes | None = None) -> str:
     """"service/wait" in ms, or the delay alone when the stage has no service times."""
+    notes = _Inline() if notes is None else notes
     if stage in r.service_ms:
         return f"{r.service_ms[stage]:.1f}/{r.wait_ms[stage]:.1f}"
-    delay = r.stages_ms.get(stage)
-    return "–" if delay is None else f"{delay:.1f}"
+    return notes.cell(r.stages_ms.get(stage), ".1f", why=f"no frame passed {stage} after the warm-up")
 
 
-def _limit(neck: dict | None) -> str:
+def _limit(neck: dict | None, notes: Notes | None = None) -> str:
     """The bottleneck as "infer 97 % sat." or "infer 62 % (thread 97 %) sat."."""
-    if not neck or neck["utilization"] is None:
-        return "?" if not neck else f"{neck['stage']} ?"
+    notes = _Inline() if notes is None else notes
+    if not neck:
+        return notes.cell(NA("no stage had a delay after the warm-up: no bottleneck"))
+    if neck["utilization"] is None:
+        return f"{neck['stage']} " + notes.cell(NA("no service times in the trace: the utilization is unknown"))
     thread = neck["thread_utilization"]
     shared = f" (thread {thread:.0%})" if thread is not None and thread >= neck["utilization"] + 0.005 else ""
     return f"{neck['stage']} {neck['utilization']:.0%}{shared}{' sat.' if neck['saturated'] else ''}"
@@ -653,7 +686,7 @@ def _late(r: Result) -> str:
     return per_stream + (f" ({sum(r.late.values()) / delivered:.0%})" if delivered else "")
 
 
-def _a_tables(results: list[Result], model: str) -> list[str]:
+def _a_tables(results: list[Result], model: str, notes: Notes) -> list[str]:
     """Tables 4-6: A = S/n per stream count, one table per bitrate, a column per kind and rate."""
     out = []
     columns = [(k, f) for k in KINDS for f in RATES if any(r.kind == k and r.fps == f for r in results)]
@@ -666,14 +699,15 @@ def _a_tables(results: list[Result], model: str) -> list[str]:
                 "|---:|" + "---:|" * len(columns)]
         for n in rows:
             cells = [_cell(next((r for r in results if (r.kind, r.fps, r.bitrate, r.streams) == (k, f, bitrate, n)),
-                                None)) for k, f in columns]
+                                None), notes) for k, f in columns]
             out.append(f"| {n} | " + " | ".join(cells) + " |")
         out.append("")
     return out + ["Cells: A in ms (p95 in ms) @ achieved frames/s per stream; * saturated (under "
-                  f"{SATURATION:.0%} of the clip's rate); – not run.", ""]
+                  f"{SATURATION:.0%} of the clip's rate); – not run; a figure a run could not produce refers to "
+                  "its reason under Notes.", ""]
 
 
-def _stage_table(results: list[Result], model: str) -> list[str]:
+def _stage_table(results: list[Result], model: str, notes: Notes) -> list[str]:
     """Figure 12's data: per run the limiting stage, service/wait of every stage, late drops."""
     out = [f"#### Per-stage mean service/wait (ms), Figure 12's data, model {model}", "",
            "| input | fps | kbit/s | streams | limiting stage | " + " | ".join(STAGES)
@@ -685,9 +719,9 @@ def _stage_table(results: list[Result], model: str) -> list[str]:
     for r in sorted(results, key=order):
         if r.a_ms is None:
             continue
-        stages = " | ".join(_split(r, s) for s in STAGES)
-        out.append(f"| {r.kind} | {r.fps} | {r.bitrate} | {r.streams} | {_limit(r.bottleneck)} | {stages} | "
-                   f"{r.queues_ms:.1f} | {r.a_ms:.1f} | {r.p95_ms:.1f} | "
+        stages = " | ".join(_split(r, s, notes) for s in STAGES)
+        out.append(f"| {r.kind} | {r.fps} | {r.bitrate} | {r.streams} | {_limit(r.bottleneck, notes)} | {stages} | "
+                   f"{r.queues_ms:.1f} | {r.a_ms:.1f} | {notes.cell(r.p95_ms, '.1f', why=NO_P95)} | "
                    f"{r.achieved_fps:.1f}{'*' if r.saturated else ''} | {_late(r)} | {r.load:.1f} | "
                    f"{'–' if r.server_cores is None else f'{r.server_cores:.2f}'} |")
     runs = sorted({r.runs for r in results})
@@ -708,11 +742,12 @@ def _stage_table(results: list[Result], model: str) -> list[str]:
 def markdown(results: list[Result], model: str, preamble: list[str] = ()) -> str:
     """Tables 4-6 (one per bitrate) and the per-stage data of Figure 12, after ``preamble`` lines."""
     out = [*preamble, ""] if preamble else []
-    out += _a_tables(results, model) + _stage_table(results, model)
+    notes = Notes()
+    out += _a_tables(results, model, notes) + _stage_table(results, model, notes)
     failed = [r for r in results if r.error]
-    if failed:
-        out += ["", "Notes:"] + [f"- {r.kind} {r.fps} fps {r.bitrate} kbit/s {r.streams} stream(s): {r.error}"
-                                 for r in failed]
+    if failed or notes:
+        out += ["", "Notes:"] + [f"- {line}" for line in notes.lines()] + [
+            f"- {r.kind} {r.fps} fps {r.bitrate} kbit/s {r.streams} stream(s): {r.error}" for r in failed]
     return "\n".join(out) + "\n"
 
 
@@ -803,4 +838,4 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(run(main))

@@ -19,6 +19,7 @@ from benchmarks.streams_sweep import (
 from pipeline.config import load_config
 from probes.events import DROP, EXIT, FACT, LATE
 from probes.tracefile import Trace
+from tests.benchmarks.smoke import assert_cannot_run, assert_every_na_has_a_reason, run_benchmark
 from tests.conftest import REPO, VTEST, cli_env
 from tests.probes.synth import pipeline_run
 
@@ -186,6 +187,7 @@ def test_plot_draws_the_stage_colours_and_a_panel_per_series(tmp_path):
     assert [nice_step(x) for x in (10, 47, 480, 0.9)] == [2, 10, 100, 0.2]
 
 
+@pytest.mark.alone  # a real 1080p30 sweep: how many frames its few seconds get depends on the machine's capacity
 def test_smallest_real_sweep_makes_a_clip_runs_file_and_rtsp_and_reports(tmp_path):
     cache, out = tmp_path / "clips", tmp_path / "sweep.md"
     proc = subprocess.run(
@@ -195,6 +197,7 @@ def test_smallest_real_sweep_makes_a_clip_runs_file_and_rtsp_and_reports(tmp_pat
         cwd=tmp_path, env=cli_env(), capture_output=True, text=True, timeout=150)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "clips: 1 needed, 1 to make" in proc.stderr and "eta <=" in proc.stderr
+    assert_every_na_has_a_reason(proc.stdout + proc.stderr)
 
     clip = cache / ClipSpec("vtest.avi", 30, 3982, 2).name
     video = cv2.VideoCapture(str(clip))
@@ -225,3 +228,58 @@ def test_series_are_bitrate_major_and_bitrates_at_narrows_a_rate():
     plan = list(series(["file", "rtsp"], [30, 60], [3982, 7955], {60: [3982]}))
     assert plan == [("file", 30, 3982), ("file", 60, 3982), ("rtsp", 30, 3982), ("rtsp", 60, 3982),
                     ("file", 30, 7955), ("rtsp", 30, 7955)]
+
+
+def test_markdown_gives_each_figure_a_run_could_not_produce_as_n_a_with_its_reason():
+    failed = Result("rtsp", 30, 3982, 1, error="serve-rtsp did not start within 30 s: port taken")
+    quiet = Result("file", 30, 3982, 2)  # no error, no complete frame after the warm-up
+    partial = result("file", 30, 1, 40.0)
+    partial.p95_ms, partial.bottleneck = None, None
+    partial.stages_ms["osd"] = None
+    del partial.service_ms["osd"]
+    unknown = result("rtsp", 30, 2, 90.0)
+    unknown.bottleneck = {"stage": "infer", "utilization": None, "thread_utilization": None, "saturated": None}
+    text = markdown([partial, quiet, failed, unknown], "ssd")
+    assert "| 1 | 40.0 (p95 n/a [1]) @ 30.0 | n/a [2] |" in text
+    assert "| 2 | n/a [3] | 90.0 (p95 135) @ 30.0 |" in text
+    assert ("| file | 30 | 3982 | 1 | n/a [5] | 2.0/18.0 | 9.6/2.4 | 3.2/0.8 | 1.6/0.4 | n/a [4] | 0.0 | 40.0 "
+            "| n/a [1] | 30.0 |") in text
+    assert "| rtsp | 30 | 3982 | 2 | infer n/a [6] |" in text
+    notes = text.split("Notes:\n", 1)[1].splitlines()
+    assert notes == ["- n/a [1]: no p95 of the frame delay",
+                     "- n/a [2]: serve-rtsp did not start within 30 s: port taken",
+                     "- n/a [3]: no complete frame after the warm-up",
+                     "- n/a [4]: no frame passed osd after the warm-up",
+                     "- n/a [5]: no stage had a delay after the warm-up: no bottleneck",
+                     "- n/a [6]: no service times in the trace: the utilization is unknown",
+                     "- rtsp 30 fps 3982 kbit/s 1 stream(s): serve-rtsp did not start within 30 s: port taken"]
+    assert_every_na_has_a_reason(text)
+
+
+def test_repetitions_without_a_p95_or_a_stage_figure_combine_to_none_not_a_crash():
+    runs = [result("file", 30, 1, 40.0), result("file", 30, 1, 50.0)]
+    for r in runs:
+        r.p95_ms = None
+    runs[0].stages_ms["osd"] = runs[1].stages_ms["osd"] = None
+    runs[1].server_cores = 0.5
+    c = combine(runs)
+    assert c.p95_ms is None and c.stages_ms["osd"] is None and c.stages_ms["mux"] == 22.5 and c.server_cores == 0.5
+
+
+def test_plot_draws_failed_runs_and_runs_without_a_rate(tmp_path):
+    ok, failed = result("file", 30, 1, 40.0), Result("file", 30, 3982, 2, error="no trace")
+    ok.achieved_fps = None
+    ok.stages_ms["osd"] = None
+    img = draw_sweep([ok.__dict__, failed.__dict__], tmp_path / "plot.png")
+    assert (img == STAGE_COLOURS["infer"]).all(axis=2).sum() > 20
+
+
+def test_plot_of_a_file_that_is_not_a_sweep_says_so_in_one_line(tmp_path):
+    (tmp_path / "x.json").write_text("{}")
+    done = run_benchmark("plot.py", str(tmp_path / "x.json"))
+    assert_cannot_run(done, "plot.py", f"cannot read {tmp_path / 'x.json'} as the JSON of a streams sweep: KeyError")
+
+
+def test_delaybridge_on_an_interface_it_cannot_open_says_so_in_one_line():
+    done = run_benchmark("delaybridge.py", "nosuchif0", "nosuchif1")
+    assert_cannot_run(done, "delaybridge.py", "cannot open a packet socket on nosuchif0: ")

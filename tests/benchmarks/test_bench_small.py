@@ -1,0 +1,79 @@
+"""The --quick runs of the benchmarks that take seconds: bench_live_memory.py, bench_stats.py,
+bench_pipeline.py and bench_probes.py; and their tables fed figures a run could not produce."""
+
+from __future__ import annotations
+
+import re
+
+from benchmarks.bench_pipeline import table
+from benchmarks.bench_probes import report
+from benchmarks.figures import NA
+from probes import native
+from tests.benchmarks.smoke import (
+    assert_cannot_run, assert_every_na_has_a_reason, assert_ran, json_lines, run_benchmark,
+)
+
+
+def test_live_memory_quick_mode_reports_every_10_simulated_seconds_and_at_the_end():
+    done = run_benchmark("bench_live_memory.py", "--quick")
+    assert_ran(done)
+    rows = json_lines(done.stdout)
+    assert [r["frames"] for r in rows] == [3600, 7200]  # 10 and 20 s of 6 sources at 60 fps
+    for r in rows:
+        assert set(r) == {"minutes", "frames", "bounded", "keep-all", "heap_ratio_keep_all_vs_bounded"}
+        assert r["bounded"]["heap_mib"] > 0 and set(r["bounded"]) == {"heap_mib", "stats_ms", "percentile_error"}
+    # a run that is not a multiple of --every still ends with a row
+    done = run_benchmark("bench_live_memory.py", "--minutes", str(15 / 60), "--every", str(10 / 60))
+    assert_ran(done)
+    assert [r["frames"] for r in json_lines(done.stdout)] == [3600, 5400]
+
+
+def test_stats_quick_mode_times_every_step():
+    done = run_benchmark("bench_stats.py", "--quick")
+    assert_ran(done)
+    lines = done.stdout.splitlines()
+    assert re.fullmatch(r"\d+ events, \d+ frames, 4 sources", lines[0])
+    assert [line[:28].strip() for line in lines[1:]] == [
+        "node_stats", "write_trace", "trace file size", "read_trace", "export perfetto (to JSON)", "export csv"]
+
+
+def test_pipeline_quick_mode_runs_both_variants_and_prints_the_table():
+    done = run_benchmark("bench_pipeline.py", "--quick")
+    assert_ran(done)
+    lines = done.stdout.splitlines()
+    assert [line.split(" frames/s")[0].split()[:4] for line in lines[:2]] == [
+        ["rep", "1:", "1", "source(s)"]] * 2
+    assert "probes=off" in lines[0] and "probes=on" in lines[1] and "tracepoints" in lines[1]
+    head = lines.index(" sources  no probes     probes  probes/none  vs 1 source")
+    assert lines[head + 1].split()[0] == "1" and len(lines[head + 1].split()) == 5
+
+
+def test_pipeline_table_shows_a_failed_variant_as_n_a_with_its_reason():
+    results = {(1, False): [30.0, 32.0], (1, True): [NA("the run failed: infer: model file x does not exist")] * 2,
+               (2, False): [NA("3 collages reached the sink")], (2, True): [20.0]}
+    lines = table(results, [1, 2])
+    assert lines[1].split() == ["1", "31.00", "n/a", "[1]", "n/a", "[1]", "1.00"]
+    assert lines[2].split() == ["2", "n/a", "[2]", "20.00", "n/a", "[2]", "n/a", "[2]"]
+    assert lines[3:] == ["n/a [1]: the run failed: infer: model file x does not exist",
+                         "n/a [2]: 3 collages reached the sink"]
+
+
+def test_probes_quick_mode_reports_every_mode():
+    done = run_benchmark("bench_probes.py", "--quick")
+    if native.load() is None:
+        return assert_cannot_run(done, "bench_probes.py", "the native probes are unavailable")
+    assert_ran(done)
+    lines = done.stdout.strip().splitlines()
+    assert lines[0].startswith("== identity20: 300 frames, ") and lines[2].split()[:3] == ["mode", "fps", "x"]
+    assert [line.split()[0] for line in lines[3:8]] == ["none", "tracing", "hooks", "native", "python"]
+    summary = [line.split(" (")[0] for line in lines[8:] if not line.startswith("n/a [")]  # reasons of n/a cells
+    assert summary[:2] == ["our hook's body", "pad probes alone"] and len(summary) == 3
+    assert summary[2].startswith("python / native cost per tracepoint: ")
+
+
+def test_probes_report_without_hook_calls_or_tracepoints_is_n_a_with_the_reason(capsys):
+    run = {"wall": 1.0, "cpu": 0.5, "points": 0, "hooks": 0}
+    report("identity20", 100, {m: [dict(run)] for m in ("none", "tracing", "hooks", "native", "python")})
+    out = capsys.readouterr().out
+    assert "n/a (no push-post hook calls counted)" in out and "n/a (no tracepoints counted)" in out
+    assert_every_na_has_a_reason(out)
