@@ -30,9 +30,12 @@ examples:
   dcuscope run configs/quad.yaml --probes --relay http://127.0.0.1:3000 --node DCU-1
 
 --output picks the sink from the path: NAME.mp4 (.mkv, .avi) writes H.264 video in that
-container, a folder (or a path ending in /) writes numbered PNG frames into it. Ctrl-C ends
-the run cleanly (end-of-stream, so the MP4 is finalised); a second Ctrl-C aborts, leaving
-the video incomplete (exit 130).
+container, a folder (or a path ending in /) writes numbered PNG frames into it. Ctrl-C or
+SIGTERM ends the run cleanly (end-of-stream, so the MP4 is finalised), as --duration and
+--num-frames do; Ctrl-C while it stops aborts, leaving the video incomplete (exit 130), SIGTERM
+never does. Files drain: every frame read is processed. Live sources (cameras, streams, live:
+true) stop at once instead: frames still queued (a pipeline that cannot keep up) are dropped
+and counted (reason "stopped" in the trace), so that the run ends within about a batch's time.
 Exit status: 0 done, 1 the pipeline failed, 2 bad configuration or arguments.
 """
 
@@ -68,7 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     limit = run.add_mutually_exclusive_group()
     limit.add_argument("--num-frames", "-n", type=_positive_int, metavar="N",
                        help="stop cleanly after N frames reached the sink")
-    limit.add_argument("--duration", "-d", type=_positive_float, metavar="S", help="stop cleanly after S seconds")
+    limit.add_argument("--duration", "-d", type=_positive_float, metavar="S",
+                       help="stop cleanly after S seconds (live sources: at S seconds, frames still queued dropped)")
     run.add_argument("--node", metavar="NAME", help="name of this machine in traces and the relay (default: node: of the config, else DCU-1)")
     run.add_argument("--quiet", "-q", action="store_true", help="no progress lines")
     probes = run.add_argument_group("probes")

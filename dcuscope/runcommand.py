@@ -16,8 +16,8 @@ from pipeline.run import Runner
 from pipeline.stalls import describe
 
 ABORTED_STATUS = 130
-"""A run the user stopped before end-of-stream reached the sink, as after Ctrl-C (128 + SIGINT);
-one whose end-of-stream never reached the sink by itself exits 1, a pipeline failure."""
+"""A run the user aborted with Ctrl-C before end-of-stream reached the sink (128 + SIGINT); one
+whose end-of-stream never reached the sink by itself exits 1, a pipeline failure."""
 
 
 def apply_overrides(config: PipelineConfig, args: argparse.Namespace) -> PipelineConfig:
@@ -81,6 +81,10 @@ def run_command(args: argparse.Namespace) -> int:
         console.write(f"dcuscope: source {index} ({config.sources[index].description}) was lost: {reason}\n")
     for index, stalls in result.stalls.items():
         console.write(f"dcuscope: source {index} ({config.sources[index].description}) {describe(stalls)}\n")
+    if result.discarded:
+        counted = "; the trace counts them as dropped, reason stopped" if config.probes.enabled else ""
+        console.write(f"dcuscope: {result.discarded} frames still queued at the stop were dropped, not drained "
+                      f"(live sources){counted}\n")
     if result.aborted is not None:
         incomplete = {"file": f": {config.sink.path} is incomplete (not finalised, may not play)",
                       "frames": f": the frames in {config.sink.path} end early"}.get(config.sink.kind, "")

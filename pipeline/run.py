@@ -1,4 +1,12 @@
-"""Running a built pipeline: main loop, bus, progress, limits, Ctrl-C -> EOS -> clean stop."""
+"""Running a built pipeline: main loop, bus, progress, limits, Ctrl-C or SIGTERM -> EOS -> clean stop.
+
+A stop (``--num-frames``, ``--duration``, the first Ctrl-C, SIGTERM) ends the run with
+end-of-stream, so that the sink finishes (an MP4 gets its index). Files drain: every frame read
+goes through. Live sources do not wait for a pipeline that lags, so a live run that drained
+would stop only when its backlog ran out, however long it is: it stops at once instead
+(:mod:`pipeline.livestop`), the frames still queued counted as dropped. Only Ctrl-C while
+stopping aborts; SIGTERM is always the clean stop (what service managers and ``timeout`` send).
+"""
 
 from __future__ import annotations
 
@@ -12,6 +20,7 @@ from core import signals
 from core.errors import PipelineError
 from core.gst import GLib, Gst
 from pipeline.build import BuiltPipeline
+from pipeline.livestop import LiveStop
 from pipeline.sourcefaults import describe_fault
 from pipeline.stalls import Stall, StallWatch
 
@@ -24,9 +33,13 @@ class RunResult:
     frames: int = 0
     seconds: float = 0.0
     interrupted: bool = False
+    """Stopped by Ctrl-C or SIGTERM."""
     aborted: str | None = None
     """Why the run ended before end-of-stream reached the sink (a second Ctrl-C, EOS too slow):
     the sink did not finish (an MP4 without its index), or None."""
+    discarded: int = 0
+    """Live runs: frames still queued when the stop came, dropped rather than drained (each one
+    posted as dropped, reason ``stopped``)."""
     dead_sources: dict[int, str] = field(default_factory=dict)
     stalls: dict[int, list[Stall]] = field(default_factory=dict)
     """Live sources that went quiet for longer than their stall-timeout, and for how long."""
@@ -56,6 +69,8 @@ class Runner:
         self._error: str | None = None
         self._retired: set = set()  # every element of the sources dropped so far
         self._stop_asked_at: float | None = None
+        self._stopped_by: str | None = None  # what asked for the stop: Ctrl-C, SIGTERM, a limit
+        self._live_stop: LiveStop | None = None
         self._started = 0.0
         self._last_report = (0.0, 0)
         self._stalls = StallWatch(self._say, self.result.stalls)
@@ -69,7 +84,7 @@ class Runner:
         bus.add_signal_watch()
         handler = bus.connect("message", self._on_message)
         sigint = GLib.unix_signal_add(GLib.PRIORITY_HIGH, signal.SIGINT, self._on_sigint)
-        sigterm = GLib.unix_signal_add(GLib.PRIORITY_HIGH, signal.SIGTERM, self._on_sigint)
+        sigterm = GLib.unix_signal_add(GLib.PRIORITY_HIGH, signal.SIGTERM, self._on_sigterm)
         ticker = GLib.timeout_add(200, self._tick)
         try:
             if signals.held() is not None:
@@ -85,9 +100,12 @@ class Runner:
             GLib.source_remove(ticker)
             GLib.source_remove(sigint)
             GLib.source_remove(sigterm)
+            signals.finishing()  # GLib left the default (fatal) actions; a stop is under way or done
             self.result.seconds = time.monotonic() - self._started if self._started else 0.0
             self._stalls.finish(time.monotonic())
             pipeline.set_state(Gst.State.NULL)
+            if self._live_stop is not None:
+                self.result.discarded = self._live_stop.dropped
             bus.disconnect(handler)
             bus.remove_signal_watch()
             self._report(final=True)
@@ -95,11 +113,22 @@ class Runner:
             raise PipelineError(self._error)
         return self.result
 
+    @property
+    def live(self) -> bool:
+        """Some source sends frames in real time (camera, stream, live file or test)."""
+        return any(s.config.is_live for s in self.built.sources)
+
     def stop(self) -> None:
-        """Ask for a clean stop: EOS from every source, then wait for it to reach the sink."""
+        """Ask for a clean stop: end-of-stream from every source, then wait for it to reach the sink.
+        Files drain; live sources end now, and the frames still queued are dropped (:mod:`pipeline.livestop`)."""
         if self._stop_asked_at is not None:
             return
         self._stop_asked_at = time.monotonic()
+        if self.live:
+            clock_id = self.built.sources[0].stamp.get_property("clock-id")
+            self._live_stop = LiveStop(self.built.stages, self._live_sources(), clock_id)
+            self._live_stop.start()
+            return
         for source in self.built.sources:
             source.stop_looping()
         self.built.pipeline.send_event(Gst.Event.new_eos())
@@ -119,19 +148,38 @@ class Runner:
 
     def _on_sigint(self):
         if self._stop_asked_at is None:
+            self._stop_for("Ctrl-C")
+        else:  # a stop under way takes too long for the user: leave the sink unfinished
             self.result.interrupted = True
-            self.stop()
-            self._say("\nstopping: sending end-of-stream (Ctrl-C again to abort)")
-        else:
-            self.result.aborted = "aborted by a second Ctrl-C"
+            self.result.aborted = ("aborted by a second Ctrl-C" if self._stopped_by == "Ctrl-C"
+                                   else "aborted by Ctrl-C while stopping")
             self._loop.quit()
             self._say("\naborting")
         return True
 
+    def _on_sigterm(self):
+        """Always the clean stop, never an abort: a service manager or ``timeout`` that sends it
+        again, or after a ``--duration`` stop began, means "stop", which is under way."""
+        if self._stop_asked_at is None:
+            self._stop_for("SIGTERM")
+        else:
+            self._say("\nSIGTERM: already stopping (Ctrl-C to abort)")
+        return True
+
+    def _stop_for(self, why: str) -> None:
+        self._stopped_by = why
+        if why in ("Ctrl-C", "SIGTERM"):
+            self.result.interrupted = True
+        self.stop()
+        dropping = "; frames still queued are dropped" if self.live else ""
+        again = "Ctrl-C again" if why == "Ctrl-C" else "Ctrl-C"
+        on = "" if why == "Ctrl-C" else f" ({why})"
+        self._say(f"\nstopping{on}: sending end-of-stream{dropping} ({again} to abort)")
+
     def _tick(self):
         now = time.monotonic()
         if self.duration is not None and self._stop_asked_at is None and now - self._started >= self.duration:
-            self.stop()
+            self._stop_for(f"--duration {self.duration:g} s")
         if self._stop_asked_at is not None and now - self._stop_asked_at > EOS_GRACE_S:
             self._say(f"\nend-of-stream did not reach the sink within {EOS_GRACE_S:.0f} s: stopping anyway")
             self.result.aborted = "end-of-stream did not reach the sink"

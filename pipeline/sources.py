@@ -132,6 +132,29 @@ class SourceBin(Gst.Bin):
         """Let the next EOS through (the run is ending)."""
         self._stopping = True
 
+    def end_now(self) -> None:
+        """End this source's stream at its frame stamp, now (a live run that stops): what comes
+        from upstream is discarded before it is stamped (no identity, so never a frame of the
+        run), and end-of-stream goes out right behind the last frame that was stamped."""
+        self._stopping = True
+        eos = Gst.Event.new_eos()
+        ours = eos.get_seqnum()
+
+        def discard(_pad: Gst.Pad, info: Gst.PadProbeInfo):
+            if info.type & (Gst.PadProbeType.EVENT_DOWNSTREAM | Gst.PadProbeType.EVENT_FLUSH):
+                event = info.get_event()  # a buffer's probe info has none: asking is a GStreamer-CRITICAL
+                if event.type == Gst.EventType.EOS and event.get_seqnum() == ours:
+                    return Gst.PadProbeReturn.OK
+            return Gst.PadProbeReturn.DROP  # frames, and events that would reopen the stream (a loop's flush)
+
+        entry = self.stamp.get_static_pad("sink")
+        entry.add_probe(Gst.PadProbeType.BUFFER | Gst.PadProbeType.BUFFER_LIST | Gst.PadProbeType.EVENT_DOWNSTREAM
+                        | Gst.PadProbeType.EVENT_FLUSH, discard)
+        # Serialised on the stamp's streaming lock: it waits for a frame being stamped, or one
+        # blocked on its way into a full mux, to go first. That can take a batch's time: not on
+        # the main loop.
+        threading.Thread(target=entry.send_event, args=(eos,), name=f"end-{self.index}", daemon=True).start()
+
     def _on_event(self, pad: Gst.Pad, info: Gst.PadProbeInfo):
         event = info.get_event()
         if self._stopping:

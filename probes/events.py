@@ -44,9 +44,12 @@ FRAME_CELLS = 6
 """A frame table's cells per (frame, stage): the five points' timestamps, then (at GROUP) the
 ``code`` of the frame's ready event there: > 0 on the first frame of an output buffer."""
 
-DROP_REASONS = {0: "unknown", 1: "late", 2: "qos", 3: "queue full", 4: "error"}
-"""``code`` of a ``drop`` event -> why the frame was dropped."""
+DROP_REASONS = {0: "unknown", 1: "late", 2: "qos", 3: "queue full", 4: "error", 5: "stopped"}
+"""``code`` of a ``drop`` event -> why the frame was dropped: ``late``, older than the mux's
+``max-latency``; ``stopped``, still queued when a live run stopped (not drained, see
+:mod:`pipeline.livestop`)."""
 LATE = 1
+STOPPED = 5
 
 FACT_THREAD, FACT_NOMINAL_MHZ, FACT_LOST_UPSTREAM, FACT_DECODER_DROPPED = 1, 2, 3, 4
 FACT_KINDS = {FACT_THREAD: "thread", FACT_NOMINAL_MHZ: "nominal_mhz", FACT_LOST_UPSTREAM: "lost_upstream",

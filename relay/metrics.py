@@ -12,12 +12,12 @@ Exporters add theirs through :attr:`RelayCollector.extra`. The text is what
 Every per-node series is labelled ``node`` (its newest run only); no label holds a frame
 number, and only ``dcuscope_node_info`` a run id. Series per node, at most, with S stages
 (``--limit stages``, 64), K sources (``--limit sources``, 256), G = min(gap pairs,
-framemetrics.MAX_GAPS + 1) and R = len(probes.events.DROP_REASONS) (5), each
+framemetrics.MAX_GAPS + 1) and R = len(probes.events.DROP_REASONS) (6), each
 histogram series being len(BUCKETS_S) + 3 = 34 samples (buckets, +Inf, sum, count)::
 
     34 (2 + 3 S + G)  +  4 S  +  K (6 + R)  +  18
 
-(~1,250 for a typical node: 8 stages, 8 gaps, 4 sources; 14,072 at every default
+(~1,250 for a typical node: 8 stages, 8 gaps, 4 sources; 14,328 at every default
 limit), plus 7 for the relay itself and those of :attr:`RelayCollector.extra`.
 """
 

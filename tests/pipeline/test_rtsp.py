@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -17,14 +16,10 @@ from probes.frametable import frame_table
 from probes.tracefile import read_trace
 from tests.conftest import BIKES, VTEST, cli_env, run_cli
 from tests.pipeline.clips import MJPEG_MULTIPART, write_clip
+from tests.pipeline.livecheck import check_every_frame_accounted, run_timed
+from tests.ports import free_port
 
 CLIP_FRAMES = 20  # two seconds at 10 frames/s
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def serve(*clips, port: int) -> subprocess.Popen:
@@ -65,6 +60,32 @@ def test_rtsp_streams_are_processed_end_to_end_with_probes(tmp_path):
         origins = np.sort(table.origin[rows])
         fps[source] = (len(origins) - 1) / ((origins[-1] - origins[0]) / 1e9)
     assert abs(fps[0] - 10) < 2 and abs(fps[1] - 25) < 4, fps
+
+
+def test_rtsp_streams_a_pipeline_cannot_keep_up_with_stop_at_the_duration_every_frame_accounted(tmp_path):
+    """The two shipped clips, 35 frames/s, into a stage that takes about 13: the backlog grows
+    in the mux and in rtspsrc's jitter buffer, and an end-of-stream sent into rtspsrc came out
+    behind all of it (the run drained until killed). Now it ends at its --duration."""
+    port = free_port()
+    server = serve(VTEST, BIKES, port=port)
+    try:
+        config = tmp_path / "behind.yaml"
+        config.write_text(
+            f"sources:\n  - {{uri: 'rtsp://127.0.0.1:{port}/cam0', latency: 200}}\n"
+            f"  - {{uri: 'rtsp://127.0.0.1:{port}/cam1', latency: 200}}\n"
+            "stages:\n  - mux: {batch-size: 2, width: 320, height: 240, live-source: true}\n"
+            "  - factory: identity\n    properties: {sleep-time: 150000}\n"
+        )
+        trace = tmp_path / "behind.jsonl"
+        run = run_timed("run", config, "--probes", "--trace", trace, "--duration", 8, cwd=tmp_path,
+                        stop_line="stopping (--duration 8 s)")
+    finally:
+        server.send_signal(signal.SIGINT)
+        server.wait(10)
+    assert run.returncode == 0, run.stderr
+    assert run.stop_said_at is not None and run.ended_at - run.stop_said_at < 5.0, run.stderr
+    dropped = check_every_frame_accounted(trace)
+    assert set(dropped) == {"stopped"} and dropped["stopped"] > 0, dropped
 
 
 def test_killing_the_rtsp_server_leaves_the_other_source_running_and_reports_the_loss(tmp_path):
