@@ -70,24 +70,28 @@ def _wait_for_relay(url: str, relay: subprocess.Popen, timeout_s: float = 30.0) 
     raise PipelineError(f"the relay did not answer at {url} within {timeout_s:.0f} s")
 
 
-def _status_line(url: str) -> str:
+def _status_lines(url: str) -> list[str]:
+    """One line per DCU (frames/s, mean frame delay, verdict), aligned: two DCUs on one line
+    would run past a terminal's width every 5 s."""
     try:
         nodes = _get_json(f"{url}/api/nodes")
     except OSError as exc:
-        return f"relay unreachable: {exc}"
-    parts = []
-    for node in nodes if isinstance(nodes, list) else nodes.get("nodes", []):
-        name = node.get("node", "?")
+        return [f"relay unreachable: {exc}"]
+    names = [node.get("node", "?") for node in (nodes if isinstance(nodes, list) else nodes.get("nodes", []))]
+    width = max((len(name) for name in names), default=0) + 1
+    lines = []
+    for name in names:
+        head = f"{name + ':':<{width}}"
         try:
             stats = _get_json(f"{url}/api/stats?node={name}")
             frame = stats.get("frame", {})
             fps = sum((stats.get("fps") or {}).values())
             mean = frame.get("mean_ms")
-            parts.append(f"{name}: {fps:5.1f} fps, frame delay {mean:7.1f} ms, {_verdict(stats.get('bottleneck'))}"
-                         if mean is not None else f"{name}: waiting for frames")
+            lines.append(f"{head} {fps:5.1f} fps, frame delay {mean:7.1f} ms, {_verdict(stats.get('bottleneck'))}"
+                         if mean is not None else f"{head} waiting for frames")
         except OSError:
-            parts.append(f"{name}: no stats yet")
-    return " | ".join(parts) or "no node connected yet"
+            lines.append(f"{head} no stats yet")
+    return lines or ["no node connected yet"]
 
 
 def _verdict(b: dict | None) -> str:
@@ -125,7 +129,7 @@ def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = 
                 raise PipelineError("a demo process exited early (see its message above)")
             if time.monotonic() - last_status >= STATUS_EVERY_S:
                 last_status = time.monotonic()
-                print(f"demo: {_status_line(url)}", flush=True)
+                print("\n".join(f"demo: {line}" for line in _status_lines(url)), flush=True)
     except KeyboardInterrupt:
         status = 128 + signal.SIGINT
         print("\ndemo: stopping", flush=True)

@@ -472,3 +472,73 @@ def test_stats_panel_from_an_older_relay_shows_what_it_always_did(page):
         assert r["foot"].startswith("fps source 0: 29.5") and r["reason"] is None
     assert [row["marked"] for row in out["old"]["rows"]] == [False, True]
     assert not any(row["marked"] for row in out["bare"]["rows"])
+
+
+# --- the Nodes panel at a glance (issue 21): one short clock state, the reasons a click away ------
+
+def test_nodes_panel_states_the_clock_in_a_word_and_keeps_every_fact_in_the_detail(page):
+    out = js(page, """
+        const sysclock = (follows, synced, by, detail) => ({follows_ptp: follows, synced, by, detail});
+        const locked = {state: "locked", reason: "slave of aabbcc.fffe.000001", port_state: "SLAVE", master_offset_ns: -12,
+                        gm_present: true, gm_identity: "aabbcc.fffe.000001", timestamping: "hardware", interface: "eth0"};
+        const est = {applied: "estimate", mode: "auto", offset_us: -3.2, uncertainty_us: 9, drift_ppm: 0.03,
+                     drift_uncertainty_ppm: 0.85, correction_us: -3.2, correction_uncertainty_ns: 11000, samples: 32,
+                     points: 3, rtt_us: 8, via: "udp", history: 2, restarts: 0, rejected: 0};
+        const nodes = [
+            {node: "A", run: "r1", connected: true, events: 10, frames: {shown: 5}, drops: 0,
+             clock: {...est, applied: "ptp", why: "PTP locked to aabbcc.fffe.000001, offset -12 ns, CLOCK_REALTIME by phc2sys"},
+             ptp: {...locked, system_clock: sysclock(true, true, "phc2sys", "phc2sys -s eth0")}},
+            {node: "B", run: "r2", connected: true, events: 10, frames: {shown: 5}, drops: 0,
+             clock: {...est, why: "PTP not trusted: ptp4l locked but CLOCK_REALTIME not disciplined by PTP (ptp4l free_running, no phc2sys); estimate applied"},
+             ptp: {...locked, system_clock: sysclock(false, true, "chronyd", "ptp4l free_running, no phc2sys")}},
+            {node: "C", run: "r3", connected: true, events: 1, frames: {shown: 0}, drops: 0,
+             clock: {applied: "none", mode: "auto", offset_us: null, why: "PTP not trusted: PTP lost (lost aabbcc.fffe.000001: grandmaster gone); no clock estimate yet"},
+             ptp: {state: "lost", reason: "lost aabbcc.fffe.000001: grandmaster gone", gm_present: false}},
+            {node: "D", run: "r4", connected: false, ended: true, events: 1, frames: {shown: 0}, drops: 0,
+             clock: {...est, offset_us: -0.4, why: "PTP not trusted: PTP unlocked (no grandmaster (port LISTENING)); estimate applied"},
+             ptp: {state: "unlocked", reason: "pmc says so", port_state: "LISTENING", gm_present: false}},
+        ];
+        const render = (open, stored = false, list = nodes) => {
+            const div = document.createElement("div");
+            div.innerHTML = m.nodesHtml(list, stored, new Set(open));
+            return div;
+        };
+        const closed = render([]);
+        const rows = [...closed.querySelectorAll("tr.node-row")].map((tr) => ({
+            node: tr.dataset.node, state: tr.querySelector(".clock-state").textContent,
+            ptp: tr.querySelector(".ptp-state").textContent, offset: tr.querySelector(".clock-offset").textContent,
+            title: tr.querySelector(".clock-cell").title, text: tr.textContent}));
+        const opened = render(["B", "D"]);
+        const detail = (node) => {
+            const tr = opened.querySelector(`tr[data-detail="${node}"]`);
+            return {why: tr.querySelector(".clock-why").textContent, ptp: tr.querySelector(".ptp-cell").textContent,
+                    sysclock: tr.querySelector(".sysclock").textContent, howto: tr.querySelector(".clock-howto").textContent,
+                    text: tr.textContent, span: tr.firstElementChild.colSpan,
+                    columns: opened.querySelector("thead tr").children.length};
+        };
+        const stored = render([], true, [{node: "E", run: "r5", ended: true, events: 1, frames: 0, dropped: 0, lost: 0,
+            clock: {applied: "ignored", ignored: "offset beyond any relay's bound", why: ""}},
+            {node: "F", run: "r6", ended: false, events: 1, frames: 0, dropped: 0, lost: 0, clock: {applied: "none"}}]);
+        return {rows, details: closed.querySelectorAll("tr.node-detail").length, b: detail("B"), d: detail("D"),
+                open: [...opened.querySelectorAll("tr.node-detail")].map((tr) => tr.dataset.detail),
+                stored: [...stored.querySelectorAll(".clock-state")].map((s) => s.textContent),
+                storedTitle: stored.querySelector(".clock-cell").title};""")
+    rows = {r["node"]: r for r in out["rows"]}
+    assert {n: (r["state"], r["ptp"]) for n, r in rows.items()} == {
+        "A": ("PTP locked", "locked"), "B": ("estimate", "locked"), "C": ("no estimate yet", "lost"), "D": ("estimate", "unlocked")}
+    assert rows["B"]["offset"] == "−3 µs ± 9 µs" and rows["C"]["offset"] == "–" and rows["D"]["offset"] == "0 µs ± 9 µs"
+    for r in out["rows"]:
+        assert "PTP not trusted" not in r["text"] and "grandmaster gone" not in r["text"] and len(r["text"]) < 100, r
+        assert "docs/clocks.md" in r["title"]
+    assert rows["B"]["title"].startswith("PTP not trusted: ptp4l locked but CLOCK_REALTIME not disciplined by PTP")
+    assert out["details"] == 0 and out["open"] == ["B", "D"]
+    b, d = out["b"], out["d"]
+    assert b["span"] == b["columns"] == 10
+    assert b["why"].startswith("PTP not trusted: ptp4l locked but") and "docs/clocks.md" in b["howto"]
+    # Every PTP fact the columns showed before: port, master offset, grandmaster, timestamping, the system clock.
+    assert all(s in b["ptp"] for s in ("locked", "port SLAVE", "offset -12 ns", "GM aabbcc.fffe.000001", "hardware timestamps"))
+    assert b["sysclock"] == "chronyd · not PTP · ptp4l free_running, no phc2sys"
+    assert "subtracts −3 µs ± 11 µs now" in b["text"] and "32 samples" in b["text"] and "--clock auto" in b["text"]
+    # PTP's own reason shows where the clock's reason does not hold it, and only once where it does.
+    assert "pmc says so" in d["ptp"] and b["text"].count("slave of aabbcc.fffe.000001") == 1
+    assert out["stored"] == ["ignored", "uncorrected"] and "offset beyond any relay's bound" in out["storedTitle"]

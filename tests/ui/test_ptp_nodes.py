@@ -84,12 +84,20 @@ def test_relay_and_ui_show_ptp_then_lost_when_the_grandmaster_dies(setup, browse
         row.wait_for(timeout=20_000)
         page.wait_for_function("() => document.querySelector('#nodes-panel tr[data-node=\"DCU-PTP\"] .ptp-state')"
                                "?.textContent === 'locked'", timeout=20_000)
-        assert row.locator(".ptp-port").inner_text() == "SLAVE"
-        assert gm in row.locator(".ptp-gm").inner_text()
-        assert row.locator(".ptp-offset").inner_text().endswith("ns")
-        assert "ptp4l free_running, no phc2sys" in row.locator(".sysclock").inner_text()
+        # At a glance: ptp4l locked, but the clock is the relay's estimate (CLOCK_REALTIME follows nothing).
+        assert row.locator(".clock-state").inner_text() == "estimate"
+        assert "CLOCK_REALTIME not disciplined by PTP" in row.locator(".clock-cell").get_attribute("title")
         drift = row.locator(".drift").inner_text()
         assert drift == "—" or drift.endswith("ppm"), drift
+        # The details, a click away: port, grandmaster, master offset, what CLOCK_REALTIME follows, the why in full.
+        row.click()
+        detail = page.locator('#nodes-panel tr[data-detail="DCU-PTP"]')
+        detail.wait_for(timeout=5_000)
+        assert detail.locator(".ptp-port").inner_text() == "SLAVE"
+        assert gm in detail.locator(".ptp-gm").inner_text()
+        assert detail.locator(".ptp-offset").inner_text().endswith("ns")
+        assert "ptp4l free_running, no phc2sys" in detail.locator(".sysclock").inner_text()
+        assert "PTP not trusted: ptp4l locked but CLOCK_REALTIME not disciplined by PTP" in detail.locator(".clock-why").inner_text()
 
         # The bound: the client notices after announceReceiptTimeout + 1 (ptp4l's random span)
         # announce intervals, the node polls every POLL_S (pmc answering within PMC_S), reports every REPORT_S.
@@ -105,6 +113,9 @@ def test_relay_and_ui_show_ptp_then_lost_when_the_grandmaster_dies(setup, browse
         assert lost["clock"]["applied"] == "estimate" and lost["clock"]["why"].startswith("PTP not trusted: PTP lost (lost ")
         page.wait_for_function("() => document.querySelector('#nodes-panel tr[data-node=\"DCU-PTP\"] .ptp-state')"
                                "?.textContent === 'lost'", timeout=10_000)
+        # The detail row stayed open across the refreshes, and now says why PTP is not trusted.
+        page.wait_for_function("() => document.querySelector('#nodes-panel tr[data-detail=\"DCU-PTP\"] .clock-why')"
+                               "?.textContent.startsWith('PTP not trusted: PTP lost (lost ')", timeout=10_000)
         print(f"grandmaster killed: node lost after {took:.1f} s (bound {bound_s:.1f} s)")
     finally:
         page.close()

@@ -41,7 +41,7 @@ const live = new Dataset("live");
 let current = live;
 const view = {
   follow: true, width: DEFAULT_WIDTH_MS, end: Date.now(), limit: 50, perSource: false, expanded: new Set(), raw: false,
-  tab: "stage", windowed: false, frameCount: 300, dirty: true, panelsDirty: true, openGaps: new Set(),
+  tab: "stage", windowed: false, frameCount: 300, dirty: true, panelsDirty: true, openGaps: new Set(), openNodes: new Set(),
 };
 let skewSamples = [];
 let skew = 0;
@@ -506,7 +506,7 @@ function renderPanels() {
   }
   setHtml($("#stats-body"), statsHtml(entries, colours, view.windowed && current.kind === "live", view.openGaps));
   const nodes = [...current.nodes.values()].sort((a, b) => (a.node < b.node ? -1 : 1));
-  setHtml($("#nodes-body"), nodesHtml(nodes, current.kind !== "live"));
+  setHtml($("#nodes-body"), nodesHtml(nodes, current.kind !== "live", view.openNodes));
 }
 
 function frame(ts) {
@@ -573,6 +573,13 @@ $("#stats-body").addEventListener("toggle", (ev) => {
   const node = ev.target.closest(".stats-node")?.dataset.node;
   if (node !== undefined) view.openGaps[ev.target.open ? "add" : "delete"](node);
 }, true);
+$("#nodes-body").addEventListener("click", (ev) => {
+  // A click on a node's row opens its detail row (the clock's reasons in full), kept open across refreshes.
+  const node = ev.target.closest("tr.node-row")?.dataset.node;
+  if (node === undefined || window.getSelection()?.toString()) return;
+  view.openNodes[view.openNodes.has(node) ? "delete" : "add"](node);
+  renderPanels();
+});
 $("#session-select").addEventListener("change", (ev) => chooseData(ev.target.value));
 $("#session-select").addEventListener("focus", refreshSessions);
 for (const b of document.querySelectorAll(".tab")) b.addEventListener("click", () => setTab(b.dataset.tab));

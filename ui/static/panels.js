@@ -99,33 +99,64 @@ export function statsHtml(entries, colours, windowed, openGaps = new Set()) {
   }).join("");
 }
 
+/** µs with its sign (none on what rounds to 0: "−0 µs" reads as a fault). */
+const signed = (us) => {
+  const text = formatDelay(Math.abs(us) / 1000);
+  return text === "0 µs" ? text : `${us >= 0 ? "+" : "−"}${text}`;
+};
+
 function offsetText(clock) {
-  if (!clock || clock.offset_us === null || clock.offset_us === undefined) return `<span class="muted">no estimate yet</span>`;
-  const sign = clock.offset_us >= 0 ? "+" : "−";
-  return `${sign}${formatDelay(Math.abs(clock.offset_us) / 1000)} ± ${formatDelay(clock.uncertainty_us / 1000)}`;
+  if (!clock || clock.offset_us === null || clock.offset_us === undefined) return `<span class="muted">–</span>`;
+  return `${signed(clock.offset_us)} ± ${formatDelay(clock.uncertainty_us / 1000)}`;
 }
 
-/** PTP as the node reads it: state, port state, master offset, grandmaster, the reason. */
-function ptpText(ptp) {
-  if (!ptp || !ptp.state) return "–";
-  const parts = [`<span class="ptp ptp-state ptp-${esc(ptp.state)}">${esc(ptp.state)}</span>`];
+/** Where the clocks and PTP are explained. The relay serves only the page, so the doc is named, not linked. */
+export const CLOCK_DOC = "docs/clocks.md";
+
+/**
+ * The node's clock in a word or two, from what the relay applies to its timestamps: PTP locked
+ * (trusted, nothing subtracted), estimate (the relay's offset subtracted), no estimate yet
+ * (nothing subtracted), ignored (a stored correction no relay could compute). The why is elsewhere.
+ */
+export function clockState(clock, ptp, stored) {
+  const applied = clock?.applied;
+  if (applied === "ptp") {
+    return ptp?.state === "locked" ? { label: "PTP locked", cls: "ok" } : { label: "PTP assumed", cls: "warn" };
+  }
+  if (applied === "estimate") return { label: "estimate", cls: "est" };
+  if (applied === "none" || !applied) return { label: stored ? "uncorrected" : "no estimate yet", cls: "warn" };
+  if (applied === "ignored") return { label: "ignored", cls: "bad" };
+  return { label: String(applied), cls: "est" };
+}
+
+/** PTP as the node reads it, in one word (its reason in the title and the detail row). */
+function ptpWord(ptp) {
+  if (!ptp || !ptp.state) return `<span class="muted">–</span>`;
+  return `<span class="ptp ptp-state ptp-${esc(ptp.state)}"${ptp.reason ? ` title="${esc(ptp.reason)}"` : ""}>${esc(ptp.state)}</span>`;
+}
+
+/** PTP in full: state, port state, master offset, grandmaster, timestamping; its reason unless `said` holds it. */
+function ptpText(ptp, said) {
+  if (!ptp || !ptp.state) return `<span class="muted">no PTP report</span>`;
+  const parts = [`<span class="ptp-${esc(ptp.state)}">${esc(ptp.state)}</span>`];
   if (ptp.port_state) parts.push(`port <span class="ptp-port">${esc(ptp.port_state)}</span>`);
   if (ptp.master_offset_ns !== undefined) parts.push(`offset <span class="ptp-offset">${esc(ptp.master_offset_ns)} ns</span>`);
   if (ptp.gm_identity) parts.push(`<span class="ptp-gm">GM ${esc(ptp.gm_identity)}</span>`);
   if (ptp.gm_present === false) parts.push("no grandmaster");
   if (ptp.timestamping) parts.push(`${esc(ptp.timestamping)} timestamps`);
-  if (ptp.reason) parts.push(`<span class="muted">${esc(ptp.reason)}</span>`);
+  if (ptp.interface) parts.push(`on ${esc(ptp.interface)}`);
+  if (ptp.reason && !said.includes(ptp.reason)) parts.push(`<span class="ptp-reason">${esc(ptp.reason)}</span>`);
   return parts.join(" · ");
 }
 
 /** What disciplines the node's CLOCK_REALTIME (what its probes read), and whether that follows PTP. */
 function sysclockText(ptp) {
   const sc = ptp?.system_clock;
-  if (!sc) return `<span class="muted">–</span>`;
+  if (!sc) return `<span class="muted">not reported</span>`;
   const by = sc.by ? esc(sc.by) : "nothing";
   const follows = sc.follows_ptp ? `<span class="sc-follows">follows PTP</span>` : `<span class="sc-not">not PTP</span>`;
   const synced = sc.synced ? "" : ` · <span class="sc-not">unsynchronised</span>`;
-  return `${by} · ${follows}${synced}${sc.detail ? `<br><span class="muted">${esc(sc.detail)}</span>` : ""}`;
+  return `${by} · ${follows}${synced}${sc.detail ? ` · ${esc(sc.detail)}` : ""}`;
 }
 
 function driftText(clock) {
@@ -135,28 +166,75 @@ function driftText(clock) {
   return `${d >= 0 ? "+" : "−"}${Math.abs(d).toFixed(2)}${unc !== null && unc !== undefined ? ` ± ${Number(unc).toFixed(2)}` : ""} ppm`;
 }
 
-/** Nodes table: connection, clock offset ± uncertainty, applied correction, PTP, counters. */
-export function nodesHtml(nodes, stored) {
+/** The clock in full: the relay's reason (a line of its own), what it subtracts now, what its estimate rests on. */
+function clockDetail(clock, stored) {
+  const why = [clock.why, clock.ignored && `stored correction ignored: ${clock.ignored}`].filter(Boolean)
+    .map((w) => `<span class="clock-why">${esc(w)}</span>`).join("<br>");
+  const parts = [];
+  if (clock.correction_us !== null && clock.correction_us !== undefined) {
+    const bound = clock.correction_uncertainty_ns;
+    const value = `${signed(clock.correction_us)}${bound !== null && bound !== undefined ? ` ± ${formatDelay(bound / 1e6)}` : ""}`;
+    parts.push(`<span class="clock-correction">${stored ? `last correction ${value}` : `subtracts ${value} now`}</span>`);
+  }
+  if (clock.samples) {
+    const rtt = clock.rtt_us !== null && clock.rtt_us !== undefined ? `, RTT ${formatDelay(clock.rtt_us / 1000)}` : "";
+    parts.push(`estimate from ${int(clock.samples)} samples (${int(clock.points)} points${rtt}${clock.via ? ` via ${esc(clock.via)}` : ""})`
+      + `${clock.history ? `, ${int(clock.history)} estimates kept` : ""}${clock.restarts ? `, ${int(clock.restarts)} restarts` : ""}`);
+  }
+  if (clock.rejected) parts.push(`<span class="sc-not">${int(clock.rejected)} samples rejected${clock.rejected_why ? `: ${esc(clock.rejected_why)}` : ""}</span>`);
+  if (clock.mode) parts.push(`relay --clock ${esc(clock.mode)}`);
+  return [why, parts.join(" · ")].filter(Boolean).join("<br>") || `<span class="muted">–</span>`;
+}
+
+/** The row under a node's, opened by a click: the reasons in full, PTP, the system clock, where to read more. */
+function nodeDetail(n, clock, ptp, stored, span) {
+  const said = `${clock.why ?? ""} ${clock.ignored ?? ""}`;
+  return `<tr class="node-detail" data-detail="${esc(n.node)}"><td colspan="${span}"><dl>`
+    + `<dt>clock</dt><dd class="clock-detail">${clockDetail(clock, stored)}</dd>`
+    + `<dt>PTP</dt><dd class="ptp-cell">${ptpText(ptp, said)}</dd>`
+    + `<dt title="what disciplines the node's CLOCK_REALTIME">system clock</dt><dd class="sysclock">${sysclockText(ptp)}</dd>`
+    + `<dt>read more</dt><dd class="clock-howto"><code>${CLOCK_DOC}</code> in dcuscope's source: setting up PTP, and the relay's estimate without it</dd>`
+    + `</dl></td></tr>`;
+}
+
+const NODE_COLUMNS = 10;
+
+/**
+ * Nodes table, one short row per node: connection, the clock's state in a word or two with the
+ * offset ± uncertainty and drift, PTP's state in a word, counters. The reasons in full, PTP's
+ * and the system clock's details and where to read more are in the clock's title and in a detail
+ * row that a click on the node's row opens (`open`: the nodes opened, kept across refreshes).
+ */
+export function nodesHtml(nodes, stored, open = new Set()) {
   if (!nodes.length) return `<p class="muted">No node has connected yet.</p>`;
   const rows = nodes.map((n) => {
     const state = stored ? (n.ended ? "stored" : "stored (incomplete)") : n.connected ? "connected" : n.ended ? "ended" : "disconnected";
     const cls = stored ? "stored" : n.connected ? "up" : n.ended ? "ended" : "down";
     const clock = n.clock ?? {};
-    const corr = clock.applied ? `${esc(clock.applied)}${clock.correction_us ? ` (${formatDelay(clock.correction_us / 1000)})` : ""}`
-      + (clock.why ? `<br><span class="muted clock-why">${esc(clock.why)}</span>` : "") : "–";
+    const ptp = n.ptp ?? clock.ptp;
     const frames = stored ? n.frames : n.frames?.shown;
     const drops = stored ? (n.dropped ?? 0) + (n.lost ?? 0) : n.drops;
     // Another run tried to stream under this name while it was live: refused, and said here.
     const conflict = n.conflicts ? ` <span class="conflict" title="hellos of other runs under this name, refused">`
       + `${int(n.conflicts)} name conflict${n.conflicts > 1 ? "s" : ""}</span>` : "";
-    return `<tr data-node="${esc(n.node)}"><td><b>${esc(n.node)}</b></td>`
+    const cs = clockState(clock, ptp, stored);
+    const why = [clock.why, clock.ignored && `stored correction ignored: ${clock.ignored}`].filter(Boolean).join("\n");
+    const title = `${why ? `${why}\n` : ""}click the row for details · clocks and PTP: ${CLOCK_DOC}`;
+    const isOpen = open.has(n.node);
+    return `<tr class="node-row${isOpen ? " open" : ""}" data-node="${esc(n.node)}" aria-expanded="${isOpen}">`
+      + `<td><span class="node-toggle" aria-hidden="true">${isOpen ? "▾" : "▸"}</span><b>${esc(n.node)}</b></td>`
       + `<td><span class="dot dot-${cls}"></span><span class="conn-state">${state}</span>${conflict}</td>`
-      + `<td class="clock-offset">${offsetText(clock)}</td><td class="wrap">${corr}</td><td class="drift">${driftText(clock)}</td>`
-      + `<td class="wrap ptp-cell">${ptpText(n.ptp ?? clock.ptp)}</td><td class="wrap sysclock">${sysclockText(n.ptp ?? clock.ptp)}</td>`
+      + `<td class="clock-cell" title="${esc(title)}"><span class="clock-state clock-${cs.cls}">${esc(cs.label)}</span></td>`
+      + `<td class="clock-offset">${offsetText(clock)}</td><td class="drift">${driftText(clock)}</td>`
+      + `<td class="ptp-word">${ptpWord(ptp)}</td>`
       + `<td>${int(n.events)}</td><td>${int(frames)}</td><td>${int(drops)}</td>`
-      + `<td class="muted">${esc(String(n.run).slice(0, 8))}</td></tr>`;
+      + `<td class="muted">${esc(String(n.run).slice(0, 8))}</td></tr>`
+      + (isOpen ? nodeDetail(n, clock, ptp, stored, NODE_COLUMNS) : "");
   }).join("");
-  return `<table class="nodes"><thead><tr><th>DCU</th><th>state</th><th>clock offset</th><th>correction</th><th>drift</th>`
-    + `<th>PTP</th><th title="what disciplines the node's CLOCK_REALTIME">system clock</th>`
-    + `<th>events</th><th>frames</th><th>drops</th><th>run</th></tr></thead><tbody>${rows}</tbody></table>`;
+  return `<table class="nodes"><thead><tr><th>DCU</th><th>state</th>`
+    + `<th title="what the relay does with the node's timestamps: PTP locked (trusted as they are), estimate (its estimated offset subtracted), no estimate yet">clock</th>`
+    + `<th title="node clock − relay clock, as the relay estimates it, ± its bound">offset</th><th>drift</th>`
+    + `<th title="the node's ptp4l, as pmc reads it">PTP</th>`
+    + `<th>events</th><th>frames</th><th>drops</th><th>run</th></tr></thead><tbody>${rows}</tbody></table>`
+    + `<p class="hint">Click a node for its clock's reason, PTP and system clock details.</p>`;
 }

@@ -1,0 +1,89 @@
+"""The Nodes panel at a glance, in headless Chromium against a real relay fed by two simulated
+nodes without PTP: one short clock state per node with its offset ± uncertainty, the relay's
+reason in full only in the clock's title and in the detail row a click opens."""
+
+from __future__ import annotations
+
+import pytest
+
+from tests.relay.helpers import get_json, wait_for
+from tests.ui.helpers import RelayThread, sim_nodes
+
+NODES = ["DCU-1", "DCU-2"]
+STATES = ("PTP locked", "PTP assumed", "estimate", "no estimate yet", "uncorrected", "ignored")
+ROW_CHARS = 120
+"""A node's row, closed: name, connection, clock state, offset, drift, PTP's state, counters, run."""
+
+
+@pytest.fixture(scope="module")
+def streaming(tmp_path_factory):
+    """A relay, two nodes streaming to it with no ptp4l to read, both with a clock estimate."""
+    tmp = tmp_path_factory.mktemp("nodespanel")
+    relay = RelayThread(tmp / "relay.db")
+    feeder = sim_nodes(relay.url, tmp, NODES, frames=1800, sources=2, fps=30, paced=True,
+                       offsets_ns=[0, 3_000_000], ptp_socket=tmp / "no-ptp4l-here")
+    try:
+        wait_for(lambda: len(n := get_json(f"{relay.url}/api/nodes")) == 2
+                 and all(x["clock"]["applied"] == "estimate" for x in n), 30, 0.2, "both nodes' clock estimates")
+        yield relay
+    finally:
+        feeder.stop()
+        relay.stop()
+
+
+@pytest.fixture
+def page(browser, streaming):
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(streaming.url + "/")
+    for node in NODES:
+        page.wait_for_function(f"() => document.querySelector('#nodes-body tr[data-node=\"{node}\"] .clock-state')"
+                               "?.textContent === 'estimate'", timeout=20_000)
+    yield page
+    page.close()
+    assert not errors, errors
+
+
+def test_each_node_shows_one_short_clock_state_and_no_reason(streaming, page):
+    nodes = {n["node"]: n for n in get_json(f"{streaming.url}/api/nodes")}
+    for node in NODES:
+        assert nodes[node]["ptp"]["state"] == "unavailable" and "no-ptp4l-here" in nodes[node]["ptp"]["reason"]
+        row = page.locator(f'#nodes-body tr[data-node="{node}"]')
+        state = row.locator(".clock-state").inner_text()
+        assert state in STATES and len(state) <= 16, state
+        assert row.locator(".clock-offset").inner_text().count("±") == 1
+        assert row.locator(".ptp-state").inner_text() == "unavailable"
+        text = row.inner_text()
+        assert len(text) <= ROW_CHARS, text
+        # The reason is in the clock's title (hover), not in the row.
+        assert "not trusted" not in text and "ptp4l" not in text, text
+        title = row.locator(".clock-cell").get_attribute("title")
+        assert nodes[node]["clock"]["why"] in title and "docs/clocks.md" in title
+    # Nothing of the reason repeats down the panel while no detail row is open.
+    panel = page.locator("#nodes-panel").inner_text()
+    assert "no-ptp4l-here" not in panel and "PTP not trusted" not in panel
+    assert page.locator("#nodes-body tr.node-detail").count() == 0
+
+
+def test_a_click_opens_the_reason_in_full_and_it_stays_open(streaming, page):
+    page.click('#nodes-body tr[data-node="DCU-2"]')
+    detail = page.locator('#nodes-body tr[data-detail="DCU-2"]')
+    detail.wait_for(timeout=5_000)
+    assert page.locator("#nodes-body tr.node-detail").count() == 1  # DCU-1's stays closed
+    node = next(n for n in get_json(f"{streaming.url}/api/nodes") if n["node"] == "DCU-2")
+    why = detail.locator(".clock-why").inner_text()
+    assert why == node["clock"]["why"] and why.startswith("PTP not trusted: PTP unavailable (no ptp4l socket at ")
+    assert "unavailable" in detail.locator(".ptp-cell").inner_text()
+    sysclock = detail.locator(".sysclock").inner_text()
+    assert sysclock and sysclock != "not reported"
+    assert "docs/clocks.md" in detail.locator(".clock-howto").inner_text()
+    # The reason appears once in the detail row, not once per line of it.
+    assert detail.inner_text().count("no ptp4l socket") == 1
+    # The panel refreshes every second (counters): the row stays open and the page stays as it was.
+    events = page.locator('#nodes-body tr[data-node="DCU-2"] td').nth(6).inner_text()
+    page.wait_for_function("(e) => document.querySelectorAll('#nodes-body tr[data-node=\"DCU-2\"] td')[6].textContent !== e",
+                           arg=events, timeout=10_000)
+    assert detail.count() == 1 and page.locator('#nodes-body tr[data-node="DCU-2"]').get_attribute("aria-expanded") == "true"
+    page.click('#nodes-body tr[data-node="DCU-2"]')
+    page.wait_for_selector('#nodes-body tr[data-detail="DCU-2"]', state="detached", timeout=5_000)
