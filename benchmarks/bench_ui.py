@@ -71,6 +71,8 @@ def watch(playwright, url: str, args: argparse.Namespace, errors: list[str]) -> 
     page = browser.new_page(viewport={"width": 1600, "height": 1000})
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.goto(url + "/")
+    # the page's modules are loaded (on a busy machine that can take longer than the warm-up)
+    page.wait_for_function("() => window.dcuscope !== undefined", timeout=60_000)
     page.evaluate(RAF_COUNTER)
     print(f"load: {args.nodes} nodes x {args.sources} sources x {args.fps:g} fps = "
           f"{args.nodes * args.sources * args.fps:g} frames/s; warm-up {args.warmup:g} s", flush=True)
