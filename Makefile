@@ -12,10 +12,10 @@ demo: setup
 	$(PY) -m dcuscope.cli demo --port $(PORT) $(if $(DURATION),--duration $(DURATION))
 
 test: setup
-	$(PY) -m pytest -q --durations=15
+	@scripts/test.sh
 
 test-fast: setup
-	$(PY) -m pytest -q -m "not slow"
+	$(PY) -m pytest -q -n $${WORKERS:-6} --dist loadgroup -m "not slow and not alone"
 
 bench: setup
 	$(PY) benchmarks/bench_pipeline.py

@@ -116,6 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--close-timeout", type=float, default=30.0)
     p.add_argument("--ptp-socket", default=DEFAULT_UDS, help=f"the local ptp4l's UDS, read with pmc (default {DEFAULT_UDS})")
     p.add_argument("--out", help="write header and shipped events here (.npz)")
+    p.add_argument("--linger", action="store_true",
+                   help="after the last event, keep the run open (connected, not ended) until standard input closes")
     args = p.parse_args(argv)
 
     pretend = PretendClock(args.clock_offset_ns, args.clock_drift_ppm, start_ns=args.clock_start_ns)
@@ -130,6 +132,8 @@ def main(argv: list[str] | None = None) -> int:
     started = time.monotonic()
     exporter.start(header)
     feed(exporter, events, paced=args.paced, clock=pretend)
+    if args.linger:
+        sys.stdin.read()  # a test holds the run live for as long as its check needs, then closes our stdin
     exporter.close(dropped=0)
     if args.out:
         np.savez(args.out, events=events, header=json.dumps(header.to_dict()))

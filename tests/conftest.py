@@ -18,6 +18,38 @@ VTEST = ASSETS / "media" / "vtest.avi"
 BIKES = ASSETS / "media" / "bikes.mp4"
 
 
+def shares_a_module_fixture(item: pytest.Item) -> bool:
+    info = getattr(item, "_fixtureinfo", None)
+    chains = info.name2fixturedefs.values() if info is not None else ()
+    return any(d.scope in ("module", "class") for chain in chains for d in chain)
+
+
+def pytest_itemcollected(item: pytest.Item) -> None:
+    """For parallel workers (``make test``: pytest-xdist, ``--dist loadgroup``): the tests of a
+    module that share a module- or class-scoped fixture (a pipeline run, a relay, a browser) go to
+    one worker, in order, so that the fixture runs once; every other test goes wherever a worker
+    is free. (Marked as each test is collected: xdist reads the marks in its own
+    ``pytest_collection_modifyitems``.) Without xdist the marks are inert."""
+    if getattr(item.config.option, "loadgroup", False) and shares_a_module_fixture(item):
+        item.add_marker(pytest.mark.xdist_group(item.module.__name__))
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Under ``--dist loadgroup`` the groups come first: a group cannot be split, so a long one
+    started last would hold the whole run up."""
+    if not getattr(config.option, "loadgroup", False):
+        return
+    items.sort(key=lambda item: not any(item.iter_markers("xdist_group")))  # stable: order kept within each
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # xdist tells its scheduler a test's group by a suffix to the test's id, which pytest 9 no longer
+    # shows: groups would be split, their fixtures run on every worker, tests that run in order broken.
+    if config.getoption("dist", "no") == "loadgroup" and int(pytest.__version__.split(".")[0]) >= 9:
+        raise pytest.UsageError(f"pytest {pytest.__version__} hides pytest-xdist's test groups (--dist loadgroup): "
+                                "install the versions in constraints.txt (make setup)")
+
+
 @pytest.fixture(scope="session")
 def repo() -> Path:
     return REPO

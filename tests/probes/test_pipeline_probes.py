@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,26 +14,32 @@ from probes.delays import chains
 from probes.events import ENTER, EXIT, ORIGIN
 from probes.frametable import MISSING, frame_table
 from probes.tracefile import read_trace
-from tests.conftest import REPO, run_cli
+from tests.conftest import REPO, cli_env, run_cli
+from tests.probes.sleeper import read_log, slept_per_frame
 
 MODEL = REPO / "assets" / "models" / "ssdlite_mobilenetv2_person.onnx"
 FIVE = ("mux", "infer", "tiler", "convert", "osd")
 
 
-def probed_run(tmp_path: Path, yaml: str, frames: int, *extra: str):
+def probed_run(tmp_path: Path, yaml: str, frames: int, *extra: str, with_sleeper: bool = False):
     config = tmp_path / "p.yaml"
     config.write_text(yaml)
     trace = tmp_path / "t.jsonl"
-    result = run_cli("run", config, "--probes", "--trace", trace, "--num-frames", str(frames), *extra, cwd=tmp_path)
+    args = ("run", config, "--probes", "--trace", trace, "--num-frames", str(frames), *extra)
+    if with_sleeper:  # dcuscope run with the test's testsleeper element registered
+        result = subprocess.run([sys.executable, "-m", "tests.probes.sleeper", *map(str, args)], cwd=tmp_path,
+                                env=cli_env(), capture_output=True, text=True, timeout=240)
+    else:
+        result = run_cli(*args, cwd=tmp_path)
     assert result.returncode == 0, result.stderr
     return read_trace(trace)
 
 
-def quad_yaml(slow_us: int = 0, drop: float = 0.0) -> str:
+def quad_yaml(slow_us: int = 0, drop: float = 0.0, slept_log: Path | None = None) -> str:
     sources = "\n".join(f"  - {{test: {p}, width: 320, height: 240, rate: 30}}" for p in ("smpte", "ball", "snow", "pinwheel"))
     inserted = ""
     if slow_us:
-        inserted += f"  - {{factory: identity, name: slow, properties: {{sleep-time: {slow_us}}}}}\n"
+        inserted += f"  - {{factory: testsleeper, name: slow, properties: {{sleep-us: {slow_us}, log: {slept_log}}}}}\n"
     if drop:
         inserted += f"  - {{factory: identity, name: lossy, properties: {{drop-probability: {drop}}}}}\n"
     return f"""\
@@ -83,18 +91,32 @@ def test_frame_delay_is_the_sum_of_its_stage_delays_and_gaps(tmp_path):
 
 
 def test_inserted_20ms_stage_is_measured_accurately(tmp_path):
-    # Sleep wake-ups on this shared 2-core machine are occasionally late by tens of ms; a
-    # late wake-up is a real delay (both probe backends see it), so allow three attempts.
-    for attempt in range(3):
-        probed_run(tmp_path, quad_yaml(slow_us=20000), 25)
+    """An inserted stage that sleeps 20 ms per batch, through the CLI and ``dcuscope stats``: its
+    delay is within 0.5 ms of the time it really slept (``tests.probes.sleeper``, the ground truth
+    of the same run: a sleep that wakes up late on a loaded machine is in both) on average, p99
+    within 1.5 ms. Being preempted between a tracepoint and the sleep is rare but real on a
+    loaded host, so up to 3 runs, one must meet it."""
+    runs = []
+    for _ in range(3):
+        log = tmp_path / "slept.jsonl"
+        trace = probed_run(tmp_path, quad_yaml(slow_us=20000, slept_log=log), 25, with_sleeper=True)
+        slept = slept_per_frame(read_log(log))
+        ev, slow_index = trace.events, trace.header.stages.index("slow")
+        enter, exit_ = ({(int(e["source"]), int(e["frame"])): int(e["ts"])
+                         for e in ev[(ev["stage"] == slow_index) & (ev["point"] == point)]} for point in (ENTER, EXIT))
+        assert set(enter) == set(exit_) == set(slept) and len(slept) >= 80
+        assert all(enter[f] <= slept[f][0] and slept[f][1] <= exit_[f] for f in slept)  # the sleep lies between them
+        excess_ms = np.array([(exit_[f] - enter[f]) - (slept[f][1] - slept[f][0]) for f in slept]) / 1e6
         result = run_cli("stats", tmp_path / "t.jsonl", "--json", cwd=tmp_path)
         assert result.returncode == 0, result.stderr
         slow = json.loads(result.stdout)["nodes"]["DCU-1"]["stages"]["slow"]
-        assert slow["count"] >= 80
-        if abs(slow["mean_ms"] - 20.0) <= 0.5 and slow["p99_ms"] < 21.5:
-            break
-    else:
-        pytest.fail(f"slow stage: mean {slow['mean_ms']:.3f} ms, p99 {slow['p99_ms']:.3f} ms after 3 runs")
+        assert slow["count"] == len(slept)  # every frame completed
+        slept_ms = np.array([ended - began for began, ended in slept.values()]) / 1e6
+        runs.append((round(float(excess_ms.mean()), 3), round(float(np.percentile(excess_ms, 99)), 3),
+                     round(slow["mean_ms"] - float(slept_ms.mean()), 3)))
+        if excess_ms.mean() <= 0.5 and np.percentile(excess_ms, 99) < 1.5 and abs(runs[-1][2]) <= 0.5:
+            return
+    pytest.fail(f"(mean, p99 over the real sleep per frame, stats' mean over the mean sleep) ms, 3 runs: {runs}")
 
 
 def test_frames_dropped_by_the_pipeline_are_counted_never_zero_delays(tmp_path):

@@ -19,7 +19,8 @@ from probes.shipper import Shipper
 from probes.simnode import header_for, synth_events
 from probes.tracer import attach
 from relay.server import start_relay
-from tests.relay.helpers import RelayProcess, free_port, wait_for
+from tests.ports import free_port
+from tests.relay.helpers import RelayProcess, wait_for
 from tests.relay.netcut import CutProxy
 
 T0 = 1_700_000_000_000_000_000

@@ -15,6 +15,7 @@ from probes.events import ENTER, EVENT_DTYPE, EXIT, FACT, FACT_THREAD, ORIGIN, R
 from probes.ring import PythonRing
 from probes.shipper import Shipper
 from probes.tracer import attach
+from tests.probes import sleeper
 
 BACKENDS = ["native", "python"]
 SMALL = "video/x-raw,width=32,height=24,framerate=1000/1"
@@ -31,6 +32,7 @@ def framestamp_registered():
     name, rank, cls = framestamp.__gstelementfactory__
     if Gst.ElementFactory.find(name) is None:
         Gst.Element.register(None, name, rank, cls.__gtype__)
+    sleeper.register()
 
 
 def run(pipe, timeout_s=20):
@@ -103,29 +105,39 @@ def test_both_backends_record_the_same_events():
     assert keys(a) == keys(b)
 
 
-def sleeping_stage_delays_ms(backend):
-    tracer, ev = traced_run(f"videotestsrc num-buffers=20 ! {SMALL} ! framestamp ! identity name=slow sleep-time=20000 "
-                            "! fakesink", backend)
+def sleeping_stage_excess_ms(backend):
+    """Per frame, the measured delay of a stage that sleeps 20 ms minus the time it really slept
+    (``tests.probes.sleeper``: a late wake-up on a loaded machine is in both)."""
+    pipe = Gst.parse_launch(f"videotestsrc num-buffers=20 ! {SMALL} ! framestamp ! "
+                            "testsleeper name=slow sleep-us=20000 ! fakesink")
+    tracer = attach(pipe, "node-a", backend=backend)
+    run(pipe)
+    ev = tracer.drain()
+    tracer.detach()
+    slept = sleeper.slept_per_frame(pipe.get_by_name("slow").records)
     slow = tracer.header.stages.index("slow")
     enter = ev[(ev["stage"] == slow) & (ev["point"] == ENTER)]
     exit_ = ev[(ev["stage"] == slow) & (ev["point"] == EXIT)]
     assert sorted(enter["frame"].tolist()) == sorted(exit_["frame"].tolist()) == list(range(20))
-    return (exit_["ts"][np.argsort(exit_["frame"])] - enter["ts"][np.argsort(enter["frame"])]) / 1e6
+    enter, exit_ = enter[np.argsort(enter["frame"])], exit_[np.argsort(exit_["frame"])]
+    began, ended = np.array([slept[(int(e["source"]), int(e["frame"]))] for e in enter]).T
+    assert ((enter["ts"] <= began) & (ended <= exit_["ts"])).all()  # the sleep lies between the two tracepoints
+    assert (ended - began >= 20_000_000).all()
+    return ((exit_["ts"] - enter["ts"]) - (ended - began)) / 1e6
 
 
 @pytest.mark.parametrize("backend", BACKENDS)
-def test_stage_delay_of_a_sleeping_identity_is_measured_accurately(backend):
-    """mean 20 ms +- 0.5, p99 < 21.5 ms. On a shared 2-core host a late wake-up from the sleep
-    now and then really makes the stage slower (23-45 ms on a frame; both backends attached to
-    the same pads report the same outlier), so up to 5 runs of 20 frames, one must meet it."""
+def test_stage_delay_of_a_sleeping_stage_is_measured_accurately(backend):
+    """Within 0.5 ms of the time the stage really slept on average, p99 within 1.5 ms. Being
+    preempted between a tracepoint and the sleep is rare but real on a loaded host (it makes the
+    stage slower where the element cannot see it), so up to 3 runs of 20 frames, one must meet it."""
     runs = []
-    for _ in range(5):
-        delay_ms = sleeping_stage_delays_ms(backend)
-        assert delay_ms.min() >= 20.0, delay_ms  # the sleep lies between the two tracepoints
-        runs.append((round(float(delay_ms.mean()), 3), round(float(np.percentile(delay_ms, 99)), 3)))
-        if abs(runs[-1][0] - 20.0) <= 0.5 and runs[-1][1] < 21.5:
+    for _ in range(3):
+        excess_ms = sleeping_stage_excess_ms(backend)
+        runs.append((round(float(excess_ms.mean()), 3), round(float(np.percentile(excess_ms, 99)), 3)))
+        if runs[-1][0] <= 0.5 and runs[-1][1] < 1.5:
             return
-    pytest.fail(f"(mean, p99) ms of 5 runs: {runs}")
+    pytest.fail(f"(mean, p99) ms over the real sleep, 3 runs: {runs}")
 
 
 @pytest.mark.parametrize("backend", BACKENDS)

@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 
 from probes.errors import LimitExceeded, ProtocolError
-from probes.events import EVENT_DTYPE
+from probes.events import DROP, DROP_REASONS, EVENT_DTYPE, STOPPED
 from probes.wire import (HEADER, HEADER_SIZE, MAX_BATCH_EVENTS, decode_batch, decode_clock, decode_end,
                             decode_hello, decode_payload, encode_batch, sanitize_ptp)
 from probes.simnode import header_for, synth_events
 
-RUN = uuid.uuid4().hex
+RUN = "4e70076ed9fd4f4a8510a89aee6824d1"  # fixed: parallel workers must collect the same test ids
 N_STAGES = 8
 
 
@@ -75,6 +75,17 @@ def test_rejects_zlib_bomb_and_garbage():
 def test_rejects_impossible_events(field, value):
     ev = events(4)
     ev[field][2] = value
+    with pytest.raises(ProtocolError, match="event 2 invalid"):
+        decode_batch(encode_batch(RUN, 1, ev), N_STAGES)
+
+
+def test_every_drop_reason_passes_the_wire_and_no_other():
+    """``stopped`` (a live run's queued frames, dropped at its stop) is one of the closed set."""
+    ev = events(len(DROP_REASONS) + 1)
+    ev["point"], ev["code"] = DROP, [*DROP_REASONS, 0]
+    assert ev["code"][STOPPED] == STOPPED and DROP_REASONS[STOPPED] == "stopped"
+    assert np.array_equal(decode_batch(encode_batch(RUN, 1, ev), N_STAGES).events, ev)
+    ev["code"][2] = max(DROP_REASONS) + 1
     with pytest.raises(ProtocolError, match="event 2 invalid"):
         decode_batch(encode_batch(RUN, 1, ev), N_STAGES)
 

@@ -13,7 +13,6 @@ import json
 import os
 import re
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -35,12 +34,6 @@ def env() -> dict:
     e = dict(os.environ)
     e["PYTHONPATH"] = str(ROOT) + os.pathsep + e.get("PYTHONPATH", "")
     return e
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class RelayProcess:
@@ -105,7 +98,9 @@ def _readline(proc: subprocess.Popen, timeout: float) -> str:
 
 def start_node(url: str, node: str, out: Path, *, frames: int = 100, sources: int = 2, fps: float = 25.0,
                paced: bool = False, offset_ns: int = 0, t0_ns: int = 0, drop_rate: float = 0.0, seed: int = 0,
-               token: str | None = None, extra: list[str] | None = None) -> subprocess.Popen:
+               token: str | None = None, extra: list[str] | None = None, linger: bool = False) -> subprocess.Popen:
+    """A ``probes.simnode`` process; with ``linger`` its run stays open after the last event until
+    its stdin closes (``finish_node`` closes it)."""
     cmd = [sys.executable, "-m", "probes.simnode", "--relay", url, "--node", node, "--out", str(out),
            "--frames", str(frames), "--sources", str(sources), "--fps", str(fps), "--seed", str(seed),
            "--clock-offset-ns", str(offset_ns), "--drop-rate", str(drop_rate)]
@@ -115,8 +110,11 @@ def start_node(url: str, node: str, out: Path, *, frames: int = 100, sources: in
         cmd += ["--t0-ns", str(t0_ns)]
     if token:
         cmd += ["--token", token]
+    if linger:
+        cmd.append("--linger")
     cmd += extra or []
-    return subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    return subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            stdin=subprocess.PIPE if linger else subprocess.DEVNULL)
 
 
 def finish_node(proc: subprocess.Popen, timeout: float = 60) -> dict:

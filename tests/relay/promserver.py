@@ -19,7 +19,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.relay.helpers import free_port, wait_for
+from tests.ports import free_port
+from tests.relay.helpers import wait_for
 
 BIN = Path("/usr/bin")
 """Where Debian's prometheus package puts ``prometheus`` and ``promtool``."""

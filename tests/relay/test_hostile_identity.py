@@ -22,9 +22,10 @@ TOKEN = "t0k"
 RSS_BOUND_MB = 300
 
 
-def _good(relay: RelayProcess, tmp_path, name: str = "good", token: str = TOKEN, frames: int = 300):
+def _good(relay: RelayProcess, tmp_path, name: str = "good", token: str = TOKEN, frames: int = 300,
+          linger: bool = False):
     node = start_node(relay.url, name, tmp_path / f"{name}.npz", frames=frames, sources=2, fps=50, paced=True,
-                      drop_rate=0.01, token=token)
+                      drop_rate=0.01, token=token, linger=linger)
     nodes = wait_for(lambda: [n for n in get_json(f"{relay.url}/api/nodes", TOKEN) if n["node"] == name
                               and n["events"] > 0], 20, what=f"{name} streaming")
     return node, nodes[0]
@@ -157,7 +158,9 @@ def test_runs_of_restarting_and_cycling_nodes_leave_memory(tmp_path):
             await hand.close()
 
     try:
-        node, _ = _good(relay, tmp_path, frames=400)
+        # The good run stays live through the attack however long that takes on a loaded machine
+        # (it would rightly be released once ended, as the oldest detached run).
+        node, _ = _good(relay, tmp_path, frames=400, linger=True)
         asyncio.run(attack())
         health = wait_for(lambda: (h := get_json(f"{relay.url}/api/health", TOKEN))["runs"] <= held and h, 10,
                           what="runs released")

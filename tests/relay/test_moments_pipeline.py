@@ -3,7 +3,7 @@
 them with ``--clock-offset-ms 37``. The relay's corrected per-moment difference must agree with
 the truth, computed from the nodes' own trace files with the injected offset removed (both nodes
 run on this machine's one clock), within the stated error bar, at every matched moment; the
-Moments view draws them (and makes the README's screenshot)."""
+Moments view draws them (and makes docs/relay.md's screenshot)."""
 
 from __future__ import annotations
 
@@ -20,7 +20,8 @@ from probes.delays import chains
 from probes.frametable import frame_table
 from probes.tracefile import read_trace
 from tests.conftest import VTEST, cli_env
-from tests.relay.helpers import RelayProcess, free_port, get_json, wait_for
+from tests.ports import free_port
+from tests.relay.helpers import RelayProcess, get_json, wait_for
 from tests.ui.helpers import ROOT, launch_chromium
 
 OFFSET_MS = 37

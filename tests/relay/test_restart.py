@@ -9,8 +9,9 @@ import numpy as np
 
 from probes.delays import node_stats
 from relay.storage import load_runs
-from tests.relay.helpers import (RelayProcess, assert_stats_equal, finish_node, free_port, get_json, load_node,
-                                 sort_events, start_node, wait_for)
+from tests.ports import free_port
+from tests.relay.helpers import (RelayProcess, assert_stats_equal, finish_node, get_json, load_node, sort_events,
+                                 start_node, wait_for)
 
 
 def test_kill9_and_restart_loses_and_duplicates_nothing(tmp_path):

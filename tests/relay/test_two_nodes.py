@@ -76,7 +76,7 @@ def test_two_nodes_stats_nodes_sessions_and_storage(tmp_path):
 
 
 def test_a_node_started_before_its_relay_delivers_everything(tmp_path):
-    from tests.relay.helpers import free_port
+    from tests.ports import free_port
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     node = start_node(url, "early", tmp_path / "n.npz", frames=100, fps=50, paced=True)

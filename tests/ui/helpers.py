@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 import os
+import signal
 import subprocess
 import sys
 import threading
@@ -101,6 +102,15 @@ class Feeder:
             out, err = p.communicate(timeout=timeout)
             assert p.returncode == 0, f"{self.kind} node failed: {err.decode(errors='replace')[-3000:]}"
 
+    def end(self, timeout: float = 120) -> None:
+        """The nodes' runs end now, cleanly: real pipelines are told to stop (SIGTERM: each ends its
+        run as at its ``--duration``); simulated nodes, which cannot stop early, run to their end."""
+        if self.kind == "pipeline":
+            for p in self.procs:
+                if p.poll() is None:
+                    p.send_signal(signal.SIGTERM)
+        self.wait(timeout)
+
     def stop(self) -> None:
         for p in self.procs:
             if p.poll() is None:
@@ -113,8 +123,10 @@ class Feeder:
 
 
 def sim_nodes(url: str, tmp: Path, nodes: list[str], *, frames: int, sources: int, fps: float, paced: bool,
-              token: str | None = None, offsets_ns: list[int] | None = None, seed: int = 0) -> Feeder:
-    """``python -m probes.simnode`` per node, each writing the events it shipped to ``tmp/NODE.npz``."""
+              token: str | None = None, offsets_ns: list[int] | None = None, seed: int = 0,
+              ptp_socket: Path | None = None) -> Feeder:
+    """``python -m probes.simnode`` per node, each writing the events it shipped to ``tmp/NODE.npz``;
+    ``ptp_socket``: the ptp4l socket the nodes read (a path where none is: no PTP, whatever the host runs)."""
     feeder = Feeder("sim", nodes)
     for k, node in enumerate(nodes):
         out = tmp / f"{node}.npz"
@@ -125,6 +137,8 @@ def sim_nodes(url: str, tmp: Path, nodes: list[str], *, frames: int, sources: in
             cmd.append("--paced")
         if token:
             cmd += ["--token", token]
+        if ptp_socket is not None:
+            cmd += ["--ptp-socket", str(ptp_socket)]
         feeder.procs.append(subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE))
         feeder.outs.append(out)
     return feeder

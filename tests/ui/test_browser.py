@@ -16,7 +16,7 @@ from tests.ui.helpers import ROOT, RelayThread, pipeline_nodes, sim_nodes
 NODES = ["DCU-1", "DCU-2"]
 FIVE = {"mux": "#e53935", "infer": "#1e88e5", "tiler": "#fdd835", "convert": "#43a047", "osd": "#8e24aa"}
 DEEP_RED, UNDER = "#8b0000", "#78909c"
-SHOTS = ROOT / "build" / "screenshots"  # git-ignored; the README's copies in docs/ are chosen by hand
+SHOTS = ROOT / "build" / "screenshots"  # git-ignored; the copies in docs/ (docs/relay.md) are chosen by hand
 PLOT_X = 96  # frame view: bars start right of the time labels
 
 PIXELS_JS = """([sel, y, h, colours, x = 0]) => {
@@ -258,22 +258,22 @@ def test_polling_fallback_without_the_socketio_client(live, browser):
 
 def test_counters_match_the_relay_once_nodes_ended(live):
     relay, feeder, page = live
-    feeder.wait(180)
+    feeder.end(180)  # the tests above are done with the live nodes
     limit = 50.0
     page.click(".tab[data-tab=frame]")
     page.fill("#limit-input", str(limit))
     page.click("#set-limit")
     for node in NODES:
         def settled():
-            shown = get_json(f"{relay.url}/api/nodes")
-            view = next(n for n in shown if n["node"] == node)
-            d = debug(page)
-            return (view, d) if d["stores"][node]["received"] == view["frames"]["shown"] else None
+            """Once the relay's live count has caught up with what it stored (it finalises frames on
+            a tick) and the page with the relay: the three agree."""
+            view = next(n for n in get_json(f"{relay.url}/api/nodes") if n["node"] == node)
+            # /api/frames gives the newest frames only; the stored session has every one.
+            frames = get_json(f"{relay.url}/api/sessions/{view['session']}/frames?node={node}&limit=10000")["frames"]
+            received = debug(page)["stores"][node]["received"]
+            return (view, frames) if received == view["frames"]["shown"] == len(frames) else None
 
-        view, _ = wait_for(settled, 30, 0.5, f"every frame of {node} in the page")
-        # /api/frames gives the newest frames only; the stored session has every one.
-        frames = get_json(f"{relay.url}/api/sessions/{view['session']}/frames?node={node}&limit=10000")["frames"]
-        assert len(frames) == view["frames"]["shown"]
+        view, frames = wait_for(settled, 30, 0.5, f"every frame of {node} in the relay's count and in the page")
         over = sum(f["delay_ms"] > limit for f in frames)
         d = wait_for(lambda: (lambda d: d if d["frame"]["limit"] == limit else None)(debug(page)), 5, 0.1, "redraw")
         c = d["frame"]["nodes"][node]

@@ -17,7 +17,7 @@ def test_page_uses_the_token_of_its_address(browser, tmp_path):
         try:
             # Without the token: refused, and the page says how to get in.
             page.goto(relay.url + "/")
-            page.wait_for_selector("#banner:not([hidden])", timeout=15000)
+            page.wait_for_selector("#banner:not([hidden])", timeout=30000)
             assert "?token=" in page.locator("#banner").inner_text()
             assert "unauthorized" in page.locator("#conn").inner_text()
             assert page.evaluate("window.dcuscope.debug().stores") == {}
