@@ -116,7 +116,7 @@ async def run_pmc(socket: str = DEFAULT_UDS, timeout_s: float = PMC_TIMEOUT_S) -
     if not os.path.exists(socket):
         return None, f"no ptp4l socket at {socket} (is ptp4l running? its uds_address?)"
     if not os.access(socket, os.W_OK):
-        return None, f"no permission to write {socket} (run as root or in the socket's group, see README)"
+        return None, f"no permission to write {socket} (run as root or in the socket's group, see docs/clocks.md)"
     with tempfile.TemporaryDirectory(prefix="dcuscope-pmc-") as tmp:
         try:
             proc = await asyncio.create_subprocess_exec(
