@@ -27,16 +27,23 @@ STATUS_EVERY_S = 5.0
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 
 
-class _Stopped(Exception):
-    """SIGTERM or SIGHUP reached the demo: stop as for Ctrl-C."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
-def _raise_stopped(signum: int, _frame) -> None:
-    raise _Stopped(signum)
+class _StopRequest:
+    """The first of Ctrl-C, SIGTERM or SIGHUP, noted by the handler and acted on by the demo's
+    loops. Not an exception raised wherever the demo happens to be: one raised inside a finalizer
+    (a socket of a status request being collected, say) is printed and lost, and the demo then ran on."""
+
+    def __init__(self) -> None:
+        self.signum: int | None = None
+
+    def note(self, signum: int, _frame) -> None:
+        if self.signum is None:
+            self.signum = signum
+
+    def __bool__(self) -> bool:
+        return self.signum is not None
 
 
 def _die_with_parent() -> None:
@@ -57,9 +64,9 @@ def _get_json(url: str, timeout: float = 2.0):
         return json.loads(response.read())
 
 
-def _wait_for_relay(url: str, relay: subprocess.Popen, timeout_s: float = 30.0) -> None:
+def _wait_for_relay(url: str, relay: subprocess.Popen, stop: _StopRequest, timeout_s: float = 30.0) -> None:
     deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
+    while time.monotonic() < deadline and not stop:
         if relay.poll() is not None:
             raise PipelineError(f"the relay exited at start (status {relay.returncode}); is port taken? see above")
         try:
@@ -67,7 +74,8 @@ def _wait_for_relay(url: str, relay: subprocess.Popen, timeout_s: float = 30.0) 
             return
         except OSError:
             time.sleep(0.2)
-    raise PipelineError(f"the relay did not answer at {url} within {timeout_s:.0f} s")
+    if not stop:
+        raise PipelineError(f"the relay did not answer at {url} within {timeout_s:.0f} s")
 
 
 def _status_lines(url: str) -> list[str]:
@@ -113,29 +121,31 @@ def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = 
     relay = _start("relay", "--port", str(port), "--db", str(db))
     nodes: list[subprocess.Popen] = []
     status = 0
-    handlers = {sig: signal.signal(sig, _raise_stopped) for sig in (signal.SIGTERM, signal.SIGHUP)}
+    stop = _StopRequest()
+    handlers = {sig: signal.signal(sig, stop.note) for sig in STOP_SIGNALS}
     try:
-        _wait_for_relay(url, relay)
+        _wait_for_relay(url, relay, stop)
         for name, config in NODES:
+            if stop:
+                break
             print(f"demo: starting {name} ({config.relative_to(ROOT)}) with probes -> {url}", flush=True)
             nodes.append(_start("run", str(config), "--probes", "--relay", url, "--node", name, "-q",
                                 stdout=subprocess.DEVNULL))
-        print(f"\n  open {url}/ in a browser to watch the DCUs live. Ctrl-C stops the demo.\n", flush=True)
+        if not stop:
+            print(f"\n  open {url}/ in a browser to watch the DCUs live. Ctrl-C stops the demo.\n", flush=True)
         started = time.monotonic()
         last_status = started
-        while duration is None or time.monotonic() - started < duration:
+        while not stop and (duration is None or time.monotonic() - started < duration):
             time.sleep(0.5)
             if any(n.poll() is not None for n in nodes) or relay.poll() is not None:
                 raise PipelineError("a demo process exited early (see its message above)")
             if time.monotonic() - last_status >= STATUS_EVERY_S:
                 last_status = time.monotonic()
                 print("\n".join(f"demo: {line}" for line in _status_lines(url)), flush=True)
-    except KeyboardInterrupt:
-        status = 128 + signal.SIGINT
-        print("\ndemo: stopping", flush=True)
-    except _Stopped as stop:
-        status = 128 + stop.signum
-        print(f"\ndemo: {stop} received, stopping", flush=True)
+        if stop:
+            status = 128 + stop.signum
+            said = "" if stop.signum == signal.SIGINT else f" {signal.Signals(stop.signum).name} received,"
+            print(f"\ndemo:{said} stopping", flush=True)
     finally:
         for sig, handler in handlers.items():  # a second signal while stopping ends the demo at once
             signal.signal(sig, handler)
