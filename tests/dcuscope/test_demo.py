@@ -83,7 +83,10 @@ def test_demo_runs_two_dcus_that_report_all_five_stages(tmp_path):
             assert infer["service"]["count"] > 0 and infer["utilization"] is not None
             assert stats["bottleneck"]["reason"] and stats["bottleneck"]["utilization"] is not None
         demo.send_signal(signal.SIGINT)
-        demo.wait(90)
+        try:
+            demo.wait(90)
+        except subprocess.TimeoutExpired:
+            raise AssertionError("the demo did not stop within 90 s of Ctrl-C:\n" + "".join(lines)) from None
         reader.join(10)
     finally:
         if demo.poll() is None:

@@ -62,12 +62,15 @@ def test_sigterm_is_one_clean_stop_however_often_it_comes(tmp_path, first):
     config = tmp_path / "cam.yaml"
     config.write_text(LIVE_MP4)
     out = tmp_path / "cam.mp4"
-    limit = ["--duration", "3"] if first == "duration" else []
+    limit = ["--duration", "4"] if first == "duration" else []
     proc = subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "run", str(config), "--output", str(out), *limit],
                             cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE, text=True)
     try:
         for line in proc.stderr:
-            if "frames" in line:  # a progress line: the run's main loop, and its handlers, are on
+            # a progress line: the run's main loop, and its handlers, are on; for the SIGTERM, one
+            # saying a frame reached the sink (every 5 s), so that the video has one to play
+            progress = re.search(r"frames (\d+)", line)
+            if progress and (first == "duration" or int(progress.group(1)) > 0):
                 break
         if first == "SIGTERM":
             proc.send_signal(signal.SIGTERM)
@@ -80,7 +83,8 @@ def test_sigterm_is_one_clean_stop_however_often_it_comes(tmp_path, first):
     finally:
         proc.kill()
     assert "already stopping" in stderr and "abort" not in stderr.replace("Ctrl-C to abort", ""), stderr
-    assert f"output: {out}" in stderr and len(decode_video(out)) >= 1  # finalised: it plays
+    delivered = int(re.search(r"(\d+) frames in [\d.]+ s", stderr).group(1))
+    assert f"output: {out}" in stderr and len(decode_video(out)) == delivered >= 1  # finalised: it plays, every frame
 
 
 def test_two_sigterms_while_starting_are_one_clean_stop(tmp_path):
