@@ -82,9 +82,9 @@ def run_command(args: argparse.Namespace) -> int:
     for index, stalls in result.stalls.items():
         console.write(f"dcuscope: source {index} ({config.sources[index].description}) {describe(stalls)}\n")
     if result.discarded:
-        counted = "; the trace counts them as dropped, reason stopped" if config.probes.enabled else ""
-        console.write(f"dcuscope: {result.discarded} frames still queued at the stop were dropped, not drained "
-                      f"(live sources){counted}\n")
+        counted = ", counted in the trace (reason stopped)" if config.probes.enabled else ""
+        console.write(f"dcuscope: {result.discarded} frames still queued at the stop were dropped "
+                      f"(live sources are not drained){counted}\n")
     if result.aborted is not None:
         incomplete = {"file": f": {config.sink.path} is incomplete (not finalised, may not play)",
                       "frames": f": the frames in {config.sink.path} end early"}.get(config.sink.kind, "")
