@@ -339,6 +339,9 @@ class RelayExporter:
         await asyncio.wait([stop, lost, *workers], return_when=asyncio.FIRST_COMPLETED)
         for t in (stop, lost, *workers):
             t.cancel()
+        # Let them finish here, on the loop: a task left pending is closed when the loop is gone,
+        # its cleanup (the UDP clock socket) then failing outside any loop, printed at exit.
+        await asyncio.gather(stop, lost, *workers, return_exceptions=True)
         for t in workers:
             if t.done() and not t.cancelled() and t.exception() is not None:
                 self._note_error(f"connection to {self.url} failed: {link.error or _describe(t.exception())}")

@@ -5,16 +5,13 @@ A measured stage delay is compared with this ground truth of the same run, not w
 asked for: on a loaded machine a sleep wakes up late now and then, which really makes the stage
 slower, and both the tracepoints and the element see it.
 
-In process: ``register()``, then ``... ! testsleeper sleep-us=20000 ! ...``; ``element.records``.
-Through the CLI: ``python -m tests.probes.sleeper run CONFIG ...`` is ``dcuscope run CONFIG ...``
-with the element registered; ``{factory: testsleeper, properties: {sleep-us: N, log: PATH}}``
-writes the records to PATH (JSON lines) when the pipeline stops.
+``register()``, then ``... ! testsleeper sleep-us=20000 ! ...``; ``element.records``. In process
+only: where the pipeline runs in a process of its own (``dcuscope run``), GStreamer's own latency
+tracer gives the same ground truth (tests/probes/test_pipeline_probes.py).
 """
 
 from __future__ import annotations
 
-import json
-import sys
 import time
 
 from core.gst import GObject, Gst, GstBase
@@ -33,25 +30,20 @@ class Sleeper(GstBase.BaseTransform):
     __gproperties__ = {
         "sleep-us": (int, "Sleep", "Microseconds to sleep on each buffer", 0, 10_000_000, 0,
                      GObject.ParamFlags.READWRITE),
-        "log": (str, "Log", "JSON-lines file of the records, written when the element stops", "",
-                GObject.ParamFlags.READWRITE),
     }
 
     def __init__(self):
         super().__init__()
-        self.sleep_us, self.log = 0, ""
+        self.sleep_us = 0
         self.records: list[tuple[list[tuple[int, int]], int, int]] = []
         """Per buffer: its frames [(source, frame)], when the sleep began and ended (CLOCK_REALTIME ns)."""
         self.set_in_place(True)
 
     def do_get_property(self, prop):
-        return self.sleep_us if prop.name == "sleep-us" else self.log
+        return self.sleep_us
 
     def do_set_property(self, prop, value):
-        if prop.name == "sleep-us":
-            self.sleep_us = value
-        else:
-            self.log = value
+        self.sleep_us = value
 
     def do_transform_ip(self, buf):
         frames = [(f.source, f.frame) for f in read_frames(buf)]  # before the clock starts: not part of the sleep
@@ -60,13 +52,6 @@ class Sleeper(GstBase.BaseTransform):
         ended = time.clock_gettime_ns(time.CLOCK_REALTIME)
         self.records.append((frames, began, ended))
         return Gst.FlowReturn.OK
-
-    def do_stop(self):
-        if self.log:
-            with open(self.log, "w") as out:
-                for frames, began, ended in self.records:
-                    out.write(json.dumps({"frames": frames, "began": began, "ended": ended}) + "\n")
-        return True
 
 
 GObject.type_register(Sleeper)
@@ -78,18 +63,5 @@ def register() -> None:
 
 
 def slept_per_frame(records) -> dict[tuple[int, int], tuple[int, int]]:
-    """(source, frame) -> (began, ended) of the sleep on the buffer that held it; ``records`` as
-    ``Sleeper.records`` or read back from its log."""
+    """(source, frame) -> (began, ended) of the sleep on the buffer that held it (``Sleeper.records``)."""
     return {tuple(f): (began, ended) for frames, began, ended in records for f in frames}
-
-
-def read_log(path) -> list:
-    with open(path) as lines:
-        return [(r["frames"], r["began"], r["ended"]) for r in map(json.loads, lines)]
-
-
-if __name__ == "__main__":
-    from dcuscope.cli import main
-
-    register()
-    sys.exit(main(sys.argv[1:]))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -15,31 +16,27 @@ from probes.events import ENTER, EXIT, ORIGIN
 from probes.frametable import MISSING, frame_table
 from probes.tracefile import read_trace
 from tests.conftest import REPO, cli_env, run_cli
-from tests.probes.sleeper import read_log, slept_per_frame
 
 MODEL = REPO / "assets" / "models" / "ssdlite_mobilenetv2_person.onnx"
 FIVE = ("mux", "infer", "tiler", "convert", "osd")
 
 
-def probed_run(tmp_path: Path, yaml: str, frames: int, *extra: str, with_sleeper: bool = False):
+def probed_run(tmp_path: Path, yaml: str, frames: int, *extra: str, env: dict | None = None):
     config = tmp_path / "p.yaml"
     config.write_text(yaml)
     trace = tmp_path / "t.jsonl"
-    args = ("run", config, "--probes", "--trace", trace, "--num-frames", str(frames), *extra)
-    if with_sleeper:  # dcuscope run with the test's testsleeper element registered
-        result = subprocess.run([sys.executable, "-m", "tests.probes.sleeper", *map(str, args)], cwd=tmp_path,
-                                env=cli_env(), capture_output=True, text=True, timeout=240)
-    else:
-        result = run_cli(*args, cwd=tmp_path)
+    result = subprocess.run([sys.executable, "-m", "dcuscope.cli", "run", str(config), "--probes", "--trace", str(trace),
+                             "--num-frames", str(frames), *extra], cwd=tmp_path, env={**cli_env(), **(env or {})},
+                            capture_output=True, text=True, timeout=240)
     assert result.returncode == 0, result.stderr
     return read_trace(trace)
 
 
-def quad_yaml(slow_us: int = 0, drop: float = 0.0, slept_log: Path | None = None) -> str:
+def quad_yaml(slow_us: int = 0, drop: float = 0.0) -> str:
     sources = "\n".join(f"  - {{test: {p}, width: 320, height: 240, rate: 30}}" for p in ("smpte", "ball", "snow", "pinwheel"))
     inserted = ""
     if slow_us:
-        inserted += f"  - {{factory: testsleeper, name: slow, properties: {{sleep-us: {slow_us}, log: {slept_log}}}}}\n"
+        inserted += f"  - {{factory: identity, name: slow, properties: {{sleep-time: {slow_us}}}}}\n"
     if drop:
         inserted += f"  - {{factory: identity, name: lossy, properties: {{drop-probability: {drop}}}}}\n"
     return f"""\
@@ -90,33 +87,52 @@ def test_frame_delay_is_the_sum_of_its_stage_delays_and_gaps(tmp_path):
         assert stages_sum > 0
 
 
+def latency_tracer_env(log: Path) -> dict:
+    """GStreamer's own ``latency`` tracer, per element, logging to ``log``: C hooks on the same pad
+    pushes, an independent measure of each buffer's time inside an element, in the same run."""
+    return {"GST_TRACERS": "latency(flags=element)", "GST_DEBUG": "GST_TRACER:7", "GST_DEBUG_FILE": str(log),
+            "GST_DEBUG_NO_COLOR": "1"}
+
+
+def element_latencies_ms(log: Path, element: str) -> np.ndarray:
+    """The latency tracer's ``element-latency`` of ``element``, per buffer in order, in ms."""
+    times = re.findall(rf"element-latency, element-id=\(string\)\S+, element=\(string\){element}, "
+                       r"src=\(string\)\w+, time=\(g?u?int64\)(\d+)", log.read_text(errors="replace"))
+    return np.array([int(t) for t in times]) / 1e6
+
+
 def test_inserted_20ms_stage_is_measured_accurately(tmp_path):
-    """An inserted stage that sleeps 20 ms per batch, through the CLI and ``dcuscope stats``: its
-    delay is within 0.5 ms of the time it really slept (``tests.probes.sleeper``, the ground truth
-    of the same run: a sleep that wakes up late on a loaded machine is in both) on average, p99
-    within 1.5 ms. Being preempted between a tracepoint and the sleep is rare but real on a
-    loaded host, so up to 3 runs, one must meet it."""
+    """An inserted identity that sleeps 20 ms per batch, through the CLI and ``dcuscope stats``:
+    per buffer, its delay is within 0.5 ms on average, p99 within 1.5 ms, of what GStreamer's own
+    latency tracer measures for it in the same run. Not of the 20 ms asked for: on a loaded
+    machine a sleep that wakes up late really makes the stage slower, and both see it. Being
+    preempted between the tracer's hook and the tracepoint (the tracer writes its log line there)
+    is rare but real on a loaded host, so up to 3 runs, one must meet it."""
     runs = []
-    for _ in range(3):
-        log = tmp_path / "slept.jsonl"
-        trace = probed_run(tmp_path, quad_yaml(slow_us=20000, slept_log=log), 25, with_sleeper=True)
-        slept = slept_per_frame(read_log(log))
+    for attempt in range(3):
+        log = tmp_path / f"gst-latency-{attempt}.log"
+        trace = probed_run(tmp_path, quad_yaml(slow_us=20000), 25, env=latency_tracer_env(log))
         ev, slow_index = trace.events, trace.header.stages.index("slow")
-        enter, exit_ = ({(int(e["source"]), int(e["frame"])): int(e["ts"])
-                         for e in ev[(ev["stage"] == slow_index) & (ev["point"] == point)]} for point in (ENTER, EXIT))
-        assert set(enter) == set(exit_) == set(slept) and len(slept) >= 80
-        assert all(enter[f] <= slept[f][0] and slept[f][1] <= exit_[f] for f in slept)  # the sleep lies between them
-        excess_ms = np.array([(exit_[f] - enter[f]) - (slept[f][1] - slept[f][0]) for f in slept]) / 1e6
+        enter, exit_ = (ev[(ev["stage"] == slow_index) & (ev["point"] == point)] for point in (ENTER, EXIT))
+        # A batch of 4 frames is one buffer: its frames share their enter and exit times.
+        exits = {(s, f): t for s, f, t in zip(exit_["source"].tolist(), exit_["frame"].tolist(), exit_["ts"].tolist())}
+        per_buffer = sorted({(t, exits[(s, f)])
+                             for s, f, t in zip(enter["source"].tolist(), enter["frame"].tolist(), enter["ts"].tolist())})
+        ours_ms = np.array([out - into for into, out in per_buffer]) / 1e6
+        theirs_ms = element_latencies_ms(log, "slow")
+        assert len(ours_ms) == len(theirs_ms) >= 25, (len(ours_ms), len(theirs_ms))
+        assert ours_ms.min() >= 20.0  # the sleep lies between the two tracepoints
+        # dcuscope stats says the same, frame by frame (4 per buffer).
         result = run_cli("stats", tmp_path / "t.jsonl", "--json", cwd=tmp_path)
         assert result.returncode == 0, result.stderr
         slow = json.loads(result.stdout)["nodes"]["DCU-1"]["stages"]["slow"]
-        assert slow["count"] == len(slept)  # every frame completed
-        slept_ms = np.array([ended - began for began, ended in slept.values()]) / 1e6
-        runs.append((round(float(excess_ms.mean()), 3), round(float(np.percentile(excess_ms, 99)), 3),
-                     round(slow["mean_ms"] - float(slept_ms.mean()), 3)))
-        if excess_ms.mean() <= 0.5 and np.percentile(excess_ms, 99) < 1.5 and abs(runs[-1][2]) <= 0.5:
+        assert slow["count"] == len(enter) >= 100
+        diff_ms = np.abs(ours_ms - theirs_ms)
+        runs.append((round(float(diff_ms.mean()), 3), round(float(np.percentile(diff_ms, 99)), 3),
+                     round(slow["mean_ms"] - float(theirs_ms.mean()), 3)))
+        if diff_ms.mean() <= 0.5 and np.percentile(diff_ms, 99) < 1.5 and abs(runs[-1][2]) <= 0.5:
             return
-    pytest.fail(f"(mean, p99 over the real sleep per frame, stats' mean over the mean sleep) ms, 3 runs: {runs}")
+    pytest.fail(f"(mean, p99 of the difference per buffer, stats' mean minus the tracer's) ms, 3 runs: {runs}")
 
 
 def test_frames_dropped_by_the_pipeline_are_counted_never_zero_delays(tmp_path):

@@ -79,19 +79,36 @@ def frame_counts(relay: RelayProcess, prom: PromServer) -> tuple[dict, dict] | N
     return None if scraped == api else (scraped, api)
 
 
+SETTLED_S = (0.2, 1.0)
+"""A scrape's gauge is compared with /api/stats where every reading from 0.2 s before the scrape
+began to 1 s after it agrees: both read the same window, refreshed at most every 0.5 s, and a
+scrape answers within that second."""
+
+
 def watch(relay: RelayProcess, prom: PromServer, nodes: dict, seen: dict) -> None:
-    """While the nodes run: the bottleneck by /api/stats before and after Prometheus' gauge, and the
-    alert's states."""
+    """While the nodes run: the bottleneck by /api/stats, read every 0.2 s; Prometheus' gauge with
+    the time of the scrape it came from; the alert's states. Then each scrape's gauge beside what
+    /api/stats said around that scrape (``seen["bottleneck"]``), where that was settled."""
+    readings: dict[str, list[tuple[float, str | None]]] = {n: [] for n in nodes}
+    scrapes: set[tuple[str, float, str]] = set()
+    last_query = 0.0
     while any(p.poll() is None for p in nodes.values()):
-        before = {n: window_bottleneck(relay, n) for n in nodes}
-        gauge = {s["metric"]["node"]: s["metric"]["stage"] for s in prom.query("dcuscope_bottleneck == 1")}
-        after = {n: window_bottleneck(relay, n) for n in nodes}
         for n in nodes:
-            if before[n] is not None and before[n] == after[n] and n in gauge:
-                seen["bottleneck"].append((n, before[n], gauge[n]))
-        for a in prom.alerts(ALERT):
-            seen["alert"].add((a["labels"]["node"], a["state"]))
-        time.sleep(0.5)
+            readings[n].append((time.time(), window_bottleneck(relay, n)))
+        if time.monotonic() - last_query >= 0.5:
+            last_query = time.monotonic()
+            for s in prom.query("timestamp(dcuscope_bottleneck == 1)"):  # the scrape's time, labels kept
+                scrapes.add((s["metric"]["node"], float(s["value"][1]), s["metric"]["stage"]))
+            for a in prom.alerts(ALERT):
+                seen["alert"].add((a["labels"]["node"], a["state"]))
+        time.sleep(0.2)
+    for node, scraped_at, stage in sorted(scrapes, key=lambda s: s[1]):
+        first, last = readings[node][0][0], readings[node][-1][0]
+        if not first <= scraped_at - SETTLED_S[0] < scraped_at + SETTLED_S[1] <= last:
+            continue  # not read on both sides
+        around = {b for t, b in readings[node] if scraped_at - SETTLED_S[0] <= t <= scraped_at + SETTLED_S[1]}
+        if len(around) == 1 and None not in around:
+            seen["bottleneck"].append((node, around.pop(), stage))
 
 
 @pytest.fixture(scope="module")
