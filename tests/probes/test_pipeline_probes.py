@@ -101,6 +101,7 @@ def element_latencies_ms(log: Path, element: str) -> np.ndarray:
     return np.array([int(t) for t in times]) / 1e6
 
 
+@pytest.mark.alone  # p99 within 1.5 ms: between two instruments, the tail is the machine's scheduling jitter
 def test_inserted_20ms_stage_is_measured_accurately(tmp_path):
     """An inserted identity that sleeps 20 ms per batch, through the CLI and ``dcuscope stats``:
     per buffer, its delay is within 0.5 ms on average, p99 within 1.5 ms, of what GStreamer's own

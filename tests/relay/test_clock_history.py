@@ -64,7 +64,9 @@ def test_each_part_of_a_run_is_corrected_by_the_estimate_in_force_at_its_time(tm
     try:
         truths = asyncio.run(_stepping_node(relay.url, run))
         clock = {n["node"]: n for n in get_json(f"{relay.url}/api/nodes")}["stepper"]["clock"]
-        assert clock["history"] == 2 and clock["restarts"] == 1 and clock["via"] == "websocket", clock
+        # One estimate per part at least; a part's second report adds one if one of its exchanges
+        # had a shorter round trip than the first report's best (a loaded machine's are uneven).
+        assert clock["history"] >= 2 and clock["restarts"] == 1 and clock["via"] == "websocket", clock
         assert abs(clock["offset_ns"] - OFFSETS[1]) <= clock["uncertainty_ns"] and clock["drift_ppm"] == 0
         session = get_json(f"{relay.url}/api/nodes")[0]["session"]
         frames = get_json(f"{relay.url}/api/sessions/{session}/frames?node=stepper&limit=1000")["frames"]
@@ -72,19 +74,25 @@ def test_each_part_of_a_run_is_corrected_by_the_estimate_in_force_at_its_time(tm
         relay.stop()
     with sqlite3.connect(db) as conn:
         assert conn.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone() == ("3",)
-        assert conn.execute("SELECT COUNT(*) FROM clock_history WHERE run = ?", (run,)).fetchone() == (2,)
+        stored_history = conn.execute("SELECT COUNT(*) FROM clock_history WHERE run = ?", (run,)).fetchone()
+        assert stored_history == (clock["history"],)
 
     # What `dcuscope export --db` loads: every event by its frame's estimate, within that estimate's bound.
     (stored,) = load_runs(db, run)
     (raw,) = load_runs(db, run, corrected=False)
-    assert stored.correction.applied == "estimate" and len(stored.correction.segments) == 2
+    assert stored.correction.applied == "estimate" and len(stored.correction.segments) == clock["history"]
     truth = np.concatenate(truths)
     error = np.abs(stored.events["ts"] - truth["ts"])
     bound = stored.correction.uncertainties(raw.events["ts"], frame_starts(raw.events))
     assert (error <= bound).all(), (error.max(), bound[np.argmax(error - bound)])
     assert bound.max() < 5_000_000  # loopback: far under the 40 ms step
-    for seg, offset in zip(stored.correction.segments, OFFSETS):  # one estimate per part
-        assert abs(seg.offset_ns - offset) <= seg.uncertainty_ns, seg
+    # Each estimate is its own part's (the truth within its bound), in the parts' order, both parts there.
+    parts = []
+    for seg in stored.correction.segments:
+        matches = [k for k, offset in enumerate(OFFSETS) if abs(seg.offset_ns - offset) <= seg.uncertainty_ns]
+        assert len(matches) == 1, seg
+        parts += matches
+    assert parts == sorted(parts) and set(parts) == {0, 1}, parts
     # The last estimate alone would have moved the first part by the second part's offset.
     assert (np.abs(raw.events["ts"] - OFFSETS[1] - truth["ts"])[:len(truths[0])] > 30_000_000).all()
 
@@ -99,9 +107,14 @@ def test_each_part_of_a_run_is_corrected_by_the_estimate_in_force_at_its_time(tm
                                                                 for s in stored.correction.segments]}))
 
 
-async def _resume_after_restart(db, run: str) -> tuple[dict, dict]:
+def _history_rows(db, run: str) -> int:
+    with sqlite3.connect(db) as conn:
+        return conn.execute("SELECT COUNT(*) FROM clock_history WHERE run = ?", (run,)).fetchone()[0]
+
+
+async def _resume_after_restart(db, run: str) -> tuple[dict, dict, int]:
     """Two reports and a batch, a relay killed and started again, the run resumed: what the new
-    relay shows before the run's next report, and after it."""
+    relay shows before the run's next report, and after it; the estimates the first relay stored."""
     relay = RelayProcess(db, clock="estimate")
     try:
         node = await HandNode.open(relay.url, "resumer", run)
@@ -114,6 +127,7 @@ async def _resume_after_restart(db, run: str) -> tuple[dict, dict]:
         await node.close()
     finally:
         relay.kill9()
+    stored = _history_rows(db, run)
     relay = RelayProcess(db, clock="estimate")
     try:
         node = await HandNode.open(relay.url, "resumer", run, secret=node.secret)
@@ -121,17 +135,18 @@ async def _resume_after_restart(db, run: str) -> tuple[dict, dict]:
         await asyncio.sleep(REPORT_S)
         await _report(node, OFFSETS[0])
         await node.close()
-        return before, get_json(f"{relay.url}/api/nodes")[0]["clock"]
+        return before, get_json(f"{relay.url}/api/nodes")[0]["clock"], stored
     finally:
         relay.stop()
 
 
 def test_a_run_resumed_after_a_relay_restart_keeps_its_history_and_goes_on(tmp_path):
     db, run = tmp_path / "r.db", uuid.uuid4().hex
-    before, after = asyncio.run(_resume_after_restart(db, run))
+    before, after, stored = asyncio.run(_resume_after_restart(db, run))
     # Before its next report, the resumed run's frames are corrected by its stored estimates.
     assert before["clock"] == "estimate" and len(before["frames"]) == 20
     assert all(abs(f["clock_ns"] - OFFSETS[0]) <= f["clock_uncertainty_ns"] for f in before["frames"])
-    assert after["history"] == 2 and after["applied"] == "estimate", after
-    with sqlite3.connect(db) as conn:
-        assert conn.execute("SELECT COUNT(*) FROM clock_history WHERE run = ?", (run,)).fetchone() == (2,)
+    # The first relay's estimates (one, or two if the second report's best round trip was shorter),
+    # then the new relay's from the next report: kept, not started afresh.
+    assert stored >= 1 and after["history"] == stored + 1 and after["applied"] == "estimate", (stored, after)
+    assert _history_rows(db, run) == after["history"]
