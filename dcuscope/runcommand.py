@@ -83,8 +83,9 @@ def run_command(args: argparse.Namespace) -> int:
         console.write(f"dcuscope: source {index} ({config.sources[index].description}) {describe(stalls)}\n")
     if result.discarded:
         counted = ", counted in the trace (reason stopped)" if config.probes.enabled else ""
-        console.write(f"dcuscope: {result.discarded} frames still queued at the stop were dropped "
-                      f"(live sources are not drained){counted}\n")
+        frames = "1 frame still queued at the stop was" if result.discarded == 1 else \
+            f"{result.discarded} frames still queued at the stop were"
+        console.write(f"dcuscope: {frames} dropped (live sources are not drained){counted}\n")
     if result.aborted is not None:
         incomplete = {"file": f": {config.sink.path} is incomplete (not finalised, may not play)",
                       "frames": f": the frames in {config.sink.path} end early"}.get(config.sink.kind, "")
