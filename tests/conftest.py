@@ -62,10 +62,11 @@ def cli_env() -> dict:
     return env
 
 
-def run_cli(*args: str, cwd: Path | None = None, timeout: float = 240) -> subprocess.CompletedProcess:
-    """Run ``dcuscope ARGS`` as a user would, in a real process."""
-    return subprocess.run([sys.executable, "-m", "dcuscope.cli", *map(str, args)], cwd=cwd or REPO, env=cli_env(),
-                          capture_output=True, text=True, timeout=timeout)
+def run_cli(*args: str, cwd: Path | None = None, timeout: float = 240,
+            env: dict | None = None) -> subprocess.CompletedProcess:
+    """Run ``dcuscope ARGS`` as a user would, in a real process (``env``: variables to add)."""
+    return subprocess.run([sys.executable, "-m", "dcuscope.cli", *map(str, args)], cwd=cwd or REPO,
+                          env={**cli_env(), **(env or {})}, capture_output=True, text=True, timeout=timeout)
 
 
 @pytest.fixture(scope="session")

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +13,7 @@ from probes.delays import chains
 from probes.events import ENTER, EXIT, ORIGIN
 from probes.frametable import MISSING, frame_table
 from probes.tracefile import read_trace
-from tests.conftest import REPO, cli_env, run_cli
+from tests.conftest import REPO, run_cli
 
 MODEL = REPO / "assets" / "models" / "ssdlite_mobilenetv2_person.onnx"
 FIVE = ("mux", "infer", "tiler", "convert", "osd")
@@ -25,9 +23,7 @@ def probed_run(tmp_path: Path, yaml: str, frames: int, *extra: str, env: dict | 
     config = tmp_path / "p.yaml"
     config.write_text(yaml)
     trace = tmp_path / "t.jsonl"
-    result = subprocess.run([sys.executable, "-m", "dcuscope.cli", "run", str(config), "--probes", "--trace", str(trace),
-                             "--num-frames", str(frames), *extra], cwd=tmp_path, env={**cli_env(), **(env or {})},
-                            capture_output=True, text=True, timeout=240)
+    result = run_cli("run", config, "--probes", "--trace", trace, "--num-frames", frames, *extra, cwd=tmp_path, env=env)
     assert result.returncode == 0, result.stderr
     return read_trace(trace)
 
