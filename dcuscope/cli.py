@@ -39,6 +39,16 @@ and counted (reason "stopped" in the trace), so that the run ends within about a
 Exit status: 0 done, 1 the pipeline failed, 2 bad configuration or arguments.
 """
 
+PLUGIN_EPILOG = """\
+example:
+  GST_PLUGIN_PATH="$(dcuscope plugin-path)" \\
+  GST_TRACERS="dcuscope(node=DCU-1,trace=dcu1.trace.jsonl)" \\
+  gst-launch-1.0 videotestsrc num-buffers=300 ! videoconvert ! x264enc ! fakesink
+  dcuscope stats dcu1.trace.jsonl
+
+tracer parameters: node (default: the host name), trace (default: NODE.trace.jsonl),
+clock (realtime, monotonic or tai; default realtime), capacity (ring size in events).
+"""
 
 MAX_DRIFT_PPM = 1000.0
 """Beyond any quartz (tens of ppm): a larger --clock-drift-ppm is a typo."""
@@ -110,6 +120,13 @@ def build_parser() -> argparse.ArgumentParser:
     rtsp.add_argument("--bitrate", type=_positive_int, default=2000, help="H.264 bitrate in kbit/s (default 2000)")
     rtsp.set_defaults(func=_serve_rtsp, holds_signals=True)
 
+    plugin = sub.add_parser(
+        "plugin-path", help="print the folder of dcuscope's GStreamer plugin (the dcuscope tracer), building it if needed",
+        description="Print the folder that holds dcuscope's GStreamer plugin, for GST_PLUGIN_PATH: with it any "
+                    "GStreamer application, unchanged, is traced per frame by GST_TRACERS=dcuscope.",
+        epilog=PLUGIN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
+    plugin.set_defaults(func=_plugin_path)
+
     add_stats_parser(sub)
     add_export_parser(sub)
     add_relay_parser(sub)
@@ -147,6 +164,17 @@ def _demo(args: argparse.Namespace) -> int:
     from dcuscope.demo import run_demo
 
     return run_demo(port=args.port, duration=args.duration, db=args.db)
+
+
+def _plugin_path(args: argparse.Namespace) -> int:
+    from probes.native import BuildError, build
+
+    try:
+        print(build().parent)
+    except BuildError as exc:
+        print(f"dcuscope: error: cannot build the GStreamer plugin: {exc}", file=sys.stderr)
+        return 1
+    return 0
 
 
 def _serve_rtsp(args: argparse.Namespace) -> int:

@@ -34,36 +34,17 @@
  * Build: cc -O2 -shared -fPIC _fastprobe.c $(pkg-config --cflags --libs gstreamer-1.0)
  */
 
-#include <gst/gst.h>
-#include <stdatomic.h>
-#include <stdint.h>
+#include "_dcuprobe.h"
+
 #include <stdlib.h>
 #include <string.h>
-#include <time.h>
 
 #define DCU_ABI_VERSION 2
-#define FRAMES_MEDIA_TYPE "timestamp/x-dcuscope-frames"
 #define NTP_MEDIA_TYPE "timestamp/x-ntp"
 #define NTP_TO_UNIX_NS (2208988800LL * 1000000000LL)
-
-/* Points and fact kinds: probes/events.py. */
-enum { P_ORIGIN = 0, P_ENTER = 1, P_EXIT = 2, P_READY = 3, P_CAPTURE = 4, P_FACT = 6 };
-enum { FACT_THREAD = 1 };
-#define MAX_STAGES 256
 #define ENTER_SETS 256 /* recent enters remembered per stage: 256 sets of 4 slots */
 #define ENTER_WAYS 4
 #define MAX_GROUP 127
-
-typedef struct {
-  int64_t ts;
-  int64_t frame;
-  int32_t source;
-  int16_t stage;
-  int8_t point;
-  int8_t code;
-} DcuEvent;
-
-_Static_assert(sizeof(DcuEvent) == 24, "DcuEvent must match probes.events.EVENT_DTYPE");
 
 /* The last enter of recent frames at one stage, by frame key: written by enter probes, read by
  * exit probes. 4-way sets: a frame's enter is lost only when four frames of its set entered
@@ -76,9 +57,9 @@ typedef struct {
   _Atomic int thread; /* the thread that brought the frame in */
 } DcuEnterSlot;
 
-typedef struct {
+struct DcuStageEnters {
   DcuEnterSlot slots[ENTER_SETS][ENTER_WAYS];
-} DcuStageEnters;
+};
 
 /* One slot: the record plus its sequence number (Vyukov). seq == pos: free for the producer
  * of position pos; seq == pos + 1: filled, readable by the consumer. */
@@ -87,7 +68,7 @@ typedef struct {
   DcuEvent ev;
 } DcuCell;
 
-typedef struct {
+struct DcuRing {
   DcuCell *cells;
   uint64_t mask;
   /* Producers contend on enqueue_pos only; keep the consumer's fields on another line so
@@ -98,26 +79,17 @@ typedef struct {
   _Atomic uint64_t unidentified;
   _Atomic int refcount;
   DcuStageEnters *_Atomic enters[MAX_STAGES];
-} DcuRing;
+};
 
 /* Per traced src pad (object data of the pad, freed with it): when its last push returned,
  * and which thread pushed last. */
-typedef struct {
+struct DcuPadState {
   _Atomic int64_t last_post;
   _Atomic int64_t cpu_at_post; /* CPU time of the pushing thread when its last push returned */
   _Atomic int post_thread;     /* ...and which thread that was */
   _Atomic int last_thread;
   clockid_t clock;
-} DcuPadState;
-
-typedef struct {
-  DcuRing *ring;
-  clockid_t clock;
-  int16_t stage;
-  int8_t point;
-  DcuStageEnters *enters; /* the stage's table (enter and exit probes) */
-  DcuPadState *pad_state; /* exit probes only */
-} DcuProbe;
+};
 
 /* Interned once: comparing quarks is an integer compare, where matching the caps with
  * gst_caps_is_subset for every buffer would walk structures. */
@@ -261,7 +233,7 @@ static inline guint field_size(const GValue *field) {
   return GST_VALUE_HOLDS_ARRAY(field) ? gst_value_array_get_size(field) : 1;
 }
 
-static const GstStructure *frames_structure(GstBuffer *buf) {
+const GstStructure *dcu_frames_structure(GstBuffer *buf) {
   gpointer state = NULL;
   GstMeta *meta;
   while ((meta = gst_buffer_iterate_meta_filtered(buf, &state, GST_REFERENCE_TIMESTAMP_META_API_TYPE))) {
@@ -272,6 +244,18 @@ static const GstStructure *frames_structure(GstBuffer *buf) {
     }
   }
   return NULL;
+}
+
+guint dcu_frames_count(const GstStructure *s) {
+  const GValue *sources = gst_structure_id_get_value(s, source_quark);
+  const GValue *frames = gst_structure_id_get_value(s, frame_quark);
+  return (sources && frames) ? MIN(field_size(sources), field_size(frames)) : 0;
+}
+
+void dcu_frames_get(const GstStructure *s, guint i, int64_t *source, int64_t *frame) {
+  *source = *frame = -1;
+  value_to_i64(field_item(gst_structure_id_get_value(s, source_quark), i), source);
+  value_to_i64(field_item(gst_structure_id_get_value(s, frame_quark), i), frame);
 }
 
 static inline uint64_t frame_key(int64_t source, int64_t frame) {
@@ -347,9 +331,9 @@ static int64_t ntp_capture_ns(GstBuffer *buf) {
   return 0;
 }
 
-static void record_buffer(DcuProbe *p, GstBuffer *buf, int64_t ts) {
+void dcu_record_buffer(DcuProbe *p, GstBuffer *buf, int64_t ts) {
   DcuRing *ring = p->ring;
-  const GstStructure *s = frames_structure(buf);
+  const GstStructure *s = dcu_frames_structure(buf);
   const GValue *sources = s ? gst_structure_id_get_value(s, source_quark) : NULL;
   const GValue *frames = s ? gst_structure_id_get_value(s, frame_quark) : NULL;
   guint n = (sources && frames) ? MIN(field_size(sources), field_size(frames)) : 0;
@@ -428,18 +412,18 @@ static GstPadProbeReturn on_probe(GstPad *pad, GstPadProbeInfo *info, gpointer u
   clock_gettime(p->clock, &t);
   int64_t ts = (int64_t)t.tv_sec * 1000000000LL + t.tv_nsec;
   if (GST_PAD_PROBE_INFO_TYPE(info) & GST_PAD_PROBE_TYPE_BUFFER) {
-    record_buffer(p, GST_PAD_PROBE_INFO_BUFFER(info), ts);
+    dcu_record_buffer(p, GST_PAD_PROBE_INFO_BUFFER(info), ts);
   } else if (GST_PAD_PROBE_INFO_TYPE(info) & GST_PAD_PROBE_TYPE_BUFFER_LIST) {
     GstBufferList *list = GST_PAD_PROBE_INFO_BUFFER_LIST(info);
     guint len = gst_buffer_list_length(list);
-    for (guint i = 0; i < len; i++) record_buffer(p, gst_buffer_list_get(list, i), ts);
+    for (guint i = 0; i < len; i++) dcu_record_buffer(p, gst_buffer_list_get(list, i), ts);
   }
   return GST_PAD_PROBE_OK;
 }
 
 static void probe_free(gpointer data) {
   DcuProbe *p = data;
-  ring_unref(p->ring);
+  dcu_probe_clear(p);
   g_free(p);
 }
 
@@ -456,7 +440,7 @@ G_DEFINE_TYPE(DcuTracer, dcu_tracer, GST_TYPE_TRACER)
 
 static _Atomic uint64_t hook_calls;
 
-static inline void note_push_returned(GstPad *pad) {
+void dcu_note_push_returned(GstPad *pad) {
   DcuPadState *st = g_object_get_qdata(G_OBJECT(pad), pad_state_quark);
   if (!st) return;
   struct timespec t;
@@ -469,7 +453,7 @@ static inline void note_push_returned(GstPad *pad) {
 static void on_push_post(GObject *self, GstClockTime ts, GstPad *pad, GstFlowReturn res) {
   (void)self; (void)ts; (void)res;
   atomic_fetch_add_explicit(&hook_calls, 1, memory_order_relaxed);
-  note_push_returned(pad);
+  dcu_note_push_returned(pad);
 }
 
 static void dcu_tracer_init(DcuTracer *self) {
@@ -520,6 +504,28 @@ static DcuPadState *pad_state(GstPad *pad, clockid_t clock) {
   return st;
 }
 
+void dcu_probe_setup(DcuProbe *p, DcuRing *ring, GstPad *pad, int stage, int point, clockid_t clock) {
+  init_once();
+  memset(p, 0, sizeof(*p));
+  p->ring = ring;
+  p->clock = clock;
+  p->stage = (int16_t)stage;
+  p->point = (int8_t)point;
+  if (point == P_ENTER || point == P_EXIT) p->enters = stage_enters(ring, stage);
+  if (point == P_EXIT && GST_PAD_IS_SRC(pad)) p->pad_state = pad_state(pad, clock);
+  atomic_fetch_add(&ring->refcount, 1);
+}
+
+void dcu_probe_clear(DcuProbe *p) {
+  if (p->ring) ring_unref(p->ring);
+  p->ring = NULL;
+}
+
+gboolean dcu_pad_splits_lists(GstPad *pad) {
+  init_once();
+  return GST_PAD_IS_SINK(pad) && GST_PAD_CHAINLISTFUNC(pad) == default_chain_list;
+}
+
 /* Add a tracepoint on pad; returns the probe id (0 when pad is not a GstPad). The probe holds
  * a reference on the ring until it is removed. */
 gulong dcu_attach(DcuRing *ring, GstPad *pad, int stage, int point, int clock_id) {
@@ -529,15 +535,9 @@ gulong dcu_attach(DcuRing *ring, GstPad *pad, int stage, int point, int clock_id
   GstPadProbeType types = GST_PAD_PROBE_TYPE_BUFFER | GST_PAD_PROBE_TYPE_BUFFER_LIST;
   /* Such a pad would see a list twice: whole, then buffer by buffer. Keep the per-buffer
    * probes only, which also time each buffer's own entry. */
-  if (GST_PAD_IS_SINK(pad) && GST_PAD_CHAINLISTFUNC(pad) == default_chain_list) types = GST_PAD_PROBE_TYPE_BUFFER;
+  if (dcu_pad_splits_lists(pad)) types = GST_PAD_PROBE_TYPE_BUFFER;
   DcuProbe *p = g_new0(DcuProbe, 1);
-  p->ring = ring;
-  p->clock = (clockid_t)clock_id;
-  p->stage = (int16_t)stage;
-  p->point = (int8_t)point;
-  if (point == P_ENTER || point == P_EXIT) p->enters = stage_enters(ring, stage);
-  if (point == P_EXIT && GST_PAD_IS_SRC(pad)) p->pad_state = pad_state(pad, p->clock);
-  atomic_fetch_add(&ring->refcount, 1);
+  dcu_probe_setup(p, ring, pad, stage, point, (clockid_t)clock_id);
   return gst_pad_add_probe(pad, types, on_probe, p, probe_free);
 }
 
@@ -559,9 +559,11 @@ void dcu_detach(GstPad *pad, gulong probe_id) {
   if (GST_IS_PAD(pad) && probe_id) gst_pad_remove_probe(pad, probe_id);
 }
 
-/* The clock the probes read, for callers that want to compare (tests, headers). */
-int64_t dcu_now(int clock_id) {
+int64_t dcu_clock_ns(clockid_t clock) {
   struct timespec t;
-  clock_gettime((clockid_t)clock_id, &t);
+  clock_gettime(clock, &t);
   return (int64_t)t.tv_sec * 1000000000LL + t.tv_nsec;
 }
+
+/* The clock the probes read, for callers that want to compare (tests, headers). */
+int64_t dcu_now(int clock_id) { return dcu_clock_ns((clockid_t)clock_id); }

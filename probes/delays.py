@@ -93,23 +93,51 @@ def chains(table: FrameTable, has_exit: np.ndarray | None = None) -> Chains:
     t_out[rows[has_origin], table.origin_stage[has_origin]] = table.origin[has_origin]
     passed = (t_in != MISSING) | (t_out != MISSING)
 
-    stage_idx = np.arange(n_stages)
-    last_upto = np.maximum.accumulate(np.where(passed, stage_idx, -1), axis=1)
-    prev = np.full((n, n_stages), -1, np.int64)
-    prev[:, 1:] = last_upto[:, :-1]
-
     if has_exit is None:
         has_exit = (table.exit != MISSING).any(axis=0)
-    last = n_stages - 1
-    is_origin = stage_idx[None, :] == table.origin_stage[:, None]
-    needs_out = passed & ((stage_idx[None, :] < last) | has_exit[None, :])
+    if table.links:
+        prev, needs_out, reached_end, end = _graph_chains(table, passed, t_in, t_out, has_exit)
+    else:
+        stage_idx = np.arange(n_stages)
+        last_upto = np.maximum.accumulate(np.where(passed, stage_idx, -1), axis=1)
+        prev = np.full((n, n_stages), -1, np.int64)
+        prev[:, 1:] = last_upto[:, :-1]
+        last = n_stages - 1
+        needs_out = passed & ((stage_idx[None, :] < last) | has_exit[None, :])
+        reached_end = t_in[:, last] != MISSING
+        end = np.where(t_out[:, last] != MISSING, t_out[:, last], t_in[:, last])
+    is_origin = np.arange(n_stages)[None, :] == table.origin_stage[:, None]
     broken = (passed & ~is_origin & (t_in == MISSING)).any(axis=1) | (needs_out & (t_out == MISSING)).any(axis=1)
     first_passed = np.where(passed.any(axis=1), passed.argmax(axis=1), -1)
-    complete = has_origin & (first_passed == table.origin_stage) & (t_in[:, last] != MISSING) & ~broken
-
-    end = np.where(t_out[:, last] != MISSING, t_out[:, last], t_in[:, last])
+    complete = has_origin & (first_passed == table.origin_stage) & reached_end & ~broken
     return Chains(t_in=t_in, t_out=t_out, passed=passed, prev=prev, complete=complete, end=end,
                   has_exit=np.asarray(has_exit, bool))
+
+
+def _graph_chains(table: FrameTable, passed: np.ndarray, t_in: np.ndarray, t_out: np.ndarray, has_exit: np.ndarray):
+    """:func:`chains` where the trace gives the graph (branches through a tee, several sinks):
+    a stage's previous stage is the upstream stage the frame passed; a stage that feeds others
+    needs an exit; the frame must reach an end (a stage feeding none) from every stage it
+    passed; it ends where its last branch ends."""
+    n, n_stages = passed.shape
+    upstream: list[list[int]] = [[] for _ in range(n_stages)]
+    feeds = np.zeros(n_stages, bool)
+    for a, b in table.links:
+        if 0 <= a < n_stages and 0 <= b < n_stages and a != b:
+            upstream[b].append(a)
+            feeds[a] = True
+    prev = np.full((n, n_stages), -1, np.int64)
+    went_on = ~passed | ~feeds[None, :]  # a passed stage that feeds others: did the frame pass one?
+    for b in range(n_stages):
+        for a in upstream[b]:
+            prev[:, b] = np.maximum(prev[:, b], np.where(passed[:, a], a, -1))
+            went_on[:, a] |= passed[:, b]
+    needs_out = passed & (feeds | has_exit)[None, :]
+    ends = ~feeds
+    end_ts = np.where(t_out != MISSING, t_out, t_in)
+    end = np.where(passed & ends[None, :], end_ts, MISSING).max(axis=1)
+    reached_end = (passed & ends[None, :]).any(axis=1) & went_on.all(axis=1)
+    return prev, needs_out, reached_end, end
 
 
 @dataclass

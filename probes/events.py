@@ -88,6 +88,12 @@ class TraceHeader:
     kinds: dict[str, str] = field(default_factory=dict)
     """Stage name -> the factory of its element (``infer`` for a stage named ``pgie``): what
     the UI colours by. Optional: traces written before it have none."""
+    links: list[list[int]] = field(default_factory=list)
+    """``[a, b]`` pairs of stage indices: stage a feeds stage b (the graph, branches as branches).
+    Written by the GStreamer tracer; optional."""
+    lineage_unknown: list[str] = field(default_factory=list)
+    """Stages that took identified frames in and pushed buffers without identity: downstream of
+    them frames cannot be traced to their sources (the GStreamer tracer never guesses)."""
 
     def to_dict(self) -> dict:
         d = asdict(self)
@@ -102,6 +108,8 @@ class TraceHeader:
             started_ns=int(d.get("started_ns", 0)), versions=dict(d.get("versions", {})),
             format=int(d.get("format", FORMAT_VERSION)),
             kinds={str(k): str(v) for k, v in d.get("kinds", {}).items()},
+            links=[[int(a), int(b)] for a, b in d.get("links", [])],
+            lineage_unknown=[str(s) for s in d.get("lineage_unknown", [])],
         )
 
 

@@ -8,7 +8,7 @@ the earliest timestamp is kept.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -46,6 +46,9 @@ class FrameTable:
     group: np.ndarray
     """(n, n_stages) int64: the ready event's code, > 0 where the frame was the first of its
     output buffer (whose work then counts once in the stage's busy time), MISSING where unknown."""
+    links: list[list[int]] = field(default_factory=list)
+    """The graph, ``[a, b]``: stage a feeds stage b (TraceHeader.links); empty: the stages are
+    one chain in their order."""
 
     def __len__(self) -> int:
         return int(self.source.shape[0])
@@ -77,7 +80,9 @@ def frame_table(header: TraceHeader, events: np.ndarray) -> FrameTable:
     cells[cells == _NEVER] = MISSING
     ready = point == READY
     cells[slot[ready] + GROUP] = events["code"][ready]
-    return frame_table_from_cells(header.stages, source, frame, cells.reshape(n, n_stages, FRAME_CELLS))
+    table = frame_table_from_cells(header.stages, source, frame, cells.reshape(n, n_stages, FRAME_CELLS))
+    table.links = [list(link) for link in header.links]
+    return table
 
 
 def frame_table_from_cells(stages: list[str], source: np.ndarray, frame: np.ndarray, cells: np.ndarray) -> FrameTable:

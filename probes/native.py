@@ -1,6 +1,6 @@
-"""Build and load the native tracepoint library (``_fastprobe.c``), and its ring.
+"""Build and load the native library (the probes' ring and tracepoints, and the GStreamer tracer).
 
-The library is compiled on demand into ``probes/_build/libdcuprobe.so`` (git-ignored); the
+The library is compiled on demand into ``probes/_build/libgstdcuscope.so`` (git-ignored); the
 project setup runs ``python -m probes.native build`` once. Where there is no compiler or no
 GStreamer headers, :func:`load` returns None and says why in :func:`unavailable_reason`, and
 the tracer falls back to Python probes (``probes.ring``).
@@ -28,9 +28,11 @@ from core.gst import Gst
 from probes.events import EVENT_DTYPE
 from probes.ring import RingStats
 
-SOURCE = Path(__file__).resolve().parent / "_fastprobe.c"
-BUILD_DIR = Path(__file__).resolve().parent / "_build"
-LIBRARY = BUILD_DIR / "libdcuprobe.so"
+HERE = Path(__file__).resolve().parent
+SOURCES = [HERE / name for name in ("_fastprobe.c", "_tracer.c", "_tracewriter.c", "_plugin.c")]
+HEADERS = [HERE / name for name in ("_dcuprobe.h", "_tracer.h")]
+BUILD_DIR = HERE / "_build"
+LIBRARY = BUILD_DIR / "libgstdcuscope.so"
 ABI_VERSION = 2
 
 _lock = threading.Lock()
@@ -59,15 +61,16 @@ def _gst_flags() -> list[str]:
 
 
 def build(force: bool = False) -> Path:
-    """Compile ``_fastprobe.c`` unless an up-to-date library is there; returns its path."""
-    if not force and LIBRARY.exists() and LIBRARY.stat().st_mtime >= SOURCE.stat().st_mtime:
+    """Compile the library unless an up-to-date one is there; returns its path."""
+    newest = max(p.stat().st_mtime for p in SOURCES + HEADERS)
+    if not force and LIBRARY.exists() and LIBRARY.stat().st_mtime >= newest:
         return LIBRARY
     BUILD_DIR.mkdir(exist_ok=True)
     # Compile to a private name and rename: two processes building at once never load a
-    # half-written library.
-    fd, tmp = tempfile.mkstemp(suffix=".so", dir=BUILD_DIR)
+    # half-written library (nor GStreamer's plugin scanner, which looks at every *.so there).
+    fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=BUILD_DIR)
     os.close(fd)
-    cmd = [_compiler(), "-O2", "-std=gnu11", "-Wall", "-shared", "-fPIC", "-o", tmp, str(SOURCE), *_gst_flags()]
+    cmd = [_compiler(), "-O2", "-std=gnu11", "-Wall", "-shared", "-fPIC", "-o", tmp, *map(str, SOURCES), *_gst_flags()]
     try:
         res = subprocess.run(cmd, capture_output=True, text=True)
     except OSError as exc:
@@ -75,7 +78,7 @@ def build(force: bool = False) -> Path:
         raise BuildError(f"cannot run the C compiler {cmd[0]}: {exc.strerror}") from exc
     if res.returncode != 0:
         os.unlink(tmp)
-        raise BuildError(f"compiling {SOURCE.name} failed:\n{res.stderr.strip()}")
+        raise BuildError(f"compiling the native probes failed:\n{res.stderr.strip()}")
     os.replace(tmp, LIBRARY)
     return LIBRARY
 

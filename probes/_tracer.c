@@ -1,0 +1,556 @@
+/* The dcuscope GStreamer tracer: per-frame tracepoints in any application, from hooks alone.
+ *
+ *   GST_PLUGIN_PATH="$(dcuscope plugin-path)" \
+ *   GST_TRACERS="dcuscope(node=DCU-1,trace=dcu1.trace.jsonl)" gst-launch-1.0 videotestsrc ! ...
+ *
+ * Parameters (GStreamer's tracer convention: a structure's fields in the brackets): node (the
+ * trace's node name, default the host name), trace (the trace file, default NODE.trace.jsonl),
+ * clock (realtime, monotonic or tai; default realtime), capacity (ring size in events). An
+ * unknown parameter is a one-line warning.
+ *
+ * Stages are the elements (not bins) that frames with an identity pass. Tracepoints, from the
+ * hooks alone: enter at pad-chain-pre on a stage's sink pad, exit at pad-push-pre on its src
+ * pad, ready (service/wait) from pad-push-post (_fastprobe.c), the list variants of each.
+ *
+ * Frame identity: the same frames meta as dcuscope's own framestamp element (a
+ * GstReferenceTimestampMeta "timestamp/x-dcuscope-frames" with source and frame fields); where
+ * a buffer already carries one (dcuscope's own pipelines) it is used as it is. Otherwise a
+ * frame gets one (an origin point) where video starts: a source element producing video, the
+ * first element producing video from something else (a demuxer, an RTP depayloader), or the
+ * first producing raw video from frames without identity; source ids in the order their first
+ * frame appears, frame numbers counted per source from 0. A buffer that is shared where it
+ * should get its identity (not writable: some decoders keep a reference) cannot carry it: the
+ * tracer counts those frames and says so at exit. Metas follow the frame
+ * through 1:1 elements, queues and tee (the same buffer), converters, encoders and decoders
+ * (GstBaseTransform, GstVideoEncoder and GstVideoDecoder copy metas without tags). An
+ * aggregator (any GstAggregator: compositor, audiomixer...) makes new buffers: each output
+ * buffer is given the frames it was made from, per sink pad the frame whose running time
+ * covers the output's start (that pad's last frame starting at or before it). An element that
+ * takes identified frames in and pushes buffers without identity (not an aggregator) makes
+ * lineage unknowable: it is named in the trace header (lineage_unknown), never guessed.
+ */
+
+#include "_tracer.h"
+
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+#include <unistd.h>
+
+#define DEFAULT_CAPACITY (1 << 18)
+#define AGG_HISTORY 16
+#define AGG_MAX_FRAMES 64
+#define FROM_UNKNOWN INT64_MIN
+
+typedef struct {
+  int64_t start; /* running time of the buffer's first nanosecond, FROM_UNKNOWN if none */
+  guint n;
+  int64_t source[AGG_MAX_FRAMES];
+  int64_t frame[AGG_MAX_FRAMES];
+} DcuAggEntry;
+
+/* The recent identified buffers of one aggregator sink pad (written on the pad's streaming
+ * thread, read on the aggregator's). */
+typedef struct {
+  GMutex lock;
+  guint written;
+  DcuAggEntry entries[AGG_HISTORY];
+} DcuAggHistory;
+
+typedef struct {
+  DcuProbe probe;   /* enter (sink pad) or exit (src pad) */
+  DcuProbe origin;  /* src pads: the origin point, where frames get their identity */
+  DcuStage *stage;  /* NULL: not traced (a bin's ghost pad, a proxy pad) */
+  int stamps;       /* src pads: -1 undecided, 0 never gives frames an identity, 1 does */
+  int source;       /* the source id it gives, -1 before its first frame */
+  _Atomic int64_t next_frame;
+  DcuAggHistory *history; /* sink pads of an aggregator */
+} DcuPadInfo;
+
+typedef struct {
+  GstTracer parent;
+  DcuRing *ring;
+  clockid_t clock;
+  DcuGraph graph;
+  DcuWriter *writer;
+  GQuark pad_quark, stage_quark;
+  GType aggregator_type;
+} GstDcuscopeTracer;
+
+typedef struct {
+  GstTracerClass parent_class;
+} GstDcuscopeTracerClass;
+
+G_DEFINE_TYPE(GstDcuscopeTracer, gst_dcuscope_tracer, GST_TYPE_TRACER)
+
+static const char *const CLOCK_NAMES[] = {"realtime", "monotonic", "tai"};
+static const clockid_t CLOCK_IDS[] = {CLOCK_REALTIME, CLOCK_MONOTONIC, CLOCK_TAI};
+static const char *const KNOWN_PARAMS[] = {"node", "trace", "clock", "capacity", NULL};
+
+/* --- stages and pads ------------------------------------------------------------------------ */
+
+static gboolean name_taken(DcuGraph *g, const char *name) {
+  for (int i = 0; i < g->n_stages; i++)
+    if (g->stages[i] && strcmp(g->stages[i]->name, name) == 0) return TRUE;
+  return FALSE;
+}
+
+/* The element's stage, made on first sight (graph lock held). NULL when there are too many. */
+static DcuStage *stage_of(GstDcuscopeTracer *self, GstElement *element) {
+  DcuStage *st = g_object_get_qdata(G_OBJECT(element), self->stage_quark);
+  if (st) return st;
+  DcuGraph *g = &self->graph;
+  if (g->n_stages >= MAX_STAGES) return NULL;
+  st = g_new0(DcuStage, 1);
+  st->index = g->n_stages;
+  g_weak_ref_init(&st->element, element);
+  GstElementFactory *factory = gst_element_get_factory(element);
+  st->factory = g_strdup(factory ? GST_OBJECT_NAME(factory) : G_OBJECT_TYPE_NAME(element));
+  const char *base = GST_OBJECT_NAME(element);
+  st->name = g_strdup(base);
+  for (int k = 1; name_taken(g, st->name); k++) {
+    g_free(st->name);
+    st->name = g_strdup_printf("%s_%d", base, k);
+  }
+  if (!self->aggregator_type) self->aggregator_type = g_type_from_name("GstAggregator"); /* once loaded */
+  st->aggregator = self->aggregator_type && g_type_is_a(G_OBJECT_TYPE(element), self->aggregator_type);
+  st->source_element = element->numsinkpads == 0;
+  /* Stages live as long as the tracer (the graph lists them); the element only points at it. */
+  g->stages[g->n_stages++] = st;
+  g_object_set_qdata(G_OBJECT(element), self->stage_quark, st);
+  return st;
+}
+
+GstElement *dcu_downstream_element(GstPad *src) {
+  GstPad *peer = gst_pad_get_peer(src);
+  for (int depth = 0; peer && GST_IS_PROXY_PAD(peer) && depth < 32; depth++) {
+    GstProxyPad *internal = gst_proxy_pad_get_internal(GST_PROXY_PAD(peer));
+    gst_object_unref(peer);
+    peer = internal ? gst_pad_get_peer(GST_PAD(internal)) : NULL;
+    if (internal) gst_object_unref(internal);
+  }
+  if (!peer) return NULL;
+  GstElement *owner = gst_pad_get_parent_element(peer);
+  gst_object_unref(peer);
+  if (owner && GST_IS_BIN(owner)) {
+    gst_object_unref(owner);
+    return NULL;
+  }
+  return owner;
+}
+
+static void pad_info_free(gpointer data) {
+  DcuPadInfo *info = data;
+  dcu_probe_clear(&info->probe);
+  dcu_probe_clear(&info->origin);
+  if (info->history) {
+    g_mutex_clear(&info->history->lock);
+    g_free(info->history);
+  }
+  g_free(info);
+}
+
+static DcuPadInfo *make_pad_info(GstDcuscopeTracer *self, GstPad *pad) {
+  DcuPadInfo *info = g_new0(DcuPadInfo, 1);
+  info->stamps = -1;
+  info->source = -1;
+  GstObject *parent = GST_OBJECT_PARENT(pad);
+  if (!parent || !GST_IS_ELEMENT(parent) || GST_IS_BIN(parent)) return info; /* ghost or proxy pad */
+  DcuStage *st = stage_of(self, GST_ELEMENT(parent));
+  if (!st) return info;
+  info->stage = st;
+  gboolean sink = GST_PAD_IS_SINK(pad);
+  dcu_probe_setup(&info->probe, self->ring, pad, st->index, sink ? P_ENTER : P_EXIT, self->clock);
+  if (!sink) {
+    dcu_probe_setup(&info->origin, self->ring, pad, st->index, P_ORIGIN, self->clock);
+    /* A pad that pushes is linked: note the link now, while both elements surely exist. */
+    GstElement *next = dcu_downstream_element(pad);
+    DcuStage *to = next ? stage_of(self, next) : NULL;
+    if (to) self->graph.edges[st->index * MAX_STAGES + to->index] = 1;
+    if (next) gst_object_unref(next);
+  }
+  if (sink && st->aggregator) {
+    info->history = g_new0(DcuAggHistory, 1);
+    g_mutex_init(&info->history->lock);
+  }
+  return info;
+}
+
+/* The pad's tracing state; made on the pad's first buffer (the element is named by then). */
+static inline DcuPadInfo *pad_info(GstDcuscopeTracer *self, GstPad *pad) {
+  DcuPadInfo *info = g_object_get_qdata(G_OBJECT(pad), self->pad_quark);
+  if (G_LIKELY(info)) return info;
+  g_mutex_lock(&self->graph.lock);
+  info = g_object_get_qdata(G_OBJECT(pad), self->pad_quark);
+  if (!info) {
+    info = make_pad_info(self, pad);
+    g_object_set_qdata_full(G_OBJECT(pad), self->pad_quark, info, pad_info_free);
+  }
+  g_mutex_unlock(&self->graph.lock);
+  return info;
+}
+
+/* --- frame identity ------------------------------------------------------------------------- */
+
+static gboolean caps_named(GstCaps *caps, const char *prefix, gboolean whole) {
+  if (!caps || gst_caps_get_size(caps) == 0) return FALSE;
+  const char *name = gst_structure_get_name(gst_caps_get_structure(caps, 0));
+  return whole ? strcmp(name, prefix) == 0 : g_str_has_prefix(name, prefix);
+}
+
+static gboolean any_sink_caps(GstPad *pad, const char *prefix, gboolean whole) {
+  gboolean found = FALSE;
+  GstObject *parent = gst_pad_get_parent(pad);
+  if (!parent) return FALSE;
+  GstElement *element = GST_ELEMENT(parent);
+  GST_OBJECT_LOCK(element);
+  for (GList *l = element->sinkpads; l; l = l->next) {
+    GstCaps *in = gst_pad_get_current_caps(GST_PAD(l->data));
+    if (in && caps_named(in, prefix, whole)) found = TRUE;
+    if (in) gst_caps_unref(in);
+  }
+  GST_OBJECT_UNLOCK(element);
+  gst_object_unref(parent);
+  return found;
+}
+
+/* Does this src pad give frames their identity? Where video starts: a source element's video,
+ * the first element producing video from something else (a demuxer, an RTP depayloader: the
+ * encoded frames, whose metas decoders carry on to the pictures), or the first producing raw
+ * video from frames that came without identity. -1 while the pad has no caps. */
+static int decide_stamps(GstPad *pad, DcuStage *st) {
+  GstCaps *caps = gst_pad_get_current_caps(pad);
+  if (!caps) return -1;
+  int stamps = 0;
+  if (caps_named(caps, "video/", FALSE)) {
+    if (st->source_element || !any_sink_caps(pad, "video/", FALSE)) stamps = 1;
+    else if (caps_named(caps, "video/x-raw", TRUE) && !atomic_load(&st->entered) &&
+             !any_sink_caps(pad, "video/x-raw", TRUE))
+      stamps = 1;
+  }
+  gst_caps_unref(caps);
+  return stamps;
+}
+
+static const char *const DESCRIBING[] = {"uri", "location", "device", NULL};
+
+static char *describe_source(GstElement *element) {
+  for (int i = 0; DESCRIBING[i]; i++) {
+    GParamSpec *spec = g_object_class_find_property(G_OBJECT_GET_CLASS(element), DESCRIBING[i]);
+    if (spec && spec->value_type == G_TYPE_STRING && (spec->flags & G_PARAM_READABLE)) {
+      char *value = NULL;
+      g_object_get(element, DESCRIBING[i], &value, NULL);
+      if (value && *value) return value;
+      g_free(value);
+    }
+  }
+  return g_strdup(GST_OBJECT_NAME(element));
+}
+
+/* The pad's source id, given on its first frame (one per pad even if two threads race). */
+static int source_of(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad) {
+  if (G_LIKELY(info->source >= 0)) return info->source;
+  DcuGraph *g = &self->graph;
+  GstObject *parent = gst_pad_get_parent(pad);
+  char *description = parent ? describe_source(GST_ELEMENT(parent)) : g_strdup("?");
+  if (parent) gst_object_unref(parent);
+  g_mutex_lock(&g->lock);
+  if (info->source < 0 && g->n_sources < MAX_SOURCES) {
+    info->source = g->n_sources++;
+    g->sources[info->source] = description;
+    description = NULL;
+    atomic_fetch_add(&g->version, 1);
+  }
+  g_mutex_unlock(&g->lock);
+  g_free(description);
+  return info->source;
+}
+
+static void add_frames_meta(GstBuffer *buf, GstStructure *s, int64_t ts) {
+  GstCaps *caps = gst_caps_new_full(s, NULL);
+  gst_buffer_add_reference_timestamp_meta(buf, caps, (GstClockTime)ts, GST_CLOCK_TIME_NONE);
+  gst_caps_unref(caps);
+}
+
+/* Give buf the identity of the next frame of the pad's source; FALSE when buf is shared (its
+ * metadata cannot be written). */
+static gboolean stamp(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t ts) {
+  if (!gst_buffer_is_writable(buf) || source_of(self, info, pad) < 0) return FALSE;
+  int64_t frame = atomic_fetch_add_explicit(&info->next_frame, 1, memory_order_relaxed);
+  add_frames_meta(buf, gst_structure_new(FRAMES_MEDIA_TYPE, "source", G_TYPE_INT, info->source, "frame",
+                                         G_TYPE_UINT64, (guint64)frame, NULL), ts);
+  return TRUE;
+}
+
+static int64_t running_time(GstPad *pad, GstClockTime pts) {
+  if (!GST_CLOCK_TIME_IS_VALID(pts)) return FROM_UNKNOWN;
+  GstEvent *event = gst_pad_get_sticky_event(pad, GST_EVENT_SEGMENT, 0);
+  if (!event) return FROM_UNKNOWN;
+  const GstSegment *segment;
+  gst_event_parse_segment(event, &segment);
+  int64_t rt = FROM_UNKNOWN;
+  if (segment->format == GST_FORMAT_TIME) {
+    guint64 t = gst_segment_to_running_time(segment, GST_FORMAT_TIME, pts);
+    if (GST_CLOCK_TIME_IS_VALID(t)) rt = (int64_t)t;
+  }
+  gst_event_unref(event);
+  return rt;
+}
+
+/* An identified buffer entered an aggregator's sink pad: remember its frames and running time. */
+static void remember_input(DcuPadInfo *info, GstPad *pad, GstBuffer *buf, const GstStructure *s) {
+  DcuAggHistory *h = info->history;
+  int64_t start = running_time(pad, GST_BUFFER_PTS(buf));
+  g_mutex_lock(&h->lock);
+  DcuAggEntry *e = &h->entries[h->written++ % AGG_HISTORY];
+  e->start = start;
+  e->n = MIN(dcu_frames_count(s), AGG_MAX_FRAMES);
+  for (guint i = 0; i < e->n; i++) dcu_frames_get(s, i, &e->source[i], &e->frame[i]);
+  g_mutex_unlock(&h->lock);
+}
+
+static void append_int(GValue *array, GType type, int64_t v) {
+  GValue item = G_VALUE_INIT;
+  g_value_init(&item, type);
+  if (type == G_TYPE_INT) g_value_set_int(&item, (int)v);
+  else g_value_set_uint64(&item, (guint64)v);
+  gst_value_array_append_value(array, &item);
+  g_value_unset(&item);
+}
+
+/* Give an aggregator's output buffer the frames it was made from: per sink pad, the last
+ * remembered frame that starts at or before the output's running time. FALSE if none. */
+static gboolean aggregate_lineage(GstElement *element, GstPad *src, GstBuffer *buf, GQuark pad_quark, int64_t ts) {
+  if (!gst_buffer_is_writable(buf)) return FALSE;
+  int64_t out = running_time(src, GST_BUFFER_PTS(buf));
+  GValue sources = G_VALUE_INIT, frames = G_VALUE_INIT;
+  g_value_init(&sources, GST_TYPE_ARRAY);
+  g_value_init(&frames, GST_TYPE_ARRAY);
+  guint total = 0;
+  GST_OBJECT_LOCK(element);
+  for (GList *l = element->sinkpads; l; l = l->next) {
+    DcuPadInfo *info = g_object_get_qdata(G_OBJECT(l->data), pad_quark);
+    if (!info || !info->history) continue;
+    DcuAggHistory *h = info->history;
+    g_mutex_lock(&h->lock);
+    const DcuAggEntry *best = NULL;
+    guint first = h->written > AGG_HISTORY ? h->written - AGG_HISTORY : 0;
+    for (guint k = first; k < h->written; k++) {
+      const DcuAggEntry *e = &h->entries[k % AGG_HISTORY];
+      if (out == FROM_UNKNOWN || e->start == FROM_UNKNOWN) best = e; /* no times: the latest */
+      else if (e->start <= out && (!best || e->start >= best->start)) best = e;
+    }
+    for (guint i = 0; best && i < best->n; i++) {
+      append_int(&sources, G_TYPE_INT, best->source[i]);
+      append_int(&frames, G_TYPE_UINT64, best->frame[i]);
+      total++;
+    }
+    g_mutex_unlock(&h->lock);
+  }
+  GST_OBJECT_UNLOCK(element);
+  if (total > 0) {
+    GstStructure *s = gst_structure_new_empty(FRAMES_MEDIA_TYPE);
+    gst_structure_take_value(s, "source", &sources);
+    gst_structure_take_value(s, "frame", &frames);
+    add_frames_meta(buf, s, ts);
+  } else {
+    g_value_unset(&sources);
+    g_value_unset(&frames);
+  }
+  return total > 0;
+}
+
+/* --- hooks ---------------------------------------------------------------------------------- */
+
+static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int64_t ts) {
+  DcuPadInfo *info = pad_info(self, pad);
+  DcuStage *st = info->stage;
+  if (!st) return;
+  if (G_LIKELY(dcu_frames_structure(buf) != NULL)) {
+    dcu_record_buffer(&info->probe, buf, ts);
+    return;
+  }
+  if (st->aggregator && atomic_load_explicit(&st->entered, memory_order_relaxed)) {
+    GstObject *parent = GST_OBJECT_PARENT(pad);
+    if (parent && aggregate_lineage(GST_ELEMENT(parent), pad, buf, self->pad_quark, ts)) {
+      dcu_record_buffer(&info->probe, buf, ts);
+      return;
+    }
+  }
+  if (info->stamps < 0) info->stamps = decide_stamps(pad, st);
+  if (info->stamps == 1) {
+    if (stamp(self, info, pad, buf, ts)) {
+      dcu_record_buffer(&info->origin, buf, ts);
+      return;
+    }
+    atomic_fetch_add_explicit(&st->shared, 1, memory_order_relaxed);
+  }
+  dcu_record_buffer(&info->probe, buf, ts); /* counts it unidentified */
+  if (atomic_load_explicit(&st->entered, memory_order_relaxed) &&
+      !atomic_exchange_explicit(&st->lineage_lost, 1, memory_order_relaxed))
+    atomic_fetch_add(&self->graph.version, 1);
+}
+
+static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int64_t ts) {
+  DcuPadInfo *info = pad_info(self, pad);
+  if (!info->stage) return;
+  const GstStructure *s = dcu_frames_structure(buf);
+  if (s) {
+    if (G_UNLIKELY(!atomic_load_explicit(&info->stage->entered, memory_order_relaxed)))
+      atomic_store(&info->stage->entered, 1);
+    if (info->history) remember_input(info, pad, buf, s);
+  }
+  dcu_record_buffer(&info->probe, buf, ts);
+}
+
+static void on_push_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuffer *buf) {
+  (void)t;
+  GstDcuscopeTracer *self = (GstDcuscopeTracer *)obj;
+  frame_exit(self, pad, buf, dcu_clock_ns(self->clock));
+}
+
+static void on_push_list_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBufferList *list) {
+  (void)t;
+  GstDcuscopeTracer *self = (GstDcuscopeTracer *)obj;
+  int64_t ts = dcu_clock_ns(self->clock);
+  guint n = gst_buffer_list_length(list);
+  for (guint i = 0; i < n; i++) frame_exit(self, pad, gst_buffer_list_get(list, i), ts);
+}
+
+static void on_chain_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuffer *buf) {
+  (void)t;
+  GstDcuscopeTracer *self = (GstDcuscopeTracer *)obj;
+  frame_enter(self, pad, buf, dcu_clock_ns(self->clock));
+}
+
+static void on_chain_list_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBufferList *list) {
+  (void)t;
+  /* Split by GStreamer and chained buffer by buffer: those calls record them. */
+  if (dcu_pad_splits_lists(pad)) return;
+  GstDcuscopeTracer *self = (GstDcuscopeTracer *)obj;
+  int64_t ts = dcu_clock_ns(self->clock);
+  guint n = gst_buffer_list_length(list);
+  for (guint i = 0; i < n; i++) frame_enter(self, pad, gst_buffer_list_get(list, i), ts);
+}
+
+static void on_push_post(GObject *obj, GstClockTime t, GstPad *pad, GstFlowReturn res) {
+  (void)obj; (void)t; (void)res;
+  dcu_note_push_returned(pad);
+}
+
+/* --- parameters and life -------------------------------------------------------------------- */
+
+static gboolean warn_unknown(GQuark field, const GValue *value, gpointer data) {
+  (void)value; (void)data;
+  const char *name = g_quark_to_string(field);
+  for (int i = 0; KNOWN_PARAMS[i]; i++)
+    if (strcmp(name, KNOWN_PARAMS[i]) == 0) return TRUE;
+  g_printerr("dcuscope tracer: unknown parameter '%s' ignored (known: node, trace, clock, capacity)\n", name);
+  return TRUE;
+}
+
+static char *param_string(GstStructure *params, const char *key) {
+  if (!params || !gst_structure_has_field(params, key)) return NULL;
+  const GValue *v = gst_structure_get_value(params, key);
+  return G_VALUE_HOLDS_STRING(v) ? g_value_dup_string(v) : gst_value_serialize(v);
+}
+
+static void gst_dcuscope_tracer_constructed(GObject *object) {
+  GstDcuscopeTracer *self = (GstDcuscopeTracer *)object;
+  G_OBJECT_CLASS(gst_dcuscope_tracer_parent_class)->constructed(object);
+  char *text = NULL;
+  g_object_get(object, "params", &text, NULL);
+  GstStructure *params = NULL;
+  if (text && *text) {
+    char *full = g_strdup_printf("dcuscope,%s", text);
+    params = gst_structure_from_string(full, NULL);
+    g_free(full);
+    if (!params) g_printerr("dcuscope tracer: cannot read parameters '%s'; using the defaults\n", text);
+  }
+  g_free(text);
+  if (params) gst_structure_foreach(params, warn_unknown, NULL);
+
+  char *node = param_string(params, "node");
+  if (!node) node = g_strdup(g_get_host_name());
+  char *trace = param_string(params, "trace");
+  if (!trace) trace = g_strdup_printf("%s.trace.jsonl", node);
+  char *clock = param_string(params, "clock");
+  int which = 0;
+  if (clock) {
+    which = -1;
+    for (int i = 0; i < 3; i++)
+      if (strcmp(clock, CLOCK_NAMES[i]) == 0) which = i;
+    if (which < 0) {
+      g_printerr("dcuscope tracer: unknown clock '%s' (realtime, monotonic or tai); using realtime\n", clock);
+      which = 0;
+    }
+  }
+  g_free(clock);
+  guint64 capacity = DEFAULT_CAPACITY;
+  char *cap_text = param_string(params, "capacity");
+  if (cap_text) {
+    guint64 v = g_ascii_strtoull(cap_text, NULL, 10);
+    if (v >= 1024) capacity = v;
+    else g_printerr("dcuscope tracer: capacity '%s' is not a number of events >= 1024; using %d\n", cap_text, DEFAULT_CAPACITY);
+    g_free(cap_text);
+  }
+  if (params) gst_structure_free(params);
+
+  self->clock = CLOCK_IDS[which];
+  self->ring = dcu_ring_new(capacity);
+  self->writer = dcu_writer_start(self->ring, &self->graph, trace, node, CLOCK_NAMES[which], dcu_clock_ns(self->clock));
+  g_free(node);
+  g_free(trace);
+  if (!self->writer) return; /* said why; trace nothing */
+
+  GstTracer *tracer = GST_TRACER(self);
+  gst_tracing_register_hook(tracer, "pad-push-pre", G_CALLBACK(on_push_pre));
+  gst_tracing_register_hook(tracer, "pad-push-list-pre", G_CALLBACK(on_push_list_pre));
+  gst_tracing_register_hook(tracer, "pad-chain-pre", G_CALLBACK(on_chain_pre));
+  gst_tracing_register_hook(tracer, "pad-chain-list-pre", G_CALLBACK(on_chain_list_pre));
+  gst_tracing_register_hook(tracer, "pad-push-post", G_CALLBACK(on_push_post));
+  gst_tracing_register_hook(tracer, "pad-push-list-post", G_CALLBACK(on_push_post));
+}
+
+/* Applications that never call gst_deinit() still get a complete trace. */
+static GstDcuscopeTracer *live_tracer;
+
+static void stop_writer(GstDcuscopeTracer *self) {
+  DcuWriter *writer = g_atomic_pointer_exchange(&self->writer, NULL);
+  if (writer) dcu_writer_stop(writer);
+}
+
+static void at_exit(void) {
+  GstDcuscopeTracer *self = g_atomic_pointer_get(&live_tracer);
+  if (self) stop_writer(self);
+}
+
+static void gst_dcuscope_tracer_finalize(GObject *object) {
+  GstDcuscopeTracer *self = (GstDcuscopeTracer *)object;
+  g_atomic_pointer_compare_and_exchange(&live_tracer, self, NULL);
+  stop_writer(self);
+  /* Stages and the ring stay: pads of elements still alive point at them. */
+  G_OBJECT_CLASS(gst_dcuscope_tracer_parent_class)->finalize(object);
+}
+
+static void gst_dcuscope_tracer_init(GstDcuscopeTracer *self) {
+  g_mutex_init(&self->graph.lock);
+  self->pad_quark = g_quark_from_static_string("dcuscope-tracer-pad");
+  self->stage_quark = g_quark_from_static_string("dcuscope-tracer-stage");
+  self->graph.stage_quark = self->stage_quark;
+  self->graph.edges = g_malloc0(MAX_STAGES * MAX_STAGES);
+  static gsize registered = 0;
+  if (g_once_init_enter(&registered)) {
+    atexit(at_exit);
+    g_once_init_leave(&registered, 1);
+  }
+  g_atomic_pointer_set(&live_tracer, self);
+}
+
+static void gst_dcuscope_tracer_class_init(GstDcuscopeTracerClass *klass) {
+  GObjectClass *object_class = G_OBJECT_CLASS(klass);
+  object_class->constructed = gst_dcuscope_tracer_constructed;
+  object_class->finalize = gst_dcuscope_tracer_finalize;
+}
+
+GType dcu_plugin_tracer_type(void) { return gst_dcuscope_tracer_get_type(); }

@@ -1,0 +1,48 @@
+/* The dcuscope GStreamer tracer (_tracer.c) and the trace writer that drains it (_tracewriter.c):
+ * the graph of stages and sources they share. */
+#ifndef DCU_TRACER_H
+#define DCU_TRACER_H
+
+#include "_dcuprobe.h"
+
+#define MAX_SOURCES 1024
+
+/* A stage: one non-bin element that frames with an identity passed. */
+typedef struct {
+  int index;       /* internal index: the ring's stage number */
+  GWeakRef element;
+  char *name;      /* unique among the stages */
+  char *factory;
+  gboolean aggregator;
+  gboolean source_element; /* no sink pads: frames start here */
+  _Atomic int entered;      /* identified frames have entered it */
+  _Atomic int lineage_lost; /* ...and it pushed buffers without identity: lineage stops here */
+  _Atomic uint64_t shared;  /* frames it could not give an identity: their buffers were shared */
+} DcuStage;
+
+/* What the writer needs to know of the tracer's discoveries. Guarded by lock; version grows
+ * with every change the trace header must show. */
+typedef struct {
+  GMutex lock;
+  DcuStage *stages[MAX_STAGES];
+  int n_stages;
+  char *sources[MAX_SOURCES]; /* source id -> description */
+  int n_sources;
+  _Atomic int version;
+  GQuark stage_quark; /* element qdata -> its DcuStage */
+  guint8 *edges;      /* [a * MAX_STAGES + b]: stage a pushed buffers to stage b */
+} DcuGraph;
+
+/* The element downstream of a src pad, through ghost and proxy pads (a reference), or NULL. */
+GstElement *dcu_downstream_element(GstPad *src);
+
+typedef struct DcuWriter DcuWriter;
+
+/* Start the thread that drains ring into the trace file at path (format 2, probes/tracefile.py).
+ * Returns NULL and prints why when the file cannot be written. */
+DcuWriter *dcu_writer_start(DcuRing *ring, DcuGraph *graph, const char *path, const char *node,
+                            const char *clock_name, int64_t started_ns);
+/* Drain what is left, write the end line, close the file and free the writer (idempotent per writer). */
+void dcu_writer_stop(DcuWriter *writer);
+
+#endif

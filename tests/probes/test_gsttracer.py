@@ -1,0 +1,245 @@
+"""The ``dcuscope`` GStreamer tracer in processes that hold no dcuscope code: ``gst-launch-1.0`` and
+a small C program built here (tests/probes/data/probed_app.c), traced through GST_TRACERS alone.
+Ground truths are taken in the same run: the C program's own pad probes (buffer timestamps and
+times at an element's pads), and GStreamer's ``latency`` tracer."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from probes.delays import frame_delays
+from probes.events import ENTER, EXIT, ORIGIN
+from probes.frametable import MISSING, frame_table
+from probes.native import build
+from probes.tracefile import read_trace
+from tests.conftest import run_cli
+
+APP_SOURCE = Path(__file__).parent / "data" / "probed_app.c"
+RAW = "video/x-raw,width=320,height=240,framerate=30/1"
+
+
+@pytest.fixture(scope="module")
+def plugin_dir() -> Path:
+    return build().parent
+
+
+@pytest.fixture(scope="module")
+def probed_app(tmp_path_factory) -> Path:
+    """The C program, compiled against GStreamer only."""
+    out = tmp_path_factory.mktemp("app") / "probed_app"
+    flags = subprocess.run(["pkg-config", "--cflags", "--libs", "gstreamer-1.0"], capture_output=True, text=True,
+                           check=True).stdout.split()
+    subprocess.run(["cc", "-O2", "-o", str(out), str(APP_SOURCE), *flags], check=True)
+    assert "dcu" not in subprocess.run(["nm", "-D", str(out)], capture_output=True, text=True).stdout
+    return out
+
+
+def tracer_env(plugin_dir: Path, params: str, *more_tracers: str) -> dict:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GST_")}
+    env["GST_PLUGIN_PATH"] = str(plugin_dir)
+    env["GST_TRACERS"] = ";".join([f"dcuscope({params})", *more_tracers])
+    return env
+
+
+def launch(plugin_dir: Path, tmp_path: Path, description: str, node: str = "APP", *more_tracers: str,
+           extra_env: dict | None = None):
+    trace = tmp_path / f"{node}.trace.jsonl"
+    env = {**tracer_env(plugin_dir, f"node={node},trace={trace}", *more_tracers), **(extra_env or {})}
+    result = subprocess.run(["gst-launch-1.0", "-q", *description.split()], env=env, capture_output=True, text=True,
+                            timeout=120)
+    assert result.returncode == 0, result.stderr
+    return read_trace(trace), result
+
+
+def run_app(app: Path, plugin_dir: Path, tmp_path: Path, description: str, *probed: str, node: str = "CAPP"):
+    trace = tmp_path / f"{node}.trace.jsonl"
+    result = subprocess.run([str(app), description, *probed], env=tracer_env(plugin_dir, f"node={node},trace={trace}"),
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    probes: dict[tuple[str, str], list[tuple[int, int]]] = {}
+    for line in result.stdout.splitlines():
+        _, element, pad, pts, ts = line.split()
+        probes.setdefault((element, pad), []).append((int(pts), int(ts)))
+    return read_trace(trace), probes
+
+
+def stage_points(trace, stage: str, point: int) -> np.ndarray:
+    ev = trace.events
+    return ev[(ev["stage"] == trace.header.stages.index(stage)) & (ev["point"] == point)]
+
+
+def stats(trace) -> dict:
+    result = run_cli("stats", trace.path, "--json")
+    assert result.returncode == 0, result.stderr
+    return json.loads(result.stdout)["nodes"][trace.header.node]
+
+
+CHAIN = (f"videotestsrc num-buffers=60 ! {RAW} ! videoconvert ! video/x-raw,format=I420 ! videoscale ! "
+         "video/x-raw,width=160,height=120 ! identity name=sleepy sleep-time=4000 ! "
+         "x264enc tune=zerolatency speed-preset=ultrafast ! fakesink")
+
+
+def test_a_chain_in_a_c_program_every_element_traced_and_service_is_the_sleep(probed_app, plugin_dir, tmp_path):
+    """(a) Every element of a 1:1 chain is a stage, in pipeline order, with its factory; every
+    frame is complete; the identity's service equals, within 0.1 ms, its time between its pads
+    as the program's own probes saw it."""
+    trace, probes = run_app(probed_app, plugin_dir, tmp_path, CHAIN, "sleepy")
+    h = trace.header
+    assert [h.kinds[s] for s in h.stages] == ["videotestsrc", "capsfilter", "videoconvert", "capsfilter",
+                                             "videoscale", "capsfilter", "identity", "x264enc", "fakesink"]
+    assert h.links == [[i, i + 1] for i in range(len(h.stages) - 1)]
+    assert h.versions["probes"] == "tracer" and h.lineage_unknown == []
+    assert trace.complete and trace.dropped == 0
+    node = stats(trace)
+    assert node["frames"] == {"complete": 60, "incomplete": 0}
+
+    truth_ms = np.array([out - into for (_, into), (_, out) in zip(probes[("sleepy", "sink")],
+                                                                   probes[("sleepy", "src")])]) / 1e6
+    assert len(truth_ms) == 60 and truth_ms.min() >= 4.0
+    table = frame_table(h, trace.events)
+    service_ms = frame_delays(table).per_stage["service"][:, h.stages.index("sleepy")] / 1e6
+    assert abs(np.median(service_ms) - np.median(truth_ms)) <= 0.1, (np.median(service_ms), np.median(truth_ms))
+    assert abs(service_ms.mean() - truth_ms.mean()) <= 0.1
+
+
+def test_a_chain_in_gst_launch_agrees_with_the_latency_tracer(plugin_dir, tmp_path):
+    """(a) and (e): gst-launch-1.0 under both tracers at once; per element, dcuscope's median
+    delay is within 0.1 ms + 3 % of GStreamer's ``latency`` tracer's (flags=element)."""
+    log = tmp_path / "latency.log"
+    trace, _ = launch(plugin_dir, tmp_path, CHAIN.replace("num-buffers=60", "num-buffers=120"), "GL",
+                      "latency(flags=element)",
+                      extra_env={"GST_DEBUG": "GST_TRACER:7", "GST_DEBUG_FILE": str(log), "GST_DEBUG_NO_COLOR": "1"})
+    node = stats(trace)
+    assert node["frames"]["complete"] == 120
+    text = log.read_text(errors="replace")
+    compared = 0
+    for stage in trace.header.stages:
+        theirs = [int(t) / 1e6 for t in re.findall(
+            rf"element-latency, element-id=\(string\)\S+, element=\(string\){stage}, src=\(string\)\w+, "
+            r"time=\(g?u?int64\)(\d+)", text)]
+        if not theirs or stage not in node["stages"]:
+            continue
+        ours, median = node["stages"][stage]["p50_ms"], float(np.median(theirs))
+        assert abs(ours - median) <= 0.1 + 0.03 * median, (stage, ours, median)
+        compared += 1
+    assert compared >= 5  # videoconvert, videoscale, the identity, x264enc and the capsfilters
+
+
+def test_b_tee_each_frame_reaches_both_branches(plugin_dir, tmp_path):
+    """(b) One frame, two branches with different delays: every frame enters both sinks, each
+    branch's identity shows its own sleep, and the links give the branches."""
+    trace, _ = launch(plugin_dir, tmp_path,
+                      f"videotestsrc num-buffers=40 ! {RAW} ! tee name=t "
+                      "t. ! queue name=qa ! identity name=fast sleep-time=1000 ! fakesink name=sinka "
+                      "t. ! queue name=qb ! identity name=slow sleep-time=6000 ! fakesink name=sinkb", "TEE")
+    h = trace.header
+    frames = set(zip(*(stage_points(trace, "videotestsrc0", ORIGIN)[c].tolist() for c in ("source", "frame"))))
+    assert len(frames) == 40
+    for sink in ("sinka", "sinkb"):
+        ev = stage_points(trace, sink, ENTER)
+        assert set(zip(ev["source"].tolist(), ev["frame"].tolist())) == frames, sink
+    s = {name: i for i, name in enumerate(h.stages)}
+    assert [s["t"], s["qa"]] in h.links and [s["t"], s["qb"]] in h.links
+    assert [s["fast"], s["sinka"]] in h.links and [s["slow"], s["sinkb"]] in h.links
+    node = stats(trace)
+    assert 1.0 <= node["stages"]["fast"]["p50_ms"] < 3.0
+    assert 6.0 <= node["stages"]["slow"]["p50_ms"] < 8.0
+
+
+def test_c_compositor_output_lists_the_source_frames_it_was_made_from(probed_app, plugin_dir, tmp_path):
+    """(c) A compositor of a 30 and a 10 frames/s source: each output buffer lists, per source,
+    the frame whose time covers the output's, checked against the buffer timestamps the
+    program's own probes saw on the sources and on the compositor's output."""
+    trace, probes = run_app(probed_app, plugin_dir, tmp_path,
+                            "compositor name=mix ! video/x-raw,framerate=30/1 ! fakesink "
+                            "videotestsrc name=a num-buffers=30 ! video/x-raw,width=320,height=240,framerate=30/1 ! "
+                            "mix.sink_0 videotestsrc name=b num-buffers=10 ! "
+                            "video/x-raw,width=160,height=120,framerate=10/1 ! mix.sink_1", "a", "b", "mix")
+    h = trace.header
+    source_id = {name: int(i) for i, name in h.sources.items()}
+    assert set(source_id) == {"a", "b"}
+    pts = {name: [p for p, _ in probes[(name, "src")]] for name in ("a", "b")}
+    out_pts = [p for p, _ in probes[("mix", "src")]]
+    assert len(pts["a"]) == 30 and len(pts["b"]) == 10 and len(out_pts) == 30
+
+    exits = stage_points(trace, "mix", EXIT)
+    buffers = sorted(set(exits["ts"].tolist()))  # one exit time per output buffer
+    assert len(buffers) == len(out_pts)
+    for ts, when in zip(buffers, out_pts):
+        these = exits[exits["ts"] == ts]
+        listed = {int(s): int(f) for s, f in zip(these["source"], these["frame"])}
+        expected = {source_id[name]: max(k for k, p in enumerate(pts[name]) if p <= when) for name in ("a", "b")}
+        assert listed == expected, (when, listed, expected)
+    # Downstream of the compositor every frame of both sources is traced to the sink.
+    node = stats(trace)
+    assert node["frames"]["complete"] == 40
+
+
+def test_d_a_queue_before_a_slow_element_waits_and_is_not_busy(plugin_dir, tmp_path):
+    """(d) A fast source, a queue, an element that sleeps 15 ms: the queue's delay is wait, its
+    utilization near 0; the slow element is the bottleneck, its delay service."""
+    trace, _ = launch(plugin_dir, tmp_path, f"videotestsrc num-buffers=60 ! {RAW} ! queue name=q max-size-buffers=0 "
+                      "max-size-bytes=0 max-size-time=0 ! identity name=slow sleep-time=15000 ! fakesink", "QUEUE")
+    node = stats(trace)
+    q, slow = node["stages"]["q"], node["stages"]["slow"]
+    assert q["mean_ms"] > 100  # frames pile up in the queue
+    assert q["wait"]["mean_ms"] >= 0.95 * q["mean_ms"]
+    assert q["utilization"] < 0.05
+    assert slow["service"]["p50_ms"] >= 15.0 and slow["wait"]["p50_ms"] < 1.0
+    assert node["bottleneck"]["stage"] == "slow"
+
+
+def test_unknown_parameters_warn_and_tracing_goes_on(plugin_dir, tmp_path):
+    trace_path = tmp_path / "w.jsonl"
+    env = tracer_env(plugin_dir, f"node=W,trace={trace_path},colour=blue")
+    result = subprocess.run(["gst-launch-1.0", "-q", "videotestsrc", "num-buffers=5", "!", "fakesink"], env=env,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0
+    assert "dcuscope tracer: unknown parameter 'colour' ignored" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    trace = read_trace(trace_path)
+    assert trace.complete and len(stage_points(trace, "videotestsrc0", ORIGIN)) == 5
+
+
+def test_an_unwritable_trace_file_is_one_line_and_the_app_runs(plugin_dir, tmp_path):
+    env = tracer_env(plugin_dir, f"trace={tmp_path}/no/such/dir/t.jsonl")
+    result = subprocess.run(["gst-launch-1.0", "-q", "videotestsrc", "num-buffers=5", "!", "fakesink"], env=env,
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0
+    assert result.stderr.strip().startswith("dcuscope tracer: cannot write the trace file")
+
+
+def test_a_file_s_frames_start_at_the_demuxer_and_the_trace_exports(plugin_dir, tmp_path):
+    """A file holds bytes, not frames: identity starts where video does (the demuxer's encoded
+    frames), the decoder carries it to the pictures; the trace reads in ``dcuscope stats`` and
+    exports to Perfetto like any other."""
+    clip = tmp_path / "clip.mkv"
+    subprocess.run(["gst-launch-1.0", "-q", "videotestsrc", "num-buffers=30", "!", RAW, "!", "x264enc", "!",
+                    "matroskamux", "!", "filesink", f"location={clip}"], check=True, timeout=60)
+    trace, _ = launch(plugin_dir, tmp_path, f"filesrc location={clip} ! matroskademux ! h264parse ! avdec_h264 "
+                      "name=dec ! videoconvert ! fakesink", "DEC")
+    h = trace.header
+    assert h.stages == ["matroskademux0", "h264parse0", "dec", "videoconvert0", "fakesink0"]
+    assert h.sources == {0: "matroskademux0"}
+    assert len(stage_points(trace, "matroskademux0", ORIGIN)) == 30 == len(stage_points(trace, "dec", EXIT))
+    assert stats(trace)["frames"]["complete"] == 30
+    out = tmp_path / "dec.perfetto.json"
+    result = run_cli("export", trace.path, "--format", "perfetto", "-o", out)
+    assert result.returncode == 0, result.stderr
+    assert json.loads(out.read_text())["traceEvents"]
+
+
+def test_the_tracer_in_its_process_has_no_python(probed_app):
+    """The plugin links GStreamer and GLib only."""
+    lib = build()
+    needed = subprocess.run(["readelf", "-d", str(lib)], capture_output=True, text=True).stdout
+    assert "python" not in needed.lower()
+    assert shutil.which("gst-inspect-1.0")
