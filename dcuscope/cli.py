@@ -10,6 +10,7 @@ from pathlib import Path
 
 from core import signals
 from core.errors import DcuscopeError, PipelineError
+from dcuscope.shipcommand import add_ship_parser
 from dcuscope.tracecommands import add_export_parser, add_stats_parser
 from probes.sysclock import DEFAULT_UDS
 from relay.commands import add_relay_parser
@@ -127,6 +128,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=PLUGIN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     plugin.set_defaults(func=_plugin_path)
 
+    add_ship_parser(sub)
     add_stats_parser(sub)
     add_export_parser(sub)
     add_relay_parser(sub)

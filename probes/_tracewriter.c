@@ -81,25 +81,23 @@ static void find_links(DcuGraph *g, int n, guint8 *edges) {
   }
 }
 
-/* Number the stages in `wanted` (internal indices) after those already numbered, upstream first. */
+/* Number the stages in `wanted` (internal indices) after those already numbered: upstream
+ * first, each branch whole before the next (depth first), lower indices first among equals. */
 static void place(DcuWriter *w, const guint8 *wanted, int n, const guint8 *edges) {
-  int indegree[MAX_STAGES] = {0};
+  int indegree[MAX_STAGES] = {0}, stack[MAX_STAGES], top = 0;
   for (int a = 0; a < n; a++)
     for (int b = 0; b < n; b++)
       if (wanted[a] && wanted[b] && a != b && edges[a * MAX_STAGES + b]) indegree[b]++;
+  for (int a = n - 1; a >= 0; a--)
+    if (wanted[a] && indegree[a] == 0) stack[top++] = a;
   guint8 done[MAX_STAGES] = {0};
-  for (int placed = 1; placed;) {
-    placed = 0;
-    for (int a = 0; a < n; a++) {
-      if (!wanted[a] || done[a] || indegree[a] > 0) continue;
-      done[a] = 1;
-      placed = 1;
-      w->out_of[a] = w->n_out;
-      w->internal_of[w->n_out++] = a;
-      for (int b = 0; b < n; b++)
-        if (wanted[b] && b != a && edges[a * MAX_STAGES + b]) indegree[b]--;
-      break; /* lowest index first among those ready */
-    }
+  while (top > 0) {
+    int a = stack[--top];
+    done[a] = 1;
+    w->out_of[a] = w->n_out;
+    w->internal_of[w->n_out++] = a;
+    for (int b = n - 1; b >= 0; b--)
+      if (wanted[b] && b != a && edges[a * MAX_STAGES + b] && --indegree[b] == 0) stack[top++] = b;
   }
   for (int a = 0; a < n; a++) /* a cycle: the rest in the order found */
     if (wanted[a] && !done[a]) {

@@ -270,6 +270,14 @@ def decode_hello(obj: object, node: str | None = None, *, max_stages: int = MAX_
     kinds = _dict(h.get("kinds", {}), "hello.header.kinds")
     if not (kinds.keys() <= set(stages) and all(isinstance(v, str) and len(v) <= MAX_NAME for v in kinds.values())):
         raise ProtocolError("hello.header.kinds must map stage names to element factory names")
+    links = h.get("links", [])
+    if not (isinstance(links, list) and len(links) <= 4 * MAX_STAGES and all(
+            isinstance(l, list) and len(l) == 2 and all(type(i) is int and 0 <= i < len(stages) for i in l)
+            for l in links)):
+        raise ProtocolError("hello.header.links must be [from, to] pairs of stage indices")
+    unknown = h.get("lineage_unknown", [])
+    if not (isinstance(unknown, list) and set(unknown) <= set(stages)):
+        raise ProtocolError("hello.header.lineage_unknown must name stages")
     header_node = _name(h.get("node"), "hello.header.node", max_name)
     if node is not None and header_node != node:
         raise ProtocolError(f"hello names node {header_node!r} but the connection is {node!r}")

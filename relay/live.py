@@ -428,7 +428,9 @@ class LiveRun:
         return _Frames((self._keys >> KEY_SHIFT).astype(np.int32), self._keys & ((1 << KEY_SHIFT) - 1), self._cells)
 
     def _table(self, frames: _Frames) -> FrameTable:
-        return frame_table_from_cells(self.stages, frames.source, frames.frame, frames.cells)
+        table = frame_table_from_cells(self.stages, frames.source, frames.frame, frames.cells)
+        table.links = self.header.links
+        return table
 
     def _chains(self, frames: _Frames) -> Chains:
         """Completeness and ends of ``frames``, judged by the exit points of the whole run."""

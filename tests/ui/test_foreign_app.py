@@ -1,0 +1,92 @@
+"""A GStreamer application dcuscope did not build, live in the relay's page next to a ``dcuscope
+run`` node: ``gst-launch-1.0`` under GST_TRACERS=dcuscope, its trace streamed by ``dcuscope ship``;
+afterwards the same trace read by ``dcuscope stats`` and exported to Perfetto."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import pytest
+
+from probes.native import build
+from tests.conftest import run_cli
+from tests.relay.helpers import get_json, wait_for
+from tests.ui.helpers import ROOT, RelayThread, env, pipeline_nodes
+
+FOREIGN = "CAM-9"
+STAGES = ["src", "capsfilter0", "t", "qa", "sleepy", "sinka", "qb", "enc", "sinkb"]  # branch by branch
+LAUNCH = ("videotestsrc name=src is-live=true num-buffers=450 ! video/x-raw,width=320,height=240,framerate=30/1 ! "
+          "tee name=t t. ! queue name=qa ! identity name=sleepy sleep-time=8000 ! fakesink name=sinka "
+          "t. ! queue name=qb ! x264enc name=enc tune=zerolatency speed-preset=ultrafast ! fakesink name=sinkb")
+
+
+@pytest.fixture(scope="module")
+def both(browser, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("foreign")
+    relay = RelayThread(tmp / "relay.db")
+    ours = pipeline_nodes(relay.url, tmp, ["DCU-1"], configs=("configs/vtest.yaml",), duration=25)
+    trace = tmp / "cam9.trace.jsonl"
+    genv = {k: v for k, v in os.environ.items() if not k.startswith("GST_")}
+    genv.update(GST_PLUGIN_PATH=str(build().parent), GST_TRACERS=f"dcuscope(node={FOREIGN},trace={trace})")
+    app = subprocess.Popen(["gst-launch-1.0", "-q", *LAUNCH.split()], env=genv, stdout=subprocess.DEVNULL,
+                           stderr=subprocess.PIPE)
+    ship = subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "ship", str(trace), "--relay", relay.url],
+                            cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    page = browser.new_page(viewport={"width": 1400, "height": 1100})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    try:
+        page.goto(relay.url + "/")
+        yield relay, page, trace, app, ship
+        assert not errors, errors
+    finally:
+        page.close()
+        for proc in (app, ship):
+            if proc.poll() is None:
+                proc.kill()
+        ours.stop()
+        relay.stop()
+
+
+def test_a_foreign_pipeline_is_live_next_to_a_dcuscope_node(both):
+    relay, page, trace, app, ship = both
+
+    def bars():
+        d = page.evaluate("window.dcuscope.debug()")
+        b = d["stage"]["bars"]
+        ready = all(b.get(FOREIGN, {}).get(s, 0) > 0 for s in ("qa", "sleepy", "qb", "enc")) and \
+            sum(b.get("DCU-1", {}).values()) > 0
+        return d if ready else None
+
+    d = wait_for(bars, 90, 0.5, "stage bars of the foreign app and of DCU-1")
+    rows = {r["node"] for r in d["stage"]["rows"] if r["source"] is None}
+    assert {FOREIGN, "DCU-1"} <= rows
+    nodes = {n["node"]: n for n in get_json(f"{relay.url}/api/nodes")}
+    assert nodes[FOREIGN]["stages"] == STAGES
+    assert nodes[FOREIGN]["kinds"]["sleepy"] == "identity" and nodes[FOREIGN]["clock"]["applied"] == "estimate"
+    page.wait_for_selector(f'#nodes-body tr[data-node="{FOREIGN}"]', timeout=10_000)
+
+    # The app ends (450 frames at 30/s); ship follows the trace to its end line and exits.
+    assert app.wait(60) == 0, app.stderr.read().decode()
+    out, err = ship.communicate(timeout=60)
+    assert ship.returncode == 0, err.decode()
+    assert "the trace is ended" in err.decode()
+    result = run_cli("stats", trace, "--json")
+    assert result.returncode == 0, result.stderr
+    node = json.loads(result.stdout)["nodes"][FOREIGN]
+    assert node["frames"] == {"complete": 450, "incomplete": 0}
+    assert node["stages"]["sleepy"]["service"]["p50_ms"] >= 8.0
+    # The relay holds the same frames and finds the same stage delays (clock corrections shift
+    # both ends of a delay alike).
+    live = wait_for(lambda: (s := get_json(f"{relay.url}/api/stats?node={FOREIGN}"))["frames"]["complete"] == 450 and s,
+                    30, 0.5, "the relay's count of the foreign app's frames")
+    for stage in ("qa", "sleepy", "qb", "enc"):
+        assert abs(live["stages"][stage]["p50_ms"] - node["stages"][stage]["p50_ms"]) < 0.01, stage
+    out_file = trace.with_suffix(".perfetto.json")
+    result = run_cli("export", trace, "--format", "perfetto", "-o", out_file)
+    assert result.returncode == 0, result.stderr
+    slices = {(e.get("name"), e.get("cat")) for e in json.loads(out_file.read_text())["traceEvents"]}
+    assert {("service", "sleepy"), ("service", "enc"), ("wait", "qa")} <= slices
