@@ -1,36 +1,39 @@
-"""What a tracepoint and a push-post hook cost: native vs Python probes, side by side.
+"""What a tracepoint costs, all included: dcuscope's tracer (hooks, in process and through
+GST_TRACERS), its pad probes, GStreamer's own latency tracer and Python probes, side by side.
 
-Runs the same pipeline in five modes, each run in a fresh process, in interleaved repetitions
+Runs the same pipeline in six modes, each run in a fresh process, in interleaved repetitions
 (the order rotates every repetition, so drifting machine load hits every mode alike), and
 reports medians:
 
-- ``none``: no probes, and no dcuscope tracer object in the process;
-- ``hooks``: the tracer exists (made by attaching probes to a throwaway pipeline, then
-  detaching them), the measured pipeline has no probes: every push of every pad runs the
-  push-post hook, whose pad-state lookup misses. The hooks cannot be switched off while the
-  native probes are on (the tracer lives as long as the process), so this is how their own
-  cost shows: ns per hook call = (time hooks - time none) / hook calls (``native.hook_calls``);
-- ``tracing``: no probes, GStreamer's tracing switched on by a tracer of its own that hooks
-  no data flow (``GST_TRACERS=factories``: element creation only). Once any tracer hook exists,
-  every hook site of the core (pushes, chains, queries, buffer refs) looks up its hooks; so
-  ``hooks`` against ``tracing`` is what our hook's body adds to that;
-- ``native``: the native pad probes on every stage, and the hooks (hitting on traced pads);
-  ``native`` against ``hooks`` is then what the pad probes alone add;
-- ``python``: Python pad probes (PyGObject), no tracer.
+- ``none``: no tracer, no probes;
+- ``latency``: GStreamer's ``latency`` tracer (``GST_TRACERS=latency(flags=element)``, its log
+  off), the anchor users know: per-element times on the same pushes;
+- ``probes``: dcuscope's native tracepoints fired by pad probes (plus the tracer's push-post
+  hook, which service/wait needs);
+- ``hooks``: the same tracepoints fired by the dcuscope tracer's own hooks, in process (the
+  default of ``dcuscope run --probes``);
+- ``tracer``: ``GST_TRACERS=dcuscope`` as any application loads it: every element traced from
+  hooks alone, frames given their identity by the tracer, its C thread writing the trace file;
+- ``python``: Python pad probes (PyGObject).
 
-Per mode: µs per tracepoint = (time with probes - time without) / (frames x tracepoints per
-frame), from wall time and from the process's CPU time (steadier on a shared machine);
-throughput lost in % = 1 - fps with probes / fps without.
+Per mode: µs per tracepoint = (time with it - time without) / tracepoint hits, from wall time
+and from the process's CPU time (steadier on a shared machine), everything included (GStreamer's
+hook dispatch, our hooks or probes, the ring, the draining thread). A tracepoint is one buffer
+at one traced pad: a frame crossing a link is two (exit, enter). For ``latency``, which keeps
+no records, the hits are those of ``hooks`` on the same pipeline. Throughput lost in % = 1 -
+fps with / fps without.
 
 Scenarios: ``identity20`` (videotestsrc -> framestamp -> 20 x identity -> fakesink, 16x16
-frames: nearly free stages, so the probes' own cost shows) and ``video`` (640x480 frames
-through real conversion and scaling stages: a pipeline that does some work per frame).
+frames: nearly free stages, so the tracepoints' own cost shows) and ``video`` (640x480 frames
+through real conversion and scaling stages: a pipeline that does some work per frame). Under
+``tracer`` the framestamp (a Python element every mode runs) is one more traced stage, and the
+tracer gives frames their identity at the source itself.
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_probes.py [--frames N] [--reps 5] [--quick]
 
-A figure it cannot produce (no hook call or tracepoint counted, a cost of zero to divide by)
-is ``n/a (reason)`` (benchmarks/figures.py). Without the native probes, or when a run fails,
-it says why in one line and exits with status 2.
+A figure it cannot produce (no tracepoint counted, a cost of zero to divide by) is ``n/a
+(reason)`` (benchmarks/figures.py). Without the native probes, or when a run fails, it says
+why in one line and exits with status 2.
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -63,7 +67,9 @@ SCENARIOS = {
 }
 FRAMES = {"identity20": 10000, "video": 2000}
 """Default frames per run: enough for a run of the near-free chain to last about half a second."""
-MODES = ("none", "tracing", "hooks", "native", "python")
+MODES = ("none", "latency", "probes", "hooks", "tracer", "python")
+ATTACHED = {"probes": ("native", "probes"), "hooks": ("native", "hooks"), "python": ("python", "probes")}
+"""Modes whose tracepoints probes.tracer places: (backend, trigger)."""
 
 
 def register_framestamp() -> None:
@@ -75,18 +81,17 @@ def register_framestamp() -> None:
 
 
 def run_once(description: str, mode: str, frames: int) -> dict:
-    """``{wall, cpu, points, hooks}`` of one run from PLAYING to EOS: seconds, tracepoints per
-    frame, push-post hook calls during the run."""
+    """``{wall, cpu, points}`` of one run from PLAYING to EOS: seconds, and the tracepoints per
+    frame that probes.tracer placed (0 in the other modes)."""
     pipe = Gst.parse_launch(description.format(frames=frames))
     tracer = None
-    if mode in ("native", "python"):
-        tracer = attach(pipe, "bench", backend=mode, capacity=frames * 64)
-    hooks = native.hook_calls()
+    if mode in ATTACHED:
+        backend, trigger = ATTACHED[mode]
+        tracer = attach(pipe, "bench", backend=backend, trigger=trigger, capacity=frames * 64)
     wall, cpu = time.perf_counter(), time.process_time()
     pipe.set_state(Gst.State.PLAYING)
     msg = pipe.get_bus().timed_pop_filtered(600 * Gst.SECOND, Gst.MessageType.EOS | Gst.MessageType.ERROR)
     wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
-    hooks = native.hook_calls() - hooks
     pipe.set_state(Gst.State.NULL)
     if msg is None or msg.type != Gst.MessageType.EOS:
         raise SystemExit(f"{mode}: pipeline failed: {msg.parse_error() if msg else 'timeout'}")
@@ -101,28 +106,42 @@ def run_once(description: str, mode: str, frames: int) -> dict:
         if hits != frames * points or stats.dropped or stats.unidentified:
             raise SystemExit(f"{mode}: {hits} events for {frames} frames x {points} tracepoints, "
                              f"{stats.dropped} dropped, {stats.unidentified} unidentified")
-    return {"wall": wall, "cpu": cpu, "points": points, "hooks": hooks}
+    return {"wall": wall, "cpu": cpu, "points": points}
 
 
-def child(scenario: str, mode: str, frames: int) -> None:
+def child(scenario: str, mode: str, frames: int, trace: str | None = None) -> None:
     """One measured run in this (fresh) process; prints its figures as JSON."""
     register_framestamp()
     description = SCENARIOS[scenario]
-    if mode == "hooks":
-        # Make the tracer (its hooks stay for the life of the process), then trace nothing.
-        throwaway = Gst.parse_launch(description.format(frames=1))
-        attach(throwaway, "bench", backend="native").detach()
-    run_once(description, "none" if mode in ("hooks", "tracing") else mode, 20)  # warm-up: plugins, first calls
-    print(json.dumps(run_once(description, "none" if mode in ("hooks", "tracing") else mode, frames)))
+    run_once(description, mode, 20)  # warm-up: plugins, first calls
+    result = run_once(description, mode, frames)
+    if trace:  # the GST_TRACERS tracer: its trace is complete once GStreamer is deinitialised
+        Gst.deinit()
+        from probes.tracefile import read_trace
+
+        t = read_trace(trace)
+        hits = int((t.events["point"] <= EXIT).sum())
+        if t.dropped or hits % (frames + 20):
+            raise SystemExit(f"tracer: {hits} events for {frames + 20} frames, {t.dropped} dropped")
+        result["points"] = hits // (frames + 20)
+    print(json.dumps(result))
 
 
 def spawn(scenario: str, mode: str, frames: int) -> dict:
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     env.pop("GST_TRACERS", None)
-    if mode == "tracing":
-        env["GST_TRACERS"] = "factories"
-    res = subprocess.run([sys.executable, __file__, "--child", scenario, mode, str(frames)],
-                         capture_output=True, text=True, env=env, cwd=REPO)
+    with tempfile.TemporaryDirectory() as tmp:
+        args = [scenario, mode, str(frames)]
+        if mode == "latency":
+            env["GST_TRACERS"] = "latency(flags=element)"
+        elif mode == "tracer":
+            trace = str(Path(tmp) / "bench.trace.jsonl")
+            env["GST_PLUGIN_PATH"] = str(native.build().parent)
+            # A ring as large as the other modes' (they drain once, at the end): no drops.
+            env["GST_TRACERS"] = f"dcuscope(node=bench,trace={trace},capacity={(frames + 20) * 128})"
+            args.append(trace)
+        res = subprocess.run([sys.executable, __file__, "--child", *args], capture_output=True, text=True, env=env,
+                             cwd=REPO)
     if res.returncode != 0:
         raise CannotRun(f"a {scenario}/{mode} run failed: {last_line(res.stderr or res.stdout)}")
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -136,47 +155,33 @@ def per_unit(samples: dict, mode: str, base: str, units: float, key: str, what: 
 
 def report(name: str, frames: int, samples: dict) -> None:
     med = {m: median(s["wall"] for s in runs) for m, runs in samples.items()}
-    points = samples["native"][0]["points"]
-    hooks = median(s["hooks"] for s in samples["hooks"])
+    points = {m: samples[m][0]["points"] for m in samples}
+    points["latency"] = points["hooks"]  # the same pushes; it keeps no records to count
     reps = len(samples["none"])
     no_time = "the run took no time"
-    print(f"\n== {name}: {frames} frames, {points} tracepoints and {fmt(ratio(hooks, frames), '.0f')} push-post hook "
-          f"calls per frame, {reps} interleaved repetitions (a fresh process each), medians")
-    print(f"no-probe time per frame: {fmt(med['none'] / frames * 1e6, '.1f')} µs")
-    print(f"{'mode':7} {'fps':>8} {'x none':>7} {'lost %':>7} {'cost per unit, wall [min..max]':>34} {'CPU':>8}")
+    print(f"\n== {name}: {frames} frames, {points['hooks']} tracepoints per frame ({points['tracer']} under "
+          f"GST_TRACERS=dcuscope), {reps} interleaved repetitions (a fresh process each), medians")
+    print(f"no-tracer time per frame: {fmt(med['none'] / frames * 1e6, '.1f')} µs")
+    print(f"{'mode':7} {'fps':>8} {'x none':>7} {'lost %':>7} {'µs per tracepoint, wall [min..max]':>36} {'CPU':>8}")
     print(f"{'none':7} {fmt(ratio(frames, med['none'], no_time), '8.0f')} {1:7.3f}")
-    units = {"tracing": ("ns/hook", hooks, 1000, "push-post hook calls"),
-             "hooks": ("ns/hook", hooks, 1000, "push-post hook calls"),
-             "native": ("µs/tracepoint", frames * points, 1, "tracepoints"),
-             "python": ("µs/tracepoint", frames * points, 1, "tracepoints")}
     notes = Notes()  # the n/a cells' reasons, under the table
-    for m, (label, n, scale, what) in units.items():
-        wall = [v * scale for v in per_unit(samples, m, "none", n, "wall", what)]
-        cpu = median(per_unit(samples, m, "none", n, "cpu", what)) * scale
-        spread = f"{label} {notes.cell(median(wall), '.2f')}"
+    cpu_cost = {}
+    for m in MODES[1:]:
+        n = frames * points[m]
+        wall = per_unit(samples, m, "none", n, "wall", "tracepoints")
+        cpu_cost[m] = median(per_unit(samples, m, "none", n, "cpu", "tracepoints"))
+        spread = notes.cell(median(wall), '.3f')
         if not isinstance(median(wall), NA):
-            spread += f" [{minimum(wall):.2f}..{maximum(wall):.2f}]"
+            spread += f" [{minimum(wall):.3f}..{maximum(wall):.3f}]"
         fps, x_none = ratio(frames, med[m], no_time), ratio(med["none"], med[m], no_time)
         print(f"{m:7} {notes.cell(fps, '.0f'):>8} {notes.cell(x_none, '.3f'):>7} "
-              f"{notes.cell((1 - x_none) * 100, '.2f'):>7} {spread:>34} {notes.cell(cpu, '.2f'):>8}")
+              f"{notes.cell((1 - x_none) * 100, '.2f'):>7} {spread:>36} {notes.cell(cpu_cost[m], '.3f'):>8}")
     for line in notes.lines():
         print(line)
-    body = per_unit(samples, "hooks", "tracing", hooks, "wall", "push-post hook calls")
-    body_cpu = median(per_unit(samples, "hooks", "tracing", hooks, "cpu", "push-post hook calls"))
-    print(f"our hook's body (hooks - tracing): {fmt(median(body) * 1000, '.1f')} ns/hook wall, "
-          f"{fmt(body_cpu * 1000, '.1f')} CPU; "
-          f"fps hooks / tracing {fmt(ratio(med['tracing'], med['hooks'], no_time), '.3f')}")
-    pads = per_unit(samples, "native", "hooks", frames * points, "wall", "tracepoints")
-    pads_cpu = median(per_unit(samples, "native", "hooks", frames * points, "cpu", "tracepoints"))
-    print(f"pad probes alone (native - hooks): {fmt(median(pads), '.3f')} µs/tracepoint wall, {fmt(pads_cpu, '.3f')} "
-          f"CPU; fps native / hooks {fmt(ratio(med['hooks'], med['native'], no_time), '.3f')}")
-    native_us = median(per_unit(samples, "native", "none", frames * points, "cpu", "tracepoints"))
-    python_us = median(per_unit(samples, "python", "none", frames * points, "cpu", "tracepoints"))
-    if not isinstance(native_us, (int, float)) or native_us > 0:
-        times = ratio(python_us, native_us)
-    else:  # the native probes cost nothing measurable next to the noise: no ratio to give
-        times = ratio(python_us, 0, f"the native probes' CPU cost per tracepoint was {native_us:.3f} µs, not above 0")
-    print(f"python / native cost per tracepoint: {fmt(times, '.0f', 'x')} (CPU)")
+    for a, b in (("hooks", "probes"), ("hooks", "latency"), ("python", "hooks")):
+        x, y = cpu_cost[a], cpu_cost[b]
+        why = f"the {b} cost per tracepoint was {y:.3f} µs, not above 0" if isinstance(y, (int, float)) and y <= 0 else None
+        print(f"{a} / {b} cost per tracepoint: {fmt(ratio(x, y if why is None else 0, why), '.2f', 'x')} (CPU)")
 
 
 def bench(name: str, frames: int, reps: int) -> None:
@@ -188,8 +193,8 @@ def bench(name: str, frames: int, reps: int) -> None:
 
 
 def main() -> int:
-    if len(sys.argv) == 5 and sys.argv[1] == "--child":
-        child(sys.argv[2], sys.argv[3], int(sys.argv[4]))
+    if len(sys.argv) in (5, 6) and sys.argv[1] == "--child":
+        child(sys.argv[2], sys.argv[3], int(sys.argv[4]), *sys.argv[5:])
         return 0
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--frames", type=int, help=f"frames per run (default: {FRAMES})")

@@ -20,6 +20,7 @@ gi.require_version("GstBase", "1.0")
 gi.require_version("GstVideo", "1.0")
 gi.require_version("GstRtspServer", "1.0")
 gi.require_version("GstPbutils", "1.0")
+gi.require_version("GstApp", "1.0")
 
 from gi.repository import GLib, GObject, Gst, GstBase, GstVideo  # noqa: E402
 

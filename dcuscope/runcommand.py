@@ -9,7 +9,9 @@ from pathlib import Path
 
 from core.console import Console
 from core.errors import UsageError
+from core.ports import check_port_free
 from pipeline.build import build_pipeline
+from pipeline.launch import build_launch
 from pipeline.config import PipelineConfig, SinkConfig, load_config
 from pipeline.outputs import check_frames_folder, check_video_file
 from pipeline.run import Runner
@@ -29,8 +31,8 @@ def apply_overrides(config: PipelineConfig, args: argparse.Namespace) -> Pipelin
         probes = replace(probes, trace=args.trace)
     if args.clock:
         probes = replace(probes, clock=args.clock)
-    return replace(config, node=args.node or config.node, probes=probes,
-                   sink=config.sink if args.output is None else sink_for_output(args.output, config.sink))
+    sinks = config.sinks if args.output is None else (sink_for_output(args.output, config.sink),)
+    return replace(config, node=args.node or config.node, probes=probes, sinks=sinks)
 
 
 def sink_for_output(path: Path, current: SinkConfig) -> SinkConfig:
@@ -44,25 +46,45 @@ def sink_for_output(path: Path, current: SinkConfig) -> SinkConfig:
 
 
 def check_sink(config: PipelineConfig, output: Path | None) -> None:
-    """Before anything runs: the sink can write where it is told to (``output``: as given on the
-    command line, else the YAML's ``sink.path``). UsageError or ConfigError otherwise."""
-    sink = config.sink
-    if sink.path is None:
-        return
-    problem = check_video_file(sink.path) if sink.kind == "file" else check_frames_folder(sink.path)
-    if problem is None:
-        return
-    if output is not None:
-        raise UsageError(f"--output {output}: {problem}")
-    raise config.document.error(("sink", "path"), f"{sink.path}: {problem}")
+    """Before anything runs: each sink can write where it is told to (``output``: as given on the
+    command line, else the YAML's ``path``) and serve where it is told to. UsageError or
+    ConfigError otherwise."""
+    several = "sinks" in config.document.data if isinstance(config.document.data, dict) else False
+    for index, sink in enumerate(config.sinks):
+        where = ("sinks", index) if several and output is None else ("sink",)
+        if sink.kind == "rtsp":
+            try:
+                check_port_free(sink.host, sink.port, hint="pick a free one with port:")
+            except UsageError as exc:
+                raise config.document.error(where + ("port",), str(exc).split(": ", 1)[1]) from exc
+        if sink.path is None:
+            continue
+        problem = check_video_file(sink.path) if sink.kind == "file" else check_frames_folder(sink.path)
+        if problem is None:
+            continue
+        if output is not None:
+            raise UsageError(f"--output {output}: {problem}")
+        raise config.document.error(where + ("path",), f"{sink.path}: {problem}")
 
 
 def run_command(args: argparse.Namespace) -> int:
     config = apply_overrides(load_config(args.config), args)
+    if config.launch is not None and args.output is not None:
+        raise UsageError("--output: a launch: pipeline says its own sinks")
     check_sink(config, args.output)
-    built = build_pipeline(config)
+    built = build_launch(config) if config.launch is not None else build_pipeline(config)
+    try:
+        return _run_built(args, config, built)
+    finally:
+        built.close()
+
+
+def _run_built(args: argparse.Namespace, config: PipelineConfig, built) -> int:
     console = Console(sys.stderr)
     progress = None if args.quiet else console
+    for sink in config.sinks:
+        if sink.kind == "rtsp":
+            console.write(f"serving {sink.url} (sink {sink.name})\n")
     runner = Runner(built, num_frames=args.num_frames, duration=args.duration, progress=progress,
                     progress_every=1.0 if console.isatty() else 5.0)
     probing = None
@@ -87,10 +109,12 @@ def run_command(args: argparse.Namespace) -> int:
             f"{result.discarded} frames still queued at the stop were"
         console.write(f"dcuscope: {frames} dropped (live sources are not drained){counted}\n")
     if result.aborted is not None:
-        incomplete = {"file": f": {config.sink.path} is incomplete (not finalised, may not play)",
-                      "frames": f": the frames in {config.sink.path} end early"}.get(config.sink.kind, "")
+        incomplete = "".join({"file": f": {sink.path} is incomplete (not finalised, may not play)",
+                              "frames": f": the frames in {sink.path} end early"}.get(sink.kind, "")
+                             for sink in config.sinks)
         console.write(f"dcuscope: {result.aborted}{incomplete}\n")
         return ABORTED_STATUS if result.interrupted else 1
-    if config.sink.path is not None and progress is not None:
-        console.write(f"output: {config.sink.path}\n")
+    for sink in config.sinks:
+        if sink.path is not None and progress is not None:
+            console.write(f"output: {sink.path}\n")
     return 0

@@ -9,7 +9,7 @@ from core.errors import ConfigError, PipelineError
 from core.gst import Gst
 from pipeline.config import PipelineConfig
 from pipeline.elements import make_stage_element
-from pipeline.sinks import build_sink
+from pipeline.sinks import Outputs, build_outputs, link_outputs
 from pipeline.sources import SourceBin
 import plugins
 
@@ -19,9 +19,16 @@ class BuiltPipeline:
     pipeline: Gst.Pipeline
     sources: list[SourceBin]
     stages: list[Gst.Element]
-    sink: Gst.Bin
+    sink: Gst.Element
+    """Where frames leave the stages: the sink bin, or the tee in front of several."""
     scaled_to: list[tuple[int, int] | None]
     """Per source: the size it is scaled to before the mux (the config's, else the mux's), or None."""
+    outputs: Outputs | None = None
+
+    def close(self) -> None:
+        """Stop what the pipeline serves beside itself (RTSP servers)."""
+        if self.outputs is not None:
+            self.outputs.close()
 
 
 def build_pipeline(config: PipelineConfig) -> BuiltPipeline:
@@ -44,10 +51,20 @@ def build_pipeline(config: PipelineConfig) -> BuiltPipeline:
             source = replace(source, width=mux.get_property("width"), height=mux.get_property("height"))
         scaled_to.append((source.width, source.height) if source.width and source.height else None)
         sources.append(SourceBin(source, index, clock_id))
-    sink = build_sink(config.sink)
+    outputs = build_outputs(config.sinks)
+    try:
+        return _link(config, pipeline, sources, stages, mux, outputs, scaled_to)
+    except Exception:
+        outputs.close()
+        raise
 
-    for element in [*sources, *stages, sink]:
+
+def _link(config: PipelineConfig, pipeline: Gst.Pipeline, sources: list[SourceBin], stages: list[Gst.Element],
+          mux: Gst.Element | None, outputs: Outputs, scaled_to: list) -> BuiltPipeline:
+    sink = outputs.head
+    for element in [*sources, *stages, *outputs.elements]:
         pipeline.add(element)
+    link_outputs(outputs)
     for source in sources:
         target = mux.request_pad_simple("sink_%u") if mux is not None else stages[0].get_static_pad("sink")
         if source.get_static_pad("src").link(target) != Gst.PadLinkReturn.OK:
@@ -58,4 +75,4 @@ def build_pipeline(config: PipelineConfig) -> BuiltPipeline:
                 f"{config.file}:{config.document.line(('stages',))}: stages: {a.get_name()} cannot be linked to "
                 f"{b.get_name()} (their formats do not match: check the order of the stages)"
             )
-    return BuiltPipeline(pipeline, sources, stages, sink, scaled_to)
+    return BuiltPipeline(pipeline, sources, stages, sink, scaled_to, outputs)

@@ -25,8 +25,20 @@ A configuration names its sources, the chain of stages they go through, and a si
       - tiler: {rows: 1, columns: 2}
       - convert: {format: RGBA}
       - osd: {}
-    sink: {type: file, path: out.mp4}   # fake | file (H.264 in .mp4, .mkv, .avi) | frames (numbered PNGs)
+    sink: {type: file, path: out.mp4}   # fake | file (H.264 in .mp4, .mkv, .avi) | frames (numbered PNGs) | rtsp
     probes: {enabled: false, clock: realtime, trace: trace.jsonl}
+
+Several outputs at once (DeepStream's display + file + RTSP out): ``sinks:``, a list of the same
+entries, fed through a ``tee`` (each branch behind a queue of its own, so that a slow output
+does not hold the others)::
+
+    sinks:
+      - {type: file, path: out.mp4}
+      - {type: rtsp, port: 8555, mount: /out}   # served with GstRtspServer: rtsp://127.0.0.1:8555/out
+      - {type: fake, name: measure}
+
+Any graph the structured form cannot say is one ``launch:`` line in gst-launch syntax, with
+dcuscope's elements available (``pipeline.launch``): it replaces sources, stages and sinks.
 
 This module checks the structure (keys, types, files); :mod:`pipeline.elements` checks the
 stages against the installed GStreamer elements and their properties.
@@ -38,7 +50,7 @@ what it resolved (:class:`pipeline.build.BuiltPipeline`) instead of writing it b
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from fractions import Fraction
 from pathlib import Path
 from types import MappingProxyType
@@ -48,7 +60,9 @@ from pipeline.yamlsource import Document, KeyPath, load_document
 
 STAGE_SHORTHANDS = ("mux", "infer", "tiler", "convert", "osd", "queue")
 """Stage kinds written as ``- KIND: {properties}``; anything else is ``- factory: NAME``."""
-SINK_TYPES = ("fake", "file", "frames")
+SINK_TYPES = ("fake", "file", "frames", "rtsp")
+DEFAULT_RTSP_PORT = 8554
+DEFAULT_RTSP_MOUNT = "/dcuscope"
 CLOCK_NAMES = ("realtime", "tai", "monotonic")
 DEFAULT_STALL_TIMEOUT_S = 3.0
 REMOTE_SCHEMES = ("rtsp://", "rtsps://", "http://", "https://", "udp://", "rtmp://", "srt://")
@@ -105,7 +119,18 @@ class SinkConfig:
     sync: bool = False
     """Render at the stream's pace (True) or as fast as the pipeline goes (False)."""
     bitrate: int = 4000
-    """``file``: H.264 bitrate in kbit/s."""
+    """``file`` and ``rtsp``: H.264 bitrate in kbit/s."""
+    name: str = "sink"
+    """The sink's stage name: ``sink`` for the one ``sink:``; in ``sinks:`` the ``name`` given,
+    else the type, made unique with ``_N``."""
+    host: str = "127.0.0.1"
+    port: int = DEFAULT_RTSP_PORT
+    mount: str = DEFAULT_RTSP_MOUNT
+    """``rtsp``: served at rtsp://HOST:PORT/MOUNT."""
+
+    @property
+    def url(self) -> str:
+        return f"rtsp://{self.host}:{self.port}{self.mount}"
 
 
 @dataclass(frozen=True)
@@ -121,9 +146,17 @@ class PipelineConfig:
     node: str
     sources: tuple[SourceConfig, ...]
     stages: tuple[StageConfig, ...]
-    sink: SinkConfig
+    sinks: tuple[SinkConfig, ...]
+    """One, or several fed through a tee."""
     probes: ProbesConfig
     document: Document = field(repr=False)
+    launch: str | None = None
+    """A ``launch:`` pipeline (gst-launch syntax): then sources and stages are empty."""
+
+    @property
+    def sink(self) -> SinkConfig:
+        """The first (often the only) sink."""
+        return self.sinks[0]
 
 
 def load_config(file: str | Path) -> PipelineConfig:
@@ -139,7 +172,10 @@ class _Parser:
         self.base = doc.file.resolve().parent
 
     def parse(self) -> PipelineConfig:
-        top = self.mapping(self.doc.data, (), {"node", "sources", "stages", "sink", "probes", "name"})
+        top = self.mapping(self.doc.data, (), {"node", "sources", "stages", "sink", "sinks", "probes", "name",
+                                               "launch"})
+        if "launch" in top:
+            return self.launch(top)
         if "sources" not in top:
             raise self.doc.error((), "missing 'sources' (a list of uri:/camera:/test: entries)")
         if "stages" not in top:
@@ -153,10 +189,42 @@ class _Parser:
             node=self.text(top.get("node", "DCU-1"), ("node",)),
             sources=sources,
             stages=stages,
-            sink=self.sink(top.get("sink", {"type": "fake"})),
+            sinks=self.sinks(top),
             probes=self.probes(top.get("probes", {})),
             document=self.doc,
         )
+
+    def launch(self, top: dict) -> PipelineConfig:
+        for key in ("sources", "stages", "sink", "sinks"):
+            if key in top:
+                raise self.doc.error((key,), "a launch: pipeline says its sources, stages and sinks itself: "
+                                             f"remove {key}: (or launch:)")
+        text = self.text(top["launch"], ("launch",)).strip()
+        return PipelineConfig(file=self.doc.file, node=self.text(top.get("node", "DCU-1"), ("node",)), sources=(),
+                              stages=(), sinks=(SinkConfig(kind="launch", name=""),),
+                              probes=self.probes(top.get("probes", {})), document=self.doc, launch=text)
+
+    def sinks(self, top: dict) -> tuple[SinkConfig, ...]:
+        if "sink" in top and "sinks" in top:
+            raise self.doc.error(("sinks",), "give either sink: (one output) or sinks: (a list), not both")
+        if "sinks" not in top:
+            return (self.sink(top.get("sink", {"type": "fake"}), ("sink",), "sink"),)
+        entries = self.sequence(top["sinks"], ("sinks",))
+        if not entries:
+            raise self.doc.error(("sinks",), "at least one sink is needed")
+        sinks, seen, ports = [], {}, {}
+        for i, entry in enumerate(entries):
+            sink = self.sink(entry, ("sinks", i), None)
+            name = sink.name
+            seen[name] = seen.get(name, -1) + 1
+            if seen[name]:
+                name = f"{name}_{seen[name]}"
+            if sink.kind == "rtsp":
+                if (sink.host, sink.port) in ports and ports[(sink.host, sink.port)] == sink.mount:
+                    raise self.doc.error(("sinks", i, "mount"), f"{sink.url} is served twice")
+                ports[(sink.host, sink.port)] = sink.mount
+            sinks.append(replace(sink, name=name))
+        return tuple(sinks)
 
     # -- typed getters -------------------------------------------------------------------
     def mapping(self, value: Any, path: KeyPath, allowed: set[str]) -> dict:
@@ -296,18 +364,35 @@ class _Parser:
             raise self.doc.error(("stages",), "at least one stage is needed")
         return tuple(stages)
 
-    def sink(self, value: Any) -> SinkConfig:
-        path = ("sink",)
-        entry = self.mapping(value, path, {"type", "path", "sync", "bitrate"})
+    def sink(self, value: Any, path: KeyPath, name: str | None) -> SinkConfig:
+        entry = self.mapping(value, path, {"type", "path", "sync", "bitrate", "name", "host", "port", "mount"})
         kind = self.text(entry.get("type", "fake"), path + ("type",))
         if kind not in SINK_TYPES:
             raise self.doc.error(path + ("type",), f"unknown sink type {kind!r} (expected one of: {', '.join(SINK_TYPES)})")
-        fields: dict[str, Any] = {}
+        fields: dict[str, Any] = {"name": name or kind}
+        if "name" in entry:
+            if name is not None:
+                raise self.doc.error(path + ("name",), "the one sink: is the stage 'sink'; names are for sinks: entries")
+            fields["name"] = self.text(entry["name"], path + ("name",))
         if kind in ("file", "frames"):
             if "path" not in entry:
                 raise self.doc.error(path, f"sink type {kind} needs a path:")
             target = Path(self.text(entry["path"], path + ("path",))).expanduser()
             fields["path"] = target if target.is_absolute() else Path.cwd() / target
+        for key in ("host", "port", "mount"):
+            if key in entry and kind != "rtsp":
+                raise self.doc.error(path + (key,), f"only rtsp sinks take {key}:")
+        if "host" in entry:
+            fields["host"] = self.text(entry["host"], path + ("host",))
+        if "port" in entry:
+            fields["port"] = self.positive_int(entry["port"], path + ("port",))
+            if fields["port"] > 65535:
+                raise self.doc.error(path + ("port",), f"expected a port number 1..65535, got {fields['port']}")
+        if "mount" in entry:
+            mount = self.text(entry["mount"], path + ("mount",))
+            if not mount.startswith("/") or " " in mount:
+                raise self.doc.error(path + ("mount",), f"expected a path such as /out, got {mount!r}")
+            fields["mount"] = mount
         if "sync" in entry:
             fields["sync"] = self.boolean(entry["sync"], path + ("sync",))
         if "bitrate" in entry:

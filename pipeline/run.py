@@ -78,7 +78,7 @@ class Runner:
     # -- public ----------------------------------------------------------------------------
     def run(self) -> RunResult:
         pipeline = self.built.pipeline
-        sink_pad = self.built.sink.get_static_pad("sink")
+        sink_pad = self.built.sink.get_static_pad("sink") or self.built.sink.sinkpads[0]
         sink_pad.add_probe(Gst.PadProbeType.BUFFER, self._count_frame)
         bus = pipeline.get_bus()
         bus.add_signal_watch()

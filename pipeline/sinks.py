@@ -1,20 +1,72 @@
-"""Sink bins: where the osd's frames go. Each is one stage named ``sink`` (enter point only).
+"""Sink bins: where the osd's frames go. Each is one stage (enter point only), named ``sink``
+for the one ``sink:`` of a config, else as ``sinks:`` names it.
 
 - ``fake``: discard (measure the pipeline alone);
 - ``file``: H.264 in the container the file's name says (``videoconvert ! x264enc ! h264parse
   ! mp4mux|matroskamux|avimux ! filesink``), finalised when the run ends with EOS;
-- ``frames``: numbered PNG images in a folder (``frame_00000.png`` ...).
+- ``frames``: numbered PNG images in a folder (``frame_00000.png`` ...);
+- ``rtsp``: served live as H.264 over RTSP (:mod:`pipeline.rtspout`).
+
+Several sinks hang off a ``tee`` (named ``tee``), each behind a queue of its own (``NAME_queue``,
+leaky: a slow output drops frames there, counted by the probes, instead of holding the others).
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 from core.errors import PipelineError
 from core.gst import Gst
 from pipeline.config import SinkConfig
 from pipeline.outputs import CONTAINERS, FRAME_PATTERN
+from pipeline.rtspout import RtspOut, rtsp_chain
 
 
-def build_sink(config: SinkConfig) -> Gst.Bin:
+@dataclass
+class Outputs:
+    """What the stages feed: ``head`` (the one sink bin, or the tee), the sink bins, RTSP servers."""
+
+    head: Gst.Element
+    elements: list[Gst.Element]
+    """Every element to add to the pipeline (head first)."""
+    servers: list[RtspOut]
+
+    def close(self) -> None:
+        for server in self.servers:
+            server.close()
+
+
+def build_outputs(configs: tuple[SinkConfig, ...]) -> Outputs:
+    servers: list[RtspOut] = []
+    try:
+        bins = [build_sink(c, servers) for c in configs]
+    except Exception:
+        for server in servers:
+            server.close()
+        raise
+    if len(bins) == 1:
+        return Outputs(bins[0], bins, servers)
+    tee = _make("tee", "tee")
+    elements: list[Gst.Element] = [tee]
+    for config, sink in zip(configs, bins):
+        # Leaky: a slow branch drops its own frames (the probes count them), the others go on.
+        queue = _make("queue", f"{config.name}_queue", leaky="downstream", max_size_buffers=30, max_size_bytes=0,
+                      max_size_time=0)
+        elements += [queue, sink]
+    return Outputs(tee, elements, servers)
+
+
+def link_outputs(outputs: Outputs) -> None:
+    """Link the tee to each branch (after the elements were added to the pipeline)."""
+    if len(outputs.elements) == 1:
+        return
+    tee, rest = outputs.elements[0], outputs.elements[1:]
+    for queue, sink in zip(rest[::2], rest[1::2]):
+        if not (tee.link(queue) and queue.link(sink)):
+            raise PipelineError(f"cannot link the tee to {sink.get_name()}")
+
+
+def build_sink(config: SinkConfig, servers: list[RtspOut] | None = None) -> Gst.Bin:
     if config.kind == "fake":
         chain = [_make("fakesink", "render", sync=config.sync, async_=False)]
     elif config.kind == "file":
@@ -38,9 +90,13 @@ def build_sink(config: SinkConfig) -> Gst.Bin:
             _make("multifilesink", "render", location=str(config.path / FRAME_PATTERN), sync=config.sync,
                   async_=False),
         ]
+    elif config.kind == "rtsp":
+        chain, server = rtsp_chain(config, _make)
+        if servers is not None:
+            servers.append(server)
     else:  # the config parser only lets known kinds through
         raise PipelineError(f"unknown sink type {config.kind}")
-    sink = Gst.Bin.new("sink")
+    sink = Gst.Bin.new(config.name)
     for element in chain:
         sink.add(element)
     for a, b in zip(chain, chain[1:]):

@@ -62,5 +62,7 @@ void dcu_note_push_returned(GstPad *pad);
  * chains each buffer again, so a list there must not be recorded as a whole. */
 gboolean dcu_pad_splits_lists(GstPad *pad);
 int64_t dcu_clock_ns(clockid_t clock);
+/* The in-process tracer (_tracer.c): made once; `pre` registers its push/chain-pre hooks too. */
+void dcu_in_process_tracer(gboolean pre);
 
 #endif

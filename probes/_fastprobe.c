@@ -88,6 +88,7 @@ struct DcuPadState {
   _Atomic int64_t cpu_at_post; /* CPU time of the pushing thread when its last push returned */
   _Atomic int post_thread;     /* ...and which thread that was */
   _Atomic int last_thread;
+  _Atomic int wants_cpu;       /* frames reach this pad on another thread than they entered on */
   clockid_t clock;
 };
 
@@ -363,6 +364,8 @@ void dcu_record_buffer(DcuProbe *p, GstBuffer *buf, int64_t ts) {
      * works only while that thread runs: its work on this buffer is at most the CPU time the
      * thread spent since its last push returned. Waking up, or sleeping on a batch timeout,
      * is waiting. */
+    if (handed_over && !atomic_load_explicit(&st->wants_cpu, memory_order_relaxed))
+      atomic_store_explicit(&st->wants_cpu, 1, memory_order_relaxed);
     if (handed_over && ready > 0 && atomic_load_explicit(&st->post_thread, memory_order_relaxed) == thread) {
       int64_t since = atomic_load_explicit(&st->cpu_at_post, memory_order_relaxed);
       int64_t busy_from = ts - (thread_cpu_ns() - since);
@@ -427,52 +430,19 @@ static void probe_free(gpointer data) {
   g_free(p);
 }
 
-/* --- the tracer: when does a traced src pad's push return? -------------------------------- */
-
-typedef struct {
-  GstTracer parent;
-} DcuTracer;
-typedef struct {
-  GstTracerClass parent_class;
-} DcuTracerClass;
-
-G_DEFINE_TYPE(DcuTracer, dcu_tracer, GST_TYPE_TRACER)
+/* --- when does a traced src pad's push return? ------------------------------------------- */
 
 static _Atomic uint64_t hook_calls;
 
 void dcu_note_push_returned(GstPad *pad) {
+  atomic_fetch_add_explicit(&hook_calls, 1, memory_order_relaxed);
   DcuPadState *st = g_object_get_qdata(G_OBJECT(pad), pad_state_quark);
   if (!st) return;
-  struct timespec t;
-  clock_gettime(st->clock, &t);
-  atomic_store_explicit(&st->last_post, (int64_t)t.tv_sec * 1000000000LL + t.tv_nsec, memory_order_relaxed);
-  atomic_store_explicit(&st->cpu_at_post, thread_cpu_ns(), memory_order_relaxed);
+  atomic_store_explicit(&st->last_post, dcu_clock_ns(st->clock), memory_order_relaxed);
+  /* The thread's CPU time is a system call: read only where frames change threads. */
+  if (atomic_load_explicit(&st->wants_cpu, memory_order_relaxed))
+    atomic_store_explicit(&st->cpu_at_post, thread_cpu_ns(), memory_order_relaxed);
   atomic_store_explicit(&st->post_thread, this_thread(), memory_order_relaxed);
-}
-
-static void on_push_post(GObject *self, GstClockTime ts, GstPad *pad, GstFlowReturn res) {
-  (void)self; (void)ts; (void)res;
-  atomic_fetch_add_explicit(&hook_calls, 1, memory_order_relaxed);
-  dcu_note_push_returned(pad);
-}
-
-static void dcu_tracer_init(DcuTracer *self) {
-  GstTracer *tracer = GST_TRACER(self);
-  gst_tracing_register_hook(tracer, "pad-push-post", G_CALLBACK(on_push_post));
-  gst_tracing_register_hook(tracer, "pad-push-list-post", G_CALLBACK(on_push_post));
-}
-
-static void dcu_tracer_class_init(DcuTracerClass *klass) { (void)klass; }
-
-static gsize tracer_done = 0;
-static GstTracer *the_tracer;
-
-/* Make the tracer once, for the life of the process (GStreamer keeps hooks until deinit). */
-static void ensure_tracer(void) {
-  if (g_once_init_enter(&tracer_done)) {
-    the_tracer = g_object_new(dcu_tracer_get_type(), NULL);
-    g_once_init_leave(&tracer_done, 1);
-  }
 }
 
 /* How many push-post hooks ran (all pads of the process): for benchmarks. */
@@ -531,7 +501,7 @@ gboolean dcu_pad_splits_lists(GstPad *pad) {
 gulong dcu_attach(DcuRing *ring, GstPad *pad, int stage, int point, int clock_id) {
   if (!ring || !GST_IS_PAD(pad)) return 0;
   init_once();
-  ensure_tracer();
+  dcu_in_process_tracer(FALSE);
   GstPadProbeType types = GST_PAD_PROBE_TYPE_BUFFER | GST_PAD_PROBE_TYPE_BUFFER_LIST;
   /* Such a pad would see a list twice: whole, then buffer by buffer. Keep the per-buffer
    * probes only, which also time each buffer's own entry. */

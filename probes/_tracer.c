@@ -65,6 +65,7 @@ typedef struct {
   int source;       /* the source id it gives, -1 before its first frame */
   _Atomic int64_t next_frame;
   DcuAggHistory *history; /* sink pads of an aggregator */
+  _Atomic int active;     /* in-process tracepoints: 0 once detached (freed with the pad) */
 } DcuPadInfo;
 
 typedef struct {
@@ -75,6 +76,9 @@ typedef struct {
   DcuWriter *writer;
   GQuark pad_quark, stage_quark;
   GType aggregator_type;
+  gboolean in_process; /* made by dcu_hook_attach: traces only the pads placed on it */
+  _Atomic int finished; /* dcu_tracer_finish: its trace is closed, its hooks do nothing */
+  gboolean pre_hooks;  /* its push/chain-pre hooks are registered */
 } GstDcuscopeTracer;
 
 typedef struct {
@@ -82,6 +86,10 @@ typedef struct {
 } GstDcuscopeTracerClass;
 
 G_DEFINE_TYPE(GstDcuscopeTracer, gst_dcuscope_tracer, GST_TYPE_TRACER)
+
+/* The GST_TRACERS one, whose trace an exit handler finishes: applications that never call
+ * gst_deinit() still get a complete trace. */
+static GstDcuscopeTracer *live_tracer;
 
 static const char *const CLOCK_NAMES[] = {"realtime", "monotonic", "tai"};
 static const clockid_t CLOCK_IDS[] = {CLOCK_REALTIME, CLOCK_MONOTONIC, CLOCK_TAI};
@@ -115,6 +123,8 @@ static DcuStage *stage_of(GstDcuscopeTracer *self, GstElement *element) {
   if (!self->aggregator_type) self->aggregator_type = g_type_from_name("GstAggregator"); /* once loaded */
   st->aggregator = self->aggregator_type && g_type_is_a(G_OBJECT_TYPE(element), self->aggregator_type);
   st->source_element = element->numsinkpads == 0;
+  /* Sinks drop late buffers (QoS): remember their inputs from the start, to name those frames. */
+  if (GST_OBJECT_FLAG_IS_SET(element, GST_ELEMENT_FLAG_SINK)) atomic_store(&st->keep_history, 1);
   /* Stages live as long as the tracer (the graph lists them); the element only points at it. */
   g->stages[g->n_stages++] = st;
   g_object_set_qdata(G_OBJECT(element), self->stage_quark, st);
@@ -362,10 +372,24 @@ static gboolean aggregate_lineage(GstElement *element, GstPad *src, GstBuffer *b
 
 /* --- hooks ---------------------------------------------------------------------------------- */
 
-static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int64_t ts) {
+/* The time of a hook call, read once per call (a list shares it) and only for traced pads. */
+static inline int64_t now_for(DcuPadInfo *info, int64_t *ts) {
+  if (*ts == 0) *ts = dcu_clock_ns(info->probe.clock);
+  return *ts;
+}
+
+static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int64_t *when) {
+  if (self->in_process) {
+    DcuPadInfo *info = g_object_get_qdata(G_OBJECT(pad), self->pad_quark);
+    if (info && atomic_load_explicit(&info->active, memory_order_relaxed))
+      dcu_record_buffer(&info->probe, buf, now_for(info, when));
+    return;
+  }
+  if (G_UNLIKELY(atomic_load_explicit(&self->finished, memory_order_relaxed))) return;
   DcuPadInfo *info = pad_info(self, pad);
   DcuStage *st = info->stage;
   if (!st) return;
+  int64_t ts = now_for(info, when);
   if (G_LIKELY(dcu_frames_structure(buf) != NULL)) {
     dcu_record_buffer(&info->probe, buf, ts);
     return;
@@ -391,13 +415,26 @@ static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int
     atomic_fetch_add(&self->graph.version, 1);
 }
 
-static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int64_t ts) {
+static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int64_t *when) {
+  if (self->in_process) {
+    DcuPadInfo *info = g_object_get_qdata(G_OBJECT(pad), self->pad_quark);
+    if (info && atomic_load_explicit(&info->active, memory_order_relaxed))
+      dcu_record_buffer(&info->probe, buf, now_for(info, when));
+    return;
+  }
+  if (G_UNLIKELY(atomic_load_explicit(&self->finished, memory_order_relaxed))) return;
   DcuPadInfo *info = pad_info(self, pad);
   if (!info->stage) return;
+  int64_t ts = now_for(info, when);
   const GstStructure *s = dcu_frames_structure(buf);
   if (s) {
     if (G_UNLIKELY(!atomic_load_explicit(&info->stage->entered, memory_order_relaxed)))
       atomic_store(&info->stage->entered, 1);
+    if (G_UNLIKELY(!info->history && atomic_load_explicit(&info->stage->keep_history, memory_order_relaxed))) {
+      DcuAggHistory *h = g_new0(DcuAggHistory, 1);
+      g_mutex_init(&h->lock);
+      g_atomic_pointer_set(&info->history, h); /* only this pad's streaming thread writes it */
+    }
     if (info->history) remember_input(info, pad, buf, s);
   }
   dcu_record_buffer(&info->probe, buf, ts);
@@ -405,32 +442,73 @@ static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, in
 
 static void on_push_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuffer *buf) {
   (void)t;
-  GstDcuscopeTracer *self = (GstDcuscopeTracer *)obj;
-  frame_exit(self, pad, buf, dcu_clock_ns(self->clock));
+  int64_t ts = 0;
+  frame_exit((GstDcuscopeTracer *)obj, pad, buf, &ts);
 }
 
 static void on_push_list_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBufferList *list) {
   (void)t;
-  GstDcuscopeTracer *self = (GstDcuscopeTracer *)obj;
-  int64_t ts = dcu_clock_ns(self->clock);
+  int64_t ts = 0;
   guint n = gst_buffer_list_length(list);
-  for (guint i = 0; i < n; i++) frame_exit(self, pad, gst_buffer_list_get(list, i), ts);
+  for (guint i = 0; i < n; i++) frame_exit((GstDcuscopeTracer *)obj, pad, gst_buffer_list_get(list, i), &ts);
 }
 
 static void on_chain_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuffer *buf) {
   (void)t;
-  GstDcuscopeTracer *self = (GstDcuscopeTracer *)obj;
-  frame_enter(self, pad, buf, dcu_clock_ns(self->clock));
+  int64_t ts = 0;
+  frame_enter((GstDcuscopeTracer *)obj, pad, buf, &ts);
 }
 
 static void on_chain_list_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBufferList *list) {
   (void)t;
   /* Split by GStreamer and chained buffer by buffer: those calls record them. */
   if (dcu_pad_splits_lists(pad)) return;
-  GstDcuscopeTracer *self = (GstDcuscopeTracer *)obj;
-  int64_t ts = dcu_clock_ns(self->clock);
+  int64_t ts = 0;
   guint n = gst_buffer_list_length(list);
-  for (guint i = 0; i < n; i++) frame_enter(self, pad, gst_buffer_list_get(list, i), ts);
+  for (guint i = 0; i < n; i++) frame_enter((GstDcuscopeTracer *)obj, pad, gst_buffer_list_get(list, i), &ts);
+}
+
+/* An element dropped a buffer for QoS (a sink rendering too late, a decoder skipping): the
+ * frames of its sink pads' remembered input with that running time get a drop event (reason
+ * qos). An element's first QoS message only starts the remembering: those drops are counted,
+ * and said at exit, not named. */
+static void on_message(GObject *obj, GstClockTime t, GstElement *element, GstMessage *message) {
+  (void)t;
+  GstDcuscopeTracer *self = (GstDcuscopeTracer *)obj;
+  if (GST_MESSAGE_TYPE(message) != GST_MESSAGE_QOS || self->in_process ||
+      atomic_load_explicit(&self->finished, memory_order_relaxed))
+    return;
+  DcuStage *st = g_object_get_qdata(G_OBJECT(element), self->stage_quark);
+  if (!st) return;
+  atomic_store(&st->keep_history, 1);
+  gboolean live;
+  guint64 running, stream, timestamp, duration;
+  gst_message_parse_qos(message, &live, &running, &stream, &timestamp, &duration);
+  DcuEvent drops[AGG_MAX_FRAMES];
+  guint n = 0;
+  GST_OBJECT_LOCK(element);
+  for (GList *l = element->sinkpads; l && n == 0; l = l->next) {
+    DcuPadInfo *info = g_object_get_qdata(G_OBJECT(l->data), self->pad_quark);
+    DcuAggHistory *h = info ? g_atomic_pointer_get(&info->history) : NULL;
+    if (!h) continue;
+    g_mutex_lock(&h->lock);
+    guint first = h->written > AGG_HISTORY ? h->written - AGG_HISTORY : 0;
+    for (guint k = first; k < h->written && n == 0; k++) {
+      const DcuAggEntry *e = &h->entries[k % AGG_HISTORY];
+      if (GST_CLOCK_TIME_IS_VALID(running) && e->start == (int64_t)running)
+        for (guint i = 0; i < e->n; i++)
+          drops[n++] = (DcuEvent){0, e->frame[i], (int32_t)e->source[i], (int16_t)st->index, P_DROP, 2 /* qos */};
+    }
+    g_mutex_unlock(&h->lock);
+  }
+  GST_OBJECT_UNLOCK(element);
+  if (n == 0) {
+    atomic_fetch_add_explicit(&st->qos_unnamed, 1, memory_order_relaxed);
+    return;
+  }
+  int64_t now = dcu_clock_ns(self->clock);
+  for (guint i = 0; i < n; i++) drops[i].ts = now;
+  dcu_push(self->ring, drops, n);
 }
 
 static void on_push_post(GObject *obj, GstClockTime t, GstPad *pad, GstFlowReturn res) {
@@ -455,9 +533,35 @@ static char *param_string(GstStructure *params, const char *key) {
   return G_VALUE_HOLDS_STRING(v) ? g_value_dup_string(v) : gst_value_serialize(v);
 }
 
+static void register_pre_hooks(GstDcuscopeTracer *self) {
+  GstTracer *tracer = GST_TRACER(self);
+  if (!self->in_process) gst_tracing_register_hook(tracer, "element-post-message-pre", G_CALLBACK(on_message));
+  gst_tracing_register_hook(tracer, "pad-push-pre", G_CALLBACK(on_push_pre));
+  gst_tracing_register_hook(tracer, "pad-push-list-pre", G_CALLBACK(on_push_list_pre));
+  gst_tracing_register_hook(tracer, "pad-chain-pre", G_CALLBACK(on_chain_pre));
+  gst_tracing_register_hook(tracer, "pad-chain-list-pre", G_CALLBACK(on_chain_list_pre));
+  self->pre_hooks = TRUE;
+}
+
+static void register_post_hooks(GstDcuscopeTracer *self) {
+  GstTracer *tracer = GST_TRACER(self);
+  gst_tracing_register_hook(tracer, "pad-push-post", G_CALLBACK(on_push_post));
+  gst_tracing_register_hook(tracer, "pad-push-list-post", G_CALLBACK(on_push_post));
+}
+
+static gboolean making_in_process;
+
 static void gst_dcuscope_tracer_constructed(GObject *object) {
   GstDcuscopeTracer *self = (GstDcuscopeTracer *)object;
   G_OBJECT_CLASS(gst_dcuscope_tracer_parent_class)->constructed(object);
+  if (making_in_process) {
+    /* The pads come from probes.tracer; the ring is its own; the push-post hook serves pad
+     * probes and hook tracepoints alike. */
+    self->in_process = TRUE;
+    self->pad_quark = g_quark_from_static_string("dcuscope-in-process-pad");
+    register_post_hooks(self);
+    return;
+  }
   char *text = NULL;
   g_object_get(object, "params", &text, NULL);
   GstStructure *params = NULL;
@@ -502,18 +606,12 @@ static void gst_dcuscope_tracer_constructed(GObject *object) {
   g_free(node);
   g_free(trace);
   if (!self->writer) return; /* said why; trace nothing */
+  g_atomic_pointer_set(&live_tracer, self);
 
-  GstTracer *tracer = GST_TRACER(self);
-  gst_tracing_register_hook(tracer, "pad-push-pre", G_CALLBACK(on_push_pre));
-  gst_tracing_register_hook(tracer, "pad-push-list-pre", G_CALLBACK(on_push_list_pre));
-  gst_tracing_register_hook(tracer, "pad-chain-pre", G_CALLBACK(on_chain_pre));
-  gst_tracing_register_hook(tracer, "pad-chain-list-pre", G_CALLBACK(on_chain_list_pre));
-  gst_tracing_register_hook(tracer, "pad-push-post", G_CALLBACK(on_push_post));
-  gst_tracing_register_hook(tracer, "pad-push-list-post", G_CALLBACK(on_push_post));
+  register_pre_hooks(self);
+  register_post_hooks(self);
 }
 
-/* Applications that never call gst_deinit() still get a complete trace. */
-static GstDcuscopeTracer *live_tracer;
 
 static void stop_writer(GstDcuscopeTracer *self) {
   DcuWriter *writer = g_atomic_pointer_exchange(&self->writer, NULL);
@@ -544,7 +642,6 @@ static void gst_dcuscope_tracer_init(GstDcuscopeTracer *self) {
     atexit(at_exit);
     g_once_init_leave(&registered, 1);
   }
-  g_atomic_pointer_set(&live_tracer, self);
 }
 
 static void gst_dcuscope_tracer_class_init(GstDcuscopeTracerClass *klass) {
@@ -554,3 +651,63 @@ static void gst_dcuscope_tracer_class_init(GstDcuscopeTracerClass *klass) {
 }
 
 GType dcu_plugin_tracer_type(void) { return gst_dcuscope_tracer_get_type(); }
+
+/* --- a GST_TRACERS tracer made by a program itself (dcuscope run of a launch: config) -------- */
+
+/* The tracer GST_TRACERS="dcuscope(PARAMS)" would make, made now: it traces what runs from now
+ * on. NULL (and a line on stderr) when its trace file cannot be written. */
+GstTracer *dcu_tracer_new(const char *params) {
+  GstDcuscopeTracer *self = g_object_new(gst_dcuscope_tracer_get_type(), "params", params, NULL);
+  if (!self->writer) {
+    gst_object_unref(self);
+    return NULL;
+  }
+  return GST_TRACER(self);
+}
+
+/* Close its trace (the end line); its hooks stay registered until gst_deinit but do nothing. */
+void dcu_tracer_finish(GstTracer *tracer) {
+  GstDcuscopeTracer *self = (GstDcuscopeTracer *)tracer;
+  atomic_store(&self->finished, 1);
+  stop_writer(self);
+}
+
+/* --- in process: the same tracer, on the pads probes.tracer chooses ------------------------- */
+
+static GMutex in_process_lock;
+static GstDcuscopeTracer *in_process;
+
+/* The process's in-process tracer (made once, kept until gst_deinit), its pre hooks registered
+ * when `pre` (hook tracepoints) asks for them: pad-probe tracepoints need only push-post. */
+void dcu_in_process_tracer(gboolean pre) {
+  g_mutex_lock(&in_process_lock);
+  if (!in_process) {
+    making_in_process = TRUE;
+    in_process = g_object_new(gst_dcuscope_tracer_get_type(), NULL);
+    making_in_process = FALSE;
+  }
+  if (pre && !in_process->pre_hooks) register_pre_hooks(in_process);
+  g_mutex_unlock(&in_process_lock);
+}
+
+/* A tracepoint on pad fired by the tracer's hooks (instead of a pad probe); the same records. */
+gulong dcu_hook_attach(DcuRing *ring, GstPad *pad, int stage, int point, int clock_id) {
+  if (!ring || !GST_IS_PAD(pad)) return 0;
+  dcu_in_process_tracer(TRUE);
+  DcuPadInfo *info = g_new0(DcuPadInfo, 1);
+  info->stamps = 0;
+  info->source = -1;
+  dcu_probe_setup(&info->probe, ring, pad, stage, point, (clockid_t)clock_id);
+  atomic_store(&info->active, 1);
+  /* Replacing an earlier one frees it: only while no buffer flows (attach before PLAYING). */
+  g_object_set_qdata_full(G_OBJECT(pad), in_process->pad_quark, info, pad_info_free);
+  return 1;
+}
+
+/* Stop the pad's hook tracepoint. Its state stays until the pad is freed: a streaming thread
+ * may be inside a hook with it right now. */
+void dcu_hook_detach(GstPad *pad) {
+  if (!in_process || !GST_IS_PAD(pad)) return;
+  DcuPadInfo *info = g_object_get_qdata(G_OBJECT(pad), in_process->pad_quark);
+  if (info) atomic_store(&info->active, 0);
+}

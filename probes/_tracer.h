@@ -18,6 +18,8 @@ typedef struct {
   _Atomic int entered;      /* identified frames have entered it */
   _Atomic int lineage_lost; /* ...and it pushed buffers without identity: lineage stops here */
   _Atomic uint64_t shared;  /* frames it could not give an identity: their buffers were shared */
+  _Atomic int keep_history; /* it posted QoS: remember recent inputs, to name the frames it drops */
+  _Atomic uint64_t qos_unnamed; /* QoS drops whose frames were not (yet) remembered */
 } DcuStage;
 
 /* What the writer needs to know of the tracer's discoveries. Guarded by lock; version grows

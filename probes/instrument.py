@@ -3,6 +3,7 @@ and/or a relay, with a one-line summary at the end."""
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
@@ -10,16 +11,19 @@ from typing import TextIO
 import numpy as np
 
 from core.clocks import CLOCKS, PretendClock
+from core.errors import UsageError
 from pipeline.build import BuiltPipeline
 from pipeline.config import PipelineConfig
-from probes.errors import ExportError
-from probes.events import CAPTURE, Exporter, TraceHeader
+from probes.errors import ExportError, TraceError
+from probes.events import CAPTURE, EXPORTER_CLOSE_S, Exporter, TraceHeader
+from probes.processtracer import ProcessTracer
 from probes.relayexport import RelayExporter
 from probes.relaylink import check_token
 from probes.shipper import Shipper
 from probes.sourcewatch import SourceWatch
 from probes.sysclock import DEFAULT_UDS
-from probes.tracefile import TraceFileWriter
+from probes.tailship import TailShipper
+from probes.tracefile import TraceFileWriter, read_trace
 from probes.tracer import Tracer, attach
 
 
@@ -69,7 +73,7 @@ class RunProbes:
             where = f"trace: {self.trace}" if self.trace else "events sent to the relay"
             dropped = self.tracer.dropped
             self.progress.write(f"probes: {self.shipper.shipped} events from {tracepoints} tracepoints "
-                                f"({self.tracer.backend}), {dropped} dropped; {where}\n")
+                                f"({self.tracer.backend}, {self.tracer.trigger}), {dropped} dropped; {where}\n")
             for error in self.shipper.errors:
                 self.progress.write(f"probes: {error}\n")
         if self.relay is not None and self.relay.refused:
@@ -80,13 +84,56 @@ def default_trace_path(node: str) -> Path:
     return Path.cwd() / f"{node}.trace.jsonl"
 
 
+@dataclass
+class LaunchProbes:
+    """Probes of a ``launch:`` pipeline: the dcuscope GStreamer tracer, made in this process,
+    writes the trace; a thread follows it to the relay."""
+
+    tracer: ProcessTracer
+    trace: Path
+    progress: TextIO | None
+    shipper: TailShipper | None = None
+    thread: threading.Thread | None = None
+
+    def stop(self) -> None:
+        self.tracer.finish()  # the end line: the shipper then sends the rest and closes
+        if self.thread is not None:
+            self.thread.join(EXPORTER_CLOSE_S + 5.0)
+        if self.progress is not None:
+            try:
+                done = read_trace(self.trace)
+            except TraceError as exc:
+                self.progress.write(f"probes: {exc}\n")
+                return
+            self.progress.write(f"probes: {len(done.events)} events from {len(done.header.stages)} stages (the dcuscope "
+                                f"tracer, every element), {done.dropped} dropped; trace: {self.trace}\n")
+
+
+def _start_tracer(config: PipelineConfig, relay: str | None, token: str | None, progress: TextIO | None) -> LaunchProbes:
+    trace = config.probes.trace or default_trace_path(config.node)
+    probes = LaunchProbes(ProcessTracer(config.node, trace, config.probes.clock), Path(trace), progress)
+    if relay is not None:
+        probes.shipper = TailShipper(Path(trace), relay, token, config.node,
+                                     say=lambda line: progress.write(line + "\n") if progress else None)
+        # No stop event: it ends with the trace's end line, which stop() has the tracer write.
+        probes.thread = threading.Thread(target=probes.shipper.run, args=(threading.Event(), 1.0, 1e9),
+                                         name="dcuscope-tailship", daemon=True)
+        probes.thread.start()
+    return probes
+
+
 def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None = None, token: str | None = None,
                  clock_offset_ns: int = 0, progress: TextIO | None = None, clock_drift_ppm: float = 0.0,
-                 ptp_socket: str = DEFAULT_UDS) -> RunProbes:
+                 ptp_socket: str = DEFAULT_UDS) -> RunProbes | LaunchProbes:
     """Attach tracepoints to every element of ``built`` (not yet playing) and start shipping.
-    ``clock_offset_ns`` and ``clock_drift_ppm``: testing aids (:class:`core.clocks.PretendClock`)."""
+    ``clock_offset_ns`` and ``clock_drift_ppm``: testing aids (:class:`core.clocks.PretendClock`).
+    A ``launch:`` pipeline is traced by the dcuscope GStreamer tracer (:class:`LaunchProbes`)."""
     if relay is not None:
         check_token(relay, token)  # a wrong token ends the run before it starts, not after
+    if config.launch is not None:
+        if clock_offset_ns or clock_drift_ppm:
+            raise UsageError("--clock-offset-ms and --clock-drift-ppm are not for launch: pipelines")
+        return _start_tracer(config, relay, token, progress)
     sources = {s.index: s.config.description for s in built.sources}
     tracer = attach(built.pipeline, config.node, clock=config.probes.clock, sources=sources)
     trace = config.probes.trace

@@ -98,6 +98,10 @@ def _bind(lib: ctypes.CDLL) -> None:
         "dcu_now": (ctypes.c_int64, [i32]),
         "dcu_push": (u64, [p, p, u64]),
         "dcu_hook_calls": (u64, []),
+        "dcu_hook_attach": (ctypes.c_ulong, [p, p, i32, i32, i32]),
+        "dcu_hook_detach": (None, [p]),
+        "dcu_tracer_new": (p, [ctypes.c_char_p]),
+        "dcu_tracer_finish": (None, [p]),
     }
     for name, (res, args) in sigs.items():
         fn = getattr(lib, name)
@@ -143,12 +147,22 @@ def gpointer(obj: Gst.Object) -> int:
     return _capsule_pointer(obj.__gpointer__, None)
 
 
+TRIGGERS = ("hooks", "probes")
+"""What fires a native tracepoint: the dcuscope tracer's hooks (pad push/chain, the same tracer
+``GST_TRACERS=dcuscope`` loads into any application) or a pad probe on the pad. The records
+are the same (one C function writes both); see benchmarks/bench_probes.py for their costs."""
+DEFAULT_TRIGGER = "hooks"
+
+
 class NativeRing:
     """The C ring and its tracepoints; the same interface as :class:`probes.ring.PythonRing`."""
 
     backend = "native"
 
-    def __init__(self, capacity: int, lib: ctypes.CDLL | None = None):
+    def __init__(self, capacity: int, lib: ctypes.CDLL | None = None, trigger: str = DEFAULT_TRIGGER):
+        if trigger not in TRIGGERS:
+            raise ValueError(f"unknown tracepoint trigger {trigger!r}; expected one of {', '.join(TRIGGERS)}")
+        self.trigger = trigger
         self._ring = None
         self._lib = lib or load()
         if self._lib is None:
@@ -161,13 +175,17 @@ class NativeRing:
 
     def attach(self, pad: Gst.Pad, stage: int, point: int, clock_id: int) -> int:
         """Add a tracepoint on ``pad``; returns a handle for :meth:`detach`."""
-        probe_id = self._lib.dcu_attach(self._ring, gpointer(pad), stage, point, clock_id)
-        if not probe_id:
-            raise ValueError(f"cannot add a probe on {pad}")
-        return int(probe_id)
+        attach = self._lib.dcu_hook_attach if self.trigger == "hooks" else self._lib.dcu_attach
+        handle = attach(self._ring, gpointer(pad), stage, point, clock_id)
+        if not handle:
+            raise ValueError(f"cannot add a tracepoint on {pad}")
+        return int(handle)
 
     def detach(self, pad: Gst.Pad, handle: int) -> None:
-        self._lib.dcu_detach(gpointer(pad), handle)
+        if self.trigger == "hooks":
+            self._lib.dcu_hook_detach(gpointer(pad))
+        else:
+            self._lib.dcu_detach(gpointer(pad), handle)
 
     def drain(self, max_events: int | None = None) -> np.ndarray:
         """Events recorded since the last drain (oldest first), as EVENT_DTYPE."""

@@ -25,7 +25,7 @@ from core.clocks import CLOCKS
 from core.errors import PipelineError
 from core.gst import Gst
 from probes.events import ENTER, EXIT, ORIGIN, TraceHeader
-from probes.native import BuildError, NativeRing, load, unavailable_reason
+from probes.native import DEFAULT_TRIGGER, BuildError, NativeRing, load, unavailable_reason
 from probes.ring import DEFAULT_CAPACITY, PythonRing, RingStats
 
 BACKENDS = ("auto", "native", "python")
@@ -40,15 +40,17 @@ class _Tracepoint:
     handle: int
 
 
-def make_ring(backend: str = "auto", capacity: int = DEFAULT_CAPACITY) -> NativeRing | PythonRing:
-    """A ring of the wanted backend; ``auto`` takes the native one when it can be loaded."""
+def make_ring(backend: str = "auto", capacity: int = DEFAULT_CAPACITY,
+              trigger: str = DEFAULT_TRIGGER) -> NativeRing | PythonRing:
+    """A ring of the wanted backend; ``auto`` takes the native one when it can be loaded.
+    ``trigger``: what fires native tracepoints, the tracer's hooks or pad probes (probes.native)."""
     if backend not in BACKENDS:
         raise ValueError(f"unknown probe backend {backend!r}; expected one of {', '.join(BACKENDS)}")
     if backend == "python" or (backend == "auto" and load() is None):
         return PythonRing(capacity)
     if load() is None:
         raise BuildError(f"native probes unavailable: {unavailable_reason()}")
-    return NativeRing(capacity)
+    return NativeRing(capacity, trigger=trigger)
 
 
 class Tracer:
@@ -69,6 +71,11 @@ class Tracer:
     @property
     def backend(self) -> str:
         return self.ring.backend
+
+    @property
+    def trigger(self) -> str:
+        """What fires the tracepoints: "hooks" or "probes" (native), "probes" (Python)."""
+        return getattr(self.ring, "trigger", "probes")
 
     def add(self, pad: Gst.Pad, stage: int, point: int) -> None:
         """Put a tracepoint on ``pad`` (once per pad)."""
@@ -132,7 +139,7 @@ class Tracer:
 
 
 def attach(pipeline: Gst.Pipeline, node: str, clock: str = "realtime", capacity: int = DEFAULT_CAPACITY,
-           backend: str = "auto", sources: dict[int, str] | None = None) -> Tracer:
+           backend: str = "auto", sources: dict[int, str] | None = None, trigger: str = DEFAULT_TRIGGER) -> Tracer:
     """Put tracepoints on every stage of ``pipeline`` (built, not yet PLAYING).
 
     ``sources`` maps source ids to descriptions; ids it lacks are described from the pipeline
@@ -151,7 +158,7 @@ def attach(pipeline: Gst.Pipeline, node: str, clock: str = "realtime", capacity:
     if not stamps and not stage_elements:
         raise PipelineError(f"pipeline {pipeline.get_name()} has no {FRAMESTAMP} element and no linked "
                             "elements after its sources: there is nothing to trace")
-    ring = make_ring(backend, capacity)
+    ring = make_ring(backend, capacity, trigger)
     elements = stamps + stage_elements
     names = _unique([e.get_name() for e in elements])
     kinds = {name: e.get_factory().get_name() for name, e in zip(names, elements) if e.get_factory() is not None}
@@ -159,8 +166,10 @@ def attach(pipeline: Gst.Pipeline, node: str, clock: str = "realtime", capacity:
     header = TraceHeader(
         node=node, clock=clock, stages=names, sources={**described, **(sources or {})},
         started_ns=ring.now(CLOCKS[clock]),
-        versions={"gstreamer": Gst.version_string(), "probes": ring.backend}, kinds=kinds,
+        versions={"gstreamer": Gst.version_string(), "probes": ring.backend,
+                  "trigger": getattr(ring, "trigger", "probes")}, kinds=kinds,
     )
+    header.links = _branch_links(stamps, hosts, stage_elements, pipeline)
     tracer = Tracer(header, ring, CLOCKS[clock])
     tracer.stage_elements = {element: index for index, element in enumerate(elements)}
     for index, fs in enumerate(stamps):
@@ -239,6 +248,22 @@ def _downstream_in_order(children: list[Gst.Element], hosts: list[Gst.Element],
     # A cycle (a feedback loop) leaves elements unsorted: keep them, in the order added.
     ordered += sorted((e for e in reached if e not in ordered), key=lambda e: rank.get(e, 0))
     return ordered
+
+
+def _branch_links(stamps: list[Gst.Element], hosts: list[Gst.Element], stage_elements: list[Gst.Element],
+                  pipeline: Gst.Pipeline) -> list[list[int]]:
+    """The graph (TraceHeader.links) when it branches (a tee: several sinks); [] for a chain,
+    whose stage order says it all (and whose traces stay as they were)."""
+    index = {e: len(stamps) + i for i, e in enumerate(stage_elements)}
+    links = []
+    for origin, host in enumerate(hosts[:len(stamps)]):
+        links += [[origin, index[p]] for p in _peers(host, Gst.PadDirection.SRC, pipeline) if p in index]
+    for element in stage_elements:
+        links += [[index[element], index[p]] for p in _peers(element, Gst.PadDirection.SRC, pipeline) if p in index]
+    fan_out = {}
+    for a, _ in links:
+        fan_out[a] = fan_out.get(a, 0) + 1
+    return sorted(links) if any(n > 1 for n in fan_out.values()) else []
 
 
 def _unique(names: list[str]) -> list[str]:

@@ -73,7 +73,7 @@ def test_relative_paths_are_relative_to_the_config(tmp_path):
 
 BAD = [
     ("malformed yaml", "sources: [\n  - test: ball\nstages: {", ":2: malformed YAML"),
-    ("unknown top key", "sources: [{test: ball}]\nstages: [{queue: {}}]\nsinks: {}\n", ":3: sinks: unknown key"),
+    ("unknown top key", "sources: [{test: ball}]\nstages: [{queue: {}}]\nsinc: {}\n", ":3: sinc: unknown key"),
     ("unknown source key", "sources:\n  - test: ball\n    colour: red\nstages: [{queue: {}}]\n",
      ":3: sources[0].colour: unknown key"),
     ("two kinds", "sources:\n  - test: ball\n    uri: x.mp4\nstages: [{queue: {}}]\n", ":2: sources[0]: a source needs exactly one"),

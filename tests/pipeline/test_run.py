@@ -30,7 +30,7 @@ LIVE_BALL = ("sources:\n  - {test: ball, live: true, width: 320, height: 240, ra
 
 
 def test_boxes_are_drawn_where_the_detections_are(tmp_path):
-    config = replace(load_config(REPO / "configs" / "vtest.yaml"), sink=SinkConfig(kind="frames", path=tmp_path / "frames"))
+    config = replace(load_config(REPO / "configs" / "vtest.yaml"), sinks=(SinkConfig(kind="frames", path=tmp_path / "frames"),))
     built = build_pipeline(config)
     osd = built.pipeline.get_by_name("osd")
     before, detections, identities = [], [], []

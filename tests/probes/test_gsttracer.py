@@ -53,7 +53,8 @@ def launch(plugin_dir: Path, tmp_path: Path, description: str, node: str = "APP"
            extra_env: dict | None = None):
     trace = tmp_path / f"{node}.trace.jsonl"
     env = {**tracer_env(plugin_dir, f"node={node},trace={trace}", *more_tracers), **(extra_env or {})}
-    result = subprocess.run(["gst-launch-1.0", "-q", *description.split()], env=env, capture_output=True, text=True,
+    quiet = [] if description.startswith("-m ") else ["-q"]
+    result = subprocess.run(["gst-launch-1.0", *quiet, *description.split()], env=env, capture_output=True, text=True,
                             timeout=120)
     assert result.returncode == 0, result.stderr
     return read_trace(trace), result
@@ -195,6 +196,25 @@ def test_d_a_queue_before_a_slow_element_waits_and_is_not_busy(plugin_dir, tmp_p
     assert q["utilization"] < 0.05
     assert slow["service"]["p50_ms"] >= 15.0 and slow["wait"]["p50_ms"] < 1.0
     assert node["bottleneck"]["stage"] == "slow"
+
+
+def test_frames_a_sink_drops_for_qos_are_named_with_reason_qos(plugin_dir, tmp_path):
+    """A live source into an element slower than its rate and a sink that drops what comes more
+    than 20 ms late: one drop event (reason qos) per QoS message the sink posts, as gst-launch's
+    own message log (-m) counts them, each for a frame that reached that sink."""
+    trace, result = launch(plugin_dir, tmp_path, "-m videotestsrc is-live=true num-buffers=60 ! "
+                           "video/x-raw,width=160,height=120,framerate=30/1 ! identity sleep-time=45000 ! "
+                           "fakesink name=out sync=true max-lateness=20000000 qos=true", "QOS")
+    posted = result.stdout.count('from element "out" (qos)')
+    assert posted >= 20  # most frames come late: 45 ms of work per 33 ms frame
+    drops = stage_points(trace, "out", 5)
+    ev = trace.events
+    assert len(drops) == posted and set(ev[ev["point"] == 5]["code"].tolist()) == {2}
+    entered = stage_points(trace, "out", ENTER)
+    assert set(zip(drops["source"].tolist(), drops["frame"].tolist())) <= \
+        set(zip(entered["source"].tolist(), entered["frame"].tolist()))
+    assert stats(trace)["sources"]["0"]["dropped"] == {"qos": posted}
+    assert "QoS before it was watched" not in result.stderr
 
 
 def test_unknown_parameters_warn_and_tracing_goes_on(plugin_dir, tmp_path):

@@ -329,3 +329,21 @@ def test_shipper_reports_drops_at_close():
     shipper.stop()
     assert sum(len(b) for b in out.batches) == 8
     assert out.dropped == 20 * len(MAIN_PATH) + 2 * 20 + 2 - 8  # + a ready per exit, a thread fact per stage
+
+
+def test_hooks_and_pad_probes_write_the_same_records():
+    """One native core behind both triggers: the tracer's hooks (the default, and what
+    GST_TRACERS=dcuscope uses in any application) and pad probes write the same records, ready
+    points and their buffer groups included; only the times differ."""
+    runs = {t: traced_run(MAIN, "native", trigger=t) for t in native.TRIGGERS}
+    assert {t: tr.trigger for t, (tr, _) in runs.items()} == {"hooks": "hooks", "probes": "probes"}
+    assert runs["hooks"][0].header.versions["trigger"] == "hooks"
+
+    def records(ev):
+        frames = ev[ev["point"] <= READY]
+        facts = ev[ev["point"] == FACT]
+        return (sorted(zip(*(frames[c].tolist() for c in ("stage", "point", "source", "frame", "code")))),
+                sorted(zip(facts["stage"].tolist(), facts["code"].tolist())))
+
+    assert records(runs["hooks"][1]) == records(runs["probes"][1])
+    assert len(runs["hooks"][1]) == len(runs["probes"][1]) >= 20 * len(MAIN_PATH)

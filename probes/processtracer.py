@@ -1,0 +1,43 @@
+"""The dcuscope GStreamer tracer made from Python, as ``GST_TRACERS=dcuscope(...)`` would make it:
+every element of every pipeline that runs from now on traced from hooks alone, frames given
+their identity where video starts, the trace file written by the tracer's own C thread
+(probes/_tracer.c). ``dcuscope run`` uses it for ``launch:`` configs, whose elements carry no
+framestamp; followed by :class:`probes.tailship.TailShipper` for a relay.
+
+    tracer = ProcessTracer(node="DCU-1", trace=Path("dcu1.trace.jsonl"), clock="realtime")
+    ... run the pipeline ...
+    tracer.finish()          # drains, writes the end line; the hooks stay but do nothing
+"""
+
+from __future__ import annotations
+
+import ctypes
+from pathlib import Path
+
+from probes.errors import TraceError
+from probes.native import BuildError, load, unavailable_reason
+
+
+def tracer_params(node: str, trace: Path, clock: str = "realtime", capacity: int | None = None) -> str:
+    """The tracer's parameter text, quoted as GstStructure wants it."""
+    def quoted(text: str) -> str:
+        return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+    params = f"node={quoted(node)},trace={quoted(str(trace))},clock={clock}"
+    return params + (f",capacity={capacity}" if capacity else "")
+
+
+class ProcessTracer:
+    def __init__(self, node: str, trace: Path, clock: str = "realtime", capacity: int | None = None):
+        self._lib = load()
+        if self._lib is None:
+            raise BuildError(f"the dcuscope tracer needs the native library: {unavailable_reason()}")
+        self.trace = Path(trace)
+        self._tracer = self._lib.dcu_tracer_new(tracer_params(node, self.trace, clock, capacity).encode())
+        if not self._tracer:
+            raise TraceError(f"{self.trace}: cannot write the trace file")
+
+    def finish(self) -> None:
+        if self._tracer:
+            self._lib.dcu_tracer_finish(ctypes.c_void_p(self._tracer))
+            self._tracer = None
