@@ -26,7 +26,7 @@ A configuration names its sources, the chain of stages they go through, and a si
       - convert: {format: RGBA}
       - osd: {}
     sink: {type: file, path: out.mp4}   # fake | file (H.264 in .mp4, .mkv, .avi) | frames (numbered PNGs) | rtsp
-    probes: {enabled: false, clock: realtime, trace: trace.jsonl}
+    probes: {enabled: false, clock: realtime, trace: trace.jsonl, trigger: hooks}   # trigger: hooks | probes
 
 Several outputs at once (DeepStream's display + file + RTSP out): ``sinks:``, a list of the same
 entries, fed through a ``tee`` (each branch behind a queue of its own, so that a slow output
@@ -133,11 +133,16 @@ class SinkConfig:
         return f"rtsp://{self.host}:{self.port}{self.mount}"
 
 
+TRIGGERS = ("hooks", "probes")
+
+
 @dataclass(frozen=True)
 class ProbesConfig:
     enabled: bool = False
     clock: str = "realtime"
     trace: Path | None = None
+    trigger: str = "hooks"
+    """What fires the native tracepoints: the dcuscope tracer's hooks, or pad probes (docs/probes.md)."""
 
 
 @dataclass(frozen=True)
@@ -401,7 +406,7 @@ class _Parser:
 
     def probes(self, value: Any) -> ProbesConfig:
         path = ("probes",)
-        entry = self.mapping(value, path, {"enabled", "clock", "trace"})
+        entry = self.mapping(value, path, {"enabled", "clock", "trace", "trigger"})
         fields: dict[str, Any] = {}
         if "enabled" in entry:
             fields["enabled"] = self.boolean(entry["enabled"], path + ("enabled",))
@@ -411,6 +416,10 @@ class _Parser:
                 raise self.doc.error(path + ("clock",), f"unknown clock (expected one of: {', '.join(CLOCK_NAMES)})")
         if "trace" in entry:
             fields["trace"] = Path(self.text(entry["trace"], path + ("trace",)))
+        if "trigger" in entry:
+            fields["trigger"] = self.text(entry["trigger"], path + ("trigger",))
+            if fields["trigger"] not in TRIGGERS:
+                raise self.doc.error(path + ("trigger",), f"unknown trigger (expected one of: {', '.join(TRIGGERS)})")
         return ProbesConfig(**fields)
 
 

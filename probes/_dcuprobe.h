@@ -51,6 +51,8 @@ void dcu_probe_setup(DcuProbe *p, DcuRing *ring, GstPad *pad, int stage, int poi
 void dcu_probe_clear(DcuProbe *p);
 /* Record the frames buf carries (its frames meta) at p, all at ts; counts it unidentified if none. */
 void dcu_record_buffer(DcuProbe *p, GstBuffer *buf, int64_t ts);
+/* The same for frames listed in s (a frames structure: source and frame lists) that buf carries. */
+void dcu_record_frames(DcuProbe *p, const GstStructure *s, GstBuffer *buf, int64_t ts);
 /* The frames meta of buf: its structure, or NULL. */
 const GstStructure *dcu_frames_structure(GstBuffer *buf);
 /* Entry i of the meta's (source, frame) lists, n = their length. */

@@ -333,8 +333,11 @@ static int64_t ntp_capture_ns(GstBuffer *buf) {
 }
 
 void dcu_record_buffer(DcuProbe *p, GstBuffer *buf, int64_t ts) {
+  dcu_record_frames(p, dcu_frames_structure(buf), buf, ts);
+}
+
+void dcu_record_frames(DcuProbe *p, const GstStructure *s, GstBuffer *buf, int64_t ts) {
   DcuRing *ring = p->ring;
-  const GstStructure *s = dcu_frames_structure(buf);
   const GValue *sources = s ? gst_structure_id_get_value(s, source_quark) : NULL;
   const GValue *frames = s ? gst_structure_id_get_value(s, frame_quark) : NULL;
   guint n = (sources && frames) ? MIN(field_size(sources), field_size(frames)) : 0;

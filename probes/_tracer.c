@@ -26,7 +26,7 @@
  * aggregator (any GstAggregator: compositor, audiomixer...) makes new buffers: each output
  * buffer is given the frames it was made from, per sink pad the frame whose running time
  * covers the output's start (that pad's last frame starting at or before it). An element that
- * takes identified frames in and pushes buffers without identity (not an aggregator) makes
+ * takes identified frames in and pushes only buffers without identity (not an aggregator) makes
  * lineage unknowable: it is named in the trace header (lineage_unknown), never guessed.
  */
 
@@ -78,6 +78,7 @@ typedef struct {
   GType aggregator_type;
   gboolean in_process; /* made by dcu_hook_attach: traces only the pads placed on it */
   _Atomic int finished; /* dcu_tracer_finish: its trace is closed, its hooks do nothing */
+  gboolean deepstream;  /* read frames from DeepStream's NvDsBatchMeta (deepstream=1; untested) */
   gboolean pre_hooks;  /* its push/chain-pre hooks are registered */
 } GstDcuscopeTracer;
 
@@ -93,7 +94,7 @@ static GstDcuscopeTracer *live_tracer;
 
 static const char *const CLOCK_NAMES[] = {"realtime", "monotonic", "tai"};
 static const clockid_t CLOCK_IDS[] = {CLOCK_REALTIME, CLOCK_MONOTONIC, CLOCK_TAI};
-static const char *const KNOWN_PARAMS[] = {"node", "trace", "clock", "capacity", NULL};
+static const char *const KNOWN_PARAMS[] = {"node", "trace", "clock", "capacity", "deepstream", NULL};
 
 /* --- stages and pads ------------------------------------------------------------------------ */
 
@@ -208,6 +209,20 @@ static gboolean caps_named(GstCaps *caps, const char *prefix, gboolean whole) {
   return whole ? strcmp(name, prefix) == 0 : g_str_has_prefix(name, prefix);
 }
 
+/* Containers are video/... too (video/x-matroska, video/quicktime, video/mpegts): bytes, not frames. */
+static const char *const CONTAINERS[] = {"video/x-matroska", "video/quicktime", "video/mpegts", "video/x-msvideo",
+                                         "video/webm", "video/x-flv", "video/mj2", "video/x-ms-asf", NULL};
+
+static gboolean video_frames(GstCaps *caps) {
+  if (!caps_named(caps, "video/", FALSE)) return FALSE;
+  const GstStructure *s = gst_caps_get_structure(caps, 0);
+  const char *name = gst_structure_get_name(s);
+  for (int i = 0; CONTAINERS[i]; i++)
+    if (strcmp(name, CONTAINERS[i]) == 0) return FALSE;
+  gboolean system = FALSE;
+  return !(gst_structure_get_boolean(s, "systemstream", &system) && system);
+}
+
 static gboolean any_sink_caps(GstPad *pad, const char *prefix, gboolean whole) {
   gboolean found = FALSE;
   GstObject *parent = gst_pad_get_parent(pad);
@@ -216,7 +231,7 @@ static gboolean any_sink_caps(GstPad *pad, const char *prefix, gboolean whole) {
   GST_OBJECT_LOCK(element);
   for (GList *l = element->sinkpads; l; l = l->next) {
     GstCaps *in = gst_pad_get_current_caps(GST_PAD(l->data));
-    if (in && caps_named(in, prefix, whole)) found = TRUE;
+    if (in && (whole ? caps_named(in, prefix, TRUE) : video_frames(in))) found = TRUE;
     if (in) gst_caps_unref(in);
   }
   GST_OBJECT_UNLOCK(element);
@@ -232,7 +247,7 @@ static int decide_stamps(GstPad *pad, DcuStage *st) {
   GstCaps *caps = gst_pad_get_current_caps(pad);
   if (!caps) return -1;
   int stamps = 0;
-  if (caps_named(caps, "video/", FALSE)) {
+  if (video_frames(caps)) {
     if (st->source_element || !any_sink_caps(pad, "video/", FALSE)) stamps = 1;
     else if (caps_named(caps, "video/x-raw", TRUE) && !atomic_load(&st->entered) &&
              !any_sink_caps(pad, "video/x-raw", TRUE))
@@ -372,6 +387,19 @@ static gboolean aggregate_lineage(GstElement *element, GstPad *src, GstBuffer *b
 
 /* --- hooks ---------------------------------------------------------------------------------- */
 
+/* DeepStream (deepstream=1): a batch that carries NvDsBatchMeta and not our meta. Frames start
+ * where batches first appear (nvstreammux: an origin); the buffer gets our meta when it can,
+ * so that the stages after read that. */
+static gboolean deepstream_exit(DcuPadInfo *info, DcuStage *st, GstBuffer *buf, int64_t ts) {
+  GstStructure *ds = dcu_deepstream_frames(buf);
+  if (!ds) return FALSE;
+  gboolean origin = !atomic_load_explicit(&st->entered, memory_order_relaxed);
+  if (gst_buffer_is_writable(buf)) add_frames_meta(buf, gst_structure_copy(ds), ts);
+  dcu_record_frames(origin ? &info->origin : &info->probe, ds, buf, ts);
+  gst_structure_free(ds);
+  return TRUE;
+}
+
 /* The time of a hook call, read once per call (a list shares it) and only for traced pads. */
 static inline int64_t now_for(DcuPadInfo *info, int64_t *ts) {
   if (*ts == 0) *ts = dcu_clock_ns(info->probe.clock);
@@ -391,9 +419,12 @@ static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int
   if (!st) return;
   int64_t ts = now_for(info, when);
   if (G_LIKELY(dcu_frames_structure(buf) != NULL)) {
+    if (G_UNLIKELY(!atomic_load_explicit(&st->pushed_identified, memory_order_relaxed)))
+      atomic_store(&st->pushed_identified, 1);
     dcu_record_buffer(&info->probe, buf, ts);
     return;
   }
+  if (self->deepstream && deepstream_exit(info, st, buf, ts)) return;
   if (st->aggregator && atomic_load_explicit(&st->entered, memory_order_relaxed)) {
     GstObject *parent = GST_OBJECT_PARENT(pad);
     if (parent && aggregate_lineage(GST_ELEMENT(parent), pad, buf, self->pad_quark, ts)) {
@@ -401,7 +432,7 @@ static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int
       return;
     }
   }
-  if (info->stamps < 0) info->stamps = decide_stamps(pad, st);
+  if (info->stamps < 0) info->stamps = self->deepstream ? 0 : decide_stamps(pad, st);
   if (info->stamps == 1) {
     if (stamp(self, info, pad, buf, ts)) {
       dcu_record_buffer(&info->origin, buf, ts);
@@ -410,8 +441,10 @@ static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int
     atomic_fetch_add_explicit(&st->shared, 1, memory_order_relaxed);
   }
   dcu_record_buffer(&info->probe, buf, ts); /* counts it unidentified */
+  /* Frames came in, none went out with their identity: lineage stops here (a muxer's headers
+   * beside its frames, or a parser's parameter sets, do not count: frames do go out). */
   if (atomic_load_explicit(&st->entered, memory_order_relaxed) &&
-      !atomic_exchange_explicit(&st->lineage_lost, 1, memory_order_relaxed))
+      atomic_fetch_add_explicit(&st->unidentified_out, 1, memory_order_relaxed) + 1 == LINEAGE_LOST_AFTER)
     atomic_fetch_add(&self->graph.version, 1);
 }
 
@@ -427,6 +460,8 @@ static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, in
   if (!info->stage) return;
   int64_t ts = now_for(info, when);
   const GstStructure *s = dcu_frames_structure(buf);
+  GstStructure *ds = (!s && self->deepstream) ? dcu_deepstream_frames(buf) : NULL;
+  if (ds) s = ds;
   if (s) {
     if (G_UNLIKELY(!atomic_load_explicit(&info->stage->entered, memory_order_relaxed)))
       atomic_store(&info->stage->entered, 1);
@@ -437,7 +472,8 @@ static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, in
     }
     if (info->history) remember_input(info, pad, buf, s);
   }
-  dcu_record_buffer(&info->probe, buf, ts);
+  dcu_record_frames(&info->probe, s, buf, ts);
+  if (ds) gst_structure_free(ds);
 }
 
 static void on_push_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuffer *buf) {
@@ -523,7 +559,8 @@ static gboolean warn_unknown(GQuark field, const GValue *value, gpointer data) {
   const char *name = g_quark_to_string(field);
   for (int i = 0; KNOWN_PARAMS[i]; i++)
     if (strcmp(name, KNOWN_PARAMS[i]) == 0) return TRUE;
-  g_printerr("dcuscope tracer: unknown parameter '%s' ignored (known: node, trace, clock, capacity)\n", name);
+  g_printerr("dcuscope tracer: unknown parameter '%s' ignored (known: node, trace, clock, capacity, deepstream)\n",
+             name);
   return TRUE;
 }
 
@@ -598,6 +635,9 @@ static void gst_dcuscope_tracer_constructed(GObject *object) {
     else g_printerr("dcuscope tracer: capacity '%s' is not a number of events >= 1024; using %d\n", cap_text, DEFAULT_CAPACITY);
     g_free(cap_text);
   }
+  char *deepstream = param_string(params, "deepstream");
+  self->deepstream = deepstream && (strcmp(deepstream, "1") == 0 || g_ascii_strcasecmp(deepstream, "true") == 0);
+  g_free(deepstream);
   if (params) gst_structure_free(params);
 
   self->clock = CLOCK_IDS[which];

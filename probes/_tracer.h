@@ -6,6 +6,7 @@
 #include "_dcuprobe.h"
 
 #define MAX_SOURCES 1024
+#define LINEAGE_LOST_AFTER 4 /* buffers without identity a stage pushed, none with, after frames entered */
 
 /* A stage: one non-bin element that frames with an identity passed. */
 typedef struct {
@@ -16,7 +17,8 @@ typedef struct {
   gboolean aggregator;
   gboolean source_element; /* no sink pads: frames start here */
   _Atomic int entered;      /* identified frames have entered it */
-  _Atomic int lineage_lost; /* ...and it pushed buffers without identity: lineage stops here */
+  _Atomic int pushed_identified; /* it pushed buffers with identity */
+  _Atomic uint64_t unidentified_out; /* buffers without identity it pushed after frames entered */
   _Atomic uint64_t shared;  /* frames it could not give an identity: their buffers were shared */
   _Atomic int keep_history; /* it posted QoS: remember recent inputs, to name the frames it drops */
   _Atomic uint64_t qos_unnamed; /* QoS drops whose frames were not (yet) remembered */
@@ -37,6 +39,9 @@ typedef struct {
 
 /* The element downstream of a src pad, through ghost and proxy pads (a reference), or NULL. */
 GstElement *dcu_downstream_element(GstPad *src);
+
+/* DeepStream (_deepstream.c): the frames of buf's NvDsBatchMeta as a frames structure, or NULL. */
+GstStructure *dcu_deepstream_frames(GstBuffer *buf);
 
 typedef struct DcuWriter DcuWriter;
 

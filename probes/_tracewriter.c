@@ -148,7 +148,8 @@ static GString *header_json(DcuWriter *w, const guint8 *edges) {
   first = TRUE;
   for (int i = 0; i < w->n_out; i++) {
     DcuStage *st = g->stages[w->internal_of[i]];
-    if (!atomic_load(&st->lineage_lost)) continue;
+    if (!(atomic_load(&st->entered) && !atomic_load(&st->pushed_identified) && atomic_load(&st->unidentified_out) >= LINEAGE_LOST_AFTER))
+      continue;
     if (!first) g_string_append_c(h, ',');
     json_string(h, st->name);
     first = FALSE;

@@ -135,7 +135,8 @@ def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None
             raise UsageError("--clock-offset-ms and --clock-drift-ppm are not for launch: pipelines")
         return _start_tracer(config, relay, token, progress)
     sources = {s.index: s.config.description for s in built.sources}
-    tracer = attach(built.pipeline, config.node, clock=config.probes.clock, sources=sources)
+    tracer = attach(built.pipeline, config.node, clock=config.probes.clock, sources=sources,
+                    trigger=config.probes.trigger)
     trace = config.probes.trace
     if trace is None and relay is None:
         trace = default_trace_path(config.node)

@@ -29,7 +29,7 @@ from probes.events import EVENT_DTYPE
 from probes.ring import RingStats
 
 HERE = Path(__file__).resolve().parent
-SOURCES = [HERE / name for name in ("_fastprobe.c", "_tracer.c", "_tracewriter.c", "_plugin.c")]
+SOURCES = [HERE / name for name in ("_fastprobe.c", "_tracer.c", "_tracewriter.c", "_deepstream.c", "_plugin.c")]
 HEADERS = [HERE / name for name in ("_dcuprobe.h", "_tracer.h")]
 BUILD_DIR = HERE / "_build"
 LIBRARY = BUILD_DIR / "libgstdcuscope.so"

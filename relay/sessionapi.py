@@ -80,6 +80,7 @@ class StoredNode:
         first, last = self.correction.correct(t.origin[self.order]), self.correction.correct(ch.end[self.order])
         return {"node": self.node, "run": self.run, "stages": self.header.stages, "kinds": self.header.kinds,
                 "sources": {str(k): v for k, v in self.header.sources.items()}, "frames": n, "events": self.events,
+                "links": self.header.links, "lineage_unknown": self.header.lineage_unknown,
                 "first_ns": int(first.min()) if n else None,
                 "last_ns": int(last.max()) if n else None,
                 "dropped": self.dropped, "lost": self.lost, "clock": self.clock, "ended": self.ended}

@@ -352,6 +352,7 @@ class RelayState:
         return {
             "node": rs.node, "run": rs.run, "session": rs.session, "connected": rs.sid is not None,
             "ended": rs.ended, "stages": rs.header.stages, "kinds": rs.header.kinds, "sources": {str(k): v for k, v in rs.header.sources.items()},
+            "links": rs.header.links, "lineage_unknown": rs.header.lineage_unknown,
             "clock": self.clock_view(rs), "ptp": rs.ptp,
             "events": live.events, "duplicates": rs.duplicates, "written": rs.written,
             "dropped": rs.dropped, "lost": rs.lost, "drops": rs.dropped + rs.lost,

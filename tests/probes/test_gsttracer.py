@@ -257,6 +257,66 @@ def test_a_file_s_frames_start_at_the_demuxer_and_the_trace_exports(plugin_dir, 
     assert json.loads(out.read_text())["traceEvents"]
 
 
+def test_deepstream_batch_metadata_gives_the_frames_when_asked(plugin_dir, tmp_path):
+    """deepstream=1: batches carrying metadata laid out as DeepStream's NvDsBatchMeta (a fake:
+    no NVIDIA software here, see tests/probes/data/fake_nvds.c) are traced per camera frame,
+    from where batches appear (nvstreammux's place: an origin) to the sink; without the
+    parameter the tracer leaves such metas alone."""
+    app = tmp_path / "fake_nvds"
+    flags = subprocess.run(["pkg-config", "--cflags", "--libs", "gstreamer-app-1.0"], capture_output=True, text=True,
+                           check=True).stdout.split()
+    subprocess.run(["cc", "-O2", "-o", str(app), str(APP_SOURCE.parent / "fake_nvds.c"), *flags], check=True)
+    for on in (True, False):
+        trace = tmp_path / f"ds-{on}.jsonl"
+        params = f"node=DS,trace={trace}" + (",deepstream=1" if on else "")
+        result = subprocess.run([str(app), "20"], env=tracer_env(plugin_dir, params), capture_output=True, text=True,
+                                timeout=60)
+        assert result.returncode == 0, result.stderr
+        if not on:
+            assert "lists no stages" in run_cli("stats", trace).stderr
+            continue
+        t = read_trace(trace)
+        assert t.header.stages == ["mux", "infer", "sink"]
+        expected = {(camera, k) for camera in (3, 7) for k in range(20)}
+        assert frames_of(stage_points(t, "mux", ORIGIN)) == expected == frames_of(stage_points(t, "sink", ENTER))
+        node = stats(t)
+        assert node["frames"] == {"complete": 40, "incomplete": 0}
+        assert node["stages"]["infer"]["service"]["p50_ms"] >= 1.0
+
+
+def frames_of(events) -> set[tuple[int, int]]:
+    return set(zip(events["source"].tolist(), events["frame"].tolist()))
+
+
+PYTHON_APP = """
+import sys
+import gi
+gi.require_version("Gst", "1.0")
+from gi.repository import Gst
+Gst.init(None)
+pipe = Gst.parse_launch(sys.argv[1])
+pipe.set_state(Gst.State.PLAYING)
+msg = pipe.get_bus().timed_pop_filtered(60 * Gst.SECOND, Gst.MessageType.EOS | Gst.MessageType.ERROR)
+pipe.set_state(Gst.State.NULL)
+sys.exit(0 if msg and msg.type == Gst.MessageType.EOS else 1)
+"""
+
+
+def test_a_python_app_is_traced_the_same_way(plugin_dir, tmp_path):
+    """Debian's python3 with PyGObject, nothing of dcuscope imported: the same two variables."""
+    app = tmp_path / "app.py"
+    app.write_text(PYTHON_APP)
+    trace = tmp_path / "py.trace.jsonl"
+    result = subprocess.run(["/usr/bin/python3", str(app), f"videotestsrc num-buffers=30 ! {RAW} ! videoconvert ! "
+                             "identity name=work sleep-time=1000 ! fakesink"], cwd=tmp_path,
+                            env=tracer_env(plugin_dir, f"node=PY,trace={trace}"), capture_output=True, text=True,
+                            timeout=60)
+    assert result.returncode == 0, result.stderr
+    node = stats(read_trace(trace))
+    assert node["frames"] == {"complete": 30, "incomplete": 0}
+    assert node["stages"]["work"]["service"]["p50_ms"] >= 1.0
+
+
 def test_the_tracer_in_its_process_has_no_python(probed_app):
     """The plugin links GStreamer and GLib only."""
     lib = build()

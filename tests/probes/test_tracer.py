@@ -347,3 +347,17 @@ def test_hooks_and_pad_probes_write_the_same_records():
 
     assert records(runs["hooks"][1]) == records(runs["probes"][1])
     assert len(runs["hooks"][1]) == len(runs["probes"][1]) >= 20 * len(MAIN_PATH)
+
+
+def test_a_config_can_ask_for_pad_probes(tmp_path):
+    """probes.trigger: probes in the YAML: the same run through pad probes, said in the summary."""
+    from tests.conftest import run_cli
+
+    config = tmp_path / "p.yaml"
+    config.write_text("sources:\n  - test: ball\nstages:\n  - queue: {}\nprobes: {trigger: probes}\n")
+    result = run_cli("run", config, "--probes", "--trace", tmp_path / "t.jsonl", "--num-frames", "20")
+    assert result.returncode == 0, result.stderr
+    assert "(native, probes)" in result.stderr
+    from probes.tracefile import read_trace
+
+    assert read_trace(tmp_path / "t.jsonl").header.versions["trigger"] == "probes"

@@ -64,9 +64,10 @@ def test_a_foreign_pipeline_is_live_next_to_a_dcuscope_node(both):
     d = wait_for(bars, 90, 0.5, "stage bars of the foreign app and of DCU-1")
     rows = {r["node"] for r in d["stage"]["rows"] if r["source"] is None}
     assert {FOREIGN, "DCU-1"} <= rows
-    nodes = {n["node"]: n for n in get_json(f"{relay.url}/api/nodes")}
+    nodes = wait_for(lambda: (n := {n["node"]: n for n in get_json(f"{relay.url}/api/nodes")})
+                     and n[FOREIGN]["clock"]["applied"] == "estimate" and n, 30, 0.5, "the foreign app's clock estimate")
     assert nodes[FOREIGN]["stages"] == STAGES
-    assert nodes[FOREIGN]["kinds"]["sleepy"] == "identity" and nodes[FOREIGN]["clock"]["applied"] == "estimate"
+    assert nodes[FOREIGN]["kinds"]["sleepy"] == "identity" and nodes[FOREIGN]["lineage_unknown"] == []
     page.wait_for_selector(f'#nodes-body tr[data-node="{FOREIGN}"]', timeout=10_000)
 
     # The app ends (450 frames at 30/s); ship follows the trace to its end line and exits.
@@ -93,3 +94,31 @@ def test_a_foreign_pipeline_is_live_next_to_a_dcuscope_node(both):
     assert result.returncode == 0, result.stderr
     slices = {(e.get("name"), e.get("cat")) for e in json.loads(out_file.read_text())["traceEvents"]}
     assert {("service", "sleepy"), ("service", "enc"), ("wait", "qa")} <= slices
+
+
+def test_the_page_says_where_frame_lineage_stops(browser, tmp_path):
+    """gdppay serialises frames into new buffers without their metadata: the trace names it
+    (lineage_unknown) and the page marks its row; gdpdepay's pictures are a new source."""
+    relay = RelayThread(tmp_path / "relay.db")
+    trace = tmp_path / "gdp.trace.jsonl"
+    genv = {k: v for k, v in os.environ.items() if not k.startswith("GST_")}
+    genv.update(GST_PLUGIN_PATH=str(build().parent), GST_TRACERS=f"dcuscope(node=GDP,trace={trace})")
+    app = subprocess.run(["gst-launch-1.0", "-q", "videotestsrc", "num-buffers=60", "!",
+                          "video/x-raw,width=160,height=120", "!", "gdppay", "!", "gdpdepay", "!", "videoconvert", "!",
+                          "fakesink"], env=genv, capture_output=True, text=True, timeout=60)
+    page = browser.new_page(viewport={"width": 1400, "height": 1100})
+    try:
+        assert app.returncode == 0, app.stderr
+        ship = subprocess.run([sys.executable, "-m", "dcuscope.cli", "ship", str(trace), "--relay", relay.url,
+                               "--settle", "0"], cwd=ROOT, env=env(), capture_output=True, text=True, timeout=60)
+        assert ship.returncode == 0, ship.stderr
+        node = next(n for n in get_json(f"{relay.url}/api/nodes") if n["node"] == "GDP")
+        assert node["lineage_unknown"] == ["gdppay0"] and node["sources"] == {"0": "videotestsrc0", "1": "gdpdepay0"}
+        page.goto(relay.url + "/")
+        badge = page.locator('.stats-node[data-node="GDP"] tr[data-stage="gdppay0"] .badge.lineage')
+        badge.wait_for(timeout=30_000)
+        assert badge.inner_text() == "lineage stops" and "cannot be followed" in badge.get_attribute("title")
+        assert page.locator('.stats-node[data-node="GDP"] .badge.lineage').count() == 1
+    finally:
+        page.close()
+        relay.stop()

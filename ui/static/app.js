@@ -499,10 +499,12 @@ function updateLegend() {
 }
 
 function renderPanels() {
-  const entries = current.sorted().filter((s) => current.stats.has(s.node)).map((s) => [s.node, current.stats.get(s.node), s.stages]);
+  const lineage = (node) => current.nodes.get(node)?.lineage_unknown ?? [];
+  const entries = current.sorted().filter((s) => current.stats.has(s.node))
+    .map((s) => [s.node, current.stats.get(s.node), s.stages, lineage(s.node)]);
   // Stats of nodes with no frames yet still show (their stages from the nodes list).
   for (const [node, stats] of current.stats) {
-    if (!current.stores.has(node)) entries.push([node, stats, current.nodes.get(node)?.stages ?? []]);
+    if (!current.stores.has(node)) entries.push([node, stats, current.nodes.get(node)?.stages ?? [], lineage(node)]);
   }
   setHtml($("#stats-body"), statsHtml(entries, colours, view.windowed && current.kind === "live", view.openGaps));
   const nodes = [...current.nodes.values()].sort((a, b) => (a.node < b.node ? -1 : 1));

@@ -35,14 +35,19 @@ function hasSplit(stages) {
   return Object.values(stages).some((s) => s.service || (s.utilization !== null && s.utilization !== undefined));
 }
 
-function stageRow(name, s, colours, marked, split) {
+const LINEAGE_TITLE = "frames enter this stage but its output carries no frame identity "
+  + "(it makes new buffers without their metadata): frames cannot be followed past it";
+
+function stageRow(name, s, colours, marked, split, lineageStops) {
   const util = s.utilization === null || s.utilization === undefined ? "–" : pct(s.utilization);
   const extra = split
     ? `<td class="service">${ms(s.service?.mean_ms)}</td><td>${ms(s.service?.p99_ms)}</td>`
       + `<td class="wait">${ms(s.wait?.mean_ms)}</td><td class="utilization">${util}</td>` : "";
   return `<tr data-stage="${esc(name)}"${marked ? ' class="bottleneck"' : ""}>`
     + `<td><span class="swatch" style="background:${colours.get(name)}"></span>${esc(name)}`
-    + `${marked ? ' <span class="badge">bottleneck</span>' : ""}</td>${summaryCells(s)}${extra}<td>${pct(s.share)}</td></tr>`;
+    + `${marked ? ' <span class="badge">bottleneck</span>' : ""}`
+    + `${lineageStops ? ` <span class="badge lineage" title="${LINEAGE_TITLE}">lineage stops</span>` : ""}`
+    + `</td>${summaryCells(s)}${extra}<td>${pct(s.share)}</td></tr>`;
 }
 
 const SPLIT_HEAD = `<th title="the stage's own work on the frame or its batch">service mean</th><th>service p99</th>`
@@ -67,16 +72,19 @@ function sourcesHtml(sources) {
  * end-to-end row, gaps, sources, fps, drops; every figure as the relay computed it.
  * `windowed`: show the relay's rolling window (``stats.window``) instead of the whole run;
  * `openGaps`: nodes whose gaps table the user opened (kept open across refreshes).
+ * An entry's fourth item: the stages where frame lineage stops (the trace's lineage_unknown).
  */
 export function statsHtml(entries, colours, windowed, openGaps = new Set()) {
   if (!entries.length) return `<p class="muted">No statistics yet.</p>`;
-  return entries.map(([node, full, order]) => {
+  return entries.map(([node, full, order, lineage = []]) => {
     const st = windowed && full.window ? full.window : full;
     const { stage: marked, reason } = verdict(st.bottleneck);
     const stages = st.stages ?? {};
     const split = hasSplit(stages);
     const names = Object.keys(stages).sort((a, b) => order.indexOf(a) - order.indexOf(b));
-    const rows = names.map((name) => stageRow(name, stages[name], colours, marked === name, split)).join("");
+    for (const name of lineage) if (!(name in stages)) names.push(name);  // it may have no complete frame at all
+    const rows = names.map((name) => stageRow(name, stages[name] ?? {}, colours, marked === name, split,
+      lineage.includes(name))).join("");
     const gaps = Object.entries(st.gaps ?? {}).map(([name, s]) => `<tr><td>${esc(name)}</td>${summaryCells(s)}<td></td></tr>`).join("");
     const sources = sourcesHtml(st.sources);
     const fps = Object.entries(st.fps ?? {}).map(([src, v]) => `source ${esc(src)}: ${Number(v).toFixed(1)}`).join(" · ") || "–";
