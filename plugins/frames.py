@@ -116,6 +116,8 @@ def read_frames(buf: Gst.Buffer) -> list[FrameId]:
         return []
     s = meta.reference.get_structure(0)
     sources, frames, origins = s.get_value("source"), s.get_value("frame"), s.get_value("origin")
+    if isinstance(sources, int):  # one frame as plain fields (the dcuscope GStreamer tracer writes so)
+        sources, frames, origins = [sources], [frames], [origins or 0]
     return [FrameId(int(a), int(b), int(c)) for a, b, c in zip(sources, frames, origins)]
 
 

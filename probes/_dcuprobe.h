@@ -58,6 +58,11 @@ const GstStructure *dcu_frames_structure(GstBuffer *buf);
 /* Entry i of the meta's (source, frame) lists, n = their length. */
 guint dcu_frames_count(const GstStructure *s);
 void dcu_frames_get(const GstStructure *s, guint i, int64_t *source, int64_t *frame);
+/* The origin (ns) of entry i, 0 when the meta has none. */
+int64_t dcu_frames_origin(const GstStructure *s, guint i);
+/* A frames structure as plugins/frames.py writes and reads it: lists source (int), frame and
+ * origin (guint64), n entries; plain fields when n is 1. */
+GstStructure *dcu_frames_new(guint n, const int64_t *sources, const int64_t *frames, const int64_t *origins);
 /* A pad's last push returned now: the thread that pushes on it is free (service/wait). */
 void dcu_note_push_returned(GstPad *pad);
 /* A sink pad whose element has no chain-list function: GStreamer splits lists it receives and

@@ -17,6 +17,7 @@
 
 #define NVDS_GST_CUSTOM_META 4096
 #define NVDS_BATCH_GST_META (NVDS_GST_CUSTOM_META + 1)
+#define MAX_BATCH 1024
 
 typedef struct {
   GstMeta meta;
@@ -55,8 +56,8 @@ _Static_assert(G_STRUCT_OFFSET(DsBatchMeta, frame_meta_list) == 96, "NvDsBatchMe
 _Static_assert(G_STRUCT_OFFSET(DsFrameMeta, frame_num) == 48, "NvDsFrameMeta.frame_num at 48 (LP64)");
 _Static_assert(G_STRUCT_OFFSET(DsFrameMeta, source_id) == 72, "NvDsFrameMeta.source_id at 72 (LP64)");
 
-/* The frames of buf's NvDsBatchMeta as a frames structure (source, frame lists), or NULL. */
-GstStructure *dcu_deepstream_frames(GstBuffer *buf) {
+/* The frames of buf's NvDsBatchMeta as a frames structure (origin `now`), or NULL. */
+GstStructure *dcu_deepstream_frames(GstBuffer *buf, int64_t now) {
   static GType api = 0;
   if (G_UNLIKELY(!api)) {
     api = g_type_from_name("NvDsMetaAPI"); /* registered once DeepStream's meta library is loaded */
@@ -68,30 +69,15 @@ GstStructure *dcu_deepstream_frames(GstBuffer *buf) {
     DsMeta *ds = (DsMeta *)meta;
     if (ds->meta_type != NVDS_BATCH_GST_META || !ds->meta_data) continue;
     DsBatchMeta *batch = ds->meta_data;
-    GValue sources = G_VALUE_INIT, frames = G_VALUE_INIT, item = G_VALUE_INIT;
-    g_value_init(&sources, GST_TYPE_ARRAY);
-    g_value_init(&frames, GST_TYPE_ARRAY);
+    int64_t sources[MAX_BATCH], frames[MAX_BATCH], origins[MAX_BATCH];
     guint n = 0;
-    for (GList *l = batch->frame_meta_list; l && n < 1024; l = l->next, n++) {
+    for (GList *l = batch->frame_meta_list; l && n < MAX_BATCH; l = l->next, n++) {
       DsFrameMeta *frame = l->data;
-      g_value_init(&item, G_TYPE_INT);
-      g_value_set_int(&item, (int)frame->source_id);
-      gst_value_array_append_value(&sources, &item);
-      g_value_unset(&item);
-      g_value_init(&item, G_TYPE_UINT64);
-      g_value_set_uint64(&item, (guint64)(frame->frame_num < 0 ? 0 : frame->frame_num));
-      gst_value_array_append_value(&frames, &item);
-      g_value_unset(&item);
+      sources[n] = frame->source_id;
+      frames[n] = frame->frame_num < 0 ? 0 : frame->frame_num;
+      origins[n] = now;
     }
-    if (n == 0) {
-      g_value_unset(&sources);
-      g_value_unset(&frames);
-      return NULL;
-    }
-    GstStructure *s = gst_structure_new_empty(FRAMES_MEDIA_TYPE);
-    gst_structure_take_value(s, "source", &sources);
-    gst_structure_take_value(s, "frame", &frames);
-    return s;
+    return n ? dcu_frames_new(n, sources, frames, origins) : NULL;
   }
   return NULL;
 }

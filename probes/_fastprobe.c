@@ -94,7 +94,7 @@ struct DcuPadState {
 
 /* Interned once: comparing quarks is an integer compare, where matching the caps with
  * gst_caps_is_subset for every buffer would walk structures. */
-static GQuark frames_quark, source_quark, frame_quark, ntp_quark, pad_state_quark;
+static GQuark frames_quark, source_quark, frame_quark, origin_quark, ntp_quark, pad_state_quark;
 /* What a sink pad does with a buffer list when its element has no chain-list function: it
  * splits the list and chains (and probes) each buffer again. */
 static GstPadChainListFunction default_chain_list;
@@ -105,6 +105,7 @@ static void init_once(void) {
     frames_quark = g_quark_from_static_string(FRAMES_MEDIA_TYPE);
     source_quark = g_quark_from_static_string("source");
     frame_quark = g_quark_from_static_string("frame");
+    origin_quark = g_quark_from_static_string("origin");
     ntp_quark = g_quark_from_static_string(NTP_MEDIA_TYPE);
     pad_state_quark = g_quark_from_static_string("dcuscope-pad-state");
     GstPad *dummy = gst_pad_new("dcu-probe-dummy", GST_PAD_SINK);
@@ -257,6 +258,41 @@ void dcu_frames_get(const GstStructure *s, guint i, int64_t *source, int64_t *fr
   *source = *frame = -1;
   value_to_i64(field_item(gst_structure_id_get_value(s, source_quark), i), source);
   value_to_i64(field_item(gst_structure_id_get_value(s, frame_quark), i), frame);
+}
+
+int64_t dcu_frames_origin(const GstStructure *s, guint i) {
+  const GValue *origins = gst_structure_id_get_value(s, origin_quark);
+  int64_t origin = 0;
+  if (origins && i < field_size(origins)) value_to_i64(field_item(origins, i), &origin);
+  return origin;
+}
+
+static void append_item(GValue *array, GType type, int64_t v) {
+  GValue item = G_VALUE_INIT;
+  g_value_init(&item, type);
+  if (type == G_TYPE_INT) g_value_set_int(&item, (int)v);
+  else g_value_set_uint64(&item, (guint64)v);
+  gst_value_array_append_value(array, &item);
+  g_value_unset(&item);
+}
+
+GstStructure *dcu_frames_new(guint n, const int64_t *sources, const int64_t *frames, const int64_t *origins) {
+  if (n == 1) /* one frame (a source's): plain fields, no lists to allocate */
+    return gst_structure_new_id(frames_quark, source_quark, G_TYPE_INT, (int)sources[0], frame_quark, G_TYPE_UINT64,
+                                (guint64)frames[0], origin_quark, G_TYPE_UINT64,
+                                (guint64)(origins[0] > 0 ? origins[0] : 0), NULL);
+  GValue lists[3] = {G_VALUE_INIT, G_VALUE_INIT, G_VALUE_INIT};
+  for (int k = 0; k < 3; k++) g_value_init(&lists[k], GST_TYPE_ARRAY);
+  for (guint i = 0; i < n; i++) {
+    append_item(&lists[0], G_TYPE_INT, sources[i]);
+    append_item(&lists[1], G_TYPE_UINT64, frames[i]);
+    append_item(&lists[2], G_TYPE_UINT64, origins[i] > 0 ? origins[i] : 0);
+  }
+  GstStructure *s = gst_structure_new_id_empty(frames_quark);
+  gst_structure_id_take_value(s, source_quark, &lists[0]);
+  gst_structure_id_take_value(s, frame_quark, &lists[1]);
+  gst_structure_id_take_value(s, origin_quark, &lists[2]);
+  return s;
 }
 
 static inline uint64_t frame_key(int64_t source, int64_t frame) {

@@ -47,6 +47,7 @@ typedef struct {
   guint n;
   int64_t source[AGG_MAX_FRAMES];
   int64_t frame[AGG_MAX_FRAMES];
+  int64_t origin[AGG_MAX_FRAMES];
 } DcuAggEntry;
 
 /* The recent identified buffers of one aggregator sink pad (written on the pad's streaming
@@ -302,8 +303,8 @@ static void add_frames_meta(GstBuffer *buf, GstStructure *s, int64_t ts) {
 static gboolean stamp(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t ts) {
   if (!gst_buffer_is_writable(buf) || source_of(self, info, pad) < 0) return FALSE;
   int64_t frame = atomic_fetch_add_explicit(&info->next_frame, 1, memory_order_relaxed);
-  add_frames_meta(buf, gst_structure_new(FRAMES_MEDIA_TYPE, "source", G_TYPE_INT, info->source, "frame",
-                                         G_TYPE_UINT64, (guint64)frame, NULL), ts);
+  int64_t source = info->source;
+  add_frames_meta(buf, dcu_frames_new(1, &source, &frame, &ts), ts);
   return TRUE;
 }
 
@@ -330,17 +331,11 @@ static void remember_input(DcuPadInfo *info, GstPad *pad, GstBuffer *buf, const 
   DcuAggEntry *e = &h->entries[h->written++ % AGG_HISTORY];
   e->start = start;
   e->n = MIN(dcu_frames_count(s), AGG_MAX_FRAMES);
-  for (guint i = 0; i < e->n; i++) dcu_frames_get(s, i, &e->source[i], &e->frame[i]);
+  for (guint i = 0; i < e->n; i++) {
+    dcu_frames_get(s, i, &e->source[i], &e->frame[i]);
+    e->origin[i] = dcu_frames_origin(s, i);
+  }
   g_mutex_unlock(&h->lock);
-}
-
-static void append_int(GValue *array, GType type, int64_t v) {
-  GValue item = G_VALUE_INIT;
-  g_value_init(&item, type);
-  if (type == G_TYPE_INT) g_value_set_int(&item, (int)v);
-  else g_value_set_uint64(&item, (guint64)v);
-  gst_value_array_append_value(array, &item);
-  g_value_unset(&item);
 }
 
 /* Give an aggregator's output buffer the frames it was made from: per sink pad, the last
@@ -348,10 +343,8 @@ static void append_int(GValue *array, GType type, int64_t v) {
 static gboolean aggregate_lineage(GstElement *element, GstPad *src, GstBuffer *buf, GQuark pad_quark, int64_t ts) {
   if (!gst_buffer_is_writable(buf)) return FALSE;
   int64_t out = running_time(src, GST_BUFFER_PTS(buf));
-  GValue sources = G_VALUE_INIT, frames = G_VALUE_INIT;
-  g_value_init(&sources, GST_TYPE_ARRAY);
-  g_value_init(&frames, GST_TYPE_ARRAY);
-  guint total = 0;
+  GArray *sources = g_array_new(FALSE, FALSE, sizeof(int64_t)), *frames = g_array_new(FALSE, FALSE, sizeof(int64_t)),
+         *origins = g_array_new(FALSE, FALSE, sizeof(int64_t));
   GST_OBJECT_LOCK(element);
   for (GList *l = element->sinkpads; l; l = l->next) {
     DcuPadInfo *info = g_object_get_qdata(G_OBJECT(l->data), pad_quark);
@@ -365,23 +358,21 @@ static gboolean aggregate_lineage(GstElement *element, GstPad *src, GstBuffer *b
       if (out == FROM_UNKNOWN || e->start == FROM_UNKNOWN) best = e; /* no times: the latest */
       else if (e->start <= out && (!best || e->start >= best->start)) best = e;
     }
-    for (guint i = 0; best && i < best->n; i++) {
-      append_int(&sources, G_TYPE_INT, best->source[i]);
-      append_int(&frames, G_TYPE_UINT64, best->frame[i]);
-      total++;
+    if (best) {
+      g_array_append_vals(sources, best->source, best->n);
+      g_array_append_vals(frames, best->frame, best->n);
+      g_array_append_vals(origins, best->origin, best->n);
     }
     g_mutex_unlock(&h->lock);
   }
   GST_OBJECT_UNLOCK(element);
-  if (total > 0) {
-    GstStructure *s = gst_structure_new_empty(FRAMES_MEDIA_TYPE);
-    gst_structure_take_value(s, "source", &sources);
-    gst_structure_take_value(s, "frame", &frames);
-    add_frames_meta(buf, s, ts);
-  } else {
-    g_value_unset(&sources);
-    g_value_unset(&frames);
-  }
+  guint total = sources->len;
+  if (total > 0)
+    add_frames_meta(buf, dcu_frames_new(total, (int64_t *)sources->data, (int64_t *)frames->data,
+                                        (int64_t *)origins->data), ts);
+  g_array_free(sources, TRUE);
+  g_array_free(frames, TRUE);
+  g_array_free(origins, TRUE);
   return total > 0;
 }
 
@@ -391,7 +382,7 @@ static gboolean aggregate_lineage(GstElement *element, GstPad *src, GstBuffer *b
  * where batches first appear (nvstreammux: an origin); the buffer gets our meta when it can,
  * so that the stages after read that. */
 static gboolean deepstream_exit(DcuPadInfo *info, DcuStage *st, GstBuffer *buf, int64_t ts) {
-  GstStructure *ds = dcu_deepstream_frames(buf);
+  GstStructure *ds = dcu_deepstream_frames(buf, ts);
   if (!ds) return FALSE;
   gboolean origin = !atomic_load_explicit(&st->entered, memory_order_relaxed);
   if (gst_buffer_is_writable(buf)) add_frames_meta(buf, gst_structure_copy(ds), ts);
@@ -460,7 +451,7 @@ static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, in
   if (!info->stage) return;
   int64_t ts = now_for(info, when);
   const GstStructure *s = dcu_frames_structure(buf);
-  GstStructure *ds = (!s && self->deepstream) ? dcu_deepstream_frames(buf) : NULL;
+  GstStructure *ds = (!s && self->deepstream) ? dcu_deepstream_frames(buf, ts) : NULL;
   if (ds) s = ds;
   if (s) {
     if (G_UNLIKELY(!atomic_load_explicit(&info->stage->entered, memory_order_relaxed)))
@@ -508,14 +499,36 @@ static void on_chain_list_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuff
  * frames of its sink pads' remembered input with that running time get a drop event (reason
  * qos). An element's first QoS message only starts the remembering: those drops are counted,
  * and said at exit, not named. */
+/* dcuscope's own mux posts a "dcuscope-drop" element message per frame it drops (late, or
+ * still queued when a live run stops): in any application, those are drop events too. */
+static const char *const DROP_REASONS[] = {"unknown", "late", "qos", "queue full", "error", "stopped", NULL};
+
+static void element_drop(GstDcuscopeTracer *self, DcuStage *st, const GstStructure *s) {
+  int source = -1, code = 0;
+  guint64 frame = 0;
+  const char *reason = gst_structure_get_string(s, "reason");
+  if (!gst_structure_get_int(s, "source", &source) || !gst_structure_get_uint64(s, "frame", &frame) || source < 0)
+    return;
+  for (int i = 0; reason && DROP_REASONS[i]; i++)
+    if (strcmp(reason, DROP_REASONS[i]) == 0) code = i;
+  DcuEvent drop = {dcu_clock_ns(self->clock), (int64_t)frame, source, (int16_t)st->index, P_DROP, (int8_t)code};
+  dcu_push(self->ring, &drop, 1);
+}
+
 static void on_message(GObject *obj, GstClockTime t, GstElement *element, GstMessage *message) {
   (void)t;
   GstDcuscopeTracer *self = (GstDcuscopeTracer *)obj;
-  if (GST_MESSAGE_TYPE(message) != GST_MESSAGE_QOS || self->in_process ||
+  GstMessageType type = GST_MESSAGE_TYPE(message);
+  if ((type != GST_MESSAGE_QOS && type != GST_MESSAGE_ELEMENT) || self->in_process ||
       atomic_load_explicit(&self->finished, memory_order_relaxed))
     return;
   DcuStage *st = g_object_get_qdata(G_OBJECT(element), self->stage_quark);
   if (!st) return;
+  if (type == GST_MESSAGE_ELEMENT) {
+    const GstStructure *s = gst_message_get_structure(message);
+    if (s && gst_structure_has_name(s, "dcuscope-drop")) element_drop(self, st, s);
+    return;
+  }
   atomic_store(&st->keep_history, 1);
   gboolean live;
   guint64 running, stream, timestamp, duration;

@@ -40,8 +40,9 @@ typedef struct {
 /* The element downstream of a src pad, through ghost and proxy pads (a reference), or NULL. */
 GstElement *dcu_downstream_element(GstPad *src);
 
-/* DeepStream (_deepstream.c): the frames of buf's NvDsBatchMeta as a frames structure, or NULL. */
-GstStructure *dcu_deepstream_frames(GstBuffer *buf);
+/* DeepStream (_deepstream.c): the frames of buf's NvDsBatchMeta as a frames structure (origin
+ * `now` for all), or NULL. */
+GstStructure *dcu_deepstream_frames(GstBuffer *buf, int64_t now);
 
 typedef struct DcuWriter DcuWriter;
 

@@ -20,7 +20,7 @@ from probes.events import ENTER, EXIT, ORIGIN
 from probes.frametable import MISSING, frame_table
 from probes.native import build
 from probes.tracefile import read_trace
-from tests.conftest import run_cli
+from tests.conftest import REPO, run_cli
 
 APP_SOURCE = Path(__file__).parent / "data" / "probed_app.c"
 RAW = "video/x-raw,width=320,height=240,framerate=30/1"
@@ -286,6 +286,28 @@ def test_deepstream_batch_metadata_gives_the_frames_when_asked(plugin_dir, tmp_p
 
 def frames_of(events) -> set[tuple[int, int]]:
     return set(zip(events["source"].tolist(), events["frame"].tolist()))
+
+
+def test_dcuscope_s_own_elements_in_gst_launch_carry_the_tracer_s_frames(plugin_dir, tmp_path):
+    """The five elements through the Python plugin loader, traced by the tracer: the frames it
+    stamps at the source are the ones the mux batches (its meta is the framestamp meta), and
+    each is followed to the sink."""
+    import sysconfig
+
+    env = tracer_env(plugin_dir, f"node=FIVE,trace={tmp_path / 'five.jsonl'}")
+    env["GST_PLUGIN_PATH"] = os.pathsep.join([str(REPO / "plugins" / "loader"), str(plugin_dir)])
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), sysconfig.get_paths()["purelib"]])
+    env["GST_REGISTRY"] = str(tmp_path / "registry.bin")
+    line = ("videotestsrc num-buffers=6 ! video/x-raw,format=RGB,width=320,height=240 ! "
+            "mux name=m batch-size=1 width=320 height=240 ! infer threshold=0.3 ! "
+            "tiler rows=1 columns=1 width=320 height=240 ! convert format=RGBA ! osd ! fakesink")
+    result = subprocess.run(["gst-launch-1.0", "--no-fault", *line.split()], env=env, capture_output=True, text=True,
+                            timeout=180)
+    assert result.returncode == 0, result.stdout + result.stderr
+    trace = read_trace(tmp_path / "five.jsonl")
+    assert [trace.header.kinds[s] for s in trace.header.stages] == [
+        "videotestsrc", "capsfilter", "mux", "infer", "tiler", "convert", "osd", "fakesink"]
+    assert stats(trace)["frames"] == {"complete": 6, "incomplete": 0}
 
 
 PYTHON_APP = """
