@@ -72,6 +72,16 @@ def run_app(app: Path, plugin_dir: Path, tmp_path: Path, description: str, *prob
     return read_trace(trace), probes
 
 
+RUNNERS = ("gst-launch", "c-program")
+
+
+def traced(runner: str, app: Path, plugin_dir: Path, tmp_path: Path, description: str, node: str):
+    """The trace of ``description`` run by gst-launch-1.0 or by the C program (no probes of its own)."""
+    if runner == "gst-launch":
+        return launch(plugin_dir, tmp_path, description, node)[0]
+    return run_app(app, plugin_dir, tmp_path, description, node=node)[0]
+
+
 def stage_points(trace, stage: str, point: int) -> np.ndarray:
     ev = trace.events
     return ev[(ev["stage"] == trace.header.stages.index(stage)) & (ev["point"] == point)]
@@ -111,6 +121,23 @@ def test_a_chain_in_a_c_program_every_element_traced_and_service_is_the_sleep(pr
     assert abs(service_ms.mean() - truth_ms.mean()) <= 0.1
 
 
+def test_c_compositor_in_gst_launch(plugin_dir, tmp_path):
+    """(c) in gst-launch-1.0: videotestsrc's frame k starts at k / rate, so the 10 frames/s
+    source's frame in output k (30 frames/s) is k // 3."""
+    trace, _ = launch(plugin_dir, tmp_path, "compositor name=mix ! video/x-raw,framerate=30/1 ! fakesink "
+                      "videotestsrc name=a num-buffers=30 ! video/x-raw,width=320,height=240,framerate=30/1 ! mix.sink_0 "
+                      "videotestsrc name=b num-buffers=10 ! video/x-raw,width=160,height=120,framerate=10/1 ! mix.sink_1",
+                      "MIXL")
+    source = {name: int(i) for i, name in trace.header.sources.items()}
+    exits = stage_points(trace, "mix", EXIT)
+    outputs = sorted(set(exits["ts"].tolist()))
+    assert len(outputs) == 30
+    for ts in outputs:
+        listed = dict(zip(*(exits[exits["ts"] == ts][c].tolist() for c in ("source", "frame"))))
+        assert listed == {source["a"]: listed[source["a"]], source["b"]: listed[source["a"]] // 3}, listed
+    assert stats(trace)["frames"]["complete"] == 40
+
+
 def test_a_chain_in_gst_launch_agrees_with_the_latency_tracer(plugin_dir, tmp_path):
     """(a) and (e): gst-launch-1.0 under both tracers at once; per element, dcuscope's median
     delay is within 0.1 ms + 3 % of GStreamer's ``latency`` tracer's (flags=element)."""
@@ -134,13 +161,14 @@ def test_a_chain_in_gst_launch_agrees_with_the_latency_tracer(plugin_dir, tmp_pa
     assert compared >= 5  # videoconvert, videoscale, the identity, x264enc and the capsfilters
 
 
-def test_b_tee_each_frame_reaches_both_branches(plugin_dir, tmp_path):
+@pytest.mark.parametrize("runner", RUNNERS)
+def test_b_tee_each_frame_reaches_both_branches(runner, probed_app, plugin_dir, tmp_path):
     """(b) One frame, two branches with different delays: every frame enters both sinks, each
     branch's identity shows its own sleep, and the links give the branches."""
-    trace, _ = launch(plugin_dir, tmp_path,
-                      f"videotestsrc num-buffers=40 ! {RAW} ! tee name=t "
-                      "t. ! queue name=qa ! identity name=fast sleep-time=1000 ! fakesink name=sinka "
-                      "t. ! queue name=qb ! identity name=slow sleep-time=6000 ! fakesink name=sinkb", "TEE")
+    trace = traced(runner, probed_app, plugin_dir, tmp_path,
+                   f"videotestsrc num-buffers=40 ! {RAW} ! tee name=t "
+                   "t. ! queue name=qa ! identity name=fast sleep-time=1000 ! fakesink name=sinka "
+                   "t. ! queue name=qb ! identity name=slow sleep-time=6000 ! fakesink name=sinkb", "TEE")
     h = trace.header
     frames = set(zip(*(stage_points(trace, "videotestsrc0", ORIGIN)[c].tolist() for c in ("source", "frame"))))
     assert len(frames) == 40
@@ -184,11 +212,13 @@ def test_c_compositor_output_lists_the_source_frames_it_was_made_from(probed_app
     assert node["frames"]["complete"] == 40
 
 
-def test_d_a_queue_before_a_slow_element_waits_and_is_not_busy(plugin_dir, tmp_path):
+@pytest.mark.parametrize("runner", RUNNERS)
+def test_d_a_queue_before_a_slow_element_waits_and_is_not_busy(runner, probed_app, plugin_dir, tmp_path):
     """(d) A fast source, a queue, an element that sleeps 15 ms: the queue's delay is wait, its
     utilization near 0; the slow element is the bottleneck, its delay service."""
-    trace, _ = launch(plugin_dir, tmp_path, f"videotestsrc num-buffers=60 ! {RAW} ! queue name=q max-size-buffers=0 "
-                      "max-size-bytes=0 max-size-time=0 ! identity name=slow sleep-time=15000 ! fakesink", "QUEUE")
+    trace = traced(runner, probed_app, plugin_dir, tmp_path, f"videotestsrc num-buffers=60 ! {RAW} ! queue name=q "
+                   "max-size-buffers=0 max-size-bytes=0 max-size-time=0 ! identity name=slow sleep-time=15000 ! "
+                   "fakesink", "QUEUE")
     node = stats(trace)
     q, slow = node["stages"]["q"], node["stages"]["slow"]
     assert q["mean_ms"] > 100  # frames pile up in the queue
@@ -308,6 +338,32 @@ def test_dcuscope_s_own_elements_in_gst_launch_carry_the_tracer_s_frames(plugin_
     assert [trace.header.kinds[s] for s in trace.header.stages] == [
         "videotestsrc", "capsfilter", "mux", "infer", "tiler", "convert", "osd", "fakesink"]
     assert stats(trace)["frames"] == {"complete": 6, "incomplete": 0}
+
+
+def test_the_mux_s_late_drops_in_any_app_are_drop_events(plugin_dir, tmp_path):
+    """dcuscope's mux with max-latency in gst-launch, behind a slow stage: each frame it posts as
+    dropped (a dcuscope-drop message, counted from gst-launch's own message log) is a drop
+    event, reason late, of that frame at the mux."""
+    import sysconfig
+
+    env = tracer_env(plugin_dir, f"node=LATE,trace={tmp_path / 'late.jsonl'}")
+    env["GST_PLUGIN_PATH"] = os.pathsep.join([str(REPO / "plugins" / "loader"), str(plugin_dir)])
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), sysconfig.get_paths()["purelib"]])
+    env["GST_REGISTRY"] = str(tmp_path / "registry.bin")
+    line = ("videotestsrc is-live=true num-buffers=45 ! video/x-raw,format=RGB,width=160,height=120,framerate=30/1 ! "
+            "mux name=m batch-size=1 width=160 height=120 live-source=true max-latency=40 ! "
+            "identity sleep-time=80000 ! fakesink")
+    result = subprocess.run(["gst-launch-1.0", "--no-fault", "-m", *line.split()], env=env, capture_output=True,
+                            text=True, timeout=180)
+    assert result.returncode == 0, result.stdout[-2000:] + result.stderr
+    posted = [(int(s), int(f)) for s, f in re.findall(
+        r'from element "m" \(element\): dcuscope-drop, source=\(int\)(\d+), frame=\(guint64\)(\d+), reason=\(string\)late',
+        result.stdout)]
+    assert len(posted) >= 10  # 80 ms per frame behind a 33 ms camera: most frames are late
+    trace = read_trace(tmp_path / "late.jsonl")
+    drops = stage_points(trace, "m", 5)
+    assert sorted(frames_of(drops)) == sorted(posted) and set(drops["code"].tolist()) == {1}
+    assert stats(trace)["sources"]["0"]["dropped"] == {"late": len(posted)}
 
 
 PYTHON_APP = """
