@@ -397,18 +397,27 @@ static inline int64_t now_for(DcuPadInfo *info, int64_t *ts) {
   return *ts;
 }
 
-static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int64_t *when) {
+/* The pad's state if this hook call records anything on it: in process, the tracepoint placed
+ * on it (still active); else its stage's pad, made on first sight. NULL: nothing to record. */
+static inline DcuPadInfo *traced_pad(GstDcuscopeTracer *self, GstPad *pad) {
   if (self->in_process) {
     DcuPadInfo *info = g_object_get_qdata(G_OBJECT(pad), self->pad_quark);
-    if (info && atomic_load_explicit(&info->active, memory_order_relaxed))
-      dcu_record_buffer(&info->probe, buf, now_for(info, when));
+    return info && atomic_load_explicit(&info->active, memory_order_relaxed) ? info : NULL;
+  }
+  if (G_UNLIKELY(atomic_load_explicit(&self->finished, memory_order_relaxed))) return NULL;
+  DcuPadInfo *info = pad_info(self, pad);
+  return info->stage ? info : NULL;
+}
+
+static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int64_t *when) {
+  DcuPadInfo *info = traced_pad(self, pad);
+  if (!info) return;
+  int64_t ts = now_for(info, when);
+  if (self->in_process) {
+    dcu_record_buffer(&info->probe, buf, ts);
     return;
   }
-  if (G_UNLIKELY(atomic_load_explicit(&self->finished, memory_order_relaxed))) return;
-  DcuPadInfo *info = pad_info(self, pad);
   DcuStage *st = info->stage;
-  if (!st) return;
-  int64_t ts = now_for(info, when);
   if (G_LIKELY(dcu_frames_structure(buf) != NULL)) {
     if (G_UNLIKELY(!atomic_load_explicit(&st->pushed_identified, memory_order_relaxed)))
       atomic_store(&st->pushed_identified, 1);
@@ -440,16 +449,13 @@ static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int
 }
 
 static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int64_t *when) {
+  DcuPadInfo *info = traced_pad(self, pad);
+  if (!info) return;
+  int64_t ts = now_for(info, when);
   if (self->in_process) {
-    DcuPadInfo *info = g_object_get_qdata(G_OBJECT(pad), self->pad_quark);
-    if (info && atomic_load_explicit(&info->active, memory_order_relaxed))
-      dcu_record_buffer(&info->probe, buf, now_for(info, when));
+    dcu_record_buffer(&info->probe, buf, ts);
     return;
   }
-  if (G_UNLIKELY(atomic_load_explicit(&self->finished, memory_order_relaxed))) return;
-  DcuPadInfo *info = pad_info(self, pad);
-  if (!info->stage) return;
-  int64_t ts = now_for(info, when);
   const GstStructure *s = dcu_frames_structure(buf);
   GstStructure *ds = (!s && self->deepstream) ? dcu_deepstream_frames(buf, ts) : NULL;
   if (ds) s = ds;

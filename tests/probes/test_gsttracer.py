@@ -10,6 +10,7 @@ import os
 import re
 import shutil
 import subprocess
+import sysconfig
 from pathlib import Path
 
 import numpy as np
@@ -46,6 +47,15 @@ def tracer_env(plugin_dir: Path, params: str, *more_tracers: str) -> dict:
     env = {k: v for k, v in os.environ.items() if not k.startswith("GST_")}
     env["GST_PLUGIN_PATH"] = str(plugin_dir)
     env["GST_TRACERS"] = ";".join([f"dcuscope({params})", *more_tracers])
+    return env
+
+
+def loader_env(plugin_dir: Path, tmp_path: Path, params: str) -> dict:
+    """The tracer, and dcuscope's elements for gst-launch through the Python plugin loader."""
+    env = tracer_env(plugin_dir, params)
+    env["GST_PLUGIN_PATH"] = os.pathsep.join([str(REPO / "plugins" / "loader"), str(plugin_dir)])
+    env["PYTHONPATH"] = os.pathsep.join([str(REPO), sysconfig.get_paths()["purelib"]])
+    env["GST_REGISTRY"] = str(tmp_path / "registry.bin")  # the loader's elements: a registry of their own
     return env
 
 
@@ -322,12 +332,7 @@ def test_dcuscope_s_own_elements_in_gst_launch_carry_the_tracer_s_frames(plugin_
     """The five elements through the Python plugin loader, traced by the tracer: the frames it
     stamps at the source are the ones the mux batches (its meta is the framestamp meta), and
     each is followed to the sink."""
-    import sysconfig
-
-    env = tracer_env(plugin_dir, f"node=FIVE,trace={tmp_path / 'five.jsonl'}")
-    env["GST_PLUGIN_PATH"] = os.pathsep.join([str(REPO / "plugins" / "loader"), str(plugin_dir)])
-    env["PYTHONPATH"] = os.pathsep.join([str(REPO), sysconfig.get_paths()["purelib"]])
-    env["GST_REGISTRY"] = str(tmp_path / "registry.bin")
+    env = loader_env(plugin_dir, tmp_path, f"node=FIVE,trace={tmp_path / 'five.jsonl'}")
     line = ("videotestsrc num-buffers=6 ! video/x-raw,format=RGB,width=320,height=240 ! "
             "mux name=m batch-size=1 width=320 height=240 ! infer threshold=0.3 ! "
             "tiler rows=1 columns=1 width=320 height=240 ! convert format=RGBA ! osd ! fakesink")
@@ -344,12 +349,7 @@ def test_the_mux_s_late_drops_in_any_app_are_drop_events(plugin_dir, tmp_path):
     """dcuscope's mux with max-latency in gst-launch, behind a slow stage: each frame it posts as
     dropped (a dcuscope-drop message, counted from gst-launch's own message log) is a drop
     event, reason late, of that frame at the mux."""
-    import sysconfig
-
-    env = tracer_env(plugin_dir, f"node=LATE,trace={tmp_path / 'late.jsonl'}")
-    env["GST_PLUGIN_PATH"] = os.pathsep.join([str(REPO / "plugins" / "loader"), str(plugin_dir)])
-    env["PYTHONPATH"] = os.pathsep.join([str(REPO), sysconfig.get_paths()["purelib"]])
-    env["GST_REGISTRY"] = str(tmp_path / "registry.bin")
+    env = loader_env(plugin_dir, tmp_path, f"node=LATE,trace={tmp_path / 'late.jsonl'}")
     line = ("videotestsrc is-live=true num-buffers=45 ! video/x-raw,format=RGB,width=160,height=120,framerate=30/1 ! "
             "mux name=m batch-size=1 width=160 height=120 live-source=true max-latency=40 ! "
             "identity sleep-time=80000 ! fakesink")
