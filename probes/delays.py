@@ -108,8 +108,11 @@ def chains(table: FrameTable, has_exit: np.ndarray | None = None) -> Chains:
         end = np.where(t_out[:, last] != MISSING, t_out[:, last], t_in[:, last])
     is_origin = np.arange(n_stages)[None, :] == table.origin_stage[:, None]
     broken = (passed & ~is_origin & (t_in == MISSING)).any(axis=1) | (needs_out & (t_out == MISSING)).any(axis=1)
-    first_passed = np.where(passed.any(axis=1), passed.argmax(axis=1), -1)
-    complete = has_origin & (first_passed == table.origin_stage) & reached_end & ~broken
+    if table.links:  # the graph says what is upstream (stage order need not: stages are numbered as found)
+        starts_at_origin = prev[rows, np.maximum(table.origin_stage, 0)] == -1
+    else:
+        starts_at_origin = np.where(passed.any(axis=1), passed.argmax(axis=1), -1) == table.origin_stage
+    complete = has_origin & starts_at_origin & reached_end & ~broken
     return Chains(t_in=t_in, t_out=t_out, passed=passed, prev=prev, complete=complete, end=end,
                   has_exit=np.asarray(has_exit, bool))
 
