@@ -67,7 +67,7 @@ def test_a_lossy_rtsp_link_reports_lost_packets_and_glass_to_glass_delays(lossy_
                           "stages:\n  - mux: {batch-size: 1, width: 160, height: 120, live-source: true}\n"
                           "sink: {type: fake, sync: false}\n")
         run = subprocess.run(["ip", "netns", "exec", client_ns, sys.executable, "-m", "dcuscope.cli", "run", str(config),
-                              "--probes", "--trace", str(trace), "--duration", "8", "-q"],
+                              "--probes", "--trace", str(trace), "--duration", "14", "-q"],
                              env=cli_env(), cwd=REPO, capture_output=True, text=True, timeout=120)
     finally:
         server.send_signal(signal.SIGINT)
@@ -80,7 +80,8 @@ def test_a_lossy_rtsp_link_reports_lost_packets_and_glass_to_glass_delays(lossy_
     assert src["nominal_fps"] == 10.0 and src["lost_upstream"] > 0, src
     assert src["delivered"] > 10 and src["fps"] < src["nominal_fps"], src  # 5 % of packets lost: frames too
     # RTCP sender reports give frames their capture time, before their origin: glass to glass
-    # is longer than origin to end.
+    # is longer than origin to end. (The server sends one every ~5 s and 5 % of packets are
+    # lost: the run lasts 14 s so that one lost report cannot leave it without any.)
     glass = st["glass"]
     assert glass["count"] > 0 and glass["mean_ms"] > st["frame"]["mean_ms"]
     table = frame_table(*_header_and_events(trace))
