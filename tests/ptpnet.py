@@ -170,8 +170,14 @@ class PtpNet:
                              f"{pmc(self.client_uds, 'GET TIME_STATUS_NP', 'GET PORT_DATA_SET')}\n"
                              f"client log:\n{self.log('client')}\ngrandmaster log:\n{self.log('gm')}")
 
-    def gm_identity(self) -> str:
-        return field(pmc(self.gm_uds, "GET DEFAULT_DATA_SET"), "clockIdentity")
+    def gm_identity(self) -> str | None:
+        # pmc waits ~100 ms for an answer: a grandmaster busy on a loaded machine can miss it once.
+        for _ in range(5):
+            identity = field(pmc(self.gm_uds, "GET DEFAULT_DATA_SET"), "clockIdentity")
+            if identity is not None:
+                return identity
+            time.sleep(0.2)
+        return None
 
     def kill_grandmaster(self) -> float:
         """SIGKILL the grandmaster's ptp4l; the monotonic time it was gone."""
