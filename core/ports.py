@@ -9,8 +9,9 @@ import socket
 from core.errors import UsageError
 
 
-def check_port_free(host: str, port: int, hint: str = "pick a free one with --port") -> None:
-    """UsageError when nothing could listen on ``host:port`` now; port 0 (any free one) passes."""
+def check_port_free(host: str, port: int, hint: str = "pick a free one with --port", option: str | None = "--port") -> None:
+    """UsageError when nothing could listen on ``host:port`` now; port 0 (any free one) passes.
+    The message starts with ``option PORT: `` (None: a caller that names the key itself)."""
     if port == 0:
         return
     with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
@@ -19,4 +20,5 @@ def check_port_free(host: str, port: int, hint: str = "pick a free one with --po
         try:
             probe.bind((host, port))
         except OSError as exc:
-            raise UsageError(f"--port {port}: cannot listen on {host}:{port} ({exc.strerror or exc}): {hint}") from None
+            said = f"{option} {port}: " if option else ""
+            raise UsageError(f"{said}cannot listen on {host}:{port} ({exc.strerror or exc}): {hint}") from None

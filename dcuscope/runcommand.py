@@ -54,9 +54,9 @@ def check_sink(config: PipelineConfig, output: Path | None) -> None:
         where = ("sinks", index) if several and output is None else ("sink",)
         if sink.kind == "rtsp":
             try:
-                check_port_free(sink.host, sink.port, hint="pick a free one with port:")
+                check_port_free(sink.host, sink.port, hint="pick a free one with port:", option=None)
             except UsageError as exc:
-                raise config.document.error(where + ("port",), str(exc).split(": ", 1)[1]) from exc
+                raise config.document.error(where + ("port",), str(exc)) from exc
         if sink.path is None:
             continue
         problem = check_video_file(sink.path) if sink.kind == "file" else check_frames_folder(sink.path)

@@ -8,7 +8,8 @@ for the one ``sink:`` of a config, else as ``sinks:`` names it.
 - ``rtsp``: served live as H.264 over RTSP (:mod:`pipeline.rtspout`).
 
 Several sinks hang off a ``tee`` (named ``tee``), each behind a queue of its own (``NAME_queue``,
-leaky: a slow output drops frames there, counted by the probes, instead of holding the others).
+leaky: an output more than 30 frames behind drops the oldest there instead of holding the
+others; such frames show as incomplete in the trace, they entered the queue and never left).
 """
 
 from __future__ import annotations

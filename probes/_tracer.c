@@ -473,6 +473,15 @@ static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, in
   if (ds) gst_structure_free(ds);
 }
 
+typedef void (*FrameHook)(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int64_t *when);
+
+/* Each buffer of a list, all at the one time the list crossed the pad. */
+static void each_buffer(GObject *obj, GstPad *pad, GstBufferList *list, FrameHook hook) {
+  int64_t ts = 0;
+  guint n = gst_buffer_list_length(list);
+  for (guint i = 0; i < n; i++) hook((GstDcuscopeTracer *)obj, pad, gst_buffer_list_get(list, i), &ts);
+}
+
 static void on_push_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuffer *buf) {
   (void)t;
   int64_t ts = 0;
@@ -481,9 +490,7 @@ static void on_push_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuffer *bu
 
 static void on_push_list_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBufferList *list) {
   (void)t;
-  int64_t ts = 0;
-  guint n = gst_buffer_list_length(list);
-  for (guint i = 0; i < n; i++) frame_exit((GstDcuscopeTracer *)obj, pad, gst_buffer_list_get(list, i), &ts);
+  each_buffer(obj, pad, list, frame_exit);
 }
 
 static void on_chain_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuffer *buf) {
@@ -495,16 +502,9 @@ static void on_chain_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuffer *b
 static void on_chain_list_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBufferList *list) {
   (void)t;
   /* Split by GStreamer and chained buffer by buffer: those calls record them. */
-  if (dcu_pad_splits_lists(pad)) return;
-  int64_t ts = 0;
-  guint n = gst_buffer_list_length(list);
-  for (guint i = 0; i < n; i++) frame_enter((GstDcuscopeTracer *)obj, pad, gst_buffer_list_get(list, i), &ts);
+  if (!dcu_pad_splits_lists(pad)) each_buffer(obj, pad, list, frame_enter);
 }
 
-/* An element dropped a buffer for QoS (a sink rendering too late, a decoder skipping): the
- * frames of its sink pads' remembered input with that running time get a drop event (reason
- * qos). An element's first QoS message only starts the remembering: those drops are counted,
- * and said at exit, not named. */
 /* dcuscope's own mux posts a "dcuscope-drop" element message per frame it drops (late, or
  * still queued when a live run stops): in any application, those are drop events too. */
 static const char *const DROP_REASONS[] = {"unknown", "late", "qos", "queue full", "error", "stopped", NULL};

@@ -72,9 +72,9 @@ class TraceFollower:
             obj = json.loads(line)
             if "events" in obj:
                 rows = np.asarray(obj["events"], np.int64)
-                if len(rows) and rows[:, 1].max() >= len(self.header.stages):
+                if rows.ndim == 2 and len(rows) and rows[:, 1].max() >= len(self.header.stages):
                     changed |= self._reread_header()
-                chunks.append(_parse_rows(self.path, self._lineno, obj["events"], self.header))
+                chunks.append(_parse_rows(self.path, self._lineno, rows, self.header))
                 self._count += len(chunks[-1])
             elif "end" in obj:
                 dropped = _parse_end(self.path, self._lineno, obj["end"], self._count)

@@ -23,7 +23,7 @@ from probes.shipper import Shipper
 from probes.sourcewatch import SourceWatch
 from probes.sysclock import DEFAULT_UDS
 from probes.tailship import TailShipper
-from probes.tracefile import TraceFileWriter, read_trace
+from probes.tracefile import TraceFileWriter
 from probes.tracer import Tracer, attach
 
 
@@ -96,17 +96,17 @@ class LaunchProbes:
     thread: threading.Thread | None = None
 
     def stop(self) -> None:
-        self.tracer.finish()  # the end line: the shipper then sends the rest and closes
+        try:
+            stages, events, dropped = self.tracer.finish()  # the end line: the shipper sends the rest, closes
+        except TraceError as exc:
+            stages = None
+            if self.progress is not None:
+                self.progress.write(f"probes: {exc}\n")
         if self.thread is not None:
             self.thread.join(EXPORTER_CLOSE_S + 5.0)
-        if self.progress is not None:
-            try:
-                done = read_trace(self.trace)
-            except TraceError as exc:
-                self.progress.write(f"probes: {exc}\n")
-                return
-            self.progress.write(f"probes: {len(done.events)} events from {len(done.header.stages)} stages (the dcuscope "
-                                f"tracer, every element), {done.dropped} dropped; trace: {self.trace}\n")
+        if self.progress is not None and stages is not None:
+            self.progress.write(f"probes: {events} events from {stages} stages (the dcuscope tracer, every element), "
+                                f"{dropped} dropped; trace: {self.trace}\n")
 
 
 def _start_tracer(config: PipelineConfig, relay: str | None, token: str | None, progress: TextIO | None) -> LaunchProbes:

@@ -6,16 +6,19 @@ framestamp; followed by :class:`probes.tailship.TailShipper` for a relay.
 
     tracer = ProcessTracer(node="DCU-1", trace=Path("dcu1.trace.jsonl"), clock="realtime")
     ... run the pipeline ...
-    tracer.finish()          # drains, writes the end line; the hooks stay but do nothing
+    stages, events, dropped = tracer.finish()   # drains, writes the end line; the hooks stay, idle
 """
 
 from __future__ import annotations
 
 import ctypes
+import json
+import os
 from pathlib import Path
 
 from probes.errors import TraceError
 from probes.native import BuildError, load, unavailable_reason
+from probes.tracefile import _parse_header
 
 
 def tracer_params(node: str, trace: Path, clock: str = "realtime", capacity: int | None = None) -> str:
@@ -37,7 +40,17 @@ class ProcessTracer:
         if not self._tracer:
             raise TraceError(f"{self.trace}: cannot write the trace file")
 
-    def finish(self) -> None:
+    def finish(self) -> tuple[int, int, int]:
+        """Close the trace; returns its (stages, events, dropped), read from its first and last
+        lines (the header and the end line), not from the whole file."""
         if self._tracer:
             self._lib.dcu_tracer_finish(ctypes.c_void_p(self._tracer))
             self._tracer = None
+        try:
+            with open(self.trace, "rb") as f:
+                header = _parse_header(self.trace, f.readline())
+                f.seek(max(0, f.seek(0, os.SEEK_END) - 256))
+                end = json.loads(f.read().rstrip(b"\n").rsplit(b"\n", 1)[-1])["end"]
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            raise TraceError(f"{self.trace}: the tracer did not close its trace ({exc})") from exc
+        return len(header.stages), int(end["events"]), int(end["dropped"])
