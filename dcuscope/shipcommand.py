@@ -25,7 +25,8 @@ def add_ship_parser(sub) -> None:
                "  dcuscope ship cam1.trace.jsonl --relay http://monitor:3000",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("trace", type=Path, metavar="TRACE", help="the trace file being written")
-    p.add_argument("--relay", required=True, metavar="URL", help="the relay, http://HOST:PORT")
+    p.add_argument("--relay", required=True, metavar="URL[,URL...]",
+                   help="the relay, http://HOST:PORT; or several, comma-separated, tried in turn")
     p.add_argument("--token", help="the relay's node token, if it asks for one")
     p.add_argument("--node", help="the node's name on the relay (default: the trace's)")
     p.add_argument("--settle", type=float, default=1.0, metavar="S",

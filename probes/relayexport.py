@@ -14,6 +14,16 @@ message and with ``end`` (with the lowest batch it still holds, so that the rela
 waiting for the dropped ones). A relay that refuses the token (HTTP 401) is not asked again:
 :attr:`RelayExporter.refused` says so (``dcuscope run`` ends with it as its error).
 
+Several relays (``--relay URL1,URL2``, relays that share one database): the node ships to one at
+a time and moves to the next in the list, round robin, when the one it uses cannot be reached
+(its TCP connect fails or takes over ``CONNECT_TIMEOUT_S``), when its connection drops, or when
+it answers hello with "later" (``ok: false`` with ``retry_ms``, or an error saying another relay
+holds the run: after that wait). The next relay is tried at once; the backoff runs between
+rounds, once every relay of the list failed. The run goes on there, resumed with its secret, its
+unacknowledged batches resent. A relay that refuses the node for now (another live run holds
+its name) is asked again after the backoff, as with one relay; a refused token ends the tries.
+Each move is logged once per outage ("relay URL1 unreachable; trying URL2").
+
 On each connection it also measures the clock offset to the relay and reports the samples with
 the node's linuxptp state (``clock``); the relay estimates. The exchanges go over UDP beside the
 WebSocket when the relay offers it (:mod:`probes.udpclock`: kernel timestamps, bursts of 16),
@@ -29,6 +39,7 @@ import threading
 import time
 import uuid
 from collections import OrderedDict, deque
+from typing import NamedTuple, Sequence
 
 import aiohttp
 import numpy as np
@@ -38,7 +49,7 @@ from core.clocks import CLOCKS, PretendClock
 from probes.errors import ExportError
 from probes.events import EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
 from probes.ptp import POLL_INTERVAL_S, PtpWatch
-from probes.relaylink import Link, Refused
+from probes.relaylink import Link, Refused, asked_retry_ms, parse_relays
 from probes.udpclock import UdpClock, parse_offer
 from probes.sysclock import DEFAULT_UDS
 from probes.wire import MAX_BATCH_EVENTS, PROTOCOL_VERSION, encode_batch
@@ -51,6 +62,9 @@ DEFAULT_WINDOW = 64
 """Batches in flight (sent, not acknowledged) on one connection."""
 SYNC_BURST_FIRST, SYNC_BURST = 8, 4
 ACK_TIMEOUT_S = 30.0
+CONNECT_TIMEOUT_S = 2.0
+"""A relay whose TCP connect takes longer counts as unreachable: a relay host that is down (its
+SYNs unanswered) is left for the next relay within this, not after the whole handshake's bound."""
 HELLO_TIMEOUT_S = 10.0
 SYNC_TIMEOUT_S = 10.0
 UDP_RETRY_S = 30.0
@@ -64,7 +78,8 @@ log = logging.getLogger(__name__)
 
 
 class RelayExporter:
-    """Ships events to ``url`` (``http://HOST:PORT``) as node ``node``.
+    """Ships events to ``url`` (``http://HOST:PORT``) as node ``node``; ``url`` may name several
+    relays (``"URL1,URL2"`` or a list, see :func:`probes.relaylink.parse_relays`), tried in turn.
 
     ``clock`` names the clock the probes read (``probes.events.CLOCKS``): the NTP exchanges
     must read the same one. ``pretend`` is a testing aid: every clock reading of this client
@@ -73,7 +88,7 @@ class RelayExporter:
     ``ptp_socket``: the UDS of the local ptp4l, read every ``ptp_interval_s`` with pmc.
     """
 
-    def __init__(self, url: str, node: str, token: str | None = None, clock: str = "realtime",
+    def __init__(self, url: str | Sequence[str], node: str, token: str | None = None, clock: str = "realtime",
                  pretend: PretendClock | None = None, *, compress: bool = False,
                  batch_events: int = DEFAULT_BATCH_EVENTS, flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
                  max_buffer_events: int = DEFAULT_MAX_BUFFER_EVENTS, window: int = DEFAULT_WINDOW,
@@ -83,11 +98,12 @@ class RelayExporter:
                  backoff_s: tuple[float, float] = (0.1, 5.0)) -> None:
         if clock not in CLOCKS:
             raise ExportError(f"relay exporter: unknown clock {clock!r} (one of {', '.join(CLOCKS)})")
-        if not url.startswith(("http://", "https://")):
-            raise ExportError(f"relay URL must start with http:// or https://, not {url!r}")
+        self.urls = parse_relays(url)
         if not node:
             raise ExportError("relay exporter: the node needs a name")
-        self.url, self.node, self._token = url.rstrip("/"), node, token
+        self.node, self._token = node, token
+        self.url = self.urls[0]
+        """The relay of ``urls`` in use: connected, or the one tried next."""
         self._pretend = pretend if pretend is not None else PretendClock(clock_id=CLOCKS[clock])
         if self._pretend.clock_id != CLOCKS[clock]:
             raise ExportError(f"relay exporter: the pretend clock reads clock {self._pretend.clock_id}, not {clock}")
@@ -122,6 +138,8 @@ class RelayExporter:
         self._written = self._acked = self._sent = self._connects = 0
         self._connected = False
         self._last_error = ""
+        self._moves_said: set[tuple[str, str, str]] = set()
+        """Moves to another relay logged since the last hello: each said once per outage."""
         self._retries = 0
         self._hold_s = 0.0
         """How long sending is held after the relay could not store a batch (0: it could)."""
@@ -193,7 +211,8 @@ class RelayExporter:
 
     def counters(self) -> dict:
         return {
-            "run": self.run_id, "connected": self._connected, "connects": self._connects,
+            "run": self.run_id, "connected": self._connected, "relay": self.url if self._connected else "",
+            "connects": self._connects,
             "written": self._written, "sent": self._sent, "acked": self._acked, "lost": self.lost,
             "buffered": self._unacked_n + self._pending_n, "retries": self._retries,
             "last_error": self._last_error, "clock_via": self.clock_via,
@@ -272,23 +291,61 @@ class RelayExporter:
 
     async def _connection_loop(self) -> None:
         delay = self._backoff[0]
-        async with aiohttp.ClientSession() as session:
+        misses = 0  # relays in a row that could not be reached
+        # total=None: the handshake has its own bound (relaylink), and the WebSocket lives on.
+        timeout = aiohttp.ClientTimeout(total=None, sock_connect=CONNECT_TIMEOUT_S)
+        async with aiohttp.ClientSession(timeout=timeout) as session:
             while not self._stop.is_set():
-                link = await self._connect_unless_stopped(session)
-                if link is not None:
-                    delay = self._backoff[0]
-                    await self._serve(link)
-                    continue
+                outcome = await self._connect_unless_stopped(session)
                 if self.refused:
                     break  # no use asking again: close() reports it
-                try:
-                    await asyncio.wait_for(self._stop.wait(), delay * random.uniform(0.8, 1.2))
-                except asyncio.TimeoutError:
-                    pass
-                delay = min(delay * 2, self._backoff[1])
+                if outcome is None:
+                    continue  # stopped
+                if isinstance(outcome, Link):
+                    delay, misses = self._backoff[0], 0
+                    self._moves_said.clear()
+                    why = await self._serve(outcome)
+                    if not self._stop.is_set():
+                        self._move_on(f"connection to relay {self.url} lost", why)
+                    continue
+                if outcome.kind == _LATER:
+                    misses = 0
+                    # As long as the relay asks, within the backoff's cap: it is asked again, or the next.
+                    wait = min(outcome.wait_s, self._backoff[1]) if outcome.wait_s is not None else delay
+                    self._move_on(f"relay {self.url} asks to come back later", outcome.why, wait)
+                elif outcome.kind == _REFUSED:
+                    misses, wait = 0, delay
+                    self._note_error(f"relay {self.url} refused this node for now: {outcome.why}")
+                else:
+                    misses += 1
+                    self._move_on(f"relay {self.url} unreachable", outcome.why,
+                                  alone=f"cannot reach relay {self.url}")
+                    # The next relay at once; the backoff once every relay of the list failed.
+                    wait = delay if misses % len(self.urls) == 0 else 0.0
+                if wait:
+                    if outcome.wait_s is None:
+                        delay = min(delay * 2, self._backoff[1])
+                        wait *= random.uniform(0.8, 1.2)
+                    await _wait(self._stop, wait)
         await self._stop.wait()
 
-    async def _connect_unless_stopped(self, session: aiohttp.ClientSession) -> Link | None:
+    def _move_on(self, what: str, why: str, wait_s: float = 0.0, alone: str | None = None) -> None:
+        """Take the next relay of the list and say why; with one relay, say why (or ``alone``)."""
+        if len(self.urls) == 1:
+            what = alone or what
+            self._note_error(f"{what}: {why}" if why else what)
+            return
+        previous = self.url
+        self.url = self.urls[(self.urls.index(previous) + 1) % len(self.urls)]
+        then = f" in {wait_s:.1f} s" if wait_s else ""
+        self._last_error = f"{what}; trying {self.url}{then}" + (f" ({why})" if why else "")
+        # Said once per outage: while no relay answers, the node goes round the list quietly.
+        if (previous, self.url, what) not in self._moves_said:
+            self._moves_said.add((previous, self.url, what))
+            log.warning("relay exporter %s: %s", self.node, self._last_error)
+
+    async def _connect_unless_stopped(self, session: aiohttp.ClientSession) -> Link | _Miss | None:
+        """The link, why there is none, or None if the exporter stopped meanwhile."""
         # close() must not wait out a handshake with a relay that does not answer.
         connecting = asyncio.create_task(self._connect(session))
         stopping = asyncio.create_task(self._stop.wait())
@@ -300,34 +357,37 @@ class RelayExporter:
         await asyncio.gather(connecting, return_exceptions=True)
         return None
 
-    async def _connect(self, session: aiohttp.ClientSession) -> Link | None:
-        """A link that said hello, or None (the reason noted)."""
+    async def _connect(self, session: aiohttp.ClientSession) -> Link | _Miss:
+        """A link that said hello, or why not."""
         try:
             link = await Link.open(session, self.url, self._token, self._on_ack)
         except Refused as exc:
             # Not logged: the run ends with this as its one error line (probes.instrument).
             self.refused = self._last_error = str(exc)
-            return None
+            return _Miss(_REFUSED, str(exc))
         except ExportError as exc:
-            self._note_error(f"cannot reach relay {self.url}: {exc}")
-            return None
+            return _Miss(_UNREACHABLE, str(exc))
         try:
             reply = await link.call("hello", self._hello(), HELLO_TIMEOUT_S)
-            if not (isinstance(reply, dict) and reply.get("ok")):
-                raise ExportError(f"relay refused hello: {reply!r}")
-            if isinstance(reply.get("secret"), str):
-                self._secret = reply["secret"]
-            self._offer = parse_offer(reply)
-        except (ConnectionError, TimeoutError, aiohttp.ClientError, ExportError) as exc:
-            # The relay said why (e.g. another live run holds this node's name): it is asked again later.
-            said = f"relay {self.url} refused this node for now: {link.error}" if link.error.startswith("relay error")\
-                else f"cannot reach relay {self.url}: {link.error or _describe(exc)}"
-            self._note_error(said)
+        except (ConnectionError, TimeoutError, aiohttp.ClientError) as exc:
             await link.close()
-            return None
+            if link.elsewhere:  # another relay holds the run: not a refusal of this node
+                return _Miss(_LATER, link.error, _seconds(link.retry_ms))
+            if link.error.startswith("relay error"):
+                # The relay said why (e.g. another live run holds this node's name): it is asked again later.
+                return _Miss(_REFUSED, link.error)
+            return _Miss(_UNREACHABLE, link.error or _describe(exc))
+        if not (isinstance(reply, dict) and reply.get("ok")):
+            # A relay that cannot take the run now (it says for how long, with retry_ms).
+            await link.close()
+            return _Miss(_LATER, f"relay refused hello: {str(reply)[:200]}", _seconds(asked_retry_ms(reply)))
+        if isinstance(reply.get("secret"), str):
+            self._secret = reply["secret"]
+        self._offer = parse_offer(reply)
         return link
 
-    async def _serve(self, link: Link) -> None:
+    async def _serve(self, link: Link) -> str:
+        """Ship on ``link`` until it ends or the exporter stops; why it ended ("" if it said nothing)."""
         self._connects += 1
         self._connected, self._link = True, link
         self._inflight.clear()
@@ -342,13 +402,10 @@ class RelayExporter:
         # Let them finish here, on the loop: a task left pending is closed when the loop is gone,
         # its cleanup (the UDP clock socket) then failing outside any loop, printed at exit.
         await asyncio.gather(stop, lost, *workers, return_exceptions=True)
-        for t in workers:
-            if t.done() and not t.cancelled() and t.exception() is not None:
-                self._note_error(f"connection to {self.url} failed: {link.error or _describe(t.exception())}")
-        if link.error:
-            self._note_error(link.error)
+        failed = [t.exception() for t in workers if t.done() and not t.cancelled() and t.exception() is not None]
         self._connected, self._link = False, None
         await link.close()
+        return link.error or (_describe(failed[0]) if failed else "")
 
     async def _sender(self, link: Link) -> None:
         while True:
@@ -395,9 +452,7 @@ class RelayExporter:
         now = time.monotonic()
         if now < self._hold_until:
             return
-        asked = ack.get("retry_ms")
-        asked_s = asked / 1000 if isinstance(asked, int) and not isinstance(asked, bool) and asked > 0 else 0.0
-        grown = max(self._backoff[0], asked_s, 2 * self._hold_s)
+        grown = max(self._backoff[0], _seconds(asked_retry_ms(ack)) or 0.0, 2 * self._hold_s)
         self._hold_s = min(grown, self._backoff[1])
         self._hold_until = now + self._hold_s
 
@@ -489,6 +544,23 @@ class RelayExporter:
             except (ConnectionError, TimeoutError, aiohttp.ClientError) as exc:
                 self._note_error(f"could not send end: {_describe(exc)}")
         self._stop.set()
+
+
+_UNREACHABLE, _REFUSED, _LATER = "unreachable", "refused", "later"
+
+
+class _Miss(NamedTuple):
+    """Why a connection attempt gave no link: the relay could not be reached, refused this node
+    (for now, or its token: :attr:`RelayExporter.refused`), or asked it to come back later
+    (after ``wait_s``, if it said)."""
+
+    kind: str
+    why: str
+    wait_s: float | None = None
+
+
+def _seconds(ms: int | None) -> float | None:
+    return ms / 1000 if ms is not None else None
 
 
 async def _wait(event: asyncio.Event, timeout_s: float) -> bool:

@@ -5,15 +5,19 @@ acknowledgements, in the envelope of :mod:`probes.envelope`.
     reply = await link.call("hello", {...}, timeout=10)
     await link.send_batch(encode_batch(...))       # on_ack(message) once the relay stored it
     await link.closed()                            # the connection ended (link.error says why)
+
+``--relay`` names one relay or several (:func:`parse_relays`); the node ships to one at a time
+(:class:`probes.relayexport.RelayExporter` moves on when one cannot serve it).
 """
 
 from __future__ import annotations
 
 import asyncio
 import itertools
+import re
 import urllib.error
 import urllib.request
-from typing import Callable
+from typing import Callable, Sequence
 
 import aiohttp
 from aiohttp import WSMsgType
@@ -24,26 +28,50 @@ from probes.wire import HEARTBEAT_S, INGEST_PATH, MAX_MESSAGE_BYTES
 
 HANDSHAKE_TIMEOUT_S = 10.0
 CLOSE_TIMEOUT_S = 1.0
+ELSEWHERE = re.compile(r"\b(owned by|another relay)\b", re.IGNORECASE)
+"""An error the relay closes a hello with when another relay of the fleet holds the run: not a
+refusal of this node, which is to come back later (to whichever relay then holds it)."""
 
 
 class Refused(ExportError):
     """The relay refused the node before the WebSocket opened (a wrong or missing token)."""
 
 
-def check_token(url: str, token: str | None, timeout_s: float = 3.0) -> None:
-    """Raise :class:`Refused` if the relay at ``url`` refuses ``token``, before a run starts.
+def parse_relays(relays: str | Sequence[str]) -> tuple[str, ...]:
+    """The relays ``--relay`` names: one URL, several separated by commas, or a list of them;
+    each ``http[s]://HOST:PORT``, returned without a trailing slash. :class:`ExportError` names
+    the item at fault."""
+    items = relays.split(",") if isinstance(relays, str) else list(relays)
+    urls = []
+    for i, item in enumerate(items, 1):
+        url = item.strip() if isinstance(item, str) else item
+        if not url:
+            raise ExportError(f"relay list {relays!r}: item {i} is empty" if len(items) > 1
+                              else "the relay URL is empty")
+        if not isinstance(url, str) or not url.startswith(("http://", "https://")):
+            raise ExportError(f"relay URL must start with http:// or https://, not {url!r}")
+        urls.append(url.rstrip("/"))
+    return tuple(urls)
+
+
+def check_token(relays: str | Sequence[str], token: str | None, timeout_s: float = 3.0) -> None:
+    """Raise :class:`Refused` if a relay of ``relays`` (:func:`parse_relays`) refuses ``token``,
+    before a run starts; :class:`ExportError` if one is no relay URL.
 
     A plain GET of the ingest path is answered 401 for a wrong token before anything else.
-    A relay that does not answer passes: the exporter keeps trying, and loses nothing.
+    A relay that does not answer passes: the exporter keeps trying, and loses nothing. Every
+    relay of a list is asked, one after the other: the node may land on any of them.
     """
     headers = {"Authorization": f"Bearer {token}"} if token else {}
-    try:
-        urllib.request.urlopen(urllib.request.Request(url + INGEST_PATH, headers=headers), timeout=timeout_s).close()
-    except urllib.error.HTTPError as exc:
-        if exc.code == 401:
-            raise Refused(f"relay {url} refused the token (HTTP 401)") from None
-    except (OSError, ValueError):
-        pass
+    for url in parse_relays(relays):
+        try:
+            request = urllib.request.Request(url + INGEST_PATH, headers=headers)
+            urllib.request.urlopen(request, timeout=timeout_s).close()
+        except urllib.error.HTTPError as exc:
+            if exc.code == 401:
+                raise Refused(f"relay {url} refused the token (HTTP 401)") from None
+        except (OSError, ValueError):
+            pass
 
 
 class Link:
@@ -51,6 +79,8 @@ class Link:
         self.ws = ws
         self.error = ""
         """Why the relay ended the connection, when it said so."""
+        self.retry_ms: int | None = None
+        """How long the relay asked the node to wait before it comes back, with its error."""
         self._on_ack = on_ack
         self._calls: dict[int, asyncio.Future] = {}
         self._ids = itertools.count()
@@ -131,3 +161,15 @@ class Link:
             self._on_ack(d)
         else:
             self.error = f"relay error: {str(d.get('error'))[:200]}"
+            self.retry_ms = asked_retry_ms(d)
+
+    @property
+    def elsewhere(self) -> bool:
+        """The relay closed the connection because another relay holds this node's run."""
+        return self.error.startswith("relay error") and ELSEWHERE.search(self.error) is not None
+
+
+def asked_retry_ms(d: object) -> int | None:
+    """The ``retry_ms`` a relay's message asks for (a positive integer), else None."""
+    asked = d.get("retry_ms") if isinstance(d, dict) else None
+    return asked if isinstance(asked, int) and not isinstance(asked, bool) and asked > 0 else None
