@@ -1,6 +1,6 @@
 """Relay memory over a long run: one node's live engine fed hours of the paper's load.
 
-Feeds ``relay.live.LiveRun`` synthetic events of one DCU (6 sources x 60 fps, 12 events a
+Feeds ``relay.live.run.LiveRun`` synthetic events of one DCU (6 sources x 60 fps, 12 events a
 frame) in 1-second batches, as the relay's tick does, and prints, every ``--every`` simulated
 minutes, the bytes of numpy arrays the engine holds, the cost of its whole-run
 statistics, and whether their percentiles are still exact. Side by side: the same feed with
@@ -26,7 +26,7 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
 
 from benchmarks.figures import dumps, ratio  # noqa: E402
 from probes.simnode import header_for, synth_events  # noqa: E402
-from relay.live import LiveConfig, LiveRun  # noqa: E402
+from relay.live.run import LiveConfig, LiveRun  # noqa: E402
 
 SOURCES, FPS = 6, 60.0
 T0 = 1_700_000_000_000_000_000

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from core import signals
 from core.errors import DcuscopeError, PipelineError
+from dcuscope.dbcommand import add_db_parser
 from dcuscope.shipcommand import add_ship_parser
 from dcuscope.tracecommands import add_export_parser, add_stats_parser
 from probes.sysclock import DEFAULT_UDS
@@ -91,7 +92,9 @@ def build_parser() -> argparse.ArgumentParser:
     probes.add_argument("--trace", type=Path, metavar="PATH", help="write probe events to this trace file (JSON Lines)")
     probes.add_argument("--clock", choices=("realtime", "tai", "monotonic"),
                         help="clock of the timestamps (default realtime, the clock PTP's phc2sys disciplines)")
-    probes.add_argument("--relay", metavar="URL", help="stream probe events to a relay, e.g. http://127.0.0.1:3000")
+    probes.add_argument("--relay", metavar="URL[,URL...]",
+                        help="stream probe events to a relay, e.g. http://127.0.0.1:3000; several, comma-separated "
+                             "(sharing one database): the node moves to the next when its relay cannot be reached")
     probes.add_argument("--token", metavar="TOKEN", help="token the relay asks for")
     probes.add_argument("--clock-offset-ms", type=float, default=0.0, metavar="MS",
                         help="TESTING AID: shift this node's clock by MS milliseconds, to check clock alignment (default 0)")
@@ -132,6 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_stats_parser(sub)
     add_export_parser(sub)
     add_relay_parser(sub)
+    add_db_parser(sub)
     return parser
 
 

@@ -5,7 +5,7 @@
     add_stats_parser(subparsers); add_export_parser(subparsers)
     args = parser.parse_args(); sys.exit(args.func(args))
 
-Over a stored session each node's statistics carry the ``clock`` entry of :mod:`relay.clockentry`
+Over a stored session each node's statistics carry the ``clock`` entry of :mod:`relay.clock.entry`
 (the correction its timestamps were moved by, at its last event, and its bound), and exports carry
 it per node and per frame (:mod:`probes.export`); trace files hold the node's own clock, uncorrected.
 
@@ -27,8 +27,8 @@ from core.errors import DcuscopeError
 from probes.export import BUCKET_NS, perfetto_document, write_csv
 from probes.stats import stats_document
 from probes.tracefile import Trace, read_trace
-from relay.clock import Correction
-from relay.clockentry import clock_entry
+from relay.clock.correction import Correction
+from relay.clock.entry import clock_entry
 
 STAT_COLUMNS = ("count", "mean_ms", "p50_ms", "p95_ms", "p99_ms", "max_ms")
 
@@ -70,7 +70,8 @@ def add_export_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def _add_db_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--db", metavar="PATH", help="a relay's SQLite database, instead of trace files")
+    p.add_argument("--db", metavar="PATH|URL", help="a relay's store instead of trace files: its SQLite file, or its "
+                                                   "PostgreSQL database (postgresql://USER@HOST/DB)")
     p.add_argument("--session", metavar="ID", help="with --db: the stored session (see /api/sessions) or a run id")
 
 
@@ -119,9 +120,11 @@ def _inputs(args: argparse.Namespace, command: str) -> list:
         return [read_trace(path) for path in args.traces]
     if args.traces or args.db is None or args.session is None:
         raise DcuscopeError(f"{command}: give either TRACE files, or --db PATH with --session ID")
-    if not Path(args.db).is_file():
+    from relay.store.engines import is_url
+    from relay.store.runs import load_runs  # the relay's modules load only for this input
+
+    if not is_url(args.db) and not Path(args.db).is_file():
         raise DcuscopeError(f"{command}: {args.db}: no such database")
-    from relay.storage import load_runs  # the relay's modules load only for this input
 
     return load_runs(args.db, args.session)
 

@@ -23,7 +23,7 @@ where defined. Frames with a capture time get a slice capture .. origin on a tra
 Perfetto reads them, gives back the exact ns: the parts nest in their slice exactly.
 
 Clock: where the timestamps were moved to the relay's clock (a stored session), each node's
-correction goes along (a :class:`ClockCorrection`, such as ``relay.clock.Correction``).
+correction goes along (a :class:`ClockCorrection`, such as ``relay.clock.correction.Correction``).
 Perfetto: the process label reads "clock estimate: -3.000 ms ± 120.0 µs", ``otherData.clock``
 holds per node {applied, why, correction_ns, uncertainty_ns, at_ns} (at the node's last event),
 and every frame slice's args ``clock_ns`` (the offset subtracted at the frame's origin) and
@@ -55,7 +55,7 @@ NodeEvents = tuple[TraceHeader, np.ndarray]
 
 class ClockCorrection(Protocol):
     """What was subtracted from a node's timestamps, per timestamp, and its bound (the relay's
-    ``relay.clock.Correction`` is one)."""
+    ``relay.clock.correction.Correction`` is one)."""
 
     applied: str
     why: str

@@ -33,7 +33,7 @@ class _Shifted:
     off (and runs fast or slow) and the relay must notice; the relay exporter's clock exchanges
     read the same pretend clock. Capture times are left as they are: they are the camera's clock
     (an RTSP sender's reports), which a node whose own clock is off still receives unchanged, and
-    which two DCUs of one camera must share for their frames to be matched (relay.moments)."""
+    which two DCUs of one camera must share for their frames to be matched (relay.api.moments)."""
 
     def __init__(self, inner: Exporter, pretend: PretendClock):
         self.inner, self.pretend = inner, pretend

@@ -6,7 +6,7 @@ import sys
 from core import signals
 from core.errors import DcuscopeError
 from relay.commands import add_relay_arguments, run_relay
-from relay.limits import limits_help
+from relay.guard.limits import limits_help
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -5,14 +5,18 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import sys
 
 from core.ports import check_port_free
-from relay.auth import load_node_tokens
-from relay.clock import CLOCK_MODES
+from relay.clock.correction import CLOCK_MODES
 from relay.errors import RelayError
-from relay.framelimits import FrameLimits
-from relay.limits import Limits, limits_help
-from relay.otlpconfig import DEFAULT_EVERY, DEFAULT_QUEUE, DEFAULT_TIMEOUT_S, OtlpConfig, otlp_config
+from relay.live.framelimits import FrameLimits
+from relay.export.otlpconfig import DEFAULT_EVERY, DEFAULT_QUEUE, DEFAULT_TIMEOUT_S, OtlpConfig, otlp_config
+from relay.guard.auth import load_node_tokens
+from relay.guard.limits import Limits, limits_help
+from relay.guard.proxy import TrustedProxies
+from relay.store.engines import is_url
+from relay.workers import run_workers
 
 TOKEN_ENV = "DCUSCOPE_TOKEN"
 
@@ -23,7 +27,7 @@ def add_relay_parser(subparsers) -> argparse.ArgumentParser:
         "relay", help="run the monitoring host: ingest from nodes, live delays, storage, API and UI",
         description="Receive probe events from dcuscope nodes (dcuscope run ... --relay URL), estimate "
                     "their clock offsets, compute per-stage and per-frame delays live, store every "
-                    "session in SQLite and serve the HTTP API and the UI.",
+                    "session (SQLite, or PostgreSQL shared by many relays) and serve the HTTP API and the UI.",
         epilog=limits_help(), formatter_class=argparse.RawDescriptionHelpFormatter)
     add_relay_arguments(p)
     p.set_defaults(func=run_relay, holds_signals=True)
@@ -37,7 +41,18 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
                    help="UDP port of the light clock exchange nodes use beside their WebSocket (kernel "
                         "timestamps, tighter offset estimates); default: the same number as --port; 0 turns it "
                         "off (nodes then exchange over the WebSocket)")
-    p.add_argument("--db", default="dcuscope.db", help="SQLite database file (default ./dcuscope.db)")
+    p.add_argument("--db", default="dcuscope.db", metavar="FILE|URL",
+                   help="where sessions are stored: an SQLite file (one relay; default ./dcuscope.db) or a PostgreSQL "
+                        "database, postgresql://USER[:PASSWORD]@HOST[:PORT]/DB, shared by any number of relays: any "
+                        "relay takes any node, and a node whose relay died resumes its run on another (README, Fleet)")
+    p.add_argument("--workers", type=int, default=1, metavar="N",
+                   help="run N relay processes on this host sharing --port (SO_REUSEPORT) and the --db PostgreSQL "
+                        "store: N cores for ingest; each answers UDP clock exchanges on the clock port + its index "
+                        "(default 1)")
+    p.add_argument("--reuse-port", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--retain", type=float, metavar="DAYS",
+                   help="delete whole sessions last heard from over DAYS ago (checked every minute, deleted in small "
+                        "parts that do not hold ingest up; default: keep everything)")
     p.add_argument("--token", default=os.environ.get(TOKEN_ENV),
                    help=f"shared secret nodes and browsers must present (default ${TOKEN_ENV})")
     p.add_argument("--node-tokens", metavar="FILE",
@@ -51,6 +66,12 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
                    help="without --token, also answer requests (Host and browser Origin) naming this host "
                         "(repeatable); by default only IP addresses and localhost, against DNS rebinding "
                         "(nodes may use any name)")
+    p.add_argument("--trusted-proxy", action="append", default=[], metavar="ADDR[,ADDR...]",
+                   help="behind a TCP load balancer or proxy: the proxies' IP addresses or networks (CIDR, e.g. "
+                        "10.0.0.0/24; repeatable or comma-separated). Their connections must start with a PROXY "
+                        "protocol header (v1 or v2, HAProxy send-proxy, nginx proxy_protocol): the relay takes the "
+                        "client's address from it, for connections_per_peer and request addresses, and closes "
+                        "those without a valid one. Other peers' headers are never read (default: none)")
     p.add_argument("--limit", action="append", default=[], metavar="NAME=VALUE",
                    help="change one of the bounds listed below (repeatable), e.g. --limit connections_per_peer=64; "
                         "by default each has the default given there")
@@ -90,12 +111,29 @@ def run_relay(args: argparse.Namespace) -> int:
         limits = Limits().with_values(args.limit)
     except ValueError as exc:
         raise RelayError(f"--limit: {exc}") from None
+    try:
+        trusted = TrustedProxies.parse(args.trusted_proxy)
+    except ValueError as exc:
+        raise RelayError(f"--trusted-proxy: {exc}") from None
     node_tokens = load_node_tokens(args.node_tokens) if args.node_tokens else None
     frame_limits = FrameLimits.parse(args.frame_limit)
     otlp = _otlp(args, frame_limits)
-    check_port_free(args.host, args.port)
+    if args.retain is not None and not args.retain > 0:
+        raise RelayError(f"--retain takes a number of days above 0, not {args.retain:g}")
+    if args.workers != 1:
+        if not 2 <= args.workers <= 64:
+            raise RelayError(f"--workers must be 1..64, not {args.workers}")
+        if not is_url(args.db):
+            raise RelayError("--workers N runs N relays on one store: that takes a shared one, --db postgresql://...")
+        if args.port == 0:
+            raise RelayError("--workers N shares one port among the workers: give it, --port P")
+        check_port_free(args.host, args.port)
+        return run_workers(sys.argv[1:], args.workers, args.port if args.clock_port is None else args.clock_port)
+    if not args.reuse_port:
+        check_port_free(args.host, args.port)
     serve(args.host, args.port, args.db, args.token, args.clock, limits=limits, node_tokens=node_tokens,
-          allow_hosts=args.allow_host, clock_port=args.clock_port, frame_limits=frame_limits, otlp=otlp)
+          allow_hosts=args.allow_host, clock_port=args.clock_port, frame_limits=frame_limits, otlp=otlp,
+          trusted_proxies=trusted, reuse_port=args.reuse_port, retain_days=args.retain)
     return 0
 
 

@@ -3,8 +3,8 @@ Socket.IO server (``/ui``), the HTTP API and storage.
 
 ``serve(host, port, db, token, clock)`` runs it until SIGINT/SIGTERM; ``start_relay`` starts it
 on a running loop (tests, benchmarks). The page of ``ui/static/`` is served at ``/``, the
-Prometheus metrics at ``/metrics`` (:mod:`relay.metrics`). Beside it,
-the UDP clock exchange (:mod:`relay.clockudp`) listens on ``clock_port``: by default the HTTP
+Prometheus metrics at ``/metrics`` (:mod:`relay.export.metrics`). Beside it,
+the UDP clock exchange (:mod:`relay.clock.udp`) listens on ``clock_port``: by default the HTTP
 port's number, 0 turns it off.
 """
 
@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import os
 import signal
+import socket
 import sys
 from collections import Counter
 from collections.abc import Iterable
@@ -24,30 +26,33 @@ from aiohttp import web
 
 from core import signals
 from probes.wire import INGEST_PATH, MAX_MESSAGE_BYTES
-from relay import lograte
-from relay.api import add_routes
-from relay.clock import CLOCK_MODES
-from relay.clockudp import ClockUdp
+from relay.api.routes import add_routes
+from relay.api.sessions import add_session_routes
+from relay.api.sio import create_sio, sio_errors
+from relay.api.ui import DEFAULT_PUSH_HZ, Ticker, UiNamespace
+from relay.clock.correction import CLOCK_MODES
+from relay.clock.udp import ClockUdp
 from relay.errors import RelayError
-from relay.framelimits import FrameLimits
-from relay.guard import ConnGuard, GuardedSite, fit_descriptors
-from relay.hostcheck import HostCheck
-from relay.ingest import SYNCS_KEPT, Ingest
-from relay.limits import Limits
-from relay.live import LiveConfig
-from relay.metrics import RelayCollector, add_metrics_route
-from relay.otlp import OtlpExporter
-from relay.otlpconfig import OtlpConfig
-from relay.sessionapi import add_session_routes
-from relay.sioserver import create_sio, sio_errors
-from relay.state import RelayState
-from relay.storage import Storage
-from relay.uiapi import DEFAULT_PUSH_HZ, Ticker, UiNamespace
+from relay.live.framelimits import FrameLimits
+from relay.export.metrics import RelayCollector, add_metrics_route
+from relay.export.otlp import OtlpExporter
+from relay.export.otlpconfig import OtlpConfig
+from relay.guard import lograte
+from relay.guard.connections import ConnGuard, GuardedSite, fit_descriptors
+from relay.guard.hostcheck import HostCheck
+from relay.guard.limits import Limits
+from relay.heap import Reclaimer
+from relay.guard.proxy import TrustedProxies
+from relay.ingest.endpoint import SYNCS_KEPT, Ingest
+from relay.live.run import LiveConfig
+from relay.live.state import RelayState
+from relay.store.retention import retain
+from relay.store.writer import Storage
 
 UI_DIR = Path(__file__).resolve().parents[1] / "ui" / "static"
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
 LOG_FLUSH_S = 10.0
-REFUSALS = ("peer_cap", "tcp_cap", "header_timeout", "hello_timeout", "host")
+REFUSALS = ("peer_cap", "tcp_cap", "header_timeout", "hello_timeout", "host", "proxy_header")
 PLACEHOLDER = """<!doctype html><html><head><meta charset="utf-8"><title>dcuscope relay</title></head>
 <body><h1>dcuscope relay</h1><p>The UI is not installed (ui/static/index.html). The JSON API is at
 <a href="/api/nodes">/api/nodes</a>, <a href="/api/sessions">/api/sessions</a>,
@@ -71,7 +76,11 @@ class Relay:
     port: int = 0
     otlp: OtlpExporter | None = None
     """The OTLP trace exporter (``--otlp``), if any."""
+    reclaimer: Reclaimer | None = None
+    """Gives back the memory of runs that left it (:mod:`relay.heap`)."""
     _task: asyncio.Task | None = None
+    _retention: asyncio.Task | None = None
+    _reclaim: asyncio.Task | None = None
 
     @property
     def clock_port(self) -> int:
@@ -79,8 +88,9 @@ class Relay:
         return self.ingest.clock_udp.port if self.ingest.clock_udp is not None else 0
 
     async def stop(self) -> None:
-        if self._task is not None:
-            self._task.cancel()
+        for task in (self._task, self._retention, self._reclaim):
+            if task is not None:
+                task.cancel()
         if self.ingest.clock_udp is not None:
             self.ingest.clock_udp.stop()
         # Close every client's websocket first: the web runner would wait out their pings.
@@ -96,22 +106,25 @@ class Relay:
 def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *, limits: Limits = Limits(),
                live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ,
                node_tokens: dict[str, str] | None = None, allow_hosts: Iterable[str] = (),
-               frame_limits: FrameLimits = FrameLimits(), otlp: OtlpConfig | None = None
-               ) -> tuple[web.Application, Relay]:
+               frame_limits: FrameLimits = FrameLimits(), otlp: OtlpConfig | None = None,
+               trusted_proxies: TrustedProxies = TrustedProxies()) -> tuple[web.Application, Relay]:
     """The relay's app; without a token, requests must name an IP, localhost or one of ``allow_hosts``
-    (:mod:`relay.hostcheck`). ``otlp``: export sampled frames as traces (:mod:`relay.otlp`; its
-    thread starts with :func:`start_relay`)."""
+    (:mod:`relay.guard.hostcheck`). ``otlp``: export sampled frames as traces (:mod:`relay.export.otlp`; its
+    thread starts with :func:`start_relay`). ``trusted_proxies``: peers whose connections start with a PROXY
+    header naming the client (:mod:`relay.guard.proxy`)."""
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     limits = fit_descriptors(limits)
-    storage = Storage(db)
+    # The name other relays sharing the store see (/api/health's store.relays).
+    storage = Storage(db, name=f"{socket.gethostname()} pid {os.getpid()}")
     state = RelayState(storage, clock, live, limits, frame_limits)
     sio = create_sio()
     ingest = Ingest(state, token, limits, node_tokens)
+    storage.on_owners_lost = lambda: _background(ingest.let_go())
     ui = UiNamespace(state, token)
     sio.register_namespace(ui)
     refused: Counter = Counter()
-    guard = ConnGuard(limits, refused)
+    guard = ConnGuard(limits, refused, trusted_proxies)
     # The guard's first: a request refused further in still counts as one the connection sent.
     middlewares = [guard.middleware]
     if token is None:
@@ -121,6 +134,7 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     app.router.add_get(INGEST_PATH, ingest.handle)
     sio.attach(app)
     ticker = Ticker(state, ui, push_hz)
+    reclaimer = Reclaimer(lambda: state.released)
     exporter = OtlpExporter(otlp, state) if otlp is not None else None
 
     def counters() -> dict:
@@ -130,8 +144,11 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
                 "clock_udp": dict(udp.counts, port=udp.port, keys=udp.keys) if udp is not None else None,
                 "refused": {**state.refused, **{k: refused[k] for k in REFUSALS}},
                 "connections": {"tcp": guard.open, "ingest": ingest.connected},
+                "proxy": {"trusted": trusted_proxies.as_list(), "proxied": guard.proxied,
+                          "proxied_open": guard.proxied_open} if trusted_proxies else None,
                 "pushes": ticker.pushes, "commits": storage.commits, "batches": storage.batches_written,
                 "limits": limits.as_dict(), "released_runs": state.released, "memory": state.memory_view(),
+                "heap": reclaimer.view(),
                 "otlp": exporter.view() if exporter is not None else None}
 
     add_routes(app, state, token, counters)
@@ -141,7 +158,16 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     _add_ui(app)
     if exporter is not None:
         exporter.attach(metrics)
-    return app, Relay(state, storage, sio, ingest, ui, ticker, guard, metrics, otlp=exporter)
+    return app, Relay(state, storage, sio, ingest, ui, ticker, guard, metrics, otlp=exporter, reclaimer=reclaimer)
+
+
+_tasks: set[asyncio.Task] = set()
+
+
+def _background(coro) -> None:
+    task = asyncio.ensure_future(coro)
+    _tasks.add(task)  # held: the loop keeps only weak references to tasks
+    task.add_done_callback(_tasks.discard)
 
 
 def _add_ui(app: web.Application) -> None:
@@ -168,15 +194,17 @@ def _add_ui(app: web.Application) -> None:
 
 async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db",
                       token: str | None = None, clock: str = "auto", clock_port: int | None = None,
-                      **options) -> Relay:
+                      reuse_port: bool = False, retain_days: float | None = None, **options) -> Relay:
     """Start a relay on the running loop; ``port=0`` picks a free port (see ``Relay.port``).
-    ``clock_port``: UDP port of the clock exchange (None: the HTTP port's number; 0: none)."""
+    ``clock_port``: UDP port of the clock exchange (None: the HTTP port's number; 0: none).
+    ``reuse_port``: share the port with the host's other relay processes (``--workers``).
+    ``retain_days``: delete sessions older than that (:mod:`relay.store.retention`; None: keep all)."""
     app, relay = create_app(db, token, clock, **options)
     relay.storage.start(asyncio.get_running_loop())
     runner = web.AppRunner(app, access_log=None, handle_signals=False,
                            keepalive_timeout=relay.guard.limits.keepalive_s)
     await runner.setup()
-    site = GuardedSite(runner, host, port, relay.guard)
+    site = GuardedSite(runner, host, port, relay.guard, reuse_port=reuse_port)
     try:
         await site.start()
     except OSError as exc:
@@ -192,6 +220,9 @@ async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path 
         relay.storage.stop()
         raise
     relay._task = asyncio.create_task(relay.ticker.run())
+    relay._reclaim = asyncio.create_task(relay.reclaimer.run())
+    if retain_days is not None:
+        relay._retention = asyncio.create_task(retain(relay.storage, retain_days))
     if relay.otlp is not None:
         relay.otlp.start()
     return relay
@@ -235,7 +266,8 @@ async def _serve(host: str, port: int, db: str | Path, token: str | None, clock:
     if signals.held() is not None:  # Ctrl-C while starting up
         stop.set()
     udp = f"UDP clock exchange on port {relay.clock_port}" if relay.clock_port else "no UDP clock exchange"
-    print(f"dcuscope relay: listening on http://{host}:{relay.port} (db {db}, clock {clock}; {udp})", flush=True)
+    print(f"dcuscope relay: listening on http://{host}:{relay.port} (db {relay.storage.location}, clock {clock}; "
+          f"{udp})", flush=True)
     try:
         await stop.wait()
     finally:

@@ -85,3 +85,19 @@ def wait_until_mapped(proc: subprocess.Popen, library: str, timeout: float = 60)
             return
         time.sleep(0.005)
     raise AssertionError(f"{library} never loaded")
+
+
+@pytest.fixture(scope="session")
+def postgres():
+    """This worker's PostgreSQL server (tests/pgserver.py), started at first use."""
+    from tests.pgserver import PostgresServer
+
+    server = PostgresServer().start()
+    yield server
+    server.close()
+
+
+@pytest.fixture
+def pg_url(postgres) -> str:
+    """The URL of an empty database of its own on this worker's PostgreSQL server."""
+    return postgres.new_database()

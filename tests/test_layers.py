@@ -102,3 +102,32 @@ def test_modules_form_a_dag():
     for name in sorted(GRAPH):
         if name not in state:
             visit(name)
+
+
+RELAY_LAYERS = ["errors", "heap", "guard", "clock", "store", "live", "ingest", "export", "api", "server", "workers", "commands",
+                "__main__"]
+"""The relay's own parts, bottom-up: each imports only those before it.
+
+    heap      giving the memory of runs that left back to the system
+    guard     limits, tokens, Host checks, connection caps, PROXY protocol, log rate
+    clock     NTP samples, the offset/drift model, corrections, the UDP exchange
+    store     one interface, one module per engine (SQLite, PostgreSQL), stored-run loading
+    live      what the relay holds of each run in memory: frames, statistics, sequence sets
+    ingest    the nodes' WebSocket, run ownership among relays
+    export    Prometheus /metrics and OTLP
+    api       the HTTP API and the browsers' Socket.IO namespace
+"""
+
+
+def relay_part(name: str) -> str | None:
+    parts = name.split(".")
+    return parts[1] if parts[0] == "relay" and len(parts) > 1 else None
+
+
+@pytest.mark.parametrize("name", sorted(n for n in MODULES if relay_part(n)))
+def test_relay_parts_import_downward(name):
+    part = relay_part(name)
+    assert part in RELAY_LAYERS, f"{MODULES[name].relative_to(REPO)}: a new part of relay/ needs a place in RELAY_LAYERS"
+    below = set(RELAY_LAYERS[:RELAY_LAYERS.index(part)])
+    upward = sorted(t for t in GRAPH[name] if relay_part(t) and relay_part(t) not in below | {part})
+    assert not upward, f"{MODULES[name].relative_to(REPO)} ({part}) imports {upward}"

@@ -30,7 +30,7 @@ from probes.events import FACT
 from probes.frametable import frame_events, frame_table
 from probes.relayexport import RelayExporter
 from probes.tracefile import write_trace
-from relay.live import LiveRun
+from relay.live.run import LiveRun
 from tests.probes.synth import run_commands, troubled_run
 from tests.relay.helpers import RelayProcess, get_json, wait_for
 

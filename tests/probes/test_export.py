@@ -17,7 +17,7 @@ from probes.events import CAPTURE, ENTER, EXIT, ORIGIN, READY
 from probes.export import CSV_COLUMNS, assign_lanes, perfetto_document, write_csv
 from probes.frametable import frame_table
 from probes.tracefile import read_trace, write_trace
-from relay.clock import Correction, Segment
+from relay.clock.correction import Correction, Segment
 from tests.conftest import run_cli
 from tests.probes.synth import run_commands as _cli
 from tests.probes.synth import STAGES, pipeline_run

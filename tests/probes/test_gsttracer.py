@@ -18,7 +18,7 @@ import pytest
 
 from probes.delays import frame_delays
 from probes.events import ENTER, EXIT, ORIGIN
-from probes.frametable import MISSING, frame_table
+from probes.frametable import frame_table
 from probes.native import build
 from probes.tracefile import read_trace
 from tests.conftest import REPO, run_cli

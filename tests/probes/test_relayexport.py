@@ -101,11 +101,11 @@ def test_a_batch_the_relay_could_not_store_is_sent_again(tmp_path):
         try:
             exporter.start(header_for("A", 2))
             await until(lambda: exporter.counters()["connected"], what="connection")
-            await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = ON"))  # commits now fail
+            await relay.storage.call(lambda d: d.conn.execute("PRAGMA query_only = ON"))  # commits now fail
             events = synth_events(50, 2, 25.0, T0)
             exporter.write(events)
             await until(lambda: "store" in exporter.counters()["last_error"], what="a refused batch")
-            await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = OFF"))
+            await relay.storage.call(lambda d: d.conn.execute("PRAGMA query_only = OFF"))
             await asyncio.to_thread(exporter.close, 0)
             c = exporter.counters()
             assert c["acked"] == len(events) and c["connects"] == 1 and c["lost"] == 0
@@ -127,14 +127,14 @@ def test_a_node_holds_its_batches_while_the_relays_storage_fails(tmp_path):
         try:
             exporter.start(header_for("A", 2))
             await until(lambda: exporter.counters()["connected"], what="connection")
-            await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = ON"))  # commits now fail
+            await relay.storage.call(lambda d: d.conn.execute("PRAGMA query_only = ON"))  # commits now fail
             events = synth_events(100, 2, 25.0, T0)  # 2,400 events, 24 batches
             exporter.write(events)
             await until(lambda: exporter.counters()["retries"] > 0, what="a refused batch")
             failing_since = time.monotonic()
             await until(lambda: time.monotonic() - failing_since > 2.0, what="2 s of failing storage")
             retries, failing_s = exporter.counters()["retries"], time.monotonic() - failing_since
-            await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = OFF"))
+            await relay.storage.call(lambda d: d.conn.execute("PRAGMA query_only = OFF"))
             await asyncio.to_thread(exporter.close, 0)
             batches = math.ceil(len(events) / 100)  # one write, cut into batches of 100
             rounds = 2 + math.log2(failing_s / 0.1)

@@ -1,13 +1,13 @@
-"""relay.buckets: bulk-fed histograms agree with numpy's, buckets upper-inclusive (Prometheus' le)."""
+"""relay.export.buckets: bulk-fed histograms agree with numpy's, buckets upper-inclusive (Prometheus' le)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from relay.buckets import Histograms
-from relay.framemetrics import NS_PER_S
-from relay.metrics import BUCKETS_S
+from relay.export.buckets import Histograms
+from relay.export.framemetrics import NS_PER_S
+from relay.export.metrics import BUCKETS_S
 
 BOUNDS_NS = np.array([round(b * NS_PER_S) for b in BUCKETS_S], dtype=np.float64)
 

@@ -16,7 +16,7 @@ import numpy as np
 from probes.events import ORIGIN
 from probes.simnode import synth_events
 from probes.wire import encode_batch
-from relay.storage import frame_starts, load_runs
+from relay.store.runs import frame_starts, load_runs
 from tests.relay.helpers import HandNode, RelayProcess, get_json
 
 OFFSETS = (5_000_000, 45_000_000)

@@ -21,7 +21,7 @@ from probes.simnode import header_for, synth_events
 from core.clocks import CLOCKS, PretendClock
 from probes.udpclock import (BURST, UdpClock, decode_answer, enable_rx_timestamps, encode_request, parse_offer,
                              recv_stamped)
-from relay.clock import ntp_sample
+from relay.clock.correction import ntp_sample
 from relay.server import start_relay
 from tests.relay.helpers import (ROOT, HandNode, RelayProcess, env, finish_node, get_json, start_node, wait_for)
 

@@ -1,4 +1,4 @@
-"""relay.exposition: the bulk writer's text is generate_latest's, byte for byte."""
+"""relay.export.exposition: the bulk writer's text is generate_latest's, byte for byte."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Histo
 from prometheus_client.exposition import generate_latest
 from prometheus_client.utils import floatToGoString
 
-from relay.exposition import BulkHistogram, exposition
+from relay.export.exposition import BulkHistogram, exposition
 
 LE = [floatToGoString(b) for b in (0.0001, 0.00015, 0.5, 7.0, 10.0)] + ["+Inf"]
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from relay.clock import Correction, Segment
-from relay.framejson import frame_dicts
+from relay.clock.correction import Correction, Segment
+from relay.live.framejson import frame_dicts
 from tests.probes.synth import T0
 from tests.relay.test_moments import node_run
 

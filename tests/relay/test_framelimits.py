@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from relay.errors import RelayError
-from relay.framelimits import FrameLimits
+from relay.live.framelimits import FrameLimits
 
 
 def test_a_node_limit_wins_over_the_default():

@@ -13,8 +13,7 @@ import pytest
 from probes.delays import node_stats
 from probes.simnode import synth_events
 from probes.wire import encode_batch
-from relay import storage
-from relay.storage import load_runs
+from relay.store.runs import list_sessions, load_runs
 from tests.relay.helpers import (HandNode, RelayProcess, assert_stats_equal, finish_node, get_json, load_node,
                                  sort_events, start_node, wait_for)
 
@@ -181,11 +180,7 @@ def test_runs_of_restarting_and_cycling_nodes_leave_memory(tmp_path):
 
 
 def load_sessions(db) -> list[list[str]]:
-    conn = storage.connect(db, create=False)
-    try:
-        return [[r["node"] for r in s["runs"]] for s in storage.list_sessions(conn)]
-    finally:
-        conn.close()
+    return [[r["node"] for r in s["runs"]] for s in list_sessions(db)]
 
 
 def test_a_refused_run_is_kept_out_of_the_good_nodes_session(tmp_path):

@@ -11,7 +11,7 @@ from probes.delays import node_stats
 from probes.events import ENTER, EVENT_DTYPE, EXIT, TraceHeader
 from probes.simnode import header_for, synth_events
 from probes.wire import SOURCE_LIMIT
-from relay.live import LiveConfig, LiveRun
+from relay.live.run import LiveConfig, LiveRun
 from tests.probes.synth import pipeline_run
 from tests.relay.helpers import assert_stats_equal
 

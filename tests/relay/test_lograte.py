@@ -1,11 +1,11 @@
-"""The relay's bound on repeated log messages (relay.lograte) on a real logging handler."""
+"""The relay's bound on repeated log messages (relay.guard.lograte) on a real logging handler."""
 
 from __future__ import annotations
 
 import io
 import logging
 
-from relay.lograte import RateFilter
+from relay.guard.lograte import RateFilter
 
 
 def test_repeats_beyond_the_rate_are_counted_and_summarised():

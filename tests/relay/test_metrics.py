@@ -22,10 +22,10 @@ from probes.events import DROP, DROP_REASONS, ENTER, EVENT_DTYPE, EXIT, ORIGIN, 
 from probes.frametable import frame_table
 from probes.simnode import header_for, synth_events
 from probes.wire import PTP_STATES, encode_batch
-from relay.framemetrics import MAX_GAPS, NS_PER_S, gap_stages
-from relay.limits import Limits
-from relay.live import LiveConfig
-from relay.metrics import BUCKETS_S
+from relay.export.framemetrics import MAX_GAPS, NS_PER_S, gap_stages
+from relay.export.metrics import BUCKETS_S
+from relay.guard.limits import Limits
+from relay.live.run import LiveConfig
 from relay.server import start_relay
 from tests.probes.synth import pipeline_run
 from tests.relay.helpers import HandNode, RelayProcess, finish_node, start_node, wait_for

@@ -12,8 +12,8 @@ from probes.delays import frame_delays
 from probes.events import CAPTURE, ENTER, EXIT, ORIGIN, TraceHeader
 from probes.frametable import frame_table
 from probes.instrument import _Shifted
-from relay.clock import Correction, Segment
-from relay.moments import MATCH_TOLERANCE_NS, MomentsError, Side, compare, match, pairs_of
+from relay.api.moments import MATCH_TOLERANCE_NS, MomentsError, Side, compare, match, pairs_of
+from relay.clock.correction import Correction, Segment
 from tests.probes.synth import T0, _events
 
 URI = "uri:rtsp://127.0.0.1:8554/cam0"

@@ -14,16 +14,16 @@ import pytest
 from probes.delays import frame_delays, series
 from probes.frametable import frame_table
 from probes.simnode import STAGES, header_for, synth_events
-from relay.framelimits import FrameLimits
-from relay.live import LiveRun
-from relay.otlp import MAX_BUSY, OtlpExporter
-from relay.otlpconfig import OtlpConfig
-from relay.otlpqueue import FrameQueue, OtlpCounters
-from relay.otlpsample import Sampler
-from relay.otlpspans import node_resource, spans_of, trace_id
-from relay.seqset import SeqSet
-from relay.state import RelayState, RunState
-from relay.storage import Storage
+from relay.live.framelimits import FrameLimits
+from relay.export.otlp import MAX_BUSY, OtlpExporter
+from relay.export.otlpconfig import OtlpConfig
+from relay.export.otlpqueue import FrameQueue, OtlpCounters
+from relay.export.otlpsample import Sampler
+from relay.export.otlpspans import node_resource, spans_of, trace_id
+from relay.live.run import LiveRun
+from relay.live.seqset import SeqSet
+from relay.live.state import RelayState, RunState
+from relay.store.writer import Storage
 from tests.relay.helpers import wait_for
 from tests.relay.otlpreceiver import OtlpReceiver
 

@@ -7,8 +7,8 @@ import pytest
 
 from probes.delays import node_stats, summarize
 from probes.simnode import header_for, synth_events
-from relay.live import LiveConfig, LiveRun
-from relay.runvalues import RELATIVE_ERROR, RunValues
+from relay.live.run import LiveConfig, LiveRun
+from relay.live.values import RELATIVE_ERROR, RunValues
 from tests.relay.helpers import assert_stats_equal
 
 T0 = 1_700_000_000_000_000_000

@@ -18,7 +18,7 @@ from probes.errors import ExportError
 from probes.simnode import synth_events
 from probes.wire import INGEST_PATH, encode_batch
 from relay.commands import add_relay_parser
-from relay.limits import Limits
+from relay.guard.limits import Limits
 from relay.server import start_relay
 from tests.conftest import wait_until_mapped
 from tests.relay.helpers import ROOT, HandNode, RelayProcess, env, get_json
@@ -103,11 +103,11 @@ def test_a_batch_resent_after_a_storage_failure_counts_once(tmp_path):
         events = synth_events(10, 1, 25.0, T0)
         try:
             node = await HandNode.open(f"http://127.0.0.1:{relay.port}", "A", run)
-            await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = ON"))  # commits now fail
+            await relay.storage.call(lambda d: d.conn.execute("PRAGMA query_only = ON"))  # commits now fail
             refused = await node.batch(encode_batch(run, 0, events))
             assert refused["ok"] is False and refused["seq"] == 0 and node.connected
             assert relay.state.runs[run].live.events == 0
-            await relay.storage.call(lambda conn: conn.execute("PRAGMA query_only = OFF"))
+            await relay.storage.call(lambda d: d.conn.execute("PRAGMA query_only = OFF"))
             assert (await node.batch(encode_batch(run, 0, events))) == {"v": 2, "type": "ack", "seq": 0, "ok": True}
             assert relay.state.runs[run].live.events == len(events) and relay.state.runs[run].duplicates == 0
             await node.close()

@@ -1,4 +1,4 @@
-"""Stored sessions over HTTP (relay/sessionapi.py): the frames and statistics of what nodes shipped."""
+"""Stored sessions over HTTP (relay/api/sessions.py): the frames and statistics of what nodes shipped."""
 
 from __future__ import annotations
 

@@ -1,0 +1,1 @@
+"""The HTTP API, stored sessions' routes and the browsers' Socket.IO namespace."""

@@ -1,0 +1,84 @@
+"""The browsers' Socket.IO server (namespace ``/ui``), made with public python-socketio options.
+
+Only browsers speak Socket.IO here (nodes use the plain WebSocket of :mod:`relay.ingest.endpoint`), and
+they only listen and ``subscribe``. What a client that sends garbage could still cause is
+logged tracebacks: python-socketio and python-engineio log an exception for a packet they
+cannot parse, and aiohttp one for a request handler that raises. The loggers handed to the
+server write such a failure as one line, and :func:`sio_errors` ends the request of a
+handler that raised with a one-line log instead of aiohttp's traceback.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import socketio
+from aiohttp import web
+from socketio import packet as sio_packet
+
+SIO_PATH = "/socket.io/"
+MAX_UI_MESSAGE_BYTES = 64 * 1024
+"""Browsers send only ``subscribe``."""
+
+log = logging.getLogger(__name__)
+
+
+class JsonPacket(sio_packet.Packet):
+    """Socket.IO packets of a server that sends JSON only.
+
+    The stock packet walks every list and dict of an outgoing message looking for bytes to
+    send as attachments; for a push of a few thousand frames that walk cost more than making
+    the push. The relay never sends binary, so a look at the top level is enough.
+    """
+
+    @classmethod
+    def data_is_binary(cls, data) -> bool:
+        if isinstance(data, (bytes, bytearray)):
+            return True
+        if isinstance(data, (list, tuple)):
+            return any(isinstance(item, (bytes, bytearray)) for item in data)
+        return False
+
+
+class OneLine(logging.Filter):
+    """Write a record's exception as one line: a malformed packet is the client's fault, not a
+    failure of the relay worth a traceback."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.exc_info and record.exc_info[1] is not None:
+            exc = record.exc_info[1]
+            record.msg = f"{record.getMessage()}: {type(exc).__name__}: {str(exc)[:100]}"
+            record.args = None
+            record.exc_info = None
+            record.exc_text = None
+            record.levelno, record.levelname = logging.INFO, "INFO"
+        return record.levelno >= logging.getLogger(record.name).getEffectiveLevel()
+
+
+def _quiet_logger(name: str) -> logging.Logger:
+    logger = logging.getLogger(name)
+    if not any(isinstance(f, OneLine) for f in logger.filters):
+        logger.addFilter(OneLine())
+    return logger
+
+
+def create_sio() -> socketio.AsyncServer:
+    """The relay's Socket.IO server for browsers (attach it to the aiohttp app)."""
+    return socketio.AsyncServer(async_mode="aiohttp", serializer=JsonPacket,
+                                max_http_buffer_size=MAX_UI_MESSAGE_BYTES,
+                                logger=_quiet_logger("relay.sio"), engineio_logger=_quiet_logger("relay.eio"),
+                                ping_interval=10, ping_timeout=10)
+
+
+@web.middleware
+async def sio_errors(request: web.Request, handler) -> web.StreamResponse:
+    """End a Socket.IO request whose handler raised on a client's garbage, in one log line."""
+    try:
+        return await handler(request)
+    except web.HTTPException:
+        raise
+    except Exception as exc:  # noqa: BLE001 - what Engine.IO's unguarded packet decoding raises
+        if not request.path.startswith(SIO_PATH):
+            raise
+        log.info("closing Socket.IO connection: %s: %s", type(exc).__name__, str(exc)[:100])
+        raise web.HTTPBadRequest(text="malformed Socket.IO packet") from None

@@ -1,0 +1,144 @@
+"""The relay's end of the UDP clock exchange (datagrams: :mod:`probes.udpclock`).
+
+Each ingest connection that said hello gets a random key (``register``); a request carrying a
+key the relay handed out is answered with (t2, t3): t2 the kernel's receive time
+(``SO_TIMESTAMPNS``), t3 read just before ``sendto``. The pair is remembered in that
+connection's ``syncs``, where the ingest checks the samples its node reports (each pair counts
+once, a bounded number kept). Anything else is dropped unanswered and counted: a datagram of the
+wrong size or shape (``malformed``, ``oversize``), an unknown key (``unknown_key``), one beyond
+its key's rate (``Limits.clock_packets_per_s``) or beyond all keys' rate together
+(``Limits.total_clock_packets_per_s``). An answer is never larger than its request.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import socket
+import time
+from collections import Counter
+
+from probes.udpclock import (decode_request, enable_rx_timestamps, encode_answer, new_key, recv_stamped)
+from relay.guard.limits import Limits
+
+READS_PER_WAKE = 256
+"""Datagrams read per readiness callback: a flood cannot hold the event loop for longer; the
+kernel drops what its socket buffer cannot hold."""
+COUNTS = ("answered", "malformed", "oversize", "unknown_key", "rate_key", "rate_total")
+
+log = logging.getLogger(__name__)
+
+
+class PacketBucket:
+    """``rate`` packets per second, one second's worth at once; ``take`` never blocks."""
+
+    def __init__(self, rate: float) -> None:
+        self._rate = rate
+        self._tokens = rate
+        self._at = time.monotonic()
+
+    def take(self) -> bool:
+        now = time.monotonic()
+        self._tokens = min(self._rate, self._tokens + (now - self._at) * self._rate)
+        self._at = now
+        if self._tokens < 1:
+            return False
+        self._tokens -= 1
+        return True
+
+
+class _Key:
+    __slots__ = ("syncs", "bucket")
+
+    def __init__(self, syncs: dict[tuple[int, int], None], rate: float) -> None:
+        self.syncs, self.bucket = syncs, PacketBucket(rate)
+
+
+class ClockUdp:
+    """The UDP socket and the keys of the connections that may use it."""
+
+    def __init__(self, limits: Limits, syncs_kept: int) -> None:
+        self._limits, self._kept = limits, syncs_kept
+        self._keys: dict[bytes, _Key] = {}
+        self._total = PacketBucket(limits.total_clock_packets_per_s)
+        self._sock: socket.socket | None = None
+        self.port = 0
+        self.counts: Counter = Counter({name: 0 for name in COUNTS})
+
+    def start(self, host: str, port: int) -> int:
+        """Listen on ``host:port`` (0: any free port); the port. OSError if it cannot."""
+        family, _, _, _, addr = socket.getaddrinfo(host, port, type=socket.SOCK_DGRAM, flags=socket.AI_PASSIVE)[0]
+        sock = socket.socket(family, socket.SOCK_DGRAM)
+        try:
+            sock.setblocking(False)
+            enable_rx_timestamps(sock)
+            sock.bind(addr)
+        except OSError:
+            sock.close()
+            raise
+        self._sock, self.port = sock, sock.getsockname()[1]
+        asyncio.get_running_loop().add_reader(sock.fileno(), self._readable)
+        return self.port
+
+    def stop(self) -> None:
+        if self._sock is not None:
+            with contextlib.suppress(ValueError, OSError):
+                asyncio.get_running_loop().remove_reader(self._sock.fileno())
+            self._sock.close()
+            self._sock = None
+
+    def register(self, syncs: dict[tuple[int, int], None]) -> bytes:
+        """A new key whose answers are remembered in ``syncs`` (one connection's)."""
+        key = new_key()
+        self._keys[key] = _Key(syncs, self._limits.clock_packets_per_s)
+        return key
+
+    def forget(self, key: bytes) -> None:
+        self._keys.pop(key, None)
+
+    @property
+    def keys(self) -> int:
+        return len(self._keys)
+
+    def _readable(self) -> None:
+        sock = self._sock
+        for _ in range(READS_PER_WAKE):
+            if sock is None:
+                return
+            try:
+                data, sender, t2, truncated = recv_stamped(sock)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:  # an ICMP error queued by an earlier answer: nothing to do with this one
+                continue
+            self._take(sock, data, sender, t2, truncated)
+
+    def _take(self, sock: socket.socket, data: bytes, sender: object, t2: int, truncated: bool) -> None:
+        if truncated:
+            self.counts["oversize"] += 1
+            return
+        request = decode_request(data)
+        if request is None:
+            self.counts["malformed"] += 1
+            return
+        key, nonce = request
+        entry = self._keys.get(key)
+        if entry is None:
+            self.counts["unknown_key"] += 1
+            return
+        if not entry.bucket.take():
+            self.counts["rate_key"] += 1
+            return
+        if not self._total.take():
+            self.counts["rate_total"] += 1
+            return
+        t3 = time.time_ns()
+        try:
+            sock.sendto(encode_answer(nonce, t2, t3), sender)
+        except OSError:  # the node's socket went away: its pair is never reported
+            return
+        entry.syncs[(t2, t3)] = None
+        if len(entry.syncs) > self._kept:
+            del entry.syncs[next(iter(entry.syncs))]
+        self.counts["answered"] += 1

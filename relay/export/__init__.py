@@ -1,0 +1,1 @@
+"""What the relay sends elsewhere: Prometheus metrics and OpenTelemetry (OTLP) traces."""

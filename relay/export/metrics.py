@@ -1,0 +1,105 @@
+"""``GET /metrics``: the relay in the Prometheus text exposition format (``prometheus_client``).
+
+:class:`RelayCollector` builds every family at scrape time from the relay's state, in its own
+``CollectorRegistry`` per relay (never the process-wide one): the per-frame histograms
+(:mod:`relay.export.framemetrics`), the per-node gauges and counters (:mod:`relay.export.nodemetrics`) and the
+relay's own figures (events and batches ingested, queue depths, connections, live bytes).
+Exporters add theirs through :attr:`RelayCollector.extra`. The text is what
+``generate_latest(collector.registry)`` writes, its histograms written in bulk
+(:mod:`relay.export.exposition`). The route is guarded by the relay's token like ``/api``
+(``Authorization: Bearer TOKEN`` or ``?token=``).
+
+Every per-node series is labelled ``node`` (its newest run only); no label holds a frame
+number, and only ``dcuscope_node_info`` a run id. Series per node, at most, with S stages
+(``--limit stages``, 64), K sources (``--limit sources``, 256), G = min(gap pairs,
+framemetrics.MAX_GAPS + 1) and R = len(probes.events.DROP_REASONS) (6), each
+histogram series being len(BUCKETS_S) + 3 = 34 samples (buckets, +Inf, sum, count)::
+
+    34 (2 + 3 S + G)  +  4 S  +  K (6 + R)  +  18
+
+(~1,250 for a typical node: 8 stages, 8 gaps, 4 sources; 14,328 at every default
+limit), plus 7 for the relay itself and those of :attr:`RelayCollector.extra`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator
+
+from aiohttp import web
+from prometheus_client import CollectorRegistry
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.exposition import CONTENT_TYPE_LATEST
+from prometheus_client.registry import Collector
+
+from relay.export.exposition import exposition
+from relay.export.framemetrics import FrameMetrics
+from relay.export.nodemetrics import NodeMetrics
+from relay.guard.auth import http_token, token_matches
+from relay.guard.connections import ConnGuard
+from relay.ingest.endpoint import Ingest
+from relay.live.state import RelayState
+
+BUCKETS_S = tuple(float(f"{m}e{e}") for e in range(-4, 1) for m in (1, 1.5, 2, 3, 5, 7)) + (10.0,)
+"""Upper bounds of every histogram's buckets, s: 1-1.5-2-3-5-7 per decade, 0.1 ms to 10 s (then +Inf)."""
+METRICS_PATH = "/metrics"
+
+
+class RelayCollector(Collector):
+    """Every family of ``/metrics``, built from the relay's state when scraped."""
+
+    def __init__(self, state: RelayState, ingest: Ingest, guard: ConnGuard) -> None:
+        self.state, self.ingest, self.guard = state, ingest, guard
+        self.frames = FrameMetrics(state, BUCKETS_S)
+        state.observers.append(self.frames.observe)
+        self.nodes = NodeMetrics(state)
+        self.extra: list[Callable[[], Iterable[Metric]]] = []
+        """More families, asked for at each scrape (the OTLP exporter's counters)."""
+        self.queues: dict[str, Callable[[], float]] = {}
+        """More queue depths, as ``dcuscope_relay_queue_depth{queue=NAME}`` (the OTLP exporter's)."""
+        self.registry = CollectorRegistry(auto_describe=False)
+        self.registry.register(self)
+
+    def collect(self) -> Iterator[Metric]:
+        # The window's statistics first: computing them may finalise frames the histograms then count.
+        yield from self.nodes.families()
+        yield from self.frames.families()
+        yield from self._relay_families()
+        for more in self.extra:
+            yield from more()
+
+    def _relay_families(self) -> Iterator[Metric]:
+        state, ingest = self.state, self.ingest
+        yield CounterMetricFamily("dcuscope_relay_events", "Events ingested (stored and fed to the live state)",
+                                  value=ingest.events_in)
+        yield CounterMetricFamily("dcuscope_relay_batches", "Batches ingested (stored and fed to the live state)",
+                                  value=ingest.batches_in)
+        depth = GaugeMetricFamily("dcuscope_relay_queue_depth", "Items waiting: storage writes and calls "
+                                  "(storage), events not yet merged into live states (live_pending), frames waiting for "
+                                  "OTLP export (otlp)", labels=["queue"])
+        depth.add_metric(["storage"], state.storage.queued)
+        depth.add_metric(["live_pending"], sum(rs.live.pending_events for rs in state.runs.values()))
+        for name, depth_of in self.queues.items():
+            depth.add_metric([name], depth_of())
+        yield depth
+        conns = GaugeMetricFamily("dcuscope_relay_connections", "Connections held: ingest WebSockets, TCP in all",
+                                  labels=["kind"])
+        conns.add_metric(["ingest"], ingest.connected)
+        conns.add_metric(["tcp"], self.guard.open)
+        yield conns
+        yield GaugeMetricFamily("dcuscope_relay_live_bytes", "Bytes the runs' live states hold",
+                                value=state.memory_view()["live_bytes"])
+
+    def exposition(self) -> bytes:
+        """The text format of every family now (what ``generate_latest(self.registry)`` writes, faster)."""
+        return exposition(self.collect())
+
+
+def add_metrics_route(app: web.Application, collector: RelayCollector, token: str | None) -> None:
+    """``GET /metrics``, guarded by ``token`` (when set) as ``/api`` is."""
+
+    async def metrics(request: web.Request) -> web.Response:
+        if not token_matches(token, http_token(request.headers, request.query)):
+            return web.json_response({"error": "unauthorized: wrong or missing token"}, status=401)
+        return web.Response(body=collector.exposition(), headers={"Content-Type": CONTENT_TYPE_LATEST})
+
+    app.router.add_get(METRICS_PATH, metrics)

@@ -1,0 +1,1 @@
+"""Guards of the relay: limits, tokens, Host and Origin checks, connection caps, log rate."""

@@ -1,0 +1,1 @@
+"""The nodes' ingest WebSocket: hellos, batches, clock reports, ends."""

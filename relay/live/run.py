@@ -1,0 +1,567 @@
+"""Live per-run delay engine: pairs a node's events by frame as batches arrive (numpy per batch).
+
+Every figure comes from the delay model, :mod:`probes.delays` (``frame_delays``, ``series``,
+``delay_summary``), so that the relay's statistics over a run equal ``node_stats`` over the
+same events, and its window's are those of the frames in it.
+
+A frame lives in the *open* table (one row per (source, frame): the earliest timestamp of each
+(stage, point) cell, as ``frame_table`` keeps) until it is
+
+- *finalised*: its chain is complete (``probes.delays.chains``) and ``settle_s`` of the node's
+  time passed since its chain ended, so stragglers still land in it; its per-frame delays then
+  join the session's value arrays and its row leaves the open table; or
+- *evicted*: incomplete, with no event for ``evict_s`` of the node's time; it is counted.
+
+Time here is the node's own event time (its newest timestamp), so a network cut or a replay
+after a relay restart ages nothing. Events for a frame already finalised or evicted (at or
+below the source's watermark) are counted as ``late`` and ignored. Frames show up for the UI as
+soon as their chain is complete (:meth:`LiveRun.recent`).
+
+Memory is bounded in bytes (:meth:`LiveRun.set_budget`): the budget is split between the open
+table, the window's ring, the recent frames and the exact values, and each part's cap in frames or
+values follows from the run's row size, so a run declaring many stages holds fewer frames, not more
+bytes. A batch that would open more frames than the cap evicts the stalest open frames first, and
+opens only its newest ones if it holds more new frames than the cap (the rest count as evicted).
+Source ids are kept in a sorted array of those seen (never an array sized by an id).
+
+Whether a stage has an exit point at all is the one fact of a chain that spans frames; the
+engine keeps the run's value of it and hands it to ``chains``, so that every subset of frames
+is judged by the exits the whole run has seen.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from probes.delays import NS_PER_MS, Chains, FrameDelays, Series, chains, delay_summary, frame_delays, series
+from probes.events import EXIT, FRAME_CELLS, GROUP, READY, TraceHeader
+from probes.facts import Accounting
+from probes.frametable import MISSING, FrameTable, frame_events, frame_table_from_cells
+from relay.live.values import RELATIVE_ERROR, OriginSpans, RunValues
+
+KEY_SHIFT = 44  # key = source << 44 | frame; probes.wire bounds both to fit
+FINALISE_PERIOD_NS = 500_000_000
+"""Node time between two finalisation/eviction passes."""
+MERGE_EVENTS = 65536
+"""Queued events merged at once at most (one batch's worth), so a merge's transient arrays stay small."""
+FRAME_OVERHEAD = 32
+"""Bytes an open frame holds besides its cells (key, last timestamp, shown flag, merge copies)."""
+RING_OVERHEAD = 20
+"""Bytes a kept frame holds besides its cells (source, frame, end)."""
+SHARES = {"open": 0.25, "ring": 0.2, "recent": 0.05, "exact": 0.45, "evicted": 0.05}
+"""How a run's byte budget is split between its parts."""
+MIN_FRAMES = 16
+"""Frames every part may hold whatever the budget."""
+
+
+@dataclass(frozen=True)
+class LiveConfig:
+    window_s: float = 10.0
+    settle_s: float = 2.0
+    evict_s: float = 10.0
+    ring_frames: int = 65536
+    """Finalised frames kept whole for the rolling window."""
+    recent_frames: int = 4096
+    """Complete frames kept for the UI and /api/frames."""
+    max_open_frames: int = 200_000
+    """Open frames at most (~77 MB with 8 stages, 6 cells each): beyond, the stalest are evicted, so that a
+    node whose timestamps stand still cannot make the relay grow without bound. The run's byte budget
+    (``LiveRun.set_budget``) may lower it, as it lowers the ring, the recent frames and exact values."""
+    exact_values: int = 262_144
+    """Values per series kept exactly for whole-run percentiles (2 MB each); past it, a log
+    histogram with percentiles within 1 % (relay.live.values), so a run of days stays bounded. The
+    run's byte budget may lower it (default relay: 64 MiB a run, ~110,000 values a series at 8 stages)."""
+    evicted_kept: int = 65_536
+    """Eviction times kept for the rolling window's incomplete count (older ones are outside it)."""
+
+
+class Grow:
+    """A numpy array with amortised appends along axis 0, keeping (with a ``cap``) the newest
+    ``cap`` to ``2 * cap`` rows in at most ``2 * cap`` rows of memory."""
+
+    def __init__(self, dtype, tail: tuple = (), cap: int | None = None) -> None:
+        self._a = np.zeros((64, *tail), dtype)
+        self.n = 0
+        self.cap = cap
+
+    def extend(self, values: np.ndarray) -> None:
+        if self.cap is not None and self.n + len(values) > 2 * self.cap:
+            values = values[-self.cap:]
+            self.keep_last(self.cap - len(values))
+        k = len(values)
+        if self.n + k > len(self._a):
+            size = max(2 * len(self._a), self.n + k)
+            bigger = np.zeros((size if self.cap is None else min(size, 2 * self.cap), *self._a.shape[1:]),
+                              self._a.dtype)
+            bigger[:self.n] = self._a[:self.n]
+            self._a = bigger
+        self._a[self.n:self.n + k] = values
+        self.n += k
+
+    def set_cap(self, cap: int) -> None:
+        """Keep the newest ``cap`` rows from now on; memory shrinks to ``2 * cap`` rows now."""
+        self.cap = cap
+        if self.n > 2 * cap:
+            self.keep_last(cap)
+        if len(self._a) > 2 * cap:
+            self._a = self._a[:max(self.n, 2 * cap)].copy()
+
+    @property
+    def nbytes(self) -> int:
+        return self._a.nbytes
+
+    def keep_last(self, k: int) -> None:
+        if self.n > k:
+            self._a[:k] = self._a[self.n - k:self.n]
+            self.n = k
+
+    @property
+    def view(self) -> np.ndarray:
+        return self._a[:self.n]
+
+
+@dataclass
+class _Frames:
+    """Frames as full cells, the input both of chains and of the value extraction."""
+
+    source: np.ndarray
+    frame: np.ndarray
+    cells: np.ndarray  # (n, n_stages, FRAME_CELLS) int64
+
+
+class LiveRun:
+    """Live pairing and statistics of one run of one node."""
+
+    def __init__(self, header: TraceHeader, config: LiveConfig = LiveConfig(), budget: int | None = None) -> None:
+        self.header = header
+        self.stages = list(header.stages)
+        self.config = config
+        s = len(self.stages)
+        self._s = s
+        # Open frames, sorted by key.
+        self._keys = np.zeros(0, np.int64)
+        self._cells = np.zeros((0, s, FRAME_CELLS), np.int64)
+        self._last = np.zeros(0, np.int64)
+        self._shown = np.zeros(0, bool)
+        self._has_exit = np.zeros(s, bool)
+        # Source ids seen, sorted, with what is kept per id alongside.
+        self._src_ids = np.zeros(0, np.int64)
+        self._watermark = np.zeros(0, np.int64)
+        self._framed = np.zeros(0, bool)
+        """Sources with frame timestamps (not only drops or facts)."""
+        self.newest = 0
+        # Finalised frames.
+        self._values: dict[str, dict[str, RunValues]] = {kind: {} for kind in ("stages", "gaps", "service", "wait")}
+        self._open_cap = config.max_open_frames
+        self._exact_limit = config.exact_values
+        self._frame_values = RunValues(config.exact_values)
+        self._glass_values = RunValues(config.exact_values)
+        self._busy: dict[str, int] = {}
+        self._first_origin: int | None = None
+        self._last_end: int | None = None
+        self.accounting = Accounting(self.stages)
+        self._origins = OriginSpans()
+        ring, recent = config.ring_frames, config.recent_frames
+        self._ring = {"source": Grow(np.int32, cap=ring), "frame": Grow(np.int64, cap=ring),
+                      "cells": Grow(np.int64, (s, FRAME_CELLS), ring), "end": Grow(np.int64, cap=ring)}
+        self._evicted_last = Grow(np.int64, cap=config.evicted_kept)
+        self._recent = {"n": Grow(np.int64, cap=recent), "source": Grow(np.int32, cap=recent),
+                        "frame": Grow(np.int64, cap=recent), "cells": Grow(np.int64, (s, FRAME_CELLS), recent)}
+        self.finalised = 0
+        self.evicted = 0
+        self.late = 0
+        self.events = 0
+        self.visible = 0
+        """Frames made visible so far: the cursor of the newest one."""
+        self._dirty = False
+        self._pending: list[np.ndarray] = []
+        self._next_finalise = 0
+        self._settle_ns = int(config.settle_s * 1e9)
+        """How long a complete frame waits for stragglers before it is finalised (0 once the run ended)."""
+        self.on_finalise: Callable[[FrameDelays, Series], None] | None = None
+        """Called with the figures of every finalised batch of frames (all complete), exactly once
+        per frame: the exporters (``/metrics``, OTLP) take them from here, so they derive nothing again."""
+        if budget is not None:
+            self.set_budget(budget)
+
+    # --- memory ---------------------------------------------------------------------------------
+
+    def set_budget(self, budget: int) -> None:
+        """Hold at most about ``budget`` bytes from now on: each part's cap follows from its share
+        and the run's row size; what is over a lowered cap goes now (open frames evicted, the
+        oldest kept frames dropped, exact values moved into histograms)."""
+        c, row = self.config, self._s * FRAME_CELLS * 8
+        share = {part: int(budget * f) for part, f in SHARES.items()}
+        self._open_cap = min(c.max_open_frames, max(MIN_FRAMES, share["open"] // (row + FRAME_OVERHEAD)))
+        ring = min(c.ring_frames, max(MIN_FRAMES, share["ring"] // (2 * (row + RING_OVERHEAD))))
+        recent = min(c.recent_frames, max(MIN_FRAMES, share["recent"] // (2 * (row + RING_OVERHEAD))))
+        for g in self._ring.values():
+            g.set_cap(ring)
+        for g in self._recent.values():
+            g.set_cap(recent)
+        self._evicted_last.set_cap(min(c.evicted_kept, max(MIN_FRAMES, share["evicted"] // 16)))
+        # Series: per stage its delays, service, wait and the gap to the next, plus frame and glass.
+        self._exact_limit = min(c.exact_values, max(64, share["exact"] // (8 * (4 * self._s + 1))))
+        for v in self._all_series():
+            v.lower_limit(self._exact_limit)
+        excess = len(self._keys) - self._open_cap
+        if excess > 0:
+            self._evict_open(np.argsort(self._last, kind="stable")[:excess])
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the arrays this run holds (they dominate its memory)."""
+        arrays = (self._keys, self._cells, self._last, self._shown, self._src_ids, self._watermark, self._framed,
+                  *self._pending)
+        grows = (*self._ring.values(), *self._recent.values(), self._evicted_last)
+        return sum(a.nbytes for a in arrays) + sum(g.nbytes for g in grows) + sum(v.nbytes for v in self._all_series())
+
+    @property
+    def pending_events(self) -> int:
+        """Events queued by :meth:`add`, not yet merged."""
+        return sum(len(e) for e in self._pending)
+
+    @property
+    def open_cap(self) -> int:
+        """Open frames this run may hold now."""
+        return self._open_cap
+
+    def admit_sources(self, sources: np.ndarray, limit: int) -> int:
+        """Note the source ids of a batch unless the run would then name more than ``limit``
+        distinct ones; returns how many it would name (nothing is noted when over)."""
+        new = np.setdiff1d(np.unique(sources), self._src_ids, assume_unique=True)
+        total = len(self._src_ids) + len(new)
+        if total <= limit:
+            self._note_sources(new)
+        return total
+
+    # --- ingest -------------------------------------------------------------------------------
+
+    def add(self, events: np.ndarray) -> None:
+        """Queue a batch of validated events (stage and point in range, see probes.wire).
+
+        Merging costs a few dozen numpy calls whatever the batch size, so batches wait here
+        until the next :meth:`maintain` (the relay's tick) or read, and merge as one.
+        """
+        if len(events):
+            self._note_sources(np.setdiff1d(np.unique(events["source"]), self._src_ids, assume_unique=True))
+            self._pending.append(events)
+            self.events += len(events)
+
+    def _merge_pending(self) -> None:
+        while self._pending:
+            take, n = [], 0
+            while self._pending and (not take or n + len(self._pending[0]) <= MERGE_EVENTS):
+                take.append(self._pending.pop(0))
+                n += len(take[-1])
+            self._merge(np.concatenate(take) if len(take) > 1 else take[0])
+
+    def _merge(self, events: np.ndarray) -> None:
+        self.accounting.add(events)
+        events = frame_events(events)
+        if len(events) == 0:
+            return
+        src = events["source"].astype(np.int64)
+        frame = events["frame"].astype(np.int64)
+        ts = events["ts"].astype(np.int64)
+        stage = events["stage"].astype(np.int64)
+        point = events["point"].astype(np.int64)
+        code = events["code"].astype(np.int64)
+        key = (src << KEY_SHIFT) | frame
+        self.newest = max(self.newest, int(ts.max()))
+        self._has_exit |= np.bincount(stage[point == EXIT], minlength=self._s)[:self._s] > 0
+        self._framed[self._src_index(src)] = True
+
+        pos, placed = self._place(key, frame, src, ts)
+        if not placed.all():
+            pos, ts, stage, point, code = pos[placed], ts[placed], stage[placed], point[placed], code[placed]
+        if len(pos) == 0:
+            return
+        slot = (pos * self._s + stage) * FRAME_CELLS
+        flat = slot + point
+        order = np.lexsort((ts, flat))
+        fs, tsort = flat[order], ts[order]
+        first = np.ones(len(fs), bool)
+        first[1:] = fs[1:] != fs[:-1]
+        fu, tu = fs[first], tsort[first]
+        cells = self._cells.reshape(-1)
+        cur = cells[fu]
+        cells[fu] = np.where(cur == MISSING, tu, np.minimum(cur, tu))
+        ready = point == READY
+        cells[slot[ready] + GROUP] = code[ready]
+        np.maximum.at(self._last, pos, ts)
+        self._dirty = True
+
+    def _place(self, key: np.ndarray, frame: np.ndarray, src: np.ndarray,
+               ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Open the frames of these events that are new; returns each event's row in the open
+        table and which events have one: not those of a frame finalised or evicted before (late,
+        counted), nor those of a frame evicted now to make room."""
+        pos, found = self._locate(key)
+        if found.all():
+            return pos, found
+        late = np.zeros(len(key), bool)
+        late[~found] = frame[~found] <= self._watermark[self._src_index(src[~found])]
+        self.late += int(late.sum())
+        opening = ~found & ~late
+        if opening.any():
+            new, inv = np.unique(key[opening], return_inverse=True)
+            self._open(new[~self._make_room(new, ts[opening], inv)])
+        return self._locate(key)
+
+    def _locate(self, key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        pos = np.searchsorted(self._keys, key)
+        if len(self._keys) == 0:
+            return pos, np.zeros(len(key), bool)
+        return pos, self._keys[np.minimum(pos, len(self._keys) - 1)] == key
+
+    def _open(self, new_keys: np.ndarray) -> None:
+        keys = np.concatenate([self._keys, new_keys])
+        order = np.argsort(keys, kind="stable")
+        k = len(new_keys)
+        self._keys = keys[order]
+        self._cells = np.concatenate([self._cells, np.full((k, self._s, FRAME_CELLS), MISSING, np.int64)])[order]
+        self._last = np.concatenate([self._last, np.zeros(k, np.int64)])[order]
+        self._shown = np.concatenate([self._shown, np.zeros(k, bool)])[order]
+
+    def _make_room(self, new: np.ndarray, ts: np.ndarray, inv: np.ndarray) -> np.ndarray:
+        """Keep the open table within its cap before ``new`` keys (sorted; ``ts`` their events'
+        times, ``inv`` each event's key) open: the stalest open frames are evicted first; if the
+        new ones alone are over the cap, only the newest open. Returns which new keys do not."""
+        cap = self._open_cap
+        dropped = np.zeros(len(new), bool)
+        if len(new) > cap:
+            newest = np.full(len(new), np.iinfo(np.int64).min)
+            np.maximum.at(newest, inv, ts)
+            dropped[np.argsort(newest, kind="stable")[:len(new) - cap]] = True
+            self._count_evicted(new[dropped] >> KEY_SHIFT, new[dropped] & ((1 << KEY_SHIFT) - 1), newest[dropped])
+        excess = len(self._keys) + len(new) - int(dropped.sum()) - cap
+        if excess > 0:
+            self._evict_open(np.argsort(self._last, kind="stable")[:excess])
+        return dropped
+
+    def _evict_open(self, rows: np.ndarray) -> None:
+        """Evict these open frames now (the open table is over its cap)."""
+        gone = np.zeros(len(self._keys), bool)
+        gone[rows] = True
+        keys = self._keys[gone]
+        self._count_evicted(keys >> KEY_SHIFT, keys & ((1 << KEY_SHIFT) - 1), self._last[gone])
+        keep = ~gone
+        self._keys, self._cells = self._keys[keep], self._cells[keep]
+        self._last, self._shown = self._last[keep], self._shown[keep]
+
+    def _count_evicted(self, source: np.ndarray, frame: np.ndarray, last: np.ndarray) -> None:
+        self.evicted += len(source)
+        self._evicted_last.extend(last)
+        self._raise_watermark(source, frame)
+
+    def _note_sources(self, new: np.ndarray) -> None:
+        """Add source ids not seen before (``new``, unique)."""
+        if not len(new):
+            return
+        ids = np.concatenate([self._src_ids, new.astype(np.int64)])
+        order = np.argsort(ids, kind="stable")
+        self._src_ids = ids[order]
+        self._watermark = np.concatenate([self._watermark, np.full(len(new), -1, np.int64)])[order]
+        self._framed = np.concatenate([self._framed, np.zeros(len(new), bool)])[order]
+
+    def _src_index(self, source: np.ndarray) -> np.ndarray:
+        """Where each of these (noted) source ids sits in the per-source arrays."""
+        return np.searchsorted(self._src_ids, source)
+
+    # --- periodic: completion, finalisation, eviction -------------------------------------------
+
+    def maintain(self) -> int:
+        """Show complete frames, finalise settled ones, evict stale ones; returns frames shown."""
+        self._merge_pending()
+        if not self._dirty or len(self._keys) == 0:
+            return 0
+        self._dirty = False
+        open_ = self._open_frames()
+        ch = self._chains(open_)
+        complete, end = ch.complete, ch.end
+        shown = complete & ~self._shown
+        k = int(shown.sum())
+        if k:
+            self._shown |= shown
+            r = self._recent
+            r["n"].extend(np.arange(self.visible + 1, self.visible + k + 1))
+            r["source"].extend(open_.source[shown])
+            r["frame"].extend(open_.frame[shown])
+            r["cells"].extend(open_.cells[shown])
+            self.visible += k
+
+        # Finalising costs as much as showing; settled frames can wait a little longer.
+        if self.newest < self._next_finalise and len(self._keys) <= self._open_cap:
+            return k
+        self._next_finalise = self.newest + FINALISE_PERIOD_NS
+        done = complete & (end <= self.newest - self._settle_ns)
+        stale = ~complete & (self._last < self.newest - int(self.config.evict_s * 1e9))
+        excess = len(self._keys) - int(done.sum()) - int(stale.sum()) - self._open_cap
+        if excess > 0:
+            candidates = np.flatnonzero(~done & ~stale)
+            stale[candidates[np.argsort(self._last[candidates], kind="stable")[:excess]]] = True
+        if done.any():
+            self._finalise(_Frames(open_.source[done], open_.frame[done], open_.cells[done]), end[done])
+        if stale.any():
+            self._count_evicted(open_.source[stale], open_.frame[stale], self._last[stale])
+        gone = done | stale
+        if gone.any():
+            keep = ~gone
+            self._keys, self._cells = self._keys[keep], self._cells[keep]
+            self._last, self._shown = self._last[keep], self._shown[keep]
+        return k
+
+    def finish(self) -> None:
+        """The node ended its run: no straggler can come, so its complete frames are finalised now
+        rather than after ``settle_s`` of a node time that no longer moves (the exporters would
+        never see a run's last seconds). Incomplete frames stay open, counted as they were."""
+        self._settle_ns = 0
+        self._next_finalise = 0
+        self._dirty = True
+        self.maintain()
+
+    def _open_frames(self) -> _Frames:
+        return _Frames((self._keys >> KEY_SHIFT).astype(np.int32), self._keys & ((1 << KEY_SHIFT) - 1), self._cells)
+
+    def _table(self, frames: _Frames) -> FrameTable:
+        table = frame_table_from_cells(self.stages, frames.source, frames.frame, frames.cells)
+        table.links = self.header.links
+        return table
+
+    def _chains(self, frames: _Frames) -> Chains:
+        """Completeness and ends of ``frames``, judged by the exit points of the whole run."""
+        return chains(self._table(frames), self._has_exit)
+
+    def _delays(self, frames: _Frames) -> FrameDelays:
+        """The delay model's figures of ``frames``, judged by the exit points of the whole run."""
+        return frame_delays(self._table(frames), self._has_exit)
+
+    def _finalise(self, frames: _Frames, end: np.ndarray) -> None:
+        fd = self._delays(frames)
+        values = series(fd)
+        for kind in self._values:
+            for name, v in getattr(values, kind).items():
+                self._series(kind, name).extend(v / NS_PER_MS)
+        self._frame_values.extend(values.frame / NS_PER_MS)
+        self._glass_values.extend(values.glass / NS_PER_MS)
+        for name, busy in values.busy.items():
+            self._busy[name] = self._busy.get(name, 0) + busy
+        c = fd.chains.complete
+        if c.any():
+            self._note_span(int(fd.table.origin[c].min()), int(fd.chains.end[c].max()))
+        self._origins.extend(fd.table.origin[c], fd.table.source[c])
+        self.finalised += int(c.sum())
+        if self.on_finalise is not None:
+            self.on_finalise(fd, values)
+        ring = self._ring
+        ring["source"].extend(frames.source)
+        ring["frame"].extend(frames.frame)
+        ring["cells"].extend(frames.cells)
+        ring["end"].extend(end)
+        self._raise_watermark(frames.source, frames.frame)
+
+    def _note_span(self, first_origin: int, last_end: int) -> None:
+        self._first_origin = first_origin if self._first_origin is None else min(self._first_origin, first_origin)
+        self._last_end = last_end if self._last_end is None else max(self._last_end, last_end)
+
+    def _all_series(self) -> list[RunValues]:
+        return [self._frame_values, self._glass_values, *(v for d in self._values.values() for v in d.values())]
+
+    def _series(self, kind: str, name: str) -> RunValues:
+        series = self._values[kind]
+        if name not in series:
+            series[name] = RunValues(self._exact_limit)
+        return series[name]
+
+    def _raise_watermark(self, source: np.ndarray, frame: np.ndarray) -> None:
+        np.maximum.at(self._watermark, self._src_index(source.astype(np.int64)), frame.astype(np.int64))
+
+    # --- statistics -----------------------------------------------------------------------------
+
+    def run_stats(self, dropped: int = 0) -> dict:
+        """``probes.delays.node_stats`` of every event received for this run."""
+        self.maintain()
+        fd = self._delays(self._open_frames())
+        open_values = series(fd)
+        # Every series the run has seen, finalised frames' values added by _session_summary.
+        gap_names = sorted(set(self._values["gaps"]) | set(open_values.gaps), key=self._gap_order)
+        busy = dict(self._busy)
+        for name, ns in open_values.busy.items():
+            busy[name] = busy.get(name, 0) + ns
+        first, last = self._first_origin, self._last_end
+        if open_values.span_ns:
+            c = fd.chains.complete
+            first = min(x for x in (first, int(fd.table.origin[c].min())) if x is not None)
+            last = max(x for x in (last, int(fd.chains.end[c].max())) if x is not None)
+        values = Series(stages=open_values.stages, frame=open_values.frame, service=open_values.service,
+                        wait=open_values.wait, glass=open_values.glass, busy=busy,
+                        span_ns=last - first if first is not None else 0, threads=self.accounting.threads(),
+                        gaps={name: open_values.gaps.get(name, np.zeros(0)) for name in gap_names})
+        c = fd.chains.complete
+        n_open_complete = int(c.sum())
+        fps = self._origins.fps(self._all_sources(), fd.table.origin[c], fd.table.source[c])
+        return {
+            **delay_summary(values, self._session_summary),
+            "fps": fps,
+            "sources": self.accounting.sources(fps),
+            "dropped": int(dropped),
+            "frames": {"complete": self.finalised + n_open_complete,
+                       "incomplete": self.evicted + len(fd) - n_open_complete},
+            "percentile_error": 0.0 if all(v.exact for v in self._all_series()) else RELATIVE_ERROR,
+        }
+
+    def _session_summary(self, kind: str, name: str, values_ms: np.ndarray) -> dict:
+        """``summarize`` of the finalised values of a series and ``values_ms`` (open frames)."""
+        if kind == "frame":
+            return self._frame_values.summary(values_ms)
+        if kind == "glass":
+            return self._glass_values.summary(values_ms)
+        return self._series(kind, name).summary(values_ms)
+
+    def window_stats(self) -> dict:
+        """The same statistics over frames whose chain ended in the last ``window_s`` (node time)."""
+        self.maintain()
+        cutoff = self.newest - int(self.config.window_s * 1e9)
+        ring = self._ring
+        sel = ring["end"].view >= cutoff
+        open_ = self._open_frames()
+        och = self._chains(open_)
+        osel = och.complete & (och.end >= cutoff)
+        fd = self._delays(_Frames(np.concatenate([ring["source"].view[sel], open_.source[osel]]),
+                                  np.concatenate([ring["frame"].view[sel], open_.frame[osel]]),
+                                  np.concatenate([ring["cells"].view[sel], open_.cells[osel]])))
+        c = fd.chains.complete
+        incomplete = int((self._evicted_last.view >= cutoff).sum()) + int((~och.complete & (self._last >= cutoff)).sum())
+        fps = OriginSpans().fps(self._all_sources(), fd.table.origin[c], fd.table.source[c])
+        return {
+            "window_s": self.config.window_s,
+            **delay_summary(series(fd, self.accounting.threads())),
+            "fps": fps,
+            "sources": self.accounting.sources(fps),
+            "frames": {"complete": int(c.sum()), "incomplete": incomplete},
+        }
+
+    def _all_sources(self) -> list[int]:
+        return sorted(set(int(k) for k in self.header.sources) | set(self._src_ids[self._framed].tolist()))
+
+    def _gap_order(self, name: str) -> tuple[int, int]:
+        a, _, b = name.partition("->")
+        index = {n: i for i, n in enumerate(self.stages)}
+        return index.get(b, 0), index.get(a, 0)
+
+    # --- frames for the UI --------------------------------------------------------------------
+
+    def recent(self, since: int = 0, limit: int = 200, newest: bool = False) -> tuple[np.ndarray, FrameDelays]:
+        """Complete frames with cursor > ``since``: their cursors and their delays (rows in
+        cursor order); the first ``limit`` of them, or the last ``limit`` with ``newest``.
+        Only the last ``recent_frames`` are kept."""
+        self.maintain()
+        r = self._recent
+        n = r["n"].view
+        after = np.flatnonzero(n > since)
+        sel = after[-limit:] if newest else after[:limit]
+        return n[sel], self._delays(_Frames(r["source"].view[sel], r["frame"].view[sel], r["cells"].view[sel]))

@@ -1,0 +1,217 @@
+"""What every storage engine of the relay does: one interface, one module per engine.
+
+A *run* is one run of one node (one ``RelayExporter``: a UUID, the node's trace header, its
+event batches). A *session* groups the runs that are live at the same time: a new run joins the
+session of a run that is live when it says hello, else it opens a new session, so "start the
+relay, start three nodes" makes one session of three runs. A run that comes back after a relay
+restart, or on another relay, keeps its session. Sessions are numbered 1, 2, ...
+
+Events are stored as they arrived, one row per batch (the payload blob, compressed or not),
+keyed by (run, seq): a resent batch is stored once. Timestamps are stored raw (node clock); each
+run keeps its last clock view and the history of its clock estimates (``clock_history``), which
+:func:`relay.store.runs.load_runs` applies per timestamp.
+
+:class:`Database` is one connection to a store. The engines:
+
+- :mod:`relay.store.sqlite`: a file (``--db FILE``), the embedded default, one relay per file;
+- :mod:`relay.store.postgres`: PostgreSQL (``--db postgresql://...``), shared by any number of
+  relays. A run is written by the one relay that owns it: ownership is a PostgreSQL advisory
+  lock held by the owning relay's writing connection, released by the server when that
+  connection dies, so a relay that lost its store can write nothing more.
+
+:func:`relay.store.engines.open_database` picks the engine from the ``--db`` value.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import json
+from abc import ABC, abstractmethod
+from dataclasses import dataclass
+from typing import Any
+
+from relay.clock.correction import Segment
+from relay.errors import RelayError
+
+SCHEMA_VERSION = 3
+"""2 added runs.secret (hash of the run's resume secret) and runs.rejected (why the relay refused it);
+3 added clock_history (each run's clock estimates, each in force from a node time)."""
+HISTORY_COLUMNS = ("from_ns", "ref_ns", "offset_ns", "drift_ppb", "uncertainty_ns", "growth_ppb")
+RUN_FIELDS = frozenset({"ended_ns", "written", "dropped", "lost", "clock", "history"})
+REJECTED_CHARS = 200
+
+
+class ResumeRefused(RelayError):
+    """A hello for a stored run without the secret issued at the run's first hello."""
+
+
+class NotOwner(RelayError):
+    """A write for runs this relay does not own (another relay does, or this one lost its store
+    connection and with it every run it owned)."""
+
+    def __init__(self, runs: set[str]) -> None:
+        super().__init__(f"runs not owned by this relay: {', '.join(sorted(runs))[:200]}")
+        self.runs = runs
+
+
+class StoreUnavailable(RelayError):
+    """The store cannot be reached or failed (a full disk, a PostgreSQL restart): what was being
+    written is refused whole and written again by whoever sent it."""
+
+
+@dataclass(frozen=True)
+class BatchRow:
+    run: str
+    seq: int
+    count: int
+    compressed: bool
+    payload: bytes
+
+
+@dataclass(frozen=True)
+class RunRow:
+    """A stored run as the readers load it."""
+
+    run: str
+    session: int
+    header: str
+    dropped: int
+    lost: int
+    clock: str
+    ended_ns: int | None
+
+
+class Database(ABC):
+    """One connection to a relay store. Writes are transactions: a method returns once what it
+    wrote committed. Used by one thread at a time."""
+
+    engine: str
+    """"sqlite" or "postgresql"."""
+    location: str
+    """Where the store is, for messages (a path, or a URL without its password)."""
+    shared: bool
+    """Whether several relays may use the store at once (runs need an owner)."""
+
+    # --- runs ---------------------------------------------------------------------------------
+
+    @abstractmethod
+    def register_run(self, run: str, node: str, header: dict, live_session: int | None,
+                     secret: str | None) -> tuple[int, int, str | None]:
+        """Record a run at its (first or renewed) hello; returns its session, first-seen time (ns)
+        and, for a new run, the resume secret to hand its node (only its hash is stored).
+
+        A run id already stored must come from the same node with the same stages, and present
+        the secret issued at its first hello, else :class:`RelayError` (:class:`ResumeRefused`):
+        its batches would be read against the wrong stage list, or stored in another node's run.
+        A new run joins the live session: on a store of one relay the one ``live_session`` names
+        (the relay knows), on a shared store the session of a run some relay owns and that has
+        not ended, decided in the same transaction as the insert (two relays never split one).
+        """
+
+    @abstractmethod
+    def own_run(self, run: str) -> bool:
+        """Take ownership of ``run`` for this connection: False if another relay owns it."""
+
+    @abstractmethod
+    def disown_run(self, run: str) -> None:
+        """Give ownership of ``run`` back (its node left, or it ended)."""
+
+    @abstractmethod
+    def mark_rejected(self, run: str, reason: str) -> None:
+        """Keep a run the relay refused apart: sessions and exports leave it out."""
+
+    @abstractmethod
+    def run_stored(self, run: str) -> bool: ...
+
+    @abstractmethod
+    def update_run(self, run: str, **fields: Any) -> None:
+        """Set ``ended_ns``, ``written``, ``dropped``, ``lost``, ``clock`` (a dict) or ``history`` (the
+        run's whole clock history: a list of :meth:`relay.clock.correction.Segment.to_dict`); the
+        stored history becomes exactly it, only changed rows written."""
+
+    @abstractmethod
+    def run_history(self, run: str) -> list[Segment]:
+        """A run's stored clock history, oldest first (not checked: see
+        :func:`relay.clock.model.segment_fault`)."""
+
+    # --- batches ------------------------------------------------------------------------------
+
+    @abstractmethod
+    def put_batches(self, batches: list[BatchRow], now_ns: int) -> list[bool]:
+        """Store ``batches`` in one transaction, each run's event count and last-seen time with
+        them; per batch True if stored now, False if (run, seq) was stored before. Raises
+        :class:`NotOwner` (nothing written) if a run is not owned here."""
+
+    @abstractmethod
+    def stored_seqs(self, run: str) -> set[int]: ...
+
+    @abstractmethod
+    def batch_payloads(self, run: str) -> list[tuple[bytes, bool]]:
+        """A run's stored batches, (payload, compressed), by seq."""
+
+    # --- readers ------------------------------------------------------------------------------
+
+    @abstractmethod
+    def session_runs(self, session: int) -> list[RunRow]:
+        """The runs of a session the relay did not refuse, by first-seen time."""
+
+    @abstractmethod
+    def runs_with_prefix(self, prefix: str) -> list[RunRow]:
+        """Runs whose id starts with ``prefix`` (lower-case hex), by first-seen time."""
+
+    @abstractmethod
+    def list_sessions(self) -> list[dict]:
+        """Sessions, newest first, each with its runs (refused runs left out, and sessions of
+        refused runs only)."""
+
+    # --- retention ----------------------------------------------------------------------------
+
+    @abstractmethod
+    def expired_sessions(self, before_ns: int) -> list[int]:
+        """Sessions whose every run was last heard from before ``before_ns`` and none is owned now."""
+
+    @abstractmethod
+    def delete_session_part(self, session: int, limit: int) -> int:
+        """Delete up to ``limit`` stored batches of ``session`` (one short transaction); once none
+        is left, its runs, clock history and the session itself. Returns the rows deleted (0: gone)."""
+
+    # --- the connection -----------------------------------------------------------------------
+
+    @abstractmethod
+    def describe(self) -> dict:
+        """What /api/health shows of the store: engine, location, and for a shared store the
+        relays using it."""
+
+    @abstractmethod
+    def close(self) -> None: ...
+
+
+def secret_matches(stored_hash: str | None, presented: str | None) -> bool:
+    """Whether ``presented`` is the secret whose hash is stored (constant time); a run stored
+    without one (by a relay before schema 2) cannot be resumed."""
+    if not stored_hash or not isinstance(presented, str):
+        return False
+    return hmac.compare_digest(stored_hash, secret_hash(presented))
+
+
+def secret_hash(secret: str) -> str:
+    return hashlib.sha256(secret.encode()).hexdigest()
+
+
+def check_resume(run: str, stored_node: str, stored_header: str, stored_secret: str | None, node: str,
+                 header: dict, secret: str | None) -> None:
+    """Whether a hello may resume stored run ``run`` (see :meth:`Database.register_run`)."""
+    if stored_node != node or json.loads(stored_header).get("stages") != header.get("stages"):
+        raise RelayError(f"run {run} belongs to node {stored_node!r} with other stages")
+    if not secret_matches(stored_secret, secret):
+        raise ResumeRefused(f"run {run} exists: resuming it takes the secret issued at its first hello")
+
+
+def run_updates(fields: dict[str, Any]) -> tuple[dict[str, Any], list | None]:
+    """The columns to set of :meth:`Database.update_run`'s ``fields`` (``clock`` as JSON), and the
+    history to write (None: unchanged); ValueError for a field no run has."""
+    if not fields.keys() <= RUN_FIELDS:
+        raise ValueError(f"unknown run fields {sorted(fields.keys() - RUN_FIELDS)}")
+    columns = {k: json.dumps(v) if k == "clock" else v for k, v in fields.items() if k != "history"}
+    return columns, fields.get("history")

@@ -1,0 +1,25 @@
+"""Which engine a ``--db`` value names, and a connection to it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from relay.store.base import Database
+
+
+def is_url(db: str | Path) -> bool:
+    return str(db).startswith(("postgresql://", "postgres://"))
+
+
+def open_database(db: str | Path, create: bool = True, name: str = "") -> Database:
+    """A connection to the store ``db`` names: a ``postgresql://`` URL, else an SQLite file
+    (``create``: made if missing, else :class:`RelayError`). ``name``: the relay's, shown to the
+    other relays of a shared store."""
+    if is_url(db):
+        from relay.store.postgres import PostgresDatabase  # psycopg loads only for PostgreSQL
+
+        return PostgresDatabase(str(db), name)
+    from relay.store.sqlite import SqliteDatabase
+
+    return SqliteDatabase(db, create)
+

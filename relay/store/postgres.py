@@ -1,0 +1,337 @@
+"""The PostgreSQL engine (``--db postgresql://USER@HOST/DB``): one store for any number of relays.
+
+Same tables and meaning as :mod:`relay.store.sqlite`. What a shared store adds:
+
+- **Owners.** A run is written only by the relay that owns it. Owning is holding a session-level
+  advisory lock on the run (``pg_try_advisory_lock`` on a key from its UUID) on the relay's
+  writing connection: PostgreSQL releases it when that connection ends, whatever ended it (the
+  relay was killed, its host died, the network failed), so another relay may take the run at
+  once, and the relay that lost its connection cannot write (its new connection owns nothing:
+  :meth:`PostgresDatabase.put_batches` refuses runs it does not own).
+- **Sessions decided in the store.** A new run joins the session of a run that is owned by some
+  relay and has not ended; the check and the insert are one transaction under a transaction-level
+  advisory lock, so two relays taking hellos at once never split a session.
+- **Peers.** Every relay's connections carry ``application_name = dcuscope-relay NAME``;
+  ``pg_stat_activity`` lists the relays sharing the store (``/api/health``).
+
+Batches go in with one statement per group (arrays unnested, ``ON CONFLICT DO NOTHING``), their
+payloads stored uncompressed by PostgreSQL (they are compressed already or small).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import secrets
+import time
+from typing import Any
+from urllib.parse import urlsplit, urlunsplit
+
+import psycopg
+
+from relay.clock.correction import Segment
+from relay.errors import RelayError
+from relay.store.base import (HISTORY_COLUMNS, REJECTED_CHARS, SCHEMA_VERSION, BatchRow, Database, NotOwner,
+                              RunRow, StoreUnavailable, check_resume, run_updates, secret_hash)
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS sessions (id BIGSERIAL PRIMARY KEY, created_ns BIGINT NOT NULL);
+CREATE TABLE IF NOT EXISTS runs (
+    id TEXT PRIMARY KEY,
+    session BIGINT NOT NULL REFERENCES sessions(id),
+    node TEXT NOT NULL,
+    header TEXT NOT NULL,
+    first_seen_ns BIGINT NOT NULL,
+    last_seen_ns BIGINT NOT NULL,
+    ended_ns BIGINT,
+    events BIGINT NOT NULL DEFAULT 0,
+    written BIGINT,
+    dropped BIGINT NOT NULL DEFAULT 0,
+    lost BIGINT NOT NULL DEFAULT 0,
+    clock TEXT NOT NULL DEFAULT '{}',
+    secret TEXT,
+    rejected TEXT,
+    lock_key BIGINT NOT NULL
+);
+CREATE INDEX IF NOT EXISTS runs_by_session ON runs(session);
+CREATE INDEX IF NOT EXISTS runs_open ON runs(lock_key) WHERE ended_ns IS NULL;
+CREATE TABLE IF NOT EXISTS batches (
+    run TEXT NOT NULL,
+    seq BIGINT NOT NULL,
+    count INTEGER NOT NULL,
+    compressed BOOLEAN NOT NULL,
+    received_ns BIGINT NOT NULL,
+    data BYTEA NOT NULL,
+    PRIMARY KEY (run, seq)
+);
+ALTER TABLE batches ALTER COLUMN data SET STORAGE EXTERNAL;
+CREATE TABLE IF NOT EXISTS clock_history (
+    run TEXT NOT NULL,
+    from_ns BIGINT NOT NULL,
+    ref_ns BIGINT NOT NULL,
+    offset_ns BIGINT NOT NULL,
+    drift_ppb BIGINT NOT NULL,
+    uncertainty_ns BIGINT NOT NULL,
+    growth_ppb BIGINT NOT NULL,
+    PRIMARY KEY (run, from_ns)
+);
+"""
+LOCKS = 0x64637573  # "dcus": the first key of the two-key advisory locks below
+SCHEMA_LOCK = (LOCKS, 1)
+"""Held while a relay creates or migrates the schema (relays starting together)."""
+SESSION_LOCK = (LOCKS, 2)
+"""Held while a relay decides a new run's session."""
+HELD_RUNS = """
+    SELECT (l.classid::bigint << 32) | l.objid::bigint FROM pg_locks l
+    WHERE l.locktype = 'advisory' AND l.objsubid = 1 AND l.granted
+      AND l.database = (SELECT oid FROM pg_database WHERE datname = current_database())
+"""
+"""Keys of the run locks some relay holds now (single-key advisory locks have objsubid 1)."""
+RUN_COLUMNS = "id, session, header, dropped, lost, clock, ended_ns"
+CONNECT_TIMEOUT_S = 5
+APPLICATION = "dcuscope-relay"
+
+log = logging.getLogger(__name__)
+
+
+def lock_key(run: str) -> int:
+    """The advisory lock key of a run: the first 60 bits of its UUID (positive, so that the key
+    read back from pg_locks' two 32-bit halves is the same number)."""
+    return int(run[:15], 16)
+
+
+def redact(url: str) -> str:
+    """``url`` without its password, for messages and /api/health."""
+    parts = urlsplit(url)
+    if parts.password is None:
+        return url
+    netloc = parts.netloc.replace(f":{parts.password}@", ":***@", 1)
+    return urlunsplit(parts._replace(netloc=netloc))
+
+
+class PostgresDatabase(Database):
+    engine = "postgresql"
+    shared = True
+
+    def __init__(self, url: str, name: str = "") -> None:
+        self.location = redact(url)
+        self.name = name
+        self.owned: set[str] = set()
+        """Runs this connection holds the lock of."""
+        try:
+            self.conn = psycopg.connect(url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S,
+                                        application_name=f"{APPLICATION} {name}".strip()[:63])
+        except psycopg.Error as exc:
+            raise StoreUnavailable(f"{self.location}: cannot connect: {_first_line(exc)}") from exc
+        except ValueError as exc:  # psycopg's word for a URL it cannot parse
+            raise RelayError(f"{self.location}: not a PostgreSQL URL: {exc}") from exc
+        self._run(self._create_schema)
+
+    def _create_schema(self, cur: psycopg.Cursor) -> None:
+        cur.execute("SELECT pg_advisory_xact_lock(%s, %s)", SCHEMA_LOCK)
+        cur.execute(SCHEMA)
+        cur.execute("SELECT value FROM meta WHERE key = 'schema'")
+        row = cur.fetchone()
+        if row is None:
+            cur.execute("INSERT INTO meta VALUES ('schema', %s)", (str(SCHEMA_VERSION),))
+        elif row[0] != str(SCHEMA_VERSION):
+            raise RelayError(f"{self.location}: relay database schema {row[0]}, this relay reads {SCHEMA_VERSION}")
+
+    def _run(self, fn, *args) -> Any:
+        """``fn(cursor, *args)`` in one transaction. A lost connection, a server shutting down or
+        out of disk is the store's failure (StoreUnavailable); anything else the caller's."""
+        try:
+            with self.conn.transaction(), self.conn.cursor() as cur:
+                return fn(cur, *args)
+        except psycopg.OperationalError as exc:
+            raise StoreUnavailable(f"{self.location}: {type(exc).__name__}: {_first_line(exc)}") from exc
+        except psycopg.InterfaceError as exc:  # the connection was closed
+            raise StoreUnavailable(f"{self.location}: {_first_line(exc)}") from exc
+
+    def _rows(self, sql: str, args: tuple = ()) -> list[tuple]:
+        def query(cur: psycopg.Cursor) -> list[tuple]:
+            cur.execute(sql, args)
+            return cur.fetchall()
+        return self._run(query)
+
+    # --- runs ---------------------------------------------------------------------------------
+
+    def register_run(self, run: str, node: str, header: dict, live_session: int | None,
+                     secret: str | None) -> tuple[int, int, str | None]:
+        now = time.time_ns()
+        issued = secrets.token_hex(16)
+
+        def register(cur: psycopg.Cursor) -> tuple[int, int, str | None]:
+            cur.execute("SELECT session, node, header, first_seen_ns, secret FROM runs WHERE id = %s", (run,))
+            row = cur.fetchone()
+            if row is not None:
+                check_resume(run, row[1], row[2], row[4], node, header, secret)
+                cur.execute("UPDATE runs SET last_seen_ns = %s WHERE id = %s", (now, run))
+                return int(row[0]), int(row[3]), None
+            cur.execute("SELECT pg_advisory_xact_lock(%s, %s)", SESSION_LOCK)
+            cur.execute(f"SELECT session FROM runs WHERE ended_ns IS NULL AND rejected IS NULL AND id <> %s "
+                        f"AND lock_key IN ({HELD_RUNS}) ORDER BY first_seen_ns DESC LIMIT 1", (run,))
+            live = cur.fetchone()
+            if live is not None:
+                session = int(live[0])
+            else:
+                cur.execute("INSERT INTO sessions (created_ns) VALUES (%s) RETURNING id", (now,))
+                session = int(cur.fetchone()[0])
+            cur.execute("INSERT INTO runs (id, session, node, header, first_seen_ns, last_seen_ns, secret, lock_key) "
+                        "VALUES (%s, %s, %s, %s, %s, %s, %s, %s)",
+                        (run, session, node, json.dumps(header), now, now, secret_hash(issued), lock_key(run)))
+            return session, now, issued
+
+        return self._run(register)
+
+    def own_run(self, run: str) -> bool:
+        if run in self.owned:
+            return True
+        (got,) = self._rows("SELECT pg_try_advisory_lock(%s)", (lock_key(run),))[0]
+        if got:
+            self.owned.add(run)
+        return bool(got)
+
+    def disown_run(self, run: str) -> None:
+        if run in self.owned:
+            self.owned.discard(run)
+            self._rows("SELECT pg_advisory_unlock(%s)", (lock_key(run),))
+
+    def mark_rejected(self, run: str, reason: str) -> None:
+        self._rows("UPDATE runs SET rejected = %s WHERE id = %s AND rejected IS NULL RETURNING id",
+                   (reason[:REJECTED_CHARS], run))
+
+    def run_stored(self, run: str) -> bool:
+        return bool(self._rows("SELECT 1 FROM runs WHERE id = %s", (run,)))
+
+    def update_run(self, run: str, **fields: Any) -> None:
+        columns, history = run_updates(fields)
+
+        def update(cur: psycopg.Cursor) -> None:
+            if columns:
+                cur.execute(f"UPDATE runs SET {', '.join(f'{k} = %s' for k in columns)} WHERE id = %s",
+                               (*columns.values(), run))
+            if history is not None:
+                self._put_history(cur, run, history)
+
+        self._run(update)
+
+    @staticmethod
+    def _put_history(cur: psycopg.Cursor, run: str, history: list[dict]) -> None:
+        cur.execute(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history WHERE run = %s", (run,))
+        stored = {r[0]: tuple(r) for r in cur.fetchall()}
+        rows = [tuple(int(seg[c]) for c in HISTORY_COLUMNS) for seg in history]
+        keep = {r[0] for r in rows}
+        gone = [t for t in stored if t not in keep]
+        if gone:
+            cur.execute("DELETE FROM clock_history WHERE run = %s AND from_ns = ANY(%s)", (run, gone))
+        changed = [(run, *r) for r in rows if stored.get(r[0]) != r]
+        if changed:
+            cur.executemany(f"INSERT INTO clock_history (run, {', '.join(HISTORY_COLUMNS)}) VALUES (%s{', %s' * 6}) "
+                            "ON CONFLICT (run, from_ns) DO UPDATE SET "
+                            + ", ".join(f"{c} = EXCLUDED.{c}" for c in HISTORY_COLUMNS[1:]), changed)
+
+    def run_history(self, run: str) -> list[Segment]:
+        return [Segment(*r) for r in self._rows(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history "
+                                                 "WHERE run = %s ORDER BY from_ns", (run,))]
+
+    # --- batches ------------------------------------------------------------------------------
+
+    def put_batches(self, batches: list[BatchRow], now_ns: int) -> list[bool]:
+        strangers = {b.run for b in batches} - self.owned
+        if strangers:
+            raise NotOwner(strangers)
+
+        def insert(cur: psycopg.Cursor) -> set[tuple[str, int]]:
+            cur.execute("INSERT INTO batches (run, seq, count, compressed, received_ns, data) "
+                        "SELECT r, s, c, z, %s, d FROM unnest(%s::text[], %s::bigint[], %s::int[], %s::bool[], "
+                        "%s::bytea[]) AS b(r, s, c, z, d) ON CONFLICT DO NOTHING RETURNING run, seq",
+                        (now_ns, [b.run for b in batches], [b.seq for b in batches], [b.count for b in batches],
+                         [b.compressed for b in batches], [b.payload for b in batches]))
+            new = {(r, int(s)) for r, s in cur.fetchall()}
+            per_run: dict[str, int] = {}
+            for b in batches:
+                if (b.run, b.seq) in new:
+                    per_run[b.run] = per_run.get(b.run, 0) + b.count
+            if per_run:
+                cur.execute("UPDATE runs SET events = runs.events + d.n, last_seen_ns = %s "
+                            "FROM unnest(%s::text[], %s::bigint[]) AS d(id, n) WHERE runs.id = d.id",
+                            (now_ns, list(per_run), list(per_run.values())))
+            return new
+
+        new = self._run(insert)
+        seen: set[tuple[str, int]] = set()
+        out = []
+        for b in batches:  # a batch queued twice in one group is stored once
+            key = (b.run, b.seq)
+            out.append(key in new and key not in seen)
+            seen.add(key)
+        return out
+
+    def stored_seqs(self, run: str) -> set[int]:
+        return {int(r[0]) for r in self._rows("SELECT seq FROM batches WHERE run = %s", (run,))}
+
+    def batch_payloads(self, run: str) -> list[tuple[bytes, bool]]:
+        return [(bytes(data), bool(c)) for data, c in
+                self._rows("SELECT data, compressed FROM batches WHERE run = %s ORDER BY seq", (run,))]
+
+    # --- readers ------------------------------------------------------------------------------
+
+    def session_runs(self, session: int) -> list[RunRow]:
+        return [RunRow(*r) for r in self._rows(
+            f"SELECT {RUN_COLUMNS} FROM runs WHERE session = %s AND rejected IS NULL ORDER BY first_seen_ns",
+            (session,))]
+
+    def runs_with_prefix(self, prefix: str) -> list[RunRow]:
+        return [RunRow(*r) for r in self._rows(
+            f"SELECT {RUN_COLUMNS} FROM runs WHERE id LIKE %s ORDER BY first_seen_ns", (prefix + "%",))]
+
+    def list_sessions(self) -> list[dict]:
+        runs: dict[int, list[dict]] = {}
+        for (rid, session, node, first, last, ended, events, written, dropped, lost, clock) in self._rows(
+                "SELECT id, session, node, first_seen_ns, last_seen_ns, ended_ns, events, written, dropped, lost, "
+                "clock FROM runs WHERE rejected IS NULL ORDER BY first_seen_ns"):
+            runs.setdefault(session, []).append({
+                "run": rid, "node": node, "first_seen_ns": first, "last_seen_ns": last, "ended_ns": ended,
+                "events": events, "written": written, "dropped": dropped, "lost": lost, "clock": json.loads(clock)})
+        return [{"session": sid, "created_ns": created, "runs": runs[sid]}
+                for sid, created in self._rows("SELECT id, created_ns FROM sessions ORDER BY id DESC") if sid in runs]
+
+    # --- retention ----------------------------------------------------------------------------
+
+    def expired_sessions(self, before_ns: int) -> list[int]:
+        return [int(r[0]) for r in self._rows(
+            f"SELECT session FROM runs GROUP BY session HAVING max(last_seen_ns) < %s "
+            f"AND NOT bool_or(ended_ns IS NULL AND lock_key IN ({HELD_RUNS})) ORDER BY session", (before_ns,))]
+
+    def delete_session_part(self, session: int, limit: int) -> int:
+        def delete(cur: psycopg.Cursor) -> int:
+            cur.execute("DELETE FROM batches WHERE (run, seq) IN (SELECT run, seq FROM batches WHERE run IN "
+                        "(SELECT id FROM runs WHERE session = %s) LIMIT %s)", (session, limit))
+            if cur.rowcount:
+                return cur.rowcount
+            cur.execute("DELETE FROM clock_history WHERE run IN (SELECT id FROM runs WHERE session = %s)", (session,))
+            n = cur.rowcount
+            cur.execute("DELETE FROM runs WHERE session = %s", (session,))
+            n += cur.rowcount
+            cur.execute("DELETE FROM sessions WHERE id = %s", (session,))
+            return n + cur.rowcount
+
+        return self._run(delete)
+
+    # --- the connection -----------------------------------------------------------------------
+
+    def describe(self) -> dict:
+        relays = self._rows("SELECT application_name, host(client_addr), backend_start FROM pg_stat_activity "
+                            "WHERE datname = current_database() AND application_name LIKE %s ORDER BY backend_start",
+                            (APPLICATION + "%",))
+        names = sorted({name[len(APPLICATION):].strip() or "?" for name, _, _ in relays})
+        return {"engine": self.engine, "location": self.location, "relays": names, "owned_runs": len(self.owned)}
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+def _first_line(exc: BaseException) -> str:
+    return (str(exc).strip().splitlines() or [type(exc).__name__])[0]

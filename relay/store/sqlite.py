@@ -1,0 +1,288 @@
+"""The SQLite engine: one file in WAL mode, the relay's embedded default (``--db FILE``).
+
+One relay writes a file at a time (its writer thread, :mod:`relay.store.writer`); readers
+(``dcuscope stats``/``export``, the stored sessions' API) open connections of their own and read
+while it writes (WAL). A store of one relay needs no owners: :meth:`SqliteDatabase.own_run` always
+succeeds, and the live session is the one the relay says (it holds every live run).
+"""
+
+from __future__ import annotations
+
+import json
+import secrets
+import sqlite3
+import time
+from pathlib import Path
+from typing import Any
+
+from relay.clock.correction import Segment
+from relay.errors import RelayError
+from relay.store.base import (HISTORY_COLUMNS, REJECTED_CHARS, SCHEMA_VERSION, BatchRow, Database, RunRow,
+                              StoreUnavailable, check_resume, run_updates, secret_hash)
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
+CREATE TABLE IF NOT EXISTS sessions (id INTEGER PRIMARY KEY AUTOINCREMENT, created_ns INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS runs (
+    id TEXT PRIMARY KEY,
+    session INTEGER NOT NULL REFERENCES sessions(id),
+    node TEXT NOT NULL,
+    header TEXT NOT NULL,
+    first_seen_ns INTEGER NOT NULL,
+    last_seen_ns INTEGER NOT NULL,
+    ended_ns INTEGER,
+    events INTEGER NOT NULL DEFAULT 0,
+    written INTEGER,
+    dropped INTEGER NOT NULL DEFAULT 0,
+    lost INTEGER NOT NULL DEFAULT 0,
+    clock TEXT NOT NULL DEFAULT '{}',
+    secret TEXT,
+    rejected TEXT
+);
+CREATE INDEX IF NOT EXISTS runs_by_session ON runs(session);
+CREATE TABLE IF NOT EXISTS batches (
+    run TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    count INTEGER NOT NULL,
+    compressed INTEGER NOT NULL,
+    received_ns INTEGER NOT NULL,
+    data BLOB NOT NULL,
+    PRIMARY KEY (run, seq)
+);
+CREATE TABLE IF NOT EXISTS clock_history (
+    run TEXT NOT NULL,
+    from_ns INTEGER NOT NULL,
+    ref_ns INTEGER NOT NULL,
+    offset_ns INTEGER NOT NULL,
+    drift_ppb INTEGER NOT NULL,
+    uncertainty_ns INTEGER NOT NULL,
+    growth_ppb INTEGER NOT NULL,
+    PRIMARY KEY (run, from_ns)
+) WITHOUT ROWID;
+"""
+RUN_COLUMNS = "id, session, header, dropped, lost, clock, ended_ns"
+
+
+def connect(path: str | Path, create: bool = True) -> sqlite3.Connection:
+    """A connection with the schema in place (WAL mode, normal synchronous)."""
+    path = Path(path)
+    if not create and not path.exists():
+        raise RelayError(f"{path}: no such relay database")
+    try:
+        conn = sqlite3.connect(str(path), timeout=30, isolation_level=None, check_same_thread=False)
+        conn.execute("PRAGMA journal_mode=WAL")
+        # NORMAL in WAL mode: a commit survives a crash of the process (kill -9), only an
+        # OS crash or power loss may lose the last transactions.
+        conn.execute("PRAGMA synchronous=NORMAL")
+        conn.executescript(SCHEMA)
+        row = conn.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
+        if row is not None and row[0] in ("1", "2"):
+            _migrate(conn)
+            row = (str(SCHEMA_VERSION),)
+        if row is None:
+            conn.execute("INSERT OR IGNORE INTO meta VALUES ('schema', ?)", (str(SCHEMA_VERSION),))
+        elif row[0] != str(SCHEMA_VERSION):
+            raise RelayError(f"{path}: relay database schema {row[0]}, this relay reads {SCHEMA_VERSION}")
+    except sqlite3.DatabaseError as exc:
+        raise RelayError(f"{path}: not a usable relay database: {exc}") from exc
+    return conn
+
+
+def _migrate(conn: sqlite3.Connection) -> None:
+    """Schema 1 or 2 -> 3, in place: runs stored before schema 2 have no resume secret (they cannot
+    be resumed); runs stored before 3 have no clock history (their last estimate corrects them),
+    its table being made by SCHEMA."""
+    conn.execute("BEGIN")
+    try:
+        columns = {r[1] for r in conn.execute("PRAGMA table_info(runs)")}
+        for column in ("secret", "rejected"):
+            if column not in columns:
+                conn.execute(f"ALTER TABLE runs ADD COLUMN {column} TEXT")
+        conn.execute("UPDATE meta SET value = ? WHERE key = 'schema'", (str(SCHEMA_VERSION),))
+        conn.execute("COMMIT")
+    except BaseException:
+        _rollback(conn)
+        raise
+
+
+def _rollback(conn: sqlite3.Connection) -> None:
+    try:
+        if conn.in_transaction:
+            conn.execute("ROLLBACK")
+    except sqlite3.Error:  # the writer thread must outlive a failed rollback too
+        pass
+
+
+class SqliteDatabase(Database):
+    engine = "sqlite"
+    shared = False
+
+    def __init__(self, path: str | Path, create: bool = True) -> None:
+        self.path = Path(path)
+        self.location = str(self.path)
+        self.conn = connect(self.path, create)
+
+    def _rows(self, sql: str, args: tuple = ()) -> list[tuple]:
+        try:
+            return self.conn.execute(sql, args).fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise StoreUnavailable(f"{self.path}: cannot read: {exc}") from exc
+
+    def _write(self, fn, *args) -> Any:
+        """``fn(conn, *args)`` in one transaction; sqlite's own failures (a full disk) are the
+        store's, anything else the caller's."""
+        conn = self.conn
+        try:
+            conn.execute("BEGIN")
+            value = fn(conn, *args)
+            conn.execute("COMMIT")
+            return value
+        except (sqlite3.Error, OSError) as exc:
+            _rollback(conn)
+            raise StoreUnavailable(f"{self.path}: {type(exc).__name__}: {exc}") from exc
+        except BaseException:
+            _rollback(conn)
+            raise
+
+    # --- runs ---------------------------------------------------------------------------------
+
+    def register_run(self, run: str, node: str, header: dict, live_session: int | None,
+                     secret: str | None) -> tuple[int, int, str | None]:
+        now = time.time_ns()
+        conn = self.conn
+        row = conn.execute("SELECT session, node, header, first_seen_ns, secret FROM runs WHERE id = ?",
+                           (run,)).fetchone()
+        if row is not None:
+            check_resume(run, row[1], row[2], row[4], node, header, secret)
+            try:
+                conn.execute("UPDATE runs SET last_seen_ns = ? WHERE id = ?", (now, run))
+            except sqlite3.OperationalError:  # a full disk: the node may still resume its run
+                _rollback(conn)
+            return int(row[0]), int(row[3]), None
+        issued = secrets.token_hex(16)
+
+        def insert(conn: sqlite3.Connection) -> int:
+            session = live_session
+            if session is None:
+                session = conn.execute("INSERT INTO sessions (created_ns) VALUES (?)", (now,)).lastrowid
+            conn.execute("INSERT INTO runs (id, session, node, header, first_seen_ns, last_seen_ns, secret) "
+                         "VALUES (?, ?, ?, ?, ?, ?, ?)",
+                         (run, session, node, json.dumps(header), now, now, secret_hash(issued)))
+            return int(session)
+
+        return self._write(insert), now, issued
+
+    def own_run(self, run: str) -> bool:
+        return True
+
+    def disown_run(self, run: str) -> None:
+        pass
+
+    def mark_rejected(self, run: str, reason: str) -> None:
+        self._write(lambda c: c.execute("UPDATE runs SET rejected = ? WHERE id = ? AND rejected IS NULL",
+                                        (reason[:REJECTED_CHARS], run)))
+
+    def run_stored(self, run: str) -> bool:
+        return self.conn.execute("SELECT 1 FROM runs WHERE id = ?", (run,)).fetchone() is not None
+
+    def update_run(self, run: str, **fields: Any) -> None:
+        columns, history = run_updates(fields)
+
+        def update(conn: sqlite3.Connection) -> None:
+            if columns:
+                conn.execute(f"UPDATE runs SET {', '.join(f'{k} = ?' for k in columns)} WHERE id = ?",
+                                (*columns.values(), run))
+            if history is not None:
+                self._put_history(conn, run, history)
+
+        self._write(update)
+
+    @staticmethod
+    def _put_history(conn: sqlite3.Connection, run: str, history: list[dict]) -> None:
+        stored = {r[0]: r for r in conn.execute(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history "
+                                                "WHERE run = ?", (run,))}
+        rows = [tuple(int(seg[c]) for c in HISTORY_COLUMNS) for seg in history]
+        keep = {r[0] for r in rows}
+        conn.executemany("DELETE FROM clock_history WHERE run = ? AND from_ns = ?",
+                         [(run, t) for t in stored if t not in keep])
+        conn.executemany(f"INSERT OR REPLACE INTO clock_history (run, {', '.join(HISTORY_COLUMNS)}) "
+                         f"VALUES (?{', ?' * 6})", [(run, *r) for r in rows if stored.get(r[0]) != r])
+
+    def run_history(self, run: str) -> list[Segment]:
+        return [Segment(*r) for r in self._rows(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history "
+                                                 "WHERE run = ? ORDER BY from_ns", (run,))]
+
+    # --- batches ------------------------------------------------------------------------------
+
+    def put_batches(self, batches: list[BatchRow], now_ns: int) -> list[bool]:
+        def insert(conn: sqlite3.Connection) -> list[bool]:
+            inserted, per_run = [], {}
+            for b in batches:
+                cur = conn.execute("INSERT OR IGNORE INTO batches (run, seq, count, compressed, received_ns, data) "
+                                   "VALUES (?, ?, ?, ?, ?, ?)",
+                                   (b.run, b.seq, b.count, int(b.compressed), now_ns, b.payload))
+                ok = cur.rowcount == 1
+                inserted.append(ok)
+                per_run[b.run] = per_run.get(b.run, 0) + (b.count if ok else 0)
+            conn.executemany("UPDATE runs SET events = events + ?, last_seen_ns = ? WHERE id = ?",
+                             [(n, now_ns, run) for run, n in per_run.items()])
+            return inserted
+
+        return self._write(insert)
+
+    def stored_seqs(self, run: str) -> set[int]:
+        return {r[0] for r in self.conn.execute("SELECT seq FROM batches WHERE run = ?", (run,))}
+
+    def batch_payloads(self, run: str) -> list[tuple[bytes, bool]]:
+        return [(data, bool(c)) for data, c in
+                self._rows("SELECT data, compressed FROM batches WHERE run = ? ORDER BY seq", (run,))]
+
+    # --- readers ------------------------------------------------------------------------------
+
+    def session_runs(self, session: int) -> list[RunRow]:
+        return [RunRow(*r) for r in self._rows(
+            f"SELECT {RUN_COLUMNS} FROM runs WHERE session = ? AND rejected IS NULL ORDER BY first_seen_ns", (session,))]
+
+    def runs_with_prefix(self, prefix: str) -> list[RunRow]:
+        return [RunRow(*r) for r in self._rows(
+            f"SELECT {RUN_COLUMNS} FROM runs WHERE id LIKE ? ORDER BY first_seen_ns", (prefix + "%",))]
+
+    def list_sessions(self) -> list[dict]:
+        runs: dict[int, list[dict]] = {}
+        for (rid, session, node, first, last, ended, events, written, dropped, lost, clock) in self._rows(
+                "SELECT id, session, node, first_seen_ns, last_seen_ns, ended_ns, events, written, dropped, lost, "
+                "clock FROM runs WHERE rejected IS NULL ORDER BY first_seen_ns"):
+            runs.setdefault(session, []).append({
+                "run": rid, "node": node, "first_seen_ns": first, "last_seen_ns": last, "ended_ns": ended,
+                "events": events, "written": written, "dropped": dropped, "lost": lost, "clock": json.loads(clock)})
+        return [{"session": sid, "created_ns": created, "runs": runs[sid]}
+                for sid, created in self._rows("SELECT id, created_ns FROM sessions ORDER BY id DESC")
+                if sid in runs]
+
+    # --- retention ----------------------------------------------------------------------------
+
+    def expired_sessions(self, before_ns: int) -> list[int]:
+        # One relay per file: a run it holds is heard from (last_seen) at least every flush.
+        return [r[0] for r in self.conn.execute(
+            "SELECT session FROM runs GROUP BY session HAVING max(last_seen_ns) < ? ORDER BY session", (before_ns,))]
+
+    def delete_session_part(self, session: int, limit: int) -> int:
+        def delete(conn: sqlite3.Connection) -> int:
+            n = conn.execute("DELETE FROM batches WHERE rowid IN (SELECT b.rowid FROM batches b JOIN runs r "
+                             "ON r.id = b.run WHERE r.session = ? LIMIT ?)", (session, limit)).rowcount
+            if n:
+                return n
+            n = conn.execute("DELETE FROM clock_history WHERE run IN (SELECT id FROM runs WHERE session = ?)",
+                             (session,)).rowcount
+            n += conn.execute("DELETE FROM runs WHERE session = ?", (session,)).rowcount
+            return n + conn.execute("DELETE FROM sessions WHERE id = ?", (session,)).rowcount
+
+        return self._write(delete)
+
+    # --- the connection -----------------------------------------------------------------------
+
+    def describe(self) -> dict:
+        return {"engine": self.engine, "location": self.location}
+
+    def close(self) -> None:
+        self.conn.close()

@@ -1,0 +1,87 @@
+"""A real PostgreSQL server for the tests: Debian's PostgreSQL 15, in a temporary folder, on loopback.
+
+PostgreSQL refuses to run as root: as root the server is made and run as Debian's ``postgres``
+user (``runuser``), in a folder given to it; as anyone else, as oneself. Each pytest worker starts
+one server (the ``postgres`` fixture of tests/conftest.py), each test gets a database of its own
+(``pg_url``). Durability settings are off (fsync, synchronous commit): the tests check what the
+relay commits and reads back, not the disk; a server killed mid-test loses nothing the tests read.
+"""
+
+from __future__ import annotations
+
+import glob
+import os
+import pwd
+import shutil
+import subprocess
+import tempfile
+import uuid
+from pathlib import Path
+
+from tests.ports import free_port
+
+SETTINGS = ("-c listen_addresses=127.0.0.1 -c fsync=off -c synchronous_commit=off -c full_page_writes=off "
+            "-c max_connections=300 -c shared_buffers=64MB")
+
+
+def bindir() -> Path:
+    """The newest installed PostgreSQL's programs (Debian keeps them out of PATH)."""
+    found = sorted(glob.glob("/usr/lib/postgresql/*/bin/initdb"), key=lambda p: int(Path(p).parts[-3]))
+    if not found:
+        raise RuntimeError("PostgreSQL is not installed (Debian's postgresql package): run `make setup`")
+    return Path(found[-1]).parent
+
+
+class PostgresServer:
+    def __init__(self) -> None:
+        self.bin = bindir()
+        self.port = free_port()
+        self.dir = Path(tempfile.mkdtemp(prefix="dcuscope-pg-"))
+        self.data = self.dir / "data"
+        self.log = self.dir / "server.log"
+        self.as_root = os.geteuid() == 0
+        if self.as_root:
+            user = pwd.getpwnam("postgres")
+            os.chown(self.dir, user.pw_uid, user.pw_gid)
+
+    def _run(self, *args: str, timeout: float = 60) -> str:
+        cmd = [str(self.bin / args[0]), *args[1:]]
+        if self.as_root:
+            cmd = ["runuser", "-u", "postgres", "--", *cmd]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, cwd=self.dir)
+        if done.returncode != 0:
+            log = self.log.read_text()[-2000:] if self.log.exists() else ""
+            raise RuntimeError(f"{' '.join(args[:2])} failed ({done.returncode}): {done.stderr[-2000:]}\n{log}")
+        return done.stdout
+
+    def start(self) -> "PostgresServer":
+        self._run("initdb", "-D", str(self.data), "-A", "trust", "-U", "postgres", "-E", "UTF8", "--no-sync")
+        return self.resume()
+
+    def resume(self) -> "PostgresServer":
+        self._run("pg_ctl", "-D", str(self.data), "-l", str(self.log), "-w", "-t", "60",
+                  "-o", f"-p {self.port} -k {self.dir} {SETTINGS}", "start")
+        return self
+
+    def stop(self, mode: str = "fast") -> None:
+        """``fast`` ends every connection and stops; ``immediate`` as if the server crashed."""
+        self._run("pg_ctl", "-D", str(self.data), "-m", mode, "-w", "stop")
+
+    def url(self, database: str = "postgres") -> str:
+        return f"postgresql://postgres@127.0.0.1:{self.port}/{database}"
+
+    def new_database(self) -> str:
+        """A fresh empty database; its URL."""
+        import psycopg
+
+        name = "t_" + uuid.uuid4().hex[:12]
+        with psycopg.connect(self.url(), autocommit=True) as conn:
+            conn.execute(f"CREATE DATABASE {name}")
+        return self.url(name)
+
+    def close(self) -> None:
+        try:
+            self.stop("immediate")
+        except (RuntimeError, subprocess.TimeoutExpired):
+            pass
+        shutil.rmtree(self.dir, ignore_errors=True)

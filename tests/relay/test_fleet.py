@@ -1,0 +1,184 @@
+"""Relays sharing one PostgreSQL store: failover without loss, one owner per run, one session,
+and a store restart that holds nodes back. Real relays, real PostgreSQL (tests/pgserver.py), real
+nodes (``dcuscope run`` pipelines and simulated nodes)."""
+
+from __future__ import annotations
+
+import asyncio
+import subprocess
+import sys
+import time
+import uuid
+
+import aiohttp
+import numpy as np
+import pytest
+
+from probes.relaylink import Link
+from probes.simnode import header_for
+from probes.tracefile import read_trace
+from relay.store.runs import list_sessions, load_runs
+from tests.conftest import cli_env
+from tests.pgserver import PostgresServer
+from tests.relay.helpers import RelayProcess, finish_node, get_json, load_node, sort_events, start_node, wait_for
+
+FAILOVER_S = 10
+
+
+def node_config(tmp_path, name: str):
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(f"node: {name}\nsources:\n  - {{test: smpte, width: 160, height: 120, rate: 15}}\n"
+                    "  - {test: ball, width: 160, height: 120, rate: 15}\n"
+                    "stages:\n  - mux: {batch-size: 2, width: 160, height: 120}\n"
+                    "  - tiler: {width: 320, height: 120}\n  - convert: {}\n  - osd: {}\n")
+    return path
+
+
+def connected(relay: RelayProcess) -> set[str]:
+    try:
+        return {n["node"] for n in get_json(f"{relay.url}/api/nodes", timeout=2) if n["connected"] and not n["ended"]}
+    except OSError:
+        return set()
+
+
+def stored_equals_sent(store: str, node: str, sent: np.ndarray) -> None:
+    runs = [r for s in list_sessions(store) for r in s["runs"] if r["node"] == node]
+    assert len(runs) == 1, runs  # the node resumed its run: no second one
+    (stored,) = load_runs(store, runs[0]["run"], corrected=False)
+    assert runs[0]["events"] == len(stored.events) == len(sent), (node, runs[0]["events"], len(stored.events), len(sent))
+    assert np.array_equal(sort_events(stored.events), sort_events(sent))  # 0 lost, 0 stored twice
+
+
+def test_a_killed_relays_nodes_resume_on_the_other_and_nothing_is_lost_or_stored_twice(tmp_path, pg_url):
+    a = RelayProcess(pg_url, log=tmp_path / "a.log")
+    b = RelayProcess(pg_url, log=tmp_path / "b.log")
+    names = [f"DCU-{i}" for i in range(1, 5)]
+    nodes = {}
+    try:
+        for i, name in enumerate(names):
+            order = f"{a.url},{b.url}" if i % 2 == 0 else f"{b.url},{a.url}"  # two on each relay
+            cmd = [sys.executable, "-m", "dcuscope.cli", "run", str(node_config(tmp_path, name)), "--probes",
+                   "--relay", order, "--trace", str(tmp_path / f"{name}.jsonl"), "--duration", "16", "-q"]
+            nodes[name] = subprocess.Popen(cmd, cwd=tmp_path, env=cli_env(), stderr=subprocess.PIPE, text=True)
+        wait_for(lambda: connected(a) | connected(b) == set(names), 60, what="four nodes streaming")
+        on_a = connected(a)
+        assert on_a == {"DCU-1", "DCU-3"} and connected(b) == {"DCU-2", "DCU-4"}
+        # Each sees its peer (the store's description is refreshed every 2 s).
+        health = wait_for(lambda: (h := get_json(f"{a.url}/api/health")["storage"])["owned_runs"] == 2 and h, 5,
+                          what="relay A's health naming its peer and its two runs")
+        assert health["engine"] == "postgresql" and len(health["relays"]) == 2, health
+        time.sleep(2)
+        a.kill9()
+        killed = time.monotonic()
+        wait_for(lambda: connected(b) == set(names), FAILOVER_S, what=f"{sorted(on_a)} resumed on relay B")
+        print(f"\nfailover: the killed relay's nodes resumed on the other in {time.monotonic() - killed:.1f} s")
+        for name, proc in nodes.items():
+            _, err = proc.communicate(timeout=120)
+            assert proc.returncode == 0, err[-3000:]
+    finally:
+        for proc in nodes.values():
+            if proc.poll() is None:
+                proc.kill()
+        a.stop()
+        b.stop()
+    sessions = list_sessions(pg_url)
+    assert len(sessions) == 1 and {r["node"] for r in sessions[0]["runs"]} == set(names)  # one session, four runs
+    for name in names:
+        trace = read_trace(tmp_path / f"{name}.jsonl")
+        assert len(trace.events) > 500
+        stored_equals_sent(pg_url, name, trace.events)
+
+
+async def hello(url: str, node: str, run: str, secret: str | None = None) -> tuple[dict, aiohttp.ClientSession, Link]:
+    session = aiohttp.ClientSession()
+    link = await Link.open(session, url, None, lambda ack: None)
+    message = {"proto": 2, "run": run, "header": header_for(node, 1).to_dict(), "lost": 0}
+    if secret is not None:
+        message["secret"] = secret
+    return await link.call("hello", message, 10), session, link
+
+
+def test_two_relays_racing_for_one_run_and_one_session_make_one_owner_and_one_session(tmp_path, pg_url):
+    a = RelayProcess(pg_url, log=tmp_path / "a.log")
+    b = RelayProcess(pg_url, log=tmp_path / "b.log")
+
+    async def scenario():
+        open_ = []
+        try:
+            # Two new nodes, one on each relay, at the same moment: one session.
+            (x, *cx), (y, *cy) = await asyncio.gather(hello(a.url, "X", uuid.uuid4().hex),
+                                                      hello(b.url, "Y", uuid.uuid4().hex))
+            open_ += [cx, cy]
+            assert x["ok"] and y["ok"] and x["session"] == y["session"], (x, y)
+            # One run's hello on both at once: one owner; the other is told to try again, not refused.
+            run = uuid.uuid4().hex
+            (ra, *ca), (rb, *cb) = await asyncio.gather(hello(a.url, "Z", run), hello(b.url, "Z", run))
+            open_ += [ca, cb]
+            won, lost = (ra, rb) if ra["ok"] else (rb, ra)
+            assert won["ok"] and won["session"] == x["session"], (ra, rb)
+            assert lost["ok"] is False and lost["retry_ms"] > 0 and "owned by another relay" in lost["error"], lost
+            winner, loser = (a, b) if ra["ok"] else (b, a)
+            # The owner's node leaves: retried on the other relay, with its secret, it resumes there.
+            session, link = ca if ra["ok"] else cb
+            await link.close()
+            await session.close()
+
+            async def resumed():
+                while True:
+                    reply, *c = await hello(loser.url, "Z", run, won["secret"])
+                    open_.append(c)
+                    if reply["ok"]:
+                        return reply
+                    await asyncio.sleep(reply["retry_ms"] / 1000)
+
+            again = await asyncio.wait_for(resumed(), 10)
+            assert again["session"] == won["session"] and "secret" not in again
+        finally:
+            for session, link in open_:
+                await link.close()
+                await session.close()
+
+    try:
+        asyncio.run(scenario())
+        for relay in (a, b):
+            refused = get_json(f"{relay.url}/api/health")["refused"]
+            assert refused["resume_secret"] == 0 and refused["name_taken"] == 0, refused
+    finally:
+        a.stop()
+        b.stop()
+    assert len(list_sessions(pg_url)) == 1
+
+
+@pytest.fixture
+def own_postgres():
+    """A PostgreSQL server of this test's own (it is restarted)."""
+    server = PostgresServer().start()
+    yield server
+    server.close()
+
+
+def test_a_postgresql_restart_mid_run_holds_nodes_back_and_loses_nothing(tmp_path, own_postgres):
+    store = own_postgres.new_database()
+    relay = RelayProcess(store, log=tmp_path / "relay.log")
+    try:
+        procs = {n: start_node(relay.url, n, tmp_path / f"{n}.npz", frames=500, fps=50, paced=True, seed=i)
+                 for i, n in enumerate(("p", "q"))}
+        wait_for(lambda: connected(relay) == {"p", "q"}, 30, what="two nodes streaming")
+        own_postgres.stop("fast")
+        failing = wait_for(lambda: (h := get_json(f"{relay.url}/api/health"))["ok"] is False and h, 15,
+                           what="the relay seeing its store down")
+        assert failing["storage"]["failed_writes"] > 0, failing
+        time.sleep(2)
+        own_postgres.resume()
+        wait_for(lambda: get_json(f"{relay.url}/api/health")["ok"], 30, what="the store working again")
+        counters = {n: finish_node(p, 90) for n, p in procs.items()}
+    finally:
+        relay.stop()
+    for name, c in counters.items():
+        assert c["acked"] == c["events"] and c["lost"] == 0, c
+        assert c["retries"] > 0 or c["connects"] > 1, c  # held back, or let go and resumed
+        _, sent = load_node(tmp_path / f"{name}.npz")
+        stored_equals_sent(store, name, sent)
+    log = relay.log.read_text()
+    assert "Traceback" not in log, log[-3000:]
+    assert log.count("storage failing") == 1 and log.count("storage works again") == 1, log[-3000:]

@@ -1,0 +1,285 @@
+"""The relay's store, the same tests against each engine: SQLite (a file) and PostgreSQL (a real
+server, tests/pgserver.py): group commits, deduplication, sessions, owners, clock history,
+reading back, retention."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+import uuid
+
+import numpy as np
+import pytest
+
+from probes.events import CAPTURE, ORIGIN
+from probes.simnode import header_for, synth_events
+from probes.wire import encode_batch
+from relay.clock.correction import Segment
+from relay.errors import RelayError
+from relay.store.base import BatchRow, NotOwner
+from relay.store.engines import open_database
+from relay.store.runs import frame_starts, list_sessions, load_runs, load_session
+from relay.store.writer import Storage
+
+T0 = 1_700_000_000_000_000_000
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def store(request, tmp_path) -> str:
+    """Where a store is: an SQLite file, or an empty PostgreSQL database."""
+    if request.param == "sqlite":
+        return str(tmp_path / "r.db")
+    return request.getfixturevalue("pg_url")
+
+
+def payload(run: str, seq: int, events: np.ndarray, compress: bool) -> bytes:
+    return encode_batch(run, seq, events, compress)[40:]
+
+
+def execute(database, sql: str, args: tuple = ()) -> None:
+    """A statement written by hand (what no relay would write), in either engine's placeholders."""
+    if database.engine == "sqlite":
+        database.conn.execute(sql.replace("%s", "?"), args)
+    else:
+        database.conn.execute(sql, args)
+
+
+def stored_run(store: str, events: np.ndarray, clock: dict, history: list[Segment] = (), run: str | None = None) -> str:
+    """One run of node "a" stored as a relay stores it: owned, registered, one batch, its clock."""
+    run = run or uuid.uuid4().hex
+    database = open_database(store)
+    try:
+        assert database.own_run(run)
+        database.register_run(run, "a", header_for("a", 1).to_dict(), None, None)
+        assert database.put_batches([BatchRow(run, 0, len(events), False, payload(run, 0, events, False))],
+                                    time.time_ns()) == [True]
+        database.update_run(run, clock=clock, history=[s.to_dict() for s in history])
+    finally:
+        database.close()
+    return run
+
+
+def test_batches_sessions_and_reload(store):
+    h1, h2 = header_for("a", 2), header_for("b", 1)
+    ev1 = synth_events(30, 2, 25.0, T0, seed=1)
+    ev2 = synth_events(30, 1, 25.0, T0, seed=2)
+    r1, r2, r3 = (uuid.uuid4().hex for _ in range(3))
+
+    async def scenario():
+        s = Storage(store)
+        s.start(asyncio.get_running_loop())
+        assert await s.call("own_run", r1) and await s.call("own_run", r2)
+        s1, first, secret = await s.call("register_run", r1, "a", h1.to_dict(), None, None)
+        s2, _, _ = await s.call("register_run", r2, "b", h2.to_dict(), s1, None)  # joins the live session
+        # A renewed hello, with the secret issued at the first
+        assert await s.call("register_run", r1, "a", h1.to_dict(), None, secret) == (1, first, None)
+        assert s1 == s2 == 1
+        halves = np.array_split(ev1, 3)
+        results = await asyncio.gather(*(s.put_batch(r1, i, len(p), i == 1, payload(r1, i, p, i == 1))
+                                         for i, p in enumerate(halves)))
+        assert results == [True, True, True]
+        assert await s.put_batch(r1, 1, len(halves[1]), True, payload(r1, 1, halves[1], True)) is False  # resent
+        assert await s.put_batch(r2, 0, len(ev2), False, payload(r2, 0, ev2, False))
+        await s.call("update_run", r2, clock={"correction_ns": 1000}, ended_ns=5, dropped=2, lost=1)
+        assert await s.call("stored_seqs", r1) == {0, 1, 2}
+        with pytest.raises(RelayError, match="belongs to node 'a'"):
+            await s.call("register_run", r1, "b", h1.to_dict(), None, secret)
+        with pytest.raises(RelayError, match="takes the secret issued at its first hello"):
+            await s.call("register_run", r1, "a", h1.to_dict(), None, "not the secret")
+        await s.call("disown_run", r1)  # its node left: nothing is live now
+        assert await s.call("own_run", r3)
+        s3, _, _ = await s.call("register_run", r3, "a", h1.to_dict(), None, None)  # a new session
+        assert s3 == 2
+        assert s.commits >= 2 and s.health()["ok"] and s.health()["engine"] == ("postgresql" if store.startswith("postgresql") else "sqlite")
+        s.stop()
+
+    asyncio.run(scenario())
+
+    runs = load_runs(store, 1)
+    assert [r.header.node for r in runs] == ["a", "b"]
+    assert np.array_equal(runs[0].events, ev1)
+    shifted = ev2.copy()
+    shifted["ts"] -= 1000
+    assert np.array_equal(runs[1].events, shifted) and runs[1].dropped == 2 and runs[1].ended
+    assert np.array_equal(load_runs(store, 1, corrected=False)[1].events, ev2)
+    (h, e), = load_session(store, r1[:8])
+    assert h.node == "a" and len(e) == len(ev1)
+    sessions = list_sessions(store)
+    assert [s["session"] for s in sessions] == [2, 1]
+    assert [r["events"] for r in sessions[1]["runs"]] == [len(ev1), len(ev2)]
+    with pytest.raises(RelayError, match="no session or run"):
+        load_session(store, 3)
+    with pytest.raises(RelayError, match="must be a number or a run id"):
+        load_session(store, "x; DROP TABLE runs")
+
+
+def test_a_batch_the_store_cannot_bind_fails_alone_and_the_writer_keeps_serving(store):
+    """A value the engine refuses (a seq beyond 64 bits) used to kill the writer thread, and every
+    later put_batch waited for ever."""
+    run = uuid.uuid4().hex
+    events = synth_events(5, 1, 25.0, T0)
+
+    async def scenario():
+        s = Storage(store)
+        s.start(asyncio.get_running_loop())
+        try:
+            assert await s.call("own_run", run)
+            await s.call("register_run", run, "a", header_for("a", 1).to_dict(), None, None)
+            with pytest.raises(RelayError, match="cannot store batches"):
+                await asyncio.wait_for(s.put_batch(run, 1 << 64, len(events), False, payload(run, 0, events, False)), 10)
+            stored = await asyncio.wait_for(s.put_batch(run, 0, len(events), False, payload(run, 0, events, False)), 10)
+            assert stored is True and await s.call("stored_seqs", run) == {0}
+        finally:
+            s.stop()
+        with pytest.raises(RelayError, match="storage is not running"):
+            await s.put_batch(run, 1, len(events), False, payload(run, 1, events, False))
+
+    asyncio.run(scenario())
+
+
+def test_a_stored_history_corrects_each_timestamp_and_a_poisoned_one_falls_back(store, caplog):
+    events = synth_events(50, 1, 25.0, T0)  # two seconds of frames
+    half = int(T0) + 1_000_000_000
+    history = [Segment(int(T0) - 10**9, int(T0), 5000, 0, 100), Segment(half, half, 9000, 1000, 50, 200)]
+    run = stored_run(store, events, {"applied": "estimate", "correction_ns": 9000}, history)
+    database = open_database(store)
+    database.update_run(run, history=[s.to_dict() for s in history], ended_ns=5)  # written again: the same rows
+    assert database.run_history(run) == history
+    (stored,) = load_runs(store, run[:8])
+    starts = frame_starts(events)
+    expected = np.where(starts < half, 5000, 9000 + (events["ts"] - half) // 1_000_000)
+    assert np.abs(stored.events["ts"] - (events["ts"] - expected)).max() <= 1
+    assert (starts < half).sum() > 100 and (starts >= half).sum() > 100  # both segments in use
+    assert stored.correction.uncertainties(np.array([half + 10**9]))[0] == 50 + 200
+    # A row no relay could have written: the run's last estimate instead, with one warning.
+    execute(database, "UPDATE clock_history SET drift_ppb = %s WHERE from_ns = %s", (10**12, half))
+    database.close()
+    (stored,) = load_runs(store, run[:8])
+    assert np.array_equal(stored.events["ts"], events["ts"] - 9000)
+    assert [r.message for r in caplog.records if "history" in r.message] == [
+        f"run {run}: stored clock history: drift 1000000000000 beyond 1000000; its last estimate is applied instead"]
+
+
+def test_frame_starts_are_each_frames_earliest_time_in_any_order():
+    events = synth_events(30, 3, 25.0, T0, seed=4)
+    events = events[np.random.default_rng(0).permutation(len(events))]
+    first: dict = {}
+    for s, f, t in zip(events["source"].tolist(), events["frame"].tolist(), events["ts"].tolist()):
+        first[(s, f)] = min(t, first.get((s, f), t))
+    assert frame_starts(events).tolist() == [first[(s, f)] for s, f in zip(events["source"].tolist(),
+                                                                            events["frame"].tolist())]
+
+
+def test_capture_times_are_the_cameras_clock_and_stay_as_stored(store):
+    """A node's correction moves its own timestamps, never a frame's capture time (the camera's
+    clock, from RTCP sender reports), nor does the capture, the earliest time of a frame, pick
+    the estimate the frame is corrected by."""
+    events = synth_events(50, 1, 25.0, T0)
+    origins = events[events["point"] == ORIGIN]
+    captures = origins.copy()
+    captures["point"], captures["stage"] = CAPTURE, 0
+    captures["ts"] -= 2 * 10**9  # two seconds earlier: before the second segment's start
+    events = np.concatenate([events, captures])
+    half = int(T0) + 1_000_000_000
+    history = [Segment(int(T0) - 10**9, int(T0), 5000, 0, 100), Segment(half, half, 9000, 0, 50)]
+    run = stored_run(store, events, {"applied": "estimate", "correction_ns": 9000}, history)
+    (stored,) = load_runs(store, run[:8])
+    assert np.array_equal(stored.events[["source", "frame", "point"]], events[["source", "frame", "point"]])
+    is_capture = events["point"] == CAPTURE
+    assert np.array_equal(stored.events["ts"][is_capture], captures["ts"])
+    moved = events["ts"] - stored.events["ts"]
+    starts = frame_starts(events, ~is_capture)
+    # Each frame by the segment of its own start, not of its capture (all before the second).
+    assert np.array_equal(moved[~is_capture], np.where(starts < half, 5000, 9000)[~is_capture])
+    assert set(moved[~is_capture].tolist()) == {5000, 9000}
+
+
+def test_a_run_id_whose_prefix_is_all_digits_is_found_by_it(store):
+    """1 run id in 43 begins with 8 decimal digits: its prefix read as a session number found
+    nothing ("no session or run '12812422'", which failed a test at random)."""
+    events = synth_events(5, 1, 25.0, T0)
+    run = stored_run(store, events, {"applied": "none", "correction_ns": 0}, run="12812422" + uuid.uuid4().hex[8:])
+    (stored,) = load_runs(store, run[:8])
+    assert stored.run == run and np.array_equal(stored.events, events)
+    assert [r.run for r in load_runs(store, 1)] == [run]  # a session number is still one
+    with pytest.raises(RelayError, match="no session or run '999999'"):
+        load_runs(store, "999999")
+
+
+def test_old_sessions_are_deleted_in_bounded_parts_and_live_ones_kept(store):
+    events = synth_events(5, 1, 25.0, T0)
+    old = stored_run(store, events, {})
+    database = open_database(store)
+    try:
+        if database.shared:  # the connection that stored it, and owned it, is gone
+            with pytest.raises(NotOwner):
+                database.put_batches([BatchRow(old, 1, len(events), False, payload(old, 1, events, False))], 1)
+        assert database.own_run(old)
+        assert database.put_batches([BatchRow(old, i, len(events), False, payload(old, i, events, False))
+                                     for i in range(1, 5)], 1) == [True] * 4
+        database.disown_run(old)
+        live = uuid.uuid4().hex
+        assert database.own_run(live)
+        database.register_run(live, "b", header_for("b", 1).to_dict(), None, None)
+        execute(database, "UPDATE runs SET last_seen_ns = 1")  # both as if last heard from long ago
+        expired = database.expired_sessions(before_ns=2)
+        # On a shared store a run some relay owns is live, whenever it was last heard from.
+        assert expired == ([1] if database.shared else [1, 2])
+        parts = []
+        while (n := database.delete_session_part(1, limit=2)):
+            parts.append(n)
+        assert parts == [2, 2, 1, 2]  # five batches two at a time, then its run and session
+        assert [s["session"] for s in database.list_sessions()] == [2]
+    finally:
+        database.close()
+
+
+def test_a_store_that_cannot_be_reached_says_where(pg_url, tmp_path):
+    unreachable = pg_url.rsplit(":", 1)[0] + ":1/none"
+    with pytest.raises(RelayError, match="cannot connect"):
+        open_database(unreachable)
+    with pytest.raises(RelayError, match="no such relay database"):
+        load_runs(tmp_path / "missing.db", 1)
+
+
+def test_an_sqlite_file_is_migrated_into_postgresql_whole_and_once(tmp_path, pg_url):
+    from tests.conftest import run_cli
+
+    path = str(tmp_path / "r.db")
+    events = synth_events(20, 1, 25.0, T0)
+    history = [Segment(int(T0) - 10**9, int(T0), 5000, 0, 100)]
+    runs = [stored_run(path, events, {"applied": "estimate", "correction_ns": 5000}, history) for _ in range(2)]
+    database = open_database(path)
+    database.mark_rejected(runs[1], "a test's")
+    database.close()
+    result = run_cli("db", "migrate", path, pg_url)
+    assert result.returncode == 0, result.stderr
+    assert "copied 2 sessions, 2 runs, 2 batches" in result.stdout, result.stdout  # a session each
+    assert list_sessions(pg_url) == list_sessions(path)  # the refused run left out on both
+    (a,), (b,) = load_runs(path, runs[0]), load_runs(pg_url, runs[0])
+    assert np.array_equal(a.events, b.events) and a.correction == b.correction and a.clock == b.clock
+    again = run_cli("db", "migrate", path, pg_url)
+    assert "copied 0 sessions, 0 runs, 0 batches" in again.stdout and "2 runs already there" in again.stdout
+    bad = run_cli("db", "migrate", str(tmp_path / "none.db"), pg_url)
+    assert bad.returncode != 0 and "no such relay database" in bad.stderr
+
+
+def test_retention_deletes_the_sessions_older_than_its_days_through_the_writer(store):
+    from relay.store.retention import expire
+
+    events = synth_events(5, 1, 25.0, T0)
+    old, new = stored_run(store, events, {}), stored_run(store, events, {})
+    database = open_database(store)
+    execute(database, "UPDATE runs SET last_seen_ns = %s WHERE id = %s", (1, old))  # heard from in 1970
+    database.close()
+
+    async def scenario():
+        s = Storage(store)
+        s.start(asyncio.get_running_loop())
+        try:
+            return await expire(s, days=30)
+        finally:
+            s.stop()
+
+    assert asyncio.run(scenario()) == [1]
+    assert [r["run"] for s in list_sessions(store) for r in s["runs"]] == [new]
