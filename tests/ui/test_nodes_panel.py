@@ -46,7 +46,10 @@ def page(browser, streaming):
 
 
 def test_each_node_shows_one_short_clock_state_and_no_reason(streaming, page):
-    nodes = {n["node"]: n for n in get_json(f"{streaming.url}/api/nodes")}
+    # PTP's state comes with a clock report: on a loaded machine the first may precede the
+    # node's first read of ptp4l ("not read yet").
+    nodes = wait_for(lambda: (ns := {n["node"]: n for n in get_json(f"{streaming.url}/api/nodes")}) and all(
+        "no-ptp4l-here" in ns[node]["ptp"].get("reason", "") for node in NODES) and ns, 20, what="PTP read on every node")
     for node in NODES:
         assert nodes[node]["ptp"]["state"] == "unavailable" and "no-ptp4l-here" in nodes[node]["ptp"]["reason"]
         row = page.locator(f'#nodes-body tr[data-node="{node}"]')
