@@ -3,35 +3,35 @@
 A run's live state is a few numpy arrays of many megabytes (up to ``--limit run_mb``) held by a
 handful of Python objects, and each batch a node ships passes through more of them (the decoded
 60,000-event batch, 1.4 MB; the merge's temporaries). Two things kept that memory once a run had
-left (benchmarks/bench_relay_soak.py: a node restarting with its old connection left open took
-the relay from 110 MB to 360 MB over 100 restarts while ``/api/health`` counted 11 MB of live
-state in one run):
+left (benchmarks/bench_relay_soak.py: a node restarting 100 times with its old connection left
+open took the relay from 110 MB to 373 MB, 1.7 MB a restart, while ``/api/health`` counted 11 MB of
+live state in one run):
 
 - Reference cycles. Python's cyclic collector starts by object counts, not bytes: a cycle holding
-  a released run's arrays (its exporter callback referred back to it, relay/live/state.py; a
-  closed aiohttp WebSocketResponse refers to itself through its reader) waits for a collection of
-  the generation it reached, which a relay allocating few, large objects may not start for many
-  runs: up to nine released runs (~100 MB) were alive at once.
+  a released run's arrays (its exporters' callback referred back to it, which RelayState.release now
+  breaks; a closed aiohttp WebSocketResponse refers to itself through its reader) waits for a
+  collection of the generation it reached, which a relay allocating few, large objects seldom
+  starts: up to nine released runs (~100 MB) were alive at once.
 - glibc's heap. Once a large block was freed, glibc's dynamic mmap threshold rises past it, and
   the next 1.4 MB batches and merge temporaries come from the heap (brk), among small long-lived
-  objects: pages they freed stay resident, and a heap that held several dead runs at once stays
+  objects: the pages they freed stay resident, and a heap that once held several dead runs stays
   that large.
 
-:class:`Reclaimer` runs on the relay's loop: whenever runs left memory (``RelayState.released``
-moved) it makes a full collection (``gc.collect``: tens of milliseconds on a relay of ~100,000
-objects) and then ``malloc_trim(0)`` (glibc gives every free page of every arena back, not only
-the top of the heap), at most every :data:`MIN_INTERVAL_S`, so that a storm of short runs costs a
-bounded share of the loop. With the cycle in RelayState.release broken, what a run held goes as
-it leaves and the collection finds little; the pass stays for the cycles nobody controls
-(aiohttp's) and for the heap's pages.
+:class:`Reclaimer` runs on the relay's loop: once runs left memory (``RelayState.released``
+moved) it makes a full collection (``gc.collect``: 15-35 ms on a relay of ~100,000 objects) and
+then ``malloc_trim(0)`` (1-2 ms: glibc gives the free pages of every arena back, not only the top
+of the heap), at most every :data:`MIN_INTERVAL_S`, so that a storm of short runs costs at most
+~2 % of the loop. With the cycle broken the relay stays at ~118 MB through the soak; the pass
+brings it to ~81 MB between bursts, and alone (a cycle unbroken) it bounds the growth to a sawtooth
+of what the runs released within one interval.
 
 Measured and not done (bench_relay_soak.py --env): ``MALLOC_ARENA_MAX=1`` changes nothing (the
-relay runs 2-3 threads, so 2-3 arenas); a fixed ``MALLOC_MMAP_THRESHOLD_`` lowers the flat level
-by ~30 MB but makes every block over it an mmap/munmap with its page faults, on the ingest path.
+relay runs 2-3 threads, so 2-3 arenas); a fixed ``MALLOC_MMAP_THRESHOLD_=131072`` lowers the flat
+level by ~30 MB but makes every block over it an mmap/munmap with its page faults, on the ingest path.
 
-:func:`heap_view` is ``/api/health``'s ``heap``: what malloc holds (in use, free inside its arenas,
-mmapped), beside ``memory.live_bytes``, so a gap between the RSS and the live state shows where it is.
-Off glibc (musl) both are no-ops and the view says so.
+:func:`heap_view` is in ``/api/health``'s ``heap``: what malloc holds (in use, free inside its
+arenas, mmapped) beside ``memory.live_bytes``, so that a gap between the RSS and the live state
+shows where it is. Off glibc (musl) trimming is a no-op and the view says it has no figures.
 """
 
 from __future__ import annotations
@@ -107,6 +107,8 @@ class Reclaimer:
         """Objects the passes' collections found in cycles (what the cyclic collector had not freed yet)."""
         self.last_ms = 0.0
         """How long the last pass held the loop."""
+        self.last_trim_ms = 0.0
+        """Of which malloc_trim."""
 
     def due(self) -> bool:
         return self._released() != self._seen and time.monotonic() - self._at >= self._min_interval_s
@@ -115,10 +117,11 @@ class Reclaimer:
         t = time.monotonic()
         self._seen = self._released()
         self.collected += gc.collect()
+        collected = time.monotonic()
         trim()
         self._at = time.monotonic()
         self.passes += 1
-        self.last_ms = (self._at - t) * 1e3
+        self.last_ms, self.last_trim_ms = (self._at - t) * 1e3, (self._at - collected) * 1e3
 
     async def run(self) -> None:
         while True:
@@ -132,4 +135,5 @@ class Reclaimer:
     def view(self) -> dict:
         """For /api/health: the passes made, what they collected, the last one's time, and the heap now."""
         return {"reclaims": self.passes, "collected": self.collected, "last_reclaim_ms": round(self.last_ms, 1),
+                "last_trim_ms": round(self.last_trim_ms, 1),
                 **heap_view()}

@@ -2,6 +2,8 @@
 
 - ``GET /api/health``: {ok, uptime_s, runs, rejected, clock_rejected, paused, storage {ok[, error, since,
   failed_writes]}, limits, memory {live_bytes, live_budget_bytes, run_budget_bytes, runs_with_live_state},
+  heap {available, arena, in_use, free, mmapped, reclaims, collected, last_reclaim_ms, last_trim_ms}: what
+  malloc holds, and the passes that gave memory back after runs left it (:mod:`relay.heap`),
   refused {LIMIT or reason: what it refused}, proxy {trusted, proxied, proxied_open} (null without
   ``--trusted-proxy``), ...}; ok is false while storage fails
 - ``GET /api/nodes``: [{node, run, session, connected, clock {offset_us, uncertainty_us, ...},

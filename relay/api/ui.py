@@ -42,6 +42,8 @@ MAX_FRAMES = 500
 STATS_PERIOD_S = 1.0
 STATS_BUDGET = 0.2
 """Share of a tick's period the statistics of one tick may take (at least one node's always)."""
+VERSIONS_SLACK = 64
+"""Runs no longer in memory whose pushed versions may linger before they are dropped."""
 
 log = logging.getLogger(__name__)
 
@@ -177,6 +179,9 @@ class Ticker:
             if rs is not None and self._stats_versions.get(run) != rs.live.events:
                 self._stats_versions[run] = rs.live.events
                 changed[node] = self.state.stats(rs, fresh=False)
+        if len(self._stats_versions) > len(self.state.runs) + VERSIONS_SLACK:
+            # Keyed by run: a node restarting all day would add one a restart, for as long as a page is open.
+            self._stats_versions = {r: v for r, v in self._stats_versions.items() if r in self.state.runs}
         if changed:
             await self.ui.emit("stats", {"nodes": changed}, room=ROOM)
 

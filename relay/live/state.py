@@ -285,6 +285,10 @@ class RelayState:
         rs = self.runs.pop(run, None)
         if rs is None:
             return
+        # The exporters' callback refers to the run (see _load): a cycle rs -> live -> callback -> rs
+        # that would keep the run's arrays (up to run_mb) until a full garbage collection, one per
+        # restart of a node piling up meanwhile. Without it the run's memory goes as it leaves.
+        rs.live.on_finalise = None
         self.released += 1
         if self.nodes.get(rs.node) == run:
             del self.nodes[rs.node]
