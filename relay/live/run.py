@@ -146,7 +146,11 @@ class LiveRun:
         self._cells = np.zeros((0, s, FRAME_CELLS), np.int64)
         self._last = np.zeros(0, np.int64)
         self._shown = np.zeros(0, bool)
+        self._end = np.zeros(0, np.int64)
+        """Per open frame, where its chain ended, set once it was shown (complete)."""
         self._has_exit = np.zeros(s, bool)
+        self._judged_exits: np.ndarray | None = None
+        """``_has_exit`` when the shown frames were judged: should it change, they are judged again."""
         # Source ids seen, sorted, with what is kept per id alongside.
         self._src_ids = np.zeros(0, np.int64)
         self._watermark = np.zeros(0, np.int64)
@@ -214,7 +218,7 @@ class LiveRun:
     @property
     def nbytes(self) -> int:
         """Bytes of the arrays this run holds (they dominate its memory)."""
-        arrays = (self._keys, self._cells, self._last, self._shown, self._src_ids, self._watermark, self._framed,
+        arrays = (self._keys, self._cells, self._last, self._shown, self._end, self._src_ids, self._watermark, self._framed,
                   *self._pending)
         grows = (*self._ring.values(), *self._recent.values(), self._evicted_last)
         return sum(a.nbytes for a in arrays) + sum(g.nbytes for g in grows) + sum(v.nbytes for v in self._all_series())
@@ -326,6 +330,7 @@ class LiveRun:
         self._cells = np.concatenate([self._cells, np.full((k, self._s, FRAME_CELLS), MISSING, np.int64)])[order]
         self._last = np.concatenate([self._last, np.zeros(k, np.int64)])[order]
         self._shown = np.concatenate([self._shown, np.zeros(k, bool)])[order]
+        self._end = np.concatenate([self._end, np.zeros(k, np.int64)])[order]
 
     def _make_room(self, new: np.ndarray, ts: np.ndarray, inv: np.ndarray) -> np.ndarray:
         """Keep the open table within its cap before ``new`` keys (sorted; ``ts`` their events'
@@ -351,7 +356,7 @@ class LiveRun:
         self._count_evicted(keys >> KEY_SHIFT, keys & ((1 << KEY_SHIFT) - 1), self._last[gone])
         keep = ~gone
         self._keys, self._cells = self._keys[keep], self._cells[keep]
-        self._last, self._shown = self._last[keep], self._shown[keep]
+        self._last, self._shown, self._end = self._last[keep], self._shown[keep], self._end[keep]
 
     def _count_evicted(self, source: np.ndarray, frame: np.ndarray, last: np.ndarray) -> None:
         self.evicted += len(source)
@@ -381,12 +386,12 @@ class LiveRun:
             return 0
         self._dirty = False
         open_ = self._open_frames()
-        ch = self._chains(open_)
-        complete, end = ch.complete, ch.end
+        complete, end = self._judge(open_)
         shown = complete & ~self._shown
         k = int(shown.sum())
         if k:
             self._shown |= shown
+            self._end[shown] = end[shown]
             r = self._recent
             r["n"].extend(np.arange(self.visible + 1, self.visible + k + 1))
             r["source"].extend(open_.source[shown])
@@ -405,14 +410,14 @@ class LiveRun:
             candidates = np.flatnonzero(~done & ~stale)
             stale[candidates[np.argsort(self._last[candidates], kind="stable")[:excess]]] = True
         if done.any():
-            self._finalise(_Frames(open_.source[done], open_.frame[done], open_.cells[done]), end[done])
+            self._finalise(_Frames(open_.source[done], open_.frame[done], open_.cells[done]))
         if stale.any():
             self._count_evicted(open_.source[stale], open_.frame[stale], self._last[stale])
         gone = done | stale
         if gone.any():
             keep = ~gone
             self._keys, self._cells = self._keys[keep], self._cells[keep]
-            self._last, self._shown = self._last[keep], self._shown[keep]
+            self._last, self._shown, self._end = self._last[keep], self._shown[keep], self._end[keep]
         return k
 
     def finish(self) -> None:
@@ -440,7 +445,23 @@ class LiveRun:
         """The delay model's figures of ``frames``, judged by the exit points of the whole run."""
         return frame_delays(self._table(frames), self._has_exit)
 
-    def _finalise(self, frames: _Frames, end: np.ndarray) -> None:
+    def _judge(self, open_: _Frames) -> tuple[np.ndarray, np.ndarray]:
+        """Which open frames are complete, and where their chains end. A frame shown is complete
+        at the end it had then: only the others are judged each tick (most open frames are shown
+        ones waiting to settle), unless the run's exit points changed since (which may change
+        any frame's chain)."""
+        complete, end = self._shown.copy(), self._end.copy()
+        if self._judged_exits is None or not np.array_equal(self._judged_exits, self._has_exit):
+            self._judged_exits = self._has_exit.copy()
+            rows = np.arange(len(complete))
+        else:
+            rows = np.flatnonzero(~complete)
+        if len(rows):
+            ch = self._chains(_Frames(open_.source[rows], open_.frame[rows], open_.cells[rows]))
+            complete[rows], end[rows] = ch.complete, ch.end
+        return complete, end
+
+    def _finalise(self, frames: _Frames) -> None:
         fd = self._delays(frames)
         values = series(fd)
         for kind in self._values:
@@ -461,7 +482,7 @@ class LiveRun:
         ring["source"].extend(frames.source)
         ring["frame"].extend(frames.frame)
         ring["cells"].extend(frames.cells)
-        ring["end"].extend(end)
+        ring["end"].extend(fd.chains.end)
         self._raise_watermark(frames.source, frames.frame)
 
     def _note_span(self, first_origin: int, last_end: int) -> None:

@@ -4,7 +4,10 @@ A relay may watch many nodes for days; keeping every frame's delays for whole-ru
 would grow without bound (13 values a frame: ~270 MB an hour for one DCU at 360 frames/s).
 
 - :class:`RunValues` keeps the values themselves up to ``exact_limit``, so statistics of
-  runs of that size are exactly ``probes.delays.summarize``'s. Past it, the values move into
+  runs of that size are exactly ``probes.delays.summarize``'s. They are kept sorted, with the
+  sum of their nanoseconds: the relay asks for a run's statistics every second, and a
+  percentile is then two lookups in the values plus a merge of the few open frames' ones,
+  where selecting it afresh among all of them (``np.percentile``) cost most of a summary. Past it, the values move into
   a histogram with logarithmic buckets (as DDSketch): count, mean and max stay exact, and
   each percentile is within ``RELATIVE_ERROR`` of the exact one. Only the buckets that hold
   values are kept (10 bytes each: ~1 KB for delays spanning a decade, 32 KB at most).
@@ -17,7 +20,7 @@ import math
 
 import numpy as np
 
-from probes.delays import PERCENTILES, summarize
+from probes.delays import NS_PER_MS, PERCENTILES, summarize
 
 RELATIVE_ERROR = 0.01
 """Largest relative error of a percentile once a series is past its exact limit."""
@@ -35,6 +38,11 @@ class RunValues:
         self.exact_limit = exact_limit
         self._exact = np.zeros(64)
         self._n_exact = 0
+        """``_exact[:_n_exact]``: the values, ascending."""
+        self._exact_ns = 0.0
+        """Their sum in whole nanoseconds (exact: integers, see ``summarize``)."""
+        self._nan = False
+        """A NaN among them: kept out of the sorted path (``summarize`` says what it makes of it)."""
         # Occupied buckets, ascending: -(i + 1) for negative values in bucket i, 0 for (near)
         # zeros, i + 1 for positive ones; that order is the values' order.
         self._hist: np.ndarray | None = None
@@ -70,7 +78,7 @@ class RunValues:
     def _spill(self) -> None:
         self._hist = np.zeros(0, np.int16)
         self._add(self._exact[:self._n_exact])
-        self._exact, self._n_exact = np.zeros(0), 0
+        self._exact, self._n_exact, self._exact_ns = np.zeros(0), 0, 0.0
 
     def extend(self, values: np.ndarray) -> None:
         values = np.asarray(values, np.float64).ravel()
@@ -81,8 +89,17 @@ class RunValues:
                 bigger = np.zeros(min(self.exact_limit, max(2 * len(self._exact), self._n_exact + len(values))))
                 bigger[:self._n_exact] = self._exact[:self._n_exact]
                 self._exact = bigger
-            self._exact[self._n_exact:self._n_exact + len(values)] = values
-            self._n_exact += len(values)
+            n, new = self._n_exact, np.sort(values)
+            if np.isnan(new[-1]):
+                self._nan = True
+            # Merged into place: from the first position a new value goes, the old tail moves up.
+            at = np.searchsorted(self._exact[:n], new)
+            if len(at) and at[0] < n:
+                self._exact[:n + len(new)] = np.insert(self._exact[:n], at, new)
+            else:
+                self._exact[n:n + len(new)] = new
+            self._n_exact += len(new)
+            self._exact_ns += float(np.rint(new * NS_PER_MS).sum())
             return
         if self._hist is None:
             self._spill()
@@ -92,13 +109,26 @@ class RunValues:
         """``summarize`` of these values and ``extra`` (frames not yet final), shaped as it."""
         extra = np.zeros(0) if extra is None else np.asarray(extra, np.float64).ravel()
         if self._hist is None:
-            return summarize(np.concatenate([self._exact[:self._n_exact], extra]))
+            if self._nan or np.isnan(extra).any() or self._n_exact + len(extra) == 0:
+                return summarize(np.concatenate([self._exact[:self._n_exact], extra]))
+            return self._sorted_summary(np.sort(extra))
         keys, counts = _merge(self._hist, self._counts, extra)
         count = self._count + len(extra)
         top = max(self._max, float(extra.max()) if len(extra) else -math.inf)
         p50, p95, p99 = (min(top, _quantile(keys, counts, count, p / 100)) for p in PERCENTILES)
         return {"count": count, "mean_ms": (self._sum + float(extra.sum())) / count,
                 "p50_ms": p50, "p95_ms": p95, "p99_ms": p99, "max_ms": top}
+
+    def _sorted_summary(self, extra: np.ndarray) -> dict:
+        """``summarize`` of the (sorted) exact values and ``extra`` (sorted), to its last bit
+        but for the percentiles' interpolation, done as numpy's "linear" method does it."""
+        held = self._exact[:self._n_exact]
+        values = np.insert(held, np.searchsorted(held, extra), extra) if len(extra) else held
+        count = len(values)
+        total_ns = self._exact_ns + float(np.rint(extra * NS_PER_MS).sum())
+        p50, p95, p99 = _linear_percentiles(values)
+        return {"count": count, "mean_ms": total_ns / count / NS_PER_MS, "p50_ms": p50, "p95_ms": p95,
+                "p99_ms": p99, "max_ms": float(values[-1])}
 
     def _add(self, values: np.ndarray) -> None:
         if not len(values):
@@ -107,6 +137,19 @@ class RunValues:
         self._count += len(values)
         self._sum += float(values.sum())
         self._max = max(self._max, float(values.max()))
+
+
+def _linear_percentiles(ascending: np.ndarray) -> list[float]:
+    """PERCENTILES of sorted values, as ``np.percentile(method="linear")`` computes them (its
+    virtual index, and its lerp from the nearer end) without selecting them again."""
+    n = len(ascending)
+    virtual = (n - 1) * (np.asarray(PERCENTILES, np.float64) / 100)
+    below = np.floor(virtual)
+    gamma = virtual - below
+    lo = below.astype(np.int64)
+    a, b = ascending[lo], ascending[np.minimum(lo + 1, n - 1)]
+    diff = b - a
+    return np.where(gamma >= 0.5, b - diff * (1 - gamma), a + diff * gamma).tolist()
 
 
 def _merge(keys: np.ndarray, counts: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

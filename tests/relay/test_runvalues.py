@@ -87,3 +87,19 @@ def test_a_lowered_limit_spills_into_the_histogram_and_frees_the_buffer():
     close(summarize(values), series.summary())
     series.extend(values[:10])
     close(summarize(np.concatenate([values, values[:10]])), series.summary())
+
+
+def test_exact_values_kept_sorted_summarize_as_summarize_does_added_in_any_order():
+    """The sorted path (merge, two lookups, numpy's linear lerp) gives summarize's figures."""
+    rng = np.random.default_rng(7)
+    values = RunValues(exact_limit=100_000)
+    seen = []
+    for size in rng.integers(0, 300, 60):
+        batch = np.round(rng.lognormal(1.0, 1.2, size), 6) * rng.choice([1, -1], size, p=[0.95, 0.05])
+        values.extend(batch)
+        seen.extend(batch.tolist())
+        extra = np.round(rng.lognormal(1.0, 1.0, int(rng.integers(0, 40))), 6)
+        got, expected = values.summary(extra), summarize(np.concatenate([seen, extra]))
+        assert got.keys() == expected.keys()
+        for key in expected:
+            assert got[key] == expected[key] or abs(got[key] - expected[key]) <= 1e-12 * abs(expected[key]), key
