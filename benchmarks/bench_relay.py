@@ -1,26 +1,45 @@
-"""Relay benchmark: sustained ingest (storage + live statistics) and UI-visible lag.
+"""Relay benchmark: sustained ingest (storage + live statistics) and UI-visible lag, per store and relay count.
 
-For each node count (default 2, 8, 32), on 127.0.0.1:
+For each store (``--store``: sqlite, postgresql), number of relay processes (``--relays``) and
+node count (``--nodes``, default 2, 8, 32), on 127.0.0.1, both phases one after the other:
 
-1. throughput: one relay process, N simulated node processes (``python -m probes.simnode``)
-   each shipping its share of ``--events`` as fast as the relay acknowledges; the rate is
-   events committed to SQLite per second between 10 % and 90 % of the total (every one of
-   them also went through the live pairing);
+1. throughput: R relay processes on a fresh store, N simulated node processes (``python -m
+   probes.simnode``) each shipping its share of ``--events`` as fast as the relays acknowledge;
+   the rate is events committed to the store per second between 10 % and 90 % of the total
+   (every one of them also went through the live pairing), counted from the store itself (the
+   runs of ``/api/sessions``, which every relay on a shared store lists alike);
 2. lag: N nodes paced at ``--rate`` events/s each (the paper's DCU: ~4,300), a browser-side
-   Socket.IO client on ``/ui``; lag = arrival of a ``frames`` push - the timestamp of the
-   frame's last event (its sink enter). The node stamps an event when it happens and ships
-   it within its flush interval (50 ms), so this includes the node's batching;
-   ``push_transit`` is the part from the relay sending a push to the client handling it.
+   Socket.IO client on each relay's ``/ui`` (a relay pushes the frames of its own nodes); lag =
+   arrival of a ``frames`` push - the timestamp of the frame's last event (its sink enter). The
+   node stamps an event when it happens and ships it within its flush interval (50 ms), so this
+   includes the node's batching; ``push_transit`` is the part from the relay sending a push to
+   the client handling it.
 
-The relay and the node processes share this machine's cores: on a 2-core machine the nodes
-take CPU from the relay, so the figures are a floor. Each phase also reports the relay's CPU
-(% of one core: ``relay_cpu_pct``; in the throughput phase also within the 10-90 % window)
-and that of all node processes (``nodes_cpu_pct``), and ``load_before`` (1-min load average
-when it started: other work on the machine). Prints one JSON line per node count; a figure
-a run could not produce is ``"n/a (reason)"`` there (benchmarks/figures.py).
+With several relays the nodes are dealt round-robin (node k to relay k mod R), each given the
+whole list starting at its own relay (``--relay URL_k,URL_k+1,...``: the others are its failover,
+as a fleet configures them). SQLite is one relay per file: a combination of SQLite and more than
+one relay is not run, its figures are ``n/a (SQLite is one relay per file)``. PostgreSQL is a
+server of the benchmark's own (benchmarks/stores.py), a fresh database per phase, durable as
+users run it (fsync, synchronous_commit, full_page_writes on) unless ``--pg-not-durable``; the
+first lines printed say what each store runs with, as the server reports it.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/bench_relay.py [--nodes 2 8 32] [--events 2000000]
-        [--batch-events 8192] [--rate 4300] [--seconds 12] [--quick]
+The relays and the node processes share this machine's cores (and the PostgreSQL server's
+processes too): on a 2-core machine the nodes take CPU from the relays, so the rates are a
+floor. Each phase reports the relays' CPU summed over the relay processes (% of one core:
+``relay_cpu_pct``; in the throughput phase also within the 10-90 % window) and per event
+received (``relay_cpu_us_per_event``: relay CPU seconds / events received x 1e6; in the
+throughput phase over the 10-90 % window, in the lag phase over its window), which other work
+on the machine moves less than a rate; the same for the PostgreSQL server
+(``store_cpu_us_per_event``: the work the relay hands it; with SQLite the writes are the
+relay's own, in its CPU); that of all node processes (``nodes_cpu_pct``), and ``load_before``
+(1-min load average when the combination started: other work on the machine). Prints one JSON
+line per combination, then a table of them side by side; a figure a run could not produce is
+``"n/a (reason)"`` in the JSON, ``n/a [k]`` with its reason below in the table
+(benchmarks/figures.py).
+
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_relay.py [--store sqlite postgresql] [--relays 1 2]
+        [--nodes 2 8 32] [--events 2000000] [--batch-events 8192] [--rate 4300] [--seconds 12]
+        [--pg-not-durable] [--quick]
 """
 
 from __future__ import annotations
@@ -46,7 +65,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.figures import NA, CannotRun, dumps, last_line, percentile, run  # noqa: E402
+from benchmarks.figures import NA, CannotRun, Notes, dumps, last_line, percentile, ratio, run  # noqa: E402
+from benchmarks.stores import ONE_RELAY, SQLITE_SETTINGS, STORES, PostgresStore  # noqa: E402
 
 SOURCES = 2
 EVENTS_PER_FRAME = 12  # origin, 5 stages x enter/exit, sink enter
@@ -62,8 +82,9 @@ def _env() -> dict:
 
 
 class Relay:
-    def __init__(self, db: Path, args: Sequence[str] = ()) -> None:
-        """``args``: more ``python -m relay`` options (bench_exporters: --otlp, --frame-limit).
+    def __init__(self, db: Path | str, args: Sequence[str] = ()) -> None:
+        """``db``: an SQLite file or a PostgreSQL URL; ``args``: more ``python -m relay`` options
+        (bench_exporters: --otlp, --frame-limit).
         Raises CannotRun, with the relay's last line of error, when it does not start."""
         self._errors = tempfile.TemporaryFile()  # not a pipe: nobody reads it while the relay runs
         self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", "0", "--db", str(db), *LOOPBACK, *args],
@@ -94,12 +115,24 @@ class Relay:
         self._errors.close()
 
 
-def start_nodes(url: str, n: int, per_node_events: int, paced: bool, fps: float,
+def _relays(relay: Relay | Sequence[Relay]) -> list[Relay]:
+    return [relay] if isinstance(relay, Relay) else list(relay)
+
+
+def relay_list(urls: str | Sequence[str], k: int) -> str:
+    """Node k's ``--relay``: the relays' URLs from relay k mod R on, round the list."""
+    urls = [urls] if isinstance(urls, str) else list(urls)
+    i = k % len(urls)
+    return ",".join(urls[i:] + urls[:i])
+
+
+def start_nodes(url: str | Sequence[str], n: int, per_node_events: int, paced: bool, fps: float,
                 batch_events: int = 8192) -> list[subprocess.Popen]:
+    """N simulated nodes; with several relays' URLs, dealt round-robin (:func:`relay_list`)."""
     frames = max(1, per_node_events // (EVENTS_PER_FRAME * SOURCES))
     procs = []
     for k in range(n):
-        cmd = [sys.executable, "-m", "probes.simnode", "--relay", url, "--node", f"DCU-{k + 1}",
+        cmd = [sys.executable, "-m", "probes.simnode", "--relay", relay_list(url, k), "--node", f"DCU-{k + 1}",
                "--sources", str(SOURCES), "--frames", str(frames), "--fps", str(fps), "--seed", str(k),
                "--close-timeout", "120", "--batch-events", str(batch_events)]
         if paced:
@@ -124,37 +157,87 @@ def wait_nodes(procs: list[subprocess.Popen], timeout: float) -> list[dict]:
     return out
 
 
-def throughput(n: int, total: int, tmp: Path, batch_events: int) -> dict:
-    relay = Relay(tmp / f"tp{n}.db")
+class Stores:
+    """The stores of one benchmark run: a fresh SQLite file or PostgreSQL database per phase."""
+
+    def __init__(self, names: Sequence[str], tmp: Path, durable: bool) -> None:
+        self.tmp = tmp
+        self.pg = PostgresStore(durable) if "postgresql" in names else None
+        self._made = 0
+
+    def settings(self, name: str) -> str:
+        return self.pg.describe() if name == "postgresql" else SQLITE_SETTINGS
+
+    def fresh(self, name: str) -> str:
+        self._made += 1
+        return self.pg.new_database() if name == "postgresql" else str(self.tmp / f"relay{self._made}.db")
+
+    def done(self, name: str, db: str) -> None:
+        if name == "postgresql":
+            self.pg.drop(db)
+
+    def server(self, name: str) -> PostgresStore | None:
+        return self.pg if name == "postgresql" else None
+
+    def close(self) -> None:
+        if self.pg is not None:
+            self.pg.close()
+
+
+def _phase(stores: Stores, store: str, relays: int, measure: Callable[[list[Relay], PostgresStore | None], dict]) -> dict:
+    """``measure(relays, server)`` on ``relays`` fresh relay processes sharing a fresh store."""
+    db = stores.fresh(store)
+    started: list[Relay] = []
     try:
-        return measure_throughput(relay, n, total, batch_events)
+        for _ in range(relays):
+            started.append(Relay(db))
+        return measure(started, stores.server(store))
     finally:
-        relay.stop()
+        for relay in started:
+            relay.stop()
+        stores.done(store, db)
 
 
-def measure_throughput(relay: Relay, n: int, total: int, batch_events: int) -> dict:
-    """The throughput phase on ``relay``, a fresh one: every event it stores is counted."""
+def throughput(n: int, total: int, stores: Stores, batch_events: int, store: str, relays: int) -> dict:
+    return _phase(stores, store, relays, lambda rs, server: measure_throughput(rs, n, total, batch_events, server))
+
+
+def measure_throughput(relay: Relay | Sequence[Relay], n: int, total: int, batch_events: int,
+                       server: PostgresStore | None = None) -> dict:
+    """The throughput phase on ``relay``, a fresh one (or fresh relays sharing a fresh store):
+    every event stored is counted. ``server``: the PostgreSQL server under them, whose CPU is
+    measured too."""
+    relays = _relays(relay)
     per_node = total // n
     expected = n * (per_node // (EVENTS_PER_FRAME * SOURCES)) * EVENTS_PER_FRAME * SOURCES
     children = _children_cpu()
-    cpu0, wall0 = relay.cpu_s(), time.monotonic()
-    procs = start_nodes(relay.url, n, per_node, paced=False, fps=1000.0, batch_events=batch_events)
+
+    def cpu() -> float:
+        return sum(r.cpu_s() for r in relays)
+
+    def server_cpu() -> float:
+        return server.cpu_s() if server else 0.0
+
+    cpu0, wall0 = cpu(), time.monotonic()
+    procs = start_nodes([r.url for r in relays], n, per_node, paced=False, fps=1000.0, batch_events=batch_events)
     samples = []
     deadline = time.monotonic() + 600
-    ended = None  # when every node had exited: the relay gets 2 s more to store what they sent, not 600
+    ended = None  # when every node had exited: the relays get 2 s more to store what they sent, not 600
     while time.monotonic() < deadline:
-        samples.append((time.monotonic(), relay.stored(), relay.cpu_s()))
+        # Any relay lists every run of a shared store: the first one counts them.
+        samples.append((time.monotonic(), relays[0].stored(), cpu(), server_cpu()))
         if samples[-1][1] >= expected or (ended is not None and time.monotonic() - ended > 2.0):
             break
         if ended is None and all(p.poll() is not None for p in procs):
             ended = time.monotonic()
         time.sleep(0.1)
-    relay_cpu = relay.cpu_s() - cpu0
+    relay_cpu = cpu() - cpu0
     wall = time.monotonic() - wall0
     counters = wait_nodes(procs, 120)
     t = np.array([s[0] for s in samples])
     v = np.array([s[1] for s in samples], float)
     c = np.array([s[2] for s in samples])
+    sc = np.array([s[3] for s in samples])
     lo, hi = np.searchsorted(v, 0.1 * expected), min(np.searchsorted(v, 0.9 * expected), len(v) - 1)
     if v[-1] < 0.9 * expected:
         why = NA(f"the relay stored {int(v[-1])} of {expected} events")
@@ -163,12 +246,15 @@ def measure_throughput(relay: Relay, n: int, total: int, batch_events: int) -> d
     else:  # the run was shorter than two of the 0.1 s samples inside 10-90 %
         why = NA("no two samples of the stored count inside 10-90 % of the events: the run was too short")
     if why is None:
-        span = float(t[hi] - t[lo])
-        rate, window_s, window_cpu = round((v[hi] - v[lo]) / span), round(span, 2), round(100 * (c[hi] - c[lo]) / span)
+        span, stored = float(t[hi] - t[lo]), float(v[hi] - v[lo])
+        rate, window_s, window_cpu = round(stored / span), round(span, 2), round(100 * (c[hi] - c[lo]) / span)
+        us_per_event = round(1e6 * (c[hi] - c[lo]) / stored, 2)
+        store_us = round(1e6 * (sc[hi] - sc[lo]) / stored, 2) if server else NO_SERVER
     else:
-        rate = window_s = window_cpu = why
+        rate = window_s = window_cpu = us_per_event = store_us = why
     return {"batch_events": batch_events, "events": int(v[-1]), "events_per_s": rate,
             "lost": sum(c["lost"] for c in counters), "window_s": window_s, "relay_cpu_pct_in_window": window_cpu,
+            "relay_cpu_us_per_event": us_per_event, "store_cpu_us_per_event": store_us,
             "relay_cpu_pct": round(100 * relay_cpu / wall),
             "nodes_cpu_pct": round(100 * (_children_cpu() - children) / wall)}
 
@@ -198,39 +284,61 @@ async def _watch_ui(url: str, seconds: float) -> tuple[list[float], list[float]]
     return lags, transit
 
 
-def lag(n: int, rate: float, seconds: float, tmp: Path) -> dict:
-    relay = Relay(tmp / f"lag{n}.db")
-    try:
-        return measure_lag(relay, n, rate, seconds)
-    finally:
-        relay.stop()
+async def _watch_uis(urls: Sequence[str], seconds: float) -> tuple[list[float], list[float]]:
+    """:func:`_watch_ui` on every relay at once (each pushes the frames of its own nodes), merged."""
+    both = await asyncio.gather(*(_watch_ui(url, seconds) for url in urls))
+    return [x for lags, _ in both for x in lags], [x for _, transit in both for x in transit]
 
 
-def measure_lag(relay: Relay, n: int, rate: float, seconds: float,
-                on_window: Callable[[str], None] | None = None) -> dict:
-    """The lag phase on ``relay``; ``on_window("start")`` / ``("end")`` are called as the
-    measured window opens and closes (bench_exporters samples the exporters' counters there)."""
+def lag(n: int, rate: float, seconds: float, stores: Stores, store: str, relays: int) -> dict:
+    return _phase(stores, store, relays, lambda rs, server: measure_lag(rs, n, rate, seconds, server=server))
+
+
+def _received(relays: list[Relay]) -> tuple[set[str], int]:
+    """The nodes streaming to ``relays`` (with an event received), and the events all of them received."""
+    names, events = set(), 0
+    for relay in relays:
+        for node in relay.get("/api/nodes"):
+            events += node["events"]
+            if node["events"] > 0:
+                names.add(node["node"])
+    return names, events
+
+
+def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: float,
+                on_window: Callable[[str], None] | None = None, server: PostgresStore | None = None) -> dict:
+    """The lag phase on ``relay`` (or relays sharing a store); ``on_window("start")`` / ``("end")``
+    are called as the measured window opens and closes (bench_exporters samples the exporters'
+    counters there). ``server``: the PostgreSQL server under them, whose CPU is measured too."""
+    relays = _relays(relay)
     fps = rate / (EVENTS_PER_FRAME * SOURCES)
     # Nodes run long enough to outlast their own start-up (Python imports: ~0.5 CPU-s
     # each, which on 2 cores and 32 nodes is seconds); measured only once all stream.
-    procs = start_nodes(relay.url, n, int(rate * (seconds + 60)), paced=True, fps=fps)
+    procs = start_nodes([r.url for r in relays], n, int(rate * (seconds + 60)), paced=True, fps=fps)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
-        nodes = relay.get("/api/nodes")
-        if len(nodes) == n and all(node["events"] > 0 for node in nodes):
+        if len(_received(relays)[0]) == n:
             break
         time.sleep(0.5)
     time.sleep(1.0)
     if on_window:
         on_window("start")
-    cpu0, wall0 = relay.cpu_s(), time.monotonic()
+
+    def cpu() -> float:
+        return sum(r.cpu_s() for r in relays)
+
+    _, events0 = _received(relays)
+    cpu0, server0, wall0 = cpu(), server.cpu_s() if server else 0.0, time.monotonic()
     nodes_cpu0 = sum(_proc_cpu(p.pid) for p in procs)
-    lags, transit = asyncio.run(_watch_ui(relay.url, seconds))
-    relay_cpu, wall = relay.cpu_s() - cpu0, time.monotonic() - wall0
+    lags, transit = asyncio.run(_watch_uis([r.url for r in relays], seconds))
+    relay_cpu, wall = cpu() - cpu0, time.monotonic() - wall0
+    server_cpu = server.cpu_s() - server0 if server else 0.0
+    _, received = _received(relays)
     if on_window:
         on_window("end")
     nodes_cpu = sum(_proc_cpu(p.pid) for p in procs) - nodes_cpu0
-    received = sum(node["events"] for node in relay.get("/api/nodes"))
+    in_window = received - events0
+    none = f"the relays received no event in the {seconds:g} s window"
     for p in procs:
         p.terminate()
     for p in procs:
@@ -238,11 +346,17 @@ def measure_lag(relay: Relay, n: int, rate: float, seconds: float,
     no_frame = f"no frame reached the /ui client in the {seconds:g} s window"
     no_push = f"no push reached the /ui client in the {seconds:g} s window"
     return {"rate_per_node": rate, "seconds": seconds, "frames_seen": len(lags), "events_received": received,
+            "events_in_window": in_window,
+            "relay_cpu_us_per_event": round(1e6 * ratio(relay_cpu, in_window, none), 2),
+            "store_cpu_us_per_event": round(1e6 * ratio(server_cpu, in_window, none), 2) if server else NO_SERVER,
             "lag_p50_ms": round(percentile(lags, 50, no_frame), 1),
             "lag_p99_ms": round(percentile(lags, 99, no_frame), 1),
             "push_transit_p50_ms": round(percentile(transit, 50, no_push), 1),
             "push_transit_p99_ms": round(percentile(transit, 99, no_push), 1),
             "relay_cpu_pct": round(100 * relay_cpu / wall), "nodes_cpu_pct": round(100 * nodes_cpu / wall)}
+
+
+NO_SERVER = NA("no store server: SQLite writes run in the relay process, their CPU is in relay_cpu")
 
 
 def _proc_cpu(pid: int) -> float:
@@ -258,8 +372,77 @@ def _children_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
+def _choices(values: list[str], allowed: Sequence[str] | None, kind: type, what: str, p) -> list:
+    """``values`` (each possibly a comma list) as a list of ``kind``, each once, in the order given."""
+    out = []
+    for value in values:
+        for item in value.split(","):
+            item = item.strip()
+            if not item:
+                continue
+            try:
+                x = kind(item)
+            except ValueError:
+                p.error(f"{what}: not a {kind.__name__}: {item!r}")
+            if allowed is not None and x not in allowed:
+                p.error(f"{what}: {item!r} is none of {', '.join(allowed)}")
+            if x not in out:
+                out.append(x)
+    return out
+
+
+def combination(stores: Stores, store: str, relays: int, n: int, args: argparse.Namespace) -> dict:
+    """One JSON line: both phases of ``n`` nodes on ``relays`` relays sharing a ``store``."""
+    result = {"store": store, "relays": relays, "nodes": n, "cpus": os.cpu_count(),
+              "load_before": round(os.getloadavg()[0], 1)}
+    if store == "sqlite" and relays > 1:
+        return result | {"throughput": NA(ONE_RELAY), "lag": NA(ONE_RELAY)}
+    phases = {"throughput": lambda: throughput(n, args.events, stores, args.batch_events, store, relays),
+              "lag": lambda: lag(n, args.rate, args.seconds, stores, store, relays)}
+    for name, measure in phases.items():
+        try:
+            result[name] = measure()
+        except CannotRun as exc:  # a node or relay failed in this phase: its figures are n/a, the others run
+            result[name] = NA(str(exc))
+    return result
+
+
+def _figure(line: dict, phase: str, key: str):
+    part = line[phase]
+    return part if isinstance(part, NA) else part[key]
+
+
+def table(lines: list[dict], rate: float) -> list[str]:
+    """The combinations side by side, and the reasons of their n/a cells."""
+    notes = Notes()
+    head = (f"{'store':<10} {'relays':>6} {'nodes':>5} {'events/s':>10} {'µs/event':>10} {'µs/event':>10} "
+            f"{'lag p99':>9} {'PG µs/ev':>9} {'PG µs/ev':>9}")
+    sub = (f"{'':<10} {'':>6} {'':>5} {'bulk':>10} {'paced':>10} {'bulk':>10} "
+           f"{'ms':>9} {'paced':>9} {'bulk':>9}")
+    rows = [head, sub]
+    for line in lines:
+        rows.append(f"{line['store']:<10} {line['relays']:>6} {line['nodes']:>5} "
+                    f"{notes.cell(_figure(line, 'throughput', 'events_per_s'), ',d'):>10} "
+                    f"{notes.cell(_figure(line, 'lag', 'relay_cpu_us_per_event'), '.1f'):>10} "
+                    f"{notes.cell(_figure(line, 'throughput', 'relay_cpu_us_per_event'), '.1f'):>10} "
+                    f"{notes.cell(_figure(line, 'lag', 'lag_p99_ms'), '.0f'):>9} "
+                    f"{notes.cell(_figure(line, 'lag', 'store_cpu_us_per_event'), '.1f'):>9} "
+                    f"{notes.cell(_figure(line, 'throughput', 'store_cpu_us_per_event'), '.1f'):>9}")
+    legend = (f"events/s: stored per second in bulk (10-90 % window); µs/event: relay CPU (all relay processes) per "
+              f"event received, paced at {rate:g} events/s a node (the paper's pace) and in bulk; lag p99: frame end "
+              "to its push reaching the /ui client, paced; PG µs/ev: the PostgreSQL server's CPU per event")
+    return rows + [legend] + notes.lines()
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--store", nargs="+", action="extend", metavar="{sqlite,postgresql}",
+                   help="stores to run the relays on (repeatable, or a list; default sqlite)")
+    p.add_argument("--relays", nargs="+", action="extend", metavar="R",
+                   help="numbers of relay processes sharing the store (repeatable, or a list; default 1)")
+    p.add_argument("--pg-not-durable", action="store_true",
+                   help="PostgreSQL with fsync, synchronous_commit and full_page_writes off (as the tests run it), "
+                        "not PostgreSQL's defaults; said in the output")
     p.add_argument("--nodes", type=int, nargs="+", default=[2, 8, 32])
     p.add_argument("--events", type=int, default=2_000_000, help="events in all for the throughput phase")
     p.add_argument("--batch-events", type=int, default=8192,
@@ -270,14 +453,25 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     if args.quick:
         args.nodes, args.events, args.seconds = [2], 600_000, 1.5
-    if min(args.nodes) < 1 or args.events < 1 or args.seconds <= 0 or args.rate <= 0:
-        p.error("--nodes, --events, --seconds and --rate must be positive")
+    stores = _choices(args.store or ["sqlite"], STORES, str, "--store", p)
+    relay_counts = _choices(args.relays or ["1"], None, int, "--relays", p)
+    if min(args.nodes) < 1 or min(relay_counts) < 1 or args.events < 1 or args.seconds <= 0 or args.rate <= 0:
+        p.error("--nodes, --relays, --events, --seconds and --rate must be positive")
+    lines = []
     with tempfile.TemporaryDirectory() as tmp:
-        for n in args.nodes:
-            result = {"nodes": n, "cpus": os.cpu_count(), "load_before": round(os.getloadavg()[0], 1),
-                      "throughput": throughput(n, args.events, Path(tmp), args.batch_events),
-                      "lag": lag(n, args.rate, args.seconds, Path(tmp))}
-            print(dumps(result), flush=True)
+        rig = Stores(stores, Path(tmp), durable=not args.pg_not_durable)
+        try:
+            for store in stores:
+                print(f"store {store}: {rig.settings(store)}", flush=True)
+            print(f"machine: {os.cpu_count()} CPUs, 1-min load {os.getloadavg()[0]:.1f} at start", flush=True)
+            for store in stores:
+                for relays in relay_counts:
+                    for n in args.nodes:
+                        lines.append(combination(rig, store, relays, n, args))
+                        print(dumps(lines[-1]), flush=True)
+        finally:
+            rig.close()
+    print("\n".join(table(lines, args.rate)), flush=True)
     return 0
 
 

@@ -1,7 +1,8 @@
 """Relay soak: the resident memory of a relay whose node restarts again and again.
 
-One relay process (``python -m relay``, as ``dcuscope relay``, on a fresh SQLite file) and one
-node driven by hand over the ingest WebSocket (:class:`probes.relaylink.Link`). Each run of the
+One relay process (``python -m relay``, as ``dcuscope relay``, on a fresh store: an SQLite file, or
+with ``--store postgresql`` a database on a PostgreSQL server of the benchmark's own) and one node
+driven by hand over the ingest WebSocket (:class:`probes.relaylink.Link`). Each run of the
 node says hello, ships ``--events`` events (synthetic frames of ``probes.simnode``) in
 compressed batches of ``--batch-events``, all in flight at once as a node keeps them, waits for
 every acknowledgement, and falls silent with its connection left open: the node "crashed". It
@@ -29,8 +30,14 @@ same whatever ``--events``.
 
 ``--env`` runs the relay with an environment variable set, to compare allocator settings run
 against run (``MALLOC_ARENA_MAX=1``, ``MALLOC_MMAP_THRESHOLD_=131072``: glibc reads them at start).
-The last line is a JSON object of the verdict (``--json``: every sample too). ``--store`` takes only
-``sqlite``, a file of the benchmark's own (a shared PostgreSQL store is not soaked here).
+The last line is a JSON object of the verdict (``--json``: every sample too), with the store.
+
+``--store postgresql`` soaks the relay on the shared store's engine (relay/store/postgres.py: a
+writer connection that owns each run by an advisory lock, released as the run is handed over):
+Debian's PostgreSQL 15 started for the run in a temporary folder (benchmarks/stores.py), durable
+as users run it (fsync, synchronous_commit, full_page_writes on) unless ``--pg-not-durable``; the
+first line printed says which, as the server reports it. Only the relay's memory is sampled, not
+the server's.
 """
 
 from __future__ import annotations
@@ -54,6 +61,7 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.figures import NA, CannotRun, Notes, dumps, fmt, last_line, run  # noqa: E402
+from benchmarks.stores import SQLITE_SETTINGS, STORES, PostgresStore  # noqa: E402
 from probes.events import EVENT_DTYPE  # noqa: E402
 from probes.relaylink import Link  # noqa: E402
 from probes.simnode import EVENTS_PER_FRAME, header_for, synth_events  # noqa: E402
@@ -80,7 +88,8 @@ def _env(extra: dict[str, str]) -> dict:
 class Relay:
     """``python -m relay`` on a free port; ``url`` once it listens."""
 
-    def __init__(self, db: Path, silent_s: float, env: dict[str, str]) -> None:
+    def __init__(self, db: Path | str, silent_s: float, env: dict[str, str]) -> None:
+        """``db``: an SQLite file or a PostgreSQL URL."""
         self._errors = tempfile.TemporaryFile()  # not a pipe: nobody reads it while the relay runs
         cmd = [sys.executable, "-m", "relay", "--port", "0", "--db", str(db), "--clock-port", "0",
                "--limit", f"silent_s={silent_s:g}"]
@@ -251,7 +260,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="the relay's silent_s: how long the old run holds the node's name (relay default 8)")
     p.add_argument("--env", action="append", default=[], metavar="NAME=VALUE",
                    help="run the relay with this environment variable (repeatable), e.g. MALLOC_ARENA_MAX=1")
-    p.add_argument("--store", choices=("sqlite",), default="sqlite", help="storage engine (the relay has one)")
+    p.add_argument("--store", choices=STORES, default="sqlite",
+                   help="storage engine: an SQLite file, or a PostgreSQL server of the benchmark's own (default sqlite)")
+    p.add_argument("--pg-not-durable", action="store_true",
+                   help="PostgreSQL with fsync, synchronous_commit and full_page_writes off (as the tests run it), "
+                        "not PostgreSQL's defaults; said in the output")
     p.add_argument("--quick", action="store_true", help="a smoke test: 20 restarts of 60,000 events in 15,000-event "
                                                         "batches, silent_s 0.3")
     p.add_argument("--json", action="store_true", help="also print every sample as a JSON line")
@@ -273,17 +286,24 @@ def main(argv: list[str] | None = None) -> int:
     print(f"relay soak: {args.restarts} restarts of node {NODE!r}, {len(events)} events a run "
           f"({run_mb:.1f} MiB raw) in batches of {args.batch_events}, compressed; silent_s {args.silent_s:g}"
           + (f"; relay env {' '.join(args.env)}" if args.env else ""), flush=True)
-    print(HEAD, flush=True)
     notes = Notes()
     with tempfile.TemporaryDirectory() as tmp:
-        relay = Relay(Path(tmp) / "soak.db", args.silent_s, env)
+        pg = PostgresStore(durable=not args.pg_not_durable) if args.store == "postgresql" else None
         try:
-            rows = asyncio.run(soak(relay, args.restarts, events, args.batch_events, args.silent_s,
-                                    lambda r: (_print_row(r, notes), args.json and print(dumps(r), flush=True))))
-        except (OSError, aiohttp.ClientError, asyncio.TimeoutError) as exc:
-            raise CannotRun(f"{type(exc).__name__}: {exc}; relay: {relay.last_error()}") from None
+            print(f"store {args.store}: {pg.describe() if pg else SQLITE_SETTINGS}", flush=True)
+            print(f"machine: {os.cpu_count()} CPUs, 1-min load {os.getloadavg()[0]:.1f} at start", flush=True)
+            print(HEAD, flush=True)
+            relay = Relay(pg.new_database() if pg else Path(tmp) / "soak.db", args.silent_s, env)
+            try:
+                rows = asyncio.run(soak(relay, args.restarts, events, args.batch_events, args.silent_s,
+                                        lambda r: (_print_row(r, notes), args.json and print(dumps(r), flush=True))))
+            except (OSError, aiohttp.ClientError, asyncio.TimeoutError) as exc:
+                raise CannotRun(f"{type(exc).__name__}: {exc}; relay: {relay.last_error()}") from None
+            finally:
+                relay.stop()
         finally:
-            relay.stop()
+            if pg:
+                pg.close()
     for line in notes.lines():
         print(line)
     v = verdict(rows, run_mb)
@@ -294,7 +314,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{v['growth_per_run_payload']} x one run's raw payload ({v['run_payload_mb']} MiB); RSS high-water mark "
           f"rose {v['hwm_growth_mb']} MB after restart {WARM} = {v['hwm_growth_payloads']} payloads; the relay counted at most {v['live_mb_max']} MB of live state "
           f"in {v['runs_max']} run(s); longest reclaim pass {fmt(v['reclaim_ms_max'], '.1f', ' ms')}", flush=True)
-    print(dumps({"verdict": v, "env": env}), flush=True)
+    print(dumps({"verdict": v, "env": env, "store": args.store}), flush=True)
     return 0
 
 

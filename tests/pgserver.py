@@ -3,8 +3,10 @@
 PostgreSQL refuses to run as root: as root the server is made and run as Debian's ``postgres``
 user (``runuser``), in a folder given to it; as anyone else, as oneself. Each pytest worker starts
 one server (the ``postgres`` fixture of tests/conftest.py), each test gets a database of its own
-(``pg_url``). Durability settings are off (fsync, synchronous commit): the tests check what the
-relay commits and reads back, not the disk; a server killed mid-test loses nothing the tests read.
+(``pg_url``). Durability settings are off (fsync, synchronous commit, full-page writes): the tests
+check what the relay commits and reads back, not the disk; a server killed mid-test loses nothing the
+tests read. ``PostgresServer(durable=True)`` keeps PostgreSQL's defaults for them instead (all on: a
+commit returns once its WAL is on disk), as users run it: the benchmarks time the relay on that.
 """
 
 from __future__ import annotations
@@ -20,8 +22,11 @@ from pathlib import Path
 
 from tests.ports import free_port
 
-SETTINGS = ("-c listen_addresses=127.0.0.1 -c fsync=off -c synchronous_commit=off -c full_page_writes=off "
-            "-c max_connections=300 -c shared_buffers=64MB")
+SETTINGS = "-c listen_addresses=127.0.0.1 -c max_connections=300 -c shared_buffers=64MB"
+FAST = "-c fsync=off -c synchronous_commit=off -c full_page_writes=off"
+"""The tests' durability settings: nothing waits for the disk."""
+DURABLE = "-c fsync=on -c synchronous_commit=on -c full_page_writes=on"
+"""PostgreSQL's defaults, said explicitly: every commit waits for its WAL to reach the disk."""
 
 
 def bindir() -> Path:
@@ -33,7 +38,11 @@ def bindir() -> Path:
 
 
 class PostgresServer:
-    def __init__(self) -> None:
+    def __init__(self, durable: bool = False) -> None:
+        """``durable``: fsync, synchronous_commit and full_page_writes on (PostgreSQL's defaults), not
+        off as the tests run it."""
+        self.durable = durable
+        self.settings = f"{SETTINGS} {DURABLE if durable else FAST}"
         self.bin = bindir()
         self.port = free_port()
         self.dir = Path(tempfile.mkdtemp(prefix="dcuscope-pg-"))
@@ -60,7 +69,7 @@ class PostgresServer:
 
     def resume(self) -> "PostgresServer":
         self._run("pg_ctl", "-D", str(self.data), "-l", str(self.log), "-w", "-t", "60",
-                  "-o", f"-p {self.port} -k {self.dir} {SETTINGS}", "start")
+                  "-o", f"-p {self.port} -k {self.dir} {self.settings}", "start")
         return self
 
     def stop(self, mode: str = "fast") -> None:

@@ -1,10 +1,12 @@
 """benchmarks/bench_relay.py: every simulated node connects from 127.0.0.1, so the relay it starts
 (bench_ui.py's too) must take more than the per-address default (16) of connections at once; and
-its --quick run, whose figures are each a number or n/a with the reason."""
+its --quick run on both stores with one and two relays (~20 s), whose figures are each a number or
+n/a with the reason, SQLite with two relays refused as a whole."""
 
 from __future__ import annotations
 
 import http.client
+import re
 import urllib.parse
 
 from benchmarks.bench_relay import Relay
@@ -32,18 +34,55 @@ def test_the_benchmark_relay_takes_more_than_16_connections_from_loopback_at_onc
         relay.stop()
 
 
-def test_quick_mode_prints_both_phases_and_every_figure_or_its_reason():
-    done = run_benchmark("bench_relay.py", "--quick")
+STORE_SETTINGS = ("store sqlite: ", "store postgresql: ")
+
+
+def test_quick_mode_prints_both_phases_per_store_and_relay_count_and_every_figure_or_its_reason():
+    """Every (store, relays) combination gets its line; SQLite with two relays is refused, with its
+    reason, and is the only n/a combination; two relays on PostgreSQL store every event between them."""
+    done = run_benchmark("bench_relay.py", "--quick", "--store", "sqlite", "postgresql", "--relays", "1", "2")
     assert_ran(done)
-    [line] = json_lines(done.stdout)
-    assert line["nodes"] == 2 and set(line) == {"nodes", "cpus", "load_before", "throughput", "lag"}
-    tp, lag = line["throughput"], line["lag"]
-    assert {"events", "events_per_s", "window_s", "relay_cpu_pct_in_window", "lost"} <= set(tp)
-    assert tp["events"] > 0 and tp["lost"] == 0
-    # too short a run for a rate is n/a with its reason, never a crash (the quick run often is)
-    assert isinstance(tp["events_per_s"], int) or tp["events_per_s"].startswith("n/a (")
-    assert {"lag_p50_ms", "lag_p99_ms", "push_transit_p50_ms", "frames_seen", "events_received"} <= set(lag)
-    assert lag["events_received"] > 0
+    lines = json_lines(done.stdout)
+    assert [(x["store"], x["relays"], x["nodes"]) for x in lines] == [
+        ("sqlite", 1, 2), ("sqlite", 2, 2), ("postgresql", 1, 2), ("postgresql", 2, 2)], done.stdout
+    for x in lines:
+        assert set(x) == {"store", "relays", "nodes", "cpus", "load_before", "throughput", "lag"}
+    refused = lines[1]
+    assert refused["throughput"] == refused["lag"] == "n/a (SQLite is one relay per file)"
+    # The PostgreSQL server runs durable (PostgreSQL's defaults), and the output says so.
+    pg = next(line for line in done.stdout.splitlines() if line.startswith(STORE_SETTINGS[1]))
+    assert "fsync=on" in pg and "synchronous_commit=on" in pg, pg
+    assert any(line.startswith(STORE_SETTINGS[0]) for line in done.stdout.splitlines())
+    for x in (lines[0], lines[2], lines[3]):
+        tp, lag = x["throughput"], x["lag"]
+        assert isinstance(tp, dict) and isinstance(lag, dict), x  # only sqlite x 2 is n/a as a whole
+        assert {"events", "events_per_s", "window_s", "relay_cpu_pct_in_window", "lost", "relay_cpu_us_per_event",
+                "store_cpu_us_per_event"} <= set(tp)
+        assert tp["events"] > 0 and tp["lost"] == 0
+        # too short a run for a rate is n/a with its reason, never a crash (the quick run often is)
+        for key in ("events_per_s", "relay_cpu_us_per_event"):
+            assert isinstance(tp[key], (int, float)) or tp[key].startswith("n/a ("), (key, tp)
+        assert {"lag_p50_ms", "lag_p99_ms", "push_transit_p50_ms", "frames_seen", "events_received",
+                "events_in_window", "relay_cpu_us_per_event", "store_cpu_us_per_event"} <= set(lag)
+        assert lag["events_received"] > 0 and lag["events_in_window"] > 0
+        # at 4,300 events/s a node, a relay spends microseconds of CPU per event, not none and not ms
+        assert 0.1 < lag["relay_cpu_us_per_event"] < 1000, lag
+        pg_figures = (tp["store_cpu_us_per_event"], lag["store_cpu_us_per_event"])
+        if x["store"] == "sqlite":
+            assert all(str(f).startswith("n/a (no store server") for f in pg_figures), x
+        else:
+            # the server's CPU is read in clock ticks (10 ms): a 1.5 s window may see none
+            assert 0 <= lag["store_cpu_us_per_event"] < 1000, lag
+    # Two relays on one store stored every event the nodes shipped, as one relay did.
+    assert lines[3]["throughput"]["events"] == lines[2]["throughput"]["events"]
+    # The side-by-side table: a row per combination, the refused one n/a with its footnote.
+    rows = [line.split() for line in done.stdout.splitlines() if re.match(r"(sqlite|postgresql)\s+\d", line)]
+    assert [(r[0], r[1], r[2]) for r in rows] == [("sqlite", "1", "2"), ("sqlite", "2", "2"),
+                                                  ("postgresql", "1", "2"), ("postgresql", "2", "2")], done.stdout
+    refused_row = next(line for line in done.stdout.splitlines() if re.match(r"sqlite\s+2\s", line))
+    refused_cells = re.findall(r"n/a \[(\d+)\]", refused_row)
+    assert len(refused_cells) == 6 and len(set(refused_cells)) == 1, refused_row
+    assert f"n/a [{refused_cells[0]}]: SQLite is one relay per file" in done.stdout.splitlines()
 
 
 def test_bench_ui_starts_the_relay_of_this_benchmark_which_takes_32_nodes_and_the_browser():
