@@ -28,7 +28,9 @@ processes too): on a 2-core machine the nodes take CPU from the relays, so the r
 floor. Each phase reports the relays' CPU summed over the relay processes (% of one core:
 ``relay_cpu_pct``; in the throughput phase also within the 10-90 % window) and per event
 received (``relay_cpu_us_per_event``: relay CPU seconds / events received x 1e6; in the
-throughput phase over the 10-90 % window, in the lag phase over its window), which other work
+throughput phase over the 10-90 % window, in the lag phase over its window, and
+``relay_cpu_us_per_event_no_ui`` over as long again with the same nodes and no browser: the live
+view's pushes are the difference), which other work
 on the machine moves less than a rate; the same for the PostgreSQL server
 (``store_cpu_us_per_event``: the work the relay hands it; with SQLite the writes are the
 relay's own, in its CPU); that of all node processes (``nodes_cpu_pct``), and ``load_before``
@@ -339,6 +341,11 @@ def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: fl
     nodes_cpu = sum(_proc_cpu(p.pid) for p in procs) - nodes_cpu0
     in_window = received - events0
     none = f"the relays received no event in the {seconds:g} s window"
+    # The same nodes for as long again with no browser: what the live view's pushes cost.
+    time.sleep(1.0)
+    cpu1, (_, events1) = cpu(), _received(relays)
+    time.sleep(seconds)
+    quiet_cpu, (_, events2) = cpu() - cpu1, _received(relays)
     for p in procs:
         p.terminate()
     for p in procs:
@@ -348,6 +355,7 @@ def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: fl
     return {"rate_per_node": rate, "seconds": seconds, "frames_seen": len(lags), "events_received": received,
             "events_in_window": in_window,
             "relay_cpu_us_per_event": round(1e6 * ratio(relay_cpu, in_window, none), 2),
+            "relay_cpu_us_per_event_no_ui": round(1e6 * ratio(quiet_cpu, events2 - events1, none), 2),
             "store_cpu_us_per_event": round(1e6 * ratio(server_cpu, in_window, none), 2) if server else NO_SERVER,
             "lag_p50_ms": round(percentile(lags, 50, no_frame), 1),
             "lag_p99_ms": round(percentile(lags, 99, no_frame), 1),
@@ -416,20 +424,22 @@ def table(lines: list[dict], rate: float) -> list[str]:
     """The combinations side by side, and the reasons of their n/a cells."""
     notes = Notes()
     head = (f"{'store':<10} {'relays':>6} {'nodes':>5} {'events/s':>10} {'µs/event':>10} {'µs/event':>10} "
-            f"{'lag p99':>9} {'PG µs/ev':>9} {'PG µs/ev':>9}")
-    sub = (f"{'':<10} {'':>6} {'':>5} {'bulk':>10} {'paced':>10} {'bulk':>10} "
+            f"{'µs/event':>10} {'lag p99':>9} {'PG µs/ev':>9} {'PG µs/ev':>9}")
+    sub = (f"{'':<10} {'':>6} {'':>5} {'bulk':>10} {'paced':>10} {'no /ui':>10} {'bulk':>10} "
            f"{'ms':>9} {'paced':>9} {'bulk':>9}")
     rows = [head, sub]
     for line in lines:
         rows.append(f"{line['store']:<10} {line['relays']:>6} {line['nodes']:>5} "
                     f"{notes.cell(_figure(line, 'throughput', 'events_per_s'), ',d'):>10} "
                     f"{notes.cell(_figure(line, 'lag', 'relay_cpu_us_per_event'), '.1f'):>10} "
+                    f"{notes.cell(_figure(line, 'lag', 'relay_cpu_us_per_event_no_ui'), '.1f'):>10} "
                     f"{notes.cell(_figure(line, 'throughput', 'relay_cpu_us_per_event'), '.1f'):>10} "
                     f"{notes.cell(_figure(line, 'lag', 'lag_p99_ms'), '.0f'):>9} "
                     f"{notes.cell(_figure(line, 'lag', 'store_cpu_us_per_event'), '.1f'):>9} "
                     f"{notes.cell(_figure(line, 'throughput', 'store_cpu_us_per_event'), '.1f'):>9}")
     legend = (f"events/s: stored per second in bulk (10-90 % window); µs/event: relay CPU (all relay processes) per "
-              f"event received, paced at {rate:g} events/s a node (the paper's pace) and in bulk; lag p99: frame end "
+              f"event received, paced at {rate:g} events/s a node (the paper's pace: with a /ui client on every relay, and as long again "
+              f"with none) and in bulk; lag p99: frame end "
               "to its push reaching the /ui client, paced; PG µs/ev: the PostgreSQL server's CPU per event")
     return rows + [legend] + notes.lines()
 

@@ -37,6 +37,8 @@ from relay.live.state import RelayState
 NAMESPACE = "/ui"
 ROOM = "browsers"
 DEFAULT_PUSH_HZ = 10.0
+IDLE_PERIOD_S = 0.5
+"""The tick's period while no browser is subscribed."""
 DEFAULT_MAX_FRAMES = 25
 MAX_FRAMES = 500
 STATS_PERIOD_S = 1.0
@@ -120,7 +122,11 @@ class Ticker:
                 await self.tick()
             except Exception:  # noqa: BLE001 - the heartbeat must survive a bad tick
                 log.exception("relay tick failed")
-            await asyncio.sleep(max(0.0, self.period - (time.monotonic() - started)))
+            # Nobody watching: pairing waits longer and merges more at once (its cost is mostly
+            # per call); a read (the API, /metrics) pairs what came first, a browser arriving is
+            # served at the next tick.
+            period = self.period if self.ui.subscriptions else max(self.period, IDLE_PERIOD_S)
+            await asyncio.sleep(max(0.0, period - (time.monotonic() - started)))
 
     async def tick(self) -> None:
         for rs in self.state.runs.values():
