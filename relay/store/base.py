@@ -28,6 +28,7 @@ import hashlib
 import hmac
 import json
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -40,6 +41,8 @@ SCHEMA_VERSION = 3
 HISTORY_COLUMNS = ("from_ns", "ref_ns", "offset_ns", "drift_ppb", "uncertainty_ns", "growth_ppb")
 RUN_FIELDS = frozenset({"ended_ns", "written", "dropped", "lost", "clock", "history"})
 REJECTED_CHARS = 200
+RUN_COLUMNS = "id, session, header, dropped, lost, clock, ended_ns"
+"""What the readers load of a run (:class:`RunRow`)."""
 
 
 class ResumeRefused(RelayError):
@@ -84,7 +87,11 @@ class RunRow:
 
 class Database(ABC):
     """One connection to a relay store. Writes are transactions: a method returns once what it
-    wrote committed. Used by one thread at a time."""
+    wrote committed. Used by one thread at a time.
+
+    What both engines say in the same SQL is written here once, with ``%s`` placeholders; an
+    engine supplies its reads (:meth:`_rows`), its transactions (:meth:`_transaction`) and how
+    its driver spells a placeholder (:meth:`_sql`)."""
 
     engine: str
     """"sqlite" or "postgresql"."""
@@ -92,6 +99,26 @@ class Database(ABC):
     """Where the store is, for messages (a path, or a URL without its password)."""
     shared: bool
     """Whether several relays may use the store at once (runs need an owner)."""
+
+    # --- what each engine supplies --------------------------------------------------------------
+
+    @abstractmethod
+    def _rows(self, sql: str, args: tuple = ()) -> list[tuple]:
+        """The rows of a query (``%s`` placeholders); StoreUnavailable if the store failed."""
+
+    @abstractmethod
+    def _transaction(self, fn: Callable[[Any], Any]) -> Any:
+        """``fn(executor)`` in one transaction (``executor.execute(sql, args)`` in the driver's
+        own placeholders: see :meth:`_sql`); StoreUnavailable if the store failed, the caller's
+        own errors as they are."""
+
+    def _sql(self, sql: str) -> str:
+        """``sql`` with the driver's placeholders (``%s``: psycopg's)."""
+        return sql
+
+    @abstractmethod
+    def _put_history(self, executor: Any, run: str, history: list[dict]) -> None:
+        """Make the run's stored history ``history``, writing only the rows that changed."""
 
     # --- runs ---------------------------------------------------------------------------------
 
@@ -117,23 +144,37 @@ class Database(ABC):
     def disown_run(self, run: str) -> None:
         """Give ownership of ``run`` back (its node left, or it ended)."""
 
-    @abstractmethod
     def mark_rejected(self, run: str, reason: str) -> None:
         """Keep a run the relay refused apart: sessions and exports leave it out."""
+        self._transaction(lambda x: x.execute(self._sql("UPDATE runs SET rejected = %s WHERE id = %s "
+                                                        "AND rejected IS NULL"), (reason[:REJECTED_CHARS], run)))
 
-    @abstractmethod
-    def run_stored(self, run: str) -> bool: ...
+    def run_stored(self, run: str) -> bool:
+        return bool(self._rows("SELECT 1 FROM runs WHERE id = %s", (run,)))
 
-    @abstractmethod
     def update_run(self, run: str, **fields: Any) -> None:
         """Set ``ended_ns``, ``written``, ``dropped``, ``lost``, ``clock`` (a dict) or ``history`` (the
         run's whole clock history: a list of :meth:`relay.clock.correction.Segment.to_dict`); the
         stored history becomes exactly it, only changed rows written."""
+        if not fields.keys() <= RUN_FIELDS:
+            raise ValueError(f"unknown run fields {sorted(fields.keys() - RUN_FIELDS)}")
+        columns = {k: json.dumps(v) if k == "clock" else v for k, v in fields.items() if k != "history"}
+        history = fields.get("history")
 
-    @abstractmethod
+        def update(executor: Any) -> None:
+            if columns:
+                executor.execute(self._sql(f"UPDATE runs SET {', '.join(f'{k} = %s' for k in columns)} WHERE id = %s"),
+                                 (*columns.values(), run))
+            if history is not None:
+                self._put_history(executor, run, history)
+
+        self._transaction(update)
+
     def run_history(self, run: str) -> list[Segment]:
         """A run's stored clock history, oldest first (not checked: see
         :func:`relay.clock.model.segment_fault`)."""
+        return [Segment(*r) for r in self._rows(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history "
+                                                 "WHERE run = %s ORDER BY from_ns", (run,))]
 
     # --- batches ------------------------------------------------------------------------------
 
@@ -143,27 +184,39 @@ class Database(ABC):
         them; per batch True if stored now, False if (run, seq) was stored before. Raises
         :class:`NotOwner` (nothing written) if a run is not owned here."""
 
-    @abstractmethod
-    def stored_seqs(self, run: str) -> set[int]: ...
+    def stored_seqs(self, run: str) -> set[int]:
+        return {int(r[0]) for r in self._rows("SELECT seq FROM batches WHERE run = %s", (run,))}
 
-    @abstractmethod
     def batch_payloads(self, run: str) -> list[tuple[bytes, bool]]:
         """A run's stored batches, (payload, compressed), by seq."""
+        return [(bytes(data), bool(c)) for data, c in
+                self._rows("SELECT data, compressed FROM batches WHERE run = %s ORDER BY seq", (run,))]
 
     # --- readers ------------------------------------------------------------------------------
 
-    @abstractmethod
     def session_runs(self, session: int) -> list[RunRow]:
         """The runs of a session the relay did not refuse, by first-seen time."""
+        return [RunRow(*r) for r in self._rows(
+            f"SELECT {RUN_COLUMNS} FROM runs WHERE session = %s AND rejected IS NULL ORDER BY first_seen_ns",
+            (session,))]
 
-    @abstractmethod
     def runs_with_prefix(self, prefix: str) -> list[RunRow]:
         """Runs whose id starts with ``prefix`` (lower-case hex), by first-seen time."""
+        return [RunRow(*r) for r in self._rows(
+            f"SELECT {RUN_COLUMNS} FROM runs WHERE id LIKE %s ORDER BY first_seen_ns", (prefix + "%",))]
 
-    @abstractmethod
     def list_sessions(self) -> list[dict]:
         """Sessions, newest first, each with its runs (refused runs left out, and sessions of
         refused runs only)."""
+        runs: dict[int, list[dict]] = {}
+        for (rid, session, node, first, last, ended, events, written, dropped, lost, clock) in self._rows(
+                "SELECT id, session, node, first_seen_ns, last_seen_ns, ended_ns, events, written, dropped, lost, "
+                "clock FROM runs WHERE rejected IS NULL ORDER BY first_seen_ns"):
+            runs.setdefault(session, []).append({
+                "run": rid, "node": node, "first_seen_ns": first, "last_seen_ns": last, "ended_ns": ended,
+                "events": events, "written": written, "dropped": dropped, "lost": lost, "clock": json.loads(clock)})
+        return [{"session": sid, "created_ns": created, "runs": runs[sid]}
+                for sid, created in self._rows("SELECT id, created_ns FROM sessions ORDER BY id DESC") if sid in runs]
 
     # --- retention ----------------------------------------------------------------------------
 
@@ -207,11 +260,3 @@ def check_resume(run: str, stored_node: str, stored_header: str, stored_secret: 
     if not secret_matches(stored_secret, secret):
         raise ResumeRefused(f"run {run} exists: resuming it takes the secret issued at its first hello")
 
-
-def run_updates(fields: dict[str, Any]) -> tuple[dict[str, Any], list | None]:
-    """The columns to set of :meth:`Database.update_run`'s ``fields`` (``clock`` as JSON), and the
-    history to write (None: unchanged); ValueError for a field no run has."""
-    if not fields.keys() <= RUN_FIELDS:
-        raise ValueError(f"unknown run fields {sorted(fields.keys() - RUN_FIELDS)}")
-    columns = {k: json.dumps(v) if k == "clock" else v for k, v in fields.items() if k != "history"}
-    return columns, fields.get("history")

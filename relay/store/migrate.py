@@ -18,7 +18,7 @@ from relay.store.base import HISTORY_COLUMNS
 from relay.store.postgres import PostgresDatabase, lock_key
 from relay.store.sqlite import connect
 
-RUN_COLUMNS = ("id", "node", "header", "first_seen_ns", "last_seen_ns", "ended_ns", "events", "written", "dropped",
+COPIED_RUN_COLUMNS = ("id", "node", "header", "first_seen_ns", "last_seen_ns", "ended_ns", "events", "written", "dropped",
                "lost", "clock", "secret", "rejected")
 BATCH_COLUMNS = ("seq", "count", "compressed", "received_ns", "data")
 
@@ -43,7 +43,7 @@ def migrate(source: str | Path, target: str, say: Callable[[str], None] = lambda
     try:
         sessions = src.execute("SELECT id, created_ns FROM sessions ORDER BY id").fetchall()
         for sid, created in sessions:
-            runs = src.execute(f"SELECT {', '.join(RUN_COLUMNS)} FROM runs WHERE session = ? ORDER BY first_seen_ns",
+            runs = src.execute(f"SELECT {', '.join(COPIED_RUN_COLUMNS)} FROM runs WHERE session = ? ORDER BY first_seen_ns",
                                (sid,)).fetchall()
             have = {r[0] for r in dst.conn.execute("SELECT id FROM runs WHERE id = ANY(%s)", ([r[0] for r in runs],))}
             if not runs or len(have) == len(runs):
@@ -70,21 +70,23 @@ def _session_for(dst: PostgresDatabase, have: set[str], created_ns: int) -> int:
     if have:
         row = dst.conn.execute("SELECT session FROM runs WHERE id = ANY(%s) LIMIT 1", (list(have),)).fetchone()
         return int(row[0])
-    return int(dst.conn.execute("INSERT INTO sessions (created_ns) VALUES (%s) RETURNING id", (created_ns,)).fetchone()[0])
+    created = dst.conn.execute("INSERT INTO sessions (created_ns) VALUES (%s) RETURNING id", (created_ns,))
+    return int(created.fetchone()[0])
 
 
 def _copy_run(src, dst: PostgresDatabase, run: tuple, session: int, done: Copied) -> None:
     rid = run[0]
     with dst.conn.transaction():
-        dst.conn.execute(f"INSERT INTO runs (session, lock_key, {', '.join(RUN_COLUMNS)}) "
-                         f"VALUES (%s, %s{', %s' * len(RUN_COLUMNS)})", (session, lock_key(rid), *run))
+        dst.conn.execute(f"INSERT INTO runs (session, lock_key, {', '.join(COPIED_RUN_COLUMNS)}) "
+                         f"VALUES (%s, %s{', %s' * len(COPIED_RUN_COLUMNS)})", (session, lock_key(rid), *run))
         with dst.conn.cursor().copy(f"COPY batches (run, {', '.join(BATCH_COLUMNS)}) FROM STDIN") as copy:
             for seq, count, compressed, received, data in src.execute(
                     f"SELECT {', '.join(BATCH_COLUMNS)} FROM batches WHERE run = ? ORDER BY seq", (rid,)):
                 copy.write_row((rid, seq, count, bool(compressed), received, data))
                 done.batches += 1
                 done.bytes += len(data)
-        history = src.execute(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history WHERE run = ?", (rid,)).fetchall()
+        history = src.execute(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history WHERE run = ?",
+                              (rid,)).fetchall()
         if history:
             dst.conn.cursor().executemany(f"INSERT INTO clock_history (run, {', '.join(HISTORY_COLUMNS)}) "
                                           f"VALUES (%s{', %s' * len(HISTORY_COLUMNS)})", [(rid, *h) for h in history])

@@ -29,10 +29,9 @@ from urllib.parse import urlsplit, urlunsplit
 
 import psycopg
 
-from relay.clock.correction import Segment
 from relay.errors import RelayError
-from relay.store.base import (HISTORY_COLUMNS, REJECTED_CHARS, SCHEMA_VERSION, BatchRow, Database, NotOwner,
-                              RunRow, StoreUnavailable, check_resume, run_updates, secret_hash)
+from relay.store.base import (HISTORY_COLUMNS, SCHEMA_VERSION, BatchRow, Database, NotOwner,
+                              StoreUnavailable, check_resume, secret_hash)
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -88,7 +87,6 @@ HELD_RUNS = """
       AND l.database = (SELECT oid FROM pg_database WHERE datname = current_database())
 """
 """Keys of the run locks some relay holds now (single-key advisory locks have objsubid 1)."""
-RUN_COLUMNS = "id, session, header, dropped, lost, clock, ended_ns"
 CONNECT_TIMEOUT_S = 5
 APPLICATION = "dcuscope-relay"
 
@@ -126,7 +124,7 @@ class PostgresDatabase(Database):
             raise StoreUnavailable(f"{self.location}: cannot connect: {_first_line(exc)}") from exc
         except ValueError as exc:  # psycopg's word for a URL it cannot parse
             raise RelayError(f"{self.location}: not a PostgreSQL URL: {exc}") from exc
-        self._run(self._create_schema)
+        self._transaction(self._create_schema)
 
     def _create_schema(self, cur: psycopg.Cursor) -> None:
         cur.execute("SELECT pg_advisory_xact_lock(%s, %s)", SCHEMA_LOCK)
@@ -138,12 +136,11 @@ class PostgresDatabase(Database):
         elif row[0] != str(SCHEMA_VERSION):
             raise RelayError(f"{self.location}: relay database schema {row[0]}, this relay reads {SCHEMA_VERSION}")
 
-    def _run(self, fn, *args) -> Any:
-        """``fn(cursor, *args)`` in one transaction. A lost connection, a server shutting down or
-        out of disk is the store's failure (StoreUnavailable); anything else the caller's."""
+    def _transaction(self, fn) -> Any:
+        # A lost connection, a server shutting down or out of disk is the store's failure.
         try:
             with self.conn.transaction(), self.conn.cursor() as cur:
-                return fn(cur, *args)
+                return fn(cur)
         except psycopg.OperationalError as exc:
             raise StoreUnavailable(f"{self.location}: {type(exc).__name__}: {_first_line(exc)}") from exc
         except psycopg.InterfaceError as exc:  # the connection was closed
@@ -153,7 +150,7 @@ class PostgresDatabase(Database):
         def query(cur: psycopg.Cursor) -> list[tuple]:
             cur.execute(sql, args)
             return cur.fetchall()
-        return self._run(query)
+        return self._transaction(query)
 
     # --- runs ---------------------------------------------------------------------------------
 
@@ -183,7 +180,7 @@ class PostgresDatabase(Database):
                         (run, session, node, json.dumps(header), now, now, secret_hash(issued), lock_key(run)))
             return session, now, issued
 
-        return self._run(register)
+        return self._transaction(register)
 
     def own_run(self, run: str) -> bool:
         if run in self.owned:
@@ -198,27 +195,7 @@ class PostgresDatabase(Database):
             self.owned.discard(run)
             self._rows("SELECT pg_advisory_unlock(%s)", (lock_key(run),))
 
-    def mark_rejected(self, run: str, reason: str) -> None:
-        self._rows("UPDATE runs SET rejected = %s WHERE id = %s AND rejected IS NULL RETURNING id",
-                   (reason[:REJECTED_CHARS], run))
-
-    def run_stored(self, run: str) -> bool:
-        return bool(self._rows("SELECT 1 FROM runs WHERE id = %s", (run,)))
-
-    def update_run(self, run: str, **fields: Any) -> None:
-        columns, history = run_updates(fields)
-
-        def update(cur: psycopg.Cursor) -> None:
-            if columns:
-                cur.execute(f"UPDATE runs SET {', '.join(f'{k} = %s' for k in columns)} WHERE id = %s",
-                               (*columns.values(), run))
-            if history is not None:
-                self._put_history(cur, run, history)
-
-        self._run(update)
-
-    @staticmethod
-    def _put_history(cur: psycopg.Cursor, run: str, history: list[dict]) -> None:
+    def _put_history(self, cur: psycopg.Cursor, run: str, history: list[dict]) -> None:
         cur.execute(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history WHERE run = %s", (run,))
         stored = {r[0]: tuple(r) for r in cur.fetchall()}
         rows = [tuple(int(seg[c]) for c in HISTORY_COLUMNS) for seg in history]
@@ -231,10 +208,6 @@ class PostgresDatabase(Database):
             cur.executemany(f"INSERT INTO clock_history (run, {', '.join(HISTORY_COLUMNS)}) VALUES (%s{', %s' * 6}) "
                             "ON CONFLICT (run, from_ns) DO UPDATE SET "
                             + ", ".join(f"{c} = EXCLUDED.{c}" for c in HISTORY_COLUMNS[1:]), changed)
-
-    def run_history(self, run: str) -> list[Segment]:
-        return [Segment(*r) for r in self._rows(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history "
-                                                 "WHERE run = %s ORDER BY from_ns", (run,))]
 
     # --- batches ------------------------------------------------------------------------------
 
@@ -260,7 +233,7 @@ class PostgresDatabase(Database):
                             (now_ns, list(per_run), list(per_run.values())))
             return new
 
-        new = self._run(insert)
+        new = self._transaction(insert)
         seen: set[tuple[str, int]] = set()
         out = []
         for b in batches:  # a batch queued twice in one group is stored once
@@ -269,34 +242,7 @@ class PostgresDatabase(Database):
             seen.add(key)
         return out
 
-    def stored_seqs(self, run: str) -> set[int]:
-        return {int(r[0]) for r in self._rows("SELECT seq FROM batches WHERE run = %s", (run,))}
-
-    def batch_payloads(self, run: str) -> list[tuple[bytes, bool]]:
-        return [(bytes(data), bool(c)) for data, c in
-                self._rows("SELECT data, compressed FROM batches WHERE run = %s ORDER BY seq", (run,))]
-
     # --- readers ------------------------------------------------------------------------------
-
-    def session_runs(self, session: int) -> list[RunRow]:
-        return [RunRow(*r) for r in self._rows(
-            f"SELECT {RUN_COLUMNS} FROM runs WHERE session = %s AND rejected IS NULL ORDER BY first_seen_ns",
-            (session,))]
-
-    def runs_with_prefix(self, prefix: str) -> list[RunRow]:
-        return [RunRow(*r) for r in self._rows(
-            f"SELECT {RUN_COLUMNS} FROM runs WHERE id LIKE %s ORDER BY first_seen_ns", (prefix + "%",))]
-
-    def list_sessions(self) -> list[dict]:
-        runs: dict[int, list[dict]] = {}
-        for (rid, session, node, first, last, ended, events, written, dropped, lost, clock) in self._rows(
-                "SELECT id, session, node, first_seen_ns, last_seen_ns, ended_ns, events, written, dropped, lost, "
-                "clock FROM runs WHERE rejected IS NULL ORDER BY first_seen_ns"):
-            runs.setdefault(session, []).append({
-                "run": rid, "node": node, "first_seen_ns": first, "last_seen_ns": last, "ended_ns": ended,
-                "events": events, "written": written, "dropped": dropped, "lost": lost, "clock": json.loads(clock)})
-        return [{"session": sid, "created_ns": created, "runs": runs[sid]}
-                for sid, created in self._rows("SELECT id, created_ns FROM sessions ORDER BY id DESC") if sid in runs]
 
     # --- retention ----------------------------------------------------------------------------
 
@@ -318,7 +264,7 @@ class PostgresDatabase(Database):
             cur.execute("DELETE FROM sessions WHERE id = %s", (session,))
             return n + cur.rowcount
 
-        return self._run(delete)
+        return self._transaction(delete)
 
     # --- the connection -----------------------------------------------------------------------
 

@@ -15,10 +15,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from relay.clock.correction import Segment
 from relay.errors import RelayError
-from relay.store.base import (HISTORY_COLUMNS, REJECTED_CHARS, SCHEMA_VERSION, BatchRow, Database, RunRow,
-                              StoreUnavailable, check_resume, run_updates, secret_hash)
+from relay.store.base import (HISTORY_COLUMNS, SCHEMA_VERSION, BatchRow, Database, StoreUnavailable, check_resume,
+                              secret_hash)
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -60,7 +59,6 @@ CREATE TABLE IF NOT EXISTS clock_history (
     PRIMARY KEY (run, from_ns)
 ) WITHOUT ROWID;
 """
-RUN_COLUMNS = "id, session, header, dropped, lost, clock, ended_ns"
 
 
 def connect(path: str | Path, create: bool = True) -> sqlite3.Connection:
@@ -122,19 +120,21 @@ class SqliteDatabase(Database):
         self.location = str(self.path)
         self.conn = connect(self.path, create)
 
+    def _sql(self, sql: str) -> str:
+        return sql.replace("%s", "?")
+
     def _rows(self, sql: str, args: tuple = ()) -> list[tuple]:
         try:
-            return self.conn.execute(sql, args).fetchall()
+            return self.conn.execute(self._sql(sql), args).fetchall()
         except sqlite3.DatabaseError as exc:
             raise StoreUnavailable(f"{self.path}: cannot read: {exc}") from exc
 
-    def _write(self, fn, *args) -> Any:
-        """``fn(conn, *args)`` in one transaction; sqlite's own failures (a full disk) are the
-        store's, anything else the caller's."""
+    def _transaction(self, fn) -> Any:
+        # sqlite's own failures (a full disk) are the store's, anything else the caller's.
         conn = self.conn
         try:
             conn.execute("BEGIN")
-            value = fn(conn, *args)
+            value = fn(conn)
             conn.execute("COMMIT")
             return value
         except (sqlite3.Error, OSError) as exc:
@@ -170,7 +170,7 @@ class SqliteDatabase(Database):
                          (run, session, node, json.dumps(header), now, now, secret_hash(issued)))
             return int(session)
 
-        return self._write(insert), now, issued
+        return self._transaction(insert), now, issued
 
     def own_run(self, run: str) -> bool:
         return True
@@ -178,27 +178,7 @@ class SqliteDatabase(Database):
     def disown_run(self, run: str) -> None:
         pass
 
-    def mark_rejected(self, run: str, reason: str) -> None:
-        self._write(lambda c: c.execute("UPDATE runs SET rejected = ? WHERE id = ? AND rejected IS NULL",
-                                        (reason[:REJECTED_CHARS], run)))
-
-    def run_stored(self, run: str) -> bool:
-        return self.conn.execute("SELECT 1 FROM runs WHERE id = ?", (run,)).fetchone() is not None
-
-    def update_run(self, run: str, **fields: Any) -> None:
-        columns, history = run_updates(fields)
-
-        def update(conn: sqlite3.Connection) -> None:
-            if columns:
-                conn.execute(f"UPDATE runs SET {', '.join(f'{k} = ?' for k in columns)} WHERE id = ?",
-                                (*columns.values(), run))
-            if history is not None:
-                self._put_history(conn, run, history)
-
-        self._write(update)
-
-    @staticmethod
-    def _put_history(conn: sqlite3.Connection, run: str, history: list[dict]) -> None:
+    def _put_history(self, conn: sqlite3.Connection, run: str, history: list[dict]) -> None:
         stored = {r[0]: r for r in conn.execute(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history "
                                                 "WHERE run = ?", (run,))}
         rows = [tuple(int(seg[c]) for c in HISTORY_COLUMNS) for seg in history]
@@ -207,10 +187,6 @@ class SqliteDatabase(Database):
                          [(run, t) for t in stored if t not in keep])
         conn.executemany(f"INSERT OR REPLACE INTO clock_history (run, {', '.join(HISTORY_COLUMNS)}) "
                          f"VALUES (?{', ?' * 6})", [(run, *r) for r in rows if stored.get(r[0]) != r])
-
-    def run_history(self, run: str) -> list[Segment]:
-        return [Segment(*r) for r in self._rows(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history "
-                                                 "WHERE run = ? ORDER BY from_ns", (run,))]
 
     # --- batches ------------------------------------------------------------------------------
 
@@ -228,36 +204,9 @@ class SqliteDatabase(Database):
                              [(n, now_ns, run) for run, n in per_run.items()])
             return inserted
 
-        return self._write(insert)
-
-    def stored_seqs(self, run: str) -> set[int]:
-        return {r[0] for r in self.conn.execute("SELECT seq FROM batches WHERE run = ?", (run,))}
-
-    def batch_payloads(self, run: str) -> list[tuple[bytes, bool]]:
-        return [(data, bool(c)) for data, c in
-                self._rows("SELECT data, compressed FROM batches WHERE run = ? ORDER BY seq", (run,))]
+        return self._transaction(insert)
 
     # --- readers ------------------------------------------------------------------------------
-
-    def session_runs(self, session: int) -> list[RunRow]:
-        return [RunRow(*r) for r in self._rows(
-            f"SELECT {RUN_COLUMNS} FROM runs WHERE session = ? AND rejected IS NULL ORDER BY first_seen_ns", (session,))]
-
-    def runs_with_prefix(self, prefix: str) -> list[RunRow]:
-        return [RunRow(*r) for r in self._rows(
-            f"SELECT {RUN_COLUMNS} FROM runs WHERE id LIKE ? ORDER BY first_seen_ns", (prefix + "%",))]
-
-    def list_sessions(self) -> list[dict]:
-        runs: dict[int, list[dict]] = {}
-        for (rid, session, node, first, last, ended, events, written, dropped, lost, clock) in self._rows(
-                "SELECT id, session, node, first_seen_ns, last_seen_ns, ended_ns, events, written, dropped, lost, "
-                "clock FROM runs WHERE rejected IS NULL ORDER BY first_seen_ns"):
-            runs.setdefault(session, []).append({
-                "run": rid, "node": node, "first_seen_ns": first, "last_seen_ns": last, "ended_ns": ended,
-                "events": events, "written": written, "dropped": dropped, "lost": lost, "clock": json.loads(clock)})
-        return [{"session": sid, "created_ns": created, "runs": runs[sid]}
-                for sid, created in self._rows("SELECT id, created_ns FROM sessions ORDER BY id DESC")
-                if sid in runs]
 
     # --- retention ----------------------------------------------------------------------------
 
@@ -277,7 +226,7 @@ class SqliteDatabase(Database):
             n += conn.execute("DELETE FROM runs WHERE session = ?", (session,)).rowcount
             return n + conn.execute("DELETE FROM sessions WHERE id = ?", (session,)).rowcount
 
-        return self._write(delete)
+        return self._transaction(delete)
 
     # --- the connection -----------------------------------------------------------------------
 

@@ -66,7 +66,6 @@ class Storage:
         self.name = name
         self._database: Database | None = open_database(db, name=name)
         self.location = self._database.location
-        self.engine = self._database.engine
         self.shared = self._database.shared
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
         self._loop: asyncio.AbstractEventLoop | None = None
