@@ -9,6 +9,8 @@ import http.client
 import re
 import urllib.parse
 
+import pytest
+
 from benchmarks.bench_relay import Relay
 from tests.benchmarks.smoke import assert_ran, json_lines, run_benchmark
 
@@ -37,6 +39,7 @@ def test_the_benchmark_relay_takes_more_than_16_connections_from_loopback_at_onc
 STORE_SETTINGS = ("store sqlite: ", "store postgresql: ")
 
 
+@pytest.mark.alone  # four relays, a PostgreSQL server and their nodes: ~30 s alone, past 120 s among 6 workers
 def test_quick_mode_prints_both_phases_per_store_and_relay_count_and_every_figure_or_its_reason():
     """Every (store, relays) combination gets its line; SQLite with two relays is refused, with its
     reason, and is the only n/a combination; two relays on PostgreSQL store every event between them."""
