@@ -52,6 +52,10 @@ def test_each_node_shows_one_short_clock_state_and_no_reason(streaming, page):
         "no-ptp4l-here" in ns[node]["ptp"].get("reason", "") for node in NODES) and ns, 20, what="PTP read on every node")
     for node in NODES:
         assert nodes[node]["ptp"]["state"] == "unavailable" and "no-ptp4l-here" in nodes[node]["ptp"]["reason"]
+        # The panel refreshes once a second: the page may still show the clock before that read.
+        page.wait_for_function("([n, why]) => (document.querySelector(`#nodes-body tr[data-node=\"${n}\"] .clock-cell`)"
+                               "?.getAttribute('title') || '').includes(why)", arg=[node, nodes[node]["clock"]["why"]],
+                               timeout=10_000)
         row = page.locator(f'#nodes-body tr[data-node="{node}"]')
         state = row.locator(".clock-state").inner_text()
         assert state in STATES and len(state) <= 16, state
