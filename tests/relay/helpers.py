@@ -144,6 +144,28 @@ def http_status(url: str, headers: dict | None = None) -> int:
         return exc.code
 
 
+def read_http_answer(sock) -> tuple[int, bytes] | None:
+    """Status and body of the HTTP answer read from ``sock`` (a 101 has no body); None when the
+    connection closes before a whole head, or the head is no HTTP status line."""
+    data = b""
+    while b"\r\n\r\n" not in data and len(data) < 1 << 16:
+        chunk = sock.recv(65536)
+        if not chunk:
+            return None
+        data += chunk
+    head, _, body = data.partition(b"\r\n\r\n")
+    status = re.match(rb"HTTP/1\.[01] (\d{3})", head)
+    if not status:
+        return None
+    length = re.search(rb"(?i)\r\ncontent-length: *(\d+)", head)
+    while length and len(body) < int(length.group(1)):
+        chunk = sock.recv(65536)
+        if not chunk:
+            break
+        body += chunk
+    return int(status.group(1)), body
+
+
 def wait_for(predicate, timeout: float, interval: float = 0.1, what: str = "condition"):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

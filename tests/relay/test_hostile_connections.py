@@ -21,8 +21,8 @@ from pathlib import Path
 import pytest
 
 from probes.delays import node_stats
-from tests.relay.helpers import (RelayProcess, assert_stats_equal, finish_node, get_json, load_node, start_node,
-                                 wait_for)
+from tests.relay.helpers import (RelayProcess, assert_stats_equal, finish_node, get_json, load_node, read_http_answer,
+                                 start_node, wait_for)
 
 TOKEN = "s3cret"
 WS_KEY = "dGhlIHNhbXBsZSBub25jZQ=="
@@ -50,21 +50,9 @@ def raw_get(port: int, path: str, host: str | None = "127.0.0.1", headers: dict 
     """Status and body of one request (no body for a 101)."""
     with socket.create_connection(("127.0.0.1", port), 10, source_address=(source, 0)) as s:
         s.sendall(raw_request(path, host, headers))
-        data = b""
-        while b"\r\n\r\n" not in data and len(data) < 1 << 16:
-            chunk = s.recv(65536)
-            assert chunk, f"connection closed before an answer to {path[:80]}: {data[:200]!r}"
-            data += chunk
-        head, _, body = data.partition(b"\r\n\r\n")
-        m = re.match(rb"HTTP/1\.[01] (\d{3})", head)
-        assert m, f"no HTTP answer to {path[:80]}: {data[:200]!r}"
-        length = re.search(rb"(?i)\r\ncontent-length: *(\d+)", head)
-        while length and len(body) < int(length.group(1)):
-            chunk = s.recv(65536)
-            if not chunk:
-                break
-            body += chunk
-    return int(m.group(1)), body
+        answer = read_http_answer(s)
+    assert answer, f"no HTTP answer to {path[:80]}"
+    return answer
 
 
 # --- the good node --------------------------------------------------------------------------------

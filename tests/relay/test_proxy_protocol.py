@@ -15,7 +15,6 @@ import asyncio
 import hashlib
 import ipaddress
 import json
-import re
 import socket
 import struct
 import threading
@@ -31,7 +30,7 @@ from relay.guard.limits import Limits
 from relay.guard.proxy import (V1_MAX_BYTES, V2_SIGNATURE, ProxyHeader, ProxyHeaderError, TrustedProxies,
                                parse_header)
 from tests.ports import free_port
-from tests.relay.helpers import RelayProcess, finish_node, get_json, start_node, wait_for
+from tests.relay.helpers import RelayProcess, finish_node, get_json, read_http_answer, start_node, wait_for
 
 PROXY_ADDR = "127.0.0.9"
 """The address the proxy connects to the relay from (the one ``--trusted-proxy`` names)."""
@@ -136,22 +135,9 @@ def request(sock: socket.socket, path: str = "/api/health", prefix: bytes = b"")
     connection is closed before an answer."""
     try:
         sock.sendall(prefix + f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode())
-        data = b""
-        while b"\r\n\r\n" not in data:
-            chunk = sock.recv(65536)
-            if not chunk:
-                return None
-            data += chunk
-        head, _, body = data.partition(b"\r\n\r\n")
-        length = re.search(rb"(?i)\r\ncontent-length: *(\d+)", head)
-        while length and len(body) < int(length.group(1)):
-            chunk = sock.recv(65536)
-            if not chunk:
-                break
-            body += chunk
+        return read_http_answer(sock)
     except ConnectionError:
         return None
-    return int(head.split(b" ", 2)[1]), body
 
 
 def closed_within(sock: socket.socket, limit_s: float) -> float | None:
