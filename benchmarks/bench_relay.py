@@ -1,27 +1,40 @@
 """Relay benchmark: sustained ingest (storage + live statistics) and UI-visible lag, per store and relay count.
 
-For each store (``--store``: sqlite, postgresql), number of relay processes (``--relays``) and
-node count (``--nodes``, default 2, 8, 32), on 127.0.0.1, both phases one after the other:
+For each store (``--store``: sqlite, postgresql), number of relay processes (``--relays``), node
+count (``--nodes``, default 2, 8, 32) and settings (``--settings``, default both), on 127.0.0.1,
+both phases one after the other:
 
 1. throughput: R relay processes on a fresh store, N simulated node processes (``python -m
    probes.simnode``) each shipping its share of ``--events`` as fast as the relays acknowledge;
    the rate is events committed to the store per second between 10 % and 90 % of the total
    (every one of them also went through the live pairing), counted from the store itself (the
    runs of ``/api/sessions``, which every relay on a shared store lists alike);
-2. lag: N nodes paced at ``--rate`` events/s each (the paper's DCU: ~4,300), a browser-side
-   Socket.IO client on each relay's ``/ui`` (a relay pushes the frames of its own nodes); lag =
-   arrival of a ``frames`` push - the timestamp of the frame's last event (its sink enter). The
-   node stamps an event when it happens and ships it within its flush interval (50 ms), so this
-   includes the node's batching; ``push_transit`` is the part from the relay sending a push to
-   the client handling it.
+   ``events_per_batch``: the nodes' events written / batches cut;
+2. lag: N nodes paced at ``--rate`` events/s each (the paper's DCU: ~4,300; simnode writes what
+   came every 10 ms), a browser-side Socket.IO client on the first relay's ``/ui`` (with several
+   relays it receives every relay's frames, through their Redis); lag = arrival of a ``frames``
+   push - the timestamp of the frame's last event (its sink enter), ``nodes_seen``: the nodes
+   whose frames came. The node stamps an event when it happens, so the lag includes the node's
+   batching and the relay's push rate (the settings); ``push_transit`` is the part from the
+   relay sending a push to the client handling it. The client shows every DCU (a page with all
+   of them opened), or with ``--watch N`` DCU-1..DCU-N only (a page with N opened from the fleet
+   overview: the relays then build and push those only); ``watched`` says which.
+
+Settings (``--settings``), each combination run once with each, on adjacent rows of the table:
+``today``, the settings before adaptive batching (nodes with ``--fixed-flush``: a batch every
+50 ms; relays with ``--push-hz 10``), and ``adaptive``, the defaults (nodes ship at once while
+their link is idle, at most one batch per ``min_flush_s``, probes/relayexport.py; relays push a
+DCU's frames as they complete, at most their default ``--push-hz`` times a second).
 
 With several relays the nodes are dealt round-robin (node k to relay k mod R), each given the
 whole list starting at its own relay (``--relay URL_k,URL_k+1,...``: the others are its failover,
-as a fleet configures them). SQLite is one relay per file: a combination of SQLite and more than
-one relay is not run, its figures are ``n/a (SQLite is one relay per file)``. PostgreSQL is a
-server of the benchmark's own (benchmarks/stores.py), a fresh database per phase, durable as
-users run it (fsync, synchronous_commit, full_page_writes on) unless ``--pg-not-durable``; the
-first lines printed say what each store runs with, as the server reports it.
+as a fleet configures them), and the relays share a Redis server of the benchmark's own
+(``--redis``, tests/redisserver.py), as a fleet runs them. SQLite is one relay per file: a
+combination of SQLite and more than one relay is not run, its figures are ``n/a (SQLite is one
+relay per file)``. PostgreSQL is a server of the benchmark's own (benchmarks/stores.py), a fresh
+database per phase, durable as users run it (fsync, synchronous_commit, full_page_writes on)
+unless ``--pg-not-durable``; the first lines printed say what each store runs with, as the
+server reports it.
 
 The relays and the node processes share this machine's cores (and the PostgreSQL server's
 processes too): on a 2-core machine the nodes take CPU from the relays, so the rates are a
@@ -35,13 +48,13 @@ on the machine moves less than a rate; the same for the PostgreSQL server
 (``store_cpu_us_per_event``: the work the relay hands it; with SQLite the writes are the
 relay's own, in its CPU); that of all node processes (``nodes_cpu_pct``), and ``load_before``
 (1-min load average when the combination started: other work on the machine). Prints one JSON
-line per combination, then a table of them side by side; a figure a run could not produce is
-``"n/a (reason)"`` in the JSON, ``n/a [k]`` with its reason below in the table
+line per combination and settings, then a table of them side by side; a figure a run could not
+produce is ``"n/a (reason)"`` in the JSON, ``n/a [k]`` with its reason below in the table
 (benchmarks/figures.py).
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_relay.py [--store sqlite postgresql] [--relays 1 2]
-        [--nodes 2 8 32] [--events 2000000] [--batch-events 8192] [--rate 4300] [--seconds 12]
-        [--pg-not-durable] [--quick]
+        [--nodes 2 8 32] [--settings today adaptive] [--events 2000000] [--batch-events 8192]
+        [--rate 4300] [--seconds 12] [--watch N] [--lag-only] [--pg-not-durable] [--quick]
 """
 
 from __future__ import annotations
@@ -59,6 +72,7 @@ import time
 import urllib.request
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import socketio
@@ -67,7 +81,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
-from benchmarks.figures import NA, CannotRun, Notes, dumps, last_line, percentile, ratio, run  # noqa: E402
+from benchmarks.figures import NA, CannotRun, Notes, dumps, last_line, one_line, percentile, ratio, run  # noqa: E402
 from benchmarks.stores import ONE_RELAY, SQLITE_SETTINGS, STORES, PostgresStore  # noqa: E402
 
 SOURCES = 2
@@ -75,6 +89,23 @@ EVENTS_PER_FRAME = 12  # origin, 5 stages x enter/exit, sink enter
 # Every simulated node connects from 127.0.0.1, where real DCUs each have their own address:
 # the per-address cap (16 by default) would refuse the 17th node and the benchmark's own requests.
 LOOPBACK = ("--limit", "connections_per_peer=256")
+
+
+class Settings(NamedTuple):
+    """How the nodes batch and the relays push: the options each is started with."""
+
+    nodes: tuple[str, ...]
+    relay: tuple[str, ...]
+    about: str
+
+
+SETTINGS = {
+    "today": Settings(("--fixed-flush",), ("--push-hz", "10"),
+                      "the settings before adaptive batching: nodes cut a batch every 50 ms (simnode --fixed-flush), "
+                      "a relay pushes a DCU's frames at most 10 times a second (--push-hz 10)"),
+    "adaptive": Settings((), (), "the defaults: nodes ship at once while their link is idle (at most one batch per "
+                                 "min_flush_s), a relay pushes frames as they complete (its default --push-hz)"),
+}
 
 
 def _env() -> dict:
@@ -129,14 +160,15 @@ def relay_list(urls: str | Sequence[str], k: int) -> str:
 
 
 def start_nodes(url: str | Sequence[str], n: int, per_node_events: int, paced: bool, fps: float,
-                batch_events: int = 8192) -> list[subprocess.Popen]:
-    """N simulated nodes; with several relays' URLs, dealt round-robin (:func:`relay_list`)."""
+                batch_events: int = 8192, node_args: Sequence[str] = ()) -> list[subprocess.Popen]:
+    """N simulated nodes; with several relays' URLs, dealt round-robin (:func:`relay_list`).
+    ``node_args``: more ``python -m probes.simnode`` options (a settings' ``--fixed-flush``)."""
     frames = max(1, per_node_events // (EVENTS_PER_FRAME * SOURCES))
     procs = []
     for k in range(n):
         cmd = [sys.executable, "-m", "probes.simnode", "--relay", relay_list(url, k), "--node", f"DCU-{k + 1}",
                "--sources", str(SOURCES), "--frames", str(frames), "--fps", str(fps), "--seed", str(k),
-               "--close-timeout", "120", "--batch-events", str(batch_events)]
+               "--close-timeout", "120", "--batch-events", str(batch_events), *node_args]
         if paced:
             cmd.append("--paced")
         procs.append(subprocess.Popen(cmd, cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE))
@@ -160,12 +192,35 @@ def wait_nodes(procs: list[subprocess.Popen], timeout: float) -> list[dict]:
 
 
 class Stores:
-    """The stores of one benchmark run: a fresh SQLite file or PostgreSQL database per phase."""
+    """The stores of one benchmark run: a fresh SQLite file or PostgreSQL database per phase, and
+    the Redis that relays sharing a store push through (:meth:`fanout`)."""
 
     def __init__(self, names: Sequence[str], tmp: Path, durable: bool) -> None:
         self.tmp = tmp
         self.pg = PostgresStore(durable) if "postgresql" in names else None
+        self.redis = None
         self._made = 0
+
+    def fanout(self, relays: int) -> list[str]:
+        """The relay options of ``relays`` relays sharing a store: with several, ``--redis`` to one
+        Redis server (started at the first call), so that each relay's pushes reach the browsers
+        of all. Raises CannotRun when Redis is not installed or does not start."""
+        if relays == 1:
+            return []
+        if self.redis is None:
+            try:
+                from tests.redisserver import RedisServer
+
+                self.redis = RedisServer()
+            except (ImportError, RuntimeError) as exc:
+                raise CannotRun(f"no Redis server for {relays} relays: {exc}") from None
+            try:
+                self.redis.start()
+            except (RuntimeError, OSError) as exc:
+                self.redis.close()
+                self.redis = None
+                raise CannotRun(f"the Redis server did not start: {one_line(str(exc))[-400:]}") from None
+        return ["--redis", self.redis.url]
 
     def settings(self, name: str) -> str:
         return self.pg.describe() if name == "postgresql" else SQLITE_SETTINGS
@@ -184,15 +239,20 @@ class Stores:
     def close(self) -> None:
         if self.pg is not None:
             self.pg.close()
+        if self.redis is not None:
+            self.redis.close()
 
 
-def _phase(stores: Stores, store: str, relays: int, measure: Callable[[list[Relay], PostgresStore | None], dict]) -> dict:
-    """``measure(relays, server)`` on ``relays`` fresh relay processes sharing a fresh store."""
+def _phase(stores: Stores, store: str, relays: int, settings: Settings,
+           measure: Callable[[list[Relay], PostgresStore | None], dict]) -> dict:
+    """``measure(relays, server)`` on ``relays`` fresh relay processes sharing a fresh store,
+    started with ``settings`` (and a Redis between them: :meth:`Stores.fanout`)."""
+    args = [*settings.relay, *stores.fanout(relays)]
     db = stores.fresh(store)
     started: list[Relay] = []
     try:
         for _ in range(relays):
-            started.append(Relay(db))
+            started.append(Relay(db, args))
         return measure(started, stores.server(store))
     finally:
         for relay in started:
@@ -200,15 +260,17 @@ def _phase(stores: Stores, store: str, relays: int, measure: Callable[[list[Rela
         stores.done(store, db)
 
 
-def throughput(n: int, total: int, stores: Stores, batch_events: int, store: str, relays: int) -> dict:
-    return _phase(stores, store, relays, lambda rs, server: measure_throughput(rs, n, total, batch_events, server))
+def throughput(n: int, total: int, stores: Stores, batch_events: int, store: str, relays: int,
+               settings: Settings) -> dict:
+    return _phase(stores, store, relays, settings, lambda rs, server: measure_throughput(
+        rs, n, total, batch_events, server, settings.nodes))
 
 
 def measure_throughput(relay: Relay | Sequence[Relay], n: int, total: int, batch_events: int,
-                       server: PostgresStore | None = None) -> dict:
+                       server: PostgresStore | None = None, node_args: Sequence[str] = ()) -> dict:
     """The throughput phase on ``relay``, a fresh one (or fresh relays sharing a fresh store):
     every event stored is counted. ``server``: the PostgreSQL server under them, whose CPU is
-    measured too."""
+    measured too; ``node_args``: more options of the nodes (:func:`start_nodes`)."""
     relays = _relays(relay)
     per_node = total // n
     expected = n * (per_node // (EVENTS_PER_FRAME * SOURCES)) * EVENTS_PER_FRAME * SOURCES
@@ -221,7 +283,8 @@ def measure_throughput(relay: Relay | Sequence[Relay], n: int, total: int, batch
         return server.cpu_s() if server else 0.0
 
     cpu0, wall0 = cpu(), time.monotonic()
-    procs = start_nodes([r.url for r in relays], n, per_node, paced=False, fps=1000.0, batch_events=batch_events)
+    procs = start_nodes([r.url for r in relays], n, per_node, paced=False, fps=1000.0, batch_events=batch_events,
+                        node_args=node_args)
     samples = []
     deadline = time.monotonic() + 600
     ended = None  # when every node had exited: the relays get 2 s more to store what they sent, not 600
@@ -255,22 +318,28 @@ def measure_throughput(relay: Relay | Sequence[Relay], n: int, total: int, batch
     else:
         rate = window_s = window_cpu = us_per_event = store_us = why
     return {"batch_events": batch_events, "events": int(v[-1]), "events_per_s": rate,
+            "events_per_batch": round(sum(c["written"] for c in counters)
+                                      / max(1, sum(c["batches"] for c in counters))),
             "lost": sum(c["lost"] for c in counters), "window_s": window_s, "relay_cpu_pct_in_window": window_cpu,
             "relay_cpu_us_per_event": us_per_event, "store_cpu_us_per_event": store_us,
             "relay_cpu_pct": round(100 * relay_cpu / wall),
             "nodes_cpu_pct": round(100 * (_children_cpu() - children) / wall)}
 
 
-async def _watch_ui(url: str, seconds: float) -> tuple[list[float], list[float]]:
-    """Lags of the frames pushed (ms), and of the pushes themselves (arrival - relay send)."""
+async def _watch_ui(url: str, seconds: float, watch: int | None = None) -> tuple[list[float], list[float], set[str]]:
+    """Lags of the frames pushed (ms), of the pushes themselves (arrival - relay send), and the
+    nodes whose frames came; ``watch``: the client shows DCU-1 .. DCU-watch only, as a page with
+    those opened from the overview (None: every DCU, as a page with all of them opened)."""
     lags: list[float] = []
     transit: list[float] = []
+    nodes: set[str] = set()
     sio = socketio.AsyncClient(reconnection=False)
 
     def on_frames(data: dict) -> None:
         now = time.clock_gettime_ns(time.CLOCK_REALTIME)
         transit.append((now - data["t_ns"]) / 1e6)
-        for block in data["nodes"].values():
+        for node, block in data["nodes"].items():
+            nodes.add(node)
             corr = block["correction_ns"]
             for f in block["frames"]:
                 last = max(t for t in f["enter"] + f["exit"] if t is not None) + corr
@@ -278,45 +347,48 @@ async def _watch_ui(url: str, seconds: float) -> tuple[list[float], list[float]]
 
     sio.on("frames", on_frames, namespace="/ui")
     try:
-        await sio.connect(url, namespaces=["/ui"], transports=["websocket"], wait_timeout=10)
+        shown = None if watch is None else [f"DCU-{k + 1}" for k in range(watch)]
+        await sio.connect(url, namespaces=["/ui"], transports=["websocket"], wait_timeout=10,
+                          auth={"subscribe": {"nodes": shown}})
     except socketio.exceptions.ConnectionError as exc:
         raise CannotRun(f"the /ui client could not connect to the relay: {exc}") from exc
     await asyncio.sleep(seconds)
     await sio.disconnect()
-    return lags, transit
+    return lags, transit, nodes
 
 
-async def _watch_uis(urls: Sequence[str], seconds: float) -> tuple[list[float], list[float]]:
-    """:func:`_watch_ui` on every relay at once (each pushes the frames of its own nodes), merged."""
-    both = await asyncio.gather(*(_watch_ui(url, seconds) for url in urls))
-    return [x for lags, _ in both for x in lags], [x for _, transit in both for x in transit]
-
-
-def lag(n: int, rate: float, seconds: float, stores: Stores, store: str, relays: int) -> dict:
-    return _phase(stores, store, relays, lambda rs, server: measure_lag(rs, n, rate, seconds, server=server))
+def lag(n: int, rate: float, seconds: float, stores: Stores, store: str, relays: int, settings: Settings,
+        watch: int | None = None) -> dict:
+    return _phase(stores, store, relays, settings, lambda rs, server: measure_lag(
+        rs, n, rate, seconds, server=server, node_args=settings.nodes, watch=watch))
 
 
 def _received(relays: list[Relay]) -> tuple[set[str], int]:
-    """The nodes streaming to ``relays`` (with an event received), and the events all of them received."""
-    names, events = set(), 0
+    """The nodes streaming to ``relays`` (with an event received), and the events all of them received.
+    Relays sharing a store each list every node of the fleet: a node counts once, with the highest
+    count listed (its own relay's, live; the others' come from the store, up to a second old)."""
+    events: dict[str, int] = {}
     for relay in relays:
         for node in relay.get("/api/nodes"):
-            events += node["events"]
-            if node["events"] > 0:
-                names.add(node["node"])
-    return names, events
+            events[node["node"]] = max(events.get(node["node"], 0), node["events"])
+    return {name for name, n in events.items() if n > 0}, sum(events.values())
 
 
 def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: float,
-                on_window: Callable[[str], None] | None = None, server: PostgresStore | None = None) -> dict:
-    """The lag phase on ``relay`` (or relays sharing a store); ``on_window("start")`` / ``("end")``
-    are called as the measured window opens and closes (bench_exporters samples the exporters'
-    counters there). ``server``: the PostgreSQL server under them, whose CPU is measured too."""
+                on_window: Callable[[str], None] | None = None, server: PostgresStore | None = None,
+                node_args: Sequence[str] = (), watch: int | None = None) -> dict:
+    """The lag phase on ``relay`` (or relays sharing a store and a Redis: the /ui client watches
+    the first, which pushes every relay's frames); ``on_window("start")`` / ``("end")`` are called
+    as the measured window opens and closes (bench_exporters samples the exporters' counters
+    there). ``server``: the PostgreSQL server under them, whose CPU is measured too;
+    ``node_args``: more options of the nodes (:func:`start_nodes`); ``watch``: the DCUs the /ui client
+    shows (:func:`_watch_ui`)."""
     relays = _relays(relay)
     fps = rate / (EVENTS_PER_FRAME * SOURCES)
     # Nodes run long enough to outlast their own start-up (Python imports: ~0.5 CPU-s
     # each, which on 2 cores and 32 nodes is seconds); measured only once all stream.
-    procs = start_nodes([r.url for r in relays], n, int(rate * (seconds + 60)), paced=True, fps=fps)
+    procs = start_nodes([r.url for r in relays], n, int(rate * (seconds + 60)), paced=True, fps=fps,
+                        node_args=node_args)
     deadline = time.monotonic() + 120
     while time.monotonic() < deadline:
         if len(_received(relays)[0]) == n:
@@ -332,7 +404,7 @@ def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: fl
     _, events0 = _received(relays)
     cpu0, server0, wall0 = cpu(), server.cpu_s() if server else 0.0, time.monotonic()
     nodes_cpu0 = sum(_proc_cpu(p.pid) for p in procs)
-    lags, transit = asyncio.run(_watch_uis([r.url for r in relays], seconds))
+    lags, transit, seen = asyncio.run(_watch_ui(relays[0].url, seconds, watch))
     relay_cpu, wall = cpu() - cpu0, time.monotonic() - wall0
     server_cpu = server.cpu_s() - server0 if server else 0.0
     _, received = _received(relays)
@@ -352,7 +424,9 @@ def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: fl
         p.wait(30)
     no_frame = f"no frame reached the /ui client in the {seconds:g} s window"
     no_push = f"no push reached the /ui client in the {seconds:g} s window"
-    return {"rate_per_node": rate, "seconds": seconds, "frames_seen": len(lags), "events_received": received,
+    return {"rate_per_node": rate, "seconds": seconds, "watched": "all" if watch is None else min(watch, n),
+            "frames_seen": len(lags), "nodes_seen": len(seen),
+            "events_received": received,
             "events_in_window": in_window,
             "relay_cpu_us_per_event": round(1e6 * ratio(relay_cpu, in_window, none), 2),
             "relay_cpu_us_per_event_no_ui": round(1e6 * ratio(quiet_cpu, events2 - events1, none), 2),
@@ -399,14 +473,18 @@ def _choices(values: list[str], allowed: Sequence[str] | None, kind: type, what:
     return out
 
 
-def combination(stores: Stores, store: str, relays: int, n: int, args: argparse.Namespace) -> dict:
-    """One JSON line: both phases of ``n`` nodes on ``relays`` relays sharing a ``store``."""
-    result = {"store": store, "relays": relays, "nodes": n, "cpus": os.cpu_count(),
+def combination(stores: Stores, store: str, relays: int, n: int, settings: str, args: argparse.Namespace) -> dict:
+    """One JSON line: both phases of ``n`` nodes on ``relays`` relays sharing a ``store``, with ``settings``."""
+    result = {"store": store, "relays": relays, "nodes": n, "settings": settings, "cpus": os.cpu_count(),
               "load_before": round(os.getloadavg()[0], 1)}
     if store == "sqlite" and relays > 1:
         return result | {"throughput": NA(ONE_RELAY), "lag": NA(ONE_RELAY)}
-    phases = {"throughput": lambda: throughput(n, args.events, stores, args.batch_events, store, relays),
-              "lag": lambda: lag(n, args.rate, args.seconds, stores, store, relays)}
+    chosen = SETTINGS[settings]
+    phases = {"throughput": lambda: throughput(n, args.events, stores, args.batch_events, store, relays, chosen),
+              "lag": lambda: lag(n, args.rate, args.seconds, stores, store, relays, chosen, args.watch)}
+    if args.lag_only:
+        result["throughput"] = NA("not run (--lag-only)")
+        del phases["throughput"]
     for name, measure in phases.items():
         try:
             result[name] = measure()
@@ -421,26 +499,29 @@ def _figure(line: dict, phase: str, key: str):
 
 
 def table(lines: list[dict], rate: float) -> list[str]:
-    """The combinations side by side, and the reasons of their n/a cells."""
+    """The combinations side by side (the settings of one combination on adjacent rows), and the
+    reasons of their n/a cells."""
     notes = Notes()
-    head = (f"{'store':<10} {'relays':>6} {'nodes':>5} {'events/s':>10} {'µs/event':>10} {'µs/event':>10} "
-            f"{'µs/event':>10} {'lag p99':>9} {'PG µs/ev':>9} {'PG µs/ev':>9}")
-    sub = (f"{'':<10} {'':>6} {'':>5} {'bulk':>10} {'paced':>10} {'no /ui':>10} {'bulk':>10} "
-           f"{'ms':>9} {'paced':>9} {'bulk':>9}")
+    head = (f"{'store':<10} {'relays':>6} {'nodes':>5} {'settings':<8} {'events/s':>10} {'µs/event':>10} "
+            f"{'µs/event':>10} {'µs/event':>10} {'lag p50':>9} {'lag p99':>9} {'PG µs/ev':>9} {'PG µs/ev':>9}")
+    sub = (f"{'':<10} {'':>6} {'':>5} {'':<8} {'bulk':>10} {'paced':>10} {'no /ui':>10} {'bulk':>10} "
+           f"{'ms':>9} {'ms':>9} {'paced':>9} {'bulk':>9}")
     rows = [head, sub]
     for line in lines:
-        rows.append(f"{line['store']:<10} {line['relays']:>6} {line['nodes']:>5} "
+        rows.append(f"{line['store']:<10} {line['relays']:>6} {line['nodes']:>5} {line['settings']:<8} "
                     f"{notes.cell(_figure(line, 'throughput', 'events_per_s'), ',d'):>10} "
                     f"{notes.cell(_figure(line, 'lag', 'relay_cpu_us_per_event'), '.1f'):>10} "
                     f"{notes.cell(_figure(line, 'lag', 'relay_cpu_us_per_event_no_ui'), '.1f'):>10} "
                     f"{notes.cell(_figure(line, 'throughput', 'relay_cpu_us_per_event'), '.1f'):>10} "
+                    f"{notes.cell(_figure(line, 'lag', 'lag_p50_ms'), '.0f'):>9} "
                     f"{notes.cell(_figure(line, 'lag', 'lag_p99_ms'), '.0f'):>9} "
                     f"{notes.cell(_figure(line, 'lag', 'store_cpu_us_per_event'), '.1f'):>9} "
                     f"{notes.cell(_figure(line, 'throughput', 'store_cpu_us_per_event'), '.1f'):>9}")
-    legend = (f"events/s: stored per second in bulk (10-90 % window); µs/event: relay CPU (all relay processes) per "
-              f"event received, paced at {rate:g} events/s a node (the paper's pace: with a /ui client on every relay, and as long again "
-              f"with none) and in bulk; lag p99: frame end "
-              "to its push reaching the /ui client, paced; PG µs/ev: the PostgreSQL server's CPU per event")
+    legend = (f"settings: {', '.join(SETTINGS)} (above); events/s: stored per second in bulk (10-90 % window); "
+              f"µs/event: relay CPU (all relay processes) per event received, paced at {rate:g} events/s a node "
+              "(the paper's pace: with a /ui client on the first relay, and as long again with none) and in bulk; "
+              "lag p50/p99: frame end to its push reaching the /ui client, paced; PG µs/ev: the PostgreSQL "
+              "server's CPU per event")
     return rows + [legend] + notes.lines()
 
 
@@ -456,29 +537,43 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--nodes", type=int, nargs="+", default=[2, 8, 32])
     p.add_argument("--events", type=int, default=2_000_000, help="events in all for the throughput phase")
     p.add_argument("--batch-events", type=int, default=8192,
-                   help="events per batch in the throughput phase (a paced DCU at 4,300/s sends ~215)")
+                   help="most events per batch in the throughput phase (a paced DCU at 4,300/s sends ~215 with "
+                        "the 50 ms fixed flush, fewer adaptively)")
     p.add_argument("--rate", type=float, default=4300.0, help="events/s per node in the lag phase")
     p.add_argument("--seconds", type=float, default=12.0, help="length of the lag phase")
+    p.add_argument("--settings", nargs="+", action="extend", metavar="{today,adaptive}",
+                   help="the node and relay settings to run each combination with (repeatable, or a list; "
+                        "default both, side by side: today adaptive)")
+    p.add_argument("--watch", type=int, metavar="N",
+                   help="the lag phase's /ui client shows DCU-1..DCU-N only, as a page with N DCUs opened from the "
+                        "fleet overview (default: every DCU, as a page with all of them opened)")
+    p.add_argument("--lag-only", action="store_true", help="run the lag phase only (its throughput figures n/a)")
     p.add_argument("--quick", action="store_true", help="a smoke test: 2 nodes, 600,000 events, a 1.5 s lag phase")
     args = p.parse_args(argv)
     if args.quick:
         args.nodes, args.events, args.seconds = [2], 600_000, 1.5
     stores = _choices(args.store or ["sqlite"], STORES, str, "--store", p)
     relay_counts = _choices(args.relays or ["1"], None, int, "--relays", p)
+    settings = _choices(args.settings or list(SETTINGS), SETTINGS, str, "--settings", p)
     if min(args.nodes) < 1 or min(relay_counts) < 1 or args.events < 1 or args.seconds <= 0 or args.rate <= 0:
         p.error("--nodes, --relays, --events, --seconds and --rate must be positive")
+    if args.watch is not None and args.watch < 1:
+        p.error("--watch takes a number of DCUs, at least 1")
     lines = []
     with tempfile.TemporaryDirectory() as tmp:
         rig = Stores(stores, Path(tmp), durable=not args.pg_not_durable)
         try:
             for store in stores:
                 print(f"store {store}: {rig.settings(store)}", flush=True)
+            for name in settings:
+                print(f"settings {name}: {SETTINGS[name].about}", flush=True)
             print(f"machine: {os.cpu_count()} CPUs, 1-min load {os.getloadavg()[0]:.1f} at start", flush=True)
             for store in stores:
                 for relays in relay_counts:
                     for n in args.nodes:
-                        lines.append(combination(rig, store, relays, n, args))
-                        print(dumps(lines[-1]), flush=True)
+                        for name in settings:
+                            lines.append(combination(rig, store, relays, n, name, args))
+                            print(dumps(lines[-1]), flush=True)
         finally:
             rig.close()
     print("\n".join(table(lines, args.rate)), flush=True)

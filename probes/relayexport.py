@@ -3,16 +3,27 @@
 It implements the ``probes.events.Exporter`` protocol. ``write`` only copies the events into a
 pending list under a short lock and returns: it never waits for the network. A thread of its
 own runs an asyncio loop with an aiohttp WebSocket to the relay's ``/ingest`` (:mod:`probes.relaylink`)
-that cuts the pending events into numbered batches (:mod:`probes.wire`), keeps every batch
-until the relay acknowledges it (the relay acknowledges after its database committed the
-batch), holds all sending for a while when the relay could not store a batch (the time the relay
-asks, ``retry_ms``, growing while failures go on, capped) then sends it again, resends what is not
-acknowledged after a reconnect, and reconnects with exponential backoff. The buffer of
-unacknowledged events is bounded (``max_buffer_events``); beyond it the oldest batches are
-dropped and counted as ``lost``, a count the relay receives with the next ``hello``/``clock``
-message and with ``end`` (with the lowest batch it still holds, so that the relay stops
-waiting for the dropped ones). A relay that refuses the token (HTTP 401) is not asked again:
+that cuts the pending events into numbered batches (:mod:`probes.wire`; when: "Batching" below),
+keeps every batch until the relay acknowledges it (the relay acknowledges after its database
+committed the batch), holds all sending for a while when the relay could not store a batch (the
+time the relay asks, ``retry_ms``, growing while failures go on, capped) then sends it again,
+resends what is not acknowledged after a reconnect, and reconnects with exponential backoff.
+The buffer of unacknowledged events is bounded (``max_buffer_events``); beyond it the oldest
+batches are dropped and counted as ``lost``, a count the relay receives with the next
+``hello``/``clock`` message and with ``end`` (with the lowest batch it still holds, so that the
+relay stops waiting for the dropped ones). A relay that refuses the token (HTTP 401) is not asked again:
 :attr:`RelayExporter.refused` says so (``dcuscope run`` ends with it as its error).
+
+Batching (adaptive, as Nagle's algorithm): while the link is idle (connected, no batch waiting
+for its acknowledgement, none queued to send), what is pending is cut and sent at once, but at
+most once per ``min_flush_s`` after the last cut, so that a pipeline writing a few events at a
+time does not send a batch per write. While batches are in flight, events gather until the link
+is idle again (the last acknowledgement came: it includes the relay's commit), ``batch_events``
+are pending, or the oldest pending event has waited ``flush_interval_s``. A paced node thus
+ships within a few ms of a write, each batch holding what came during the last round trip; under
+bulk load the link is always busy and batches stay ``batch_events`` long. ``adaptive=False``
+cuts every ``flush_interval_s`` or at ``batch_events`` whatever the link does (the behaviour
+before, which benchmarks/bench_relay.py measures beside it).
 
 Several relays (``--relay URL1,URL2``, relays that share one database): the node ships to one at
 a time and moves to the next in the list, round robin, when the one it uses cannot be reached
@@ -56,6 +67,10 @@ from probes.wire import MAX_BATCH_EVENTS, PROTOCOL_VERSION, encode_batch
 
 DEFAULT_BATCH_EVENTS = 8192
 DEFAULT_FLUSH_INTERVAL_S = 0.05
+"""The longest an event is held on the node before it is cut into a batch (``adaptive=False``:
+the period of the cuts)."""
+DEFAULT_MIN_FLUSH_S = 0.01
+"""Adaptive batching: the shortest time between two cuts that an idle link triggers."""
 DEFAULT_MAX_BUFFER_EVENTS = 2_000_000
 """About 46 MiB, 7.7 minutes of a paper-sized DCU (4,300 events/s)."""
 DEFAULT_WINDOW = 64
@@ -86,11 +101,14 @@ class RelayExporter:
     goes through it, as the probes' event timestamps do, to inject a known offset and drift.
     ``close_timeout_s`` bounds ``close`` as a whole (waiting for acknowledgements included).
     ``ptp_socket``: the UDS of the local ptp4l, read every ``ptp_interval_s`` with pmc.
+    ``adaptive``, ``min_flush_s``, ``flush_interval_s``, ``batch_events``: how pending events are
+    cut into batches (the module's "Batching").
     """
 
     def __init__(self, url: str | Sequence[str], node: str, token: str | None = None, clock: str = "realtime",
                  pretend: PretendClock | None = None, *, compress: bool = False,
                  batch_events: int = DEFAULT_BATCH_EVENTS, flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S,
+                 adaptive: bool = True, min_flush_s: float = DEFAULT_MIN_FLUSH_S,
                  max_buffer_events: int = DEFAULT_MAX_BUFFER_EVENTS, window: int = DEFAULT_WINDOW,
                  sync_interval_s: float = 2.0, ptp_interval_s: float = POLL_INTERVAL_S,
                  ptp_socket: str = DEFAULT_UDS,
@@ -110,6 +128,7 @@ class RelayExporter:
         self._compress = compress
         self._batch_events = max(1, min(int(batch_events), MAX_BATCH_EVENTS))
         self._flush_interval = flush_interval_s
+        self._adaptive, self._min_flush = adaptive, min_flush_s
         self._max_events = int(max_buffer_events)
         self._window = max(1, int(window))
         self._sync_interval, self._ptp_interval = sync_interval_s, ptp_interval_s
@@ -124,6 +143,7 @@ class RelayExporter:
         self._lock = threading.Lock()
         self._pending: list[np.ndarray] = []
         self._pending_n = 0
+        self._pending_since = 0.0  # monotonic time of the oldest pending write
         self._shed = 0  # events refused by write because even the pending list was full
 
         # Owned by the loop thread.
@@ -134,6 +154,7 @@ class RelayExporter:
         self._inflight: dict[int, float] = {}
         self._to_send: deque[int] = deque()
         self._next_seq = 0
+        self._last_cut = 0.0
         self._evicted = 0
         self._written = self._acked = self._sent = self._connects = 0
         self._connected = False
@@ -182,11 +203,15 @@ class RelayExporter:
             if self._pending_n + n > self._max_events:
                 self._shed += n
                 return
+            first = self._pending_n == 0
+            if first:
+                self._pending_since = time.monotonic()
             # A copy: the shipper may reuse its array after write returns.
             self._pending.append(events.copy())
             self._pending_n += n
             self._written += n
-            wake = self._pending_n >= self._batch_events
+            # Adaptive: the first pending events may go at once (an idle link), or set the hold's end.
+            wake = self._pending_n >= self._batch_events or (first and self._adaptive)
         if wake and self._loop is not None:
             self._loop.call_soon_threadsafe(self._wake.set)
 
@@ -212,7 +237,7 @@ class RelayExporter:
     def counters(self) -> dict:
         return {
             "run": self.run_id, "connected": self._connected, "relay": self.url if self._connected else "",
-            "connects": self._connects,
+            "connects": self._connects, "batches": self._next_seq,
             "written": self._written, "sent": self._sent, "acked": self._acked, "lost": self.lost,
             "buffered": self._unacked_n + self._pending_n, "retries": self._retries,
             "last_error": self._last_error, "clock_via": self.clock_via,
@@ -248,16 +273,45 @@ class RelayExporter:
             await asyncio.gather(*tasks, return_exceptions=True)
 
     async def _flush_loop(self) -> None:
+        if not self._adaptive:
+            while True:
+                await _wait(self._wake, self._flush_interval)
+                self._wake.clear()
+                self._cut_batches()
+        # Woken by write (the first pending events, or batch_events of them), by a new connection
+        # and by the acknowledgement that leaves the link idle; else sleeps until the next cut is due.
         while True:
-            await _wait(self._wake, self._flush_interval)
             self._wake.clear()
-            self._cut_batches()
+            left = self._until_cut()
+            if left == 0.0:
+                self._cut_batches()
+                await asyncio.sleep(0)  # the sender takes the batches before a writer fills the next
+            else:
+                await _wait(self._wake, left)
+
+    def _until_cut(self) -> float | None:
+        """Adaptive batching: seconds until the pending events are due to be cut (0: now; None:
+        none pending)."""
+        with self._lock:
+            n, since = self._pending_n, self._pending_since
+        if n == 0:
+            return None
+        if n >= self._batch_events:
+            return 0.0
+        due = since + self._flush_interval
+        if self._link_idle():
+            due = min(due, self._last_cut + self._min_flush)
+        return max(0.0, due - time.monotonic())
+
+    def _link_idle(self) -> bool:
+        return self._connected and not self._inflight and not self._to_send
 
     def _cut_batches(self) -> None:
         with self._lock:
             pending, self._pending, self._pending_n = self._pending, [], 0
         if not pending:
             return
+        self._last_cut = time.monotonic()
         events = np.concatenate(pending) if len(pending) > 1 else pending[0]
         for i in range(0, len(events), self._batch_events):
             chunk = events[i:i + self._batch_events]
@@ -393,6 +447,7 @@ class RelayExporter:
         self._inflight.clear()
         self._synced.clear()
         self._to_send = deque(self._unacked.keys())
+        self._wake.set()  # adaptive batching: an idle link may take what is pending
         workers = [asyncio.create_task(self._sender(link)), asyncio.create_task(self._syncer(link))]
         stop = asyncio.create_task(self._stop.wait())
         lost = asyncio.create_task(link.closed())
@@ -445,6 +500,8 @@ class RelayExporter:
             self._unacked_n -= item[1]
             self._acked += item[1]
         self._progress.set()
+        if self._adaptive and self._link_idle():
+            self._wake.set()  # what gathered meanwhile may go now
 
     def _hold(self, ack: dict) -> None:
         """Hold all sending after a batch was not stored: for what the relay asks, doubling with
@@ -563,9 +620,10 @@ def _seconds(ms: int | None) -> float | None:
     return ms / 1000 if ms is not None else None
 
 
-async def _wait(event: asyncio.Event, timeout_s: float) -> bool:
-    """Wait for ``event`` at most ``timeout_s``; True if it was set. (``asyncio.timeout``
-    costs no extra task per wait, unlike ``wait_for``: this runs 20 times a second.)"""
+async def _wait(event: asyncio.Event, timeout_s: float | None) -> bool:
+    """Wait for ``event`` at most ``timeout_s`` (None: for as long as it takes); True if it was
+    set. (``asyncio.timeout`` costs no extra task per wait, unlike ``wait_for``: this runs up to
+    hundreds of times a second.)"""
     try:
         async with asyncio.timeout(timeout_s):
             await event.wait()

@@ -111,7 +111,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--paced", action="store_true", help="write each event when its time comes")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--batch-events", type=int, default=8192)
-    p.add_argument("--flush-interval", type=float, default=0.05)
+    p.add_argument("--flush-interval", type=float, default=0.05,
+                   help="the longest an event waits on the node to be cut into a batch (--fixed-flush: the period)")
+    p.add_argument("--fixed-flush", action="store_true",
+                   help="cut batches every --flush-interval or at --batch-events, not as soon as the link is idle "
+                        "(the behaviour before adaptive batching, for side-by-side benchmarks)")
     p.add_argument("--max-buffer-events", type=int, default=2_000_000)
     p.add_argument("--close-timeout", type=float, default=30.0)
     p.add_argument("--ptp-socket", default=DEFAULT_UDS, help=f"the local ptp4l's UDS, read with pmc (default {DEFAULT_UDS})")
@@ -127,6 +131,7 @@ def main(argv: list[str] | None = None) -> int:
     header = header_for(args.node, args.sources, pretend.of(t0))
     exporter = RelayExporter(args.relay, args.node, token=args.token, pretend=pretend,
                              batch_events=args.batch_events, flush_interval_s=args.flush_interval,
+                             adaptive=not args.fixed_flush,
                              max_buffer_events=args.max_buffer_events, close_timeout_s=args.close_timeout,
                              ptp_socket=args.ptp_socket)
     started = time.monotonic()

@@ -93,6 +93,16 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--otlp-timeout", type=float, metavar="S",
                    help=f"with --otlp: seconds one export request may take, retries included (default "
                         f"{DEFAULT_TIMEOUT_S:g}); its frames are dropped and counted after it")
+    p.add_argument("--redis", metavar="URL",
+                   help="Redis that carries every relay's live pushes to every relay's browsers "
+                        "(redis://HOST:PORT/DB; python-socketio's AsyncRedisManager): with relays sharing "
+                        "--db postgresql://..., a page on any relay shows every DCU of the fleet live. Redis "
+                        "down: ingest and storage go on, other relays' pages catch up when it returns")
+    p.add_argument("--name", metavar="NAME",
+                   help="how pages and other relays name this relay (default HOST:PORT)")
+    p.add_argument("--push-hz", type=float, default=None, metavar="HZ",
+                   help="most pushes of a DCU's new frames to browsers per second (default 30; frames go out "
+                        "as soon as they are complete, at most this often)")
     p.add_argument("--log-level", default="WARNING", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
                    help="how much the relay logs to stderr: WARNING its failures and warnings, INFO also "
                         "the connections it closes (malformed packets, refused messages), DEBUG everything "
@@ -118,6 +128,19 @@ def run_relay(args: argparse.Namespace) -> int:
     node_tokens = load_node_tokens(args.node_tokens) if args.node_tokens else None
     frame_limits = FrameLimits.parse(args.frame_limit)
     otlp = _otlp(args, frame_limits)
+    options = {}
+    if args.redis is not None:
+        from relay.api.fanout import check_url
+
+        options["redis"] = check_url(args.redis)
+    if args.name is not None:
+        if not 0 < len(args.name) <= 100 or not args.name.isprintable():
+            raise RelayError("--name takes 1 to 100 printable characters")
+        options["name"] = args.name
+    if args.push_hz is not None:
+        if not 0.5 <= args.push_hz <= 240:
+            raise RelayError(f"--push-hz must be 0.5..240, not {args.push_hz:g}")
+        options["push_hz"] = args.push_hz
     if args.retain is not None and not args.retain > 0:
         raise RelayError(f"--retain takes a number of days above 0, not {args.retain:g}")
     if args.workers != 1:
@@ -133,7 +156,7 @@ def run_relay(args: argparse.Namespace) -> int:
         check_port_free(args.host, args.port)
     serve(args.host, args.port, args.db, args.token, args.clock, limits=limits, node_tokens=node_tokens,
           allow_hosts=args.allow_host, clock_port=args.clock_port, frame_limits=frame_limits, otlp=otlp,
-          trusted_proxies=trusted, reuse_port=args.reuse_port, retain_days=args.retain)
+          trusted_proxies=trusted, reuse_port=args.reuse_port, retain_days=args.retain, **options)
     return 0
 
 

@@ -26,6 +26,9 @@ from aiohttp import web
 
 from core import signals
 from probes.wire import INGEST_PATH, MAX_MESSAGE_BYTES
+from relay.api.fanout import FanoutHealth, FleetManager, create_manager
+from relay.api.fleet import Fleet
+from relay.api.interest import Interest
 from relay.api.routes import add_routes
 from relay.api.sessions import add_session_routes
 from relay.api.sio import create_sio, sio_errors
@@ -69,6 +72,8 @@ class Relay:
     ingest: Ingest
     ui: UiNamespace
     ticker: Ticker
+    fleet: Fleet
+    fanout: FanoutHealth
     guard: ConnGuard
     metrics: RelayCollector
     """``/metrics``' collector; exporters add families to its ``extra``."""
@@ -97,9 +102,15 @@ class Relay:
         await self.ingest.close_all()
         if self.otlp is not None:
             await self.otlp.stop()
+        await self.ticker.interest.close()
+        if self.sio.eio.sockets:  # the browsers' too: the web runner would wait out their pings
+            await self.sio.eio.disconnect()
         await self.sio.shutdown()
+        if isinstance(self.sio.manager, FleetManager):
+            await self.sio.manager.close()
         if self.runner is not None:
             await self.runner.cleanup()
+        self.fleet.close()
         self.storage.stop()
 
 
@@ -107,21 +118,27 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
                live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ,
                node_tokens: dict[str, str] | None = None, allow_hosts: Iterable[str] = (),
                frame_limits: FrameLimits = FrameLimits(), otlp: OtlpConfig | None = None,
-               trusted_proxies: TrustedProxies = TrustedProxies()) -> tuple[web.Application, Relay]:
+               trusted_proxies: TrustedProxies = TrustedProxies(), redis: str | None = None,
+               name: str | None = None) -> tuple[web.Application, Relay]:
     """The relay's app; without a token, requests must name an IP, localhost or one of ``allow_hosts``
     (:mod:`relay.guard.hostcheck`). ``otlp``: export sampled frames as traces (:mod:`relay.export.otlp`; its
     thread starts with :func:`start_relay`). ``trusted_proxies``: peers whose connections start with a PROXY
-    header naming the client (:mod:`relay.guard.proxy`)."""
+    header naming the client (:mod:`relay.guard.proxy`). ``redis``: the URL of the Redis that carries every
+    relay's pushes to every relay's browsers (:mod:`relay.api.fanout`). ``name``: how pages and other relays
+    name this one (default: HOST:PORT once listening)."""
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     limits = fit_descriptors(limits)
     # The name other relays sharing the store see (/api/health's store.relays).
     storage = Storage(db, name=f"{socket.gethostname()} pid {os.getpid()}")
     state = RelayState(storage, clock, live, limits, frame_limits)
-    sio = create_sio()
+    state.relay_name = name or ""
+    manager, fanout = create_manager(redis)
+    sio = create_sio(manager)
     ingest = Ingest(state, token, limits, node_tokens)
     storage.on_owners_lost = lambda: _background(ingest.let_go())
-    ui = UiNamespace(state, token)
+    fleet = Fleet(state)
+    ui = UiNamespace(state, fleet, token)
     sio.register_namespace(ui)
     refused: Counter = Counter()
     guard = ConnGuard(limits, refused, trusted_proxies)
@@ -133,7 +150,8 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     app = web.Application(client_max_size=MAX_MESSAGE_BYTES, middlewares=[*middlewares, sio_errors])
     app.router.add_get(INGEST_PATH, ingest.handle)
     sio.attach(app)
-    ticker = Ticker(state, ui, push_hz)
+    interest = Interest(ui.wishes, redis, fanout, me=f"{socket.gethostname()} pid {os.getpid()} {id(state):x}")
+    ticker = Ticker(state, ui, fleet, interest, push_hz)
     reclaimer = Reclaimer(lambda: state.released)
     exporter = OtlpExporter(otlp, state) if otlp is not None else None
 
@@ -146,19 +164,21 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
                 "connections": {"tcp": guard.open, "ingest": ingest.connected},
                 "proxy": {"trusted": trusted_proxies.as_list(), "proxied": guard.proxied,
                           "proxied_open": guard.proxied_open} if trusted_proxies else None,
+                "relay": state.relay_name, "fanout": fanout.view(), "mirrored_runs": len(fleet.mirrors or ()),
                 "pushes": ticker.pushes, "commits": storage.commits, "batches": storage.batches_written,
                 "limits": limits.as_dict(), "released_runs": state.released, "memory": state.memory_view(),
                 "heap": reclaimer.view(),
                 "otlp": exporter.view() if exporter is not None else None}
 
-    add_routes(app, state, token, counters)
+    add_routes(app, state, fleet, ui, token, counters)
     add_session_routes(app, state)
     metrics = RelayCollector(state, ingest, guard)
     add_metrics_route(app, metrics, token)
     _add_ui(app)
     if exporter is not None:
         exporter.attach(metrics)
-    return app, Relay(state, storage, sio, ingest, ui, ticker, guard, metrics, otlp=exporter, reclaimer=reclaimer)
+    return app, Relay(state, storage, sio, ingest, ui, ticker, fleet, fanout, guard, metrics, otlp=exporter,
+                      reclaimer=reclaimer)
 
 
 _tasks: set[asyncio.Task] = set()
@@ -213,12 +233,19 @@ async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path 
         raise RelayError(f"cannot listen on {host}:{port}: {exc.strerror or exc}") from exc
     relay.runner = runner
     relay.port = site.port
+    if not relay.state.relay_name:  # workers sharing a port: told apart by their process
+        relay.state.relay_name = f"{socket.gethostname()}:{relay.port}" + (f"#{os.getpid()}" if reuse_port else "")
     try:
         _start_clock_udp(relay, host, clock_port)
     except RelayError:
         await runner.cleanup()
         relay.storage.stop()
         raise
+    if not relay.sio.manager_initialized:
+        # python-socketio starts its manager at the first browser's connection; the Redis
+        # subscriber must run before (this relay's pushes reach other relays' browsers meanwhile).
+        relay.sio.manager_initialized = True
+        relay.sio.manager.initialize()
     relay._task = asyncio.create_task(relay.ticker.run())
     relay._reclaim = asyncio.create_task(relay.reclaimer.run())
     if retain_days is not None:

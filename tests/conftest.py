@@ -101,3 +101,13 @@ def postgres():
 def pg_url(postgres) -> str:
     """The URL of an empty database of its own on this worker's PostgreSQL server."""
     return postgres.new_database()
+
+
+@pytest.fixture
+def redis_server():
+    """A Redis server of the test's own (tests/redisserver.py), on loopback, stopped after."""
+    from tests.redisserver import RedisServer
+
+    server = RedisServer().start()
+    yield server
+    server.close()

@@ -115,7 +115,7 @@ RELAY_LAYERS = ["errors", "heap", "guard", "clock", "store", "live", "ingest", "
     live      what the relay holds of each run in memory: frames, statistics, sequence sets
     ingest    the nodes' WebSocket, run ownership among relays
     export    Prometheus /metrics and OTLP
-    api       the HTTP API and the browsers' Socket.IO namespace
+    api       the HTTP API, the browsers' Socket.IO namespace, the fleet view and the Redis fan-out
 """
 
 

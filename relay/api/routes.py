@@ -6,8 +6,14 @@
   malloc holds, and the passes that gave memory back after runs left it (:mod:`relay.heap`),
   refused {LIMIT or reason: what it refused}, proxy {trusted, proxied, proxied_open} (null without
   ``--trusted-proxy``), ...}; ok is false while storage fails
-- ``GET /api/nodes``: [{node, run, session, connected, clock {offset_us, uncertainty_us, ...},
-  ptp, events, dropped, lost, drops, ...}], one per node (its newest run)
+- ``GET /api/nodes``: [{node, run, session, connected, relay, clock {offset_us, uncertainty_us, ...},
+  ptp, events, dropped, lost, drops, ...}], one per node (its newest run) of the whole fleet: on a shared
+  store the DCUs other relays hold too, as they wrote them to the store at most a second ago (``stale``
+  when their relay stopped refreshing them, :mod:`relay.api.fleet`)
+- ``GET /api/overview``: {t_ns, relay, rows: [ROW, ...]}: one row per DCU of the fleet
+  (:mod:`relay.live.overview`; as the ``overview`` pushes of :mod:`relay.api.ui`)
+- ``GET /api/stats?node=NAME``, ``/api/frames``, ``/api/moments`` answer for any DCU of the fleet: one
+  another relay holds is read from a mirror of its stored batches (:mod:`relay.live.mirror`)
 - ``GET /api/stats?node=NAME``: ``probes.delays.node_stats`` of the node's newest run (stage
   shares and bottleneck included), plus the same figures over the rolling ``window``, and
   ``clock`` {applied, why, correction_ns, uncertainty_ns, at_ns}: the correction applied to its
@@ -37,14 +43,16 @@ import time
 from aiohttp import web
 
 from relay.api import moments as mo
-from relay.errors import http_error
+from relay.api.fleet import Fleet
+from relay.errors import RelayError, http_error
 from relay.guard.auth import http_token, token_matches
+from relay.live.runview import RunView, frames_block
 from relay.live.state import RelayState
 
 MAX_FRAMES_PER_REQUEST = 2000
 
 
-def add_routes(app: web.Application, state: RelayState, token: str | None, counters) -> None:
+def add_routes(app: web.Application, state: RelayState, fleet: Fleet, ui, token: str | None, counters) -> None:
     """``counters()`` returns extra figures for /api/health (rejected connections, pushes)."""
 
     @web.middleware
@@ -55,14 +63,17 @@ def add_routes(app: web.Application, state: RelayState, token: str | None, count
 
     app.middlewares.append(guard)
 
-    def run_of(request: web.Request, key: str = "node"):
+    async def run_of(request: web.Request, key: str = "node") -> RunView:
         node = request.query.get(key)
         if not node:
             raise http_error(web.HTTPBadRequest, f"{key}=NAME is required")
-        rs = state.node_run(node)
-        if rs is None:
+        try:
+            view = await fleet.run_view(node)
+        except RelayError as exc:
+            raise http_error(web.HTTPServiceUnavailable, f"node {node[:100]!r}: {exc}") from None
+        if view is None:
             raise http_error(web.HTTPNotFound, f"no node named {node[:100]!r}")
-        return rs
+        return view
 
     async def health(request: web.Request) -> web.Response:
         storage = state.storage.health()  # not ok while writes fail (a full disk)
@@ -71,20 +82,23 @@ def add_routes(app: web.Application, state: RelayState, token: str | None, count
                                   **counters()})
 
     async def nodes(request: web.Request) -> web.Response:
-        return web.json_response(state.nodes_view())
+        return web.json_response(fleet.node_views())
+
+    async def overview(request: web.Request) -> web.Response:
+        return web.json_response(ui.snapshot())
 
     async def stats(request: web.Request) -> web.Response:
-        return web.json_response(state.stats(run_of(request), fresh=True))
+        return web.json_response((await run_of(request)).stats(True))
 
     async def frames(request: web.Request) -> web.Response:
-        rs = run_of(request)
+        view = await run_of(request)
         since = int_arg(request, "since", 0, 0, 1 << 62)
         limit = int_arg(request, "limit", 200, 1, MAX_FRAMES_PER_REQUEST)
-        rs.live.maintain()
-        return web.json_response(state.frames_view(rs, since, limit))
+        view.live.maintain()
+        return web.json_response(frames_block(view, since, limit))
 
     async def moments(request: web.Request) -> web.Response:
-        a, b = run_of(request, "a"), run_of(request, "b")
+        a, b = await run_of(request, "a"), await run_of(request, "b")
         if a.node == b.node:
             raise http_error(web.HTTPBadRequest, "a and b must name two different nodes")
         limit = int_arg(request, "limit", mo.DEFAULT_LIMIT, 1, mo.MAX_LIMIT)
@@ -93,8 +107,8 @@ def add_routes(app: web.Application, state: RelayState, token: str | None, count
             if "source_a" not in request.query or "source_b" not in request.query or "source" in request.query:
                 raise http_error(web.HTTPBadRequest, "give source_a=ID and source_b=ID together, or source=URI")
             ids = (int_arg(request, "source_a", 0, -(1 << 62), 1 << 62), int_arg(request, "source_b", 0, -(1 << 62), 1 << 62))
-        sides = [mo.Side(rs.node, rs.header.sources, rs.live.recent(0, state.live_config.recent_frames, newest=True)[1],
-                         state.correction(rs)) for rs in (a, b)]
+        sides = [mo.Side(v.node, v.header.sources, v.live.recent(0, state.live_config.recent_frames, newest=True)[1],
+                         v.correction) for v in (a, b)]
         try:
             pairs = mo.pairs_of(*sides, uri=request.query.get("source"), ids=ids)
         except mo.MomentsError as exc:
@@ -106,6 +120,7 @@ def add_routes(app: web.Application, state: RelayState, token: str | None, count
 
     app.router.add_get("/api/health", health)
     app.router.add_get("/api/nodes", nodes)
+    app.router.add_get("/api/overview", overview)
     app.router.add_get("/api/stats", stats)
     app.router.add_get("/api/frames", frames)
     app.router.add_get("/api/moments", moments)

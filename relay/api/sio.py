@@ -62,9 +62,10 @@ def _quiet_logger(name: str) -> logging.Logger:
     return logger
 
 
-def create_sio() -> socketio.AsyncServer:
-    """The relay's Socket.IO server for browsers (attach it to the aiohttp app)."""
-    return socketio.AsyncServer(async_mode="aiohttp", serializer=JsonPacket,
+def create_sio(manager: socketio.AsyncManager | None = None) -> socketio.AsyncServer:
+    """The relay's Socket.IO server for browsers (attach it to the aiohttp app); ``manager``: its
+    client manager (:mod:`relay.api.fanout`; None: python-socketio's in-process one)."""
+    return socketio.AsyncServer(async_mode="aiohttp", serializer=JsonPacket, client_manager=manager,
                                 max_http_buffer_size=MAX_UI_MESSAGE_BYTES,
                                 logger=_quiet_logger("relay.sio"), engineio_logger=_quiet_logger("relay.eio"),
                                 ping_interval=10, ping_timeout=10)

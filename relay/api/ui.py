@@ -1,20 +1,29 @@
-"""Socket.IO namespace ``/ui``: live bars and statistics pushed to browsers, throttled and batched.
+"""Socket.IO namespace ``/ui``: the fleet overview and the live views of the DCUs a browser shows.
 
-Connect with ``auth={"token": T}`` (or ``?token=T``) when the relay has a token. The relay
-then pushes:
+Connect with ``auth={"token": T}`` (or ``?token=T``) when the relay has a token. With ``--redis``
+every relay's emits reach every relay's browsers (:mod:`relay.api.fanout`), so a page on any relay
+gets every DCU of the fleet; each relay sends only what it holds:
 
-- ``nodes`` [node, ...] (as ``GET /api/nodes``) on connect and once a second;
-- ``frames`` {"t_ns": relay time of the push, "nodes": {NODE: block}} at most ``push_hz``
-  (10) times a second, only when frames completed since the previous push; each block is
-  shaped as ``GET /api/frames`` and holds the newest of those frames, at most ``max_frames``
-  per node (``cursor`` tells how many completed in all, so a gap is visible);
-- ``stats`` {"nodes": {NODE: stats}} once a second for nodes whose events changed, each as
-  ``GET /api/stats?node=NODE``, its ``clock`` entry included (session statistics of long runs refresh less often, the
-  rolling window every time; with many nodes on a busy relay, less than once a second, as
-  the frames are pushed first).
+- ``overview`` {"t_ns", "relay": NAME, "rows": [ROW, ...], "gone": [NODE, ...]} once a second: one row
+  per DCU this relay holds (:mod:`relay.live.overview`); ``gone``: DCUs it listed a second ago and
+  no longer holds. A page merges the rows of every relay by node. Sent on connect too, for the whole
+  fleet (the other relays' rows from the store, :mod:`relay.api.fleet`).
+- ``nodes`` [node, ...] (as ``GET /api/nodes`` items) of the DCUs the browser subscribed to, once a
+  second and on connect or subscribe; a list never says a DCU is gone (the overview does).
+- ``frames`` {"t_ns": relay time of the push, "nodes": {NODE: block}} as soon as a subscribed DCU
+  has frames completed since its previous push, at most ``push_hz`` (30) times a second; each block
+  is shaped as ``GET /api/frames`` and holds the newest of those frames, at most ``max_frames``
+  (``cursor`` tells how many completed in all, so a gap is visible and backfilled with ``GET /api/frames``);
+- ``stats`` {"nodes": {NODE: stats}} once a second for subscribed DCUs whose events changed, each as
+  ``GET /api/stats?node=NODE`` (whole-run figures of long runs refresh less often, the rolling window
+  every time; with many DCUs on a busy relay, less than once a second: the frames go first).
 
-A browser may send ``subscribe`` {"nodes": [NAME, ...] or null for all, "max_frames": 1..500}
-to choose which nodes' frames it gets and how many per push (default all nodes, 25).
+A browser sends ``subscribe`` {"nodes": [NAME, ...] or null for all, "max_frames": 1..500,
+"overview": bool} to choose what it gets (answered {"ok": true} or {"ok": false, "error"}), or gives
+it as it connects (``auth={"subscribe": {...}}``, so that nothing else reaches it meanwhile); by
+default every DCU, 25 frames a push, and the overview. The relay builds a DCU's frames and statistics only while some browser of the
+fleet shows it (:mod:`relay.api.interest`), so a page's cost, and the relays', follows what is on
+screen, not the fleet's size.
 
 Timestamps are ns since the epoch on the relay's clock (the node's correction applied); as
 JavaScript numbers they keep about 0.25 µs, plenty for millisecond bars.
@@ -25,50 +34,60 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from dataclasses import dataclass
 
 import socketio
 from socketio.exceptions import ConnectionRefusedError as Refused
 
 from probes.wire import MAX_NAME
+from relay.api.fleet import Fleet
+from relay.api.interest import ALL, Interest, Wish
 from relay.guard.auth import socket_token, token_matches
 from relay.live.state import RelayState
 
 NAMESPACE = "/ui"
-ROOM = "browsers"
-DEFAULT_PUSH_HZ = 10.0
+OVERVIEW = "overview"
+EVERY = "every-dcu"
+DEFAULT_PUSH_HZ = 30.0
 IDLE_PERIOD_S = 0.5
-"""The tick's period while no browser is subscribed."""
+"""How often runs nobody shows are paired (their frames shown, settled ones finalised)."""
+HOUSEKEEPING_S = 0.1
 DEFAULT_MAX_FRAMES = 25
 MAX_FRAMES = 500
-STATS_PERIOD_S = 1.0
+MAX_SUBSCRIBED = 1024
+FLEET_PERIOD_S = 1.0
 STATS_BUDGET = 0.2
-"""Share of a tick's period the statistics of one tick may take (at least one node's always)."""
+"""Share of each housekeeping period the statistics may take (at least one DCU's always)."""
 VERSIONS_SLACK = 64
 """Runs no longer in memory whose pushed versions may linger before they are dropped."""
 
 log = logging.getLogger(__name__)
 
 
-@dataclass
-class Subscription:
-    nodes: frozenset[str] | None = None
-    max_frames: int = DEFAULT_MAX_FRAMES
+def node_room(node: str, max_frames: int) -> str:
+    """The room of browsers showing ``node`` with ``max_frames`` frames a push."""
+    return f"dcu:{max_frames}:{node}"
+
+
+def every_room(max_frames: int) -> str:
+    """The room of browsers showing every DCU with ``max_frames`` frames a push."""
+    return f"{EVERY}:{max_frames}"
 
 
 class UiNamespace(socketio.AsyncNamespace):
-    def __init__(self, state: RelayState, token: str | None) -> None:
+    def __init__(self, state: RelayState, fleet: Fleet, token: str | None) -> None:
         super().__init__(NAMESPACE)
-        self.state = state
+        self.state, self.fleet = state, fleet
         self._token = token
-        self.subscriptions: dict[str, Subscription] = {}
+        self.wishes: dict[str, Wish] = {}
+        """sid -> what that browser shows (:class:`relay.api.interest.Wish`)."""
+        self._rooms: dict[str, set[str]] = {}
 
     async def trigger_event(self, event: str, *args):
         """Dispatch as python-socketio does, but a browser's malformed message (an event of the
         wrong arity, a ``connect`` it sends itself) is ignored with one log line, not a traceback."""
         sid = args[0] if args else None
         if event == "connect":
-            if sid in self.subscriptions:
+            if sid in self.wishes:
                 log.info("ui: %s sent a connect event: ignored", sid)
                 return None
             # The server's own connect: a refusal must reach python-socketio.
@@ -82,117 +101,229 @@ class UiNamespace(socketio.AsyncNamespace):
     async def on_connect(self, sid: str, environ: dict, auth: object = None) -> None:
         if not token_matches(self._token, socket_token(auth, environ)):
             raise Refused("unauthorized: wrong or missing token")
-        self.subscriptions[sid] = Subscription()
-        await self.enter_room(sid, ROOM)
-        await self.emit("nodes", self.state.nodes_view(), to=sid)
+        # A page may subscribe as it connects (auth {"subscribe": {...}}): nothing else reaches it meanwhile.
+        asked = auth.get("subscribe") if isinstance(auth, dict) else None
+        wish, overview = Wish(None, DEFAULT_MAX_FRAMES), True
+        if asked is not None:
+            parsed = _parse_wish(asked)
+            if isinstance(parsed, str):
+                raise Refused(f"subscribe: {parsed}")
+            wish, overview = parsed
+        self._rooms[sid] = set()
+        await self._join(sid, _rooms(wish, overview))
+        self.wishes[sid] = wish
+        await self.emit("nodes", self._views(wish), to=sid)
+        if overview:
+            await self.emit("overview", self.snapshot(), to=sid)
 
     async def on_disconnect(self, sid: str, reason: object = None) -> None:
-        self.subscriptions.pop(sid, None)
+        self.wishes.pop(sid, None)
+        self._rooms.pop(sid, None)
 
     async def on_subscribe(self, sid: str, data: object = None) -> dict:
-        if sid not in self.subscriptions or not isinstance(data, dict):
-            return {"ok": False, "error": "subscribe takes {nodes, max_frames}"}
-        nodes = data.get("nodes")
-        if nodes is not None and not (isinstance(nodes, list) and len(nodes) <= 1024 and
-                                      all(isinstance(n, str) and len(n) <= MAX_NAME for n in nodes)):
-            return {"ok": False, "error": "nodes must be a list of node names or null"}
-        max_frames = data.get("max_frames", DEFAULT_MAX_FRAMES)
-        if not isinstance(max_frames, int) or isinstance(max_frames, bool) or not 1 <= max_frames <= MAX_FRAMES:
-            return {"ok": False, "error": f"max_frames must be 1..{MAX_FRAMES}"}
-        self.subscriptions[sid] = Subscription(frozenset(nodes) if nodes is not None else None, max_frames)
+        if sid not in self.wishes:
+            return {"ok": False, "error": "not connected"}
+        parsed = _parse_wish(data)
+        if isinstance(parsed, str):
+            return {"ok": False, "error": parsed}
+        wish, overview = parsed
+        await self._join(sid, _rooms(wish, overview))
+        self.wishes[sid] = wish
+        views = self._views(wish)
+        if views:
+            await self.emit("nodes", views, to=sid)
         return {"ok": True}
+
+    def _views(self, wish: Wish) -> list[dict]:
+        return self.fleet.node_views() if wish.nodes is None else self.fleet.views_of(wish.nodes)
+
+    async def _join(self, sid: str, rooms: set[str]) -> None:
+        held = self._rooms.get(sid)
+        if held is None:
+            return
+        for room in held - rooms:
+            await self.leave_room(sid, room)
+        for room in rooms - held:
+            await self.enter_room(sid, room)
+        self._rooms[sid] = set(rooms)
+
+    def snapshot(self) -> dict:
+        """The whole fleet's rows (``overview``'s shape; ``GET /api/overview``)."""
+        return {"t_ns": time.time_ns(), "relay": self.state.relay_name, "rows": self.fleet.overview(), "gone": []}
 
 
 class Ticker:
-    """The relay's heartbeat: pairs and evicts frames of every run, and pushes to browsers."""
+    """The relay's heartbeat: pairs every run, pushes what browsers show as soon as it is new, and
+    refreshes the fleet's rows once a second."""
 
-    def __init__(self, state: RelayState, ui: UiNamespace, push_hz: float = DEFAULT_PUSH_HZ) -> None:
-        self.state, self.ui = state, ui
+    def __init__(self, state: RelayState, ui: UiNamespace, fleet: Fleet, interest: Interest,
+                 push_hz: float = DEFAULT_PUSH_HZ) -> None:
+        self.state, self.ui, self.fleet, self.interest = state, ui, fleet, interest
         self.period = 1.0 / push_hz
+        self.pushes = 0
+        self._wake = asyncio.Event()
+        state.on_events = self._wake.set
+        self._paired_at = 0.0
+        self._fleet_at = 0.0
+        self._listed: set[str] = set()
         self._stats_at = 0.0
         self._stats_due: list[str] = []
         self._stats_share = 1
         self._stats_versions: dict[str, int] = {}
-        self.pushes = 0
 
     async def run(self) -> None:
+        await asyncio.gather(self._push_loop(), self._housekeeping_loop(), self.interest.run())
+
+    async def _push_loop(self) -> None:
+        last = 0.0
+        while True:
+            await self._wake.wait()
+            wait = last + self.period - time.monotonic()
+            if wait > 0:  # at most push_hz pushes a second: what came meanwhile goes in the next one
+                await asyncio.sleep(wait)
+            self._wake.clear()
+            last = time.monotonic()
+            try:
+                await self.push_frames()
+            except Exception:  # noqa: BLE001 - the heartbeat must survive a bad push
+                log.exception("relay push failed")
+
+    async def _housekeeping_loop(self) -> None:
         while True:
             started = time.monotonic()
             try:
-                await self.tick()
+                await self.housekeeping()
             except Exception:  # noqa: BLE001 - the heartbeat must survive a bad tick
                 log.exception("relay tick failed")
-            # Nobody watching: pairing waits longer and merges more at once (its cost is mostly
-            # per call); a read (the API, /metrics) pairs what came first, a browser arriving is
-            # served at the next tick.
-            period = self.period if self.ui.subscriptions else max(self.period, IDLE_PERIOD_S)
-            await asyncio.sleep(max(0.0, period - (time.monotonic() - started)))
+            await asyncio.sleep(max(0.0, HOUSEKEEPING_S - (time.monotonic() - started)))
 
-    async def tick(self) -> None:
-        for rs in self.state.runs.values():
-            rs.live.maintain()
-        subs = dict(self.ui.subscriptions)
-        if subs:
-            await self._push_frames(subs)
-        else:
-            for rs in self.state.runs.values():
-                rs.pushed = rs.live.visible
-        if subs:
-            await self._push_stats()
-
-    async def _push_frames(self, subs: dict[str, Subscription]) -> None:
-        # Each node's block is built once, for the largest request, and cut per browser.
-        wanted: dict[str, int] = {}
-        for sub in subs.values():
-            for node in (self.state.nodes if sub.nodes is None else sub.nodes & self.state.nodes.keys()):
-                wanted[node] = max(wanted.get(node, 0), sub.max_frames)
-        blocks = {}
-        for node, limit in wanted.items():
-            rs = self.state.runs[self.state.nodes[node]]
-            if rs.live.visible > rs.pushed:
-                blocks[node] = self.state.frames_view(rs, rs.pushed, limit, newest=True)
-        for rs in self.state.runs.values():
-            rs.pushed = rs.live.visible
-        if not blocks:
+    async def push_frames(self) -> None:
+        """Push the new frames of every run some browser shows."""
+        fresh, self.state.fresh = self.state.fresh, set()
+        wanted = self.interest.wanted()
+        if not wanted:
             return
+        everyone: dict[int, dict[str, dict]] = {m: {} for m in wanted.get(ALL, ())}
         t_ns = time.time_ns()
-        for sid, sub in subs.items():
-            mine = {node: _cut(block, sub.max_frames) for node, block in blocks.items()
-                    if sub.nodes is None or node in sub.nodes}
-            if mine:
-                await self.ui.emit("frames", {"t_ns": t_ns, "nodes": mine}, to=sid)
+        for run in fresh:
+            rs = self.state.runs.get(run)
+            if rs is None or self.state.nodes.get(rs.node) != run:
+                continue
+            limit = self.interest.limit(wanted, rs.node)
+            if not limit:
+                continue
+            rs.live.maintain()
+            if rs.live.visible <= rs.pushed:
+                continue
+            # Built once, for the largest request, and cut for the others.
+            block = self.state.frames_view(rs, rs.pushed, limit, newest=True)
+            rs.pushed = rs.live.visible
+            for m, blocks in everyone.items():
+                blocks[rs.node] = _cut(block, m)
+            for m in wanted.get(rs.node, ()):
+                await self.ui.emit("frames", {"t_ns": t_ns, "nodes": {rs.node: _cut(block, m)}},
+                                   room=node_room(rs.node, m))
+        for m, blocks in everyone.items():
+            if blocks:
+                await self.ui.emit("frames", {"t_ns": t_ns, "nodes": blocks}, room=every_room(m))
         self.pushes += 1
 
-    async def _push_stats(self) -> None:
-        # Each node's statistics once a second, spread over the ticks of that second and capped
-        # at STATS_BUDGET of each tick's period: frames go first, so with many nodes on a busy
-        # host the statistics refresh less often instead of holding up every push.
+    async def housekeeping(self) -> None:
         now = time.monotonic()
-        if not self._stats_due and now - self._stats_at >= STATS_PERIOD_S:
+        wanted = self.interest.wanted()
+        if now - self._paired_at >= IDLE_PERIOD_S:  # what browsers show the pusher pairs as it comes
+            self._paired_at = now
+            self._pair(wanted)
+        if now - self._fleet_at >= FLEET_PERIOD_S:
+            self._fleet_at = now
+            await self._push_fleet(wanted)
+        if wanted:
+            await self._push_stats(wanted)
+
+    def _pair(self, wanted: dict[str, set[int]]) -> None:
+        """Pair every run; a run some browser shows with frames not pushed yet goes to the pusher."""
+        for rs in self.state.runs.values():
+            rs.live.maintain()
+            if rs.live.visible > rs.pushed:
+                if wanted and self.interest.limit(wanted, rs.node):
+                    self.state.fresh.add(rs.run)
+                    self._wake.set()
+                else:
+                    rs.pushed = rs.live.visible
+
+    async def _push_fleet(self, wanted: dict[str, set[int]]) -> None:
+        rows = await self.fleet.refresh()
+        gone = sorted(self._listed - rows.keys())
+        self._listed = set(rows)
+        if rows or gone:
+            await self.ui.emit("overview", {"t_ns": time.time_ns(), "relay": self.state.relay_name,
+                                            "rows": list(rows.values()), "gone": gone}, room=OVERVIEW)
+        if not wanted:
+            return
+        views = {node: view for node, view in self.fleet.views.items() if self.interest.limit(wanted, node)}
+        if views:
+            for m in wanted.get(ALL, ()):
+                await self.ui.emit("nodes", list(views.values()), room=every_room(m))
+        for node, view in views.items():
+            for m in wanted.get(node, ()):
+                await self.ui.emit("nodes", [view], room=node_room(node, m))
+
+    async def _push_stats(self, wanted: dict[str, set[int]]) -> None:
+        # Each shown DCU's statistics once a second, spread over the housekeeping ticks of that
+        # second and capped at STATS_BUDGET of each tick: the frames go first, so with many DCUs on
+        # a busy host the statistics refresh less often instead of holding up pushes.
+        state = self.state
+        now = time.monotonic()
+        if not self._stats_due and now - self._stats_at >= FLEET_PERIOD_S:
             self._stats_at = now
-            self._stats_due = sorted(self.state.nodes)
-            ticks = max(1, round(STATS_PERIOD_S / self.period))
+            self._stats_due = sorted(n for n in state.nodes if self.interest.limit(wanted, n))
+            ticks = max(1, round(FLEET_PERIOD_S / HOUSEKEEPING_S))
             self._stats_share = max(1, -(-len(self._stats_due) // ticks))
-            await self.ui.emit("nodes", self.state.nodes_view(), room=ROOM)
-        changed = {}
-        deadline = now + STATS_BUDGET * self.period
+        everyone = {}
+        deadline = now + STATS_BUDGET * HOUSEKEEPING_S
         done = 0
         while self._stats_due and done < self._stats_share and (done == 0 or time.monotonic() < deadline):
             node = self._stats_due.pop(0)
             done += 1
-            run = self.state.nodes.get(node)
-            rs = self.state.runs.get(run) if run else None
-            if rs is not None and self._stats_versions.get(run) != rs.live.events:
-                self._stats_versions[run] = rs.live.events
-                changed[node] = self.state.stats(rs, fresh=False)
-        if len(self._stats_versions) > len(self.state.runs) + VERSIONS_SLACK:
+            rs = state.node_run(node)
+            if rs is None or not state.holds(rs) or self._stats_versions.get(rs.run) == rs.live.events:
+                continue
+            self._stats_versions[rs.run] = rs.live.events
+            stats = state.stats(rs, fresh=False)
+            everyone[node] = stats
+            for m in wanted.get(node, ()):
+                await self.ui.emit("stats", {"nodes": {node: stats}}, room=node_room(node, m))
+        if len(self._stats_versions) > len(state.runs) + VERSIONS_SLACK:
             # Keyed by run: a node restarting all day would add one a restart, for as long as a page is open.
-            self._stats_versions = {r: v for r, v in self._stats_versions.items() if r in self.state.runs}
-        if changed:
-            await self.ui.emit("stats", {"nodes": changed}, room=ROOM)
+            self._stats_versions = {r: v for r, v in self._stats_versions.items() if r in state.runs}
+        if everyone:
+            for m in wanted.get(ALL, ()):
+                await self.ui.emit("stats", {"nodes": everyone}, room=every_room(m))
 
 
 def _cut(block: dict, limit: int) -> dict:
     if len(block["frames"]) <= limit:
         return block
     return dict(block, frames=block["frames"][-limit:])
+
+
+def _parse_wish(data: object) -> tuple[Wish, bool] | str:
+    """A ``subscribe`` message as (what the browser shows, whether it wants the overview), or why not."""
+    if not isinstance(data, dict):
+        return "subscribe takes {nodes, max_frames, overview}"
+    nodes = data.get("nodes")
+    if nodes is not None and not (isinstance(nodes, list) and len(nodes) <= MAX_SUBSCRIBED and
+                                  all(isinstance(n, str) and len(n) <= MAX_NAME for n in nodes)):
+        return "nodes must be a list of node names or null"
+    max_frames = data.get("max_frames", DEFAULT_MAX_FRAMES)
+    if not isinstance(max_frames, int) or isinstance(max_frames, bool) or not 1 <= max_frames <= MAX_FRAMES:
+        return f"max_frames must be 1..{MAX_FRAMES}"
+    overview = data.get("overview", True)
+    if not isinstance(overview, bool):
+        return "overview must be true or false"
+    return Wish(None if nodes is None else frozenset(nodes), max_frames), overview
+
+
+def _rooms(wish: Wish, overview: bool) -> set[str]:
+    rooms = {every_room(wish.max_frames)} if wish.nodes is None else {node_room(n, wish.max_frames) for n in wish.nodes}
+    return rooms | ({OVERVIEW} if overview else set())

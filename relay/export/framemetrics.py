@@ -5,8 +5,10 @@
 per-node histograms (:class:`relay.export.buckets.Histograms`), so it derives nothing again. Only a
 node's newest run is counted: its histograms start empty when the node's newest run changes
 (Prometheus reads that as a counter reset) and go when the node leaves ``state.nodes``
-(bounded by ``--limit runs_held``). Gap series (``A->B``) are kept for the first
-:data:`MAX_GAPS` pairs a run shows; further pairs count together under ``from_stage="other"``.
+(bounded by ``--limit runs_held``). Only the runs the relay holds (``RelayState.holds``) are counted
+and shown: on a shared store, a run whose connection ended is another relay's to count. Gap series
+(``A->B``) are kept for the first :data:`MAX_GAPS` pairs a run shows; further pairs count together
+under ``from_stage="other"``.
 """
 
 from __future__ import annotations
@@ -63,6 +65,8 @@ class FrameMetrics:
 
     def observe(self, rs: RunState, fd: FrameDelays, values: Series) -> None:
         """A ``RelayState`` observer: count a finalised batch of ``rs``'s frames."""
+        if not self._state.holds(rs):
+            return  # another relay may own it now: the frames are its to count
         nf = self._current(rs.node)
         if nf is None or nf.run != rs.run:
             return  # an older run of the node, still finalising: not its newest
@@ -110,6 +114,9 @@ class FrameMetrics:
                                    "output buffers, a batch once), finalised frames", labels=["node", "stage"])
         for node in sorted(self._state.nodes):
             nf = self._current(node)
+            rs = self._state.node_run(node)
+            if rs is None or not self._state.holds(rs):
+                continue  # not held: kept (counting goes on if the run comes back here), not shown
             for key, cumulative, total_ns in nf.hist.snapshot():
                 hists[key[0]].add_series([node, *key[1:]], cumulative, total_ns / NS_PER_S)
             for stage, ns in nf.busy_ns.items():

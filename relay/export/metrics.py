@@ -10,10 +10,16 @@ Exporters add theirs through :attr:`RelayCollector.extra`. The text is what
 (``Authorization: Bearer TOKEN`` or ``?token=``).
 
 Every per-node series is labelled ``node`` (its newest run only); no label holds a frame
-number, and only ``dcuscope_node_info`` a run id. Series per node, at most, with S stages
-(``--limit stages``, 64), K sources (``--limit sources``, 256), G = min(gap pairs,
-framemetrics.MAX_GAPS + 1) and R = len(probes.events.DROP_REASONS) (6), each
-histogram series being len(BUCKETS_S) + 3 = 34 samples (buckets, +Inf, sum, count)::
+number, and only ``dcuscope_node_info`` a run id. A relay shows the figures of the runs it holds
+(``RelayState.holds``: on a shared PostgreSQL store, those streaming to it), so that relays sharing a
+store never count one run's frames or events twice; of a run it keeps in memory without holding it
+(its connection ended: another relay may take it) it shows only the node's state
+(``nodemetrics.STATE``). The shipped rules (configs/prometheus/) aggregate every node across
+relays on that ground.
+
+Series per node, at most, with S stages (``--limit stages``, 64), K sources (``--limit sources``,
+256), G = min(gap pairs, framemetrics.MAX_GAPS + 1) and R = len(probes.events.DROP_REASONS) (6),
+each histogram series being len(BUCKETS_S) + 3 = 34 samples (buckets, +Inf, sum, count)::
 
     34 (2 + 3 S + G)  +  4 S  +  K (6 + R)  +  18
 

@@ -8,6 +8,13 @@ run has new events, at most every ``relay.live.state.WINDOW_MAX_AGE_S``, and les
 are costly), so that scrapes of many nodes cost little. Every source lists every drop reason a node may send
 (``probes.events.DROP_REASONS``, a closed set the wire checks), at 0 before its first drop, so that
 ``increase()`` sees that drop too; sources per node are bounded by ``--limit sources``.
+
+Only the runs this relay holds (``RelayState.holds``) have their figures here. On a shared store a
+run kept in memory whose connection ended (kept to be shown, while another relay may take it) has
+only the :data:`STATE` series: connected 0, ended, last seen and its run. They say what this relay
+last saw of the node, so that the rules tell a node that stopped or was lost from one that moved to
+another relay (whose series are newer: see configs/prometheus/README.md); counts, histograms and
+window figures come from the one relay that holds the run, never from two.
 """
 
 from __future__ import annotations
@@ -46,13 +53,16 @@ SPECS = {
     "dcuscope_clock_correction_seconds": ("gauge", "Correction subtracted from the node's timestamps now", ()),
     "dcuscope_ptp_state": ("gauge", "1 for the node's PTP state, 0 for the others", ("state",)),
     "dcuscope_ptp_master_offset_seconds": ("gauge", "PTP offset from the master, as ptp4l reports it", ()),
-    "dcuscope_node_connected": ("gauge", "1 while the node's newest run is connected", ()),
+    "dcuscope_node_connected": ("gauge", "1 while the node's newest run is connected to this relay", ()),
     "dcuscope_node_ended": ("gauge", "1 once the node's newest run said it ended (a clean stop, not a loss)", ()),
     "dcuscope_node_last_seen_timestamp_seconds": ("gauge", "When the relay last heard from the node", ()),
     "dcuscope_node_info": ("gauge", "The node's newest run and its session", ("run", "session")),
     "dcuscope_relay_ingest_lag_seconds": ("gauge", "Relay's now - the node's newest event (clock-corrected)", ()),
 }
 """Name -> (type, help, labels besides ``node``); counters without their ``_total`` suffix."""
+STATE = ("dcuscope_node_connected", "dcuscope_node_ended", "dcuscope_node_last_seen_timestamp_seconds",
+         "dcuscope_node_info")
+"""The only series of a run kept in memory but not held (see the module docstring)."""
 
 
 class Families:
@@ -80,8 +90,12 @@ class NodeMetrics:
     def families(self) -> Iterator[Metric]:
         out = Families()
         runs = [self._state.runs[run] for _, run in sorted(self._state.nodes.items()) if run in self._state.runs]
+        held = [rs for rs in runs if self._state.holds(rs)]
         for rs in runs:
-            window = rs.window.get(rs.live, fresh=False, runs=len(runs))
+            _state_samples(out, rs)
+            if not self._state.holds(rs):
+                continue  # kept to be shown, another relay's to take: its state only
+            window = rs.window.get(rs.live, fresh=False, runs=len(held))
             _window_samples(out, rs.node, window)
             # The counters now (cheap), the fps as of the window.
             _source_samples(out, rs, rs.live.accounting.sources(window["fps"]), self._state.limits.sources)
@@ -116,6 +130,15 @@ def _source_samples(out: Families, rs: RunState, sources: dict[str, dict], max_s
             out.add("dcuscope_source_frames_dropped", [node, sid, reason], src["dropped"].get(reason, 0))
 
 
+def _state_samples(out: Families, rs: RunState) -> None:
+    """What this relay last saw of the node's newest run (:data:`STATE`), held or not."""
+    node = rs.node
+    out.add("dcuscope_node_connected", [node], 1.0 if rs.sid is not None else 0.0)
+    out.add("dcuscope_node_ended", [node], 1.0 if rs.ended else 0.0)
+    out.add("dcuscope_node_last_seen_timestamp_seconds", [node], rs.last_seen)
+    out.add("dcuscope_node_info", [node, rs.run, str(rs.session)], 1.0)
+
+
 def _node_samples(out: Families, state: RelayState, rs: RunState) -> None:
     node, live = rs.node, rs.live
     out.add("dcuscope_frames_complete", [node], live.finalised)
@@ -136,10 +159,6 @@ def _node_samples(out: Families, state: RelayState, rs: RunState) -> None:
     offset = ptp.get("master_offset_ns")
     if isinstance(offset, int) and not isinstance(offset, bool):
         out.add("dcuscope_ptp_master_offset_seconds", [node], offset / NS_PER_S)
-    out.add("dcuscope_node_connected", [node], 1.0 if rs.sid is not None else 0.0)
-    out.add("dcuscope_node_ended", [node], 1.0 if rs.ended else 0.0)
-    out.add("dcuscope_node_last_seen_timestamp_seconds", [node], rs.last_seen)
-    out.add("dcuscope_node_info", [node, rs.run, str(rs.session)], 1.0)
     if live.newest:
         offset_ns, _ = state.correction(rs).at(live.newest)
         out.add("dcuscope_relay_ingest_lag_seconds", [node], (time.time_ns() - (live.newest - offset_ns)) / NS_PER_S)

@@ -425,6 +425,7 @@ class Ingest:
         rs.seqs.add(batch.seq)
         if new:
             rs.live.add(batch.events)
+            self.state.note_events(rs)
             self.events_in += len(batch.events)
             self.batches_in += 1
         else:  # stored before this relay's run state knew it: already in the live state

@@ -22,8 +22,8 @@ from relay.clock.model import ClockEstimator, segment_fault
 from relay.errors import RelayError
 from relay.live.framelimits import FrameLimits
 from relay.guard.limits import MIB, Limits
-from relay.live.framejson import block, frame_dicts
 from relay.live.run import LiveConfig, LiveRun
+from relay.live.runview import RunView, frames_block
 from relay.live.seqset import SeqSet
 from relay.store import base as db
 from relay.store.runs import run_events
@@ -171,9 +171,27 @@ class RelayState:
         self.nodes: dict[str, str] = {}
         """Node name -> its newest run."""
         self.started = time.time()
+        self.relay_name = ""
+        """How other relays and the pages name this one (``--name``; the server sets it once listening)."""
         self.observers: list[FrameObserver] = []
         """The exporters, told of every run's finalised frames (:meth:`observe`)."""
+        self.fresh: set[str] = set()
+        """Runs given events since the UI's pusher last looked (:meth:`note_events`)."""
+        self.on_events: Callable[[], None] | None = None
+        """Called when a run is given events (the pusher's wake-up)."""
         self._attach_lock = asyncio.Lock()
+
+    def note_events(self, rs: RunState) -> None:
+        """``rs`` was given events (the ingest calls this after adding a batch)."""
+        self.fresh.add(rs.run)
+        if self.on_events is not None:
+            self.on_events()
+
+    def holds(self, rs: RunState) -> bool:
+        """Whether this relay holds ``rs``: on a shared store, while its node is connected here (a
+        detached run kept to be shown may be taken by another relay at any time); alone on its
+        store, every run it keeps."""
+        return not self.storage.shared or rs.sid is not None
 
     def live_session(self) -> int | None:
         for rs in self.runs.values():
@@ -432,18 +450,14 @@ class RelayState:
         return dict(rs.whole.get(rs.live, rs.dropped, fresh), window=rs.window.get(rs.live, fresh, len(self.runs)), node=rs.node,
                     run=rs.run, session=rs.session, lost=rs.lost, clock=clock_entry(self.correction(rs), time.time_ns()))
 
-    def frames_view(self, rs: RunState, since: int = 0, limit: int = 200, newest: bool = False) -> dict:
-        """Complete frames after cursor ``since``, clock-corrected, as the UI draws them: the
-        first ``limit`` of them (paging), or with ``newest`` the last ``limit`` (pushes)."""
-        n, fd = rs.live.recent(since, limit, newest)
-        correction = self.correction(rs)
-        frames = frame_dicts(n, fd, correction)
-        # At the last frame's end on the node's clock (where its correction was looked up).
-        corr, bound = correction.at(int(fd.chains.end[-1]) if frames else time.time_ns())
-        return block(rs.node, rs.run, rs.header.stages, rs.header.kinds, fd.chains.has_exit, frames, correction.applied,
-                     cursor=frames[-1]["n"] if frames else since, newest=rs.live.visible, correction_ns=corr,
-                     uncertainty_ns=bound)
+    def view(self, rs: RunState) -> RunView:
+        """What the HTTP API and the pushes read of ``rs`` (:mod:`relay.live.runview`)."""
+        return RunView(rs.node, rs.run, rs.session, rs.header, rs.live, self.correction(rs),
+                       lambda fresh: self.stats(rs, fresh), self.relay_name)
 
+    def frames_view(self, rs: RunState, since: int = 0, limit: int = 200, newest: bool = False) -> dict:
+        """Complete frames after cursor ``since`` (:func:`relay.live.runview.frames_block`)."""
+        return frames_block(self.view(rs), since, limit, newest)
 
 def _quietly(task: asyncio.Future) -> None:
     # A failed disown needs no word: the store failing is logged where it fails, and a lost

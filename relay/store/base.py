@@ -192,6 +192,12 @@ class Database(ABC):
         return [(bytes(data), bool(c)) for data, c in
                 self._rows("SELECT data, compressed FROM batches WHERE run = %s ORDER BY seq", (run,))]
 
+    def batches_after(self, run: str, seq: int, limit: int) -> list[tuple[int, bytes, bool]]:
+        """Up to ``limit`` of a run's stored batches after ``seq``, (seq, payload, compressed), by seq."""
+        return [(int(s), bytes(data), bool(c)) for s, data, c in self._rows(
+            "SELECT seq, data, compressed FROM batches WHERE run = %s AND seq > %s ORDER BY seq LIMIT %s",
+            (run, seq, limit))]
+
     # --- readers ------------------------------------------------------------------------------
 
     def session_runs(self, session: int) -> list[RunRow]:

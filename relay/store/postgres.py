@@ -13,6 +13,10 @@ Same tables and meaning as :mod:`relay.store.sqlite`. What a shared store adds:
   advisory lock, so two relays taking hellos at once never split a session.
 - **Peers.** Every relay's connections carry ``application_name = dcuscope-relay NAME``;
   ``pg_stat_activity`` lists the relays sharing the store (``/api/health``).
+- **The fleet's rows.** Table ``fleet``: each relay upserts, once a second, one row per DCU it holds
+  (its node view and overview row, :mod:`relay.live.overview`), so that any relay answers
+  ``/api/nodes`` and ``/api/overview`` for the whole fleet; a row nobody refreshed for
+  ``relay.api.fleet.ROW_TTL_S`` is deleted.
 
 Batches go in with one statement per group (arrays unnested, ``ON CONFLICT DO NOTHING``), their
 payloads stored uncompressed by PostgreSQL (they are compressed already or small).
@@ -74,6 +78,14 @@ CREATE TABLE IF NOT EXISTS clock_history (
     uncertainty_ns BIGINT NOT NULL,
     growth_ppb BIGINT NOT NULL,
     PRIMARY KEY (run, from_ns)
+);
+CREATE TABLE IF NOT EXISTS fleet (
+    node TEXT PRIMARY KEY,
+    run TEXT NOT NULL,
+    relay TEXT NOT NULL,
+    updated_ns BIGINT NOT NULL,
+    view TEXT NOT NULL,
+    row TEXT NOT NULL
 );
 """
 LOCKS = 0x64637573  # "dcus": the first key of the two-key advisory locks below
@@ -242,7 +254,24 @@ class PostgresDatabase(Database):
             seen.add(key)
         return out
 
-    # --- readers ------------------------------------------------------------------------------
+    # --- the fleet's live rows ---------------------------------------------------------------------
+
+    def put_fleet(self, rows: list[tuple[str, str, str, int, str, str]]) -> None:
+        """Each relay's rows of the DCUs it holds, (node, run, relay, updated_ns, view JSON, row JSON),
+        upserted by node in one transaction: whichever relay holds a node now writes its row."""
+        def upsert(cur: psycopg.Cursor) -> None:
+            cur.executemany("INSERT INTO fleet (node, run, relay, updated_ns, view, row) VALUES (%s, %s, %s, %s, %s, %s) "
+                            "ON CONFLICT (node) DO UPDATE SET run = EXCLUDED.run, relay = EXCLUDED.relay, "
+                            "updated_ns = EXCLUDED.updated_ns, view = EXCLUDED.view, row = EXCLUDED.row", rows)
+        self._transaction(upsert)
+
+    def fleet_rows(self, since_ns: int) -> list[tuple[str, str, str, int, str, str]]:
+        """The rows written since ``since_ns``; older ones (DCUs nobody holds for that long) are deleted."""
+        def read(cur: psycopg.Cursor) -> list[tuple]:
+            cur.execute("DELETE FROM fleet WHERE updated_ns < %s", (since_ns,))
+            cur.execute("SELECT node, run, relay, updated_ns, view, row FROM fleet ORDER BY node")
+            return cur.fetchall()
+        return self._transaction(read)
 
     # --- retention ----------------------------------------------------------------------------
 

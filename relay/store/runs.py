@@ -74,7 +74,7 @@ def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> 
         for row in rows:
             events = run_events(database, row.run)
             last = int(events["ts"].max()) if len(events) else 0
-            clock, correction = _run_clock(row.run, row.clock, database.run_history(row.run))
+            clock, correction = run_clock(row.run, row.clock, database.run_history(row.run))
             if corrected and correction.segments and len(events):
                 events = events.copy()
                 # A capture time is the camera's clock (RTCP sender reports), not the node's: kept.
@@ -108,7 +108,7 @@ def frame_starts(events: np.ndarray, counted: np.ndarray | None = None) -> np.nd
     return out
 
 
-def _run_clock(run: str, text: str, history: list[Segment]) -> tuple[dict, Correction]:
+def run_clock(run: str, text: str, history: list[Segment]) -> tuple[dict, Correction]:
     """A stored run's clock view and the correction to apply: its history of estimates when its
     last view applied an estimate, else that view's correction. A correction no relay could have
     computed (written by an older relay from a forged sample, or edited) is ignored, with one

@@ -8,6 +8,7 @@ import time
 import pytest
 import socketio
 
+from relay.api.ui import DEFAULT_PUSH_HZ
 from tests.conftest import run_cli
 from tests.relay.helpers import (RelayProcess, finish_node, get_json, http_status, load_node, start_node)
 
@@ -91,7 +92,7 @@ def test_ui_pushes_frames_and_stats_throttled(tmp_path):
         assert frames and stats
         times = [t for t, _ in frames]
         span = times[-1] - times[0]
-        assert len(frames) <= 10 * span + 2  # at most 10 pushes a second
+        assert len(frames) <= DEFAULT_PUSH_HZ * span + 2  # at most push_hz pushes a second
         blocks = [d["nodes"]["DCU-1"] for _, d in frames]
         assert blocks[0]["kinds"] == {"src0": "framestamp", "src1": "framestamp", "mux": "mux", "infer": "infer",
                                       "tiler": "tiler", "convert": "convert", "osd": "osd", "sink": "fakesink"}
@@ -149,3 +150,27 @@ def test_a_node_with_a_wrong_token_exits_non_zero_with_one_line(tmp_path):
         relay.stop()
     assert result.returncode == 2, result.stderr
     assert result.stderr.strip().splitlines() == [f"dcuscope: error: relay {relay.url} refused the token (HTTP 401)"]
+
+
+def test_a_browser_may_subscribe_as_it_connects_and_a_malformed_wish_is_refused(tmp_path):
+    relay = RelayProcess(tmp_path / "relay.db")
+
+    async def watch():
+        for bad in ({"max_frames": 0}, {"nodes": "DCU-1"}, {"overview": "yes"}, ["DCU-1"]):
+            with pytest.raises(socketio.exceptions.ConnectionError):
+                await ui_connect(relay.url, {"subscribe": bad})
+        shown, got_shown = await ui_connect(relay.url, {"subscribe": {"nodes": ["DCU-2"], "max_frames": 3}})
+        node_1 = start_node(relay.url, "DCU-1", tmp_path / "1.npz", frames=100, sources=2, fps=50, paced=True)
+        node_2 = start_node(relay.url, "DCU-2", tmp_path / "2.npz", frames=100, sources=2, fps=50, paced=True)
+        while node_1.poll() is None or node_2.poll() is None:
+            await asyncio.sleep(0.1)
+        await asyncio.sleep(1.5)
+        await shown.disconnect()
+        return [d for _, e, d in got_shown if e == "frames"], [d for _, e, d in got_shown if e == "stats"]
+
+    try:
+        frames, stats = asyncio.run(watch())
+        assert frames and all(set(d["nodes"]) == {"DCU-2"} and len(d["nodes"]["DCU-2"]["frames"]) <= 3 for d in frames)
+        assert stats and all(set(d["nodes"]) == {"DCU-2"} for d in stats)
+    finally:
+        relay.stop()

@@ -35,8 +35,11 @@ def node_config(tmp_path, name: str):
 
 
 def connected(relay: RelayProcess) -> set[str]:
+    """The nodes streaming to ``relay`` (its /api/nodes lists the whole fleet, each with the relay holding it)."""
     try:
-        return {n["node"] for n in get_json(f"{relay.url}/api/nodes", timeout=2) if n["connected"] and not n["ended"]}
+        me = get_json(f"{relay.url}/api/health", timeout=2)["relay"]
+        return {n["node"] for n in get_json(f"{relay.url}/api/nodes", timeout=2)
+                if n["connected"] and not n["ended"] and n["relay"] == me}
     except OSError:
         return set()
 

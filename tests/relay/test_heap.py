@@ -98,6 +98,7 @@ def test_a_released_run_leaves_memory_at_once_without_a_garbage_collection(tmp_p
 
 def test_the_ui_ticker_keeps_no_pushed_version_per_run_that_left_memory():
     """Keyed by run, one was added per restart of a node while a page was open, for ever."""
+    from relay.api.interest import ALL, Interest
     from relay.api.ui import VERSIONS_SLACK, Ticker
 
     class State:
@@ -111,7 +112,7 @@ def test_the_ui_ticker_keeps_no_pushed_version_per_run_that_left_memory():
         async def emit(self, *args, **kwargs) -> None:
             pass
 
-    ticker = Ticker(State(), Ui())
+    ticker = Ticker(State(), Ui(), fleet=None, interest=Interest({}))
     ticker._stats_versions = {f"gone-{k}": k for k in range(VERSIONS_SLACK + 10)} | {"kept": 1}
-    asyncio.run(ticker._push_stats())
+    asyncio.run(ticker._push_stats({ALL: 25}))
     assert ticker._stats_versions == {"kept": 1}

@@ -269,6 +269,77 @@ def test_only_the_nodes_the_relay_holds_have_series(tmp_path):
                                                "dcuscope_frame_delay_seconds_count")} == {"B", "C"}
 
 
+def node_series(fams: dict, node: str) -> set[str]:
+    """The families with a series of ``node``."""
+    return {name for name, samples in fams.items() if any(s.labels.get("node") == node for s in samples)}
+
+
+def test_on_a_shared_store_a_relay_shows_only_the_runs_it_holds(tmp_path, pg_url):
+    """Two relays of one PostgreSQL store: a node streams to A, its connection ends, it resumes its
+    run on B. A then shows only the node's state (connected 0, ended, last seen, run): its frames and
+    counters are B's to show. Each relay's histograms count the frames finalised while it held the
+    run: together every frame, none twice (B's reload of A's part counts none). A relay alone on its
+    store keeps showing a run whose connection ended (test_only_the_nodes_the_relay_holds_have_series)."""
+    header = header_for("N", 1)
+    first = synth_events(40, 1, 25.0, T0, seed=1)
+    second = synth_events(40, 1, 25.0, T0, seed=1, first_frame=40)
+    n_first = len(series(frame_delays(frame_table(header, first))).frame)
+    n_all = len(series(frame_delays(frame_table(header, np.concatenate([first, second])))).frame)
+    assert n_first == 40 and n_all == 80
+
+    async def scenario():
+        a = await start_relay(port=0, db=pg_url, live=LiveConfig(settle_s=0.0))
+        b = await start_relay(port=0, db=pg_url, live=LiveConfig(settle_s=0.0))
+        url_a, url_b = (f"http://127.0.0.1:{r.port}" for r in (a, b))
+        run = uuid.uuid4().hex
+        try:
+            node = await HandNode.open(url_a, "N", run, header=header)
+            seq = await feed(node, run, first)
+            await finalised(a, run, n_first)
+            streaming = await scrape(url_a)
+            await node.close()
+            await wait_for_async(lambda: a.state.runs[run].sid is None)
+            # The run's ownership is given back in the store's queue, before this call's turn.
+            await asyncio.sleep(0.05)
+            await a.state.storage.call("run_stored", run)
+            left = await scrape(url_a)
+            node = await HandNode.open(url_b, "N", run, secret=node.secret, header=header)
+            for part in [*np.array_split(second, 2), lone_origin(int(second["ts"].max()) + 5 * 10**9, 10**9 + 1)]:
+                assert (await node.batch(encode_batch(run, seq, part)))["ok"]
+                seq += 1
+            await finalised(b, run, n_all)
+            on_b, still_a = await scrape(url_b), await scrape(url_a)
+            await node.close()
+        finally:
+            await a.stop()
+            await b.stop()
+        return run, streaming, left, on_b, still_a
+
+    run, streaming, left, on_b, still_a = asyncio.run(scenario())
+    state = {"dcuscope_node_connected", "dcuscope_node_ended", "dcuscope_node_last_seen_timestamp_seconds",
+             "dcuscope_node_info"}
+    assert histogram(streaming, "dcuscope_frame_delay_seconds", node="N")[2] == n_first
+    assert "dcuscope_source_frames_delivered" in node_series(streaming, "N")
+    for fams in (left, still_a):
+        assert node_series(fams, "N") == state, node_series(fams, "N") - state
+        assert values_of(fams, "dcuscope_node_connected", "dcuscope_node_connected") == {(("node", "N"),): 0.0}
+        assert [dict(k)["run"] for k in values_of(fams, "dcuscope_node_info", "dcuscope_node_info")] == [run]
+    assert len(node_series(on_b, "N")) > 20
+    assert values_of(on_b, "dcuscope_node_connected", "dcuscope_node_connected") == {(("node", "N"),): 1.0}
+    # B counts the frames it finalised; its frame counter starts at the stored run's (Prometheus
+    # sees a new series on another instance: its first value is no increase).
+    assert histogram(on_b, "dcuscope_frame_delay_seconds", node="N")[2] == n_all - n_first
+    assert values_of(on_b, "dcuscope_frames_complete", "dcuscope_frames_complete_total") == {(("node", "N"),): n_all}
+
+
+async def wait_for_async(predicate, timeout: float = 10.0) -> None:
+    for _ in range(int(timeout / 0.02)):
+        if predicate():
+            return
+        await asyncio.sleep(0.02)
+    raise AssertionError("condition not met")
+
+
 def hostile_events(stages: int, sources: int, frames: int, rng: np.random.Generator) -> np.ndarray:
     """Complete frames of every source, each through its own random subset of the middle stages
     (so that they show hundreds of gap pairs), plus drops of every reason code."""

@@ -35,10 +35,10 @@ class RelayThread:
     """The relay (HTTP API, /ui, /ingest, the page) on a background event loop; ``url`` once up.
 
     ``port=0`` picks a free port; a relay started again on the port of a stopped one (and its
-    database) is that relay restarted."""
+    database) is that relay restarted. ``options`` go to ``start_relay`` (e.g. ``limits``)."""
 
-    def __init__(self, db: Path, token: str | None = None, push_hz: float = 10.0, port: int = 0) -> None:
-        self._db, self._token, self._push_hz = db, token, push_hz
+    def __init__(self, db: Path, token: str | None = None, push_hz: float = 10.0, port: int = 0, **options) -> None:
+        self._db, self._token, self._push_hz, self._options = db, token, push_hz, options
         self._ready = threading.Event()
         self._error: BaseException | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -57,7 +57,8 @@ class RelayThread:
     async def _serve(self) -> None:
         try:
             # The relay as `dcuscope relay` starts it: its guarded site included.
-            relay = await start_relay("127.0.0.1", self.port, self._db, self._token, push_hz=self._push_hz)
+            relay = await start_relay("127.0.0.1", self.port, self._db, self._token, push_hz=self._push_hz,
+                                      **self._options)
             self.port = relay.port
             self.relay = relay
             self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()

@@ -1,11 +1,16 @@
-// The dcuscope page: wires the data feeds to the stores, the two views and the panels, and runs
-// the drawing loop. window.dcuscope.debug() reports what was drawn (tests, benchmarks).
+// The dcuscope page: wires the data feeds to the stores, the fleet's overview, the views and the
+// panels, and runs the drawing loop. window.dcuscope.debug() reports what was drawn (tests, benchmarks).
+//
+// Live, only the DCUs opened from the overview are drawn, subscribed to and held: closing one drops
+// its frames, so the page's cost follows what it shows, not the fleet's size. ?open=A,B (or * for
+// every DCU) says which are opened; without it a fleet of at most AUTO_OPEN_MAX DCUs is opened whole.
 
 import { baseName, StageColours } from "./colours.js";
 import { Api, LiveFeed, listSessions, loadSession, SESSION_CAPACITY, tokenFromUrl } from "./feed.js";
 import { FrameView } from "./frameview.js";
 import { MomentView } from "./momentview.js";
-import { nodesHtml, setHtml, statsHtml } from "./panels.js";
+import { Fleet, OPEN_ALL, openedOf, OverviewTable, parseOpen, withOpen } from "./overview.js";
+import { esc, nodesHtml, setHtml, statsHtml } from "./panels.js";
 import { GUTTER, StageView } from "./stageview.js";
 import { DELAY_CAPACITY, LIVE_CAPACITY, NodeStore } from "./store.js";
 import { formatClock } from "./timefmt.js";
@@ -14,6 +19,7 @@ const DEFAULT_WIDTH_MS = 5000;
 const MIN_WIDTH_MS = 1;
 const MAX_WIDTH_MS = 3 * 3600 * 1000;
 const PANEL_REFRESH_MS = 500;
+const OVERVIEW_REFRESH_MS = 1000;
 const TIP_MARGIN = 4; // px between the tooltip and the viewport's edges
 const STAGE_NAMES = { mux: "frame collection", infer: "neural network", tiler: "collage", convert: "post-processing", osd: "on-screen display" };
 
@@ -61,10 +67,85 @@ const model = {
   describe,
   limit: () => view.limit,
   raw: () => view.raw,
+  empty: () => emptyText(),
 };
 const stageView = new StageView($("#stage-canvas"), model);
 const frameView = new FrameView($("#frame-panels"), model);
-const momentView = new MomentView($("#moments-view"), api, () => [...live.nodes.keys()].sort());
+const momentView = new MomentView($("#moments-view"), api, () => [...live.nodes.keys()].filter(isOpen).sort());
+
+// --- the fleet and the DCUs opened from it ------------------------------------------------------
+
+const fleet = new Fleet();
+let choice = parseOpen(location.search); // null: the page chooses (openedOf); OPEN_ALL; or a Set of names
+let opened = new Set();
+let overviewAt = -Infinity;
+let emptySaid = null;
+
+function isOpen(node) {
+  return choice === OPEN_ALL || opened.has(node);
+}
+
+/**
+ * Recompute the opened DCUs; release those closed (their frames, statistics, views) and tell the relay.
+ * Unless the user named the DCUs, the DCUs the page holds count beside the fleet's rows: a row that
+ * expires (its relay restarting, or late) closes nothing, as the page's views never lost a DCU before.
+ */
+function syncOpened() {
+  const next = openedOf(choice, choice === null || choice === OPEN_ALL
+    ? [...new Set([...fleet.names(), ...live.nodes.keys(), ...live.stores.keys()])] : fleet.names());
+  const same = next.size === opened.size && [...next].every((n) => opened.has(n));
+  if (same && (choice === OPEN_ALL) === (feed.wanted === null)) return;
+  for (const node of opened) if (!next.has(node)) release(node);
+  opened = next;
+  feed.want(choice === OPEN_ALL ? null : [...opened]);
+  overviewAt = -Infinity;
+  view.dirty = view.panelsDirty = true;
+}
+
+/** What the views say while they show no DCU because none is opened (null: none has come yet). */
+function emptyText() {
+  if (current !== live || opened.size || choice === OPEN_ALL || !fleet.rows.size) return null;
+  const n = fleet.rows.size;
+  return `No DCU opened: click one of the ${n.toLocaleString("en-US")} DCU${n === 1 ? "" : "s"} in the fleet overview above.`;
+}
+
+function release(node) {
+  live.stores.delete(node);
+  live.stats.delete(node);
+  live.nodes.delete(node);
+  view.expanded.delete(node);
+  view.openGaps.delete(node);
+  view.openNodes.delete(node);
+}
+
+/** The user's choice: it replaces the page's (and goes in the address, so a link shows the same). */
+function choose(next) {
+  choice = next;
+  history.replaceState(history.state, "", `${location.pathname}${withOpen(location.search, choice)}${location.hash}`);
+  syncOpened();
+  if (current === live) frameView.sync(); // the closed DCUs' canvases go now, whichever tab shows
+}
+
+function toggleOpen(node) {
+  const next = new Set(choice === OPEN_ALL ? fleet.names() : opened);
+  if (next.has(node)) next.delete(node);
+  else next.add(node);
+  choose(next);
+}
+
+function renderOverview(now) {
+  overviewAt = now;
+  const gone = fleet.expire(Date.now());
+  if (gone.length) syncOpened();
+  overviewTable.update(fleet, choice === OPEN_ALL ? new Set(fleet.names()) : opened, Date.now());
+  const empty = emptyText();
+  if (empty !== emptySaid) {
+    emptySaid = empty;
+    view.dirty = view.panelsDirty = true;
+  }
+}
+
+const overviewTable = new OverviewTable($("#overview"), toggleOpen);
 
 // --- relay clock ---------------------------------------------------------------------------
 
@@ -116,19 +197,29 @@ function showBanner(text) {
 
 const feed = new LiveFeed(api, {
   nodes(list) {
+    fleet.noteNodes(list, Date.now());
+    syncOpened();
     for (const n of list) {
+      if (!isOpen(n.node)) continue;
       live.nodes.set(n.node, n);
       colours.learn(n.kinds);
     }
     if (current === live) view.panelsDirty = true;
   },
   frames(node, block) {
-    ingest(live, node, block);
+    if (isOpen(node)) ingest(live, node, block);
   },
   stats(node, stats) {
+    if (!isOpen(node)) return;
     live.stats.set(node, stats);
     if (current === live) view.panelsDirty = true;
   },
+  overview(msg, keepMs) {
+    fleet.merge(msg?.rows, Date.now(), keepMs);
+    syncOpened();
+  },
+  runOf: (node) => fleet.runOf(node),
+  names: () => fleet.names(),
   relayTime: noteRelayTime,
   status: setStatus,
   cursor(node, run) {
@@ -506,9 +597,12 @@ function renderPanels() {
   for (const [node, stats] of current.stats) {
     if (!current.stores.has(node)) entries.push([node, stats, current.nodes.get(node)?.stages ?? [], lineage(node)]);
   }
-  setHtml($("#stats-body"), statsHtml(entries, colours, view.windowed && current.kind === "live", view.openGaps));
+  const none = emptyText();
+  setHtml($("#stats-body"), none && !entries.length ? `<p class="muted">${esc(none)}</p>`
+    : statsHtml(entries, colours, view.windowed && current.kind === "live", view.openGaps));
   const nodes = [...current.nodes.values()].sort((a, b) => (a.node < b.node ? -1 : 1));
-  setHtml($("#nodes-body"), nodesHtml(nodes, current.kind !== "live", view.openNodes));
+  setHtml($("#nodes-body"), none && !nodes.length ? `<p class="muted">${esc(none)}</p>`
+    : nodesHtml(nodes, current.kind !== "live", view.openNodes));
 }
 
 function frame(ts) {
@@ -537,6 +631,7 @@ function frame(ts) {
     const text = formatClock(view.end);
     if (clock.textContent !== text) clock.textContent = text;
   }
+  if (ts - overviewAt >= OVERVIEW_REFRESH_MS) renderOverview(ts); // at most once a second, or at once on a click
   if (view.panelsDirty && ts - panelsAt > PANEL_REFRESH_MS) {
     panelsAt = ts;
     view.panelsDirty = false;
@@ -582,6 +677,16 @@ $("#nodes-body").addEventListener("click", (ev) => {
   view.openNodes[view.openNodes.has(node) ? "delete" : "add"](node);
   renderPanels();
 });
+$("#overview-filter").addEventListener("input", () => {
+  overviewAt = -Infinity;
+});
+$("#overview-open").addEventListener("click", () => {
+  // Every DCU the filter shows, beside those opened already.
+  const next = new Set(choice === OPEN_ALL ? fleet.names() : opened);
+  for (const r of overviewTable.last.rows) next.add(r.node);
+  choose(next);
+});
+$("#overview-close").addEventListener("click", () => choose(new Set()));
 $("#session-select").addEventListener("change", (ev) => chooseData(ev.target.value));
 $("#session-select").addEventListener("focus", refreshSessions);
 for (const b of document.querySelectorAll(".tab")) b.addEventListener("click", () => setTab(b.dataset.tab));
@@ -622,6 +727,9 @@ window.dcuscope = {
       stage: stageView.last, frame: frameView.last, moments: momentView.last, perf: perf.summary(),
       tooltip: tip.hidden ? null : tip.textContent,
       stats: Object.fromEntries(current.stats), nodes: [...current.nodes.values()],
+      overview: { ...overviewTable.last, count: $("#overview-count").textContent, filter: overviewTable.filter },
+      opened: choice === OPEN_ALL ? OPEN_ALL : [...opened].sort(), chosen: choice !== null,
+      subscription: feed.subscribed, liveStores: [...live.stores.keys()].sort(),
     };
   },
   perf: (lastMs) => perf.summary(lastMs),
@@ -629,6 +737,7 @@ window.dcuscope = {
 };
 
 setClockMode(false);
+syncOpened();
 feed.start();
 refreshSessions();
 setInterval(refreshSessions, 10000);

@@ -1,12 +1,18 @@
 // Where the page's data comes from: the relay's Socket.IO namespace /ui (live pushes), its HTTP
-// API (backfill, statistics, stored sessions), or polling the API when the Socket.IO client is
-// not installed. A token from ?token= goes with every request.
+// API (backfill, statistics, the fleet's overview, stored sessions), or polling the API when the
+// Socket.IO client is not installed. A token from ?token= goes with every request.
+//
+// The page subscribes to the DCUs it shows (`want`): the relay pushes frames, statistics and node
+// views of those only, and the fleet's overview rows (a row per DCU) to every page; frames and
+// statistics of other DCUs are neither asked for nor backfilled.
 
 export const BACKFILL_FRAMES = 2000;
 export const SESSION_PAGE = 10000;
 export const SESSION_CAPACITY = 262144; // frames per node a stored session is browsed with, at most
 const POLL_FRAMES_MS = 250;
 const POLL_SLOW_MS = 1000;
+export const OVERVIEW_DOWN_MS = 5000; // GET /api/overview this often while the socket is down
+export const PUSH_MAX_FRAMES = 25; // frames per DCU and push asked of the relay
 export const UNREACHABLE = "relay unreachable, retrying";
 
 /**
@@ -56,7 +62,9 @@ const q = encodeURIComponent;
 
 /**
  * Live data. `sink` receives: nodes(list), frames(node, block), stats(node, stats),
- * relayTime(ms), status(kind, text); `cursor(node, run)` says which frame it holds last.
+ * overview(answer, keepMs) (an `overview` push or GET /api/overview: rows that live keepMs
+ * unrefreshed), relayTime(ms), status(kind, text); `cursor(node, run)` says which frame it holds
+ * last, `runOf(node)` the run the fleet's rows name (or undefined), `names()` every DCU known.
  */
 export class LiveFeed {
   constructor(api, sink) {
@@ -67,11 +75,64 @@ export class LiveFeed {
     this.transport = null;
     this.socket = null;
     this.resync = new Set(); // nodes to backfill once the relay lists them again after a reconnect
+    this.wanted = new Set(); // the DCUs the page shows: null for every one
+    this.subscribed = null; // the last subscription sent, and the relay's answer (debug)
+    this.overviewTimer = null;
+  }
+
+  wants(node) {
+    return this.wanted === null || this.wanted.has(node);
+  }
+
+  /**
+   * Show these DCUs (null: every one): tell the relay, forget the others (their backfills end
+   * unread: the sink ignores what it does not show), and fetch those whose run is known already.
+   */
+  want(nodes) {
+    this.wanted = nodes === null ? null : new Set(nodes);
+    for (const node of [...this.known.keys()]) {
+      if (!this.wants(node)) {
+        this.known.delete(node);
+        this.resync.delete(node);
+      }
+    }
+    this.sendSubscription();
+    if (this.transport !== "socket.io") return; // polling: the next round fetches them
+    const names = this.wanted === null ? this.sink.names() : this.wanted;
+    for (const node of names) {
+      const run = this.sink.runOf(node);
+      if (this.known.has(node) || run === undefined || run === null) continue; // the next `nodes` list starts it
+      this.known.set(node, run);
+      this.backfill(node);
+      this.fetchStats(node);
+    }
+  }
+
+  sendSubscription() {
+    if (!this.socket?.connected) return; // sent on (re)connect
+    const msg = { nodes: this.wanted === null ? null : [...this.wanted].sort(), max_frames: PUSH_MAX_FRAMES, overview: true };
+    const sent = { ...msg, ack: null };
+    this.subscribed = sent;
+    this.socket.emit("subscribe", msg, (ack) => {
+      sent.ack = ack ?? null;
+    });
+  }
+
+  fetchStats(node) {
+    this.api.get(`/api/stats?node=${q(node)}`).then((s) => this.sink.stats(node, s), () => {});
+  }
+
+  /** The whole fleet's rows from any relay (an older relay without /api/overview: nothing, the nodes lists tell). */
+  async fetchOverview(keepMs) {
+    try {
+      this.sink.overview(await this.api.get("/api/overview"), keepMs);
+    } catch (_) { /* the other requests report a relay that is down */ }
   }
 
   start() {
     if (typeof window.io === "function") this.startSocket();
     else this.startPolling("the Socket.IO client (vendor/socket.io.min.js) is not installed");
+    if (this.transport === "socket.io") this.fetchOverview(OVERVIEW_DOWN_MS); // before the socket connects
   }
 
   startSocket() {
@@ -80,17 +141,28 @@ export class LiveFeed {
     this.socket = socket;
     socket.on("connect", () => {
       this.sink.status("live", "live");
+      this.sendSubscription();
+      clearInterval(this.overviewTimer);
+      this.overviewTimer = null;
+      this.fetchOverview(OVERVIEW_DOWN_MS);
       // After a reconnect the pushes went on without us: fetch what was missed, once the relay
       // (perhaps restarted, its nodes not back yet) lists the node again.
       this.resync = new Set(this.known.keys());
     });
     socket.on("connect_error", (err) => this.sink.status(...failure(err)));
     // A relay that stops closes the transport: Socket.IO calls again by itself, with backoff.
-    socket.on("disconnect", () => this.sink.status("down", UNREACHABLE));
+    // Meanwhile any relay of the fleet answers for the overview.
+    socket.on("disconnect", () => {
+      this.sink.status("down", UNREACHABLE);
+      clearInterval(this.overviewTimer);
+      this.overviewTimer = setInterval(() => this.fetchOverview(OVERVIEW_DOWN_MS + POLL_SLOW_MS), OVERVIEW_DOWN_MS);
+    });
     socket.on("nodes", (list) => this.onNodes(list));
+    socket.on("overview", (msg) => this.sink.overview(msg));
     socket.on("frames", (msg) => {
       this.sink.relayTime(msg.t_ns / 1e6);
       for (const [node, block] of Object.entries(msg.nodes)) {
+        if (!this.wants(node)) continue; // pushed before the relay had our last subscription
         const queue = this.pending.get(node);
         if (queue) {
           queue.push(block);
@@ -110,11 +182,12 @@ export class LiveFeed {
   onNodes(list) {
     this.sink.nodes(list);
     for (const n of list) {
+      if (!this.wants(n.node)) continue;
       const stale = this.resync.delete(n.node);
       if (this.known.get(n.node) !== n.run) {
         this.known.set(n.node, n.run);
         this.backfill(n.node);
-        this.api.get(`/api/stats?node=${q(n.node)}`).then((s) => this.sink.stats(n.node, s), () => {});
+        this.fetchStats(n.node);
       } else if (stale) {
         this.backfill(n.node);
       }
@@ -152,9 +225,11 @@ export class LiveFeed {
     this.sink.status("live", `polling the HTTP API (${why})`);
     const slow = async () => {
       try {
+        this.fetchOverview(OVERVIEW_DOWN_MS);
         const list = await this.api.get("/api/nodes");
         this.sink.nodes(list);
         for (const n of list) {
+          if (!this.wants(n.node)) continue;
           this.known.set(n.node, n.run);
           this.sink.stats(n.node, await this.api.get(`/api/stats?node=${q(n.node)}`));
         }

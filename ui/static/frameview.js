@@ -20,6 +20,8 @@ export class FrameView {
     this.container = container;
     this.model = model;
     this.panels = new Map();
+    this.emptyEl = document.createElement("p");
+    this.emptyEl.className = "muted frame-empty";
     this.last = { nodes: {}, xmax: 0, limit: 0 };
   }
 
@@ -51,6 +53,10 @@ export class FrameView {
     }
     // Keep DOM order = node order.
     for (const store of stores) this.container.appendChild(this.panels.get(store.node).el);
+    const empty = stores.length ? null : this.model.empty?.() ?? "Waiting for nodes.";
+    if (this.emptyEl.textContent !== (empty ?? "")) this.emptyEl.textContent = empty ?? "";
+    if (!empty) this.emptyEl.remove();
+    else if (!this.emptyEl.isConnected) this.container.appendChild(this.emptyEl);
   }
 
   /** Draw the last `count` frames of every node that ended at or before `tEnd`. */

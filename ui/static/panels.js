@@ -113,7 +113,8 @@ const signed = (us) => {
   return text === "0 µs" ? text : `${us >= 0 ? "+" : "−"}${text}`;
 };
 
-function offsetText(clock) {
+/** The clock's offset ± its bound as HTML (a muted dash without an estimate): the nodes panel and the overview. */
+export function offsetText(clock) {
   if (!clock || clock.offset_us === null || clock.offset_us === undefined) return `<span class="muted">–</span>`;
   return `${signed(clock.offset_us)} ± ${formatDelay(clock.uncertainty_us / 1000)}`;
 }

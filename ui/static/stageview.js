@@ -121,7 +121,8 @@ export class StageView {
    * @param canvas the <canvas> to draw on
    * @param model {stores(): NodeStore[] sorted by node, colours: StageColours,
    *               expanded(node): bool, describe(node, source): string,
-   *               raw(): bool (node timestamps as they came, not corrected)}
+   *               raw(): bool (node timestamps as they came, not corrected),
+   *               empty(): what to say when there is no row (null: that no node has come yet)}
    */
   constructor(canvas, model) {
     this.canvas = canvas;
@@ -262,7 +263,7 @@ export class StageView {
       ctx.fillStyle = "#607d8b";
       ctx.font = "14px system-ui, sans-serif";
       ctx.textAlign = "left";
-      ctx.fillText("Waiting for nodes: dcuscope run CONFIG --probes --relay URL --node NAME", X, AXIS_H + 20);
+      ctx.fillText(this.model.empty?.() ?? "Waiting for nodes: dcuscope run CONFIG --probes --relay URL --node NAME", X, AXIS_H + 20);
     }
     this.last = {
       bars, bySource, runs, samples, lanes, bands, raw: this.raw, window: [t0, t1],

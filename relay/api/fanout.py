@@ -1,0 +1,170 @@
+"""Every relay's pushes to every browser: python-socketio's Redis manager (``--redis URL``).
+
+With ``--redis redis://HOST:PORT/N`` the relay's Socket.IO server uses python-socketio's
+:class:`socketio.AsyncRedisManager`, as python-socketio documents for servers that scale out: an
+emit is delivered to this relay's own browsers at once and published on a Redis channel, from
+which every other relay delivers it to its browsers. Relays sharing a store then show every DCU of
+the fleet on every page. Without ``--redis`` the stock in-process manager serves this relay's
+browsers only (one relay, or relays whose pages need only their own DCUs).
+
+Redis is not needed for anything but those pushes. While it is down or restarting:
+
+- ingest and storage go on untouched (they never touch Redis);
+- this relay's own browsers keep their pushes (delivered locally before publishing);
+- publishing is skipped (not retried, not queued): other relays' browsers miss this relay's pushes
+  and catch up from the store when it returns (the page backfills the frames it missed);
+- the subscriber reconnects every ``RETRY_S``, not with python-socketio's backoff of up to a
+  minute, so pushes resume within a second of Redis' return;
+- ``/api/health``'s ``fanout`` says so, and the log has one line per change (python-socketio's own
+  line per failed attempt is held back).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from urllib.parse import urlsplit, urlunsplit
+
+import socketio
+
+from relay.errors import RelayError
+
+CHANNEL = "dcuscope"
+"""The Redis channel the relays' Socket.IO servers share (python-socketio's ``channel``)."""
+RETRY_S = 1.0
+TIMEOUT_S = 1.0
+"""Connecting to Redis and publishing give up after this long (a Redis that stopped answering)."""
+QUIET = ("Cannot publish to redis", "Cannot receive from redis")
+
+log = logging.getLogger(__name__)
+
+
+def redact(url: str) -> str:
+    """``url`` without its password, for messages and /api/health."""
+    parts = urlsplit(url)
+    if parts.password is None:
+        return url
+    return urlunsplit(parts._replace(netloc=parts.netloc.replace(f":{parts.password}@", ":***@", 1)))
+
+
+def check_url(url: str) -> str:
+    """``url`` if it names a Redis server python-socketio can use; RelayError saying why not otherwise."""
+    scheme = urlsplit(url).scheme.lower()
+    if scheme not in ("redis", "rediss", "unix", "redis+sentinel"):
+        raise RelayError(f"--redis {redact(url)!r}: not a Redis URL (redis://HOST:PORT/DB, rediss://, unix://)")
+    return url
+
+
+class FanoutHealth:
+    """Whether pushes reach the other relays now; one log line per change."""
+
+    def __init__(self, mode: str, url: str | None = None) -> None:
+        self.mode = mode
+        self.url = redact(url) if url else None
+        self.ok = mode == "local"
+        self.since = time.time()
+        self.error: str | None = None if self.ok else "not connected yet"
+        self.outages = 0
+        self._told_down = False
+
+    def up(self) -> None:
+        if not self.ok:
+            self.ok, self.since, self.error, self._told_down = True, time.time(), None, False
+            log.warning("redis %s: connected; this relay's pushes reach every relay's browsers", self.url)
+
+    def down(self, error: str) -> None:
+        if self.ok:
+            self.outages += 1
+            self.since = time.time()
+        if not self._told_down:
+            self._told_down = True
+            log.warning("redis %s: %s; only this relay's browsers get its pushes (other relays' catch up from "
+                        "the store when it returns)", self.url, error)
+        self.ok, self.error = False, error
+
+    def view(self) -> dict:
+        return {"mode": self.mode, "url": self.url, "ok": self.ok, "since": self.since, "error": self.error,
+                "outages": self.outages}
+
+
+class FleetManager(socketio.AsyncRedisManager):
+    """python-socketio's Redis manager, degrading as the module's docstring says."""
+
+    def __init__(self, url: str, health: FanoutHealth) -> None:
+        super().__init__(check_url(url), channel=CHANNEL, logger=_quiet_logger(),
+                         redis_options={"socket_connect_timeout": TIMEOUT_S, "health_check_interval": 5})
+        self.health = health
+
+    async def _publish(self, data):
+        if not self.health.ok:
+            return None  # the subscriber finds Redis back; until then other relays catch up from the store
+        try:
+            return await asyncio.wait_for(self.redis.publish(self.channel, self.json.dumps(data)), TIMEOUT_S)
+        except Exception as exc:  # noqa: BLE001 - any failure of Redis: degrade, say it once
+            self.health.down(f"cannot publish: {_describe(exc)}")
+            # The subscriber's connection goes too: it reconnects, and says when Redis is back.
+            await self._close_connections()
+            return None
+
+    async def _redis_listen_with_retries(self):
+        while True:
+            try:
+                self._redis_connect()
+                await asyncio.wait_for(self.pubsub.subscribe(self.channel), TIMEOUT_S)
+                self.health.up()
+                async for message in self.pubsub.listen():
+                    yield message
+                raise ConnectionError("subscription ended")
+            except asyncio.CancelledError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - any failure of Redis: degrade, retry
+                self.health.down(f"cannot receive: {_describe(exc)}")
+                await self._close_connections()
+                await asyncio.sleep(RETRY_S)
+
+
+    async def close(self) -> None:
+        """Stop the subscriber and close the connections (the relay stops)."""
+        task = getattr(self, "thread", None)
+        if isinstance(task, asyncio.Task):
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+        await self._close_connections()
+
+    async def _close_connections(self) -> None:
+        for conn in (self.pubsub, self.redis):
+            if conn is not None:
+                try:
+                    await conn.aclose()
+                except Exception:  # noqa: BLE001 - Redis may be gone already
+                    pass
+        self.pubsub = self.redis = None
+        self.connected = False
+
+
+def create_manager(url: str | None) -> tuple[socketio.AsyncManager | None, FanoutHealth]:
+    """The Socket.IO client manager for ``--redis`` (None: python-socketio's in-process one), and its health."""
+    if url is None:
+        return None, FanoutHealth("local")
+    health = FanoutHealth("redis", url)
+    return FleetManager(url, health), health
+
+
+class _Quiet(logging.Filter):
+    """python-socketio's manager logs every failed attempt; FanoutHealth says each change once."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith(QUIET)
+
+
+def _quiet_logger() -> logging.Logger:
+    logger = logging.getLogger("relay.fanout.redis")
+    if not any(isinstance(f, _Quiet) for f in logger.filters):
+        logger.addFilter(_Quiet())
+    return logger
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
+    return f"{type(exc).__name__}: {text[:120]}" if text else type(exc).__name__

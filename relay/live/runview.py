@@ -1,0 +1,45 @@
+"""What the HTTP API reads of a run, whether this relay holds it or mirrors it from a shared store.
+
+A run this relay holds is read from its live state (:class:`relay.live.state.RunState`); a run
+another relay holds, from a mirror of its stored batches (:mod:`relay.live.mirror`). Both give a
+:class:`RunView`, and the frames and statistics answered are shaped alike.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from probes.events import TraceHeader
+from relay.clock.correction import Correction
+from relay.live.framejson import block, frame_dicts
+from relay.live.run import LiveRun
+
+
+@dataclass
+class RunView:
+    node: str
+    run: str
+    session: int
+    header: TraceHeader
+    live: LiveRun
+    correction: Correction
+    stats: Callable[[bool], dict]
+    """The run's statistics (``fresh``: recomputed now), shaped as ``GET /api/stats``."""
+    relay: str
+    """The name of the relay holding the run."""
+
+
+def frames_block(view: RunView, since: int = 0, limit: int = 200, newest: bool = False) -> dict:
+    """Complete frames after cursor ``since``, clock-corrected, as the UI draws them: the first
+    ``limit`` of them (paging), or with ``newest`` the last ``limit`` (pushes)."""
+    live, correction = view.live, view.correction
+    n, fd = live.recent(since, limit, newest)
+    frames = frame_dicts(n, fd, correction)
+    # At the last frame's end on the node's clock (where its correction was looked up).
+    corr, bound = correction.at(int(fd.chains.end[-1]) if frames else time.time_ns())
+    return block(view.node, view.run, view.header.stages, view.header.kinds, fd.chains.has_exit, frames,
+                 correction.applied, cursor=frames[-1]["n"] if frames else since, newest=live.visible,
+                 correction_ns=corr, uncertainty_ns=bound)
+

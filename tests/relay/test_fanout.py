@@ -1,0 +1,149 @@
+"""Relays on one PostgreSQL and one Redis: a browser on either gets every relay's DCUs, and a Redis
+outage degrades without losing anything. Real relays, PostgreSQL 15 and redis-server from Debian
+(tests/pgserver.py, tests/redisserver.py), simulated nodes, a python-socketio client as the browser."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+import pytest
+import socketio
+
+from tests.relay.helpers import RelayProcess, finish_node, get_json, load_node, start_node, wait_for
+from tests.relay.test_fleet import stored_equals_sent
+
+pytestmark = pytest.mark.xdist_group("fanout")
+
+
+def held_by(relay: RelayProcess) -> dict[str, str]:
+    """Node -> the relay holding it, as ``relay`` lists the fleet."""
+    return {n["node"]: n["relay"] for n in get_json(f"{relay.url}/api/nodes", timeout=5)}
+
+
+class Browser:
+    """A Socket.IO client on a relay's /ui: every event it got, with its arrival time."""
+
+    def __init__(self) -> None:
+        self.sio = socketio.AsyncClient(reconnection=True, reconnection_delay=0.2)
+        self.got: list[tuple[float, str, object]] = []
+        self.sio.on("*", lambda event, data: self.got.append((time.monotonic(), event, data)), namespace="/ui")
+
+    async def open(self, url: str, nodes: list[str] | None) -> None:
+        """Connect, subscribed from the start to ``nodes`` (as the page does)."""
+        await self.sio.connect(url, namespaces=["/ui"], transports=["websocket"], wait_timeout=10,
+                               auth={"subscribe": {"nodes": nodes, "max_frames": 500}})
+
+    def frames(self, node: str, after: float = 0.0) -> list[dict]:
+        return [f for t, e, d in self.got if e == "frames" and t >= after for f in d["nodes"].get(node, {}).get("frames", [])]
+
+    def rows(self, after: float = 0.0) -> dict[str, dict]:
+        return {r["node"]: r for t, e, d in self.got if e == "overview" and t >= after for r in d["rows"]}
+
+
+def test_a_browser_on_one_relay_gets_every_relays_dcus_and_only_those_it_shows(tmp_path, pg_url, redis_server):
+    args = ["--redis", redis_server.url]
+    a = RelayProcess(pg_url, log=tmp_path / "a.log", args=[*args, "--name", "relay-a"])
+    b = RelayProcess(pg_url, log=tmp_path / "b.log", args=[*args, "--name", "relay-b"])
+    try:
+        on_a = start_node(a.url, "DCU-A", tmp_path / "a.npz", frames=200, sources=2, fps=40, paced=True, linger=True)
+        on_b = start_node(b.url, "DCU-B", tmp_path / "b.npz", frames=200, sources=2, fps=40, paced=True, linger=True)
+        both = {"DCU-A": "relay-a", "DCU-B": "relay-b"}
+        wait_for(lambda: held_by(a) == both and held_by(b) == both, 30, what="each relay lists both DCUs")
+
+        async def watch() -> tuple[Browser, Browser]:
+            shows_a, shows_b = Browser(), Browser()
+            await shows_a.open(b.url, ["DCU-A"])  # a DCU of the other relay
+            await shows_b.open(b.url, ["DCU-B"])
+            await asyncio.sleep(3.0)
+            for browser in (shows_a, shows_b):
+                await browser.sio.disconnect()
+            return shows_a, shows_b
+
+        shows_a, shows_b = asyncio.run(watch())
+        assert shows_a.frames("DCU-A") and not shows_a.frames("DCU-B")
+        assert shows_b.frames("DCU-B") and not shows_b.frames("DCU-A")
+        for browser in (shows_a, shows_b):
+            rows = browser.rows()
+            assert rows.keys() == {"DCU-A", "DCU-B"}
+            assert rows["DCU-A"]["relay"] == "relay-a" and rows["DCU-B"]["relay"] == "relay-b"
+            assert rows["DCU-A"]["fps"] and rows["DCU-A"]["p99_ms"] is not None and rows["DCU-A"]["bottleneck"]
+            stats = [d for _, e, d in browser.got if e == "stats"]
+            assert stats and all(len(d["nodes"]) == 1 for d in stats)
+
+        # B answers for A's DCU from the store: the same frames as A's own live state.
+        finish_node(on_a, 60)
+        finish_node(on_b, 60)
+        mirrored = get_json(f"{b.url}/api/frames?node=DCU-A&limit=2000")
+        own = get_json(f"{a.url}/api/frames?node=DCU-A&limit=2000")
+        key = lambda f: (f["source"], f["frame"], f["delay_ms"])  # noqa: E731
+        assert len(own["frames"]) == 400 and sorted(map(key, mirrored["frames"])) == sorted(map(key, own["frames"]))
+        stats_b, stats_a = get_json(f"{b.url}/api/stats?node=DCU-A"), get_json(f"{a.url}/api/stats?node=DCU-A")
+        assert stats_b["frames"] == stats_a["frames"] and stats_b["frame"]["p99_ms"] == stats_a["frame"]["p99_ms"]
+        overview = get_json(f"{b.url}/api/overview")
+        assert [r["node"] for r in overview["rows"]] == ["DCU-A", "DCU-B"] and overview["relay"] == "relay-b"
+        health = get_json(f"{b.url}/api/health")
+        assert health["relay"] == "relay-b" and health["fanout"]["mode"] == "redis" and health["fanout"]["ok"]
+    finally:
+        a.stop()
+        b.stop()
+
+
+def test_a_redis_restart_loses_nothing_and_pushes_resume_by_themselves(tmp_path, pg_url, redis_server):
+    args = ["--redis", redis_server.url]
+    a = RelayProcess(pg_url, log=tmp_path / "a.log", args=[*args, "--name", "relay-a"])
+    b = RelayProcess(pg_url, log=tmp_path / "b.log", args=[*args, "--name", "relay-b"])
+    node = start_node(a.url, "DCU-A", tmp_path / "a.npz", frames=600, sources=2, fps=40, paced=True)
+    try:
+        wait_for(lambda: "DCU-A" in held_by(b), 30, what="B lists A's DCU")
+
+        async def watch() -> tuple[Browser, float, float]:
+            browser = Browser()
+            await browser.open(b.url, ["DCU-A"])
+            for _ in range(200):  # within a second unloaded; a loaded machine is slower
+                await asyncio.sleep(0.1)
+                if browser.frames("DCU-A"):
+                    break
+            assert browser.frames("DCU-A"), "no live frames of A's DCU on B before the outage"
+            redis_server.stop()
+            down = time.monotonic()
+            await asyncio.sleep(1.5)
+            assert get_json(f"{b.url}/api/health")["fanout"]["ok"] is False
+            assert get_json(f"{a.url}/api/health")["fanout"]["ok"] is False
+            quiet = time.monotonic()
+            await asyncio.sleep(2.0)
+            missed = browser.frames("DCU-A", after=quiet)
+            redis_server.start()
+            up = time.monotonic()
+            for _ in range(300):
+                await asyncio.sleep(0.1)
+                if browser.frames("DCU-A", after=up):
+                    break
+            resumed = time.monotonic() - up
+            await asyncio.sleep(1.0)
+            await browser.sio.disconnect()
+            assert not missed, "frames of another relay's DCU came through while Redis was down"
+            return browser, down, resumed
+
+        browser, _, resumed = asyncio.run(watch())
+        # The relays reconnect every second (python-socketio's own backoff would wait up to a minute).
+        assert resumed < 15.0, f"pushes resumed {resumed:.1f} s after Redis came back"
+        for relay in (a, b):
+            health = get_json(f"{relay.url}/api/health")["fanout"]
+            assert health["ok"] and health["outages"] == 1, health
+        counters = finish_node(node, 60)
+        assert counters["acked"] == counters["events"] and counters["lost"] == 0  # ingest went on untouched
+        header, sent = load_node(tmp_path / "a.npz")
+        stored_equals_sent(pg_url, "DCU-A", sent)
+        # What B's browser missed is in the store: B answers for it (the page backfills from there).
+        frames = get_json(f"{b.url}/api/frames?node=DCU-A&limit=2000")["frames"]
+        assert len(frames) == 1200
+        for relay, name in ((a, "a"), (b, "b")):
+            lines = [ln for ln in (tmp_path / f"{name}.log").read_text().splitlines() if "redis" in ln.lower()]
+            assert len([ln for ln in lines if "cannot" in ln]) == 1, lines  # one line per change
+            assert len([ln for ln in lines if "connected;" in ln]) == 2, lines  # at start, and once back
+    finally:
+        if node.poll() is None:
+            node.kill()
+        a.stop()
+        b.stop()
