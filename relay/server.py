@@ -55,6 +55,8 @@ from relay.store.writer import Storage
 UI_DIR = Path(__file__).resolve().parents[1] / "ui" / "static"
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
 LOG_FLUSH_S = 10.0
+STOP_BROWSERS_S = 2.0
+"""How long a stopping relay waits for its browsers' connections to close."""
 REFUSALS = ("peer_cap", "tcp_cap", "header_timeout", "hello_timeout", "host", "proxy_header")
 PLACEHOLDER = """<!doctype html><html><head><meta charset="utf-8"><title>dcuscope relay</title></head>
 <body><h1>dcuscope relay</h1><p>The UI is not installed (ui/static/index.html). The JSON API is at
@@ -104,7 +106,10 @@ class Relay:
             await self.otlp.stop()
         await self.ticker.interest.close()
         if self.sio.eio.sockets:  # the browsers' too: the web runner would wait out their pings
-            await self.sio.eio.disconnect()
+            try:
+                await asyncio.wait_for(self.sio.eio.disconnect(), STOP_BROWSERS_S)
+            except asyncio.TimeoutError:  # a client that does not answer: the runner closes it
+                pass
         await self.sio.shutdown()
         if isinstance(self.sio.manager, FleetManager):
             await self.sio.manager.close()
