@@ -117,6 +117,7 @@ async def until_closed(reader: asyncio.StreamReader, limit_s: float) -> tuple[fl
     return time.monotonic() - start, data
 
 
+@pytest.mark.alone  # 1,023 connections opened within the 2 s hello timeout: a loaded machine frees places meanwhile
 def test_never_hello_connections_are_closed_and_a_node_gets_in(tmp_path):
     hello_s = 2.0
     # The per-peer cap raised: here the hello timeout alone must free the ingest places.
