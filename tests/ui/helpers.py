@@ -167,3 +167,20 @@ def launch_chromium(playwright, extra_args: list[str] | None = None):
     if not Path(CHROMIUM).exists():
         raise RuntimeError(f"{CHROMIUM} not found: install Debian's chromium package")
     return playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS + (extra_args or []))
+
+
+def units_page(browser, db: Path):
+    """A page of a relay of its own (database ``db``) for tests of the page's pure JavaScript: yields the
+    page, then fails the test if the page raised."""
+    relay = RelayThread(db)
+    page = browser.new_page()
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    try:
+        page.goto(relay.url + "/")
+        page.wait_for_function("window.dcuscope !== undefined", timeout=15000)
+        yield page
+        assert not errors, errors
+    finally:
+        page.close()
+        relay.stop()

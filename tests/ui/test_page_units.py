@@ -4,23 +4,12 @@ from __future__ import annotations
 
 import pytest
 
-from tests.ui.helpers import RelayThread
+from tests.ui.helpers import units_page
 
 
 @pytest.fixture(scope="module")
 def page(browser, tmp_path_factory):
-    relay = RelayThread(tmp_path_factory.mktemp("units") / "relay.db")
-    page = browser.new_page()
-    errors = []
-    page.on("pageerror", lambda e: errors.append(str(e)))
-    try:
-        page.goto(relay.url + "/")
-        page.wait_for_function("window.dcuscope !== undefined", timeout=15000)
-        yield page
-        assert not errors, errors
-    finally:
-        page.close()
-        relay.stop()
+    yield from units_page(browser, tmp_path_factory.mktemp("units") / "relay.db")
 
 
 def js(page, body: str, arg=None):
