@@ -11,8 +11,13 @@ resends what is not acknowledged after a reconnect, and reconnects with exponent
 The buffer of unacknowledged events is bounded (``max_buffer_events``); beyond it the oldest
 batches are dropped and counted as ``lost``, a count the relay receives with the next
 ``hello``/``clock`` message and with ``end`` (with the lowest batch it still holds, so that the
-relay stops waiting for the dropped ones). A relay that refuses the token (HTTP 401) is not asked again:
-:attr:`RelayExporter.refused` says so (``dcuscope run`` ends with it as its error).
+relay stops waiting for the dropped ones). A dropped batch that was sent may have been stored
+(its acknowledgement lost with the connection, or still to come): it is *doubtful* until its
+acknowledgement arrives or the next hello asks the relay (``doubt``; the reply says which it
+stored), or the next ``clock`` report does (every ``sync_interval_s``, and once more before
+``end``); then it counts delivered or lost. The floor stays at the first doubtful batch meanwhile.
+A relay that refuses the token (HTTP 401) is not asked again: :attr:`RelayExporter.refused` says
+so (``dcuscope run`` ends with it as its error).
 
 Batching (adaptive, as Nagle's algorithm): while the link is idle (connected, no batch waiting
 for its acknowledgement, none queued to send), what is pending is cut and sent at once, but at
@@ -63,7 +68,7 @@ from probes.ptp import POLL_INTERVAL_S, PtpWatch
 from probes.relaylink import Link, Refused, asked_retry_ms, parse_relays
 from probes.udpclock import UdpClock, parse_offer
 from probes.sysclock import DEFAULT_UDS
-from probes.wire import MAX_BATCH_EVENTS, PROTOCOL_VERSION, encode_batch
+from probes.wire import MAX_BATCH_EVENTS, MAX_DOUBT, PROTOCOL_VERSION, encode_batch
 
 DEFAULT_BATCH_EVENTS = 8192
 DEFAULT_FLUSH_INTERVAL_S = 0.05
@@ -152,6 +157,10 @@ class RelayExporter:
         self._unacked: OrderedDict[int, tuple[bytes, int]] = OrderedDict()
         self._unacked_n = 0
         self._inflight: dict[int, float] = {}
+        self._tried: set[int] = set()
+        """Unacknowledged batches sent at least once (on any connection)."""
+        self._doubtful: OrderedDict[int, int] = OrderedDict()
+        """Evicted batches that were sent: seq -> events (module doc)."""
         self._to_send: deque[int] = deque()
         self._next_seq = 0
         self._last_cut = 0.0
@@ -324,8 +333,30 @@ class RelayExporter:
             seq, (_, n) = self._unacked.popitem(last=False)
             self._inflight.pop(seq, None)
             self._unacked_n -= n
-            self._evicted += n
+            if seq in self._tried:
+                self._tried.discard(seq)
+                self._doubtful[seq] = n
+            else:
+                self._evicted += n
+        while len(self._doubtful) > MAX_DOUBT:  # more than a hello may ask about: given up
+            self._evicted += self._doubtful.popitem(last=False)[1]
         self._progress.set()
+
+    def _settle_doubt(self, seq: int, stored: bool) -> None:
+        n = self._doubtful.pop(seq)
+        if stored:
+            self._acked += n
+        else:
+            self._evicted += n
+
+    def _settle_doubts(self, asked: list[int], reply: dict) -> None:
+        """The relay's reply says which of the doubtful batches ``asked`` it stored; the rest
+        never arrived (a relay that does not answer ``stored`` stored none it knows of)."""
+        stored = reply.get("stored")
+        stored = {s for s in stored if isinstance(s, int)} if isinstance(stored, list) else set()
+        for seq in asked:
+            if seq in self._doubtful:
+                self._settle_doubt(seq, seq in stored)
 
     async def _ptp_loop(self) -> None:
         while True:
@@ -335,13 +366,16 @@ class RelayExporter:
     def _hello(self) -> dict:
         hello = {"proto": PROTOCOL_VERSION, "run": self.run_id, "header": self._header,
                  "lost": self.lost, "floor": self._floor(), "ptp": self._ptp}
+        if self._doubtful:
+            hello["doubt"] = list(self._doubtful)
         if self._secret is not None:
             hello["secret"] = self._secret
         return hello
 
     def _floor(self) -> int:
-        """Every batch below this was acknowledged or evicted: the relay need not wait for it."""
-        return next(iter(self._unacked), self._next_seq)
+        """Every batch below this was acknowledged or evicted (and not doubtful): the relay need
+        not wait for it."""
+        return min(next(iter(self._unacked), self._next_seq), next(iter(self._doubtful), self._next_seq))
 
     async def _connection_loop(self) -> None:
         delay = self._backoff[0]
@@ -421,8 +455,9 @@ class RelayExporter:
             return _Miss(_REFUSED, str(exc))
         except ExportError as exc:
             return _Miss(_UNREACHABLE, str(exc))
+        hello = self._hello()
         try:
-            reply = await link.call("hello", self._hello(), HELLO_TIMEOUT_S)
+            reply = await link.call("hello", hello, HELLO_TIMEOUT_S)
         except (ConnectionError, TimeoutError, aiohttp.ClientError) as exc:
             await link.close()
             if link.elsewhere:  # another relay holds the run: not a refusal of this node
@@ -437,6 +472,7 @@ class RelayExporter:
             return _Miss(_LATER, f"relay refused hello: {str(reply)[:200]}", _seconds(asked_retry_ms(reply)))
         if isinstance(reply.get("secret"), str):
             self._secret = reply["secret"]
+        self._settle_doubts(hello.get("doubt", []), reply)
         self._offer = parse_offer(reply)
         return link
 
@@ -473,6 +509,7 @@ class RelayExporter:
                 if item is None or seq in self._inflight:
                     continue
                 self._inflight[seq] = time.monotonic()
+                self._tried.add(seq)
                 await link.send_batch(item[0])
                 self._sent += item[1]
             self._progress.clear()
@@ -483,6 +520,9 @@ class RelayExporter:
 
     def _on_ack(self, ack: dict) -> None:
         seq = ack.get("seq")
+        if isinstance(seq, int) and seq in self._doubtful:  # evicted while in flight: now known
+            self._settle_doubt(seq, ack.get("ok") is True)
+            return
         if not isinstance(seq, int) or seq not in self._inflight:
             return
         del self._inflight[seq]
@@ -496,6 +536,7 @@ class RelayExporter:
             return
         self._hold_s = 0.0
         item = self._unacked.pop(seq, None)
+        self._tried.discard(seq)
         if item is not None:
             self._unacked_n -= item[1]
             self._acked += item[1]
@@ -518,20 +559,35 @@ class RelayExporter:
         burst = SYNC_BURST_FIRST
         try:
             while True:
-                report = {"lost": self.lost, "floor": self._floor(), "ptp": self._ptp}
+                report = self._clock_report()
                 samples = await self._udp_burst(udp) if udp is not None else []
                 if samples:
                     report.update(samples=samples, via="udp")
                 else:
                     report["samples"] = await self._ws_burst(link, burst)
                 self.clock_via = report.get("via", "websocket")
-                await link.tell("clock", report)
+                await self._report_clock(link, report)
                 self._synced.set()
                 burst = SYNC_BURST
                 await asyncio.sleep(self._sync_interval)
         finally:
             if udp is not None:
                 udp.close()
+
+    def _clock_report(self) -> dict:
+        report = {"lost": self.lost, "floor": self._floor(), "ptp": self._ptp}
+        if self._doubtful:
+            report["doubt"] = list(self._doubtful)
+        return report
+
+    async def _report_clock(self, link: Link, report: dict) -> None:
+        """Send a clock report; one that asks about doubtful batches waits for the answer."""
+        if "doubt" not in report:
+            await link.tell("clock", report)
+            return
+        reply = await link.call("clock", report, SYNC_TIMEOUT_S)
+        if isinstance(reply, dict):
+            self._settle_doubts(report["doubt"], reply)
 
     async def _open_udp(self) -> UdpClock | None:
         if self._offer is None:
@@ -593,6 +649,13 @@ class RelayExporter:
         if self._unacked and not self.refused:  # a refusal is the whole story
             log.warning("relay exporter %s: %d events not acknowledged at close", self.node, self._unacked_n)
         link = self._link
+        if link is not None and self._doubtful:
+            try:
+                await self._report_clock(link, self._clock_report())
+            except (ConnectionError, TimeoutError, aiohttp.ClientError) as exc:
+                self._note_error(f"could not ask the relay about doubtful batches: {_describe(exc)}")
+        for seq in list(self._doubtful):  # not known: counted lost
+            self._settle_doubt(seq, False)
         if link is not None:
             end = {"events": self._written, "dropped": dropped, "lost": self.lost + self._unacked_n}
             try:

@@ -56,6 +56,8 @@ MAX_STAGES = 256
 MAX_NAME = 200
 MAX_SOURCES = 1024
 MAX_CLOCK_SAMPLES = 64
+MAX_DOUBT = 1024
+"""Batches a hello may ask about (``doubt``): a node's window is 64."""
 CLOCK_VIAS = ("websocket", "udp")
 """Transports a clock report's samples may come by (``clock.via``; absent: websocket)."""
 SOURCE_LIMIT = 1 << 19
@@ -88,6 +90,9 @@ class Hello:
     """Every batch below this sequence number was acknowledged or given up by the node."""
     secret: str | None = None
     """The resume secret the relay issued at the run's first hello; required to resume it."""
+    doubt: tuple[int, ...] = ()
+    """Batches the node sent and then evicted unacknowledged: the relay answers which of them it
+    stored (``stored`` in its reply), so that the node counts those delivered, the others lost."""
 
 
 @dataclass(frozen=True)
@@ -100,6 +105,8 @@ class ClockReport:
     """As :attr:`Hello.floor`."""
     via: str = "websocket"
     """Transport of the samples' exchanges (one of CLOCK_VIAS)."""
+    doubt: tuple[int, ...] = ()
+    """As :attr:`Hello.doubt` (the report is then a request: the reply says ``stored``)."""
 
 
 def encode_batch(run: str, seq: int, events: np.ndarray, compress: bool = False) -> bytes:
@@ -293,7 +300,15 @@ def decode_hello(obj: object, node: str | None = None, *, max_stages: int = MAX_
     if secret is not None and not (isinstance(secret, str) and len(secret) == SECRET_CHARS
                                    and all(c in "0123456789abcdef" for c in secret)):
         raise ProtocolError(f"hello.secret must be {SECRET_CHARS} hex digits")
-    return Hello(run, header, lost, sanitize_ptp(d.get("ptp")), _int(d.get("floor", 0), "hello.floor"), secret)
+    return Hello(run, header, lost, sanitize_ptp(d.get("ptp")), _int(d.get("floor", 0), "hello.floor"), secret,
+                 _doubt(d, "hello"))
+
+
+def _doubt(d: dict, what: str) -> tuple[int, ...]:
+    doubt = d.get("doubt", [])
+    if not (isinstance(doubt, list) and len(doubt) <= MAX_DOUBT):
+        raise ProtocolError(f"{what}.doubt must be a list of at most {MAX_DOUBT} batch numbers")
+    return tuple(_int(seq, f"{what}.doubt batch number") for seq in doubt)
 
 
 def decode_clock(obj: object) -> ClockReport:
@@ -314,7 +329,7 @@ def decode_clock(obj: object) -> ClockReport:
     if via not in CLOCK_VIAS:
         raise ProtocolError(f"clock.via must be one of {', '.join(CLOCK_VIAS)}, not {str(via)[:20]!r}")
     return ClockReport(out, _int(d.get("lost", 0), "clock.lost"), sanitize_ptp(d.get("ptp")),
-                       _int(d.get("floor", 0), "clock.floor"), via)
+                       _int(d.get("floor", 0), "clock.floor"), via, _doubt(d, "clock"))
 
 
 def decode_end(obj: object) -> tuple[int, int, int]:

@@ -4,14 +4,17 @@ A node opens ``ws://HOST:PORT/ingest`` with ``Authorization: Bearer TOKEN`` (or 
 when the relay has a token: a wrong or missing one is refused with HTTP 401 before the upgrade,
 and so is a connection beyond the cap (503). Then, in the envelope of :mod:`probes.envelope`:
 
-- ``hello`` {proto, run, header, lost, floor, ptp} -> reply {ok, run, session[, clock_port, clock_key]};
+- ``hello`` {proto, run, header, lost, floor, ptp[, doubt]} -> reply {ok, run, session[, stored, clock_port,
+  clock_key]}; ``stored``: which batches of ``doubt`` (sent, then evicted unacknowledged by the node) this
+  run's storage holds;
   first, once; ``clock_key`` (hex) lets this connection use the UDP clock exchange on ``clock_port``
   (:mod:`relay.clock.udp`), whose answered (t2, t3) pairs join the connection's sync replies;
 - a binary batch (:mod:`probes.wire`) -> ``ack`` {seq, ok[, dup]} once the batch is committed
   (or was stored before), then its events reach the live state; ``ok: false`` if storage failed
   (the node sends it again);
 - ``sync`` -> reply {t2, t3}: relay receive and send times (ns, CLOCK_REALTIME);
-- ``clock`` {samples, lost, floor, ptp[, via]}: the node's completed NTP samples and state. A sample
+- ``clock`` {samples, lost, floor, ptp[, via, doubt]}: the node's completed NTP samples and state (with
+  ``doubt``, as in hello, a request: the reply says ``stored``). A sample
   counts only if its t2/t3 are a pair this relay sent on this connection or to its UDP key (each once) and its
   offset and round trip are within ``clock_offset_s``/``clock_rtt_s``; others are counted
   (``clock.rejected``) and dropped;
@@ -290,6 +293,7 @@ class Ingest:
             return {"ok": False, "error": str(exc), "retry_ms": self.state.storage.retry_ms()}
         rs = attached.run
         conn.run = rs.run
+        stored = await self._stored_of(rs, hello.doubt)
         rs.seqs.advance(hello.floor)
         old = self._conns.get(attached.previous) if attached.previous is not None else None
         if old is not None:
@@ -300,6 +304,8 @@ class Ingest:
             # The node restarted while its former run's connection stayed open, silent.
             await self._reject(silent, f"superseded by a new run of node {rs.node!r}")
         answer = {"ok": True, "run": rs.run, "session": rs.session}
+        if hello.doubt:
+            answer["stored"] = stored
         if attached.secret is not None:
             answer["secret"] = attached.secret
         if self.clock_udp is not None:
@@ -307,18 +313,32 @@ class Ingest:
             answer.update(clock_port=self.clock_udp.port, clock_key=conn.clock_key.hex())
         return answer
 
+    async def _stored_of(self, rs: RunState, doubt: tuple[int, ...]) -> list[int]:
+        """Which of ``doubt`` are stored, once those being stored (sent on the connection that
+        died) are. Asked before the floor moves: the node keeps it at its first doubtful batch."""
+        stored = []
+        for seq in doubt:
+            pending = rs.storing.get(seq)
+            if pending is not None:
+                await asyncio.shield(pending)
+            if seq in rs.seqs:
+                stored.append(seq)
+        return stored
+
     async def _on_clock(self, conn: _Conn, rs: RunState, data: object) -> dict:
         report = decode_clock(data)
         accepted = [s for s in (self._check_sample(conn, rs, times, report.via) for times in report.samples) if s]
         rs.clock.add_samples(accepted)
         rs.ptp = report.ptp
         rs.lost = max(rs.lost, report.lost)
+        stored = await self._stored_of(rs, report.doubt)
         rs.seqs.advance(report.floor)
         clock = dict(self.state.clock_view(rs), ptp=rs.ptp)
         # The whole (bounded) history: storage keeps exactly it, so a write that failed and is
         # retried later (``_update_run``) loses no segment.
         fields = {"history": [s.to_dict() for s in rs.clock.history]} if accepted else {}
-        return await self._update_run(rs, clock=clock, lost=rs.lost, **fields)
+        answer = await self._update_run(rs, clock=clock, lost=rs.lost, **fields)
+        return dict(answer, stored=stored) if report.doubt else answer
 
     def _check_sample(self, conn: _Conn, rs: RunState, times: tuple[int, int, int, int],
                       via: str) -> ClockSample | None:

@@ -93,6 +93,60 @@ def test_batches_evicted_before_the_relay_came_leave_no_gap_in_its_seqs(tmp_path
     asyncio.run(scenario())
 
 
+def test_batches_evicted_in_flight_count_delivered_if_the_relay_stored_them_else_lost(tmp_path):
+    """An evicted batch in flight used to count lost even when the relay had stored it (its
+    acknowledgement lost with the connection): the relay then held more than the node said."""
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        proxy = CutProxy(relay.port)
+        exporter = RelayExporter(proxy.url, "A", max_buffer_events=2_000, batch_events=200, backoff_s=(0.05, 0.2),
+                                 close_timeout_s=8.0)
+        events = synth_events(500, 2, 25.0, T0)  # 12,000 events
+
+        async def write(part):
+            for i in range(0, len(part), 200):
+                exporter.write(part[i:i + 200])
+                await until(lambda: exporter._pending_n == 0, what="a batch cut")
+
+        async def reconnect():
+            connects = exporter.counters()["connects"]
+            proxy.cut("refuse")
+            await asyncio.sleep(0.2)
+            proxy.restore()
+            await until(lambda: exporter.counters()["connects"] > connects, what="a new connection")
+
+        try:
+            exporter.start(header_for("A", 2))
+            await until(lambda: exporter.counters()["connected"], what="connection")
+            rs = relay.state.runs[exporter.run_id]
+            # Deaf: every batch reaches the relay, no acknowledgement comes back; 4,000 events
+            # against a 2,000-event buffer evict the first 10 batches in flight: doubtful, not lost.
+            proxy.cut("deaf")
+            await write(events[:4_000])
+            await until(lambda: rs.live.events == 4_000, what="the relay storing every batch")
+            assert exporter.lost == 0 and len(exporter._doubtful) == 10
+            await reconnect()  # its hello asks; the relay stored all of them
+            await until(lambda: exporter.counters()["acked"] == 4_000, what="every batch acknowledged")
+            assert exporter.lost == 0 and not exporter._doubtful
+            # Black hole: the batches never reach the relay; the evicted ones, asked about, are lost.
+            proxy.cut("blackhole")
+            await write(events[4_000:8_000])
+            assert exporter.lost == 0 and len(exporter._doubtful) == 10
+            await reconnect()
+            await until(lambda: exporter.counters()["acked"] == 6_000, what="the batches kept, resent")
+            assert exporter.lost == 2_000 and not exporter._doubtful
+            await write(events[8_000:])
+            await asyncio.to_thread(exporter.close, 0)
+            c = exporter.counters()
+            assert c["acked"] == 10_000 and c["lost"] == 2_000
+            assert rs.live.events == c["acked"] and rs.lost == c["lost"] and rs.ended
+        finally:
+            proxy.close()
+            await relay.stop()
+
+    asyncio.run(scenario())
+
+
 def test_a_batch_the_relay_could_not_store_is_sent_again(tmp_path):
     """An ``ok: false`` acknowledgement used to leave its batch in flight until a 30 s timeout."""
     async def scenario():

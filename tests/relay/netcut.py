@@ -1,5 +1,6 @@
 """A TCP proxy between nodes and the relay that can cut the network: reset every connection
-and refuse new ones, or black-hole the traffic (nothing closes, nothing gets through)."""
+and refuse new ones, or black-hole the traffic (nothing closes, nothing gets through), or only
+the relay's answers (``deaf``: the node's batches arrive, their acknowledgements do not)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,7 @@ import threading
 class CutProxy:
     def __init__(self, target_port: int) -> None:
         self.target_port = target_port
-        self.mode = "pass"  # pass | refuse | blackhole
+        self.mode = "pass"  # pass | refuse | blackhole | deaf
         self._writers: set[asyncio.StreamWriter] = set()
         self._loop = asyncio.new_event_loop()
         sock = socket.socket()
@@ -37,24 +38,26 @@ class CutProxy:
             writer.transport.abort()
             return
         self._writers |= {writer, up_writer}
-        await asyncio.gather(self._pump(reader, up_writer), self._pump(up_reader, writer), return_exceptions=True)
+        await asyncio.gather(self._pump(reader, up_writer, ("blackhole",)),
+                             self._pump(up_reader, writer, ("blackhole", "deaf")), return_exceptions=True)
         for w in (writer, up_writer):
             self._writers.discard(w)
             w.transport.abort()
 
-    async def _pump(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+    async def _pump(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, held: tuple[str, ...]) -> None:
         while True:
             data = await reader.read(65536)
             if not data:
                 break
-            while self.mode == "blackhole":
+            while self.mode in held:
                 await asyncio.sleep(0.02)
             writer.write(data)
             await writer.drain()
         writer.transport.abort()
 
     def cut(self, mode: str) -> None:
-        """``refuse``: reset every connection and refuse new ones; ``blackhole``: stall them."""
+        """``refuse``: reset every connection and refuse new ones; ``blackhole``: stall them;
+        ``deaf``: stall what the relay sends."""
         def apply() -> None:
             self.mode = mode
             if mode == "refuse":
