@@ -548,10 +548,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="the lag phase's /ui client shows DCU-1..DCU-N only, as a page with N DCUs opened from the "
                         "fleet overview (default: every DCU, as a page with all of them opened)")
     p.add_argument("--lag-only", action="store_true", help="run the lag phase only (its throughput figures n/a)")
-    p.add_argument("--quick", action="store_true", help="a smoke test: 2 nodes, 600,000 events, a 1.5 s lag phase")
+    p.add_argument("--quick", action="store_true", help="a smoke test: 2 nodes, 200,000 events, a 1.5 s lag phase")
     args = p.parse_args(argv)
     if args.quick:
-        args.nodes, args.events, args.seconds = [2], 600_000, 1.5
+        args.nodes, args.events, args.seconds = [2], 200_000, 1.5
     stores = _choices(args.store or ["sqlite"], STORES, str, "--store", p)
     relay_counts = _choices(args.relays or ["1"], None, int, "--relays", p)
     settings = _choices(args.settings or list(SETTINGS), SETTINGS, str, "--settings", p)

@@ -259,6 +259,8 @@ class PostgresDatabase(Database):
     def put_fleet(self, rows: list[tuple[str, str, str, int, str, str]]) -> None:
         """Each relay's rows of the DCUs it holds, (node, run, relay, updated_ns, view JSON, row JSON),
         upserted by node in one transaction: whichever relay holds a node now writes its row."""
+        rows = sorted(rows)  # every relay locks rows in one order: two relays' upserts never deadlock
+
         def upsert(cur: psycopg.Cursor) -> None:
             cur.executemany("INSERT INTO fleet (node, run, relay, updated_ns, view, row) VALUES (%s, %s, %s, %s, %s, %s) "
                             "ON CONFLICT (node) DO UPDATE SET run = EXCLUDED.run, relay = EXCLUDED.relay, "
@@ -268,7 +270,9 @@ class PostgresDatabase(Database):
     def fleet_rows(self, since_ns: int) -> list[tuple[str, str, str, int, str, str]]:
         """The rows written since ``since_ns``; older ones (DCUs nobody holds for that long) are deleted."""
         def read(cur: psycopg.Cursor) -> list[tuple]:
-            cur.execute("DELETE FROM fleet WHERE updated_ns < %s", (since_ns,))
+            # Rows another relay is writing now are left to a later call (no lock waits, no deadlock).
+            cur.execute("DELETE FROM fleet WHERE node IN (SELECT node FROM fleet WHERE updated_ns < %s "
+                        "FOR UPDATE SKIP LOCKED)", (since_ns,))
             cur.execute("SELECT node, run, relay, updated_ns, view, row FROM fleet ORDER BY node")
             return cur.fetchall()
         return self._transaction(read)

@@ -26,9 +26,11 @@ FAILOVER_S = 10
 
 
 def node_config(tmp_path, name: str):
+    """Two live 15 fps test cameras. (Not live, they ran as fast as the CPU allows: four such nodes
+    starved the relays, PostgreSQL and the browser of a 2-core machine for seconds.)"""
     path = tmp_path / f"{name}.yaml"
-    path.write_text(f"node: {name}\nsources:\n  - {{test: smpte, width: 160, height: 120, rate: 15}}\n"
-                    "  - {test: ball, width: 160, height: 120, rate: 15}\n"
+    path.write_text(f"node: {name}\nsources:\n  - {{test: smpte, width: 160, height: 120, rate: 15, live: true}}\n"
+                    "  - {test: ball, width: 160, height: 120, rate: 15, live: true}\n"
                     "stages:\n  - mux: {batch-size: 2, width: 160, height: 120}\n"
                     "  - tiler: {width: 320, height: 120}\n  - convert: {}\n  - osd: {}\n")
     return path

@@ -25,7 +25,8 @@ from tests.ui.helpers import REAL_PIPELINES
 pytestmark = [pytest.mark.skipif(not REAL_PIPELINES, reason="needs the real dcuscope run nodes"), pytest.mark.alone]
 
 NAMES = [f"DCU-{i}" for i in range(1, 5)]
-RUN_S = 60
+RUN_S = 240
+"""Longer than the test can last (its nodes are killed at its end): a node whose run ended stops growing."""
 
 
 def held(relay: RelayProcess) -> dict[str, str]:
@@ -47,15 +48,34 @@ def page_holders(page) -> dict[str, str]:
     return {r["node"]: r["relay"] for r in page.evaluate("window.dcuscope.debug()")["overview"]["rows"]}
 
 
+def agree(page, relay: RelayProcess, want: dict[str, str] | None, timeout: float, what: str) -> None:
+    """Wait until the page's overview names ``want`` (default: what ``relay`` lists) as each DCU's relay."""
+    last = {}
+
+    def same():
+        last.update(page=page_holders(page), relay=want if want is not None else held(relay))
+        return last["page"] == last["relay"]
+
+    try:
+        wait_for(same, timeout, 0.25, what=what)
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}: the page {last.get('page')}, the relay {last.get('relay')}") from None
+
+
 def all_growing(page, timeout: float, what: str) -> dict[str, int]:
     """Wait until every DCU's frame count on the page grew (it is live); returns the counts."""
     before = received(page)
+    last = {}
 
     def grown():
-        now = received(page)
-        return now if set(now) == set(NAMES) and all(now[n] > before.get(n, 0) for n in NAMES) else None
+        last.update(now=received(page))
+        return last["now"] if set(last["now"]) == set(NAMES) and all(last["now"][n] > before.get(n, 0)
+                                                                     for n in NAMES) else None
 
-    return wait_for(grown, timeout, 0.25, what=what)
+    try:
+        return wait_for(grown, timeout, 0.25, what=what)
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}: frames on the page {before} then {last.get('now')}") from None
 
 
 def test_a_page_on_one_relay_shows_the_whole_fleet_and_keeps_it_when_a_relay_dies(tmp_path, pg_url, redis_server,
@@ -79,7 +99,7 @@ def test_a_page_on_one_relay_shows_the_whole_fleet_and_keeps_it_when_a_relay_die
         all_growing(page, 30, "the page on B drawing all four DCUs live, A's two included")
         # Some of the DCUs drawn on B's page stream to A only.
         wait_for(lambda: any(held(b).get(n) == "relay-a" for n in NAMES), 20, 0.25, what="DCUs held by A listed on B")
-        wait_for(lambda: page_holders(page) == held(b), 10, 0.25, what="the page's overview naming each DCU's relay")
+        agree(page, b, None, 10, "the page's overview naming each DCU's relay")
         page.evaluate("window.stillTheSamePage = true")
 
         a.kill9()
@@ -89,11 +109,15 @@ def test_a_page_on_one_relay_shows_the_whole_fleet_and_keeps_it_when_a_relay_die
         moved = time.monotonic() - killed
         counts = all_growing(page, 60, "the page drawing all four live again")
         assert page.evaluate("window.stillTheSamePage === true")  # no reload
-        wait_for(lambda: page_holders(page) == everyone_on_b, 10, 0.25,
-                 what="the page's overview naming B as the holder of all four")
+        agree(page, b, everyone_on_b, 10, "the page's overview naming B as the holder of all four")
         debug = page.evaluate("window.dcuscope.debug()")
         assert sorted(debug["stores"]) == NAMES and debug["overview"]["total"] == 4
         print(f"\nfleet page: A's nodes on B {moved:.1f} s after SIGKILL; frames on the page {counts}")
+    except BaseException:
+        for name in ("a", "b"):  # what the relays said: the first thing to read when this fails
+            log = tmp_path / f"{name}.log"
+            print(f"--- relay {name}'s log ---\n" + (log.read_text()[-4000:] if log.exists() else "(none)"))
+        raise
     finally:
         if page is not None:
             page.close()

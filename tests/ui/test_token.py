@@ -25,7 +25,7 @@ def test_page_uses_the_token_of_its_address(browser, tmp_path):
             # With it: live socket, backfilled frames, statistics and the session list (HTTP API).
             page.goto(f"{relay.url}/?token={TOKEN}")
             d = wait_for(lambda: (lambda d: d if d["stores"].get("DCU-1", {}).get("size") == 80 else None)(
-                page.evaluate("window.dcuscope.debug()")), 20, 0.2, "the node's 80 frames")
+                page.evaluate("window.dcuscope.debug()")), 60, 0.2, "the node's 80 frames")
             assert d["transport"] == "socket.io" and page.locator("#banner").is_hidden()
             # Statistics arrived: a marked bottleneck, or the relay's reason that no stage saturates.
             page.wait_for_selector("#stats-body tr.bottleneck, #stats-body .bottleneck-reason", timeout=10000)
