@@ -24,11 +24,12 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
-from urllib.parse import urlsplit, urlunsplit
+from urllib.parse import urlsplit
 
 import socketio
 
 from relay.errors import RelayError
+from relay.urls import redact
 
 CHANNEL = "dcuscope"
 """The Redis channel the relays' Socket.IO servers share (python-socketio's ``channel``)."""
@@ -38,14 +39,6 @@ TIMEOUT_S = 1.0
 QUIET = ("Cannot publish to redis", "Cannot receive from redis")
 
 log = logging.getLogger(__name__)
-
-
-def redact(url: str) -> str:
-    """``url`` without its password, for messages and /api/health."""
-    parts = urlsplit(url)
-    if parts.password is None:
-        return url
-    return urlunsplit(parts._replace(netloc=parts.netloc.replace(f":{parts.password}@", ":***@", 1)))
 
 
 def check_url(url: str) -> str:
@@ -122,7 +115,6 @@ class FleetManager(socketio.AsyncRedisManager):
                 self.health.down(f"cannot receive: {_describe(exc)}")
                 await self._close_connections()
                 await asyncio.sleep(RETRY_S)
-
 
     async def close(self) -> None:
         """Stop the subscriber and close the connections (the relay stops)."""

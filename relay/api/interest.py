@@ -24,6 +24,8 @@ PERIOD_S = 0.5
 TTL_S = 5.0
 ALL = "*"
 """A wish for every DCU (a browser subscribed with ``nodes: null``)."""
+MAX_FRAMES = 500
+"""The most frames per push a wish may ask for."""
 
 log = logging.getLogger(__name__)
 
@@ -61,9 +63,6 @@ class Interest:
             for node in (ALL,) if wish.nodes is None else wish.nodes:
                 out.setdefault(node, set()).add(wish.max_frames)
         return out
-
-    def anyone(self) -> bool:
-        return bool(self.remote) or bool(self.wishes)
 
     @staticmethod
     def limit(wanted: dict[str, set[int]], node: str) -> int:
@@ -111,7 +110,7 @@ class Interest:
                 continue
             for node, limits in nodes.items():
                 if isinstance(node, str) and isinstance(limits, list):
-                    remote.setdefault(node, set()).update(m for m in limits if isinstance(m, int) and 0 < m <= 500)
+                    remote.setdefault(node, set()).update(m for m in limits if isinstance(m, int) and 0 < m <= MAX_FRAMES)
         if lapsed:
             await self._redis.hdel(KEY, *lapsed)
         self.remote = remote

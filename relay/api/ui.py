@@ -40,7 +40,7 @@ from socketio.exceptions import ConnectionRefusedError as Refused
 
 from probes.wire import MAX_NAME
 from relay.api.fleet import Fleet
-from relay.api.interest import ALL, Interest, Wish
+from relay.api.interest import ALL, MAX_FRAMES, Interest, Wish
 from relay.guard.auth import socket_token, token_matches
 from relay.live.state import RelayState
 
@@ -52,7 +52,6 @@ IDLE_PERIOD_S = 0.5
 """How often runs nobody shows are paired (their frames shown, settled ones finalised)."""
 HOUSEKEEPING_S = 0.1
 DEFAULT_MAX_FRAMES = 25
-MAX_FRAMES = 500
 MAX_SUBSCRIBED = 1024
 FLEET_PERIOD_S = 1.0
 STATS_BUDGET = 0.2

@@ -33,7 +33,7 @@ from relay.clock.entry import clock_entry
 from relay.errors import RelayError
 from relay.live.run import LiveConfig, LiveRun
 from relay.live.runview import RunView
-from relay.store.base import Database, StoreUnavailable
+from relay.store.base import Database, RunRow, StoreUnavailable
 from relay.store.engines import open_database
 from relay.store.runs import run_clock
 
@@ -124,9 +124,12 @@ class Mirrors:
                     self._database = None
                 raise RelayError(f"cannot read the store: {exc}") from exc
 
+    def _row(self, run: str) -> RunRow | None:
+        """The run's row in the store (None if it has none)."""
+        return next((r for r in self._read(lambda d: d.runs_with_prefix(run)) if r.run == run), None)
+
     def _open(self, run: str, node: str, relay: str) -> Mirror:
-        rows = self._read(lambda d: d.runs_with_prefix(run))
-        row = next((r for r in rows if r.run == run), None)
+        row = self._row(run)
         if row is None:
             raise RelayError(f"run {run} of node {node!r} is not in the store")
         history = self._read(lambda d: d.run_history(run))
@@ -145,8 +148,7 @@ class Mirrors:
                 mirror.last_seq = seq
             if len(batches) < BATCHES_PER_READ:
                 break
-        rows = self._read(lambda d: d.runs_with_prefix(mirror.run))
-        row = next((r for r in rows if r.run == mirror.run), None)
+        row = self._row(mirror.run)
         if row is not None:
             mirror.dropped, mirror.lost = int(row.dropped), int(row.lost)
             _, mirror.correction = run_clock(mirror.run, row.clock, self._read(lambda d: d.run_history(mirror.run)))

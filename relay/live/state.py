@@ -459,6 +459,7 @@ class RelayState:
         """Complete frames after cursor ``since`` (:func:`relay.live.runview.frames_block`)."""
         return frames_block(self.view(rs), since, limit, newest)
 
+
 def _quietly(task: asyncio.Future) -> None:
     # A failed disown needs no word: the store failing is logged where it fails, and a lost
     # connection released every lock it held.

@@ -29,11 +29,11 @@ import logging
 import secrets
 import time
 from typing import Any
-from urllib.parse import urlsplit, urlunsplit
 
 import psycopg
 
 from relay.errors import RelayError
+from relay.urls import redact
 from relay.store.base import (HISTORY_COLUMNS, SCHEMA_VERSION, BatchRow, Database, NotOwner,
                               StoreUnavailable, check_resume, secret_hash)
 
@@ -109,15 +109,6 @@ def lock_key(run: str) -> int:
     """The advisory lock key of a run: the first 60 bits of its UUID (positive, so that the key
     read back from pg_locks' two 32-bit halves is the same number)."""
     return int(run[:15], 16)
-
-
-def redact(url: str) -> str:
-    """``url`` without its password, for messages and /api/health."""
-    parts = urlsplit(url)
-    if parts.password is None:
-        return url
-    netloc = parts.netloc.replace(f":{parts.password}@", ":***@", 1)
-    return urlunsplit(parts._replace(netloc=netloc))
 
 
 class PostgresDatabase(Database):

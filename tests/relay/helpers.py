@@ -166,6 +166,14 @@ def read_http_answer(sock) -> tuple[int, bytes] | None:
     return int(status.group(1)), body
 
 
+def kill_all(procs) -> None:
+    """Kill the processes still running (a test's teardown), and reap them."""
+    for proc in procs:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+
+
 def wait_for(predicate, timeout: float, interval: float = 0.1, what: str = "condition"):
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:

@@ -20,7 +20,8 @@ from probes.tracefile import read_trace
 from relay.store.runs import list_sessions, load_runs
 from tests.conftest import cli_env
 from tests.pgserver import PostgresServer
-from tests.relay.helpers import RelayProcess, finish_node, get_json, load_node, sort_events, start_node, wait_for
+from tests.relay.helpers import (RelayProcess, finish_node, get_json, kill_all, load_node, sort_events, start_node,
+                                 wait_for)
 
 FAILOVER_S = 10
 
@@ -81,9 +82,7 @@ def test_a_killed_relays_nodes_resume_on_the_other_and_nothing_is_lost_or_stored
             _, err = proc.communicate(timeout=120)
             assert proc.returncode == 0, err[-3000:]
     finally:
-        for proc in nodes.values():
-            if proc.poll() is None:
-                proc.kill()
+        kill_all(nodes.values())
         a.stop()
         b.stop()
     sessions = list_sessions(pg_url)

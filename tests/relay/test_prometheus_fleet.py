@@ -18,7 +18,7 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 
 from tests.relay import promserver
-from tests.relay.helpers import RelayProcess, start_node, wait_for
+from tests.relay.helpers import RelayProcess, kill_all, start_node, wait_for
 from tests.relay.netcut import CutProxy
 from tests.relay.promserver import JOB, PromServer
 
@@ -119,10 +119,7 @@ def test_two_relays_of_one_store_count_each_node_once(tmp_path, pg_url, both_rel
             raise AssertionError(f"{exc}: {fleet()}") from None
         assert per_relay() == {f"127.0.0.1:{a.port}": 1, f"127.0.0.1:{b.port}": 2}  # S on A; T and M on B
     finally:
-        for proc in nodes.values():
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait(10)
+        kill_all(nodes.values())
         if prom is not None:
             prom.stop()
         proxy.close()

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 
 from tests.conftest import cli_env
-from tests.relay.helpers import RelayProcess, get_json, wait_for
+from tests.relay.helpers import RelayProcess, get_json, kill_all, wait_for
 from tests.relay.promserver import JOB, PromServer, wait_scrape
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "prometheus"
@@ -141,10 +141,7 @@ def run(tmp_path_factory):
         seen["alert"] |= {(a["labels"]["node"], a["state"]) for a in prom.alerts(ALERT)}
         yield relay, prom, seen
     finally:
-        for proc in nodes.values():
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait(10)
+        kill_all(nodes.values())
         if prom is not None:
             prom.stop()
         relay.stop()

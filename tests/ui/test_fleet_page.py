@@ -16,7 +16,7 @@ import time
 import pytest
 
 from tests.conftest import cli_env
-from tests.relay.helpers import RelayProcess, get_json, wait_for
+from tests.relay.helpers import RelayProcess, get_json, kill_all, wait_for
 from tests.relay.test_fleet import node_config
 from tests.ui.helpers import REAL_PIPELINES
 
@@ -121,8 +121,6 @@ def test_a_page_on_one_relay_shows_the_whole_fleet_and_keeps_it_when_a_relay_die
     finally:
         if page is not None:
             page.close()
-        for proc in nodes.values():
-            if proc.poll() is None:
-                proc.kill()
+        kill_all(nodes.values())
         a.stop()
         b.stop()

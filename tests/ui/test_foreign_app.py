@@ -13,7 +13,7 @@ import pytest
 
 from probes.native import build
 from tests.conftest import run_cli
-from tests.relay.helpers import get_json, wait_for
+from tests.relay.helpers import get_json, kill_all, wait_for
 from tests.ui.helpers import ROOT, RelayThread, env, pipeline_nodes
 
 FOREIGN = "CAM-9"
@@ -45,9 +45,7 @@ def both(browser, tmp_path_factory):
         assert not errors, errors
     finally:
         page.close()
-        for proc in (app, ship):
-            if proc.poll() is None:
-                proc.kill()
+        kill_all((app, ship))
         ours.stop()
         relay.stop()
 

@@ -85,6 +85,11 @@ function isOpen(node) {
   return choice === OPEN_ALL || opened.has(node);
 }
 
+/** The DCUs shown now, as a new Set (with ?open=*, every row of the fleet). */
+function shownNow() {
+  return new Set(choice === OPEN_ALL ? fleet.names() : opened);
+}
+
 /**
  * Recompute the opened DCUs; release those closed (their frames, statistics, views) and tell the relay.
  * Unless the user named the DCUs, the DCUs the page holds count beside the fleet's rows: a row that
@@ -127,7 +132,7 @@ function choose(next) {
 }
 
 function toggleOpen(node) {
-  const next = new Set(choice === OPEN_ALL ? fleet.names() : opened);
+  const next = shownNow();
   if (next.has(node)) next.delete(node);
   else next.add(node);
   choose(next);
@@ -137,7 +142,7 @@ function renderOverview(now) {
   overviewAt = now;
   const gone = fleet.expire(Date.now());
   if (gone.length) syncOpened();
-  overviewTable.update(fleet, choice === OPEN_ALL ? new Set(fleet.names()) : opened, Date.now());
+  overviewTable.update(fleet, shownNow(), Date.now());
   const empty = emptyText();
   if (empty !== emptySaid) {
     emptySaid = empty;
@@ -682,7 +687,7 @@ $("#overview-filter").addEventListener("input", () => {
 });
 $("#overview-open").addEventListener("click", () => {
   // Every DCU the filter shows, beside those opened already.
-  const next = new Set(choice === OPEN_ALL ? fleet.names() : opened);
+  const next = shownNow();
   for (const r of overviewTable.last.rows) next.add(r.node);
   choose(next);
 });
