@@ -104,10 +104,11 @@ def test_modules_form_a_dag():
             visit(name)
 
 
-RELAY_LAYERS = ["errors", "heap", "guard", "clock", "store", "live", "ingest", "export", "api", "server", "workers", "commands",
-                "__main__"]
+RELAY_LAYERS = ["errors", "urls", "heap", "guard", "clock", "store", "live", "ingest", "export", "api", "server", "workers",
+                "commands", "__main__"]
 """The relay's own parts, bottom-up: each imports only those before it.
 
+    urls      the servers' URLs as messages show them (passwords redacted)
     heap      giving the memory of runs that left back to the system
     guard     limits, tokens, Host checks, connection caps, PROXY protocol, log rate
     clock     NTP samples, the offset/drift model, corrections, the UDP exchange

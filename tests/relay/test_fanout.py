@@ -67,7 +67,10 @@ def test_a_browser_on_one_relay_gets_every_relays_dcus_and_only_those_it_shows(t
             rows = browser.rows()
             assert rows.keys() == {"DCU-A", "DCU-B"}
             assert rows["DCU-A"]["relay"] == "relay-a" and rows["DCU-B"]["relay"] == "relay-b"
-            assert rows["DCU-A"]["fps"] and rows["DCU-A"]["p99_ms"] is not None and rows["DCU-A"]["bottleneck"]
+            # Some row carried A's figures (the last may not: a loaded machine starts the watch late,
+            # when A's 200 frames are over and its window's fps reads 0).
+            figures = [r for _, e, d in browser.got if e == "overview" for r in d["rows"] if r["node"] == "DCU-A"]
+            assert any(r["fps"] and r["p99_ms"] is not None and r["bottleneck"] for r in figures), figures[-3:]
             stats = [d for _, e, d in browser.got if e == "stats"]
             assert stats and all(len(d["nodes"]) == 1 for d in stats)
 
