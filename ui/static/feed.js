@@ -108,9 +108,14 @@ export class LiveFeed {
     }
   }
 
+  /** What the page shows, as the relay's `subscribe` takes it. */
+  subscription() {
+    return { nodes: this.wanted === null ? null : [...this.wanted].sort(), max_frames: PUSH_MAX_FRAMES, overview: true };
+  }
+
   sendSubscription() {
     if (!this.socket?.connected) return; // sent on (re)connect
-    const msg = { nodes: this.wanted === null ? null : [...this.wanted].sort(), max_frames: PUSH_MAX_FRAMES, overview: true };
+    const msg = this.subscription();
     const sent = { ...msg, ack: null };
     this.subscribed = sent;
     this.socket.emit("subscribe", msg, (ack) => {
@@ -137,7 +142,10 @@ export class LiveFeed {
 
   startSocket() {
     this.transport = "socket.io";
-    const socket = window.io("/ui", { auth: this.api.token ? { token: this.api.token } : {}, reconnectionDelayMax: 5000 });
+    // The subscription goes with every (re)connection, so that the relay pushes nothing else meanwhile
+    // (without it, every DCU until the `subscribe` below arrives).
+    const auth = (cb) => cb({ ...(this.api.token ? { token: this.api.token } : {}), subscribe: this.subscription() });
+    const socket = window.io("/ui", { auth, reconnectionDelayMax: 5000 });
     this.socket = socket;
     socket.on("connect", () => {
       this.sink.status("live", "live");
