@@ -15,6 +15,11 @@ import numpy as np
 
 CLOCKS = {"realtime": 0, "monotonic": 1, "tai": 11}
 
+NEVER = float("-inf")
+"""The ``time.monotonic()`` of something that has not happened yet (a last pass, a last report).
+Never 0.0: the monotonic clock counts from boot, so on a machine up for less than an interval
+``now - 0.0 >= interval`` is false, and a first pass that should be due at once is not."""
+
 
 @dataclass(frozen=True)
 class PretendClock:

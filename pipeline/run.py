@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from typing import Callable, TextIO
 
 from core import signals
+from core.clocks import NEVER
 from core.errors import PipelineError
 from core.gst import GLib, Gst
 from pipeline.build import BuiltPipeline
@@ -71,8 +72,8 @@ class Runner:
         self._stop_asked_at: float | None = None
         self._stopped_by: str | None = None  # what asked for the stop: Ctrl-C, SIGTERM, a limit
         self._live_stop: LiveStop | None = None
-        self._started = 0.0
-        self._last_report = (0.0, 0)
+        self._started: float | None = None  # time.monotonic() once PLAYING
+        self._last_report = (NEVER, 0)
         self._stalls = StallWatch(self._say, self.result.stalls)
 
     # -- public ----------------------------------------------------------------------------
@@ -101,7 +102,7 @@ class Runner:
             GLib.source_remove(sigint)
             GLib.source_remove(sigterm)
             signals.finishing()  # GLib left the default (fatal) actions; a stop is under way or done
-            self.result.seconds = time.monotonic() - self._started if self._started else 0.0
+            self.result.seconds = time.monotonic() - self._started if self._started is not None else 0.0
             self._stalls.finish(time.monotonic())
             pipeline.set_state(Gst.State.NULL)
             if self._live_stop is not None:
@@ -178,13 +179,14 @@ class Runner:
 
     def _tick(self):
         now = time.monotonic()
-        if self.duration is not None and self._stop_asked_at is None and now - self._started >= self.duration:
+        started = self._started is not None
+        if started and self.duration is not None and self._stop_asked_at is None and now - self._started >= self.duration:
             self._stop_for(f"--duration {self.duration:g} s")
         if self._stop_asked_at is not None and now - self._stop_asked_at > EOS_GRACE_S:
             self._say(f"\nend-of-stream did not reach the sink within {EOS_GRACE_S:.0f} s: stopping anyway")
             self.result.aborted = "end-of-stream did not reach the sink"
             self._loop.quit()
-        if self._started and self._stop_asked_at is None:
+        if started and self._stop_asked_at is None:
             self._stalls.update(self._live_sources(), now)
         if now - self._last_report[0] >= self.progress_every:
             self._report()
@@ -192,7 +194,7 @@ class Runner:
 
     def _on_message(self, _bus, message: Gst.Message):
         if message.type == Gst.MessageType.EOS:
-            if self._started and self._stop_asked_at is None:
+            if self._started is not None and self._stop_asked_at is None:
                 self._stalls.update(self._live_sources(), time.monotonic())  # the last live source's end, said
             self._loop.quit()
         elif message.type == Gst.MessageType.ERROR:
@@ -268,10 +270,10 @@ class Runner:
         self._last_report = (now, self.result.frames)
         for callback in self.on_progress:
             callback(self.result)
-        if self.progress is None or not self._started:
+        if self.progress is None or self._started is None:
             return
         elapsed = now - self._started
-        rate = (self.result.frames - last_frames) / (now - last_t) if last_t and now > last_t else 0.0
+        rate = (self.result.frames - last_frames) / (now - last_t) if last_t != NEVER and now > last_t else 0.0
         if final:
             line = f"{self.result.frames} frames in {elapsed:.1f} s ({self.result.frames / elapsed if elapsed else 0:.1f} fps)"
         else:

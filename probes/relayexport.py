@@ -61,7 +61,7 @@ import aiohttp
 import numpy as np
 from yarl import URL
 
-from core.clocks import CLOCKS, PretendClock
+from core.clocks import CLOCKS, NEVER, PretendClock
 from probes.errors import ExportError
 from probes.events import EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
 from probes.ptp import POLL_INTERVAL_S, PtpWatch
@@ -163,7 +163,7 @@ class RelayExporter:
         """Evicted batches that were sent: seq -> events (module doc)."""
         self._to_send: deque[int] = deque()
         self._next_seq = 0
-        self._last_cut = 0.0
+        self._last_cut = NEVER
         self._evicted = 0
         self._written = self._acked = self._sent = self._connects = 0
         self._connected = False

@@ -43,6 +43,8 @@ import logging
 import time
 from collections.abc import Callable
 
+from core.clocks import NEVER
+
 CHECK_S = 1.0
 """How often the reclaimer looks whether runs left memory."""
 MIN_INTERVAL_S = 2.0
@@ -101,7 +103,7 @@ class Reclaimer:
         self._released = released
         self._min_interval_s = min_interval_s
         self._seen = released()
-        self._at = 0.0
+        self._at = NEVER
         self.passes = 0
         self.collected = 0
         """Objects the passes' collections found in cycles (what the cyclic collector had not freed yet)."""

@@ -38,6 +38,7 @@ import time
 import socketio
 from socketio.exceptions import ConnectionRefusedError as Refused
 
+from core.clocks import NEVER
 from probes.wire import MAX_NAME
 from relay.api.fleet import Fleet
 from relay.api.interest import ALL, MAX_FRAMES, Interest, Wish
@@ -162,10 +163,10 @@ class Ticker:
         self.pushes = 0
         self._wake = asyncio.Event()
         state.on_events = self._wake.set
-        self._paired_at = 0.0
-        self._fleet_at = 0.0
+        self._paired_at = NEVER
+        self._fleet_at = NEVER
         self._listed: set[str] = set()
-        self._stats_at = 0.0
+        self._stats_at = NEVER
         self._stats_due: list[str] = []
         self._stats_share = 1
         self._stats_versions: dict[str, int] = {}
@@ -174,7 +175,7 @@ class Ticker:
         await asyncio.gather(self._push_loop(), self._housekeeping_loop(), self.interest.run())
 
     async def _push_loop(self) -> None:
-        last = 0.0
+        last = NEVER
         while True:
             await self._wake.wait()
             wait = last + self.period - time.monotonic()

@@ -26,6 +26,7 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from core.clocks import NEVER
 from probes.events import TraceHeader
 from probes.wire import decode_payload
 from relay.clock.correction import Correction
@@ -55,7 +56,7 @@ class Mirror:
     lost: int
     relay: str
     last_seq: int = -1
-    refreshed: float = 0.0
+    refreshed: float = NEVER
     used: float = field(default_factory=time.monotonic)
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
 

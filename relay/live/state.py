@@ -12,6 +12,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from core.clocks import NEVER
 from probes.delays import FrameDelays, Series
 from probes.errors import ProtocolError
 from probes.events import TraceHeader
@@ -56,7 +57,7 @@ class WholeRunStats:
     stats: dict | None = None
     events: int = -1
     """``LiveRun.events`` when they were computed."""
-    at: float = 0.0
+    at: float = NEVER
     cost: float = 0.0
 
     def get(self, live: LiveRun, dropped: int, fresh: bool) -> dict:
@@ -81,7 +82,7 @@ class WindowStats:
     stats: dict | None = None
     events: int = -1
     """``LiveRun.events`` when they were computed."""
-    at: float = 0.0
+    at: float = NEVER
     cost: float = 0.0
 
     def get(self, live: LiveRun, fresh: bool, runs: int = 1) -> dict:

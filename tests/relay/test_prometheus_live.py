@@ -22,6 +22,7 @@ from pathlib import Path
 
 import pytest
 
+from core.clocks import NEVER
 from tests.conftest import cli_env
 from tests.relay.helpers import RelayProcess, get_json, kill_all, wait_for
 from tests.relay.promserver import JOB, PromServer, wait_scrape
@@ -91,7 +92,7 @@ def watch(relay: RelayProcess, prom: PromServer, nodes: dict, seen: dict) -> Non
     /api/stats said around that scrape (``seen["bottleneck"]``), where that was settled."""
     readings: dict[str, list[tuple[float, str | None]]] = {n: [] for n in nodes}
     scrapes: set[tuple[str, float, str]] = set()
-    last_query = 0.0
+    last_query = NEVER
     while any(p.poll() is None for p in nodes.values()):
         for n in nodes:
             readings[n].append((time.time(), window_bottleneck(relay, n)))

@@ -94,3 +94,33 @@ def test_a_click_opens_the_reason_in_full_and_it_stays_open(streaming, page):
     assert detail.count() == 1 and page.locator('#nodes-body tr[data-node="DCU-2"]').get_attribute("aria-expanded") == "true"
     page.click('#nodes-body tr[data-node="DCU-2"]')
     page.wait_for_selector('#nodes-body tr[data-detail="DCU-2"]', state="detached", timeout=5_000)
+
+
+YOUNG_PAGE = """
+window.__frames = 0;
+window.__panelsAt = null;
+const raf = window.requestAnimationFrame.bind(window);
+// A young clock, the same on every machine: frame k at k x 16.7 ms after the page's start.
+window.requestAnimationFrame = (cb) => raf(() => { window.__frames += 1; cb(window.__frames * 1000 / 60); });
+document.addEventListener("DOMContentLoaded", () => {
+  const seen = () => { if (window.__panelsAt === null) window.__panelsAt = window.__frames; };
+  for (const id of ["#stats-body", "#nodes-body"]) {
+    new MutationObserver(seen).observe(document.querySelector(id), {childList: true, subtree: true});
+  }
+});
+"""
+
+
+def test_the_panels_are_drawn_from_the_first_frame_of_a_page(browser, streaming):
+    """requestAnimationFrame's clock starts at 0 as the page loads: panels last drawn "at 0" were
+    first drawn only once that clock passed their refresh interval (frame 31 at 60 fps)."""
+    page = browser.new_page(viewport={"width": 1280, "height": 900})
+    try:
+        page.add_init_script(YOUNG_PAGE)
+        page.goto(streaming.url + "/")
+        page.wait_for_function("window.__panelsAt !== null", timeout=20_000)
+        assert page.evaluate("window.__panelsAt") == 1
+        for node in NODES:  # and refreshed after, as data comes
+            page.wait_for_selector(f'#nodes-body tr[data-node="{node}"]', timeout=20_000)
+    finally:
+        page.close()

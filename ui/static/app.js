@@ -581,7 +581,7 @@ const perf = {
 };
 
 let lastTs = null;
-let panelsAt = 0;
+let panelsAt = -Infinity; // not 0: requestAnimationFrame's clock starts at 0 as the page loads
 
 function updateLegend() {
   const entries = colours.entries();
