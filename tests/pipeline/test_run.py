@@ -149,8 +149,9 @@ def test_gst_launch_uses_the_five_elements_by_name():
     line = ("videotestsrc num-buffers=3 ! video/x-raw,format=RGB,width=320,height=240 ! "
             "mux name=m batch-size=1 width=320 height=240 ! infer threshold=0.3 ! "
             "tiler rows=1 columns=1 width=320 height=240 ! convert format=RGBA ! osd ! fakesink")
-    # --no-fault: a crash ends gst-launch with its signal instead of spinning until gdb comes (one
-    # SIGSEGV at PAUSED in ~600 runs under load was seen here, in gst-launch with the Python loader).
+    # --no-fault: a crash ends gst-launch with its signal instead of spinning until gdb comes. (The
+    # rare SIGSEGVs once seen here were gst-python's loader writing into the sys.path list that cv2
+    # had replaced: see plugins.loading and tests/plugins/test_gst_launch_concurrent.py.)
     result = subprocess.run(["gst-launch-1.0", "--no-fault", *line.split()], env=env, capture_output=True, text=True,
                             timeout=180)
     assert result.returncode == 0, f"exit {result.returncode}\n{result.stdout}{result.stderr}"

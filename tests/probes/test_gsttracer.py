@@ -331,20 +331,18 @@ def frames_of(events) -> set[tuple[int, int]]:
 def test_dcuscope_s_own_elements_in_gst_launch_carry_the_tracer_s_frames(plugin_dir, tmp_path):
     """dcuscope's elements through the Python plugin loader, traced by the tracer: the frames it
     stamps at the source are the ones the mux batches (its meta is the framestamp meta), and
-    each is followed to the sink. Without infer: mux + infer under gst-python's loader crash
-    (SIGSEGV in the Python allocator) when several such gst-launch processes run at once, with
-    or without the tracer (framestamp instead of it crashes the same): a defect of the elements
-    under the loader, not of the tracer, and not seen where dcuscope hosts Python itself."""
+    each is followed to the sink, through all five. (Several such processes at once:
+    tests/plugins/test_gst_launch_concurrent.py.)"""
     env = loader_env(plugin_dir, tmp_path, f"node=FIVE,trace={tmp_path / 'five.jsonl'}")
     line = ("videotestsrc num-buffers=6 ! video/x-raw,format=RGB,width=320,height=240 ! "
-            "mux name=m batch-size=1 width=320 height=240 ! "
+            "mux name=m batch-size=1 width=320 height=240 ! infer threads=1 ! "
             "tiler rows=1 columns=1 width=320 height=240 ! convert format=RGBA ! osd ! fakesink")
     result = subprocess.run(["gst-launch-1.0", "--no-fault", *line.split()], env=env, capture_output=True, text=True,
                             timeout=180)
     assert result.returncode == 0, result.stdout + result.stderr
     trace = read_trace(tmp_path / "five.jsonl")
     assert [trace.header.kinds[s] for s in trace.header.stages] == [
-        "videotestsrc", "capsfilter", "mux", "tiler", "convert", "osd", "fakesink"]
+        "videotestsrc", "capsfilter", "mux", "infer", "tiler", "convert", "osd", "fakesink"]
     assert stats(trace)["frames"] == {"complete": 6, "incomplete": 0}
 
 
