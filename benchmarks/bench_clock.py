@@ -14,9 +14,9 @@ started with ``--clock-port 0``: the node falls back to its WebSocket ``sync``).
 the three drifts of one offset form a group (six relays, six nodes); each network path is one.
 
 The relay fits the drift only over 20 s of samples; before, its bound grows with the drift it
-cannot rule out, so each row gives the bound at the first read (``stated_first_us``, 4 s in)
-and at the last (``stated_last_us``, the settled figure), and whether the truth was inside the
-bound at every read (``inside``).
+cannot rule out, so each row gives the bound at the first read (``stated_first_us``, after the
+``--warmup``, 4 s) and at the last (``stated_last_us``, the settled figure), and whether the truth
+was inside the bound at every read (``inside``).
 
 Paths: ``loopback`` (127.0.0.1), with offsets 0, 37 ms, -2.5 s and drifts 0, +50, -100 ppm;
 ``sym-2ms`` and ``asym-1/3ms``: the relay and the node in two network namespaces joined through
@@ -27,12 +27,13 @@ without it they are skipped.
 
 ``--minutes M``: one long run instead (loopback, UDP, 37 ms, +50 ppm), sampled every
 ``--every`` seconds (default 5), summarised per minute. ``--quick``: a smoke test, the network
-paths' case (37 ms, +50 ppm) on loopback for 8 s.
+paths' case (37 ms, +50 ppm) on loopback for 3 s, read every 0.5 s after a 1 s warm-up.
 
 A case whose relay never gave an estimate for its node shows its figures as ``n/a (reason)``
 (benchmarks/figures.py); a relay that does not start is said in one line (exit status 2).
 
-    PYTHONPATH=. .venv/bin/python benchmarks/bench_clock.py [--seconds 45] [--paths loopback sym-2ms asym-1/3ms]
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_clock.py [--seconds 45] [--warmup 4] [--every 1]
+        [--paths loopback sym-2ms asym-1/3ms]
     PYTHONPATH=. .venv/bin/python benchmarks/bench_clock.py --minutes 10
 """
 
@@ -66,6 +67,7 @@ PATHS = {"loopback": None, "sym-2ms": (2.0, 2.0, 0.5), "asym-1/3ms": (1.0, 3.0, 
 NS_RELAY, NS_BRIDGE, NS_NODE = "dcsclk-r", "dcsclk-b", "dcsclk-n"
 RELAY_IP, NODE_IP = "10.213.7.1", "10.213.7.2"
 WARMUP_S = 4.0
+"""Seconds from the start of a group to its first read of the relays (``--warmup``)."""
 FPS = 10.0
 FIGURES = ("err_max_us", "err_last_us", "stated_first_us", "stated_last_us", "inside")
 """A row's figures, from the reads of the relay's estimate."""
@@ -95,15 +97,22 @@ class Run:
     unread: str = "the relay was never read"
     """Why the last read that gave no estimate gave none (the reason of a row without reads)."""
 
-    def start(self, db: Path) -> None:
+    def start_relay(self, db: Path) -> None:
+        """Its relay's process, starting (:meth:`start_node` waits until it listens)."""
         netns = PATHS[self.path] is not None
         host = RELAY_IP if netns else "127.0.0.1"
         cmd = [*_netns(NS_RELAY if netns else None), sys.executable, "-m", "relay", "--host", host,
                "--port", "0", "--db", str(db), "--clock", "estimate"]
         if self.transport == "websocket":
             cmd += ["--clock-port", "0"]
+        self._host = host
         self._errors = tempfile.TemporaryFile()  # not a pipe: nobody reads it while the relay runs
         self.relay = subprocess.Popen(cmd, cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=self._errors)
+
+    def start_node(self) -> None:
+        """Once its relay listens, its node, whose pretend clock starts now."""
+        netns = PATHS[self.path] is not None
+        host = self._host
         line = self.relay.stdout.readline().decode()
         m = re.search(r"http://[\d.]+:(\d+)", line)
         if not m:
@@ -177,12 +186,14 @@ class Run:
                     inside=bool((np.abs(err) <= stated).all()))
 
 
-def run_together(runs: list[Run], every_s: float, tmp: Path) -> None:
+def run_together(runs: list[Run], every_s: float, tmp: Path, warmup_s: float = WARMUP_S) -> None:
     try:
-        for i, r in enumerate(runs):
-            r.start(tmp / f"r{i}-{time.monotonic_ns()}.db")
+        for i, r in enumerate(runs):  # the relays start together, each node as soon as its relay listens
+            r.start_relay(tmp / f"r{i}-{time.monotonic_ns()}.db")
+        for r in runs:
+            r.start_node()
         deadline = time.monotonic() + runs[0].seconds
-        time.sleep(WARMUP_S)
+        time.sleep(warmup_s)
         while time.monotonic() < deadline:
             for r in runs:
                 r.sample()
@@ -261,7 +272,7 @@ def bench_grid(args: argparse.Namespace, tmp: Path) -> list[dict]:
                 continue
         try:
             runs = [Run(t, offset, drift, path, args.seconds) for offset, drift in grid for t in ("websocket", "udp")]
-            run_together(runs, args.every or 1.0, tmp)
+            run_together(runs, args.every or 1.0, tmp, args.warmup)
             for r in runs:
                 rows.append(r.row())
                 print(dumps(rows[-1]), flush=True)
@@ -275,7 +286,7 @@ def bench_grid(args: argparse.Namespace, tmp: Path) -> list[dict]:
 
 def bench_long(args: argparse.Namespace, tmp: Path) -> list[dict]:
     run = Run("udp", 37_000_000, 50.0, "loopback", args.minutes * 60)
-    run_together([run], args.every or 5.0, tmp)
+    run_together([run], args.every or 5.0, tmp, args.warmup)
     per_minute = max(1, int(60 / (args.every or 5.0)))
     rows = [dict(run.row(m, m + per_minute), path=f"minute {m // per_minute + 1}")
             for m in range(0, len(run.errors_ns), per_minute)]
@@ -286,15 +297,18 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seconds", type=float, default=45.0, help="length of each group of cases (default 45)")
     p.add_argument("--every", type=float, help="seconds between reads of the relay (default 1; 5 with --minutes)")
+    p.add_argument("--warmup", type=float, default=WARMUP_S,
+                   help=f"seconds from the start to the first read (default {WARMUP_S:g})")
     p.add_argument("--paths", nargs="+", choices=list(PATHS), default=list(PATHS))
     p.add_argument("--minutes", type=float, help="one long run (loopback, UDP, 37 ms, +50 ppm) instead of the grid")
     p.add_argument("--json", type=Path, help="also write the rows here")
-    p.add_argument("--quick", action="store_true", help="a smoke test: 37 ms, +50 ppm on loopback, 8 s")
+    p.add_argument("--quick", action="store_true",
+                   help="a smoke test: 37 ms, +50 ppm on loopback, 3 s, read every 0.5 s after a 1 s warm-up")
     args = p.parse_args(argv)
     if args.quick:
-        args.seconds, args.paths, args.minutes = 8.0, ["loopback"], None
-    if args.seconds <= WARMUP_S or (args.every is not None and args.every <= 0):
-        p.error(f"--seconds must be over the {WARMUP_S:g} s warm-up, --every positive")
+        args.seconds, args.warmup, args.every, args.paths, args.minutes = 3.0, 1.0, 0.5, ["loopback"], None
+    if args.warmup < 0 or args.seconds <= args.warmup or (args.every is not None and args.every <= 0):
+        p.error(f"--seconds must be over the {args.warmup:g} s warm-up, --warmup not negative, --every positive")
     print(f"# bench_clock on {os.uname().nodename}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}",
           flush=True)
     with tempfile.TemporaryDirectory() as tmp:

@@ -10,6 +10,16 @@ on a fresh relay in two arms (and, with ``--arms ambo``, m and o: one exporter e
   in this process (answers 200 to ``POST /v1/traces``, decodes each request with
   ``opentelemetry-proto`` to count its spans), ``--otlp-every`` at its default.
 
+Prometheus is started before the relay, on the port the relay is then given, and each phase's
+exporters' window opens once it has scraped the relay (in the lag phase, also once the relay has
+finalised frames, what the exporters export) and closes once it has scraped it again (at once in
+a window of several seconds): a short window on a busy machine still holds a scrape.
+``--quick`` (a smoke test: 2 nodes, 400,000 events, a 1 s lag window, one round) runs both
+phases of arm b on one Prometheus (the relay of each phase on the same port), started as arm a
+begins its lag phase, so that nothing waits for a Prometheus' first scrape (~5 s: its target
+discovery hands over new targets at most every 5 s): it scrapes a port nothing listens on yet
+through arm a's lag phase.
+
 Every arm gets the same ``--frame-limit``: the simulated nodes' frame delay quantile that
 leaves ``--over-limit`` of the frames over it (default 5 %, more than a healthy pipeline has,
 so the exporter gets more frames than it would in service), so arm b exports 1 in N frames
@@ -79,7 +89,8 @@ class OtlpSink:
         self._server = ThreadingHTTPServer(("127.0.0.1", 0), self._handler())
         self._server.daemon_threads = True
         self.url = f"http://127.0.0.1:{self._server.server_port}/v1/traces"
-        threading.Thread(target=self._server.serve_forever, daemon=True).start()
+        # polled every 50 ms, not 500: stop() returns as soon (the arm b rigs stop one after another)
+        threading.Thread(target=self._server.serve_forever, args=(0.05,), daemon=True).start()
 
     def _handler(self) -> type[BaseHTTPRequestHandler]:
         sink = self
@@ -125,11 +136,12 @@ def _free_port() -> int:
 
 
 class Prometheus:
-    """A real Prometheus scraping ``target`` (the relay's base URL) every second."""
+    """A real Prometheus scraping ``target`` (the relay's base URL, or where it will listen) every second."""
 
     def __init__(self, target: str, folder: Path) -> None:
         folder.mkdir(parents=True)
         host = urllib.parse.urlsplit(target).netloc
+        self.port = int(host.rsplit(":", 1)[1])
         config = folder / "prometheus.yml"
         config.write_text(f"global: {{scrape_interval: 1s, scrape_timeout: 1s}}\n"
                           f"scrape_configs:\n  - job_name: {SCRAPE_JOB}\n"
@@ -144,21 +156,42 @@ class Prometheus:
         self.scraping = False
 
     def wait_for_first_scrape(self, timeout_s: float = 60.0) -> None:
-        """Until it has scraped the target once: ~5 s after it starts (its discovery manager
-        hands over new targets at most every 5 s)."""
+        """Until it has scraped the target once, successfully: ~5 s after it starts (its discovery
+        manager hands over new targets at most every 5 s)."""
         deadline = time.monotonic() + timeout_s
         while not self.scraping and time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise CannotRun(f"prometheus exited (status {self.proc.returncode}): "
-                                f"{last_line(self.log.read_text(errors='replace'))}")
+            self._alive()
             try:
-                self.scraping = bool(self.query(f'up{{job="{SCRAPE_JOB}"}}'))
+                self.scraping = self.last_scrape() is not None
             except OSError:
                 pass  # not listening yet
             time.sleep(0.0 if self.scraping else 0.1)
         if self.scraping:
             return
         raise CannotRun(f"prometheus did not scrape the relay within {timeout_s:g} s")
+
+    def wait_for_scrape_after(self, since: float, timeout_s: float = 30.0) -> bool:
+        """Until it has scraped the target successfully after ``since`` (CLOCK_REALTIME, s): at
+        once when a window of several scrape intervals closes, up to a scrape interval when a short
+        one does, longer when this machine is busy. False if none came within ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            self._alive()
+            last = self.last_scrape()
+            if last is not None and last > since:
+                return True
+            time.sleep(0.05)
+        return False
+
+    def last_scrape(self) -> float | None:
+        """When (CLOCK_REALTIME, s) its last scrape of the target began, if that scrape succeeded."""
+        result = self.query(f'timestamp(up{{job="{SCRAPE_JOB}"}} == 1)')
+        return float(result[0]["value"][1]) if result else None
+
+    def _alive(self) -> None:
+        if self.proc.poll() is not None:
+            raise CannotRun(f"prometheus exited (status {self.proc.returncode}): "
+                            f"{last_line(self.log.read_text(errors='replace'))}")
 
     def query(self, promql: str, at: float | None = None) -> list[dict]:
         params = {"query": promql} | ({"time": f"{at:.3f}"} if at else {})
@@ -224,31 +257,51 @@ def frame_limit_ms(over: float, frames: int = 20_000) -> float:
     return float(np.quantile(delay, 1 - over)) / 1e6
 
 
-class Rig:
-    """One fresh relay; as its arm says, an OTLP sink it exports to and a Prometheus scraping it."""
+def start_prometheus(folder: Path) -> Prometheus:
+    """A Prometheus scraping a free port of loopback, where a relay is to listen."""
+    return Prometheus(f"http://127.0.0.1:{_free_port()}", folder)
 
-    def __init__(self, arm: str, folder: Path, limit_ms: float) -> None:
+
+class Rig:
+    """One fresh relay; as its arm says, an OTLP sink it exports to and a Prometheus scraping it
+    (``prom``: one already scraping the port the relay is to listen on, left running at stop();
+    else one of the rig's own, started before the relay)."""
+
+    def __init__(self, arm: str, folder: Path, limit_ms: float, prom: Prometheus | None = None) -> None:
         folder.mkdir(parents=True)
         scrape, otlp = ARMS[arm]
         self.sink = OtlpSink() if otlp else None
         self.relay = self.prom = None
+        self.own_prom = scrape and prom is None
         self.exporting = scrape or otlp
         self.sink_final: dict = {}
         args = ["--frame-limit", f"{limit_ms:.3f}"] + (["--otlp", self.sink.url] if self.sink else [])
         try:
+            if scrape:
+                # Started first: its target discovery (~5 s) goes on while the relay starts.
+                self.prom = start_prometheus(folder / "prometheus") if prom is None else prom
+                args += ["--port", str(self.prom.port)]  # after Relay's own --port 0: the last one counts
             self.relay = Relay(folder / "relay.db", args)
-            self.prom = Prometheus(self.relay.url, folder / "prometheus") if scrape else None
         except BaseException:
             self.stop()
             raise
 
-    def mark(self) -> dict:
-        """The exporters' counters now, once Prometheus (if any) scrapes the relay."""
+    def mark(self, since: dict | None = None) -> dict:
+        """The exporters' counters now, once Prometheus (if any) scrapes the relay (after ``since``,
+        the mark that opened the window this one closes: so that the window holds a scrape)."""
         if self.prom:
             self.prom.wait_for_first_scrape()
+            if since is not None:
+                self.prom.wait_for_scrape_after(since["t"])
         return {"t": time.time(), "prom_cpu": self.prom.cpu_s() if self.prom else 0.0,
                 "sink": self.sink.counts() if self.sink else {"spans": 0, "traces": 0},
                 "metrics": read_metrics(self.relay.url)}
+
+    def wait_for_finalised_frames(self, timeout_s: float = 30.0) -> None:
+        """Until the relay has finalised a frame (the frames the exporters export), or ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        while read_metrics(self.relay.url)["frames_complete"] == 0 and time.monotonic() < deadline:
+            time.sleep(0.1)
 
     def between(self, start: dict, end: dict) -> dict:
         """The exporters' figures over a window opened by ``start`` and closed by ``end`` (marks)."""
@@ -274,20 +327,20 @@ class Rig:
                 "otlp_queue_end": int(m1["otlp_queue"])}  # a backlog here is dropped in a longer run
 
     def stop(self) -> None:
-        for part in (self.prom, self.relay, self.sink):
+        for part in (self.prom if self.own_prom else None, self.relay, self.sink):
             if part is not None:
                 if part is self.sink:  # what reached it once the relay is gone
                     self.sink_final = self.sink.counts()
                 part.stop()
 
 
-def run_throughput(arm: str, n: int, args: argparse.Namespace, folder: Path) -> dict:
-    rig = Rig(arm, folder, args.frame_limit_ms)
+def run_throughput(arm: str, n: int, args: argparse.Namespace, folder: Path, prom: Prometheus | None = None) -> dict:
+    rig = Rig(arm, folder, args.frame_limit_ms, prom)
     try:
         start = rig.mark() if rig.exporting else None
         result = measure_throughput(rig.relay, n, args.events, args.batch_events)
         if rig.exporting:
-            end = rig.mark()
+            end = rig.mark(start)
             time.sleep(args.settle_s)  # the relay finalises frames ~2 s after they end: count their export too
             result["exporters"] = rig.between(start, end)
             final = rig.mark()["metrics"]
@@ -302,12 +355,17 @@ def run_throughput(arm: str, n: int, args: argparse.Namespace, folder: Path) -> 
     return result
 
 
-def run_lag(arm: str, n: int, args: argparse.Namespace, folder: Path) -> dict:
-    rig = Rig(arm, folder, args.frame_limit_ms)
+def run_lag(arm: str, n: int, args: argparse.Namespace, folder: Path, prom: Prometheus | None = None) -> dict:
+    rig = Rig(arm, folder, args.frame_limit_ms, prom)
     marks = {}
+
+    def on_window(which: str) -> None:
+        if which == "start":  # what the exporters export: frames finalised (~2 s of node time after they end)
+            rig.wait_for_finalised_frames()
+        marks[which] = rig.mark(marks.get("start"))
+
     try:
-        on_window = (lambda which: marks.__setitem__(which, rig.mark())) if rig.exporting else None
-        result = measure_lag(rig.relay, n, args.rate, args.seconds, on_window)
+        result = measure_lag(rig.relay, n, args.rate, args.seconds, on_window if rig.exporting else None)
         if rig.exporting:
             result["exporters"] = rig.between(marks["start"], marks["end"])
         return result
@@ -435,13 +493,34 @@ def bench(n: int, args: argparse.Namespace, tmp: Path) -> dict:
     """Every run at ``n`` nodes: the arms in order, then reversed, ... (a b, b a, ...: against drift)."""
     runs = []
     load = round(os.getloadavg()[0], 1)
-    for rep in range(args.repeat):
-        for arm in (args.arms if rep % 2 == 0 else args.arms[::-1]):
+    order = [(rep, arm) for rep in range(args.repeat) for arm in (args.arms if rep % 2 == 0 else args.arms[::-1])]
+    # --quick: one Prometheus per arm that scrapes, for both its phases (each phase's relay on its
+    # port), started as the run before it begins its lag phase: its ~5 s to a first scrape pass
+    # while that phase starts its relay and nodes and measures (it scrapes a port nothing listens
+    # on yet, once a second), not before the arm's own throughput phase.
+    proms: dict[tuple[int, str], Prometheus] = {}
+
+    def prometheus_for(k: int) -> None:
+        rep, arm = order[k]
+        if args.one_prometheus and ARMS[arm][0] and (rep, arm) not in proms:
+            proms[rep, arm] = start_prometheus(tmp / f"n{n}-{rep}{arm}-prometheus")
+
+    try:
+        for k, (rep, arm) in enumerate(order):
             folder = tmp / f"n{n}-{rep}{arm}"
-            runs.append({"arm": arm, "rep": rep,
-                         "throughput": run_throughput(arm, n, args, folder / "throughput"),
-                         "lag": run_lag(arm, n, args, folder / "lag")})
+            prometheus_for(k)
+            prom = proms.get((rep, arm))
+            throughput = run_throughput(arm, n, args, folder / "throughput", prom)
+            if k + 1 < len(order):
+                prometheus_for(k + 1)
+            runs.append({"arm": arm, "rep": rep, "throughput": throughput,
+                         "lag": run_lag(arm, n, args, folder / "lag", prom)})
+            if prom is not None:
+                proms.pop((rep, arm)).stop()
             shutil.rmtree(folder)  # a throughput run's database is ~0.5 GB
+    finally:
+        for prom in proms.values():
+            prom.stop()
     return {"nodes": n, "cpus": os.cpu_count(), "load_before": load, "frame_limit_ms": round(args.frame_limit_ms, 2),
             "events_per_frame": EVENTS_PER_FRAME, "summary": summarise(runs), "runs": runs}
 
@@ -461,10 +540,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--settle", dest="settle_s", type=float, default=3.0,
                    help="seconds after a throughput run in arm b before its exporters' final counts")
     p.add_argument("--quick", action="store_true",
-                   help="a smoke test: 2 nodes, 600,000 events, a 1.5 s lag window, one round")
+                   help="a smoke test: 2 nodes, 400,000 events, a 1 s lag window, one round, one Prometheus "
+                        "for both phases of arm b, started during arm a's lag phase")
     args = p.parse_args(argv)
+    args.one_prometheus = args.quick
     if args.quick:
-        args.nodes, args.events, args.seconds, args.repeat, args.settle_s = [2], 600_000, 1.5, 1, 1.0
+        args.nodes, args.events, args.seconds, args.repeat, args.settle_s = [2], 400_000, 1.0, 1, 1.0
     if "a" not in args.arms or not set(args.arms) <= set(ARMS) or len(set(args.arms)) != len(args.arms):
         p.error(f"--arms {args.arms!r}: give a and any of {''.join(ARMS)[1:]}, each once")
     if not 0 < args.over_limit < 1:

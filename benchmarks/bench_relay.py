@@ -394,7 +394,8 @@ def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: fl
         if len(_received(relays)[0]) == n:
             break
         time.sleep(0.5)
-    time.sleep(1.0)
+    settle = min(1.0, seconds / 3)  # once all stream (a quick run's short window: shorter)
+    time.sleep(settle)
     if on_window:
         on_window("start")
 
@@ -414,7 +415,7 @@ def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: fl
     in_window = received - events0
     none = f"the relays received no event in the {seconds:g} s window"
     # The same nodes for as long again with no browser: what the live view's pushes cost.
-    time.sleep(1.0)
+    time.sleep(settle)
     cpu1, (_, events1) = cpu(), _received(relays)
     time.sleep(seconds)
     quiet_cpu, (_, events2) = cpu() - cpu1, _received(relays)
@@ -548,10 +549,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="the lag phase's /ui client shows DCU-1..DCU-N only, as a page with N DCUs opened from the "
                         "fleet overview (default: every DCU, as a page with all of them opened)")
     p.add_argument("--lag-only", action="store_true", help="run the lag phase only (its throughput figures n/a)")
-    p.add_argument("--quick", action="store_true", help="a smoke test: 2 nodes, 200,000 events, a 1.5 s lag phase")
+    p.add_argument("--quick", action="store_true", help="a smoke test: 2 nodes, 100,000 events, a 1 s lag phase")
     args = p.parse_args(argv)
     if args.quick:
-        args.nodes, args.events, args.seconds = [2], 200_000, 1.5
+        args.nodes, args.events, args.seconds = [2], 100_000, 1.0
     stores = _choices(args.store or ["sqlite"], STORES, str, "--store", p)
     relay_counts = _choices(args.relays or ["1"], None, int, "--relays", p)
     settings = _choices(args.settings or list(SETTINGS), SETTINGS, str, "--settings", p)

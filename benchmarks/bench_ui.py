@@ -347,7 +347,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--period", type=float, default=10.0, help="seconds per sample")
     parser.add_argument("--json", type=Path, help="write the samples and summary here")
     parser.add_argument("--quick", action="store_true",
-                        help="a smoke test: 1 node x 2 sources x 30 fps, 3 s warm-up, two 2 s periods")
+                        help="a smoke test: 1 node x 2 sources x 30 fps, 1 s warm-up, two 1 s periods")
     parser.add_argument("--fleet", action="store_true",
                         help="the overview (for --minutes), one DCU opened from it and every DCU (for --open-minutes)")
     parser.add_argument("--open-minutes", type=float, default=1.0, help="--fleet: measured time of the one and all states")
@@ -355,7 +355,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-all", action="store_true", help="--fleet: leave out the state with every DCU opened")
     args = parser.parse_args(argv)
     if args.quick:
-        args.nodes, args.sources, args.fps, args.warmup, args.period = 1, 2, 30.0, 3.0, 2.0
+        args.nodes, args.sources, args.fps, args.warmup, args.period = 1, 2, 30.0, 1.0, 1.0
         args.minutes = 2 * args.period / 60
     if args.nodes < 1 or args.sources < 1 or args.fps <= 0 or args.period <= 0 or args.minutes <= 0:
         parser.error("--nodes, --sources, --fps, --period and --minutes must be positive")

@@ -7,15 +7,16 @@ and wait and the stage that limits throughput.
     benchmarks/streams_sweep --model ssd --rates 30 --bitrates 4971 --max-streams 3 --all-streams \\
         --kinds file,rtsp,rtsp-late --duration 15 --warmup 5 --plot docs/streams_sweep.png   # BENCHMARKS.md's run
 
-1. Clips. 1920x1080 H.264 clips at each frame rate and bitrate are made from the shipped
-   clips (vtest.avi, bikes.mp4) with GStreamer (videoscale, videorate, x264enc, mp4mux) into
-   a cache folder (default build/sweep-clips/); clips already there are kept.
+1. Clips. 1920x1080 H.264 clips (``--size``) at each frame rate and bitrate are made from the
+   shipped clips (vtest.avi, bikes.mp4) with GStreamer (videoscale, videorate, x264enc, mp4mux)
+   into a cache folder (default build/sweep-clips/); clips already there are kept.
 2. Runs. For each input kind (``file``: local files played in real time by a synchronised
    sink; ``rtsp``: the same clips served live by ``dcuscope serve-rtsp`` on loopback;
    ``rtsp-late``: the same, with the mux's ``max-latency`` set to ``--late-ms``, so that it
    drops frames older than that instead of batching them), frame rate, bitrate and stream
    count 1..N, a config mux(batch-size=N, 1920x1080) -> infer -> tiler -> convert -> osd ->
-   fakesink is written and run by ``dcuscope run --probes`` for ``--duration`` seconds, in its
+   fakesink is written and run by ``dcuscope run --probes`` for ``--duration`` seconds (or, with
+   ``--frames N``, until N collages reached the sink: as long as this machine needs), in its
    own process. The first ``--warmup`` seconds of frames are left out; the rest give, through
    ``probes.delays.node_stats``: A = S/n (the mean frame delay of the frames that reached the
    sink), p95, fps per stream, every stage's mean delay, mean service and mean wait (delay =
@@ -78,6 +79,7 @@ BITRATES = (3982, 4971, 7955)
 RATES = (30, 60)
 STAGES = ("mux", "infer", "tiler", "convert", "osd")
 WIDTH, HEIGHT = 1920, 1080
+"""The paper's frame size: the clips', the mux's and the collage's (``--size`` another, e.g. for a smoke test)."""
 
 DEFAULT_CACHE = ROOT / "build" / "sweep-clips"
 DEFAULT_OUT = ROOT / "build" / "streams_sweep.md"
@@ -103,16 +105,19 @@ class ClipSpec:
     """kbit/s."""
     seconds: int
     preset: str = DEFAULT_PRESET
+    width: int = WIDTH
+    height: int = HEIGHT
 
     @property
     def name(self) -> str:
         stem = Path(self.source).stem
-        return f"{stem}_{HEIGHT}p{self.fps}_{self.bitrate}k_{self.seconds}s_{self.preset}.mp4"
+        size = f"{self.height}p" if self.width * 9 == self.height * 16 else f"{self.width}x{self.height}"
+        return f"{stem}_{size}{self.fps}_{self.bitrate}k_{self.seconds}s_{self.preset}.mp4"
 
 
 def clip_pipeline(spec: ClipSpec, target: Path) -> str:
     """gst-launch description that turns a shipped clip into ``spec`` at ``target``."""
-    caps = (f"video/x-raw,format=I420,width={WIDTH},height={HEIGHT},pixel-aspect-ratio=1/1,"
+    caps = (f"video/x-raw,format=I420,width={spec.width},height={spec.height},pixel-aspect-ratio=1/1,"
             f"framerate={spec.fps}/1")
     # Letterboxed (add-borders) rather than stretched, so that people keep their shape for the detector.
     return (f'filesrc location="{MEDIA / spec.source}" ! decodebin ! videoconvert name=first ! videoscale add-borders=true '
@@ -145,7 +150,7 @@ def make_clip(spec: ClipSpec, cache: Path, progress: Callable[[str], None] = lam
         return Gst.PadProbeReturn.DROP
 
     def skip(_pad, info):
-        # Spares scaling the rest of a long source to 1080p (videorate may still need a frame past the end).
+        # Spares scaling the rest of a long source to the clip's size (videorate may still need a frame past the end).
         late = info.get_buffer().pts >= limit + Gst.SECOND
         return Gst.PadProbeReturn.DROP if late else Gst.PadProbeReturn.OK
 
@@ -175,8 +180,9 @@ def make_clip(spec: ClipSpec, cache: Path, progress: Callable[[str], None] = lam
     return target
 
 
-def clip_for(stream: int, fps: int, bitrate: int, seconds: int, preset: str) -> ClipSpec:
-    return ClipSpec(CLIP_SOURCES[stream % len(CLIP_SOURCES)], fps, bitrate, seconds, preset)
+def clip_for(stream: int, fps: int, bitrate: int, seconds: int, preset: str,
+             size: tuple[int, int] = (WIDTH, HEIGHT)) -> ClipSpec:
+    return ClipSpec(CLIP_SOURCES[stream % len(CLIP_SOURCES)], fps, bitrate, seconds, preset, *size)
 
 
 # -- configurations ----------------------------------------------------------------------------
@@ -186,21 +192,23 @@ def grid(streams: int) -> tuple[int, int]:
     return math.ceil(streams / columns), columns
 
 
-def config_text(kind: str, uris: list[str], fps: int, model: str, late_ms: int = DEFAULT_LATE_MS) -> str:
-    """A dcuscope YAML config for one run: the paper's chain over ``uris`` at 1080p; ``late_ms``
-    is the mux's max-latency of the ``rtsp-late`` kind."""
+def config_text(kind: str, uris: list[str], fps: int, model: str, late_ms: int = DEFAULT_LATE_MS,
+                size: tuple[int, int] = (WIDTH, HEIGHT)) -> str:
+    """A dcuscope YAML config for one run: the paper's chain over ``uris`` at 1080p (``size``);
+    ``late_ms`` is the mux's max-latency of the ``rtsp-late`` kind."""
     n = len(uris)
     rows, columns = grid(n)
+    width, height = size
     if kind == "file":
         sources = "\n".join(f"  - {{uri: '{u}', loop: true}}" for u in uris)
-        mux = f"{{batch-size: {n}, width: {WIDTH}, height: {HEIGHT}}}"
+        mux = f"{{batch-size: {n}, width: {width}, height: {height}}}"
         # sync: the file plays at its own rate, as the paper's file input did (else as fast as possible).
         sink = "{type: fake, sync: true}"
     else:
         sources = "\n".join(f"  - {{uri: '{u}'}}" for u in uris)
         # nvstreammux's advice: batched-push-timeout = one frame period of the fastest source.
         late = f", max-latency: {late_ms}" if kind == "rtsp-late" else ""
-        mux = (f"{{batch-size: {n}, width: {WIDTH}, height: {HEIGHT}, live-source: true, "
+        mux = (f"{{batch-size: {n}, width: {width}, height: {height}, live-source: true, "
                f"batched-push-timeout: {1_000_000 // fps}{late}}}")
         # Live sources pace themselves; a synchronised sink would only add the jitter buffer's
         # latency as a wait after the last tracepoint, as in configs/rtsp.yaml.
@@ -212,7 +220,7 @@ sources:
 stages:
   - mux: {mux}
   - infer: {{model: '{MODELS[model]}', threshold: 0.3}}
-  - tiler: {{rows: {rows}, columns: {columns}, width: {WIDTH}, height: {HEIGHT}}}
+  - tiler: {{rows: {rows}, columns: {columns}, width: {width}, height: {height}}}
   - convert: {{format: RGBA}}
   - osd: {{line-width: 3}}
 sink: {sink}
@@ -296,14 +304,16 @@ class RtspServer:
         self._errors.close()
 
 
-def run_pipeline(config: Path, trace: Path, duration: float) -> tuple[int, str]:
-    """``dcuscope run CONFIG --probes`` for ``duration`` s, killed if it overruns; (exit status, stderr tail)."""
+def run_pipeline(config: Path, trace: Path, duration: float, frames: int | None = None) -> tuple[int, str]:
+    """``dcuscope run CONFIG --probes`` for ``duration`` s, or until ``frames`` collages reached the
+    sink (``duration``: how long they take at the clips' rate; a busy machine may take four times
+    that), killed if it overruns; (exit status, stderr tail)."""
+    stop = ["--num-frames", str(frames)] if frames else ["--duration", str(duration)]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "dcuscope.cli", "run", str(config), "--probes", "--trace", str(trace),
-         "--duration", str(duration), "-q"],
+        [sys.executable, "-m", "dcuscope.cli", "run", str(config), "--probes", "--trace", str(trace), *stop, "-q"],
         cwd=ROOT, env=cli_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
-        _, stderr = proc.communicate(timeout=duration + START_ALLOWANCE_S)
+        _, stderr = proc.communicate(timeout=(4 if frames else 1) * duration + START_ALLOWANCE_S)
     except subprocess.TimeoutExpired:
         proc.kill()  # the trace reader accepts the cut file
         _, stderr = proc.communicate()
@@ -496,7 +506,11 @@ def series(kinds, rates, bitrates, bitrates_at: dict[int, list[int]] | None = No
 
 
 def run_point(point: Point, clips: list[Path], model: str, duration: float, warmup: float, workdir: Path,
-              rep: int = 1, late_ms: int = DEFAULT_LATE_MS) -> Result:
+              rep: int = 1, late_ms: int = DEFAULT_LATE_MS, size: tuple[int, int] = (WIDTH, HEIGHT),
+              frames: int | None = None) -> Result:
+    """One run of ``point`` for ``duration`` s, or until ``frames`` collages reached the sink."""
+    if frames:
+        duration = frames / point.fps
     result = Result(point.kind, point.fps, point.bitrate, point.streams,
                     max_latency_ms=late_ms if point.kind == "rtsp-late" else 0)
     started = time.monotonic()
@@ -504,12 +518,12 @@ def run_point(point: Point, clips: list[Path], model: str, duration: float, warm
     config, trace = workdir / f"{tag}.yaml", workdir / f"{tag}.jsonl"
     try:
         if point.kind == "file":
-            config.write_text(config_text("file", [c.as_uri() for c in clips], point.fps, model))
-            status, stderr = run_pipeline(config, trace, duration)
+            config.write_text(config_text("file", [c.as_uri() for c in clips], point.fps, model, size=size))
+            status, stderr = run_pipeline(config, trace, duration, frames)
         else:
             with RtspServer(clips, point.bitrate) as server:
-                config.write_text(config_text(point.kind, server.uris, point.fps, model, late_ms))
-                status, stderr = run_pipeline(config, trace, duration)
+                config.write_text(config_text(point.kind, server.uris, point.fps, model, late_ms, size))
+                status, stderr = run_pipeline(config, trace, duration, frames)
             result.server_cores = server.cores
         if not trace.is_file():
             raise RuntimeError(f"no trace (exit status {status}): {stderr.strip()}")
@@ -544,6 +558,11 @@ def machine() -> str:
             f"{platform.release()}, load average {load}")
 
 
+def run_length(args: argparse.Namespace) -> str:
+    """How long each run is: "20 s", or "40 frames" (--frames)."""
+    return f"{args.frames} frames" if args.frames else f"{args.duration:g} s"
+
+
 def fmt_duration(seconds: float) -> str:
     seconds = int(round(seconds))
     return f"{seconds // 60}m{seconds % 60:02d}s" if seconds >= 60 else f"{seconds}s"
@@ -555,7 +574,7 @@ def sweep(args: argparse.Namespace, log: Callable[[str], None],
     from core.gst import GLib
 
     plan = list(series(args.kinds, args.rates, args.bitrates, args.bitrates_at))
-    specs = sorted({clip_for(i, fps, b, args.clip_seconds, args.preset)
+    specs = sorted({clip_for(i, fps, b, args.clip_seconds, args.preset, args.size)
                     for _, fps, b in plan for i in range(min(args.max_streams, len(CLIP_SOURCES)))},
                    key=lambda s: (s.fps, s.bitrate, s.source))
     missing = [s for s in specs if not (args.cache / s.name).is_file()]
@@ -577,18 +596,19 @@ def sweep(args: argparse.Namespace, log: Callable[[str], None],
         return combined
 
     runs_left = len(plan) * args.max_streams * args.repeat  # an upper bound: a saturated series stops early
-    per_run = args.duration + 10.0  # first guess; replaced by the measured mean
+    per_run = (args.frames / min(args.rates) if args.frames else args.duration) + 10.0  # first guess; then the mean
     done = 0
     spent = 0.0
 
     def run(point: Point, rep: int, workdir: Path) -> Result:
         nonlocal runs_left, per_run, done, spent
-        clips = [args.cache / clip_for(i, point.fps, point.bitrate, args.clip_seconds, args.preset).name
+        clips = [args.cache / clip_for(i, point.fps, point.bitrate, args.clip_seconds, args.preset, args.size).name
                  for i in range(point.streams)]
         log(f"[run {done + 1}, at most {runs_left} left, eta <= {fmt_duration(runs_left * per_run)}] "
-            f"{point.kind} {point.fps} fps {point.bitrate} kbit/s, {point.streams} stream(s), {args.duration:g} s"
+            f"{point.kind} {point.fps} fps {point.bitrate} kbit/s, {point.streams} stream(s), {run_length(args)}"
             + (f", repetition {rep}/{args.repeat}" if args.repeat > 1 else ""))
-        r = run_point(point, clips, args.model, args.duration, args.warmup, workdir, rep, args.late_ms)
+        r = run_point(point, clips, args.model, args.duration, args.warmup, workdir, rep, args.late_ms, args.size,
+                      args.frames)
         runs.setdefault((point.kind, point.fps, point.bitrate, point.streams), []).append(r)
         done, runs_left, spent = done + 1, runs_left - 1, spent + r.wall_s
         per_run = spent / done
@@ -756,6 +776,14 @@ def _ints(text: str) -> list[int]:
     return [int(x) for x in text.split(",") if x]
 
 
+def _size(text: str) -> tuple[int, int]:
+    width, _, height = text.lower().partition("x")
+    size = int(width), int(height)
+    if min(size) < 16 or any(x % 2 for x in size):
+        raise argparse.ArgumentTypeError(f"{text!r}: give WIDTHxHEIGHT, each even and at least 16")
+    return size
+
+
 def _rate_bitrates(text: str) -> tuple[int, list[int]]:
     fps, _, kbps = text.partition("=")
     return int(fps), [int(k) for k in kbps.split("+") if k]
@@ -781,8 +809,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--repeat", type=int, default=1,
                    help="run every point this many times, a pass over the plan at a time; report medians")
     p.add_argument("--duration", type=float, default=DEFAULT_DURATION, help="seconds per run (default 20)")
+    p.add_argument("--frames", type=int, metavar="N",
+                   help="instead of --duration: each run stops once N collages reached the sink, as long as this "
+                        "machine takes (the frames after the warm-up do not depend on its load)")
     p.add_argument("--warmup", type=float, default=DEFAULT_WARMUP, help="seconds of frames left out at the start (default 5)")
     p.add_argument("--clip-seconds", type=int, default=DEFAULT_CLIP_SECONDS, help="length of the clips made (default 10)")
+    p.add_argument("--size", type=_size, default=(WIDTH, HEIGHT), metavar="WxH",
+                   help=f"frame size of the clips, the mux and the collage (default {WIDTH}x{HEIGHT}, the paper's)")
     p.add_argument("--preset", default=DEFAULT_PRESET, help=f"x264 speed-preset of the clips (default {DEFAULT_PRESET})")
     p.add_argument("--cache", type=Path, default=DEFAULT_CACHE, help="clip folder (default build/sweep-clips)")
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="Markdown results (default build/streams_sweep.md); "
@@ -794,9 +827,13 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
         args.bitrates, args.rates = args.bitrates[:1], [30]
         args.max_streams, args.duration, args.warmup = min(args.max_streams, 2), 8.0, 3.0
     bad = [k for k in args.kinds if k not in KINDS]
-    if bad or args.max_streams < 1 or args.repeat < 1 or args.warmup >= args.duration or args.late_ms < 1:
+    # the run's length in seconds of the clips: the warm-up must leave some of it
+    length = args.frames / max(args.rates) if args.frames else args.duration
+    if bad or args.max_streams < 1 or args.repeat < 1 or args.warmup >= length or args.late_ms < 1 or (
+            args.frames is not None and args.frames < 1):
         p.error(f"unknown kinds {bad} (known: {', '.join(KINDS)})" if bad else
-                "need --max-streams >= 1, --repeat >= 1, --late-ms >= 1 and --warmup < --duration")
+                "need --max-streams >= 1, --repeat >= 1, --late-ms >= 1, --frames >= 1 and --warmup < --duration "
+                "(with --frames: < N / the highest --rates)")
     args.plot = args.plot or args.out.with_suffix(".png")
     args.bitrates_at = dict(args.bitrates_at)
     return args
@@ -812,8 +849,8 @@ def main(argv: list[str] | None = None) -> int:
     command = " ".join(["benchmarks/streams_sweep.py", *(sys.argv[1:] if argv is None else argv)])
     preamble = [f"- command: `{command}`", f"- date: {time.strftime('%Y-%m-%d %H:%M %Z')}",
                 f"- machine at the start: {machine()}",
-                f"- runs: {args.duration:g} s each, first {args.warmup:g} s of frames left out; clips "
-                f"{args.clip_seconds} s, x264 {args.preset}, looped; model {args.model}"
+                f"- runs: {run_length(args)} each, first {args.warmup:g} s of frames left out; clips "
+                f"{args.size[0]}x{args.size[1]}, {args.clip_seconds} s, x264 {args.preset}, looped; model {args.model}"
                 + (f"; rtsp-late: the mux's max-latency {args.late_ms} ms" if "rtsp-late" in args.kinds else "")]
     args.out.parent.mkdir(parents=True, exist_ok=True)
 
@@ -823,7 +860,9 @@ def main(argv: list[str] | None = None) -> int:
         text = markdown(results, args.model, lines)
         args.out.write_text(text)
         args.out.with_suffix(".json").write_text(json.dumps(
-            {"model": args.model, "duration_s": args.duration, "warmup_s": args.warmup, "late_ms": args.late_ms,
+            {"model": args.model, "duration_s": None if args.frames else args.duration, "frames": args.frames,
+             "warmup_s": args.warmup, "late_ms": args.late_ms,
+             "size": list(args.size),
              "command": command,
              "results": [asdict(r) for r in results]}, indent=1))
         return text
