@@ -231,9 +231,12 @@ def test_d_a_queue_before_a_slow_element_waits_and_is_not_busy(runner, probed_ap
                    "fakesink", "QUEUE")
     node = stats(trace)
     q, slow = node["stages"]["q"], node["stages"]["slow"]
-    assert q["mean_ms"] > 100  # frames pile up in the queue
+    # Against the slow element's own figures of the same run (a loaded machine's source is slower,
+    # and its queue thread is scheduled later): frames pile up several deep, and the queue works a
+    # small fraction of the time the bottleneck does.
+    assert q["mean_ms"] > 5 * slow["service"]["p50_ms"]
     assert q["wait"]["mean_ms"] >= 0.95 * q["mean_ms"]
-    assert q["utilization"] < 0.05
+    assert q["utilization"] < 0.1 * slow["utilization"]
     assert slow["service"]["p50_ms"] >= 15.0 and slow["wait"]["p50_ms"] < 1.0
     assert node["bottleneck"]["stage"] == "slow"
 
