@@ -110,6 +110,8 @@ class Relay:
                 await asyncio.wait_for(self.sio.eio.disconnect(), STOP_BROWSERS_S)
             except asyncio.TimeoutError:  # a client that does not answer: the runner closes it
                 pass
+            except ValueError:  # the last one left meanwhile: engine.io's disconnect waits on an empty set
+                pass
         await self.sio.shutdown()
         if isinstance(self.sio.manager, FleetManager):
             await self.sio.manager.close()
