@@ -38,7 +38,9 @@ def test_a_live_file_comes_in_real_time_across_its_loops(tmp_path, short_clip):
     """Paced by the clock, not by the pipeline: 10 frames/s through four loops of the clip.
     Without pacing (or with the loop's time offset after the pacing) it runs at hundreds."""
     frames, seconds = run_source(tmp_path, short_clip, "rate: 10, live: true", "--duration", "4")
-    assert 0.7 * 10 * seconds <= frames <= 10 * seconds + 3, (frames, seconds)
+    # The pacing is the upper bound; the lower one only says it ran (a loaded fresh clone, load ~18,
+    # got 30 frames in 4.4 s: a live source drops what comes late).
+    assert 0.5 * 10 * seconds <= frames <= 10 * seconds + 3, (frames, seconds)
 
 
 def test_a_file_that_cannot_loop_says_so(tmp_path):
