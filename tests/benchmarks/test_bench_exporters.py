@@ -27,6 +27,7 @@ def blocks(text: str) -> list[list[str]]:
     return [block.splitlines() for block in text.strip().split("\n\n")]
 
 
+@pytest.mark.alone  # four relays in turn, Prometheus and an OTLP sink at full speed: a burst that starves the tests beside it
 def test_quick_mode_runs_both_arms_and_arm_b_is_scraped_and_exports_spans():
     """Not alone: each exporters' window closes once Prometheus has scraped the relay in it (however
     busy the machine), so that arm b's 1 s lag window holds a scrape on a loaded machine too."""

@@ -9,6 +9,8 @@ import http.client
 import re
 import urllib.parse
 
+import pytest
+
 from benchmarks.bench_relay import Relay
 from tests.benchmarks.smoke import assert_ran, json_lines, run_benchmark
 
@@ -40,6 +42,7 @@ STORE_SETTINGS = ("store sqlite: ", "store postgresql: ")
 COMBINATIONS = [("sqlite", 2, 2, "adaptive"), ("postgresql", 2, 2, "adaptive")]
 
 
+@pytest.mark.alone  # two relays, PostgreSQL, Redis and their nodes at full speed: a burst that starves the tests beside it
 def test_quick_mode_prints_both_phases_per_store_relay_count_and_settings_and_every_figure_or_its_reason():
     """Every (store, relays, settings) combination gets its line; SQLite with two relays is refused, with its
     reason, and is the only n/a combination; two relays on PostgreSQL store every event, and the one /ui
