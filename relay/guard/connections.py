@@ -6,8 +6,11 @@ server) and hands each admitted socket to :class:`ConnGuard`, which
 
 - caps TCP connections per peer IP (``connections_per_peer``) and in all (``tcp_connections``):
   a connection beyond a cap is closed as soon as it is accepted, before aiohttp sees it; at
-  the total cap an idle connection (one waiting for a request head, or an idle keep-alive one)
-  makes room first, oldest first, so silent connections cannot starve clients that talk;
+  a cap an idle connection (one waiting for a request head, or an idle keep-alive one) makes
+  room first, oldest first: the peer's own at its cap, anyone's at the total cap. Silent
+  connections cannot starve clients that talk, and a host's idle keep-alive connections (a
+  browser keeps six per page) cannot lock out its next page or request; only connections that
+  are busy (a request in progress, a WebSocket) hold a place for good;
 - closes a connection that has not sent a complete request head within ``header_timeout_s``
   of connecting or of the first byte of its next request (slowloris); a request has "arrived"
   once :meth:`ConnGuard.middleware` sees it, and keep-alive idle time is aiohttp's
@@ -86,6 +89,8 @@ class ConnGuard:
         self._peers: Counter = Counter()
         self._idle: OrderedDict[_Guarded, None] = OrderedDict()
         """Connections without a request in progress, longest idle first: the ones that make room."""
+        self._peer_idle: dict[str, OrderedDict[_Guarded, None]] = {}
+        """The same, per peer (once a connection is counted under one)."""
         self._evicting = 0
 
     @property
@@ -106,14 +111,8 @@ class ConnGuard:
             return False
         if len(self._open) - self._evicting < self.limits.tcp_connections:
             return True
-        if self._idle and self._evicting < EVICTING:
-            oldest = next(iter(self._idle))
-            self.refused["tcp_cap"] += 1
-            self._evicting += 1
-            oldest.close(evicted=True)
-            return True
         self.refused["tcp_cap"] += 1
-        return False
+        return self._make_room(self._idle)
 
     def admit_client(self, conn: "_Guarded", peer: str) -> bool:
         """Whether ``conn``, open and waiting for its PROXY header, may stay now that it named its
@@ -122,12 +121,24 @@ class ConnGuard:
             return False
         conn.peer = peer
         self._peers[peer] += 1
+        if conn in self._idle:
+            self._peer_idle.setdefault(peer, OrderedDict())[conn] = None
         return True
 
     def _peer_room(self, peer: str) -> bool:
-        if self._peers[peer] >= self.limits.connections_per_peer:
-            self.refused["peer_cap"] += 1
+        if self._peers[peer] < self.limits.connections_per_peer:
+            return True
+        self.refused["peer_cap"] += 1
+        return self._make_room(self._peer_idle.get(peer))
+
+    def _make_room(self, idle: OrderedDict | None) -> bool:
+        """Close the longest-idle connection of ``idle`` to make room for a new one; whether it did."""
+        if not idle or self._evicting >= EVICTING:
             return False
+        oldest = next(iter(idle))
+        self._evicting += 1
+        oldest.close(evicted=True)
+        self._uncount_peer(oldest)  # its place is free now, though it leaves on the next loop turn
         return True
 
     async def accept_loop(self, lsock: socket.socket, factory) -> None:
@@ -172,19 +183,38 @@ class ConnGuard:
         self._open.add(conn)
         if conn.peer is not None:  # a proxy's connection counts once its header names the client
             self._peers[conn.peer] += 1
-        self._idle[conn] = None
+        self._now_idle(conn)
 
     def _closed(self, conn: "_Guarded") -> None:
         if conn not in self._open:
             return
         self._open.discard(conn)
-        self._idle.pop(conn, None)
-        if conn.peer is not None:
-            self._peers[conn.peer] -= 1
-            if not self._peers[conn.peer]:
-                del self._peers[conn.peer]
+        self._now_busy(conn)
+        self._uncount_peer(conn)
         if conn.evicted:
             self._evicting -= 1
+
+    def _uncount_peer(self, conn: "_Guarded") -> None:
+        peer, conn.peer = conn.peer, None
+        if peer is not None:
+            self._peers[peer] -= 1
+            if not self._peers[peer]:
+                del self._peers[peer]
+
+    def _now_idle(self, conn: "_Guarded") -> None:
+        """``conn`` has no request in progress: the newest to make room."""
+        self._idle[conn] = None
+        if conn.peer is not None:
+            self._peer_idle.setdefault(conn.peer, OrderedDict())[conn] = None
+
+    def _now_busy(self, conn: "_Guarded") -> None:
+        """``conn`` serves a request, or is leaving: it makes no room."""
+        self._idle.pop(conn, None)
+        idle = self._peer_idle.get(conn.peer) if conn.peer is not None else None
+        if idle is not None:
+            idle.pop(conn, None)
+            if not idle:
+                del self._peer_idle[conn.peer]
 
 
 class _Guarded(asyncio.Protocol):
@@ -295,16 +325,16 @@ class _Guarded(asyncio.Protocol):
     def request_started(self) -> None:
         self.busy += 1
         self._cancel_timer()
-        self.guard._idle.pop(self, None)
+        self.guard._now_busy(self)
 
     def request_done(self) -> None:
         self.busy -= 1
-        if self.busy == 0 and self in self.guard._open:
-            self.guard._idle[self] = None  # idle now: the newest to make room
+        if self.busy == 0 and self in self.guard._open and not self.evicted:
+            self.guard._now_idle(self)
 
     def close(self, evicted: bool = False) -> None:
         self.evicted = evicted
-        self.guard._idle.pop(self, None)
+        self.guard._now_busy(self)
         if self.transport is not None:
             self.transport.abort()
 

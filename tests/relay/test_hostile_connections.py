@@ -170,6 +170,40 @@ def test_one_address_cannot_take_the_ingest_places(tmp_path):
         relay.stop()
 
 
+def test_a_hosts_idle_connections_make_room_for_its_next_ones_its_busy_ones_do_not(tmp_path):
+    """A browser keeps its page's connections open once loaded (six a page, for ``keepalive_s``), so
+    a host at its cap with idle ones closes its longest idle one for the next (the third page of a
+    laptop loads); connections that are busy (a WebSocket here) hold their places."""
+    relay = RelayProcess(tmp_path / "relay.db", args=["--limit", "connections_per_peer=2",
+                                                      "--limit", "hello_timeout_s=60"])
+    kept: list[socket.socket] = []
+    try:
+        for _ in range(3):
+            kept.append(socket.create_connection(("127.0.0.1", relay.port), 10, source_address=("127.0.0.2", 0)))
+            kept[-1].sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+            assert read_http_answer(kept[-1])[0] == 200  # kept alive, idle: the third is served too
+        kept[0].settimeout(5)
+        assert kept[0].recv(1) == b""  # the longest-idle one made room
+        for s in kept[1:]:
+            s.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n")
+            assert read_http_answer(s)[0] == 200
+
+        async def busy_then_third():
+            upgraded, refused = await open_squatters(relay.port, 2, "127.0.0.3")
+            third, _ = await open_squatters(relay.port, 1, "127.0.0.3")
+            return upgraded, third
+
+        upgraded, third = asyncio.run(busy_then_third())
+        assert len(upgraded) == 2 and third == [], (upgraded, third)
+        h = health(relay)
+        assert h["refused"]["peer_cap"] == 2, h["refused"]
+        assert_quiet_log(relay)
+    finally:
+        for s in kept:
+            s.close()
+        relay.stop()
+
+
 # --- (b) silent TCP connections against a 1024-descriptor relay ---------------------------------
 
 def test_silent_connections_do_not_exhaust_descriptors(tmp_path):

@@ -231,17 +231,20 @@ def test_clients_behind_the_proxy_are_limited_by_their_own_addresses(tmp_path, v
         for _ in range(2):
             held.append(connect(proxy.port, "127.0.0.2"))
             assert request(held[-1])[0] == 200
+        # 127.0.0.2's third, once the header named it: over its cap, so its longest-idle one makes room.
         third = connect(proxy.port, "127.0.0.2")
         held.append(third)
-        assert request(third) is None  # closed once the header named 127.0.0.2, its third
+        assert request(third)[0] == 200
+        assert request(held[0]) is None
         other = connect(proxy.port, "127.0.0.3")  # through the same proxy: a host of its own
         held.append(other)
+        assert request(held[1])[0] == 200  # 127.0.0.3 took no place of 127.0.0.2's
         status, body = request(other)
         assert status == 200
         h = json.loads(body)
         assert h["refused"]["peer_cap"] == 1 and h["refused"]["proxy_header"] == 0, h["refused"]
         # Three connections open from the proxy's own address, over the cap of 2: the proxy is under none.
-        assert h["proxy"] == {"trusted": [PROXY_ADDR, "10.0.0.0/8"], "proxied": 3, "proxied_open": 3}, h["proxy"]
+        assert h["proxy"] == {"trusted": [PROXY_ADDR, "10.0.0.0/8"], "proxied": 4, "proxied_open": 3}, h["proxy"]
         if version == "v1":
             # A node streams through the proxy too (its WebSocket upgrade and all).
             node = start_node(f"http://127.0.0.1:{proxy.port}", "behind", tmp_path / "behind.npz", frames=40)
@@ -274,12 +277,12 @@ def test_without_trusted_proxy_a_header_is_http_garbage_and_the_proxy_one_addres
             assert answer is None or answer[0] == 400, answer
             s.close()
         wait_for(lambda: health(relay)["connections"]["tcp"] == 1, 10, what="those two to close")
-        # A plain proxy: every client is the proxy's address, the third is over its cap.
-        for source in ("127.0.0.2", "127.0.0.3"):
+        # A plain proxy: every client is the proxy's address, the third is over its cap and takes
+        # the place of the first client's idle connection.
+        for source in ("127.0.0.2", "127.0.0.3", "127.0.0.4"):
             held.append(connect(plain.port, source))
             assert request(held[-1])[0] == 200
-        held.append(connect(plain.port, "127.0.0.4"))
-        assert request(held[-1]) is None
+        assert request(held[-3]) is None
         h = health(relay)
         assert h["refused"]["peer_cap"] == 1 and h["refused"]["proxy_header"] == 0, h["refused"]
         assert h["proxy"] is None

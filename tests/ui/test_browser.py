@@ -42,7 +42,7 @@ def live(browser, feeder_kind, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("ui-live")
     relay = RelayThread(tmp / "relay.db")
     if feeder_kind == "pipeline":
-        feeder = pipeline_nodes(relay.url, tmp, NODES, duration=45)
+        feeder = pipeline_nodes(relay.url, tmp, NODES, duration=120)  # ended by the counters test
     else:
         feeder = sim_nodes(relay.url, tmp, NODES, frames=900, sources=3, fps=30, paced=True,
                            offsets_ns=[0, 3_000_000])
