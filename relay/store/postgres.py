@@ -20,6 +20,11 @@ Same tables and meaning as :mod:`relay.store.sqlite`. What a shared store adds:
 
 Batches go in with one statement per group (arrays unnested, ``ON CONFLICT DO NOTHING``), their
 payloads stored uncompressed by PostgreSQL (they are compressed already or small).
+
+A transaction PostgreSQL rolled back for a conflict with another relay's (a deadlock, a
+serialization failure: SQLSTATE class 40) is tried again, up to ``CONFLICT_TRIES`` times: it is
+not the store failing. psycopg files these errors under ``OperationalError``, which otherwise means
+the connection or the server failed, and a relay whose store fails lets its nodes go.
 """
 
 from __future__ import annotations
@@ -100,9 +105,19 @@ HELD_RUNS = """
 """
 """Keys of the run locks some relay holds now (single-key advisory locks have objsubid 1)."""
 CONNECT_TIMEOUT_S = 5
+ROLLED_BACK = "40"
+"""SQLSTATE class of a transaction rolled back for a conflict (40001 serialization, 40P01 deadlock)."""
+CONFLICT_TRIES = 5
+"""Tries of a transaction rolled back for a conflict with another relay's (a deadlock)."""
+CONFLICT_PAUSE_S = 0.01
+"""Pause before the next try, times the number of the try (the other transaction finishes meanwhile)."""
 APPLICATION = "dcuscope-relay"
 
 log = logging.getLogger(__name__)
+
+
+class _Conflict(Exception):
+    """A transaction rolled back for a conflict with another's (its cause: psycopg's error)."""
 
 
 def lock_key(run: str) -> int:
@@ -120,6 +135,8 @@ class PostgresDatabase(Database):
         self.name = name
         self.owned: set[str] = set()
         """Runs this connection holds the lock of."""
+        self.conflicts = 0
+        """Transactions tried again after a conflict with another relay's."""
         try:
             self.conn = psycopg.connect(url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S,
                                         application_name=f"{APPLICATION} {name}".strip()[:63])
@@ -131,6 +148,15 @@ class PostgresDatabase(Database):
 
     def _create_schema(self, cur: psycopg.Cursor) -> None:
         cur.execute("SELECT pg_advisory_xact_lock(%s, %s)", SCHEMA_LOCK)
+        # Only a database without the schema runs its DDL: CREATE INDEX IF NOT EXISTS and ALTER TABLE
+        # lock their tables even when there is nothing to do, and every connection a relay opens
+        # comes here, so other relays' writes (holding batches, waiting on runs) would deadlock with it.
+        cur.execute("SELECT to_regclass('meta') IS NOT NULL")
+        if cur.fetchone()[0]:
+            cur.execute("SELECT value FROM meta WHERE key = 'schema'")
+            row = cur.fetchone()
+            if row is not None and row[0] == str(SCHEMA_VERSION):
+                return
         cur.execute(SCHEMA)
         cur.execute("SELECT value FROM meta WHERE key = 'schema'")
         row = cur.fetchone()
@@ -140,11 +166,27 @@ class PostgresDatabase(Database):
             raise RelayError(f"{self.location}: relay database schema {row[0]}, this relay reads {SCHEMA_VERSION}")
 
     def _transaction(self, fn) -> Any:
-        # A lost connection, a server shutting down or out of disk is the store's failure.
+        # A lost connection, a server shutting down or out of disk is the store's failure; a
+        # conflict with another relay's transaction is not: it is tried again.
+        for attempt in range(1, CONFLICT_TRIES + 1):
+            try:
+                return self._once(fn)
+            except _Conflict as conflict:
+                exc = conflict.__cause__
+                if attempt == CONFLICT_TRIES:
+                    raise StoreUnavailable(f"{self.location}: {type(exc).__name__} {attempt} times in a row: "
+                                           f"{_first_line(exc)}") from exc
+                self.conflicts += 1
+                log.info("%s: %s; trying again", self.location, _first_line(exc))
+                time.sleep(CONFLICT_PAUSE_S * attempt)
+
+    def _once(self, fn) -> Any:
         try:
             with self.conn.transaction(), self.conn.cursor() as cur:
                 return fn(cur)
         except psycopg.OperationalError as exc:
+            if (exc.sqlstate or "").startswith(ROLLED_BACK):
+                raise _Conflict() from exc
             raise StoreUnavailable(f"{self.location}: {type(exc).__name__}: {_first_line(exc)}") from exc
         except psycopg.InterfaceError as exc:  # the connection was closed
             raise StoreUnavailable(f"{self.location}: {_first_line(exc)}") from exc
@@ -297,7 +339,8 @@ class PostgresDatabase(Database):
                             "WHERE datname = current_database() AND application_name LIKE %s ORDER BY backend_start",
                             (APPLICATION + "%",))
         names = sorted({name[len(APPLICATION):].strip() or "?" for name, _, _ in relays})
-        return {"engine": self.engine, "location": self.location, "relays": names, "owned_runs": len(self.owned)}
+        return {"engine": self.engine, "location": self.location, "relays": names, "owned_runs": len(self.owned),
+                "conflicts": self.conflicts}
 
     def close(self) -> None:
         self.conn.close()

@@ -5,10 +5,13 @@ reading back, retention."""
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
 import uuid
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+import psycopg
 import pytest
 
 from probes.events import CAPTURE, ORIGIN
@@ -286,3 +289,61 @@ def test_retention_deletes_the_sessions_older_than_its_days_through_the_writer(s
 
     assert asyncio.run(scenario()) == [1]
     assert [r["run"] for s in list_sessions(store) for r in s["runs"]] == [new]
+
+
+def test_a_relay_connecting_does_not_wait_on_another_relays_open_write(pg_url):
+    """A new connection (a relay starting, a session reader) finds the schema there and takes no
+    lock on its tables: before, its DDL waited on a write in progress (and, with that write then
+    waiting on it, deadlocked: the writing relay thought its store lost and let its nodes go)."""
+    first = open_database(pg_url)
+    run = uuid.uuid4().hex
+    assert first.own_run(run)
+    first.register_run(run, "a", header_for("a", 1).to_dict(), None, None)
+    writer = psycopg.connect(pg_url)  # a transaction left open holding a write on batches and runs
+    try:
+        writer.execute("INSERT INTO batches VALUES (%s, 0, 1, false, 0, '\\x00')", (run,))
+        writer.execute("UPDATE runs SET events = 1 WHERE id = %s", (run,))
+        # Waiting for a lock more than 5 s fails the connection's schema step (it waited for ever before).
+        waits = "&" if "?" in pg_url else "?"
+        open_database(f"{pg_url}{waits}options=-c%20lock_timeout%3D5000").close()
+    finally:
+        writer.rollback()
+        writer.close()
+        first.close()
+
+
+def test_a_transaction_postgresql_rolls_back_as_a_deadlock_is_tried_again(pg_url):
+    """Two writers locking two runs in opposite orders: PostgreSQL breaks the deadlock by rolling
+    one back; when that one is the relay's, the relay tries it again and it commits."""
+    database = open_database(pg_url)
+    a, b = uuid.uuid4().hex, uuid.uuid4().hex
+    for run in (a, b):
+        database.register_run(run, "a", header_for("a", 1).to_dict(), None, None)
+    other = psycopg.connect(pg_url)
+    locked_b, locked_a = threading.Event(), threading.Event()
+    tries = []
+
+    def relay_side(cur) -> None:  # b then a; it waits first, so PostgreSQL's check picks it as the victim
+        tries.append(1)
+        cur.execute("UPDATE runs SET events = events + 1 WHERE id = %s", (b,))
+        if len(tries) == 1:
+            locked_b.set()
+            locked_a.wait(10)
+        cur.execute("UPDATE runs SET events = events + 1 WHERE id = %s", (a,))
+
+    try:
+        with ThreadPoolExecutor(1) as pool:
+            done = pool.submit(database._transaction, relay_side)
+            assert locked_b.wait(10)
+            other.execute("UPDATE runs SET events = events + 10 WHERE id = %s", (a,))
+            locked_a.set()
+            time.sleep(0.3)  # the relay's side waits on a before this side asks for b
+            other.execute("UPDATE runs SET events = events + 10 WHERE id = %s", (b,))
+            other.commit()
+            done.result(timeout=30)
+        assert len(tries) == 2 and database.conflicts == 1
+        events = dict(other.execute("SELECT id, events FROM runs WHERE id IN (%s, %s)", (a, b)).fetchall())
+        assert events == {a: 11, b: 11}
+    finally:
+        other.close()
+        database.close()
