@@ -83,6 +83,7 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
 
 from benchmarks.figures import NA, CannotRun, Notes, dumps, last_line, one_line, percentile, ratio, run  # noqa: E402
 from benchmarks.stores import ONE_RELAY, SQLITE_SETTINGS, STORES, PostgresStore  # noqa: E402
+from relay.live.framepack import MISSING, columns_of  # noqa: E402
 
 SOURCES = 2
 EVENTS_PER_FRAME = 12  # origin, 5 stages x enter/exit, sink enter
@@ -340,10 +341,7 @@ async def _watch_ui(url: str, seconds: float, watch: int | None = None) -> tuple
         transit.append((now - data["t_ns"]) / 1e6)
         for node, block in data["nodes"].items():
             nodes.add(node)
-            corr = block["correction_ns"]
-            for f in block["frames"]:
-                last = max(t for t in f["enter"] + f["exit"] if t is not None) + corr
-                lags.append((now - last) / 1e6)
+            lags.extend(((now - last_times(block) - block["correction_ns"]) / 1e6).tolist())
 
     sio.on("frames", on_frames, namespace="/ui")
     try:
@@ -355,6 +353,14 @@ async def _watch_ui(url: str, seconds: float, watch: int | None = None) -> tuple
     await asyncio.sleep(seconds)
     await sio.disconnect()
     return lags, transit, nodes
+
+
+def last_times(block: dict) -> np.ndarray:
+    """Per frame of a pushed block, its last time (enter or exit of any stage): read from the packed
+    columns, so that the client keeps up with every DCU's pushes."""
+    ints, _ = columns_of(block["packed"])
+    times = np.concatenate([ints["enter"], ints["exit"]])
+    return np.where(times == MISSING, np.iinfo(np.int64).min, times).max(axis=0)
 
 
 def lag(n: int, rate: float, seconds: float, stores: Stores, store: str, relays: int, settings: Settings,

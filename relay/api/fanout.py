@@ -7,6 +7,16 @@ which every other relay delivers it to its browsers. Relays sharing a store then
 the fleet on every page. Without ``--redis`` the stock in-process manager serves this relay's
 browsers only (one relay, or relays whose pages need only their own DCUs).
 
+Pushes are routed by room, not broadcast: python-socketio's manager publishes every emit on one
+channel, so every relay would receive and decode every other relay's pushes, whether or not a
+browser of its own shows those DCUs (with 4 relays, most of each one's CPU). Here an emit to a room
+(``dcu:25:DCU-7``, ``every-dcu:25``, ``overview``, a browser's own) goes on that room's channel
+(``dcuscope:room:ROOM``), and a relay subscribes to the channels of the rooms its own browsers are
+in, as they join and leave: it receives only what its browsers show. Everything else the manager
+says to the other relays (a room's members, disconnects, callbacks) stays on ``CHANNEL``. Each
+message starts with its sender's id, so a relay skips its own (it already delivered them) without
+decoding them.
+
 Redis is not needed for anything but those pushes. While it is down or restarting:
 
 - ingest and storage go on untouched (they never touch Redis);
@@ -33,6 +43,8 @@ from relay.urls import redact
 
 CHANNEL = "dcuscope"
 """The Redis channel the relays' Socket.IO servers share (python-socketio's ``channel``)."""
+ROOM_CHANNEL = CHANNEL + ":room:"
+"""Followed by a room's name: the channel of the emits to that room."""
 RETRY_S = 1.0
 TIMEOUT_S = 1.0
 """Connecting to Redis and publishing give up after this long (a Redis that stopped answering)."""
@@ -88,25 +100,66 @@ class FleetManager(socketio.AsyncRedisManager):
         super().__init__(check_url(url), channel=CHANNEL, logger=_quiet_logger(),
                          redis_options={"socket_connect_timeout": TIMEOUT_S, "health_check_interval": 5})
         self.health = health
+        self._subscribed: set[str] = set()
+        """Room channels the subscriber listens to now (those of the rooms this relay's browsers are in)."""
+        self._resubscribe = asyncio.Event()
 
     async def _publish(self, data):
         if not self.health.ok:
             return None  # the subscriber finds Redis back; until then other relays catch up from the store
+        channel = self.channel
+        if data.get("method") == "emit" and isinstance(data.get("room"), str) and not data.get("callback"):
+            channel = ROOM_CHANNEL + data["room"]
         try:
-            return await asyncio.wait_for(self.redis.publish(self.channel, self.json.dumps(data)), TIMEOUT_S)
+            return await asyncio.wait_for(self.redis.publish(channel, self.host_id + self.json.dumps(data)), TIMEOUT_S)
         except Exception as exc:  # noqa: BLE001 - any failure of Redis: degrade, say it once
             self.health.down(f"cannot publish: {_describe(exc)}")
             # The subscriber's connection goes too: it reconnects, and says when Redis is back.
             await self._close_connections()
             return None
 
+    # --- the room channels this relay listens to ---------------------------------------------------
+
+    def _wanted_channels(self) -> set[str]:
+        return {ROOM_CHANNEL + room for rooms in self.rooms.values() for room in rooms if isinstance(room, str)}
+
+    async def enter_room(self, sid, namespace, room, eio_sid=None):
+        await super().enter_room(sid, namespace, room, eio_sid)
+        self._resubscribe.set()
+
+    async def leave_room(self, sid, namespace, room):
+        await super().leave_room(sid, namespace, room)
+        self._resubscribe.set()
+
+    async def disconnect(self, sid, namespace, **kwargs):
+        await super().disconnect(sid, namespace, **kwargs)
+        self._resubscribe.set()
+
+    async def _follow_rooms(self, pubsub) -> None:
+        """Keep ``pubsub`` subscribed to the channels of the rooms this relay's browsers are in."""
+        while True:
+            await self._resubscribe.wait()
+            self._resubscribe.clear()
+            wanted = self._wanted_channels()
+            if wanted - self._subscribed:
+                await pubsub.subscribe(*(wanted - self._subscribed))
+            if self._subscribed - wanted:
+                await pubsub.unsubscribe(*(self._subscribed - wanted))
+            self._subscribed = wanted
+
     async def _redis_listen_with_retries(self):
         while True:
+            follow = None
             try:
                 self._redis_connect()
+                self._subscribed = set()
                 await asyncio.wait_for(self.pubsub.subscribe(self.channel), TIMEOUT_S)
+                self._resubscribe.set()
+                follow = asyncio.create_task(self._follow_rooms(self.pubsub))
                 self.health.up()
                 async for message in self.pubsub.listen():
+                    if follow.done():  # subscribing failed: Redis is failing
+                        follow.result()
                     yield message
                 raise ConnectionError("subscription ended")
             except asyncio.CancelledError:
@@ -115,6 +168,21 @@ class FleetManager(socketio.AsyncRedisManager):
                 self.health.down(f"cannot receive: {_describe(exc)}")
                 await self._close_connections()
                 await asyncio.sleep(RETRY_S)
+            finally:
+                if follow is not None:
+                    follow.cancel()
+
+    async def _listen(self):
+        me = self.host_id.encode()
+        base, rooms = self.channel.encode(), ROOM_CHANNEL.encode()
+        async for message in self._redis_listen_with_retries():
+            channel, data = message.get("channel", b""), message.get("data")
+            if (message.get("type") != "message" or not isinstance(data, bytes)
+                    or not (channel == base or channel.startswith(rooms))):
+                continue
+            sender, body = data[:len(me)], data[len(me):]
+            if sender != me:  # this relay delivered its own to its browsers already
+                yield body
 
     async def close(self) -> None:
         """Stop the subscriber and close the connections (the relay stops)."""

@@ -24,11 +24,12 @@ log = logging.getLogger(__name__)
 
 
 class JsonPacket(sio_packet.Packet):
-    """Socket.IO packets of a server that sends JSON only.
+    """Socket.IO packets of the relay, which sends binary only as values of objects (the packed
+    frames of a push, :mod:`relay.live.framepack`).
 
-    The stock packet walks every list and dict of an outgoing message looking for bytes to
-    send as attachments; for a push of a few thousand frames that walk cost more than making
-    the push. The relay never sends binary, so a look at the top level is enough.
+    The stock packet walks every list and dict of an outgoing message looking for bytes to send as
+    attachments; through the lists of a big message (statistics, a fleet's rows) that walk costs
+    more than making it. Here only objects are walked, and the lists at the top.
     """
 
     @classmethod
@@ -36,8 +37,14 @@ class JsonPacket(sio_packet.Packet):
         if isinstance(data, (bytes, bytearray)):
             return True
         if isinstance(data, (list, tuple)):
-            return any(isinstance(item, (bytes, bytearray)) for item in data)
-        return False
+            return any(_has_bytes(item) for item in data)
+        return _has_bytes(data)
+
+
+def _has_bytes(data) -> bool:
+    if isinstance(data, (bytes, bytearray)):
+        return True
+    return isinstance(data, dict) and any(_has_bytes(value) for value in data.values())
 
 
 class OneLine(logging.Filter):

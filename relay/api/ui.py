@@ -12,8 +12,9 @@ gets every DCU of the fleet; each relay sends only what it holds:
   second and on connect or subscribe; a list never says a DCU is gone (the overview does).
 - ``frames`` {"t_ns": relay time of the push, "nodes": {NODE: block}} as soon as a subscribed DCU
   has frames completed since its previous push, at most ``push_hz`` (30) times a second; each block
-  is shaped as ``GET /api/frames`` and holds the newest of those frames, at most ``max_frames``
-  (``cursor`` tells how many completed in all, so a gap is visible and backfilled with ``GET /api/frames``);
+  is shaped as ``GET /api/frames`` and holds the newest of those frames, at most ``max_frames``, packed
+  (``packed`` instead of ``frames``: binary columns, :mod:`relay.live.framepack`; ``cursor`` tells how
+  many completed in all, so a gap is visible and backfilled with ``GET /api/frames``);
 - ``stats`` {"nodes": {NODE: stats}} once a second for subscribed DCUs whose events changed, each as
   ``GET /api/stats?node=NODE`` (whole-run figures of long runs refresh less often, the rolling window
   every time; with many DCUs on a busy relay, less than once a second: the frames go first).
@@ -43,6 +44,7 @@ from probes.wire import MAX_NAME
 from relay.api.fleet import Fleet
 from relay.api.interest import ALL, MAX_FRAMES, Interest, Wish
 from relay.guard.auth import socket_token, token_matches
+from relay.live import framepack
 from relay.live.state import RelayState
 
 NAMESPACE = "/ui"
@@ -216,13 +218,13 @@ class Ticker:
             if rs.live.visible <= rs.pushed:
                 continue
             # Built once, for the largest request, and cut for the others.
-            block = self.state.frames_view(rs, rs.pushed, limit, newest=True)
+            head, cols = self.state.frames_columns(rs, rs.pushed, limit)
             rs.pushed = rs.live.visible
+            cut = _Cuts(head, cols, len(rs.header.stages))
             for m, blocks in everyone.items():
-                blocks[rs.node] = _cut(block, m)
+                blocks[rs.node] = cut(m)
             for m in wanted.get(rs.node, ()):
-                await self.ui.emit("frames", {"t_ns": t_ns, "nodes": {rs.node: _cut(block, m)}},
-                                   room=node_room(rs.node, m))
+                await self.ui.emit("frames", {"t_ns": t_ns, "nodes": {rs.node: cut(m)}}, room=node_room(rs.node, m))
         for m, blocks in everyone.items():
             if blocks:
                 await self.ui.emit("frames", {"t_ns": t_ns, "nodes": blocks}, room=every_room(m))
@@ -301,10 +303,19 @@ class Ticker:
                 await self.ui.emit("stats", {"nodes": everyone}, room=every_room(m))
 
 
-def _cut(block: dict, limit: int) -> dict:
-    if len(block["frames"]) <= limit:
-        return block
-    return dict(block, frames=block["frames"][-limit:])
+class _Cuts:
+    """A run's pushed block, its frames packed (:mod:`relay.live.framepack`) once per size asked."""
+
+    def __init__(self, head: dict, cols: tuple, stages: int) -> None:
+        self.head = {key: value for key, value in head.items() if key != "frames"}
+        self.cols, self.stages = cols, stages
+        self._made: dict[int, dict] = {}
+
+    def __call__(self, limit: int) -> dict:
+        size = min(limit, self.cols[0].shape[1])
+        if size not in self._made:
+            self._made[size] = dict(self.head, packed=framepack.packed(*self.cols, self.stages, last=size))
+        return self._made[size]
 
 
 def _parse_wish(data: object) -> tuple[Wish, bool] | str:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 from probes.events import TraceHeader
 from relay.clock.correction import Correction
+from relay.live import framepack
 from relay.live.framejson import block, frame_dicts
 from relay.live.run import LiveRun
 
@@ -37,9 +38,22 @@ def frames_block(view: RunView, since: int = 0, limit: int = 200, newest: bool =
     live, correction = view.live, view.correction
     n, fd = live.recent(since, limit, newest)
     frames = frame_dicts(n, fd, correction)
+    return _block(view, fd, frames, cursor=frames[-1]["n"] if frames else since)
+
+
+def columns_block(view: RunView, since: int = 0, limit: int = 200) -> tuple[dict, tuple]:
+    """The last ``limit`` complete frames after cursor ``since``, as the pushes carry them: the block
+    without its frames, and their columns (:func:`relay.live.framepack.columns`; the pusher packs
+    them once per size asked, :func:`relay.live.framepack.packed`)."""
+    n, fd = view.live.recent(since, limit, True)
+    ints, floats = framepack.columns(n, fd, view.correction)
+    return _block(view, fd, [], cursor=int(n[-1]) if len(n) else since), (ints, floats)
+
+
+def _block(view: RunView, fd, frames: list[dict], cursor: int) -> dict:
     # At the last frame's end on the node's clock (where its correction was looked up).
-    corr, bound = correction.at(int(fd.chains.end[-1]) if frames else time.time_ns())
+    corr, bound = view.correction.at(int(fd.chains.end[-1]) if len(fd.chains.end) else time.time_ns())
     return block(view.node, view.run, view.header.stages, view.header.kinds, fd.chains.has_exit, frames,
-                 correction.applied, cursor=frames[-1]["n"] if frames else since, newest=live.visible,
-                 correction_ns=corr, uncertainty_ns=bound)
+                 view.correction.applied, cursor=cursor, newest=view.live.visible, correction_ns=corr,
+                 uncertainty_ns=bound)
 

@@ -24,7 +24,7 @@ from relay.errors import RelayError
 from relay.live.framelimits import FrameLimits
 from relay.guard.limits import MIB, Limits
 from relay.live.run import LiveConfig, LiveRun
-from relay.live.runview import RunView, frames_block
+from relay.live.runview import RunView, columns_block, frames_block
 from relay.live.seqset import SeqSet
 from relay.store import base as db
 from relay.store.runs import run_events
@@ -459,6 +459,10 @@ class RelayState:
     def frames_view(self, rs: RunState, since: int = 0, limit: int = 200, newest: bool = False) -> dict:
         """Complete frames after cursor ``since`` (:func:`relay.live.runview.frames_block`)."""
         return frames_block(self.view(rs), since, limit, newest)
+
+    def frames_columns(self, rs: RunState, since: int, limit: int) -> tuple[dict, tuple]:
+        """The newest ``limit`` complete frames after ``since`` as pushed (:func:`relay.live.runview.columns_block`)."""
+        return columns_block(self.view(rs), since, limit)
 
 
 def _quietly(task: asyncio.Future) -> None:

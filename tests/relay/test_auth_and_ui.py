@@ -9,6 +9,7 @@ import pytest
 import socketio
 
 from relay.api.ui import DEFAULT_PUSH_HZ
+from relay.live.framepack import unpack_push
 from tests.conftest import run_cli
 from tests.relay.helpers import (RelayProcess, finish_node, get_json, http_status, load_node, start_node)
 
@@ -19,7 +20,9 @@ async def ui_connect(url: str, auth: dict | None, query: str = "") -> tuple[sock
     sio = socketio.AsyncClient(reconnection=False)
     got: list = []
     for event in ("nodes", "frames", "stats"):
-        sio.on(event, (lambda e: lambda data: got.append((time.monotonic(), e, data)))(event), namespace="/ui")
+        unpacked = unpack_push if event == "frames" else (lambda data: data)
+        sio.on(event, (lambda e, read: lambda data: got.append((time.monotonic(), e, read(data))))(event, unpacked),
+               namespace="/ui")
     await sio.connect(url + query, auth=auth, namespaces=["/ui"], transports=["websocket"], wait_timeout=5)
     return sio, got
 

@@ -10,6 +10,7 @@ import time
 import pytest
 import socketio
 
+from relay.live.framepack import unpack_push
 from tests.relay.helpers import RelayProcess, finish_node, get_json, load_node, start_node, wait_for
 from tests.relay.test_fleet import stored_equals_sent
 
@@ -27,7 +28,8 @@ class Browser:
     def __init__(self) -> None:
         self.sio = socketio.AsyncClient(reconnection=True, reconnection_delay=0.2)
         self.got: list[tuple[float, str, object]] = []
-        self.sio.on("*", lambda event, data: self.got.append((time.monotonic(), event, data)), namespace="/ui")
+        self.sio.on("*", lambda event, data: self.got.append(
+            (time.monotonic(), event, unpack_push(data) if event == "frames" else data)), namespace="/ui")
 
     async def open(self, url: str, nodes: list[str] | None) -> None:
         """Connect, subscribed from the start to ``nodes`` (as the page does)."""

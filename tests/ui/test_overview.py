@@ -51,10 +51,10 @@ class Traffic:
         page.on("websocket", lambda ws: ws.on("framereceived", self.received))
 
     def received(self, payload) -> None:
-        if not isinstance(payload, str) or not payload.startswith("42/ui,"):
+        # An event (42) or an event with binary attachments (45N-: the pushed frames), in /ui.
+        if not isinstance(payload, str) or not re.match(r"4(2|5\d+-)/ui,", payload):
             return
-        body = payload[len("42/ui,"):]
-        event, data = json.loads(body[body.index("["):])[:2]
+        event, data = json.loads(payload[payload.index("["):])[:2]
         self.events.append((time.monotonic(), event, data))
 
     def nodes_in(self, since: float) -> dict[str, set[str]]:

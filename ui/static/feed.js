@@ -14,6 +14,7 @@ const POLL_SLOW_MS = 1000;
 export const OVERVIEW_DOWN_MS = 5000; // GET /api/overview this often while the socket is down
 export const PUSH_MAX_FRAMES = 25; // frames per DCU and push asked of the relay
 export const UNREACHABLE = "relay unreachable, retrying";
+const MISSING = -1n; // probes/frametable.py: no time at this point (packed frames)
 
 /**
  * What the user is told of a failed request or connection: [status kind, text]. Transport
@@ -59,6 +60,50 @@ export class Api {
 }
 
 const q = encodeURIComponent;
+
+/** An ArrayBuffer of a binary attachment (a browser's socket.io-client gives one; a view is copied). */
+function arrayBuffer(data) {
+  return data instanceof ArrayBuffer ? data : data.buffer.slice(data.byteOffset, data.byteOffset + data.byteLength);
+}
+
+/**
+ * A pushed block with its frames unpacked: the relay packs them in two binary columns blocks
+ * (relay/live/framepack.py: int64 and float64, one row per field and stage); unpacked, each frame
+ * is the object GET /api/frames gives (MISSING times and NaN figures as null).
+ */
+export function unpackFrames(block) {
+  const p = block.packed;
+  if (!p) return block;
+  const k = p.count;
+  const ints = k ? new BigInt64Array(arrayBuffer(p.ints)) : new BigInt64Array(0);
+  const floats = k ? new Float64Array(arrayBuffer(p.floats)) : new Float64Array(0);
+  const frames = Array.from({ length: k }, () => ({}));
+  const read = (layout, values, convert) => {
+    let row = 0;
+    for (const [name, rows] of layout) {
+      const list = rows > 1 || name === "enter" || name === "exit" || name.startsWith("stage_");
+      for (let i = 0; i < k; i++) {
+        if (list) {
+          const out = new Array(rows);
+          for (let s = 0; s < rows; s++) out[s] = convert(name, values[(row + s) * k + i]);
+          frames[i][name] = out;
+        } else {
+          frames[i][name] = convert(name, values[row * k + i]);
+        }
+      }
+      row += rows;
+    }
+  };
+  read(p.int_fields, ints, (name, v) => {
+    if (name === "complete") return v !== 0n;
+    if ((name === "enter" || name === "exit" || name === "capture") && v === MISSING) return null;
+    return Number(v);
+  });
+  read(p.float_fields, floats, (_, v) => (Number.isNaN(v) ? null : v));
+  const { packed: _, ...rest } = block;
+  return { ...rest, frames };
+}
+
 
 /**
  * Live data. `sink` receives: nodes(list), frames(node, block), stats(node, stats),
@@ -169,8 +214,9 @@ export class LiveFeed {
     socket.on("overview", (msg) => this.sink.overview(msg));
     socket.on("frames", (msg) => {
       this.sink.relayTime(msg.t_ns / 1e6);
-      for (const [node, block] of Object.entries(msg.nodes)) {
+      for (const [node, packed] of Object.entries(msg.nodes)) {
         if (!this.wants(node)) continue; // pushed before the relay had our last subscription
+        const block = unpackFrames(packed);
         const queue = this.pending.get(node);
         if (queue) {
           queue.push(block);
