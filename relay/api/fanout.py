@@ -71,6 +71,10 @@ class FanoutHealth:
         self.since = time.time()
         self.error: str | None = None if self.ok else "not connected yet"
         self.outages = 0
+        self.received = 0
+        """Messages of other relays this relay received (their pushes to rooms its browsers are in)."""
+        self.rooms = 0
+        """Room channels this relay listens to now."""
         self._told_down = False
 
     def up(self) -> None:
@@ -90,7 +94,7 @@ class FanoutHealth:
 
     def view(self) -> dict:
         return {"mode": self.mode, "url": self.url, "ok": self.ok, "since": self.since, "error": self.error,
-                "outages": self.outages}
+                "outages": self.outages, "received": self.received, "rooms": self.rooms}
 
 
 class FleetManager(socketio.AsyncRedisManager):
@@ -146,6 +150,7 @@ class FleetManager(socketio.AsyncRedisManager):
             if self._subscribed - wanted:
                 await pubsub.unsubscribe(*(self._subscribed - wanted))
             self._subscribed = wanted
+            self.health.rooms = len(wanted)
 
     async def _redis_listen_with_retries(self):
         while True:
@@ -182,6 +187,7 @@ class FleetManager(socketio.AsyncRedisManager):
                 continue
             sender, body = data[:len(me)], data[len(me):]
             if sender != me:  # this relay delivered its own to its browsers already
+                self.health.received += 1
                 yield body
 
     async def close(self) -> None:

@@ -65,6 +65,11 @@ def test_a_browser_on_one_relay_gets_every_relays_dcus_and_only_those_it_shows(t
         shows_a, shows_b = asyncio.run(watch())
         assert shows_a.frames("DCU-A") and not shows_a.frames("DCU-B")
         assert shows_b.frames("DCU-B") and not shows_b.frames("DCU-A")
+        # Pushes are routed by room: B received A's pushes (DCU-A's frames, A's overview rows) for its
+        # pages; A, with no page, received nothing of B's, though B pushed DCU-B's frames all along.
+        fanout_a, fanout_b = (get_json(f"{r.url}/api/health")["fanout"] for r in (a, b))
+        assert fanout_a["received"] == 0 and fanout_a["rooms"] == 0, fanout_a
+        assert fanout_b["received"] > 0, fanout_b
         for browser in (shows_a, shows_b):
             rows = browser.rows()
             assert rows.keys() == {"DCU-A", "DCU-B"}
