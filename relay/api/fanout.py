@@ -15,7 +15,10 @@ browser of its own shows those DCUs (with 4 relays, most of each one's CPU). Her
 in, as they join and leave: it receives only what its browsers show. Everything else the manager
 says to the other relays (a room's members, disconnects, callbacks) stays on ``CHANNEL``. Each
 message starts with its sender's id, so a relay skips its own (it already delivered them) without
-decoding them.
+decoding them. An emit to a room is delivered to this relay's browsers straight away (python-socketio's
+manager encodes it for Redis first, then decodes it again for them), and one whose channel had no
+listener (PUBLISH's answer) is not even encoded for Redis for ``DEAF_S``: a relay whose DCUs no other
+relay's page shows publishes nothing of its pushes.
 
 Redis is not needed for anything but those pushes. While it is down or restarting:
 
@@ -32,12 +35,15 @@ Redis is not needed for anything but those pushes. While it is down or restartin
 from __future__ import annotations
 
 import asyncio
+import base64
 import logging
 import time
 from urllib.parse import urlsplit
 
 import socketio
+from socketio.packet import Packet
 
+from core.clocks import NEVER
 from relay.errors import RelayError
 from relay.urls import redact
 
@@ -49,6 +55,9 @@ RETRY_S = 1.0
 TIMEOUT_S = 1.0
 """Connecting to Redis and publishing give up after this long (a Redis that stopped answering)."""
 QUIET = ("Cannot publish to redis", "Cannot receive from redis")
+DEAF_S = 1.0
+"""A room channel no relay listened to is not published to for this long (a relay whose page just
+joined that room misses at most this much, which the page fills from GET /api/frames)."""
 
 log = logging.getLogger(__name__)
 
@@ -107,6 +116,8 @@ class FleetManager(socketio.AsyncRedisManager):
         self._subscribed: set[str] = set()
         """Room channels the subscriber listens to now (those of the rooms this relay's browsers are in)."""
         self._resubscribe = asyncio.Event()
+        self._deaf: dict[str, float] = {}
+        """Room channels no other relay listened to at the last publish -> until when they are skipped."""
 
     async def _publish(self, data):
         if not self.health.ok:
@@ -115,12 +126,37 @@ class FleetManager(socketio.AsyncRedisManager):
         if data.get("method") == "emit" and isinstance(data.get("room"), str) and not data.get("callback"):
             channel = ROOM_CHANNEL + data["room"]
         try:
-            return await asyncio.wait_for(self.redis.publish(channel, self.host_id + self.json.dumps(data)), TIMEOUT_S)
+            got = await asyncio.wait_for(self.redis.publish(channel, self.host_id + self.json.dumps(data)), TIMEOUT_S)
+            if channel != self.channel:
+                if got:
+                    self._deaf.pop(channel, None)
+                else:
+                    self._deaf[channel] = time.monotonic() + DEAF_S
+            return got
         except Exception as exc:  # noqa: BLE001 - any failure of Redis: degrade, say it once
             self.health.down(f"cannot publish: {_describe(exc)}")
             # The subscriber's connection goes too: it reconnects, and says when Redis is back.
             await self._close_connections()
             return None
+
+    async def emit(self, event, data, namespace=None, room=None, skip_sid=None, callback=None, to=None, **kwargs):
+        room = to or room
+        if callback is not None or kwargs.get("ignore_queue") or not isinstance(room, str):
+            return await super().emit(event, data, namespace=namespace, room=room, skip_sid=skip_sid,
+                                      callback=callback, **kwargs)
+        namespace = namespace or "/"
+        await socketio.AsyncManager.emit(self, event, data, namespace, room=room, skip_sid=skip_sid)
+        if self._deaf.get(ROOM_CHANNEL + room, NEVER) > time.monotonic():
+            return None  # no other relay listened a moment ago: not encoded, not sent
+        payload = list(data) if isinstance(data, tuple) else [data]
+        binary = self.server.packet_class.data_is_binary(payload)
+        if binary:  # as python-socketio's pub/sub manager carries attachments
+            payload, attachments = Packet.deconstruct_binary(payload)
+            payload = [payload, *[base64.b64encode(a).decode() for a in attachments]]
+        await self._publish({"method": "emit", "event": event, "data": payload, "binary": binary,
+                             "namespace": namespace, "room": room, "skip_sid": skip_sid, "callback": None,
+                             "host_id": self.host_id})
+        return None
 
     # --- the room channels this relay listens to ---------------------------------------------------
 

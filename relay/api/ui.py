@@ -51,6 +51,8 @@ NAMESPACE = "/ui"
 OVERVIEW = "overview"
 EVERY = "every-dcu"
 DEFAULT_PUSH_HZ = 30.0
+PUSH_SHARE = 0.5
+"""The most of the relay's time the pushes take (pairing what browsers show, packing, sending)."""
 IDLE_PERIOD_S = 0.5
 """How often runs nobody shows are paired (their frames shown, settled ones finalised)."""
 HOUSEKEEPING_S = 0.1
@@ -177,11 +179,15 @@ class Ticker:
         await asyncio.gather(self._push_loop(), self._housekeeping_loop(), self.interest.run())
 
     async def _push_loop(self) -> None:
-        last = NEVER
+        last, spent = NEVER, 0.0
         while True:
             await self._wake.wait()
-            wait = last + self.period - time.monotonic()
-            if wait > 0:  # at most push_hz pushes a second: what came meanwhile goes in the next one
+            # At most push_hz pushes a second, and the pushes at most PUSH_SHARE of the relay's time:
+            # after a push that took d, the next waits d x (1 - PUSH_SHARE) / PUSH_SHARE at least.
+            # What came meanwhile goes in the next one, so a busy relay pairs and pushes in larger
+            # steps (each costs about the same whatever it holds) instead of falling behind.
+            wait = max(last + self.period, last + spent / PUSH_SHARE) - time.monotonic()
+            if wait > 0:
                 await asyncio.sleep(wait)
             self._wake.clear()
             last = time.monotonic()
@@ -189,6 +195,7 @@ class Ticker:
                 await self.push_frames()
             except Exception:  # noqa: BLE001 - the heartbeat must survive a bad push
                 log.exception("relay push failed")
+            spent = time.monotonic() - last
 
     async def _housekeeping_loop(self) -> None:
         while True:
