@@ -23,6 +23,7 @@ from relay.store.base import BatchRow, NotOwner
 from relay.store.engines import open_database
 from relay.store.runs import frame_starts, list_sessions, load_runs, load_session
 from relay.store.writer import Storage
+from tests.relay.helpers import wait_for
 
 T0 = 1_700_000_000_000_000_000
 
@@ -337,7 +338,10 @@ def test_a_transaction_postgresql_rolls_back_as_a_deadlock_is_tried_again(pg_url
             assert locked_b.wait(10)
             other.execute("UPDATE runs SET events = events + 10 WHERE id = %s", (a,))
             locked_a.set()
-            time.sleep(0.3)  # the relay's side waits on a before this side asks for b
+            with psycopg.connect(pg_url, autocommit=True) as monitor:  # the relay's side waits on a first
+                assert wait_for(lambda: monitor.execute(
+                    "SELECT 1 FROM pg_stat_activity WHERE datname = current_database() AND wait_event_type = 'Lock'"
+                ).fetchone(), 10, 0.02, "the relay's side waiting on a")
             other.execute("UPDATE runs SET events = events + 10 WHERE id = %s", (b,))
             other.commit()
             done.result(timeout=30)
