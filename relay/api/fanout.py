@@ -55,7 +55,7 @@ RETRY_S = 1.0
 TIMEOUT_S = 1.0
 """Connecting to Redis and publishing give up after this long (a Redis that stopped answering)."""
 QUIET = ("Cannot publish to redis", "Cannot receive from redis")
-DEAF_S = 1.0
+DEAF_S = 0.25
 """A room channel no relay listened to is not published to for this long (a relay whose page just
 joined that room misses at most this much, which the page fills from GET /api/frames)."""
 

@@ -15,6 +15,7 @@ from tests.relay.helpers import RelayProcess, finish_node, get_json, load_node, 
 from tests.relay.test_fleet import stored_equals_sent
 
 pytestmark = pytest.mark.xdist_group("fanout")
+FRAMES = 400
 
 
 def held_by(relay: RelayProcess) -> dict[str, str]:
@@ -48,8 +49,9 @@ def test_a_browser_on_one_relay_gets_every_relays_dcus_and_only_those_it_shows(t
     a = RelayProcess(pg_url, log=tmp_path / "a.log", args=[*args, "--name", "relay-a"])
     b = RelayProcess(pg_url, log=tmp_path / "b.log", args=[*args, "--name", "relay-b"])
     try:
-        on_a = start_node(a.url, "DCU-A", tmp_path / "a.npz", frames=200, sources=2, fps=40, paced=True, linger=True)
-        on_b = start_node(b.url, "DCU-B", tmp_path / "b.npz", frames=200, sources=2, fps=40, paced=True, linger=True)
+        # 10 s of frames each: the watch below starts once both relays list both (a loaded machine is slower).
+        on_a = start_node(a.url, "DCU-A", tmp_path / "a.npz", frames=FRAMES, sources=2, fps=40, paced=True, linger=True)
+        on_b = start_node(b.url, "DCU-B", tmp_path / "b.npz", frames=FRAMES, sources=2, fps=40, paced=True, linger=True)
         both = {"DCU-A": "relay-a", "DCU-B": "relay-b"}
         wait_for(lambda: held_by(a) == both and held_by(b) == both, 30, what="each relay lists both DCUs")
 
@@ -57,7 +59,12 @@ def test_a_browser_on_one_relay_gets_every_relays_dcus_and_only_those_it_shows(t
             shows_a, shows_b = Browser(), Browser()
             await shows_a.open(b.url, ["DCU-A"])  # a DCU of the other relay
             await shows_b.open(b.url, ["DCU-B"])
-            await asyncio.sleep(3.0)
+            # Until each got frames of its DCU (at most 20 s), and 1 s more for any it should not get.
+            for _ in range(200):
+                if shows_a.frames("DCU-A") and shows_b.frames("DCU-B"):
+                    break
+                await asyncio.sleep(0.1)
+            await asyncio.sleep(1.0)
             for browser in (shows_a, shows_b):
                 await browser.sio.disconnect()
             return shows_a, shows_b
@@ -87,7 +94,7 @@ def test_a_browser_on_one_relay_gets_every_relays_dcus_and_only_those_it_shows(t
         mirrored = get_json(f"{b.url}/api/frames?node=DCU-A&limit=2000")
         own = get_json(f"{a.url}/api/frames?node=DCU-A&limit=2000")
         key = lambda f: (f["source"], f["frame"], f["delay_ms"])  # noqa: E731
-        assert len(own["frames"]) == 400 and sorted(map(key, mirrored["frames"])) == sorted(map(key, own["frames"]))
+        assert len(own["frames"]) == 2 * FRAMES and sorted(map(key, mirrored["frames"])) == sorted(map(key, own["frames"]))
         stats_b, stats_a = get_json(f"{b.url}/api/stats?node=DCU-A"), get_json(f"{a.url}/api/stats?node=DCU-A")
         assert stats_b["frames"] == stats_a["frames"] and stats_b["frame"]["p99_ms"] == stats_a["frame"]["p99_ms"]
         overview = get_json(f"{b.url}/api/overview")

@@ -270,8 +270,13 @@ def test_open_in_the_address_opens_those_dcus_and_star_opens_all(fleet, browser)
         since = time.monotonic()
         page.wait_for_timeout(2000)
         # At least 2 s, until both DCUs' frames came (a loaded machine is slower).
-        seen = wait_for(lambda: (lambda s: s if s >= set(want) else None)(traffic.nodes_in(since)["frames"]), 30, 0.2,
-                        "both DCUs' frames pushed")
+        try:
+            seen = wait_for(lambda: (lambda s: s if s >= set(want) else None)(traffic.nodes_in(since)["frames"]), 30,
+                            0.2, "both DCUs' frames pushed")
+        except AssertionError as exc:
+            d = debug(page)
+            raise AssertionError(f"{exc}: transport {d['transport']}, subscription {d['subscription']}, frames pushed "
+                                 f"before: {traffic.nodes_in(0)['frames']}, received {d['stores']}") from None
         assert seen == set(want)
     finally:
         page.close()
