@@ -5,6 +5,7 @@ reason in full only in the clock's title and in the detail row a click opens."""
 from __future__ import annotations
 
 import pytest
+from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
 from tests.relay.helpers import get_json, wait_for
 from tests.ui.helpers import RelayThread, sim_nodes
@@ -102,12 +103,15 @@ window.__panelsAt = null;
 const raf = window.requestAnimationFrame.bind(window);
 // A young clock, the same on every machine: frame k at k x 16.7 ms after the page's start.
 window.requestAnimationFrame = (cb) => raf(() => { window.__frames += 1; cb(window.__frames * 1000 / 60); });
-document.addEventListener("DOMContentLoaded", () => {
-  const seen = () => { if (window.__panelsAt === null) window.__panelsAt = window.__frames; };
-  for (const id of ["#stats-body", "#nodes-body"]) {
-    new MutationObserver(seen).observe(document.querySelector(id), {childList: true, subtree: true});
+// Watched from the start (the first frame may come before DOMContentLoaded's listeners run): a
+// change inside either panel once frames run is the page drawing it (the parser's come before).
+new MutationObserver((changes) => {
+  if (window.__panelsAt !== null || window.__frames === 0) return;
+  const within = (n) => (n.nodeType === 1 ? n : n.parentElement)?.closest("#stats-body, #nodes-body");
+  if (changes.some((c) => within(c.target))) {
+    window.__panelsAt = window.__frames;
   }
-});
+}).observe(document, {childList: true, subtree: true, characterData: true});
 """
 
 
@@ -118,7 +122,11 @@ def test_the_panels_are_drawn_from_the_first_frame_of_a_page(browser, streaming)
     try:
         page.add_init_script(YOUNG_PAGE)
         page.goto(streaming.url + "/")
-        page.wait_for_function("window.__panelsAt !== null", timeout=20_000)
+        try:
+            page.wait_for_function("window.__panelsAt !== null", timeout=20_000)
+        except PlaywrightTimeout:
+            state = page.evaluate("({frames: window.__frames, app: window.dcuscope !== undefined})")
+            raise AssertionError(f"no panel drawn in 20 s: {state}") from None
         assert page.evaluate("window.__panelsAt") == 1
         for node in NODES:  # and refreshed after, as data comes
             page.wait_for_selector(f'#nodes-body tr[data-node="{node}"]', timeout=20_000)
