@@ -52,7 +52,9 @@ OVERVIEW = "overview"
 EVERY = "every-dcu"
 DEFAULT_PUSH_HZ = 30.0
 PUSH_SHARE = 0.5
-"""The most of the relay's time the pushes take (pairing what browsers show, packing, sending)."""
+"""The most of the relay's CPU the pushes take (pairing what browsers show, packing, sending)."""
+PUSH_BACKOFF_S = 1.0
+"""The longest a push waits for the share above."""
 IDLE_PERIOD_S = 0.5
 """How often runs nobody shows are paired (their frames shown, settled ones finalised)."""
 HOUSEKEEPING_S = 0.1
@@ -182,20 +184,22 @@ class Ticker:
         last, spent = NEVER, 0.0
         while True:
             await self._wake.wait()
-            # At most push_hz pushes a second, and the pushes at most PUSH_SHARE of the relay's time:
-            # after a push that took d, the next waits d x (1 - PUSH_SHARE) / PUSH_SHARE at least.
-            # What came meanwhile goes in the next one, so a busy relay pairs and pushes in larger
-            # steps (each costs about the same whatever it holds) instead of falling behind.
-            wait = max(last + self.period, last + spent / PUSH_SHARE) - time.monotonic()
+            # At most push_hz pushes a second, and the pushes at most PUSH_SHARE of the relay's CPU:
+            # after a push that took d of CPU, the next starts d / PUSH_SHARE after its start at the
+            # earliest (at most PUSH_BACKOFF_S). What came meanwhile goes in the next one, so a busy
+            # relay pairs and pushes in larger steps (each costs about the same whatever it holds)
+            # instead of falling behind. CPU, not wall time: a slow browser or a starved thread is
+            # no reason to push less.
+            wait = last + max(self.period, min(spent / PUSH_SHARE, PUSH_BACKOFF_S)) - time.monotonic()
             if wait > 0:
                 await asyncio.sleep(wait)
             self._wake.clear()
-            last = time.monotonic()
+            last, cpu = time.monotonic(), time.thread_time()
             try:
                 await self.push_frames()
             except Exception:  # noqa: BLE001 - the heartbeat must survive a bad push
                 log.exception("relay push failed")
-            spent = time.monotonic() - last
+            spent = time.thread_time() - cpu
 
     async def _housekeeping_loop(self) -> None:
         while True:
