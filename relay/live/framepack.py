@@ -77,8 +77,7 @@ def unpack(block: dict) -> dict:
             rows = [[bool(v) for v in r] for r in rows]
         elif part.dtype.kind == "f":
             rows = [[None if v != v else v for v in r] for r in rows]
-        per_stage = len(part) != 1 or name in PER_STAGE_NAMES
-        fields[name] = rows if per_stage else [r[0] for r in rows]
+        fields[name] = rows if name in PER_STAGE_NAMES else [r[0] for r in rows]
     out = {key: value for key, value in block.items() if key != "packed"}
     out["frames"] = [{name: values[i] for name, values in fields.items()} for i in range(p["count"])]
     return out
