@@ -14,6 +14,7 @@ many samples, with a bound that holds at every timestamp, and keeps the history 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 
@@ -143,9 +144,17 @@ class Correction:
     segments: tuple[Segment, ...] = ()
     base_uncertainty_ns: int = 0
 
+    @cached_property
+    def _table(self) -> dict[str, np.ndarray]:
+        """The segments' fields as arrays (looked up by index), built once."""
+        seg = self.segments
+        return {"from": np.array([s.from_ns for s in seg], np.int64), "offset": np.array([s.offset_ns for s in seg], np.int64),
+                "drift": np.array([s.drift_ppb for s in seg], np.float64), "ref": np.array([s.ref_ns for s in seg], np.int64),
+                "unc": np.array([s.uncertainty_ns for s in seg], np.int64),
+                "growth": np.array([s.growth_ppb for s in seg], np.float64)}
+
     def _index(self, ts: np.ndarray) -> np.ndarray:
-        starts = np.array([s.from_ns for s in self.segments], dtype=np.int64)
-        return np.maximum(np.searchsorted(starts, ts, side="right") - 1, 0)
+        return np.maximum(np.searchsorted(self._table["from"], ts, side="right") - 1, 0)
 
     def offsets(self, ts: np.ndarray, at: np.ndarray | None = None) -> np.ndarray:
         """(n,) int64 ns to subtract from each node timestamp of ``ts``, by the segment in force at
@@ -153,22 +162,25 @@ class Correction:
         ts = np.asarray(ts, dtype=np.int64)
         if not self.segments:
             return np.zeros(ts.shape, dtype=np.int64)
-        seg = self._index(ts if at is None else np.asarray(at, dtype=np.int64))
-        off = np.array([s.offset_ns for s in self.segments], dtype=np.int64)[seg]
-        drift = np.array([s.drift_ppb for s in self.segments], dtype=np.float64)[seg]
-        ref = np.array([s.ref_ns for s in self.segments], dtype=np.int64)[seg]
-        return off + np.rint(drift * (ts - ref).astype(np.float64) / 1e9).astype(np.int64)
+        return self.per_frame(ts if at is None else at).offsets(ts)
 
     def uncertainties(self, ts: np.ndarray, at: np.ndarray | None = None) -> np.ndarray:
         """(n,) int64 ns: bound on |true offset - applied offset| at each timestamp (``at`` as in :meth:`offsets`)."""
         ts = np.asarray(ts, dtype=np.int64)
         if not self.segments:
             return np.full(ts.shape, self.base_uncertainty_ns, dtype=np.int64)
-        seg = self._index(ts if at is None else np.asarray(at, dtype=np.int64))
-        unc = np.array([s.uncertainty_ns for s in self.segments], dtype=np.int64)[seg]
-        growth = np.array([s.growth_ppb for s in self.segments], dtype=np.float64)[seg]
-        ref = np.array([s.ref_ns for s in self.segments], dtype=np.int64)[seg]
-        return unc + self.base_uncertainty_ns + np.ceil(growth * np.abs(ts - ref).astype(np.float64) / 1e9).astype(np.int64)
+        return self.per_frame(ts if at is None else at).uncertainties(ts)
+
+    def per_frame(self, at: np.ndarray) -> FrameCorrection:
+        """The segment in force at each of ``at`` (a frame's origin), looked up once for every
+        timestamp of the frame (:class:`FrameCorrection`)."""
+        at = np.asarray(at, dtype=np.int64)
+        if not self.segments:
+            zero = np.zeros(at.shape, np.int64)
+            return FrameCorrection(zero, zero, zero.astype(np.float64), zero + self.base_uncertainty_ns, zero.astype(np.float64))
+        seg, t = self._index(at), self._table
+        return FrameCorrection(t["offset"][seg], t["ref"][seg], t["drift"][seg], t["unc"][seg] + self.base_uncertainty_ns,
+                               t["growth"][seg])
 
     def at(self, ts: int) -> tuple[int, int]:
         """(offset, uncertainty) in ns at one node timestamp."""
@@ -192,6 +204,38 @@ class Correction:
     def to_dict(self) -> dict:
         return {"applied": self.applied, "why": self.why, "base_uncertainty_ns": self.base_uncertainty_ns,
                 "segments": [s.to_dict() for s in self.segments]}
+
+
+@dataclass(frozen=True)
+class FrameCorrection:
+    """One segment of a :class:`Correction` per frame: offsets and bounds of timestamps of shape
+    (n,), one per frame, or (n, k), a frame's k timestamps per row."""
+    offset: np.ndarray
+    ref: np.ndarray
+    drift: np.ndarray
+    uncertainty: np.ndarray
+    """The segment's bound plus the correction's base bound."""
+    growth: np.ndarray
+
+    def offsets(self, ts: np.ndarray) -> np.ndarray:
+        ts = np.asarray(ts, dtype=np.int64)
+        off, ref, drift = (_rows(a, ts) for a in (self.offset, self.ref, self.drift))
+        return off + np.rint(drift * (ts - ref).astype(np.float64) / 1e9).astype(np.int64)
+
+    def uncertainties(self, ts: np.ndarray) -> np.ndarray:
+        ts = np.asarray(ts, dtype=np.int64)
+        unc, ref, growth = (_rows(a, ts) for a in (self.uncertainty, self.ref, self.growth))
+        return unc + np.ceil(growth * np.abs(ts - ref).astype(np.float64) / 1e9).astype(np.int64)
+
+    def correct(self, ts: np.ndarray) -> np.ndarray:
+        """Node timestamps moved to the relay's clock (MISSING kept as it is)."""
+        ts = np.asarray(ts, dtype=np.int64)
+        return np.where(ts == MISSING, ts, ts - self.offsets(ts))
+
+
+def _rows(per_frame: np.ndarray, ts: np.ndarray) -> np.ndarray:
+    """``per_frame`` shaped to broadcast over ``ts``'s rows."""
+    return per_frame.reshape(per_frame.shape + (1,) * (ts.ndim - per_frame.ndim)) if ts.ndim > per_frame.ndim else per_frame
 
 
 NO_CORRECTION = Correction("none", "no clock estimate yet")

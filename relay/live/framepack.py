@@ -38,18 +38,46 @@ def columns(n: np.ndarray, fd: FrameDelays, corr: Correction) -> tuple[np.ndarra
     """The frames of ``fd`` (``n`` the cursor of each) as (ints, floats), fields in the order of
     :data:`INT_FIELDS` and :data:`FLOAT_FIELDS`, each of shape (rows, frames); the same values as
     :func:`relay.live.framejson.frame_dicts` (every node time moved by ``corr`` at the frame's origin)."""
+    return corrected(*node_columns(n, fd), corr, fd.table.enter.shape[1])
+
+
+def node_columns(n: np.ndarray, fd: FrameDelays) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`columns` as the node's clock has them, floats in ns: what the live engine keeps of the
+    frames it shows, moved and scaled only when pushed (:func:`corrected`)."""
     t, ch = fd.table, fd.chains
-    origin, end = t.origin, ch.end
-    per_stage = np.broadcast_to(origin[:, None], t.enter.shape)
+    zero = np.zeros(len(t), np.int64)
     ints = np.concatenate([
-        np.stack([np.asarray(n, np.int64), t.source.astype(np.int64), t.frame.astype(np.int64), corr.correct(origin),
-                  corr.correct(end, origin), ch.complete.astype(np.int64)]),
-        corr.correct(t.enter, per_stage).T, corr.correct(t.exit, per_stage).T,
-        np.stack([t.capture.astype(np.int64), corr.offsets(origin), corr.uncertainties(origin)]),
+        np.stack([np.asarray(n, np.int64), t.source.astype(np.int64), t.frame.astype(np.int64), t.origin, ch.end,
+                  ch.complete.astype(np.int64)]),
+        t.enter.T, t.exit.T, np.stack([t.capture.astype(np.int64), zero, zero]),
     ]).astype(np.int64, copy=False)
-    glass = fd.glass - corr.offsets(end, origin).astype(np.float64)
-    floats = np.concatenate([np.stack([fd.delay, glass]), *(fd.per_stage[c].T for c in STAGE_COLUMNS)]) / NS_PER_MS
+    floats = np.concatenate([np.stack([fd.delay, fd.glass]), *(fd.per_stage[c].T for c in STAGE_COLUMNS)])
     return ints, floats
+
+
+def corrected(ints: np.ndarray, floats: np.ndarray, corr: Correction, stages: int) -> tuple[np.ndarray, np.ndarray]:
+    """Columns of :func:`node_columns` with every node time moved by ``corr`` at the frame's origin,
+    and the floats in ms (new arrays)."""
+    rows = _rows(INT_FIELDS, stages)
+    times = np.r_[rows["origin"], rows["end"], rows["enter"], rows["exit"]]
+    origin, end = ints[rows["origin"]][0], ints[rows["end"]][0]
+    fc = corr.per_frame(origin)
+    out = ints.copy()
+    out[times] = fc.correct(ints[times].T).T
+    out[rows["clock_ns"]] = fc.offsets(origin)
+    out[rows["clock_uncertainty_ns"]] = fc.uncertainties(origin)
+    floats = floats.copy()
+    floats[_rows(FLOAT_FIELDS, stages)["glass_ms"]] -= fc.offsets(end).astype(np.float64)
+    return out, floats / NS_PER_MS
+
+
+def _rows(fields: tuple, stages: int) -> dict[str, slice]:
+    """Where each field's rows are in a columns array."""
+    out, row = {}, 0
+    for name, rows in _layout(fields, stages):
+        out[name] = slice(row, row + rows)
+        row += rows
+    return out
 
 
 def packed(ints: np.ndarray, floats: np.ndarray, stages: int, last: int | None = None) -> dict:
@@ -100,6 +128,16 @@ def columns_of(p: dict) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
 def unpack_push(msg: dict) -> dict:
     """A ``frames`` push with every block's frames unpacked (:func:`unpack`)."""
     return dict(msg, nodes={node: unpack(block) for node, block in msg["nodes"].items()})
+
+
+def int_rows(stages: int) -> int:
+    """Rows of an ints columns array for ``stages`` stages."""
+    return sum(r for _, r in _layout(INT_FIELDS, stages))
+
+
+def float_rows(stages: int) -> int:
+    """Rows of a floats columns array for ``stages`` stages."""
+    return sum(r for _, r in _layout(FLOAT_FIELDS, stages))
 
 
 def _layout(fields: tuple, stages: int) -> list[list]:

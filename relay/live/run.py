@@ -40,8 +40,11 @@ from probes.delays import NS_PER_MS, Chains, FrameDelays, Series, chains, delay_
 from probes.events import EXIT, FRAME_CELLS, GROUP, READY, TraceHeader
 from probes.facts import Accounting
 from probes.frametable import MISSING, FrameTable, frame_events, frame_table_from_cells
+from relay.live import framepack
+from relay.live.opentable import OpenTable
 from relay.live.values import RELATIVE_ERROR, OriginSpans, RunValues
 
+NEVER = np.iinfo(np.int64).max
 KEY_SHIFT = 44  # key = source << 44 | frame; probes.wire bounds both to fit
 FINALISE_PERIOD_NS = 500_000_000
 """Node time between two finalisation/eviction passes."""
@@ -141,13 +144,7 @@ class LiveRun:
         self.config = config
         s = len(self.stages)
         self._s = s
-        # Open frames, sorted by key.
-        self._keys = np.zeros(0, np.int64)
-        self._cells = np.zeros((0, s, FRAME_CELLS), np.int64)
-        self._last = np.zeros(0, np.int64)
-        self._shown = np.zeros(0, bool)
-        self._end = np.zeros(0, np.int64)
-        """Per open frame, where its chain ended, set once it was shown (complete)."""
+        self._open = OpenTable(s)
         self._has_exit = np.zeros(s, bool)
         self._judged_exits: np.ndarray | None = None
         """``_has_exit`` when the shown frames were judged: should it change, they are judged again."""
@@ -173,7 +170,11 @@ class LiveRun:
                       "cells": Grow(np.int64, (s, FRAME_CELLS), ring), "end": Grow(np.int64, cap=ring)}
         self._evicted_last = Grow(np.int64, cap=config.evicted_kept)
         self._recent = {"n": Grow(np.int64, cap=recent), "source": Grow(np.int32, cap=recent),
-                        "frame": Grow(np.int64, cap=recent), "cells": Grow(np.int64, (s, FRAME_CELLS), recent)}
+                        "frame": Grow(np.int64, cap=recent), "cells": Grow(np.int64, (s, FRAME_CELLS), recent),
+                        "ints": Grow(np.int64, (framepack.int_rows(s),), recent),
+                        "floats": Grow(np.float64, (framepack.float_rows(s),), recent)}
+        """The complete frames, newest last: cells (for :meth:`recent`) and their pushed columns
+        (:func:`relay.live.framepack.node_columns`, one row per frame, for :meth:`recent_columns`)."""
         self.finalised = 0
         self.evicted = 0
         self.late = 0
@@ -201,7 +202,8 @@ class LiveRun:
         share = {part: int(budget * f) for part, f in SHARES.items()}
         self._open_cap = min(c.max_open_frames, max(MIN_FRAMES, share["open"] // (row + FRAME_OVERHEAD)))
         ring = min(c.ring_frames, max(MIN_FRAMES, share["ring"] // (2 * (row + RING_OVERHEAD))))
-        recent = min(c.recent_frames, max(MIN_FRAMES, share["recent"] // (2 * (row + RING_OVERHEAD))))
+        pushed = (framepack.int_rows(self._s) + framepack.float_rows(self._s)) * 8
+        recent = min(c.recent_frames, max(MIN_FRAMES, share["recent"] // (2 * (row + pushed + RING_OVERHEAD))))
         for g in self._ring.values():
             g.set_cap(ring)
         for g in self._recent.values():
@@ -211,22 +213,31 @@ class LiveRun:
         self._exact_limit = min(c.exact_values, max(64, share["exact"] // (8 * (4 * self._s + 1))))
         for v in self._all_series():
             v.lower_limit(self._exact_limit)
-        excess = len(self._keys) - self._open_cap
+        excess = self._open.n - self._open_cap
         if excess > 0:
-            self._evict_open(np.argsort(self._last, kind="stable")[:excess])
+            self._evict_open(np.argsort(self._open.last, kind="stable")[:excess])
 
     @property
     def nbytes(self) -> int:
         """Bytes of the arrays this run holds (they dominate its memory)."""
-        arrays = (self._keys, self._cells, self._last, self._shown, self._end, self._src_ids, self._watermark, self._framed,
-                  *self._pending)
+        arrays = (self._src_ids, self._watermark, self._framed, *self._pending)
         grows = (*self._ring.values(), *self._recent.values(), self._evicted_last)
-        return sum(a.nbytes for a in arrays) + sum(g.nbytes for g in grows) + sum(v.nbytes for v in self._all_series())
+        return (self._open.nbytes + sum(a.nbytes for a in arrays) + sum(g.nbytes for g in grows)
+                + sum(v.nbytes for v in self._all_series()))
 
     @property
     def pending_events(self) -> int:
         """Events queued by :meth:`add`, not yet merged."""
         return sum(len(e) for e in self._pending)
+
+    @property
+    def open_count(self) -> int:
+        """Frames open now (neither finalised nor evicted)."""
+        return self._open.n
+
+    def open_keys(self) -> np.ndarray:
+        """The keys (``source << KEY_SHIFT | frame``) of the open frames, in no set order."""
+        return self._open.keys.copy()
 
     @property
     def open_cap(self) -> int:
@@ -236,7 +247,7 @@ class LiveRun:
     def admit_sources(self, sources: np.ndarray, limit: int) -> int:
         """Note the source ids of a batch unless the run would then name more than ``limit``
         distinct ones; returns how many it would name (nothing is noted when over)."""
-        new = np.setdiff1d(np.unique(sources), self._src_ids, assume_unique=True)
+        new = self._new_sources(sources)
         total = len(self._src_ids) + len(new)
         if total <= limit:
             self._note_sources(new)
@@ -251,7 +262,7 @@ class LiveRun:
         until the next :meth:`maintain` (the relay's tick) or read, and merge as one.
         """
         if len(events):
-            self._note_sources(np.setdiff1d(np.unique(events["source"]), self._src_ids, assume_unique=True))
+            self._note_sources(self._new_sources(events["source"]))
             self._pending.append(events)
             self.events += len(events)
 
@@ -286,17 +297,13 @@ class LiveRun:
             return
         slot = (pos * self._s + stage) * FRAME_CELLS
         flat = slot + point
-        order = np.lexsort((ts, flat))
-        fs, tsort = flat[order], ts[order]
-        first = np.ones(len(fs), bool)
-        first[1:] = fs[1:] != fs[:-1]
-        fu, tu = fs[first], tsort[first]
-        cells = self._cells.reshape(-1)
-        cur = cells[fu]
-        cells[fu] = np.where(cur == MISSING, tu, np.minimum(cur, tu))
+        # The earliest time of each cell: a scatter-min, missing cells (-1) counted as never.
+        cells = self._open.flat_cells
+        cells[flat[cells[flat] == MISSING]] = NEVER
+        np.minimum.at(cells, flat, ts)
         ready = point == READY
         cells[slot[ready] + GROUP] = code[ready]
-        np.maximum.at(self._last, pos, ts)
+        np.maximum.at(self._open.last, pos, ts)
         self._dirty = True
 
     def _place(self, key: np.ndarray, frame: np.ndarray, src: np.ndarray,
@@ -304,7 +311,7 @@ class LiveRun:
         """Open the frames of these events that are new; returns each event's row in the open
         table and which events have one: not those of a frame finalised or evicted before (late,
         counted), nor those of a frame evicted now to make room."""
-        pos, found = self._locate(key)
+        pos, found = self._open.locate(key)
         if found.all():
             return pos, found
         late = np.zeros(len(key), bool)
@@ -313,24 +320,8 @@ class LiveRun:
         opening = ~found & ~late
         if opening.any():
             new, inv = np.unique(key[opening], return_inverse=True)
-            self._open(new[~self._make_room(new, ts[opening], inv)])
-        return self._locate(key)
-
-    def _locate(self, key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        pos = np.searchsorted(self._keys, key)
-        if len(self._keys) == 0:
-            return pos, np.zeros(len(key), bool)
-        return pos, self._keys[np.minimum(pos, len(self._keys) - 1)] == key
-
-    def _open(self, new_keys: np.ndarray) -> None:
-        keys = np.concatenate([self._keys, new_keys])
-        order = np.argsort(keys, kind="stable")
-        k = len(new_keys)
-        self._keys = keys[order]
-        self._cells = np.concatenate([self._cells, np.full((k, self._s, FRAME_CELLS), MISSING, np.int64)])[order]
-        self._last = np.concatenate([self._last, np.zeros(k, np.int64)])[order]
-        self._shown = np.concatenate([self._shown, np.zeros(k, bool)])[order]
-        self._end = np.concatenate([self._end, np.zeros(k, np.int64)])[order]
+            self._open.open(new[~self._make_room(new, ts[opening], inv)])
+        return self._open.locate(key)
 
     def _make_room(self, new: np.ndarray, ts: np.ndarray, inv: np.ndarray) -> np.ndarray:
         """Keep the open table within its cap before ``new`` keys (sorted; ``ts`` their events'
@@ -343,25 +334,34 @@ class LiveRun:
             np.maximum.at(newest, inv, ts)
             dropped[np.argsort(newest, kind="stable")[:len(new) - cap]] = True
             self._count_evicted(new[dropped] >> KEY_SHIFT, new[dropped] & ((1 << KEY_SHIFT) - 1), newest[dropped])
-        excess = len(self._keys) + len(new) - int(dropped.sum()) - cap
+        excess = self._open.n + len(new) - int(dropped.sum()) - cap
         if excess > 0:
-            self._evict_open(np.argsort(self._last, kind="stable")[:excess])
+            self._evict_open(np.argsort(self._open.last, kind="stable")[:excess])
         return dropped
 
     def _evict_open(self, rows: np.ndarray) -> None:
         """Evict these open frames now (the open table is over its cap)."""
-        gone = np.zeros(len(self._keys), bool)
+        t = self._open
+        gone = np.zeros(t.n, bool)
         gone[rows] = True
-        keys = self._keys[gone]
-        self._count_evicted(keys >> KEY_SHIFT, keys & ((1 << KEY_SHIFT) - 1), self._last[gone])
-        keep = ~gone
-        self._keys, self._cells = self._keys[keep], self._cells[keep]
-        self._last, self._shown, self._end = self._last[keep], self._shown[keep], self._end[keep]
+        keys = t.keys[gone]
+        self._count_evicted(keys >> KEY_SHIFT, keys & ((1 << KEY_SHIFT) - 1), t.last[gone])
+        t.keep(~gone)
 
     def _count_evicted(self, source: np.ndarray, frame: np.ndarray, last: np.ndarray) -> None:
         self.evicted += len(source)
         self._evicted_last.extend(last)
         self._raise_watermark(source, frame)
+
+    def _new_sources(self, sources: np.ndarray) -> np.ndarray:
+        """The distinct ids of ``sources`` not seen before, sorted (none, the common case, found without a sort)."""
+        ids = self._src_ids
+        if len(ids):
+            known = ids[np.minimum(np.searchsorted(ids, sources), len(ids) - 1)] == sources
+            if known.all():
+                return ids[:0]
+            sources = sources[~known]
+        return np.unique(sources)
 
     def _note_sources(self, new: np.ndarray) -> None:
         """Add source ids not seen before (``new``, unique)."""
@@ -382,42 +382,48 @@ class LiveRun:
     def maintain(self) -> int:
         """Show complete frames, finalise settled ones, evict stale ones; returns frames shown."""
         self._merge_pending()
-        if not self._dirty or len(self._keys) == 0:
+        t = self._open
+        if not self._dirty or t.n == 0:
             return 0
         self._dirty = False
         open_ = self._open_frames()
-        complete, end = self._judge(open_)
-        shown = complete & ~self._shown
+        complete, end, judged = self._judge(open_)
+        shown = complete & ~t.shown
         k = int(shown.sum())
         if k:
-            self._shown |= shown
-            self._end[shown] = end[shown]
+            t.shown[shown] = True
+            t.end[shown] = end[shown]
             r = self._recent
-            r["n"].extend(np.arange(self.visible + 1, self.visible + k + 1))
+            n = np.arange(self.visible + 1, self.visible + k + 1)
+            r["n"].extend(n)
             r["source"].extend(open_.source[shown])
             r["frame"].extend(open_.frame[shown])
             r["cells"].extend(open_.cells[shown])
+            rows, fd = judged
+            new = shown[rows]  # the frames shown now are among those judged now, in the same order
+            ints, floats = framepack.node_columns(np.zeros(len(rows), np.int64), fd)
+            ints[0, new] = n
+            r["ints"].extend(ints[:, new].T)
+            r["floats"].extend(floats[:, new].T)
             self.visible += k
 
         # Finalising costs as much as showing; settled frames can wait a little longer.
-        if self.newest < self._next_finalise and len(self._keys) <= self._open_cap:
+        if self.newest < self._next_finalise and t.n <= self._open_cap:
             return k
         self._next_finalise = self.newest + FINALISE_PERIOD_NS
         done = complete & (end <= self.newest - self._settle_ns)
-        stale = ~complete & (self._last < self.newest - int(self.config.evict_s * 1e9))
-        excess = len(self._keys) - int(done.sum()) - int(stale.sum()) - self._open_cap
+        stale = ~complete & (t.last < self.newest - int(self.config.evict_s * 1e9))
+        excess = t.n - int(done.sum()) - int(stale.sum()) - self._open_cap
         if excess > 0:
             candidates = np.flatnonzero(~done & ~stale)
-            stale[candidates[np.argsort(self._last[candidates], kind="stable")[:excess]]] = True
+            stale[candidates[np.argsort(t.last[candidates], kind="stable")[:excess]]] = True
         if done.any():
             self._finalise(_Frames(open_.source[done], open_.frame[done], open_.cells[done]))
         if stale.any():
-            self._count_evicted(open_.source[stale], open_.frame[stale], self._last[stale])
+            self._count_evicted(open_.source[stale], open_.frame[stale], t.last[stale])
         gone = done | stale
         if gone.any():
-            keep = ~gone
-            self._keys, self._cells = self._keys[keep], self._cells[keep]
-            self._last, self._shown, self._end = self._last[keep], self._shown[keep], self._end[keep]
+            t.keep(~gone)
         return k
 
     def finish(self) -> None:
@@ -430,7 +436,8 @@ class LiveRun:
         self.maintain()
 
     def _open_frames(self) -> _Frames:
-        return _Frames((self._keys >> KEY_SHIFT).astype(np.int32), self._keys & ((1 << KEY_SHIFT) - 1), self._cells)
+        keys = self._open.keys
+        return _Frames((keys >> KEY_SHIFT).astype(np.int32), keys & ((1 << KEY_SHIFT) - 1), self._open.cells)
 
     def _table(self, frames: _Frames) -> FrameTable:
         table = frame_table_from_cells(self.stages, frames.source, frames.frame, frames.cells)
@@ -445,21 +452,22 @@ class LiveRun:
         """The delay model's figures of ``frames``, judged by the exit points of the whole run."""
         return frame_delays(self._table(frames), self._has_exit)
 
-    def _judge(self, open_: _Frames) -> tuple[np.ndarray, np.ndarray]:
-        """Which open frames are complete, and where their chains end. A frame shown is complete
-        at the end it had then: only the others are judged each tick (most open frames are shown
-        ones waiting to settle), unless the run's exit points changed since (which may change
-        any frame's chain)."""
-        complete, end = self._shown.copy(), self._end.copy()
+    def _judge(self, open_: _Frames) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, FrameDelays | None]]:
+        """Which open frames are complete, where their chains end, and the rows judged now with
+        their delays. A frame shown is complete at the end it had then: only the others are judged
+        each tick (most open frames are shown ones waiting to settle), unless the run's exit points
+        changed since (which may change any frame's chain)."""
+        complete, end = self._open.shown.copy(), self._open.end.copy()
         if self._judged_exits is None or not np.array_equal(self._judged_exits, self._has_exit):
             self._judged_exits = self._has_exit.copy()
             rows = np.arange(len(complete))
         else:
             rows = np.flatnonzero(~complete)
-        if len(rows):
-            ch = self._chains(_Frames(open_.source[rows], open_.frame[rows], open_.cells[rows]))
-            complete[rows], end[rows] = ch.complete, ch.end
-        return complete, end
+        if not len(rows):
+            return complete, end, (rows, None)
+        fd = self._delays(_Frames(open_.source[rows], open_.frame[rows], open_.cells[rows]))
+        complete[rows], end[rows] = fd.chains.complete, fd.chains.end
+        return complete, end, (rows, fd)
 
     def _finalise(self, frames: _Frames) -> None:
         fd = self._delays(frames)
@@ -556,7 +564,7 @@ class LiveRun:
                                   np.concatenate([ring["frame"].view[sel], open_.frame[osel]]),
                                   np.concatenate([ring["cells"].view[sel], open_.cells[osel]])))
         c = fd.chains.complete
-        incomplete = int((self._evicted_last.view >= cutoff).sum()) + int((~och.complete & (self._last >= cutoff)).sum())
+        incomplete = int((self._evicted_last.view >= cutoff).sum()) + int((~och.complete & (self._open.last >= cutoff)).sum())
         fps = OriginSpans().fps(self._all_sources(), fd.table.origin[c], fd.table.source[c])
         return {
             "window_s": self.config.window_s,
@@ -586,3 +594,18 @@ class LiveRun:
         after = np.flatnonzero(n > since)
         sel = after[-limit:] if newest else after[:limit]
         return n[sel], self._delays(_Frames(r["source"].view[sel], r["frame"].view[sel], r["cells"].view[sel]))
+
+    def recent_columns(self, since: int = 0, limit: int = 200) -> tuple[np.ndarray, np.ndarray]:
+        """The last ``limit`` complete frames with cursor > ``since``, as they were judged when shown:
+        :func:`relay.live.framepack.node_columns` (ints, floats), each (rows, frames). What the
+        pushes send, with no pairing or delay figure derived again."""
+        self.maintain()
+        r = self._recent
+        n = r["n"].view
+        start = max(int(np.searchsorted(n, since, side="right")), len(n) - limit)
+        return r["ints"].view[start:].T, r["floats"].view[start:].T
+
+    @property
+    def has_exit(self) -> np.ndarray:
+        """Per stage, whether the run has seen an exit point there."""
+        return self._has_exit.copy()

@@ -38,22 +38,24 @@ def frames_block(view: RunView, since: int = 0, limit: int = 200, newest: bool =
     live, correction = view.live, view.correction
     n, fd = live.recent(since, limit, newest)
     frames = frame_dicts(n, fd, correction)
-    return _block(view, fd, frames, cursor=frames[-1]["n"] if frames else since)
+    end = int(fd.chains.end[-1]) if len(fd.chains.end) else None
+    return _block(view, end, frames, cursor=frames[-1]["n"] if frames else since)
 
 
 def columns_block(view: RunView, since: int = 0, limit: int = 200) -> tuple[dict, tuple]:
     """The last ``limit`` complete frames after cursor ``since``, as the pushes carry them: the block
     without its frames, and their columns (:func:`relay.live.framepack.columns`; the pusher packs
     them once per size asked, :func:`relay.live.framepack.packed`)."""
-    n, fd = view.live.recent(since, limit, True)
-    ints, floats = framepack.columns(n, fd, view.correction)
-    return _block(view, fd, [], cursor=int(n[-1]) if len(n) else since), (ints, floats)
+    ints, floats = view.live.recent_columns(since, limit)
+    stages = len(view.header.stages)
+    end = int(ints[4, -1]) if ints.shape[1] else None  # INT_FIELDS: n, source, frame, origin, end
+    cursor = int(ints[0, -1]) if ints.shape[1] else since
+    return _block(view, end, [], cursor), framepack.corrected(ints, floats, view.correction, stages)
 
 
-def _block(view: RunView, fd, frames: list[dict], cursor: int) -> dict:
-    # At the last frame's end on the node's clock (where its correction was looked up).
-    corr, bound = view.correction.at(int(fd.chains.end[-1]) if len(fd.chains.end) else time.time_ns())
-    return block(view.node, view.run, view.header.stages, view.header.kinds, fd.chains.has_exit, frames,
+def _block(view: RunView, end: int | None, frames: list[dict], cursor: int) -> dict:
+    """``end``: the last frame's end on the node's clock, where its correction is looked up (None: now)."""
+    corr, bound = view.correction.at(end if end is not None else time.time_ns())
+    return block(view.node, view.run, view.header.stages, view.header.kinds, view.live.has_exit, frames,
                  view.correction.applied, cursor=cursor, newest=view.live.visible, correction_ns=corr,
                  uncertainty_ns=bound)
-

@@ -68,7 +68,7 @@ def test_incomplete_frames_are_evicted_and_counted():
     feed(run, events, 200)
     ref = node_stats(header, events)
     got = run.run_stats()
-    assert run.evicted > 50 and len(run._keys) < 200  # the open table does not grow with the run
+    assert run.evicted > 50 and run.open_count < 200  # the open table does not grow with the run
     assert got["frames"] == ref["frames"]
     assert_stats_equal(ref, got)
 
@@ -131,7 +131,7 @@ def test_open_frames_are_bounded_when_timestamps_stand_still():
     events["ts"] = T0  # and node time never moves
     run = LiveRun(header, LiveConfig(max_open_frames=500))
     feed(run, events, 1000)
-    assert len(run._keys) <= 500 and run.evicted >= 2500
+    assert run.open_count <= 500 and run.evicted >= 2500
     assert run.run_stats()["frames"] == {"complete": 0, "incomplete": 3000}
 
 
@@ -159,8 +159,8 @@ def test_a_batch_of_more_new_frames_than_fit_opens_only_its_newest():
     assert cap < 2000  # frames cost bytes: 64 stages x 6 cells
     run.add(ev)
     run.maintain()
-    assert len(run._keys) == cap and run.evicted == n - cap
-    assert run._keys.min() == n - cap  # the newest frames are those kept
+    assert run.open_count == cap and run.evicted == n - cap
+    assert run.open_keys().min() == n - cap  # the newest frames are those kept
     assert run.nbytes <= budget
     late = ev[:10].copy()  # events of frames evicted on arrival are late now
     run.add(late)
@@ -229,3 +229,28 @@ def test_a_finished_run_finalises_its_last_complete_frames_and_its_statistics_st
     assert_stats_equal(before, run.run_stats())
     run.finish()
     assert sum(told) == complete  # once only
+
+
+@pytest.mark.parametrize("batch, maintain_every", [(37, 1), (400, 3)])
+def test_pushed_columns_are_the_frames_recent_gives(batch, maintain_every):
+    """The pushes take each complete frame's columns as they were judged when it was shown
+    (``recent_columns``), not derived again: they equal those of the same frames from ``recent``,
+    clock correction and all, with drops, disorder and a partial last page."""
+    from relay.clock.correction import Correction, Segment
+    from relay.live import framepack
+
+    header, events, _ = pipeline_run(300, 3, jitter_ns=5_000_000, batched_mux=True, seed=8)
+    events = events[np.argsort(events["ts"], kind="stable")]
+    run = LiveRun(header)
+    feed(run, events, batch, maintain_every)
+    run.maintain()
+    stages = len(header.stages)
+    corr = Correction("estimate", "test", (Segment(T0, T0, 37_000, drift_ppb=20_000, uncertainty_ns=5_000),))
+    for since, limit in ((0, 10_000), (run.visible - 50, 20), (run.visible, 5)):
+        n, fd = run.recent(since, limit, newest=True)
+        want = framepack.columns(n, fd, corr)
+        got = framepack.corrected(*run.recent_columns(since, limit), corr, stages)
+        assert got[0].shape[1] == len(n) == min(limit, run.visible - max(since, 0))
+        np.testing.assert_array_equal(got[0], want[0])
+        np.testing.assert_array_equal(got[1], want[1])
+    assert run.visible > 500
