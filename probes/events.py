@@ -60,11 +60,30 @@ streaming thread that pushes a stage's output (a stage fact, sent when it change
 frames a source lost before its origin (RTP sequence gaps), cumulative; ``decoder_dropped``,
 frames its decoder dropped, cumulative."""
 
+def _code_table() -> np.ndarray:
+    """``[point, code as a byte]``: whether that point allows that code (a point out of range: none)."""
+    table = np.zeros((256, 256), bool)
+    table[:FACT + 1, 0] = True
+    table[READY, :] = True
+    table[READY, 0] = False
+    for point, allowed in ((DROP, DROP_REASONS), (FACT, FACT_KINDS)):
+        table[point, 0] = False
+        table[point, np.array(list(allowed), np.int8).view(np.uint8)] = True
+    return table
+
+
+_CODES = _code_table()
+
+
 def codes_valid(point: np.ndarray, code: np.ndarray) -> np.ndarray:
     """Per event: its ``code`` is one its point allows (group size, reason, fact kind, or 0)."""
-    return np.where(point == READY, code != 0, np.where(
-        point == DROP, np.isin(code, list(DROP_REASONS)), np.where(
-            point == FACT, np.isin(code, list(FACT_KINDS)), code == 0)))
+    point, code = np.asarray(point), np.asarray(code)
+    if point.dtype == np.int8 and code.dtype == np.int8:  # the wire's and the trace's event dtype
+        return _CODES[point.view(np.uint8), code.view(np.uint8)]
+    point, code = point.astype(np.int64), code.astype(np.int64)
+    fits = (point >= 0) & (point < 256) & (code >= -128) & (code < 128)
+    return np.where(point == READY, code != 0,
+                    fits & _CODES[np.where(fits, point, 255), np.where(fits, code, 0).astype(np.int8).view(np.uint8)])
 
 
 EVENT_DTYPE = np.dtype(

@@ -13,6 +13,9 @@ import numpy as np
 from probes.events import (DROP, DROP_REASONS, FACT, FACT_DECODER_DROPPED, FACT_LOST_UPSTREAM, FACT_NOMINAL_MHZ,
                            FACT_THREAD, ORIGIN)
 
+SMALL_IDS = 4096
+"""Source ids below this are counted in an array; others (any int32 a node may send) in a dict."""
+
 
 class Accounting:
     """Running counts of one run's drops and facts."""
@@ -29,8 +32,16 @@ class Accounting:
     def add(self, events: np.ndarray) -> None:
         point = events["point"]
         origin = events["source"][point == ORIGIN]
-        for sid, n in zip(*np.unique(origin, return_counts=True)):
-            self.delivered[int(sid)] = self.delivered.get(int(sid), 0) + int(n)
+        if len(origin) and 0 <= origin.min() and origin.max() < SMALL_IDS:  # a camera index: counted without a sort
+            counts = np.bincount(origin)
+            ids = np.flatnonzero(counts)
+            counts = counts[ids]
+        else:
+            ids, counts = np.unique(origin, return_counts=True)
+        for sid, n in zip(ids.tolist(), counts.tolist()):
+            self.delivered[sid] = self.delivered.get(sid, 0) + n
+        if len(point) == 0 or point.max() < DROP:  # frame timestamps only, as nearly every batch
+            return
         for e in events[point == DROP].tolist():
             reasons = self.dropped.setdefault(int(e[2]), {})
             reason = DROP_REASONS.get(int(e[5]), "unknown")

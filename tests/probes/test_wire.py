@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from probes.errors import LimitExceeded, ProtocolError
-from probes.events import DROP, DROP_REASONS, EVENT_DTYPE, STOPPED
+from probes.events import (DROP, DROP_REASONS, EVENT_DTYPE, FACT, FACT_KINDS, POINT_NAMES, READY, STOPPED,
+                           codes_valid)
 from probes.wire import (HEADER, HEADER_SIZE, MAX_BATCH_EVENTS, decode_batch, decode_clock, decode_end,
                             decode_hello, decode_payload, encode_batch, sanitize_ptp)
 from probes.simnode import header_for, synth_events
@@ -88,6 +89,22 @@ def test_every_drop_reason_passes_the_wire_and_no_other():
     ev["code"][2] = max(DROP_REASONS) + 1
     with pytest.raises(ProtocolError, match="event 2 invalid"):
         decode_batch(encode_batch(RUN, 1, ev), N_STAGES)
+
+
+def test_every_point_and_code_is_judged_as_the_event_model_says():
+    """Every (point, code) of the wire's bytes, looked up in one table: a ready event's code is its
+    group (any but 0), a drop's a reason, a fact's a kind; every other point carries 0. A code read
+    wider than a byte (a trace file's column) is judged by its value, never wrapped into range."""
+    point = np.repeat(np.arange(-128, 128), 256).astype(np.int8)
+    code = np.tile(np.arange(-128, 128), 256).astype(np.int8)
+    p, c = point.astype(int), code.astype(int)
+    allowed = np.where(p == READY, c != 0, np.where(p == DROP, np.isin(c, list(DROP_REASONS)),
+                                                     np.where(p == FACT, np.isin(c, list(FACT_KINDS)), c == 0)))
+    in_range = (p >= 0) & (p < len(POINT_NAMES))
+    assert np.array_equal(codes_valid(point, code)[in_range], allowed[in_range])
+    assert not codes_valid(point, code)[~in_range].any()
+    wide_point, wide_code = np.array([DROP, FACT, 0, READY, READY]), np.array([1 + 256, 1 + 256, 256, 300, 0])
+    assert codes_valid(wide_point, wide_code).tolist() == [False, False, False, True, False]
 
 
 def test_random_mutations_raise_only_protocol_errors():
