@@ -18,6 +18,8 @@ of its own.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 
 from probes.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays
@@ -59,11 +61,12 @@ def corrected(ints: np.ndarray, floats: np.ndarray, corr: Correction, stages: in
     """Columns of :func:`node_columns` with every node time moved by ``corr`` at the frame's origin,
     and the floats in ms (new arrays)."""
     rows = _rows(INT_FIELDS, stages)
-    times = np.r_[rows["origin"], rows["end"], rows["enter"], rows["exit"]]
+    times, keep = _times(stages)
     origin, end = ints[rows["origin"]][0], ints[rows["end"]][0]
     fc = corr.per_frame(origin)
     out = ints.copy()
     out[times] = fc.correct(ints[times].T).T
+    out[keep] = ints[keep]
     out[rows["clock_ns"]] = fc.offsets(origin)
     out[rows["clock_uncertainty_ns"]] = fc.uncertainties(origin)
     floats = floats.copy()
@@ -71,6 +74,16 @@ def corrected(ints: np.ndarray, floats: np.ndarray, corr: Correction, stages: in
     return out, floats / NS_PER_MS
 
 
+@lru_cache(maxsize=64)
+def _times(stages: int) -> tuple[slice, slice]:
+    """The rows of the int fields that are node times, as one slice from the first to the last,
+    and the rows inside it that are not (kept as they are)."""
+    rows = _rows(INT_FIELDS, stages)
+    assert [name for name, _ in INT_FIELDS[3:8]] == ["origin", "end", "complete", "enter", "exit"]
+    return slice(rows["origin"].start, rows["exit"].stop), rows["complete"]
+
+
+@lru_cache(maxsize=64)
 def _rows(fields: tuple, stages: int) -> dict[str, slice]:
     """Where each field's rows are in a columns array."""
     out, row = {}, 0

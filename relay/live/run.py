@@ -279,16 +279,14 @@ class LiveRun:
         events = frame_events(events)
         if len(events) == 0:
             return
+        # Views of the batch's fields (frame and ts are int64 already; the small ints widen in arithmetic).
         src = events["source"].astype(np.int64)
-        frame = events["frame"].astype(np.int64)
-        ts = events["ts"].astype(np.int64)
-        stage = events["stage"].astype(np.int64)
-        point = events["point"].astype(np.int64)
-        code = events["code"].astype(np.int64)
+        frame, ts, stage, point, code = (events[f] for f in ("frame", "ts", "stage", "point", "code"))
         key = (src << KEY_SHIFT) | frame
         self.newest = max(self.newest, int(ts.max()))
         self._has_exit |= np.bincount(stage[point == EXIT], minlength=self._s)[:self._s] > 0
-        self._framed[self._src_index(src)] = True
+        if not self._framed.all():
+            self._framed[self._src_index(src)] = True
 
         pos, placed = self._place(key, frame, src, ts)
         if not placed.all():

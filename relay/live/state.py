@@ -33,6 +33,8 @@ from relay.store.writer import Storage
 RELOAD_SLICE = 262_144
 STATS_MAX_AGE_S = 0.5
 """Whole-run statistics are recomputed at most this often per run (percentiles over every frame)."""
+STATS_SHARE = 0.02
+"""Share of the relay's time all runs' whole-run statistics may take when nobody asks for them fresh."""
 WINDOW_MAX_AGE_S = 0.9
 """The rolling window's, unless asked fresh (the HTTP API), at most this often: shorter than the UI's
 once-a-second pushes, so each push gets a new one, and the fleet's rows (also once a second) and a
@@ -53,7 +55,9 @@ log = logging.getLogger(__name__)
 @dataclass
 class WholeRunStats:
     """A run's whole-run statistics, recomputed only when new events came and, unless asked
-    ``fresh``, at most every max(STATS_MAX_AGE_S, 50 x their last cost)."""
+    ``fresh``, at most every max(STATS_MAX_AGE_S, their last cost x runs / STATS_SHARE): all runs'
+    together within STATS_SHARE of the relay's time, however many runs and however long (their
+    percentiles are over every frame of the run, so they cost more as it goes on)."""
 
     stats: dict | None = None
     events: int = -1
@@ -61,9 +65,10 @@ class WholeRunStats:
     at: float = NEVER
     cost: float = 0.0
 
-    def get(self, live: LiveRun, dropped: int, fresh: bool) -> dict:
+    def get(self, live: LiveRun, dropped: int, fresh: bool, runs: int = 1) -> dict:
+        """``runs``: how many runs' statistics are kept up to date this way (their share is split)."""
         now = time.monotonic()
-        due = fresh or now - self.at >= max(STATS_MAX_AGE_S, 50 * self.cost)
+        due = fresh or now - self.at >= max(STATS_MAX_AGE_S, self.cost * runs / STATS_SHARE)
         if self.stats is None or (self.events != live.events and due):
             self.stats = live.run_stats(dropped)
             self.events, self.at, self.cost = live.events, now, time.monotonic() - now
@@ -444,12 +449,13 @@ class RelayState:
         (:mod:`relay.clock.entry`: the correction applied to its timestamps now, and its bound).
 
         Whole-run statistics take percentiles over every frame of the run, a cost that grows
-        with it; unless ``fresh`` (the HTTP API), they are recomputed at most every
-        max(STATS_MAX_AGE_S, 50 x their last cost), so that pushing them to browsers stays
-        within ~2 % of the relay's time however long the run. The window, unless ``fresh``, as
+        with it; unless ``fresh`` (the HTTP API), they are recomputed as :class:`WholeRunStats`
+        allows, so that pushing every run's to browsers stays within ~2 % of the relay's time
+        however long and however many the runs. The window, unless ``fresh``, as
         :class:`WindowStats` allows (which ``/metrics`` shares).
         """
-        return dict(rs.whole.get(rs.live, rs.dropped, fresh), window=rs.window.get(rs.live, fresh, len(self.runs)), node=rs.node,
+        runs = len(self.runs)
+        return dict(rs.whole.get(rs.live, rs.dropped, fresh, runs), window=rs.window.get(rs.live, fresh, runs), node=rs.node,
                     run=rs.run, session=rs.session, lost=rs.lost, clock=clock_entry(self.correction(rs), time.time_ns()))
 
     def view(self, rs: RunState) -> RunView:

@@ -254,3 +254,24 @@ def test_pushed_columns_are_the_frames_recent_gives(batch, maintain_every):
         np.testing.assert_array_equal(got[0], want[0])
         np.testing.assert_array_equal(got[1], want[1])
     assert run.visible > 500
+
+
+def test_whole_run_statistics_of_many_runs_share_one_share_of_the_relays_time():
+    """Unless asked fresh, a run's whole-run statistics wait until their last cost, times the
+    runs kept this way, is within STATS_SHARE of the time since: 32 runs of a long day cost what
+    one does, not 32 times more; the HTTP API's fresh ones are always computed."""
+    from relay.live.state import STATS_SHARE, WholeRunStats
+
+    events = synth_events(200, 2, 30.0, T0, seed=2)
+    run = LiveRun(header_for("n", 2))
+    run.add(events[:1000])
+    whole = WholeRunStats()
+    first = whole.get(run, 0, fresh=False, runs=32)
+    run.add(events[1000:])
+    whole.at, whole.cost = time.monotonic() - 1.0, 0.01  # 1 s ago, at 10 ms
+    assert 32 * 0.01 / STATS_SHARE > 1.0 > 0.01 / STATS_SHARE
+    assert whole.get(run, 0, fresh=False, runs=32) is first
+    second = whole.get(run, 0, fresh=False, runs=1)
+    assert second is not first and second["frames"]["complete"] > first["frames"]["complete"]
+    run.add(events[:10])
+    assert whole.get(run, 0, fresh=True, runs=32) is not second
