@@ -77,3 +77,16 @@ def test_probes_report_without_tracepoints_is_n_a_with_the_reason(capsys):
     out = capsys.readouterr().out
     assert "n/a (no tracepoints counted)" in out
     assert_every_na_has_a_reason(out)
+
+
+def test_live_tick_runs_each_checkout_in_turn_and_prints_its_cost_beside_this_ones():
+    done = run_benchmark("bench_live_tick.py", "--runs", "2", "--seconds", "1", "--rounds", "1", "--checkout", ".")
+    assert_ran(done)
+    lines = done.stdout.splitlines()
+    assert lines[0] == "2 paced runs, 30 ticks/s, 1 s of node time, 1 rounds"
+    assert re.fullmatch(r"this checkout: [\d.]+ µs per event, \d+ µs per run and tick, [\d,]+ frames shown \(1\.00× this checkout\)",
+                        lines[1])
+    assert re.fullmatch(r"\S+: [\d.]+ µs per event, \d+ µs per run and tick, [\d,]+ frames shown \([\d.]+× this checkout\)", lines[2])
+    assert int(lines[1].split("tick, ")[1].split(" frames")[0].replace(",", "")) > 100
+    done = run_benchmark("bench_live_tick.py", "--checkout", "/nonexistent")
+    assert done.returncode == 2 and "not a dcuscope checkout" in done.stderr

@@ -1,0 +1,118 @@
+"""The live engine's cost per push tick, in-process: N runs at the paper's pace (4,300 events/s each,
+in batches of ~180 events), a tick every 1/HZ s of node time that merges each run's batches, shows
+its complete frames and builds their pushed columns (clock-corrected), as the relay's pusher does
+for a page showing every DCU. No network, no store: the part of a relay's CPU that grows with
+pushes, measured by process CPU time.
+
+Side by side with other checkouts (``--checkout DIR``: this script run there, alternating
+``--rounds`` times), since these machines are shared and noisy.
+
+    .venv/bin/python benchmarks/bench_live_tick.py --runs 8 --seconds 8 --checkout ../old
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+RATE = 4300.0
+SOURCES = 2
+BATCH = 180
+"""Events a batch (a paced DCU's adaptive batches at the relay, BENCHMARKS.md)."""
+T0 = 1_700_000_000_000_000_000
+
+
+def measure(runs: int, seconds: float, hz: float) -> dict:
+    """The tick loop on the checkout first on ``sys.path``."""
+    import numpy as np
+
+    from probes.simnode import EVENTS_PER_FRAME, header_for, synth_events
+    from relay.clock.correction import Correction, Segment
+    from relay.live import framepack
+    from relay.live.run import LiveRun
+
+    fps = RATE / (EVENTS_PER_FRAME * SOURCES)
+    corr = Correction("estimate", "bench", (Segment(from_ns=0, ref_ns=T0, offset_ns=1000, drift_ppb=20, uncertainty_ns=20000),))
+    live, events = [], []
+    for r in range(runs):
+        live.append(LiveRun(header_for(f"DCU-{r + 1}", SOURCES, T0), budget=64 << 20))
+        events.append(synth_events(int(fps * (seconds + 2)), SOURCES, fps, T0 + r * 1_000_000, seed=r))
+    t = T0 + 1_000_000_000  # a second of warm-up: the open table and the rings fill
+    at = []
+    for run, ev in zip(live, events):
+        j = int(np.searchsorted(ev["ts"], t))
+        run.add(ev[:j])
+        run.maintain()
+        at.append(j)
+    pushed = [run.visible for run in live]
+
+    def push(k: int, run: LiveRun) -> None:
+        if hasattr(run, "recent_columns"):
+            framepack.corrected(*run.recent_columns(pushed[k], 300), corr, len(run.stages))
+        else:  # before the engine kept its pushed columns
+            framepack.columns(*run.recent(pushed[k], 300, True), corr)
+        pushed[k] = run.visible
+
+    step, end, total, ticks = int(1e9 / hz), t + int(seconds * 1e9), 0, 0
+    cpu = time.process_time()
+    while t < end:
+        t += step
+        ticks += 1
+        for k, (run, ev) in enumerate(zip(live, events)):
+            j = int(np.searchsorted(ev["ts"], t))
+            for i in range(at[k], j, BATCH):
+                run.add(ev[i:min(i + BATCH, j)])
+            total += j - at[k]
+            at[k] = j
+            run.maintain()
+            if run.visible > pushed[k]:
+                push(k, run)
+    cpu = time.process_time() - cpu
+    return {"events": total, "cpu_s": cpu, "run_ticks": runs * ticks, "frames": sum(run.visible for run in live)}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter,
+                                epilog=__doc__.split("\n\n", 1)[1])
+    p.add_argument("--runs", type=int, default=8, help="paced DCUs (default 8)")
+    p.add_argument("--seconds", type=float, default=8.0, help="node time ticked through (default 8)")
+    p.add_argument("--hz", type=float, default=30.0, help="push ticks a second (the relay's --push-hz; default 30)")
+    p.add_argument("--checkout", action="append", type=Path, default=[], help="another checkout beside this one (repeatable)")
+    p.add_argument("--rounds", type=int, default=2, help="times each checkout runs, in turn (default 2)")
+    p.add_argument("--inner", action="store_true", help=argparse.SUPPRESS)
+    args = p.parse_args(argv)
+    if args.inner:
+        print(json.dumps(measure(args.runs, args.seconds, args.hz)))
+        return 0
+    here = Path(__file__).resolve().parents[1]
+    checkouts = [here, *(c.resolve() for c in args.checkout)]
+    for c in checkouts[1:]:
+        if not (c / "relay" / "live" / "run.py").exists():
+            p.error(f"--checkout {c}: not a dcuscope checkout (no relay/live/run.py)")
+    results: list[list[dict]] = [[] for _ in checkouts]
+    for _ in range(args.rounds):
+        for c, runs in zip(checkouts, results):
+            out = subprocess.run([sys.executable, __file__, "--inner", "--runs", str(args.runs), "--seconds", str(args.seconds),
+                                  "--hz", str(args.hz)], cwd=c, env=dict(os.environ, PYTHONPATH=str(c)),
+                                 capture_output=True, text=True, check=False)
+            if out.returncode != 0:
+                sys.exit(f"bench_live_tick: {c} failed: {out.stderr.strip().splitlines()[-1:]}")
+            runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    base = None
+    print(f"{args.runs} paced runs, {args.hz:g} ticks/s, {args.seconds:g} s of node time, {args.rounds} rounds")
+    for k, (c, r) in enumerate(zip(checkouts, results)):
+        cpu, events, ticks = sum(x["cpu_s"] for x in r), sum(x["events"] for x in r), sum(x["run_ticks"] for x in r)
+        per_event = 1e6 * cpu / events
+        base = base or per_event
+        print(f"{'this checkout' if k == 0 else str(c)}: {per_event:.2f} µs per event, {1e6 * cpu / ticks:.0f} µs per run "
+              f"and tick, {r[-1]['frames']:,} frames shown ({per_event / base:.2f}× this checkout)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
