@@ -351,6 +351,14 @@ async def _watch_ui(url: str, seconds: float, watch: int | None = None) -> tuple
     except socketio.exceptions.ConnectionError as exc:
         raise CannotRun(f"the /ui client could not connect to the relay: {exc}") from exc
     await asyncio.sleep(seconds)
+    # Shown nothing first, then gone: python-socketio's client drops a binary push it is still
+    # assembling when it disconnects, and then reads its remaining attachments as packets (a
+    # ValueError in a task nobody awaits). Once the relay answered, every push sent before the
+    # answer was taken in whole.
+    try:
+        await sio.call("subscribe", {"nodes": [], "overview": False}, namespace="/ui", timeout=10)
+    except socketio.exceptions.TimeoutError:
+        pass
     await sio.disconnect()
     return lags, transit, nodes
 

@@ -1,6 +1,8 @@
-"""Where a relay's CPU goes at the paper's pace: py-spy samples of one relay (SQLite) fed by N paced
-simulated DCUs, with a /ui client showing every DCU (or none, ``--no-page``), grouped by what the work
-is for, in µs of relay CPU per event and per batch.
+"""Where a relay's CPU goes at the paper's pace: py-spy samples of the relays fed by N paced
+simulated DCUs, with a /ui client on the first relay showing every DCU (or none, ``--no-page``),
+grouped by what the work is for, in µs of relay CPU per event and per batch. One relay on SQLite, or
+``--relays R`` on a PostgreSQL of the benchmark's own with a Redis between them (the DCUs dealt
+round-robin, as ``bench_relay.py`` does).
 
 Several checkouts side by side (``--checkout DIR``, the relay started from each in turn, the same
 nodes each time, alternating ``--rounds`` times): these machines are shared and noisy, so compare
@@ -9,6 +11,7 @@ relay's CPU measured by the kernel. py-spy counts some of a thread's waits as sa
 loop in ``select``, the store thread on its queue): those are left out.
 
     .venv/bin/python benchmarks/profile_relay.py --nodes 8 --seconds 20 --checkout ../old
+    .venv/bin/python benchmarks/profile_relay.py --nodes 32 --relays 4 --store postgresql
 """
 
 from __future__ import annotations
@@ -29,14 +32,16 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.bench_relay import (EVENTS_PER_FRAME, LOOPBACK, SOURCES, _proc_cpu, _received, _watch_ui,  # noqa: E402
-                                    start_nodes)
+from benchmarks.bench_relay import (EVENTS_PER_FRAME, LOOPBACK, SOURCES, Stores, _proc_cpu, _received,  # noqa: E402
+                                    _watch_ui, start_nodes)
+from benchmarks.figures import CannotRun  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RATE = 4300.0
 CATEGORIES = (
     ("pairing (LiveRun.maintain)", ("LiveRun.maintain",)),
     ("push: frames built", ("frames_block", "columns_block")),
+    ("fan-out: Redis publish and receive", ("FleetManager._publish", "AsyncPubSubManager._thread")),
     ("push: encoded and sent", ("AsyncNamespace.emit", "AsyncServer.emit", "AsyncManager.emit")),
     ("statistics pushed", ("Ticker._push_stats",)),
     ("fleet rows", ("Ticker._push_fleet",)),
@@ -54,11 +59,11 @@ WAITING = ("EpollSelector.select", "Storage._worker")
 
 
 class Relay:
-    """A relay started from ``checkout``, on a fresh SQLite file."""
+    """A relay started from ``checkout`` on ``db`` (an SQLite file or a PostgreSQL URL)."""
 
-    def __init__(self, checkout: Path, db: Path) -> None:
+    def __init__(self, checkout: Path, db: str, args: list[str]) -> None:
         env = dict(os.environ, PYTHONPATH=str(checkout))
-        self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", "0", "--db", str(db), *LOOPBACK],
+        self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", "0", "--db", db, *LOOPBACK, *args],
                                      cwd=checkout, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         m = re.search(r"http://127\.0\.0\.1:(\d+)", self.proc.stdout.readline().decode())
         if not m:
@@ -98,46 +103,66 @@ def categorise(raw: Path) -> tuple[collections.Counter, int]:
     return counts, total
 
 
-def profile(checkout: Path, nodes: int, seconds: float, page: bool, spy: str, tmp: Path) -> dict:
-    relay = Relay(checkout, tmp / f"{checkout.name}-{time.monotonic_ns()}.db")
-    procs = start_nodes(relay.url, nodes, int(RATE * (seconds + 60)), paced=True, fps=RATE / (EVENTS_PER_FRAME * SOURCES))
+def profile(checkout: Path, nodes: int, seconds: float, page: bool, spy: str, tmp: Path, stores: Stores, store: str,
+            relays: int) -> list[dict]:
+    """One profile of ``relays`` relays of ``checkout`` on a fresh store: each relay's figures."""
+    db = stores.fresh(store)
+    started: list[Relay] = []
+    procs: list[subprocess.Popen] = []
     try:
+        for _ in range(relays):
+            started.append(Relay(checkout, db, stores.fanout(relays)))
+        procs = start_nodes([r.url for r in started], nodes, int(RATE * (seconds + 60)), paced=True,
+                            fps=RATE / (EVENTS_PER_FRAME * SOURCES))
         deadline = time.monotonic() + 120
-        while len(_received([relay])[0]) < nodes and time.monotonic() < deadline:
+        while len(_received(started)[0]) < nodes and time.monotonic() < deadline:
             time.sleep(0.5)
         time.sleep(1)
-        raw = tmp / "samples.txt"
-        b0, e0, c0, w0 = relay.counter("dcuscope_relay_batches"), _received([relay])[1], _proc_cpu(relay.proc.pid), time.monotonic()
-        n0 = sum(_proc_cpu(p.pid) for p in procs)
-        sampler = subprocess.Popen([spy, "record", "--pid", str(relay.proc.pid), "--duration", str(round(seconds)), "--rate", "250",
-                                    "--format", "raw", "--nonblocking", "-o", str(raw)],
-                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        before = [_counters(r) for r in started]
+        n0, w0 = sum(_proc_cpu(p.pid) for p in procs), time.monotonic()
+        raws = [tmp / f"samples-{k}.txt" for k in range(relays)]
+        samplers = [subprocess.Popen([spy, "record", "--pid", str(r.proc.pid), "--duration", str(round(seconds)), "--rate",
+                                      "250", "--format", "raw", "--nonblocking", "-o", str(raw)],
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for r, raw in zip(started, raws)]
         if page:
-            asyncio.run(_watch_ui(relay.url, seconds))
+            asyncio.run(_watch_ui(started[0].url, seconds))
         else:
             time.sleep(seconds)
-        sampler.wait(seconds + 60)
-        b1, e1, c1, w1 = relay.counter("dcuscope_relay_batches"), _received([relay])[1], _proc_cpu(relay.proc.pid), time.monotonic()
-        n1 = sum(_proc_cpu(p.pid) for p in procs)
+        for sampler in samplers:
+            sampler.wait(seconds + 60)
+        after = [_counters(r) for r in started]
+        wall, nodes_cpu = time.monotonic() - w0, sum(_proc_cpu(p.pid) for p in procs) - n0
     finally:
         for p in procs:
             p.terminate()
         for p in procs:
             p.wait(30)
-        relay.stop()
-    if not raw.exists():
-        raise SystemExit("profile_relay: py-spy wrote no samples (it needs ptrace: run as root or with CAP_SYS_PTRACE)")
-    counts, total = categorise(raw)
-    events, batches, cpu = e1 - e0, b1 - b0, c1 - c0
-    return {"events": events, "batches": batches, "cpu_s": cpu, "wall_s": w1 - w0, "nodes_cpu_s": n1 - n0,
-            "shares": {name: counts[name] / max(total, 1) for name, _ in (*CATEGORIES, (OTHER, ()))}}
+        for r in started:
+            r.stop()
+        stores.done(store, db)
+    out = []
+    for raw, b, a in zip(raws, before, after):
+        if not raw.exists():
+            raise SystemExit("profile_relay: py-spy wrote no samples (it needs ptrace: run as root or with CAP_SYS_PTRACE)")
+        counts, total = categorise(raw)
+        raw.unlink()
+        out.append({"events": a[0] - b[0], "batches": a[1] - b[1], "cpu_s": a[2] - b[2], "wall_s": wall,
+                    "nodes_cpu_s": nodes_cpu / relays,
+                    "shares": {name: counts[name] / max(total, 1) for name, _ in (*CATEGORIES, (OTHER, ()))}})
+    return out
 
 
-def report(label: str, runs: list[dict]) -> list[str]:
+def _counters(relay: Relay) -> tuple[float, float, float]:
+    """Events and batches the relay took in, and its CPU seconds, so far."""
+    return (relay.counter("dcuscope_relay_events"), relay.counter("dcuscope_relay_batches"), _proc_cpu(relay.proc.pid))
+
+
+def report(label: str, runs: list[dict], together: int = 1) -> list[str]:
+    """The figures of ``runs`` (relays' profiles; ``together`` of them at a time: their walls overlap)."""
     events = sum(r["events"] for r in runs)
     batches = sum(r["batches"] for r in runs)
     cpu = sum(r["cpu_s"] for r in runs)
-    wall = sum(r["wall_s"] for r in runs)
+    wall = sum(r["wall_s"] for r in runs) / together
     per_event, per_batch = 1e6 * cpu / max(events, 1), 1e6 * cpu / max(batches, 1)
     lines = [f"{label}: {events / wall:,.0f} events/s in {batches / wall:,.0f} batches/s ({events / max(batches, 1):.0f} events a "
              f"batch); relay CPU {100 * cpu / wall:.0f} %, nodes' CPU {100 * sum(r['nodes_cpu_s'] for r in runs) / wall:.0f} %; "
@@ -154,7 +179,11 @@ def main(argv: list[str] | None = None) -> int:
                                 epilog=__doc__.split("\n\n", 1)[1])
     p.add_argument("--nodes", type=int, default=8, help="paced simulated DCUs (4,300 events/s each; default 8)")
     p.add_argument("--seconds", type=float, default=20.0, help="length of each profile (default 20)")
-    p.add_argument("--no-page", action="store_true", help="no /ui client: the relay pairs, stores and serves no push")
+    p.add_argument("--no-page", action="store_true", help="no /ui client: the relays pair, store and serve no push")
+    p.add_argument("--relays", type=int, default=1, help="relay processes sharing the store (default 1; more need "
+                                                       "--store postgresql)")
+    p.add_argument("--store", choices=("sqlite", "postgresql"), default="sqlite",
+                   help="the relays' store (default sqlite; postgresql: a durable server of the benchmark's own)")
     p.add_argument("--checkout", action="append", type=Path, default=[],
                    help="another checkout to profile beside this one (repeatable), e.g. a `git worktree` of main")
     p.add_argument("--rounds", type=int, default=1, help="times each checkout is profiled, in turn (default 1)")
@@ -162,19 +191,37 @@ def main(argv: list[str] | None = None) -> int:
     spy = shutil.which("py-spy", path=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
     if spy is None:
         p.error("py-spy not found: `make setup` installs it (a dev dependency), or `pip install py-spy`")
+    if args.relays < 1 or (args.relays > 1 and args.store == "sqlite"):
+        p.error("--relays: at least 1, and several only with --store postgresql (SQLite is one relay per file)")
     checkouts = [ROOT, *(c.resolve() for c in args.checkout)]
     for c in checkouts[1:]:
         if not (c / "relay" / "__main__.py").exists():
             p.error(f"--checkout {c}: not a dcuscope checkout (no relay/__main__.py)")
-    results: list[list[dict]] = [[] for _ in checkouts]
+    results: list[list[list[dict]]] = [[] for _ in checkouts]  # checkout, round, relay
     with tempfile.TemporaryDirectory() as tmp:
-        for k in range(args.rounds):
-            for c, runs in zip(checkouts, results):
-                print(f"round {k + 1}/{args.rounds}: {c.name}, {args.nodes} DCUs, {args.seconds:g} s "
-                      f"{'with no page' if args.no_page else 'with a page showing every DCU'}", file=sys.stderr, flush=True)
-                runs.append(profile(c, args.nodes, args.seconds, not args.no_page, spy, Path(tmp)))
+        try:
+            stores = Stores([args.store], Path(tmp), durable=True)
+        except CannotRun as exc:
+            sys.exit(f"profile_relay: {exc}")
+        try:
+            for k in range(args.rounds):
+                for c, runs in zip(checkouts, results):
+                    print(f"round {k + 1}/{args.rounds}: {c.name}, {args.relays} relay(s) on {args.store}, {args.nodes} DCUs, "
+                          f"{args.seconds:g} s {'with no page' if args.no_page else 'with a page showing every DCU'}",
+                          file=sys.stderr, flush=True)
+                    runs.append(profile(c, args.nodes, args.seconds, not args.no_page, spy, Path(tmp), stores, args.store,
+                                        args.relays))
+        except CannotRun as exc:
+            sys.exit(f"profile_relay: {exc}")
+        finally:
+            stores.close()
     for k, (c, runs) in enumerate(zip(checkouts, results)):
-        print("\n".join(report("this checkout" if k == 0 else str(c), runs)))
+        label = "this checkout" if k == 0 else str(c)
+        print("\n".join(report(f"{label}, all relays", [r for rnd in runs for r in rnd], args.relays)))
+        if args.relays > 1:
+            for i in range(args.relays):
+                print("\n".join(report(f"{label}, relay {i + 1}{' (the page is on it)' if i == 0 and not args.no_page else ''}",
+                                        [rnd[i] for rnd in runs])))
     return 0
 
 
