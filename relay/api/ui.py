@@ -45,6 +45,7 @@ from relay.api.fleet import Fleet
 from relay.api.interest import ALL, MAX_FRAMES, Interest, Wish
 from relay.guard.auth import socket_token, token_matches
 from relay.live import framepack
+from relay.live.run import maintain_all
 from relay.live.state import RelayState
 
 NAMESPACE = "/ui"
@@ -218,14 +219,13 @@ class Ticker:
             return
         everyone: dict[int, dict[str, dict]] = {m: {} for m in wanted.get(ALL, ())}
         t_ns = time.time_ns()
+        shown = []
         for run in fresh:
             rs = self.state.runs.get(run)
-            if rs is None or self.state.nodes.get(rs.node) != run:
-                continue
-            limit = self.interest.limit(wanted, rs.node)
-            if not limit:
-                continue
-            rs.live.maintain()
+            if rs is not None and self.state.nodes.get(rs.node) == run and (limit := self.interest.limit(wanted, rs.node)):
+                shown.append((rs, limit))
+        maintain_all(rs.live for rs, _ in shown)  # one pass of the delay model per graph, not per DCU
+        for rs, limit in shown:
             if rs.live.visible <= rs.pushed:
                 continue
             # Built once, for the largest request, and cut for the others.
@@ -255,8 +255,8 @@ class Ticker:
 
     def _pair(self, wanted: dict[str, set[int]]) -> None:
         """Pair every run; a run some browser shows with frames not pushed yet goes to the pusher."""
+        maintain_all(rs.live for rs in self.state.runs.values())
         for rs in self.state.runs.values():
-            rs.live.maintain()
             if rs.live.visible > rs.pushed:
                 if wanted and self.interest.limit(wanted, rs.node):
                     self.state.fresh.add(rs.run)

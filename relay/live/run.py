@@ -31,7 +31,7 @@ is judged by the exits the whole run has seen.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -56,6 +56,9 @@ RING_OVERHEAD = 20
 """Bytes a kept frame holds besides its cells (source, frame, end)."""
 SHARES = {"open": 0.25, "ring": 0.2, "recent": 0.05, "exact": 0.45, "evicted": 0.05}
 """How a run's byte budget is split between its parts."""
+PUSHED_FRAMES = 512
+"""Complete frames whose pushed columns are kept: at least the most a push carries
+(``relay.api.interest.MAX_FRAMES``, 500)."""
 MIN_FRAMES = 16
 """Frames every part may hold whatever the budget."""
 
@@ -135,6 +138,56 @@ class _Frames:
     cells: np.ndarray  # (n, n_stages, FRAME_CELLS) int64
 
 
+@dataclass
+class _Tick:
+    """One run's maintenance between merging and showing: its open frames and those judged now,
+    with what judging them gave (:func:`_judge_together`)."""
+
+    run: LiveRun
+    open_: _Frames
+    rows: np.ndarray
+    """The open rows judged now."""
+    judged: _Frames
+    complete: np.ndarray | None = None
+    end: np.ndarray | None = None
+    ints: np.ndarray | None = None
+    """Their :func:`relay.live.framepack.node_columns` (cursors not set)."""
+    floats: np.ndarray | None = None
+
+
+def maintain_all(runs: Iterable[LiveRun]) -> None:
+    """:meth:`LiveRun.maintain` of every run, the frames of runs of one graph judged in one pass of
+    the delay model: its cost is numpy's per call, so a relay's tick costs one pass per graph, not
+    one per DCU."""
+    ticks = [tick for run in runs if (tick := run._start_tick()) is not None]
+    groups: dict[tuple, list[_Tick]] = {}
+    for tick in ticks:
+        if len(tick.rows):
+            groups.setdefault(tick.run._judge_key(), []).append(tick)
+    for group in groups.values():
+        _judge_together(group)
+    for tick in ticks:
+        tick.run._end_tick(tick)
+
+
+def _judge_together(ticks: list[_Tick]) -> None:
+    """Judge the frames of ``ticks`` (runs of one :meth:`LiveRun._judge_key`) in one pass: which are
+    complete, where their chains end, and their pushed columns."""
+    if len(ticks) == 1:
+        frames = ticks[0].judged
+    else:
+        frames = _Frames(np.concatenate([t.judged.source for t in ticks]), np.concatenate([t.judged.frame for t in ticks]),
+                         np.concatenate([t.judged.cells for t in ticks]))
+    fd = ticks[0].run._delays(frames)
+    ints, floats = framepack.node_columns(np.zeros(len(fd), np.int64), fd)
+    at = 0
+    for t in ticks:
+        part = slice(at, at + len(t.rows))
+        t.complete, t.end = fd.chains.complete[part], fd.chains.end[part]
+        t.ints, t.floats = ints[:, part], floats[:, part]
+        at = part.stop
+
+
 class LiveRun:
     """Live pairing and statistics of one run of one node."""
 
@@ -170,11 +223,13 @@ class LiveRun:
                       "cells": Grow(np.int64, (s, FRAME_CELLS), ring), "end": Grow(np.int64, cap=ring)}
         self._evicted_last = Grow(np.int64, cap=config.evicted_kept)
         self._recent = {"n": Grow(np.int64, cap=recent), "source": Grow(np.int32, cap=recent),
-                        "frame": Grow(np.int64, cap=recent), "cells": Grow(np.int64, (s, FRAME_CELLS), recent),
-                        "ints": Grow(np.int64, (framepack.int_rows(s),), recent),
-                        "floats": Grow(np.float64, (framepack.float_rows(s),), recent)}
-        """The complete frames, newest last: cells (for :meth:`recent`) and their pushed columns
-        (:func:`relay.live.framepack.node_columns`, one row per frame, for :meth:`recent_columns`)."""
+                        "frame": Grow(np.int64, cap=recent), "cells": Grow(np.int64, (s, FRAME_CELLS), recent)}
+        """The complete frames, newest last (for :meth:`recent`)."""
+        pushed = min(PUSHED_FRAMES, recent)
+        self._pushed = {"ints": Grow(np.int64, (framepack.int_rows(s),), pushed),
+                        "floats": Grow(np.float64, (framepack.float_rows(s),), pushed)}
+        """The newest complete frames' pushed columns (:func:`relay.live.framepack.node_columns`, a
+        row per frame, the cursor first; for :meth:`recent_columns`)."""
         self.finalised = 0
         self.evicted = 0
         self.late = 0
@@ -208,6 +263,8 @@ class LiveRun:
             g.set_cap(ring)
         for g in self._recent.values():
             g.set_cap(recent)
+        for g in self._pushed.values():
+            g.set_cap(min(PUSHED_FRAMES, recent))
         self._evicted_last.set_cap(min(c.evicted_kept, max(MIN_FRAMES, share["evicted"] // 16)))
         # Series: per stage its delays, service, wait and the gap to the next, plus frame and glass.
         self._exact_limit = min(c.exact_values, max(64, share["exact"] // (8 * (4 * self._s + 1))))
@@ -221,7 +278,7 @@ class LiveRun:
     def nbytes(self) -> int:
         """Bytes of the arrays this run holds (they dominate its memory)."""
         arrays = (self._src_ids, self._watermark, self._framed, *self._pending)
-        grows = (*self._ring.values(), *self._recent.values(), self._evicted_last)
+        grows = (*self._ring.values(), *self._recent.values(), *self._pushed.values(), self._evicted_last)
         return (self._open.nbytes + sum(a.nbytes for a in arrays) + sum(g.nbytes for g in grows)
                 + sum(v.nbytes for v in self._all_series()))
 
@@ -378,14 +435,42 @@ class LiveRun:
     # --- periodic: completion, finalisation, eviction -------------------------------------------
 
     def maintain(self) -> int:
-        """Show complete frames, finalise settled ones, evict stale ones; returns frames shown."""
+        """Show complete frames, finalise settled ones, evict stale ones; returns frames shown.
+        (:func:`maintain_all` does it for many runs, judging their frames together.)"""
+        tick = self._start_tick()
+        if tick is None:
+            return 0
+        if len(tick.rows):
+            _judge_together([tick])
+        return self._end_tick(tick)
+
+    def _start_tick(self) -> _Tick | None:
+        """Merge what came; the open frames to judge now, or None when nothing changed. A frame
+        shown is complete at the end it had then: only the others are judged each tick (most open
+        frames are shown ones waiting to settle), unless the run's exit points changed since
+        (which may change any frame's chain)."""
         self._merge_pending()
         t = self._open
         if not self._dirty or t.n == 0:
-            return 0
+            return None
         self._dirty = False
         open_ = self._open_frames()
-        complete, end, judged = self._judge(open_)
+        if self._judged_exits is None or not np.array_equal(self._judged_exits, self._has_exit):
+            self._judged_exits = self._has_exit.copy()
+            rows = np.arange(t.n)
+        else:
+            rows = np.flatnonzero(~t.shown)
+        return _Tick(self, open_, rows, _Frames(open_.source[rows], open_.frame[rows], open_.cells[rows]))
+
+    def _judge_key(self) -> tuple:
+        """Runs with the same key are judged by the delay model alike (their frames may be judged together)."""
+        return tuple(self.stages), tuple(tuple(link) for link in self.header.links), self._has_exit.tobytes()
+
+    def _end_tick(self, tick: _Tick) -> int:
+        t, open_, rows = self._open, tick.open_, tick.rows
+        complete, end = t.shown.copy(), t.end.copy()
+        if len(rows):
+            complete[rows], end[rows] = tick.complete, tick.end
         shown = complete & ~t.shown
         k = int(shown.sum())
         if k:
@@ -397,12 +482,11 @@ class LiveRun:
             r["source"].extend(open_.source[shown])
             r["frame"].extend(open_.frame[shown])
             r["cells"].extend(open_.cells[shown])
-            rows, fd = judged
             new = shown[rows]  # the frames shown now are among those judged now, in the same order
-            ints, floats = framepack.node_columns(np.zeros(len(rows), np.int64), fd)
-            ints[0, new] = n
-            r["ints"].extend(ints[:, new].T)
-            r["floats"].extend(floats[:, new].T)
+            ints = tick.ints[:, new]
+            ints[0] = n
+            self._pushed["ints"].extend(ints.T)
+            self._pushed["floats"].extend(tick.floats[:, new].T)
             self.visible += k
 
         # Finalising costs as much as showing; settled frames can wait a little longer.
@@ -449,23 +533,6 @@ class LiveRun:
     def _delays(self, frames: _Frames) -> FrameDelays:
         """The delay model's figures of ``frames``, judged by the exit points of the whole run."""
         return frame_delays(self._table(frames), self._has_exit)
-
-    def _judge(self, open_: _Frames) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, FrameDelays | None]]:
-        """Which open frames are complete, where their chains end, and the rows judged now with
-        their delays. A frame shown is complete at the end it had then: only the others are judged
-        each tick (most open frames are shown ones waiting to settle), unless the run's exit points
-        changed since (which may change any frame's chain)."""
-        complete, end = self._open.shown.copy(), self._open.end.copy()
-        if self._judged_exits is None or not np.array_equal(self._judged_exits, self._has_exit):
-            self._judged_exits = self._has_exit.copy()
-            rows = np.arange(len(complete))
-        else:
-            rows = np.flatnonzero(~complete)
-        if not len(rows):
-            return complete, end, (rows, None)
-        fd = self._delays(_Frames(open_.source[rows], open_.frame[rows], open_.cells[rows]))
-        complete[rows], end[rows] = fd.chains.complete, fd.chains.end
-        return complete, end, (rows, fd)
 
     def _finalise(self, frames: _Frames) -> None:
         fd = self._delays(frames)
@@ -598,10 +665,9 @@ class LiveRun:
         :func:`relay.live.framepack.node_columns` (ints, floats), each (rows, frames). What the
         pushes send, with no pairing or delay figure derived again."""
         self.maintain()
-        r = self._recent
-        n = r["n"].view
-        start = max(int(np.searchsorted(n, since, side="right")), len(n) - limit)
-        return r["ints"].view[start:].T, r["floats"].view[start:].T
+        ints, floats = self._pushed["ints"].view, self._pushed["floats"].view
+        start = max(int(np.searchsorted(ints[:, 0], since, side="right")), len(ints) - limit)
+        return ints[start:].T, floats[start:].T
 
     @property
     def has_exit(self) -> np.ndarray:

@@ -236,8 +236,10 @@ def test_pushed_columns_are_the_frames_recent_gives(batch, maintain_every):
     """The pushes take each complete frame's columns as they were judged when it was shown
     (``recent_columns``), not derived again: they equal those of the same frames from ``recent``,
     clock correction and all, with drops, disorder and a partial last page."""
+    from relay.api.interest import MAX_FRAMES
     from relay.clock.correction import Correction, Segment
     from relay.live import framepack
+    from relay.live.run import PUSHED_FRAMES
 
     header, events, _ = pipeline_run(300, 3, jitter_ns=5_000_000, batched_mux=True, seed=8)
     events = events[np.argsort(events["ts"], kind="stable")]
@@ -246,7 +248,8 @@ def test_pushed_columns_are_the_frames_recent_gives(batch, maintain_every):
     run.maintain()
     stages = len(header.stages)
     corr = Correction("estimate", "test", (Segment(T0, T0, 37_000, drift_ppb=20_000, uncertainty_ns=5_000),))
-    for since, limit in ((0, 10_000), (run.visible - 50, 20), (run.visible, 5)):
+    assert PUSHED_FRAMES >= MAX_FRAMES  # a push asks for MAX_FRAMES at most
+    for since, limit in ((0, MAX_FRAMES), (run.visible - 50, 20), (run.visible, 5)):
         n, fd = run.recent(since, limit, newest=True)
         want = framepack.columns(n, fd, corr)
         got = framepack.corrected(*run.recent_columns(since, limit), corr, stages)
@@ -275,3 +278,30 @@ def test_whole_run_statistics_of_many_runs_share_one_share_of_the_relays_time():
     assert second is not first and second["frames"]["complete"] > first["frames"]["complete"]
     run.add(events[:10])
     assert whole.get(run, 0, fresh=True, runs=32) is not second
+
+
+def test_runs_maintained_together_show_and_state_exactly_what_each_alone_does():
+    """The pusher judges the frames of every run of one graph in one pass (maintain_all): runs of
+    the same graph, and one of another, fed alike batch by batch, show the same frames with the same
+    columns, and end with the same statistics as twins maintained one by one."""
+    from relay.live.run import maintain_all
+
+    feeds = [(header_for(f"n{k}", 2), synth_events(300, 2, 30.0, T0 + k * 7_000_000, drop_rate=0.05 * k, seed=k))
+             for k in range(3)]
+    header, events, _ = pipeline_run(300, 4, jitter_ns=5_000_000, batched_mux=True, seed=5)
+    feeds.append((header, events[np.argsort(events["ts"], kind="stable")]))
+    together = [LiveRun(h) for h, _ in feeds]
+    alone = [LiveRun(h) for h, _ in feeds]
+    for i in range(0, max(len(e) for _, e in feeds), 211):
+        for (_, ev), a, b in zip(feeds, together, alone):
+            a.add(ev[i:i + 211])
+            b.add(ev[i:i + 211])
+        maintain_all(together)
+        for a, b in zip(together, alone):
+            b.maintain()
+            assert a.visible == b.visible and a.finalised == b.finalised and a.open_count == b.open_count
+    for a, b in zip(together, alone):
+        for got, want in zip(a.recent_columns(0, 500), b.recent_columns(0, 500)):
+            np.testing.assert_array_equal(got, want)
+        assert_stats_equal(b.run_stats(), a.run_stats())
+        assert a.visible > 300 and a.finalised > 0
