@@ -39,7 +39,7 @@ from benchmarks.figures import CannotRun  # noqa: E402
 ROOT = Path(__file__).resolve().parents[1]
 RATE = 4300.0
 CATEGORIES = (
-    ("pairing (LiveRun.maintain)", ("LiveRun.maintain",)),
+    ("pairing (LiveRun.maintain, maintain_all)", ("LiveRun.maintain", "maintain_all")),
     ("push: frames built", ("frames_block", "columns_block")),
     ("fan-out: Redis publish and receive", ("FleetManager._publish", "AsyncPubSubManager._thread")),
     ("push: encoded and sent", ("AsyncNamespace.emit", "AsyncServer.emit", "AsyncManager.emit")),
