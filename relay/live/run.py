@@ -373,9 +373,16 @@ class LiveRun:
         late[~found] = frame[~found] <= self._watermark[self._src_index(src[~found])]
         self.late += int(late.sum())
         opening = ~found & ~late
-        if opening.any():
-            new, inv = np.unique(key[opening], return_inverse=True)
-            self._open.open(new[~self._make_room(new, ts[opening], inv)])
+        if not opening.any():
+            return pos, found
+        new, inv = np.unique(key[opening], return_inverse=True)
+        before = self._open.n
+        dropped = self._make_room(new, ts[opening], inv)
+        if self._open.n == before and not dropped.any():  # nothing evicted: the rows are known
+            self._open.open(new)
+            pos[opening] = before + inv.ravel()
+            return pos, found | opening
+        self._open.open(new[~dropped])
         return self._open.locate(key)
 
     def _make_room(self, new: np.ndarray, ts: np.ndarray, inv: np.ndarray) -> np.ndarray:
