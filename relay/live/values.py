@@ -4,8 +4,10 @@ A relay may watch many nodes for days; keeping every frame's delays for whole-ru
 would grow without bound (13 values a frame: ~270 MB an hour for one DCU at 360 frames/s).
 
 - :class:`RunValues` keeps the values themselves up to ``exact_limit``, so statistics of
-  runs of that size are exactly ``probes.delays.summarize``'s. They are kept sorted, with the
-  sum of their nanoseconds: the relay asks for a run's statistics every second, and a
+  runs of that size are exactly ``probes.delays.summarize``'s. They are kept sorted (the
+  values finalised since the last summary are merged in when the next is asked, once, not at
+  every finalisation), with the sum of their nanoseconds: the relay asks for a run's statistics
+  every second while a page shows it, and a
   percentile is then two lookups in the values plus a merge of the few open frames' ones,
   where selecting it afresh among all of them (``np.percentile``) cost most of a summary. Past it, the values move into
   a histogram with logarithmic buckets (as DDSketch): count, mean and max stay exact, and
@@ -38,7 +40,8 @@ class RunValues:
         self.exact_limit = exact_limit
         self._exact = np.zeros(64)
         self._n_exact = 0
-        """``_exact[:_n_exact]``: the values, ascending."""
+        """``_exact[:_n_exact]``: the values; ascending up to ``_n_sorted``, then as they came."""
+        self._n_sorted = 0
         self._exact_ns = 0.0
         """Their sum in whole nanoseconds (exact: integers, see ``summarize``)."""
         self._nan = False
@@ -78,7 +81,7 @@ class RunValues:
     def _spill(self) -> None:
         self._hist = np.zeros(0, np.int16)
         self._add(self._exact[:self._n_exact])
-        self._exact, self._n_exact, self._exact_ns = np.zeros(0), 0, 0.0
+        self._exact, self._n_exact, self._n_sorted, self._exact_ns = np.zeros(0), 0, 0, 0.0
 
     def extend(self, values: np.ndarray) -> None:
         values = np.asarray(values, np.float64).ravel()
@@ -89,17 +92,14 @@ class RunValues:
                 bigger = np.zeros(min(self.exact_limit, max(2 * len(self._exact), self._n_exact + len(values))))
                 bigger[:self._n_exact] = self._exact[:self._n_exact]
                 self._exact = bigger
-            n, new = self._n_exact, np.sort(values)
-            if np.isnan(new[-1]):
+            # Appended as they come: sorted in only when a summary is asked (:meth:`_sort`), so a
+            # run whose statistics nobody reads costs no merge, and one shown merges once a summary.
+            n = self._n_exact
+            if np.isnan(values).any():
                 self._nan = True
-            # Merged into place: from the first position a new value goes, the old tail moves up.
-            at = np.searchsorted(self._exact[:n], new)
-            if len(at) and at[0] < n:
-                self._exact[:n + len(new)] = np.insert(self._exact[:n], at, new)
-            else:
-                self._exact[n:n + len(new)] = new
-            self._n_exact += len(new)
-            self._exact_ns += float(np.rint(new * NS_PER_MS).sum())
+            self._exact[n:n + len(values)] = values
+            self._n_exact += len(values)
+            self._exact_ns += float(np.rint(values * NS_PER_MS).sum())
             return
         if self._hist is None:
             self._spill()
@@ -111,6 +111,7 @@ class RunValues:
         if self._hist is None:
             if self._nan or np.isnan(extra).any() or self._n_exact + len(extra) == 0:
                 return summarize(np.concatenate([self._exact[:self._n_exact], extra]))
+            self._sort()
             return self._sorted_summary(np.sort(extra))
         keys, counts = _merge(self._hist, self._counts, extra)
         count = self._count + len(extra)
@@ -118,6 +119,19 @@ class RunValues:
         p50, p95, p99 = (min(top, _quantile(keys, counts, count, p / 100)) for p in PERCENTILES)
         return {"count": count, "mean_ms": (self._sum + float(extra.sum())) / count,
                 "p50_ms": p50, "p95_ms": p95, "p99_ms": p99, "max_ms": top}
+
+    def _sort(self) -> None:
+        """Merge the values appended since the last summary into the sorted ones: one pass over them."""
+        n, m = self._n_sorted, self._n_exact
+        if m == n:
+            return
+        new = np.sort(self._exact[n:m])
+        at = np.searchsorted(self._exact[:n], new)
+        if len(at) and at[0] < n:
+            self._exact[:m] = np.insert(self._exact[:n], at, new)
+        else:  # all at or past the largest: in place
+            self._exact[n:m] = new
+        self._n_sorted = m
 
     def _sorted_summary(self, extra: np.ndarray) -> dict:
         """``summarize`` of the (sorted) exact values and ``extra`` (sorted), to its last bit

@@ -103,3 +103,23 @@ def test_exact_values_kept_sorted_summarize_as_summarize_does_added_in_any_order
         assert got.keys() == expected.keys()
         for key in expected:
             assert got[key] == expected[key] or abs(got[key] - expected[key]) <= 1e-12 * abs(expected[key]), key
+
+
+def test_values_finalised_between_summaries_are_merged_in_when_one_is_asked():
+    """Finalisation appends; the next summary merges everything appended since the last one
+    (several batches, some wholly above every value so far), and is summarize's to the last bit."""
+    rng = np.random.default_rng(11)
+    values = RunValues(exact_limit=100_000)
+    seen = []
+    for k in range(80):
+        batch = np.round(rng.lognormal(1.0, 1.2, int(rng.integers(0, 200))), 6)
+        if k % 9 == 4:
+            batch = batch + (max(seen, default=0.0) + 1)  # all past the largest
+        values.extend(batch)
+        seen.extend(batch.tolist())
+        if k % 3 == 2:
+            got, expected = values.summary(), summarize(np.asarray(seen))
+            assert got.keys() == expected.keys()
+            for key in expected:
+                assert got[key] == expected[key] or abs(got[key] - expected[key]) <= 1e-12 * abs(expected[key]), key
+    assert values.exact and values.count == len(seen)
