@@ -126,6 +126,7 @@ def sleeping_stage_excess_ms(backend):
     return ((exit_["ts"] - enter["ts"]) - (ended - began)) / 1e6
 
 
+@pytest.mark.alone  # its p99 is the slowest of 20 frames: beside five busy workers one preemption fails a run
 @pytest.mark.parametrize("backend", BACKENDS)
 def test_stage_delay_of_a_sleeping_stage_is_measured_accurately(backend):
     """Within 0.5 ms of the time the stage really slept on average, p99 within 1.5 ms. Being

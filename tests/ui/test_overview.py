@@ -86,6 +86,15 @@ def debug(page) -> dict:
     return page.evaluate("window.dcuscope.debug()")
 
 
+def stale_snapshot(page) -> dict:
+    """The overview's rows, how many table rows are drawn stale, and DCU-1's cells, at one moment."""
+    return page.evaluate("""() => ({
+        rows: window.dcuscope.debug().overview.rows,
+        drawnStale: document.querySelectorAll('#overview tbody tr.stale').length,
+        dcu1: [...document.querySelectorAll('#overview tbody tr[data-node="DCU-1"] td')].map(td => td.innerText),
+    })""")
+
+
 def cells(page, node: str) -> list[str]:
     return page.locator(f'#overview tbody tr[data-node="{node}"] td').all_inner_texts()
 
@@ -329,13 +338,16 @@ def test_rows_turn_stale_then_go_when_their_relay_stops(fleet, page, browser):
     stopping = threading.Thread(target=relay.stop, daemon=True)
     stopping.start()
     try:
-        rows = wait_for(lambda: (lambda rs: rs if rs and all(r["stale"] for r in rs) else None)(
-            debug(page)["overview"]["rows"]), 20, 0.2, "every row stale")
-        assert all(any(a.startswith("stale") for a in r["alerts"]) for r in rows)
-        assert all(r["down"] for r in rows)  # unheard of: they sort as the DCUs that are down
-        # The table is redrawn from the rows at most once a second: on a loaded machine a while after.
-        wait_for(lambda: page.locator("#overview tbody tr.stale").count() == len(NODES), 10, 0.2, "every row drawn stale")
-        assert "stale" in cells(page, "DCU-1")[1]
+        # A row is stale from 3 s unrefreshed and dropped at 5 s (ROW_STALE_MS, ROW_DROP_MS): the rows,
+        # the table and a row's cells are read in one evaluation, so that a loaded machine's slow
+        # polls cannot see one state and then read the next. The table is redrawn from the rows at
+        # most once a second: a while after the rows.
+        snap = wait_for(lambda: (lambda s: s if s["rows"] and all(r["stale"] for r in s["rows"])
+                                 and s["drawnStale"] == len(NODES) else None)(stale_snapshot(page)),
+                        20, 0.1, "every row stale, and drawn so")
+        assert all(any(a.startswith("stale") for a in r["alerts"]) for r in snap["rows"])
+        assert all(r["down"] for r in snap["rows"])  # unheard of: they sort as the DCUs that are down
+        assert "stale" in snap["dcu1"][1]
         wait_for(lambda: debug(page)["overview"]["total"] == 0, 15, 0.2, "the rows dropped")
         assert page.locator("#overview tbody tr").count() == 0
         wait_for(lambda: debug(every)["overview"]["total"] == 0, 15, 0.2, "the rows dropped on the other page")
