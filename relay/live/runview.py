@@ -44,8 +44,9 @@ def frames_block(view: RunView, since: int = 0, limit: int = 200, newest: bool =
 
 def columns_block(view: RunView, since: int = 0, limit: int = 200) -> tuple[dict, tuple]:
     """The last ``limit`` complete frames after cursor ``since``, as the pushes carry them: the block
-    without its frames, and their columns (:func:`relay.live.framepack.columns`; the pusher packs
-    them once per size asked, :func:`relay.live.framepack.packed`)."""
+    without its frames, and their columns as the run kept them when it showed them, moved to the
+    relay's clock (:func:`relay.live.framepack.corrected`; the pusher packs them once per size
+    asked, :func:`relay.live.framepack.packed`)."""
     ints, floats = view.live.recent_columns(since, limit)
     stages = len(view.header.stages)
     end = int(ints[4, -1]) if ints.shape[1] else None  # INT_FIELDS: n, source, frame, origin, end
