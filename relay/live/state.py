@@ -35,10 +35,9 @@ STATS_MAX_AGE_S = 0.5
 """Whole-run statistics are recomputed at most this often per run (percentiles over every frame)."""
 STATS_SHARE = 0.02
 """Share of the relay's time all runs' whole-run statistics may take when nobody asks for them fresh."""
-WINDOW_MAX_AGE_S = 0.9
+WINDOW_MAX_AGE_S = 0.5
 """The rolling window's, unless asked fresh (the HTTP API), at most this often: shorter than the UI's
-once-a-second pushes, so each push gets a new one, and the fleet's rows (also once a second) and a
-scrape at about the same time share it."""
+once-a-second pushes, so each push gets a new one, and a scrape at about the same time shares it."""
 WINDOW_SHARE = 0.02
 """Share of the relay's time all runs' rolling windows may take when nobody asks for them fresh."""
 

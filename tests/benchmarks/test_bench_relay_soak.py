@@ -21,7 +21,7 @@ import pytest
 from tests.benchmarks.smoke import assert_ran, json_lines, run_benchmark
 
 GROWTH_PER_PAYLOAD = 0.25
-"""Least-squares growth of RSS per restart over restarts 5..20, as a share of one run's raw payload."""
+"""Growth of RSS per restart (Theil-Sen) over restarts 5..20, as a share of one run's raw payload."""
 HWM_PAYLOADS = 3.0
 """How much the RSS high-water mark may rise after restart 5, in runs' raw payloads (the peak of one
 restart's transients recurs; it rises when runs' memory is kept: then by ~15 payloads in 20 restarts)."""
