@@ -144,6 +144,7 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     sio = create_sio(manager)
     ingest = Ingest(state, token, limits, node_tokens)
     storage.on_owners_lost = lambda: _background(ingest.let_go())
+    storage.on_runs_lost = lambda runs: _background(ingest.let_go_runs(runs))
     fleet = Fleet(state)
     ui = UiNamespace(state, fleet, token)
     sio.register_namespace(ui)

@@ -53,8 +53,8 @@ from relay.clock.udp import ClockUdp
 from relay.errors import RelayError
 from relay.guard.auth import http_token, node_for_token, token_matches
 from relay.guard.limits import ByteBucket, Limits, TokenBucket
-from relay.live.state import RelayState, RunState, TryLater
-from relay.store.base import StoreUnavailable
+from relay.live.state import OWNED_RETRY_MS, RelayState, RunState, TryLater
+from relay.store.base import NotOwner, StoreUnavailable
 
 MAX_STORING = 256
 """Batches of one connection being stored at once (a node keeps 64 in flight)."""
@@ -83,6 +83,8 @@ class _Conn:
     clock_key: bytes | None = None
     """This connection's key to the UDP clock exchange (given with the hello reply)."""
     closing: bool = False
+    hello: bool = False
+    """Whether it said hello (taking it may wait on the store: not overdue meanwhile)."""
     tasks: set[asyncio.Task] = field(default_factory=set)
 
 
@@ -165,7 +167,7 @@ class Ingest:
         return node
 
     def _hello_overdue(self, conn: _Conn) -> None:
-        if conn.run is None and not conn.closing:
+        if not conn.hello and not conn.closing:
             self.hello_timeouts += 1
             task = asyncio.ensure_future(self._reject(conn, f"no hello within {self._limits.hello_timeout_s:g} s"))
             conn.tasks.add(task)
@@ -178,13 +180,34 @@ class Ingest:
             await conn.ws.close(code=WSCloseCode.GOING_AWAY, message=b"relay stopping")
 
     async def let_go(self) -> None:
-        """This relay no longer owns its runs (it lost the store connection that held them):
-        their nodes are told to come again, here or to another relay, where they resume."""
-        sids = set(self.state.drop_all())
-        log.warning("ingest: the store connection that owned %d runs was lost; their nodes are let go", len(sids))
-        for conn in [c for c in self._conns.values() if c.sid in sids]:
+        """This relay lost the store connection that renewed its runs' leases and stores their
+        batches: their nodes are told to come again, here or to another relay, where they resume."""
+        held = list(self.state.runs)
+        log.warning("ingest: the store connection was lost; the nodes of %d runs are let go", len(held))
+        await self._let_go(held, b"relay lost its store; resume")
+
+    async def let_go_runs(self, runs: set[str]) -> None:
+        """Another relay took these runs (this relay was silent longer than their leases, or a write
+        of theirs was fenced): nothing more is stored, acknowledged or pushed for them here; their
+        nodes are told to go on with another relay."""
+        held = [self.state.runs[r] for r in runs if r in self.state.runs]
+        if not held:
+            return
+        log.warning("ingest: another relay took %d runs (%s) while this relay was silent longer than their "
+                    "leases; their nodes are let go", len(held), ", ".join(sorted(rs.node for rs in held))[:200])
+        await self._let_go([rs.run for rs in held], b"another relay took this run; resume")
+
+    async def _let_go(self, runs: list[str], reason: bytes) -> None:
+        """Drop ``runs`` from memory and close their connections (TRY_AGAIN_LATER: the nodes resume)."""
+        sids = {self.state.runs[r].sid for r in runs if r in self.state.runs} - {None}
+        conns = [c for c in self._conns.values() if c.sid in sids]
+        for conn in conns:  # before any await: a batch arriving meanwhile finds its connection closing
             conn.closing = True
-            await conn.ws.close(code=WSCloseCode.TRY_AGAIN_LATER, message=b"relay lost its store; resume")
+            conn.run = None  # its run's state goes now: nothing more of it is read, nor detached at the end
+        for run in runs:
+            self.state.release(run)
+        for conn in conns:
+            await conn.ws.close(code=WSCloseCode.TRY_AGAIN_LATER, message=reason)
 
     async def _serve(self, conn: _Conn) -> None:
         async for msg in conn.ws:
@@ -200,6 +223,11 @@ class Ingest:
                     await self._pace(conn, len(msg.data))
                     await self._on_message(conn, envelope.decode_request(msg.data))
                 elif msg.type == WSMsgType.ERROR:
+                    if isinstance(msg.data, (TimeoutError, ConnectionError)):
+                        # No pong within the heartbeat (probes.wire.SILENCE_S): the node froze or the
+                        # network between is cut. Not its fault: the run is let go, to be resumed.
+                        log.info("ingest: %s (run %s) silent: %s", conn.sid, conn.run or "-", msg.data)
+                        return
                     # aiohttp already closes with 1009 (too big) or 1002 (not WebSocket).
                     self._count_rejection(conn, f"bad frame: {msg.data}")
                     await self._reject_run(conn, f"bad frame: {msg.data}")
@@ -284,6 +312,7 @@ class Ingest:
     async def _on_hello(self, conn: _Conn, data: object) -> dict:
         if conn.run is not None:
             raise ProtocolError("hello twice on one connection")
+        conn.hello = True
         hello = decode_hello(data, conn.node, max_stages=self._limits.stages, max_name=self._limits.name_chars)
         try:
             attached = await self.state.attach(hello, conn.sid)
@@ -375,6 +404,8 @@ class Ingest:
         fields, rs.unsaved = rs.unsaved, {}
         try:
             await self.state.storage.call("update_run", rs.run, **fields)
+        except NotOwner:  # another relay holds the run now: its node tells that one
+            return {"ok": False, "error": "another relay holds this run", "retry_ms": OWNED_RETRY_MS}
         except RelayError:  # storage logs that it fails, once
             rs.unsaved = {**fields, **rs.unsaved}  # newer values, set meanwhile, win
             if self._retry is None or self._retry.done():
@@ -426,17 +457,22 @@ class Ingest:
             else:
                 await self._send(conn, self._refused(seq))
             return
-        await self._send(conn, await self._commit(rs, batch))
+        answer = await self._commit(rs, batch)
+        if answer is not None:
+            await self._send(conn, answer)
 
-    async def _commit(self, rs: RunState, batch: Batch) -> str:
+    async def _commit(self, rs: RunState, batch: Batch) -> str | None:
         """Store, then feed the live state: a batch reaches the statistics once it is stored, so a
-        batch storage refused, sent again, counts once."""
+        batch storage refused, sent again, counts once. None: the store refused it for another
+        relay owns the run now (its node is let go, :meth:`let_go_runs`, and told nothing)."""
         done = asyncio.get_running_loop().create_future()
         rs.storing[batch.seq] = done
         new = None
         try:
             new = await self.state.storage.put_batch(rs.run, batch.seq, len(batch.events), batch.compressed,
                                                      batch.payload)
+        except NotOwner:
+            return None
         except RelayError:  # storage logs that it fails, once
             return self._refused(batch.seq)
         finally:

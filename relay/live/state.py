@@ -41,7 +41,7 @@ once-a-second pushes, so each push gets a new one, and a scrape at about the sam
 WINDOW_SHARE = 0.02
 """Share of the relay's time all runs' rolling windows may take when nobody asks for them fresh."""
 
-OWNED_RETRY_MS = 1000
+OWNED_RETRY_MS = 500
 """How long a node whose run another relay owns waits before its next hello (that relay lets
 it go once its connection to the node is seen dead, or dies, which releases it at once)."""
 
@@ -340,6 +340,7 @@ class RelayState:
             for i in range(0, len(events), RELOAD_SLICE):
                 live.add(events[i:i + RELOAD_SLICE])
                 live.maintain()
+                await asyncio.sleep(0)  # the other connections are served meanwhile (their pings too)
         secret_hash = db.secret_hash(issued if issued is not None else hello.secret)
         # A resumed run goes on with its stored clock history (the next write keeps exactly what is held).
         history = [s for s in await self.storage.call("run_history", hello.run) if segment_fault(s) is None]
@@ -386,14 +387,6 @@ class RelayState:
                 self.release(run)
             else:  # kept to be shown, but another relay may take it now
                 self._disown(run)
-
-    def drop_all(self) -> list[str]:
-        """Every run leaves memory (this relay lost the store connection that owned them);
-        returns the connections they were attached to."""
-        sids = [rs.sid for rs in self.runs.values() if rs.sid is not None]
-        for run in list(self.runs):
-            self.release(run)
-        return sids
 
     def node_run(self, node: str) -> RunState | None:
         run = self.nodes.get(node)

@@ -15,9 +15,9 @@ run keeps its last clock view and the history of its clock estimates (``clock_hi
 
 - :mod:`relay.store.sqlite`: a file (``--db FILE``), the embedded default, one relay per file;
 - :mod:`relay.store.postgres`: PostgreSQL (``--db postgresql://...``), shared by any number of
-  relays. A run is written by the one relay that owns it: ownership is a PostgreSQL advisory
-  lock held by the owning relay's writing connection, released by the server when that
-  connection dies, so a relay that lost its store can write nothing more.
+  relays. A run is written by the one relay that owns it: ownership is a lease that expires unless
+  its owner renews it, and every write carries the generation its owner took (a fencing token), so
+  a relay that froze or lost its store can write nothing more once another relay took its runs.
 
 :func:`relay.store.engines.open_database` picks the engine from the ``--db`` value.
 """
@@ -35,9 +35,15 @@ from typing import Any
 from relay.clock.correction import Segment
 from relay.errors import RelayError
 
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 """2 added runs.secret (hash of the run's resume secret) and runs.rejected (why the relay refused it);
-3 added clock_history (each run's clock estimates, each in force from a node time)."""
+3 added clock_history (each run's clock estimates, each in force from a node time); 4 added
+PostgreSQL's leases (each run's owner, with an expiry and a fencing generation)."""
+LEASE_S = 4.0
+"""A shared store: how long a run stays owned after its owner last renewed its lease; another relay
+may take it then, at most this long after its owner stopped (froze, or lost the store)."""
+RENEW_S = 1.0
+"""A shared store: how often a relay renews its leases (a few missed renewals lose nothing)."""
 HISTORY_COLUMNS = ("from_ns", "ref_ns", "offset_ns", "drift_ppb", "uncertainty_ns", "growth_ppb")
 RUN_FIELDS = frozenset({"ended_ns", "written", "dropped", "lost", "clock", "history"})
 REJECTED_CHARS = 200
@@ -144,6 +150,15 @@ class Database(ABC):
     def disown_run(self, run: str) -> None:
         """Give ownership of ``run`` back (its node left, or it ended)."""
 
+    def renew(self) -> set[str]:
+        """Keep owning the runs owned here (a shared store's owners renew, see
+        :mod:`relay.store.postgres`); returns those another relay took meanwhile."""
+        return set()
+
+    def _fence(self, executor: Any, runs: set[str]) -> None:
+        """In a write's transaction: :class:`NotOwner` unless ``runs`` are all still owned here
+        (a store of one relay: always)."""
+
     def mark_rejected(self, run: str, reason: str) -> None:
         """Keep a run the relay refused apart: sessions and exports leave it out."""
         self._transaction(lambda x: x.execute(self._sql("UPDATE runs SET rejected = %s WHERE id = %s "
@@ -162,6 +177,7 @@ class Database(ABC):
         history = fields.get("history")
 
         def update(executor: Any) -> None:
+            self._fence(executor, {run})
             if columns:
                 executor.execute(self._sql(f"UPDATE runs SET {', '.join(f'{k} = %s' for k in columns)} WHERE id = %s"),
                                  (*columns.values(), run))

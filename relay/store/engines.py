@@ -11,14 +11,15 @@ def is_url(db: str | Path) -> bool:
     return str(db).startswith(("postgresql://", "postgres://"))
 
 
-def open_database(db: str | Path, create: bool = True, name: str = "") -> Database:
+def open_database(db: str | Path, create: bool = True, name: str = "", owner: str | None = None) -> Database:
     """A connection to the store ``db`` names: a ``postgresql://`` URL, else an SQLite file
     (``create``: made if missing, else :class:`RelayError`). ``name``: the relay's, shown to the
-    other relays of a shared store."""
+    other relays of a shared store; ``owner``: who holds the runs this connection takes (see
+    :class:`relay.store.postgres.PostgresDatabase`)."""
     if is_url(db):
         from relay.store.postgres import PostgresDatabase  # psycopg loads only for PostgreSQL
 
-        return PostgresDatabase(str(db), name)
+        return PostgresDatabase(str(db), name, owner)
     from relay.store.sqlite import SqliteDatabase
 
     return SqliteDatabase(db, create)

@@ -2,12 +2,26 @@
 
 Same tables and meaning as :mod:`relay.store.sqlite`. What a shared store adds:
 
-- **Owners.** A run is written only by the relay that owns it. Owning is holding a session-level
-  advisory lock on the run (``pg_try_advisory_lock`` on a key from its UUID) on the relay's
-  writing connection: PostgreSQL releases it when that connection ends, whatever ended it (the
-  relay was killed, its host died, the network failed), so another relay may take the run at
-  once, and the relay that lost its connection cannot write (its new connection owns nothing:
-  :meth:`PostgresDatabase.put_batches` refuses runs it does not own).
+- **Owners: leases with fencing.** A run is written only by the relay that owns it. Owning is
+  holding the run's row in ``leases``: an owner (the relay process), a generation and an expiry
+  in PostgreSQL's own time (``clock_timestamp()``), ``LEASE_S`` after the owner last renewed it
+  (:meth:`PostgresDatabase.renew`, every ``relay.store.base.RENEW_S``). Another relay may take a run whose lease
+  expired: a relay that froze (SIGSTOP, a paused VM) or lost its store holds nothing hostage for
+  more than ``LEASE_S``, though its connection, and everything it held, may stay open. Taking a
+  run adds one to its generation, the *fencing token*: every write of a run (batches, run fields,
+  fleet rows) checks, in its own transaction, that the lease is still the writer's with the
+  generation it took (:meth:`PostgresDatabase._fence`, rows locked ``FOR SHARE`` so that a
+  takeover waits for the write in progress, never the other way round), and is refused whole
+  with :class:`NotOwner` otherwise. A relay that wakes up after its leases were taken can thus
+  store nothing more for those runs.
+
+  The fast path: the owner also holds a session-level advisory lock on the run
+  (``pg_try_advisory_lock`` on a key from its UUID), which PostgreSQL releases when its connection
+  ends. A lease whose owner held the lock and no longer does (the relay was killed, or its
+  connection died and PostgreSQL noticed) may be taken at once, without waiting for the expiry.
+  Relay connections end a transaction left idle (``IDLE_IN_TRANSACTION_MS``: a relay frozen
+  mid-transaction holds no row lock for long) and give up on a dead network within
+  ``TCP_USER_TIMEOUT_MS``.
 - **Sessions decided in the store.** A new run joins the session of a run that is owned by some
   relay and has not ended; the check and the insert are one transaction under a transaction-level
   advisory lock, so two relays taking hellos at once never split a session.
@@ -39,7 +53,7 @@ import psycopg
 
 from relay.errors import RelayError
 from relay.urls import redact
-from relay.store.base import (HISTORY_COLUMNS, SCHEMA_VERSION, BatchRow, Database, NotOwner,
+from relay.store.base import (HISTORY_COLUMNS, LEASE_S, SCHEMA_VERSION, BatchRow, Database, NotOwner,
                               StoreUnavailable, check_resume, secret_hash)
 
 SCHEMA = """
@@ -61,6 +75,13 @@ CREATE TABLE IF NOT EXISTS runs (
     secret TEXT,
     rejected TEXT,
     lock_key BIGINT NOT NULL
+);
+CREATE TABLE IF NOT EXISTS leases (
+    run TEXT PRIMARY KEY,
+    owner TEXT NOT NULL,
+    generation BIGINT NOT NULL,
+    expires TIMESTAMPTZ NOT NULL,
+    locked BOOLEAN NOT NULL
 );
 CREATE INDEX IF NOT EXISTS runs_by_session ON runs(session);
 CREATE INDEX IF NOT EXISTS runs_open ON runs(lock_key) WHERE ended_ns IS NULL;
@@ -98,13 +119,17 @@ SCHEMA_LOCK = (LOCKS, 1)
 """Held while a relay creates or migrates the schema (relays starting together)."""
 SESSION_LOCK = (LOCKS, 2)
 """Held while a relay decides a new run's session."""
-HELD_RUNS = """
-    SELECT (l.classid::bigint << 32) | l.objid::bigint FROM pg_locks l
-    WHERE l.locktype = 'advisory' AND l.objsubid = 1 AND l.granted
-      AND l.database = (SELECT oid FROM pg_database WHERE datname = current_database())
-"""
-"""Keys of the run locks some relay holds now (single-key advisory locks have objsubid 1)."""
-CONNECT_TIMEOUT_S = 5
+HELD_RUNS = "SELECT run FROM leases WHERE expires > clock_timestamp()"
+"""Runs some relay owns now (their lease has not expired)."""
+TAKE_LOCK_TIMEOUT_MS = 1000
+"""The longest a takeover waits for a row lock (a write of the owner in progress): it is told to
+come back later instead."""
+IDLE_IN_TRANSACTION_MS = 3000
+"""PostgreSQL ends a relay's session left idle inside a transaction this long (the relay froze
+mid-write): its row locks and advisory locks go with it."""
+TCP_USER_TIMEOUT_MS = 3000
+"""A relay's connection whose sent data goes unacknowledged this long is dead (a network cut)."""
+CONNECT_TIMEOUT_S = 3
 ROLLED_BACK = "40"
 """SQLSTATE class of a transaction rolled back for a conflict (40001 serialization, 40P01 deadlock)."""
 CONFLICT_TRIES = 5
@@ -130,16 +155,24 @@ class PostgresDatabase(Database):
     engine = "postgresql"
     shared = True
 
-    def __init__(self, url: str, name: str = "") -> None:
+    def __init__(self, url: str, name: str = "", owner: str | None = None) -> None:
+        """``owner``: who holds the leases this connection takes (a relay process, the same across
+        its reconnections; default: this connection alone)."""
         self.location = redact(url)
         self.name = name
-        self.owned: set[str] = set()
-        """Runs this connection holds the lock of."""
+        self.owner = owner or f"{name or 'relay'} {secrets.token_hex(6)}"
+        self.owned: dict[str, int] = {}
+        """Runs whose lease this relay took through this connection -> the generation it took."""
+        self.locked: set[str] = set()
+        """Owned runs whose advisory lock this connection holds (the fast path)."""
         self.conflicts = 0
         """Transactions tried again after a conflict with another relay's."""
         try:
             self.conn = psycopg.connect(url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S,
-                                        application_name=f"{APPLICATION} {name}".strip()[:63])
+                                        application_name=f"{APPLICATION} {name}".strip()[:63],
+                                        tcp_user_timeout=TCP_USER_TIMEOUT_MS, keepalives=1, keepalives_idle=2,
+                                        keepalives_interval=1, keepalives_count=2,
+                                        options=f"-c idle_in_transaction_session_timeout={IDLE_IN_TRANSACTION_MS}")
         except psycopg.Error as exc:
             raise StoreUnavailable(f"{self.location}: cannot connect: {_first_line(exc)}") from exc
         except ValueError as exc:  # psycopg's word for a URL it cannot parse
@@ -162,6 +195,8 @@ class PostgresDatabase(Database):
         row = cur.fetchone()
         if row is None:
             cur.execute("INSERT INTO meta VALUES ('schema', %s)", (str(SCHEMA_VERSION),))
+        elif row[0] == "3":  # schema 4 added the leases table, made by SCHEMA above
+            cur.execute("UPDATE meta SET value = %s WHERE key = 'schema'", (str(SCHEMA_VERSION),))
         elif row[0] != str(SCHEMA_VERSION):
             raise RelayError(f"{self.location}: relay database schema {row[0]}, this relay reads {SCHEMA_VERSION}")
 
@@ -213,7 +248,7 @@ class PostgresDatabase(Database):
                 return int(row[0]), int(row[3]), None
             cur.execute("SELECT pg_advisory_xact_lock(%s, %s)", SESSION_LOCK)
             cur.execute(f"SELECT session FROM runs WHERE ended_ns IS NULL AND rejected IS NULL AND id <> %s "
-                        f"AND lock_key IN ({HELD_RUNS}) ORDER BY first_seen_ns DESC LIMIT 1", (run,))
+                        f"AND id IN ({HELD_RUNS}) ORDER BY first_seen_ns DESC LIMIT 1", (run,))
             live = cur.fetchone()
             if live is not None:
                 session = int(live[0])
@@ -230,15 +265,85 @@ class PostgresDatabase(Database):
     def own_run(self, run: str) -> bool:
         if run in self.owned:
             return True
-        (got,) = self._rows("SELECT pg_try_advisory_lock(%s)", (lock_key(run),))[0]
-        if got:
-            self.owned.add(run)
-        return bool(got)
+        key = lock_key(run)
+
+        def take(cur: psycopg.Cursor) -> int | None:
+            cur.execute("SET LOCAL lock_timeout = %s" % TAKE_LOCK_TIMEOUT_MS)
+            # The advisory lock first: got, no live connection holds it, so an owner that held it is gone.
+            cur.execute("SELECT pg_try_advisory_lock(%s)", (key,))
+            got = bool(cur.fetchone()[0])
+            cur.execute("INSERT INTO leases AS l (run, owner, generation, expires, locked) "
+                        "VALUES (%s, %s, 1, clock_timestamp() + make_interval(secs => %s), %s) "
+                        "ON CONFLICT (run) DO UPDATE SET owner = EXCLUDED.owner, generation = l.generation + 1, "
+                        "expires = EXCLUDED.expires, locked = EXCLUDED.locked "
+                        "WHERE l.owner = EXCLUDED.owner OR l.expires <= clock_timestamp() OR (l.locked AND %s) "
+                        "RETURNING generation", (run, self.owner, LEASE_S, got, got))
+            row = cur.fetchone()
+            if row is None and got:
+                cur.execute("SELECT pg_advisory_unlock(%s)", (key,))
+            if row is not None and got:
+                self.locked.add(run)
+            return int(row[0]) if row is not None else None
+
+        try:
+            generation = self._transaction(take)
+        except StoreUnavailable as exc:
+            if isinstance(exc.__cause__, psycopg.errors.LockNotAvailable):
+                return False  # the owner is writing (or froze mid-write): come back later
+            raise
+        if generation is None:
+            return False
+        self.owned[run] = generation
+        return True
 
     def disown_run(self, run: str) -> None:
-        if run in self.owned:
-            self.owned.discard(run)
+        generation = self.owned.pop(run, None)
+        if generation is None:
+            return
+        self._rows("UPDATE leases SET expires = '-infinity' WHERE run = %s AND owner = %s AND generation = %s "
+                   "RETURNING run", (run, self.owner, generation))
+        if run in self.locked:
+            self.locked.discard(run)
             self._rows("SELECT pg_advisory_unlock(%s)", (lock_key(run),))
+
+    def renew(self) -> set[str]:
+        """Renew every lease this relay holds; returns the runs whose lease another relay took
+        meanwhile (they are no longer owned here)."""
+        if not self.owned:
+            return set()
+        runs = list(self.owned)
+        kept = {r for (r,) in self._rows(
+            "UPDATE leases l SET expires = clock_timestamp() + make_interval(secs => %s) "
+            "FROM unnest(%s::text[], %s::bigint[]) AS o(run, generation) "
+            "WHERE l.run = o.run AND l.generation = o.generation AND l.owner = %s RETURNING l.run",
+            (LEASE_S, runs, [self.owned[r] for r in runs], self.owner))}
+        return self._forget(set(runs) - kept)
+
+    def _forget(self, lost: set[str]) -> set[str]:
+        """Runs another relay took: no longer owned here (their advisory locks let go)."""
+        for run in lost:
+            self.owned.pop(run, None)
+            if run in self.locked:
+                self.locked.discard(run)
+                try:
+                    self._rows("SELECT pg_advisory_unlock(%s)", (lock_key(run),))
+                except StoreUnavailable:  # the connection is gone, and the lock with it
+                    pass
+        return lost
+
+    def _fence(self, cur: psycopg.Cursor, runs: set[str]) -> None:
+        """In a write's transaction: the runs' leases are still this relay's, at the generation it
+        took them (row locks held until the commit, so no takeover passes the write); else
+        :class:`NotOwner` and the transaction is rolled back."""
+        strangers = runs - self.owned.keys()
+        if not strangers:
+            ids = list(runs)
+            cur.execute("SELECT l.run FROM leases l JOIN unnest(%s::text[], %s::bigint[]) AS o(run, generation) "
+                        "ON l.run = o.run AND l.generation = o.generation WHERE l.owner = %s FOR SHARE OF l",
+                        (ids, [self.owned[r] for r in ids], self.owner))
+            strangers = runs - {r for (r,) in cur.fetchall()}
+        if strangers:
+            raise NotOwner(strangers)
 
     def _put_history(self, cur: psycopg.Cursor, run: str, history: list[dict]) -> None:
         cur.execute(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history WHERE run = %s", (run,))
@@ -257,11 +362,8 @@ class PostgresDatabase(Database):
     # --- batches ------------------------------------------------------------------------------
 
     def put_batches(self, batches: list[BatchRow], now_ns: int) -> list[bool]:
-        strangers = {b.run for b in batches} - self.owned
-        if strangers:
-            raise NotOwner(strangers)
-
         def insert(cur: psycopg.Cursor) -> set[tuple[str, int]]:
+            self._fence(cur, {b.run for b in batches})
             cur.execute("INSERT INTO batches (run, seq, count, compressed, received_ns, data) "
                         "SELECT r, s, c, z, %s, d FROM unnest(%s::text[], %s::bigint[], %s::int[], %s::bool[], "
                         "%s::bytea[]) AS b(r, s, c, z, d) ON CONFLICT DO NOTHING RETURNING run, seq",
@@ -278,7 +380,11 @@ class PostgresDatabase(Database):
                             (now_ns, list(per_run), list(per_run.values())))
             return new
 
-        new = self._transaction(insert)
+        try:
+            new = self._transaction(insert)
+        except NotOwner as exc:
+            self._forget(exc.runs & self.owned.keys())
+            raise
         seen: set[tuple[str, int]] = set()
         out = []
         for b in batches:  # a batch queued twice in one group is stored once
@@ -291,13 +397,21 @@ class PostgresDatabase(Database):
 
     def put_fleet(self, rows: list[tuple[str, str, str, int, str, str]]) -> None:
         """Each relay's rows of the DCUs it holds, (node, run, relay, updated_ns, view JSON, row JSON),
-        upserted by node in one transaction: whichever relay holds a node now writes its row."""
+        upserted by node in one transaction: whichever relay holds a node now writes its row. Rows
+        of runs whose lease this relay lost are left out (fenced, as every write of a run)."""
         rows = sorted(rows)  # every relay locks rows in one order: two relays' upserts never deadlock
 
         def upsert(cur: psycopg.Cursor) -> None:
+            runs = {r[1] for r in rows}
+            try:
+                self._fence(cur, runs)
+                mine = rows
+            except NotOwner as exc:
+                mine = [r for r in rows if r[1] not in exc.runs]
+                self._fence(cur, {r[1] for r in mine})
             cur.executemany("INSERT INTO fleet (node, run, relay, updated_ns, view, row) VALUES (%s, %s, %s, %s, %s, %s) "
                             "ON CONFLICT (node) DO UPDATE SET run = EXCLUDED.run, relay = EXCLUDED.relay, "
-                            "updated_ns = EXCLUDED.updated_ns, view = EXCLUDED.view, row = EXCLUDED.row", rows)
+                            "updated_ns = EXCLUDED.updated_ns, view = EXCLUDED.view, row = EXCLUDED.row", mine)
         self._transaction(upsert)
 
     def fleet_rows(self, since_ns: int) -> list[tuple[str, str, str, int, str, str]]:
@@ -315,7 +429,7 @@ class PostgresDatabase(Database):
     def expired_sessions(self, before_ns: int) -> list[int]:
         return [int(r[0]) for r in self._rows(
             f"SELECT session FROM runs GROUP BY session HAVING max(last_seen_ns) < %s "
-            f"AND NOT bool_or(ended_ns IS NULL AND lock_key IN ({HELD_RUNS})) ORDER BY session", (before_ns,))]
+            f"AND NOT bool_or(ended_ns IS NULL AND id IN ({HELD_RUNS})) ORDER BY session", (before_ns,))]
 
     def delete_session_part(self, session: int, limit: int) -> int:
         def delete(cur: psycopg.Cursor) -> int:

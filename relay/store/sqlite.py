@@ -74,7 +74,7 @@ def connect(path: str | Path, create: bool = True) -> sqlite3.Connection:
         conn.execute("PRAGMA synchronous=NORMAL")
         conn.executescript(SCHEMA)
         row = conn.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
-        if row is not None and row[0] in ("1", "2"):
+        if row is not None and row[0] in ("1", "2", "3"):
             _migrate(conn)
             row = (str(SCHEMA_VERSION),)
         if row is None:

@@ -7,10 +7,15 @@ in the order they were queued.
 
 While the store fails (a full disk, PostgreSQL down or restarting) every write is refused with
 :class:`relay.errors.RelayError`: nodes hold their batches for :meth:`Storage.retry_ms` and send
-them again. One line is logged when writes start failing and one when they work again. A lost
-connection to a shared store is opened again at the next write; since the runs this relay owned
-were owned by the lost connection, it tells the relay (``on_owners_lost``), which lets their
-nodes go: they come back, to this relay or another, and resume.
+them again. One line is logged when writes start failing and one when they work again.
+
+On a shared store the thread also renews this relay's leases every ``RENEW_S``
+(:meth:`relay.store.base.Database.renew`). Runs whose lease another relay took (this relay froze,
+or could not renew in time), and runs a write was refused for (fenced), are handed to
+``on_runs_lost``; a lost connection hands them all (``on_owners_lost``) at once, since this relay
+can renew nothing until it reconnects. The relay lets their nodes go: they come back, to this relay
+or another, and resume. :meth:`Storage.leases_fresh` says whether the leases are surely still
+held now (renewed within ``LEASE_S``), as pushes need.
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import queue
+import secrets
 import threading
 import time
 from collections.abc import Callable
@@ -27,7 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from relay.errors import RelayError
-from relay.store.base import BatchRow, Database, NotOwner, StoreUnavailable
+from relay.store.base import LEASE_S, RENEW_S, BatchRow, Database, NotOwner, StoreUnavailable
 from relay.store.engines import open_database
 
 GROUP_LIMIT = 2000
@@ -35,12 +41,20 @@ GROUP_LIMIT = 2000
 RETRY_MS = (250, 5000)
 """What nodes are told to hold their batches for while storage fails: from the first, growing
 with how long it has failed (half of it), to the second."""
+RECONNECT_S = 1.0
+"""A lost shared store is connected to again by the lease renewal, at most this often: meanwhile
+writes and calls fail at once (a hello is answered "later" at once, and its node tries another
+relay), not each after a connection attempt of its own (up to the connect timeout, on a cut)."""
 DESCRIBE_S = 2.0
 """The store's description (the relays sharing it) is refreshed this often."""
 WRITES = frozenset({"register_run", "update_run", "mark_rejected", "own_run", "disown_run"})
 """Calls whose success shows that storage works again."""
 
 log = logging.getLogger(__name__)
+
+
+class _Reconnecting(StoreUnavailable):
+    """A write refused at once: the store connection was lost and is being opened again."""
 
 
 @dataclass
@@ -64,7 +78,9 @@ class Storage:
         self.db = db
         """What ``--db`` named: readers (stored sessions) open their own connections to it."""
         self.name = name
-        self._database: Database | None = open_database(db, name=name)
+        self.owner = f"{name or 'relay'} {secrets.token_hex(6)}"
+        """Who holds this relay's leases on a shared store: the same across its reconnections."""
+        self._database: Database | None = open_database(db, name=name, owner=self.owner)
         self.location = self._database.location
         self.shared = self._database.shared
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
@@ -75,6 +91,14 @@ class Storage:
         self.reconnects = 0
         self.on_owners_lost: Callable[[], None] | None = None
         """Called on the event loop when the connection that owned this relay's runs was lost."""
+        self.on_runs_lost: Callable[[set[str]], None] | None = None
+        """Called on the event loop with runs another relay took (their leases, or a fenced write)."""
+        self._renewed_at = time.monotonic()
+        """When the last renewal that succeeded started (monotonic)."""
+        self._tried_at = 0.0
+        """When the last connection attempt to a lost store started (monotonic)."""
+        self._lost_pending: set[str] = set()
+        """Runs a write was refused for (fenced), told with the next renewal's (one word for all)."""
         self._described: dict = self._database.describe()
         self._failure: dict | None = None
         """While writes fail: {error, since (epoch s), failed_writes, failed}; None when they work."""
@@ -117,6 +141,11 @@ class Storage:
             return dict(out, ok=True)
         return {**out, **failure, "ok": False, "failed": dict(failure["failed"])}
 
+    def leases_fresh(self) -> bool:
+        """Whether this relay surely still holds its leases: renewed less than ``LEASE_S`` ago,
+        less a renewal's period (a relay that froze longer must not push for runs it may have lost)."""
+        return not self.shared or time.monotonic() - self._renewed_at < LEASE_S - RENEW_S
+
     def retry_ms(self) -> int:
         """How long a node should hold its batches now (storage failing)."""
         failure = self._failure
@@ -125,25 +154,42 @@ class Storage:
 
     # --- the thread ---------------------------------------------------------------------------
 
-    def _connection(self) -> Database:
-        """The open connection, or a new one after the last was lost (StoreUnavailable if not)."""
+    def _connection(self, reconnect: bool = False) -> Database:
+        """The open connection, or a new one after the last was lost (StoreUnavailable if not). A
+        shared store is connected to again only by the renewal (``reconnect``); a file always is."""
         if self._database is None:
-            self._database = open_database(self.db, name=self.name)
+            since = time.monotonic() - self._tried_at
+            if self.shared and (not reconnect or since < RECONNECT_S):
+                why = self._failure["error"] if self._failure is not None else "connection lost"
+                raise _Reconnecting(f"{self.location}: not connected, connecting again ({why})")
+            self._tried_at = time.monotonic()
+            self._database = open_database(self.db, name=self.name, owner=self.owner)
             self.reconnects += 1
-            if self.shared and self.on_owners_lost is not None:
-                self._soon(self.on_owners_lost)
             log.info("%s: connected again", self.location)
         return self._database
 
     def _lost(self) -> None:
-        """The connection failed: a shared store's is dropped (its runs' ownership with it) and
-        opened again at the next write; a file's stays (a full disk is not a lost file)."""
+        """The connection failed: a shared store's is dropped and opened again at the next write,
+        and this relay's runs are let go at once (it cannot renew their leases meanwhile, nor store
+        their batches: their nodes go on with another relay); a file's stays (a full disk is not a
+        lost file)."""
         if self.shared and self._database is not None:
             try:
                 self._database.close()
             except Exception:  # noqa: BLE001 - it is being dropped for failing already
                 pass
             self._database = None
+            if self.on_owners_lost is not None:
+                self._soon(self.on_owners_lost)
+
+    def _runs_lost(self, runs: set[str]) -> None:
+        if runs and self.on_runs_lost is not None:
+            self._soon(partial(self.on_runs_lost, set(runs)))
+
+    def _fenced(self, runs: set[str]) -> None:
+        """A write was refused for ``runs``: the next renewal, at once, tells them with any other
+        run lost meanwhile (a relay that wakes up after its leases were taken says so once)."""
+        self._lost_pending |= runs
 
     def _failed(self, what: str, exc: BaseException) -> RelayError:
         # Logged once when writes start failing and once when they work again, not per write
@@ -157,7 +203,8 @@ class Storage:
                       self.location, text)
         failure["failed_writes"] += 1
         failure["failed"][what] = failure["failed"].get(what, 0) + 1
-        failure["error"] = text
+        if not isinstance(exc, _Reconnecting):  # the cause stays said
+            failure["error"] = text
         return StoreUnavailable(f"{self.location}: cannot {what}: {text}")
 
     def _worked(self) -> None:
@@ -191,13 +238,16 @@ class Storage:
         self._soon(settle)
 
     def _worker(self) -> None:
-        described = time.monotonic()
+        described = renewed = time.monotonic()
         while True:
+            if self.shared and (time.monotonic() - renewed >= RENEW_S or self._lost_pending):
+                renewed = time.monotonic()
+                self._renew()
             if time.monotonic() - described >= DESCRIBE_S:
                 self._describe()
                 described = time.monotonic()
             try:
-                item = self._queue.get(timeout=DESCRIBE_S)
+                item = self._queue.get(timeout=RENEW_S if self.shared else DESCRIBE_S)
             except queue.Empty:
                 continue
             if item is None:
@@ -215,6 +265,20 @@ class Storage:
             self._write_batches([g for g in group if isinstance(g, _Batch)])
             for call in (g for g in group if isinstance(g, _Call)):
                 self._run_call(call)
+
+    def _renew(self) -> None:
+        """Renew this relay's leases; hand on the runs another relay took."""
+        started = time.monotonic()
+        try:
+            lost = self._connection(reconnect=True).renew()
+        except StoreUnavailable as exc:
+            self._lost()
+            self._failed("renew leases", exc)
+            return
+        self._renewed_at = started
+        self._worked()  # the store answered (an idle relay writes nothing else to show it)
+        lost, self._lost_pending = lost | self._lost_pending, set()
+        self._runs_lost(lost)
 
     def _describe(self) -> None:
         """What /api/health shows of the store (the relays sharing it come and go)."""
@@ -235,6 +299,8 @@ class Storage:
             what = call.name if isinstance(call.name, str) else getattr(call.name, "__name__", "write")
             outcome = (call.future, None, self._failed(what, exc))
         except Exception as exc:  # noqa: BLE001 - handed to the awaiting coroutine
+            if isinstance(exc, NotOwner):
+                self._fenced(exc.runs)
             outcome = (call.future, None, exc)
         else:
             if call.name in WRITES:
@@ -248,8 +314,9 @@ class Storage:
         try:
             inserted = self._connection().put_batches([b.row for b in batches], time.time_ns())
         except NotOwner as exc:
-            # Runs owned by a connection since lost: this relay writes them no more (their nodes
-            # were told to go); the others' batches are tried again on their own.
+            # Runs another relay took (fenced): this relay writes them no more and lets their
+            # nodes go; the others' batches are tried again on their own.
+            self._fenced(exc.runs)
             rest = [b for b in batches if b.row.run not in exc.runs]
             self._resolve_all([(b.future, None, exc) for b in batches if b.row.run in exc.runs])
             if rest:

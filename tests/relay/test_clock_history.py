@@ -16,6 +16,7 @@ import numpy as np
 from probes.events import ORIGIN
 from probes.simnode import synth_events
 from probes.wire import encode_batch
+from relay.store.base import SCHEMA_VERSION
 from relay.store.runs import frame_starts, load_runs
 from tests.relay.helpers import HandNode, RelayProcess, get_json
 
@@ -73,7 +74,7 @@ def test_each_part_of_a_run_is_corrected_by_the_estimate_in_force_at_its_time(tm
     finally:
         relay.stop()
     with sqlite3.connect(db) as conn:
-        assert conn.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone() == ("3",)
+        assert conn.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone() == (str(SCHEMA_VERSION),)
         stored_history = conn.execute("SELECT COUNT(*) FROM clock_history WHERE run = ?", (run,)).fetchone()
         assert stored_history == (clock["history"],)
 

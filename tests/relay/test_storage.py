@@ -66,7 +66,7 @@ def test_an_older_database_is_migrated_in_place_and_corrected_by_its_last_estima
     assert np.array_equal(stored.events["ts"], events["ts"] - 7000)
     assert stored.correction.at(int(T0)) == (7000, 90)
     conn = db.connect(path)
-    assert conn.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone() == ("3",)
+    assert conn.execute("SELECT value FROM meta WHERE key = 'schema'").fetchone() == (str(db.SCHEMA_VERSION),)
     assert {"secret", "rejected"} <= {r[1] for r in conn.execute("PRAGMA table_info(runs)")}
     assert db.SqliteDatabase(path).run_history(run) == []
 

@@ -19,7 +19,7 @@ from probes.simnode import header_for, synth_events
 from probes.wire import encode_batch
 from relay.clock.correction import Segment
 from relay.errors import RelayError
-from relay.store.base import BatchRow, NotOwner
+from relay.store.base import LEASE_S, BatchRow, NotOwner
 from relay.store.engines import open_database
 from relay.store.runs import frame_starts, list_sessions, load_runs, load_session
 from relay.store.writer import Storage
@@ -150,6 +150,7 @@ def test_a_stored_history_corrects_each_timestamp_and_a_poisoned_one_falls_back(
     history = [Segment(int(T0) - 10**9, int(T0), 5000, 0, 100), Segment(half, half, 9000, 1000, 50, 200)]
     run = stored_run(store, events, {"applied": "estimate", "correction_ns": 9000}, history)
     database = open_database(store)
+    assert database.own_run(run)  # a run's fields are written by its owner (its lease, on a shared store)
     database.update_run(run, history=[s.to_dict() for s in history], ended_ns=5)  # written again: the same rows
     assert database.run_history(run) == history
     (stored,) = load_runs(store, run[:8])
@@ -351,3 +352,53 @@ def test_a_transaction_postgresql_rolls_back_as_a_deadlock_is_tried_again(pg_url
     finally:
         other.close()
         database.close()
+
+
+def test_a_relay_whose_lease_was_taken_is_refused_by_the_store_fenced_by_its_generation(pg_url):
+    """Relay X owns a run, then stops renewing (frozen): after LEASE_S relay Y may take it, though X's
+    connection, and its advisory lock, are still there. X, awake, tries to write a batch it had
+    received and the run's end: the store refuses both in their transactions (the generation X took
+    is not the lease's any more), writes nothing, and X's next renewal says the run was taken."""
+    x, y = open_database(pg_url, name="x"), open_database(pg_url, name="y")
+    run = uuid.uuid4().hex
+    events = synth_events(5, 1, 25.0, T0)
+    try:
+        assert x.own_run(run)
+        x.register_run(run, "a", header_for("a", 1).to_dict(), None, None)
+        assert x.put_batches([BatchRow(run, 0, len(events), False, payload(run, 0, events, False))], 1) == [True]
+        assert not y.own_run(run)  # held, and X's connection holds its advisory lock: no fast path
+        time.sleep(LEASE_S + 0.2)  # X renews nothing meanwhile
+        assert y.own_run(run)  # expired: taken, generation 2
+        with pytest.raises(NotOwner):
+            x.put_batches([BatchRow(run, 1, len(events), False, payload(run, 1, events, False))], 1)
+        with pytest.raises(NotOwner):
+            x.update_run(run, ended_ns=5, written=10)
+        assert x.renew() == set() and run not in x.owned  # the refusal already told X
+        assert y.put_batches([BatchRow(run, 1, len(events), False, payload(run, 1, events, False))], 1) == [True]
+        assert y.renew() == set()
+        (stored,) = [r for s in list_sessions(pg_url) for r in s["runs"] if r["run"] == run]
+        assert stored["events"] == 2 * len(events) and stored["ended_ns"] is None  # X's write: none of it
+        assert y.stored_seqs(run) == {0, 1}
+        # A relay killed (its connection ends, its advisory locks with it) lets its runs go at once,
+        # without the wait for their leases: the fast path.
+        other = uuid.uuid4().hex
+        assert y.own_run(other) and not x.own_run(other)
+        y.close()
+        assert x.own_run(other)
+    finally:
+        x.close()
+        y.close()
+
+
+def test_a_lease_not_renewed_is_lost_at_the_next_renewal(pg_url):
+    x, y = open_database(pg_url, name="x"), open_database(pg_url, name="y")
+    run = uuid.uuid4().hex
+    try:
+        assert x.own_run(run)
+        assert x.renew() == set()
+        time.sleep(LEASE_S + 0.2)
+        assert y.own_run(run)
+        assert x.renew() == {run} and not x.owned
+    finally:
+        x.close()
+        y.close()
