@@ -57,6 +57,9 @@ MAX_DRIFT_PPM = 1000.0
 
 PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
 
+CLOSE_TIMEOUT_S = 60.0
+"""``--close-timeout``'s default: probes.events.EXPORTER_CLOSE_S (not imported here: numpy slows the start)."""
+
 
 def version() -> str:
     """The installed package's version, else (a source tree not installed) pyproject.toml's."""
@@ -96,6 +99,10 @@ def build_parser() -> argparse.ArgumentParser:
                         help="stream probe events to a relay, e.g. http://127.0.0.1:3000; several, comma-separated "
                              "(sharing one database): the node moves to the next when its relay cannot be reached")
     probes.add_argument("--token", metavar="TOKEN", help="token the relay asks for")
+    probes.add_argument("--close-timeout", type=_positive_float, default=CLOSE_TIMEOUT_S, metavar="S",
+                        help="at the end of the run, keep trying every --relay for up to S seconds until all that "
+                             "was sent is acknowledged, saying what it waits for (default %(default)g); what is "
+                             "still unacknowledged then is reported lost (a --trace file still holds it)")
     probes.add_argument("--clock-offset-ms", type=float, default=0.0, metavar="MS",
                         help="TESTING AID: shift this node's clock by MS milliseconds, to check clock alignment (default 0)")
     probes.add_argument("--clock-drift-ppm", type=_drift_ppm, default=0.0, metavar="PPM",

@@ -97,7 +97,8 @@ def _run_built(args: argparse.Namespace, config: PipelineConfig, built) -> int:
 
         probing = start_probes(built, config, relay=args.relay, token=args.token,
                                clock_offset_ns=int(args.clock_offset_ms * 1e6), progress=progress,
-                               clock_drift_ppm=args.clock_drift_ppm, ptp_socket=args.ptp_socket)
+                               clock_drift_ppm=args.clock_drift_ppm, ptp_socket=args.ptp_socket,
+                               close_timeout_s=args.close_timeout)
     try:
         result = runner.run()
     finally:

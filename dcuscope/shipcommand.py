@@ -33,6 +33,9 @@ def add_ship_parser(sub) -> None:
                    help="seconds the trace's stages must stay the same before connecting (default 1)")
     p.add_argument("--wait", type=float, default=60.0, metavar="S",
                    help="give up when TRACE names no stage after S seconds (default 60)")
+    p.add_argument("--close-timeout", type=float, default=60.0, metavar="S",
+                   help="once TRACE ended, keep trying every --relay for up to S seconds until all that was sent "
+                        "is acknowledged (default 60); what is still unacknowledged then is reported lost")
     p.set_defaults(func=_ship, holds_signals=True)
 
 
@@ -41,15 +44,15 @@ def _ship(args) -> int:
     from probes.relaylink import check_token
     from probes.tailship import TailShipper
 
-    if args.settle < 0 or args.wait <= 0:
-        raise DcuscopeError("--settle must be >= 0 and --wait > 0")
+    if args.settle < 0 or args.wait <= 0 or args.close_timeout <= 0:
+        raise DcuscopeError("--settle must be >= 0, --wait and --close-timeout > 0")
     check_token(args.relay, args.token)
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     if signals.held():
         return 0
-    shipper = TailShipper(args.trace, args.relay, args.token, args.node)
+    shipper = TailShipper(args.trace, args.relay, args.token, args.node, close_timeout_s=args.close_timeout)
     try:
         return shipper.run(stop, args.settle, args.wait)
     finally:

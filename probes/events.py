@@ -132,9 +132,10 @@ class TraceHeader:
         )
 
 
-EXPORTER_CLOSE_S = 10.0
-"""The longest an exporter's ``close`` may take (sending what is buffered included): the
-shipping thread's ``stop`` waits at least this long for it."""
+EXPORTER_CLOSE_S = 60.0
+"""The longest an exporter's ``close`` may take by default (sending what is buffered included; the
+relay exporter keeps trying every relay it was given this long: ``--close-timeout``). An exporter
+with a ``close_timeout_s`` of its own is waited for that long."""
 
 
 class Exporter(Protocol):

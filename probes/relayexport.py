@@ -32,12 +32,18 @@ before, which benchmarks/bench_relay.py measures beside it).
 
 Several relays (``--relay URL1,URL2``, relays that share one database): the node ships to one at
 a time and moves to the next in the list, round robin, when the one it uses cannot be reached
-(its TCP connect fails or takes over ``CONNECT_TIMEOUT_S``), when its connection drops, or when
-it answers hello with "later" (``ok: false`` with ``retry_ms``, or an error saying another relay
-holds the run: after that wait). The next relay is tried at once; the backoff runs between
-rounds, once every relay of the list failed. The run goes on there, resumed with its secret, its
-unacknowledged batches resent. A relay that refuses the node for now (another live run holds
-its name) is asked again after the backoff, as with one relay; a refused token ends the tries.
+(its TCP connect fails or takes over ``CONNECT_TIMEOUT_S``, its WebSocket handshake over
+``HANDSHAKE_TIMEOUT_S``), when its connection drops, when it is silent (the node waits for it,
+batches in flight or a request, and hears nothing for ``SILENCE_S``, not even the answer to a
+ping: a frozen relay keeps its connections open), or when it answers hello with "later" (``ok:
+false`` with ``retry_ms``, e.g. its store fails). A relay that answers that another relay holds
+the run is asked again after the wait it gives, for up to ``ELSEWHERE_PATIENCE_S`` (the holder's
+lease runs out, or it lets the run go, within seconds), then the next. The next relay is tried at
+once; the backoff (or the wait a relay asked for) runs between rounds, once every relay of the
+list failed or asked to come back later. The node never gives up while its run is open. The run
+goes on there, resumed with its secret, its unacknowledged batches resent. A relay that refuses
+the node for now (another live run holds its name) is asked again after the backoff, as with one
+relay; a refused token ends the tries.
 Each move is logged once per outage ("relay URL1 unreachable; trying URL2").
 
 On each connection it also measures the clock offset to the relay and reports the samples with
@@ -65,10 +71,10 @@ from core.clocks import CLOCKS, NEVER, PretendClock
 from probes.errors import ExportError
 from probes.events import EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
 from probes.ptp import POLL_INTERVAL_S, PtpWatch
-from probes.relaylink import Link, Refused, asked_retry_ms, parse_relays
+from probes.relaylink import ELSEWHERE, Link, Refused, asked_retry_ms, parse_relays
 from probes.udpclock import UdpClock, parse_offer
 from probes.sysclock import DEFAULT_UDS
-from probes.wire import MAX_BATCH_EVENTS, MAX_DOUBT, PROTOCOL_VERSION, encode_batch
+from probes.wire import HEARTBEAT_S, MAX_BATCH_EVENTS, MAX_DOUBT, PROTOCOL_VERSION, SILENCE_S, encode_batch
 
 DEFAULT_BATCH_EVENTS = 8192
 DEFAULT_FLUSH_INTERVAL_S = 0.05
@@ -85,6 +91,8 @@ DEFAULT_WINDOW = 64
 """Batches in flight (sent, not acknowledged) on one connection."""
 SYNC_BURST_FIRST, SYNC_BURST = 8, 4
 ACK_TIMEOUT_S = 30.0
+SILENCE_CHECK_S = 0.25
+"""How often the sender, waiting, looks whether the relay went silent."""
 CONNECT_TIMEOUT_S = 2.0
 """A relay whose TCP connect takes longer counts as unreachable: a relay host that is down (its
 SYNs unanswered) is left for the next relay within this, not after the whole handshake's bound."""
@@ -92,6 +100,12 @@ HELLO_TIMEOUT_S = 10.0
 SYNC_TIMEOUT_S = 10.0
 UDP_RETRY_S = 30.0
 """After a UDP burst got no answer, the WebSocket exchanges serve this long before UDP is tried again."""
+ELSEWHERE_PATIENCE_S = 8.0
+"""How long a relay that says another relay holds the run is asked again before the next is tried:
+longer than a lease (``relay.store.base.LEASE_S``) plus the time a relay takes to see its node gone
+(``probes.wire.SILENCE_S``)."""
+CLOSE_SAY_S = 5.0
+"""While ``close`` waits for a relay, what it waits for is said this often."""
 END_TIMEOUT_S = 2.0
 """Of ``close_timeout_s``, kept to say ``end``."""
 TEARDOWN_S = 1.5
@@ -140,7 +154,8 @@ class RelayExporter:
         self._max_events = int(max_buffer_events)
         self._window = max(1, int(window))
         self._sync_interval, self._ptp_interval = sync_interval_s, ptp_interval_s
-        self._close_timeout, self._backoff = close_timeout_s, backoff_s
+        self.close_timeout_s, self._backoff = close_timeout_s, backoff_s
+        """How long ``close`` keeps trying every relay for the acknowledgements and ``end``."""
         self.run_id = uuid.uuid4().hex
         self._secret: str | None = None
         """The relay's resume secret for this run (its first hello's reply): only with it may a
@@ -174,6 +189,10 @@ class RelayExporter:
         self._moves_said: set[tuple[str, str, str]] = set()
         """Moves to another relay logged since the last hello: each said once per outage."""
         self._retries = 0
+        self._elsewhere_since: float | None = None
+        """When the relay in use first answered that another relay holds the run (None: it did not)."""
+        self._waiting_since = 0.0
+        """When the batches now in flight started waiting for the relay (monotonic)."""
         self._hold_s = 0.0
         """How long sending is held after the relay could not store a batch (0: it could)."""
         self._hold_until = 0.0
@@ -231,7 +250,7 @@ class RelayExporter:
         """Send what is buffered, tell the relay the run ended; all within ``close_timeout_s``."""
         if self._thread is None or self._loop is None:
             return
-        deadline = time.monotonic() + self._close_timeout
+        deadline = time.monotonic() + self.close_timeout_s
         future = asyncio.run_coroutine_threadsafe(self._finish(int(dropped), deadline), self._loop)
         try:
             future.result(max(0.0, deadline - time.monotonic()))
@@ -383,6 +402,7 @@ class RelayExporter:
     async def _connection_loop(self) -> None:
         delay = self._backoff[0]
         misses = 0  # relays in a row that could not be reached
+        laters = 0  # relays in a row that asked to come back later
         # total=None: the handshake has its own bound (relaylink), and the WebSocket lives on.
         timeout = aiohttp.ClientTimeout(total=None, sock_connect=CONNECT_TIMEOUT_S)
         async with aiohttp.ClientSession(timeout=timeout) as session:
@@ -393,16 +413,25 @@ class RelayExporter:
                 if outcome is None:
                     continue  # stopped
                 if isinstance(outcome, Link):
-                    delay, misses = self._backoff[0], 0
+                    delay, misses, laters = self._backoff[0], 0, 0
+                    self._elsewhere_since = None
                     self._moves_said.clear()
                     why = await self._serve(outcome)
                     if not self._stop.is_set():
                         self._move_on(f"connection to relay {self.url} lost", why)
                     continue
-                if outcome.kind == _LATER:
+                if outcome.kind == _ELSEWHERE and self._patient():
                     misses = 0
-                    # As long as the relay asks, within the backoff's cap: it is asked again, or the next.
+                    # The run's holder lets it go (its node left it) or its lease runs out: this relay takes it then.
                     wait = min(outcome.wait_s, self._backoff[1]) if outcome.wait_s is not None else delay
+                    self._note_error(f"relay {self.url}: another relay holds this run; asking again")
+                elif outcome.kind in (_LATER, _ELSEWHERE):
+                    misses, laters = 0, laters + 1
+                    self._elsewhere_since = None
+                    # The next relay at once (its store may work); once every relay asked, as long as
+                    # the last asks, within the backoff's cap.
+                    asked = min(outcome.wait_s, self._backoff[1]) if outcome.wait_s is not None else delay
+                    wait = asked if laters % len(self.urls) == 0 else 0.0
                     self._move_on(f"relay {self.url} asks to come back later", outcome.why, wait)
                 elif outcome.kind == _REFUSED:
                     misses, wait = 0, delay
@@ -419,6 +448,13 @@ class RelayExporter:
                         wait *= random.uniform(0.8, 1.2)
                     await _wait(self._stop, wait)
         await self._stop.wait()
+
+    def _patient(self) -> bool:
+        """Whether the relay that says another holds the run is to be asked again (not the next)."""
+        now = time.monotonic()
+        if self._elsewhere_since is None:
+            self._elsewhere_since = now
+        return now - self._elsewhere_since < ELSEWHERE_PATIENCE_S
 
     def _move_on(self, what: str, why: str, wait_s: float = 0.0, alone: str | None = None) -> None:
         """Take the next relay of the list and say why; with one relay, say why (or ``alone``)."""
@@ -464,7 +500,7 @@ class RelayExporter:
         except (ConnectionError, TimeoutError, aiohttp.ClientError) as exc:
             await link.close()
             if link.elsewhere:  # another relay holds the run: not a refusal of this node
-                return _Miss(_LATER, link.error, _seconds(link.retry_ms))
+                return _Miss(_ELSEWHERE, link.error, _seconds(link.retry_ms))
             if link.error.startswith("relay error"):
                 # The relay said why (e.g. another live run holds this node's name): it is asked again later.
                 return _Miss(_REFUSED, link.error)
@@ -472,7 +508,8 @@ class RelayExporter:
         if not (isinstance(reply, dict) and reply.get("ok")):
             # A relay that cannot take the run now (it says for how long, with retry_ms).
             await link.close()
-            return _Miss(_LATER, f"relay refused hello: {str(reply)[:200]}", _seconds(asked_retry_ms(reply)))
+            kind = _ELSEWHERE if ELSEWHERE.search(str(reply.get("error") if isinstance(reply, dict) else "")) else _LATER
+            return _Miss(kind, f"relay refused hello: {str(reply)[:200]}", _seconds(asked_retry_ms(reply)))
         if isinstance(reply.get("secret"), str):
             self._secret = reply["secret"]
         self._settle_doubts(hello.get("doubt", []), reply)
@@ -503,6 +540,7 @@ class RelayExporter:
 
     async def _sender(self, link: Link) -> None:
         while True:
+            self._check_silence(link)
             while self._to_send and len(self._inflight) < self._window:
                 if time.monotonic() < self._hold_until:  # the relay's storage fails: hold every batch
                     await asyncio.sleep(self._hold_until - time.monotonic())
@@ -511,15 +549,36 @@ class RelayExporter:
                 item = self._unacked.get(seq)
                 if item is None or seq in self._inflight:
                     continue
+                if not self._inflight:
+                    self._waiting_since = time.monotonic()
                 self._inflight[seq] = time.monotonic()
                 self._tried.add(seq)
                 await link.send_batch(item[0])
                 self._sent += item[1]
             self._progress.clear()
-            if not await _wait(self._progress, 1.0):
+            if not await _wait(self._progress, SILENCE_CHECK_S):
+                since = self._expecting(link)
+                if since is not None and link.silent_s(since) >= HEARTBEAT_S:
+                    await link.ping()
                 oldest = min(self._inflight.values(), default=time.monotonic())
                 if time.monotonic() - oldest > ACK_TIMEOUT_S:
                     raise ExportError(f"no acknowledgement for {ACK_TIMEOUT_S:.0f} s") from None
+
+    def _expecting(self, link: Link) -> float | None:
+        """Since when the node has been waiting for the relay (batches in flight, a request's
+        reply), or None if it waits for nothing."""
+        starts = ([self._waiting_since] if self._inflight else []) + ([link.asked_at] if link.asked_at else [])
+        return min(starts, default=None)
+
+    def _check_silence(self, link: Link) -> None:
+        """A relay that, while the node waits for it, said nothing for SILENCE_S (not even a pong)
+        is left: it froze, or the network between is cut."""
+        since = self._expecting(link)
+        if since is not None:
+            silent = link.silent_s(since)
+            if silent >= SILENCE_S:
+                raise ExportError(f"relay silent for {silent:.1f} s with {len(self._inflight)} batches "
+                                  "unacknowledged")
 
     def _on_ack(self, ack: dict) -> None:
         seq = ack.get("seq")
@@ -529,6 +588,7 @@ class RelayExporter:
         if not isinstance(seq, int) or seq not in self._inflight:
             return
         del self._inflight[seq]
+        self._waiting_since = time.monotonic()
         if ack.get("ok") is not True:
             self._hold(ack)
             self._retries += 1
@@ -637,15 +697,14 @@ class RelayExporter:
         self._last_error = message
 
     async def _finish(self, dropped: int, deadline: float) -> None:
-        """Wait for the acknowledgements until ``deadline`` leaves time to say ``end``."""
+        """Wait for the acknowledgements, trying every relay, until ``deadline`` leaves time to say
+        ``end``; then say it (to whichever relay answers)."""
         self._cut_batches()
         # What close() keeps to say end and tear down: at most half its time, so that a short
         # close_timeout_s still waits for acknowledgements (or a first answer from the relay).
-        reserve = min(END_TIMEOUT_S + TEARDOWN_S, self._close_timeout / 2)
+        reserve = min(END_TIMEOUT_S + TEARDOWN_S, self.close_timeout_s / 2)
         acks_until = deadline - reserve
-        while self._unacked and not self.refused and time.monotonic() < acks_until:
-            self._progress.clear()
-            await _wait(self._progress, min(0.2, max(acks_until - time.monotonic(), 0.01)))
+        await self._await_relay(acks_until, deadline)
         if self._link is not None:
             # A short run still leaves the relay its clock estimate.
             await _wait(self._synced, max(0.0, acks_until - time.monotonic()))
@@ -659,23 +718,48 @@ class RelayExporter:
                 self._note_error(f"could not ask the relay about doubtful batches: {_describe(exc)}")
         for seq in list(self._doubtful):  # not known: counted lost
             self._settle_doubt(seq, False)
-        if link is not None:
-            end = {"events": self._written, "dropped": dropped, "lost": self.lost + self._unacked_n}
-            try:
-                teardown = reserve * TEARDOWN_S / (END_TIMEOUT_S + TEARDOWN_S)
-                await link.call("end", end, max(0.1, min(END_TIMEOUT_S, deadline - teardown - time.monotonic())))
-            except (ConnectionError, TimeoutError, aiohttp.ClientError) as exc:
-                self._note_error(f"could not send end: {_describe(exc)}")
+        await self._say_end(dropped, deadline - reserve * TEARDOWN_S / (END_TIMEOUT_S + TEARDOWN_S))
         self._stop.set()
 
+    async def _await_relay(self, until: float, deadline: float) -> None:
+        """Until every batch is acknowledged and a relay is connected (to hear ``end``), or
+        ``until``: the connection loop goes on trying every relay meanwhile. What it waits for is
+        said every CLOSE_SAY_S."""
+        said = time.monotonic()
+        while (self._unacked or self._link is None) and not self.refused and time.monotonic() < until:
+            if time.monotonic() - said >= CLOSE_SAY_S:
+                said = time.monotonic()
+                what = (f"{self._unacked_n} events to be acknowledged" if self._unacked
+                        else "a relay to hear that the run ended")
+                where = f"relay {self.url}" if self._connected else f"no relay connected ({self._last_error})"
+                log.warning("relay exporter %s: closing: waiting for %s; %s; %.0f s left (--close-timeout)",
+                            self.node, what, where, max(0.0, deadline - time.monotonic()))
+            self._progress.clear()
+            await _wait(self._progress, min(0.2, max(until - time.monotonic(), 0.01)))
 
-_UNREACHABLE, _REFUSED, _LATER = "unreachable", "refused", "later"
+    async def _say_end(self, dropped: int, until: float) -> None:
+        """Tell the relay the run ended; a relay lost meanwhile is replaced by the next that answers."""
+        while not self.refused and time.monotonic() < until:
+            link = self._link
+            if link is None:
+                await asyncio.sleep(0.1)
+                continue
+            end = {"events": self._written, "dropped": dropped, "lost": self.lost + self._unacked_n}
+            try:
+                await link.call("end", end, max(0.1, min(END_TIMEOUT_S, until - time.monotonic())))
+                return
+            except (ConnectionError, TimeoutError, aiohttp.ClientError) as exc:
+                self._note_error(f"could not send end: {_describe(exc)}")
+                await asyncio.sleep(0.1)
+
+
+_UNREACHABLE, _REFUSED, _LATER, _ELSEWHERE = "unreachable", "refused", "later", "elsewhere"
 
 
 class _Miss(NamedTuple):
     """Why a connection attempt gave no link: the relay could not be reached, refused this node
-    (for now, or its token: :attr:`RelayExporter.refused`), or asked it to come back later
-    (after ``wait_s``, if it said)."""
+    (for now, or its token: :attr:`RelayExporter.refused`), asked it to come back later (after
+    ``wait_s``, if it said), or said that another relay holds its run."""
 
     kind: str
     why: str

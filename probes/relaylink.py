@@ -15,6 +15,7 @@ from __future__ import annotations
 import asyncio
 import itertools
 import re
+import time
 import urllib.error
 import urllib.request
 from typing import Callable, Sequence
@@ -24,9 +25,11 @@ from aiohttp import WSMsgType
 
 from probes import envelope
 from probes.errors import ExportError, ProtocolError
-from probes.wire import HEARTBEAT_S, INGEST_PATH, MAX_MESSAGE_BYTES
+from probes.wire import INGEST_PATH, MAX_MESSAGE_BYTES
 
-HANDSHAKE_TIMEOUT_S = 10.0
+HANDSHAKE_TIMEOUT_S = 5.0
+"""A relay that has not completed the WebSocket handshake within this is unreachable (a frozen
+relay's kernel still accepts the TCP connection: only the handshake tells)."""
 CLOSE_TIMEOUT_S = 1.0
 ELSEWHERE = re.compile(r"\b(owned by|another relay)\b", re.IGNORECASE)
 """An error the relay closes a hello with when another relay of the fleet holds the run: not a
@@ -82,6 +85,11 @@ class Link:
         self.retry_ms: int | None = None
         """How long the relay asked the node to wait before it comes back, with its error."""
         self._on_ack = on_ack
+        self.heard_at = time.monotonic()
+        """When the relay last sent anything (a message, a ping, a pong; monotonic)."""
+        self._pinged_at = float("-inf")
+        self.asked_at: float | None = None
+        """Since when a request has been waiting for its reply (None: none waits; monotonic)."""
         self._calls: dict[int, asyncio.Future] = {}
         self._ids = itertools.count()
         self._reader = asyncio.create_task(self._read())
@@ -95,7 +103,8 @@ class Link:
         ws_url = "ws" + url[len("http"):] + INGEST_PATH
         try:
             async with asyncio.timeout(HANDSHAKE_TIMEOUT_S):
-                ws = await session.ws_connect(ws_url, headers=headers, heartbeat=HEARTBEAT_S,
+                # Pings and pongs are read here (autoping off): a pong counts as the relay heard from.
+                ws = await session.ws_connect(ws_url, headers=headers, autoping=False,
                                               max_msg_size=MAX_MESSAGE_BYTES,
                                               timeout=aiohttp.ClientWSTimeout(ws_close=CLOSE_TIMEOUT_S))
         except aiohttp.WSServerHandshakeError as exc:
@@ -110,6 +119,8 @@ class Link:
         """Send a request and wait for its reply's data (ConnectionError if the link ends first)."""
         ident = next(self._ids)
         future = asyncio.get_running_loop().create_future()
+        if not self._calls:
+            self.asked_at = time.monotonic()
         self._calls[ident] = future
         try:
             await self.ws.send_str(envelope.request(kind, data, ident))
@@ -117,6 +128,8 @@ class Link:
                 return await future
         finally:
             self._calls.pop(ident, None)
+            if not self._calls:
+                self.asked_at = None
 
     async def tell(self, kind: str, data: object) -> None:
         """Send a message that wants no reply."""
@@ -124,6 +137,16 @@ class Link:
 
     async def send_batch(self, data: bytes) -> None:
         await self.ws.send_bytes(data)
+
+    def silent_s(self, since: float) -> float:
+        """How long the relay has said nothing, counted from ``since`` at the earliest (monotonic)."""
+        return time.monotonic() - max(self.heard_at, since)
+
+    async def ping(self) -> None:
+        """Ask the relay for a sign of life (its pong), once per silence."""
+        if self._pinged_at < self.heard_at:
+            self._pinged_at = time.monotonic()
+            await self.ws.ping()
 
     async def closed(self) -> None:
         await asyncio.shield(self._reader)
@@ -138,6 +161,12 @@ class Link:
     async def _read(self) -> None:
         try:
             async for msg in self.ws:
+                self.heard_at = time.monotonic()
+                if msg.type == WSMsgType.PING:
+                    await self.ws.pong(msg.data)
+                    continue
+                if msg.type == WSMsgType.PONG:
+                    continue
                 if msg.type != WSMsgType.TEXT:
                     self.error = f"relay sent a {msg.type.name} frame"
                     break

@@ -28,8 +28,13 @@ DEFAULT_INTERVAL_S = 0.02
 FACTS_INTERVAL_S = 0.1
 """How often ``before_ship`` (the sources' counters) is called, at most."""
 DEFAULT_BATCH = 1 << 16
-STOP_TIMEOUT_S = EXPORTER_CLOSE_S + 5.0
-"""What ``stop`` waits: the exporters' close, plus the final drain."""
+STOP_MARGIN_S = 5.0
+"""What ``stop`` waits beyond the exporters' close: the final drain."""
+
+
+def close_timeout_s(exporters: Sequence[Exporter]) -> float:
+    """The longest the exporters' ``close`` may take (``EXPORTER_CLOSE_S`` unless one says)."""
+    return max((float(getattr(e, "close_timeout_s", EXPORTER_CLOSE_S)) for e in exporters), default=0.0)
 
 
 class Shipper:
@@ -59,8 +64,11 @@ class Shipper:
         self._thread.start()
         return self
 
-    def stop(self, timeout: float | None = STOP_TIMEOUT_S) -> None:
-        """Ship what is left, close the exporters and end the thread."""
+    def stop(self, timeout: float | None = None) -> None:
+        """Ship what is left, close the exporters and end the thread (by default waiting as long as
+        the slowest exporter's close may take, plus STOP_MARGIN_S)."""
+        if timeout is None:
+            timeout = close_timeout_s(self.exporters) + STOP_MARGIN_S
         self._stop.set()
         if self._thread.is_alive():
             self._thread.join(timeout)

@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 
 from probes.errors import ExportError
-from probes.events import EVENT_DTYPE, TraceHeader
+from probes.events import EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
 from probes.follow import TraceFollower
 from probes.relayexport import RelayExporter
 
@@ -33,8 +33,9 @@ def _stderr(line: str) -> None:
 
 class TailShipper:
     def __init__(self, trace: Path, relay: str, token: str | None = None, node: str | None = None,
-                 say: Callable[[str], None] = _stderr) -> None:
+                 say: Callable[[str], None] = _stderr, close_timeout_s: float = EXPORTER_CLOSE_S) -> None:
         self.follower = TraceFollower(trace)
+        self.close_timeout_s = close_timeout_s
         self.relay, self.token, self.node, self.say = relay, token, node, say
         self.exporter: RelayExporter | None = None
         self.sent = 0
@@ -88,7 +89,8 @@ class TailShipper:
         return self.node or (header.node if header else "?")
 
     def _connect(self, header: TraceHeader) -> None:
-        self.exporter = RelayExporter(self.relay, self._name(header), token=self.token, clock=header.clock)
+        self.exporter = RelayExporter(self.relay, self._name(header), token=self.token, clock=header.clock,
+                                      close_timeout_s=self.close_timeout_s)
         self.exporter.start(header)
         self.runs += 1
 

@@ -41,9 +41,13 @@ PROTOCOL_VERSION = 2
 ``hello``); 1 was the Socket.IO transport."""
 INGEST_PATH = "/ingest"
 """Where nodes open their WebSocket: ``ws://HOST:PORT/ingest``."""
-HEARTBEAT_S = 15.0
-"""WebSocket ping interval on both ends; a peer that answers no ping within half of it is gone.
-Longer than a short network stall (tests/relay/test_netcut.py holds one for 5 s)."""
+SILENCE_S = 3.0
+"""A peer that sends nothing this long (no message, no answer to a ping) is taken as gone: a node
+waiting for its relay (batches in flight, a request) moves on to its next relay, a relay lets the
+node's run go (another relay may take it). A frozen relay (SIGSTOP, a paused VM) keeps its TCP connections open: only silence
+tells."""
+HEARTBEAT_S = SILENCE_S * 2 / 3
+"""A peer silent this long is pinged; it has the rest of ``SILENCE_S`` to answer."""
 FLAG_ZLIB = 0x01
 HEADER = struct.Struct("<4sBBH16sQII")
 HEADER_SIZE = HEADER.size  # 40

@@ -204,7 +204,8 @@ def test_a_node_holds_its_batches_while_the_relays_storage_fails(tmp_path):
 
 def test_the_probe_shipper_waits_for_the_relay_exporters_close(tmp_path):
     """Shipper.stop waited 10 s while the exporter's close could take 15 s: it returned with the
-    close still running. Here the relay is black-holed, so close takes all the time it may."""
+    close still running. Here the relay is black-holed, so close takes all the time it may (its own
+    ``close_timeout_s``, which the shipper waits for)."""
     name, rank, cls = framestamp.__gstelementfactory__
     if Gst.ElementFactory.find(name) is None:
         Gst.Element.register(None, name, rank, cls.__gtype__)
@@ -214,7 +215,7 @@ def test_the_probe_shipper_waits_for_the_relay_exporters_close(tmp_path):
         pipe = Gst.parse_launch("videotestsrc num-buffers=30 ! video/x-raw,width=64,height=48 ! "
                                 "framestamp source-id=0 ! identity ! fakesink")
         tracer = attach(pipe, "A")
-        exporter = RelayExporter(proxy.url, "A", sync_interval_s=60.0)  # nothing ends the link early
+        exporter = RelayExporter(proxy.url, "A", sync_interval_s=60.0, close_timeout_s=12.0)  # nothing ends the link early
         shipper = Shipper(tracer, [exporter]).start()
         wait_for(lambda: exporter.counters()["connected"], 10, what="connection")
         proxy.cut("blackhole")
@@ -227,3 +228,32 @@ def test_the_probe_shipper_waits_for_the_relay_exporters_close(tmp_path):
     finally:
         proxy.close()
         relay.stop()
+
+
+def test_close_keeps_trying_for_its_timeout_and_says_what_it_waits_for(tmp_path, caplog):
+    """The run ends while no relay answers: close goes on trying (saying every CLOSE_SAY_S what it
+    waits for), and the relay that comes up meanwhile gets everything and the run's end."""
+    port = free_port()
+    exporter = RelayExporter(f"http://127.0.0.1:{port}", "late", close_timeout_s=30.0, backoff_s=(0.1, 0.5))
+    events = synth_events(50, 2, 25.0, T0)
+
+    async def scenario():
+        exporter.start(header_for("late", 2))
+        exporter.write(events)
+        closing = asyncio.create_task(asyncio.to_thread(exporter.close, 0))
+        await asyncio.sleep(6.0)  # longer than CLOSE_SAY_S: it said what it waits for at least once
+        assert not closing.done()
+        relay = await start_relay(port=port, db=tmp_path / "r.db")
+        try:
+            await closing
+            rs = relay.state.runs[exporter.run_id]
+            assert rs.ended and rs.written == len(events) and rs.live.events == len(events)
+        finally:
+            await relay.stop()
+
+    with caplog.at_level("WARNING", logger="probes.relayexport"):
+        asyncio.run(scenario())
+    c = exporter.counters()
+    assert c["acked"] == len(events) and c["lost"] == 0, c
+    said = [r.getMessage() for r in caplog.records if "closing: waiting for" in r.getMessage()]
+    assert said and f"{len(events)} events to be acknowledged" in said[0] and "--close-timeout" in said[0], said

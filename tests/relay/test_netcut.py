@@ -28,8 +28,9 @@ def test_cut_network_loses_nothing(tmp_path, mode, seconds):
         proxy.restore()
         counters = finish_node(node, 90)
         assert counters["lost"] == 0 and counters["acked"] == counters["events"]
-        # refuse: the node saw its connection reset and reconnected; black hole: it outlived it.
-        assert counters["connects"] >= 2 if mode == "refuse" else counters["connects"] == 1
+        # refuse: the node saw its connection reset; black hole: the relay was silent (probes.wire.SILENCE_S).
+        # Either way it reconnected and resumed.
+        assert counters["connects"] >= 2
         header, events = load_node(tmp_path / "n.npz")
         assert cut_at < len(events)
         wait_for(lambda: get_json(f"{relay.url}/api/nodes")[0]["ended"], 10, what="end of run")
