@@ -4,9 +4,15 @@ Once a second (:meth:`Fleet.refresh`) the relay builds the overview row (:mod:`r
 and node view of every DCU it holds, and, on a shared store, upserts them into the store's
 ``fleet`` table and reads back the rows of the other relays' DCUs. ``/api/nodes`` and
 ``/api/overview`` then list the fleet; ``/api/stats``, ``/api/frames`` and ``/api/moments`` read a
-DCU another relay holds from a mirror of its stored batches (:mod:`relay.live.mirror`). A row its
-relay stopped refreshing for ``STALE_S`` is marked ``stale`` (that relay died or lost the store: its
-DCUs reconnect to another within seconds); one nobody refreshed for ``ROW_TTL_S`` is deleted.
+DCU another relay holds from a mirror of its stored batches (:mod:`relay.live.mirror`).
+
+Every row and node view carries a ``state``: "connected", "disconnected" (its run not ended),
+"ended", or "relay silent". A row of a live run that its relay stopped refreshing for ``STALE_S`` is
+marked ``stale`` and listed as not connected, whatever that relay last wrote (frozen, it serves
+nobody; cut off from the store, nothing says it does): ``state`` "relay silent", ``silent_s`` since
+it last wrote the row, ``relay`` still naming it, and on the overview row the alert "relay silent:
+last heard N s ago". A relay that died lets its DCUs reconnect to another within seconds, whose
+rows then take over; one nobody refreshed for ``ROW_TTL_S`` is deleted.
 """
 
 from __future__ import annotations
@@ -18,11 +24,12 @@ from dataclasses import dataclass
 
 from relay.errors import RelayError
 from relay.live.mirror import Mirrors
-from relay.live.overview import CountHistory, overview_row
+from relay.live.overview import CountHistory, connection_state, overview_row
 from relay.live.runview import RunView
-from relay.live.state import RelayState
+from relay.live.state import RelayState, RunState
 
 STALE_S = 3.0
+RELAY_SILENT = "relay silent"
 ROW_TTL_S = 300.0
 
 log = logging.getLogger(__name__)
@@ -40,6 +47,21 @@ class Remote:
 
     def stale(self, now_ns: int) -> bool:
         return not self.row.get("ended") and now_ns - self.updated_ns > STALE_S * 1e9
+
+    def heard(self, entry: dict, now_ns: int) -> dict:
+        """``entry`` (its stored row or view) as listed at ``now_ns``: marked ``stale``, and not
+        connected while its relay is silent."""
+        if not self.stale(now_ns):
+            return dict(entry, stale=False, state=connection_state(entry["connected"], entry["ended"]))
+        return dict(entry, stale=True, connected=False, state=RELAY_SILENT,
+                    silent_s=round((now_ns - self.updated_ns) / 1e9, 1))
+
+    def row_at(self, now_ns: int) -> dict:
+        """Its overview row as listed at ``now_ns`` (:meth:`heard`; a silent relay is an alert)."""
+        row = self.heard(self.row, now_ns)
+        if row["stale"]:
+            row["alerts"] = [f"relay silent: last heard {row['silent_s']:.0f} s ago", *row["alerts"]]
+        return row
 
 
 class Fleet:
@@ -66,7 +88,7 @@ class Fleet:
             rs = state.runs.get(run)
             if rs is None or not state.holds(rs):
                 continue
-            view = views[node] = state.node_view(rs) | {"relay": state.relay_name}
+            view = views[node] = self.local_view(rs)
             window = rs.window.get(rs.live, False, len(state.runs))
             drops = self._drops.setdefault(run, CountHistory()).recent(view["drops"], now)
             incomplete = self._incomplete.setdefault(run, CountHistory()).recent(view["frames"]["evicted"], now)
@@ -112,20 +134,29 @@ class Fleet:
         """Every DCU's row: this relay's as of the last refresh, the others' as stored."""
         now = time.time_ns()
         out = [dict(row, stale=False) for row in self.rows.values()]
-        out += [dict(r.row, stale=r.stale(now)) for node, r in self.remote.items() if node not in self.rows]
+        out += [r.row_at(now) for node, r in self.remote.items() if node not in self.rows]
         return sorted(out, key=lambda r: r["node"])
+
+    def silent_rows(self) -> list[dict]:
+        """The rows of other relays' DCUs whose relay went silent (:meth:`Remote.row_at`)."""
+        now = time.time_ns()
+        return [r.row_at(now) for node, r in self.remote.items() if node not in self.rows and r.stale(now)]
 
     def node_views(self) -> list[dict]:
         """``GET /api/nodes``: this relay's DCUs live, then the others' as stored, by name."""
         state = self.state
-        local = {node: state.node_view(state.runs[run]) | {"relay": state.relay_name}
-                 for node, run in state.nodes.items() if run in state.runs}
+        local = {node: self.local_view(state.runs[run]) for node, run in state.nodes.items() if run in state.runs}
         now = time.time_ns()
         for node, r in self.remote.items():
             rs = state.node_run(node)
             if node not in local or (rs is not None and not state.holds(rs)):
-                local[node] = dict(r.view, stale=r.stale(now))
+                local[node] = r.heard(r.view, now)
         return [local[node] for node in sorted(local)]
+
+    def local_view(self, rs: RunState) -> dict:
+        """The node view of a run this relay keeps, with the relay's name and the DCU's state."""
+        view = self.state.node_view(rs)
+        return view | {"relay": self.state.relay_name, "state": connection_state(view["connected"], view["ended"])}
 
     def views_of(self, nodes) -> list[dict]:
         """The node views of ``nodes`` (those known), for a browser that subscribed to them."""

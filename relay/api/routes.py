@@ -6,10 +6,10 @@
   malloc holds, and the passes that gave memory back after runs left it (:mod:`relay.heap`),
   refused {LIMIT or reason: what it refused}, proxy {trusted, proxied, proxied_open} (null without
   ``--trusted-proxy``), ...}; ok is false while storage fails
-- ``GET /api/nodes``: [{node, run, session, connected, relay, clock {offset_us, uncertainty_us, ...},
+- ``GET /api/nodes``: [{node, run, session, connected, state, relay, clock {offset_us, uncertainty_us, ...},
   ptp, events, dropped, lost, drops, ...}], one per node (its newest run) of the whole fleet: on a shared
-  store the DCUs other relays hold too, as they wrote them to the store at most a second ago (``stale``
-  when their relay stopped refreshing them, :mod:`relay.api.fleet`)
+  store the DCUs other relays hold too, as they wrote them to the store at most a second ago (``stale``,
+  not connected, state "relay silent" when their relay stopped refreshing them, :mod:`relay.api.fleet`)
 - ``GET /api/overview``: {t_ns, relay, rows: [ROW, ...]}: one row per DCU of the fleet
   (:mod:`relay.live.overview`; as the ``overview`` pushes of :mod:`relay.api.ui`)
 - ``GET /api/stats?node=NAME``, ``/api/frames``, ``/api/moments`` answer for any DCU of the fleet: one

@@ -213,6 +213,8 @@ class Ticker:
 
     async def push_frames(self) -> None:
         """Push the new frames of every run some browser shows."""
+        if not self.state.storage.leases_fresh():
+            return  # this relay was silent (frozen) longer than its leases: runs it may have lost are not pushed
         fresh, self.state.fresh = self.state.fresh, set()
         wanted = self.interest.wanted()
         if not wanted:
@@ -242,6 +244,8 @@ class Ticker:
         self.pushes += 1
 
     async def housekeeping(self) -> None:
+        if not self.state.storage.leases_fresh():
+            return  # as in push_frames: nothing is pushed until the leases are renewed
         now = time.monotonic()
         wanted = self.interest.wanted()
         if now - self._paired_at >= IDLE_PERIOD_S:  # what browsers show the pusher pairs as it comes
@@ -268,9 +272,11 @@ class Ticker:
         rows = await self.fleet.refresh()
         gone = sorted(self._listed - rows.keys())
         self._listed = set(rows)
-        if rows or gone:
+        # A silent relay pushes nothing: the others push its rows, marked so, for every page to show.
+        silent = self.fleet.silent_rows()
+        if rows or gone or silent:
             await self.ui.emit("overview", {"t_ns": time.time_ns(), "relay": self.state.relay_name,
-                                            "rows": list(rows.values()), "gone": gone}, room=OVERVIEW)
+                                            "rows": [*rows.values(), *silent], "gone": gone}, room=OVERVIEW)
         if not wanted:
             return
         views = {node: view for node, view in self.fleet.views.items() if self.interest.limit(wanted, node)}

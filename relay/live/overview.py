@@ -1,10 +1,11 @@
 """One compact row per DCU, for the fleet overview (``overview`` pushes, ``GET /api/overview``).
 
-A row holds what tells which DCU needs a look, from the run's rolling window (the figures the
-stage view's "window" shows): frames per second over all sources, the frame delay p99, the
-bottleneck and its utilization, the clock's state, drops, and alerts: short texts for what the
-shipped Prometheus alert rules (configs/prometheus/dcuscope-rules.yml) would fire on, judged here
-from the relay's own figures so that a page without Prometheus shows them too.
+A row holds what tells which DCU needs a look: its state (:func:`connection_state`) and, from the
+run's rolling window (the figures the stage view's "window" shows), frames per second over all
+sources, the frame delay p99, the bottleneck and its utilization, the clock's state, drops, and
+alerts: short texts for what the shipped Prometheus alert rules (configs/prometheus/dcuscope-rules.yml)
+would fire on, judged here from the relay's own figures so that a page without Prometheus shows
+them too.
 """
 
 from __future__ import annotations
@@ -18,6 +19,12 @@ CLOCK_UNCERTAIN_US = 1000.0
 DROPS_WINDOW_S = 60.0
 """Frames dropped or lost within this long are an alert."""
 CONFLICT_WINDOW_S = 60.0
+
+
+def connection_state(connected: bool, ended: bool) -> str:
+    """A DCU's state in a word, as rows and node views carry it beside ``connected`` and ``ended``, so
+    that a client need not derive it (and a fleet can say "relay silent", :mod:`relay.api.fleet`)."""
+    return "connected" if connected else "ended" if ended else "disconnected"
 
 
 @dataclass
@@ -48,9 +55,9 @@ def overview_row(view: dict, window: dict, relay: str, limit_ns: int | None, dro
                   if neck else None)
     alerts = _alerts(view, bottleneck, p99, limit_ns, drops_recent, incomplete_recent)
     return {"node": view["node"], "run": view["run"], "relay": relay, "connected": view["connected"],
-            "ended": view["ended"], "fps": fps, "p99_ms": p99, "frames": view["frames"]["shown"],
-            "drops": view["drops"], "bottleneck": bottleneck, "clock": view["clock"], "ptp": view["ptp"],
-            "alerts": alerts, "updated_ns": time.time_ns()}
+            "ended": view["ended"], "state": connection_state(view["connected"], view["ended"]), "fps": fps,
+            "p99_ms": p99, "frames": view["frames"]["shown"], "drops": view["drops"], "bottleneck": bottleneck,
+            "clock": view["clock"], "ptp": view["ptp"], "alerts": alerts, "updated_ns": time.time_ns()}
 
 
 def _alerts(view: dict, bottleneck: dict | None, p99: float | None, limit_ns: int | None, drops_recent: int,

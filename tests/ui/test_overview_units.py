@@ -54,6 +54,25 @@ def test_worst_first_is_down_then_alerts_then_bottleneck_utilization_then_p99_th
                    "a-twin", "ended", "quiet", "z-twin", "no-figures"]
 
 
+def test_a_row_whose_relay_went_silent_is_down_says_so_once_and_counts_its_silence_on(page):
+    out = js(page, ROWS_JS + """
+        const silent = row("silent", {connected: false, state: "relay silent", silent_s: 4.2, stale: true,
+                                      alerts: ["relay silent: last heard 4 s ago"], seen: now - 2000});
+        const cells = m.rowCells(silent, false, now);
+        const order = [row("busy", {alerts: ["PTP lost", "clock uncertain (±1200 µs)"]}), silent]
+            .sort((a, b) => m.worstFirst(a, b, now)).map((r) => r.node);
+        const derived = m.rowFromNode({node: "n", run: "r", connected: false, ended: false, state: "relay silent",
+                                       silent_s: 5.4});
+        return {down: m.isDown(silent, now), alerts: m.alertsOf(silent, now), order, dot: cells[0], relay: cells[1],
+                derived: [derived.alerts, m.isDown(derived, now)]};""")
+    assert out["down"] and out["order"] == ["silent", "busy"]
+    assert out["alerts"] == ["relay silent: last heard 4 s ago"]  # the page adds no stale alert of its own
+    # 4.2 s silent when the relay answered, 2 s ago: 6 s now.
+    assert 'class="dot dot-down" title="relay silent (6 s ago)"' in out["dot"]
+    assert out["relay"].startswith("relay-a ") and out["relay"].endswith(">relay silent (6 s ago)</span>")
+    assert out["derived"] == [["relay silent: last heard 5 s ago"], True]
+
+
 def test_filter_matches_every_word_in_dcu_relay_bottleneck_or_alerts(page):
     out = js(page, ROWS_JS + """
         const r = row("DCU-North-7", {relay: "relay-b:8080", bottleneck: {stage: "tiler", utilization: 0.8},

@@ -4,7 +4,7 @@
 // overview, from its `nodes` lists. The table's rows are keyed DOM rows updated in place: a cell is
 // rewritten only when its text changed, and rows move only when the order changed.
 
-import { clockState, esc, offsetText } from "./panels.js";
+import { clockState, esc, liveState, offsetText, RELAY_SILENT } from "./panels.js";
 import { formatDelay } from "./timefmt.js";
 
 export const ROW_STALE_MS = 3000; // a row nobody refreshed for this long is shown stale
@@ -12,17 +12,20 @@ export const ROW_DROP_MS = 5000; // ... and dropped after this long (the relays'
 export const AUTO_OPEN_MAX = 4; // while the user has not chosen, a fleet this small is opened whole
 export const OPEN_ALL = "*"; // ?open=* : every DCU of the fleet, those to come included
 
-export const WORST_FIRST = "Worst first: DCUs down or unheard of first (disconnected, or a stale row), "
+export const WORST_FIRST = "Worst first: DCUs down or unheard of first (disconnected, their relay silent, or a stale row), "
   + "then most alerts (a stale row counts one), then the busiest bottleneck (its utilization, in whole percent), "
   + "then the longest frame p99, then by name. The order holds still while the pointer is over the table.";
 
 /** A row made from a node's entry in a `nodes` list (GET /api/nodes): what a relay without overview tells. */
 export function rowFromNode(n) {
-  const alerts = !n.connected && !n.ended ? ["disconnected"] : [];
+  const silent = n.state === RELAY_SILENT;
+  const alerts = silent ? [`relay silent: last heard ${Math.round(n.silent_s ?? 0)} s ago`]
+    : !n.connected && !n.ended ? ["disconnected"] : [];
   return {
     node: n.node, run: n.run, relay: null, connected: !!n.connected, ended: !!n.ended, fps: null, p99_ms: null,
     frames: n.frames?.shown ?? null, drops: n.drops ?? null, bottleneck: null, clock: n.clock ?? null,
     ptp: n.ptp ?? n.clock?.ptp ?? null, alerts, derived: true,
+    ...(silent ? { state: n.state, silent_s: n.silent_s, stale: true } : {}),
   };
 }
 
@@ -85,9 +88,9 @@ export function isStale(row, now) {
   return !!row.stale || now - row.seen >= ROW_STALE_MS;
 }
 
-/** The row's alerts as shown: the relay's, and the page's own when the row went stale. */
+/** The row's alerts as shown: the relay's, and the page's own when the row went stale (a silent relay's row says so itself). */
 export function alertsOf(row, now) {
-  if (!isStale(row, now)) return row.alerts;
+  if (!isStale(row, now) || row.state === RELAY_SILENT) return row.alerts;
   const age = Math.max(0, Math.round((now - row.seen) / 1000));
   return [...row.alerts, row.stale ? "stale: its relay stopped refreshing it" : `stale: not refreshed for ${age} s`];
 }
@@ -98,7 +101,7 @@ const util = (row) => {
 };
 const p99 = (row) => (row.p99_ms === null || row.p99_ms === undefined || !Number.isFinite(row.p99_ms) ? -1 : row.p99_ms);
 
-/** Whether the DCU is down or unheard of: disconnected before its run ended, or its row stale. */
+/** Whether the DCU is down or unheard of: disconnected before its run ended (its relay silent included), or its row stale. */
 export function isDown(row, now) {
   return (!row.connected && !row.ended) || isStale(row, now);
 }
@@ -162,8 +165,8 @@ const dash = `<span class="muted">–</span>`;
 
 /** The cells of a row as HTML, in column order (the table rewrites a cell only when its HTML changed). */
 export function rowCells(row, isOpen, now) {
-  const state = row.connected ? "up" : row.ended ? "ended" : "down";
-  const stateText = row.connected ? "connected" : row.ended ? "ended" : "disconnected";
+  const { text: stateText, cls: state } = liveState(row, Math.max(0, (now - row.seen) / 1000));
+  const silent = row.state === RELAY_SILENT;
   const stale = isStale(row, now);
   const neck = row.bottleneck;
   const u = neck?.utilization;
@@ -172,10 +175,11 @@ export function rowCells(row, isOpen, now) {
   const age = Math.max(0, Math.round((now - row.seen) / 1000));
   return [
     `<span class="node-toggle" aria-hidden="true">${isOpen ? "▾" : "▸"}</span>`
-      + `<span class="dot dot-${state}" title="${stateText}"></span>`
+      + `<span class="dot dot-${state}" title="${esc(stateText)}"></span>`
       + `<b class="ov-name">${esc(row.node)}</b>`,
     `${row.relay === null || row.relay === undefined ? dash : esc(row.relay)}`
-      + `${stale ? ` <span class="badge stale" title="${row.stale ? "its relay stopped refreshing it" : `not refreshed for ${age} s`}">stale</span>` : ""}`,
+      + `${stale ? ` <span class="badge stale" title="${row.stale ? "its relay stopped refreshing it" : `not refreshed for ${age} s`}">`
+        + `${silent ? esc(stateText) : "stale"}</span>` : ""}`,
     row.fps === null || row.fps === undefined ? dash : Number(row.fps).toFixed(1),
     row.p99_ms === null || row.p99_ms === undefined ? dash : esc(formatDelay(row.p99_ms)),
     neck?.stage ? `${esc(neck.stage)}${u === null || u === undefined ? "" : ` <b>${Math.round(100 * u)} %</b>`}` : dash,

@@ -19,6 +19,20 @@ function summaryCells(s) {
     + `<td>${ms(s.p99_ms)}</td><td>${ms(s.max_ms)}</td>`;
 }
 
+export const RELAY_SILENT = "relay silent"; // a DCU's `state` when the relay holding it stopped refreshing it
+
+/**
+ * A live DCU's state and the class of its dot ("up", "ended", "down"): a DCU whose relay went
+ * silent is down, whatever that relay last said. `sinceS`: seconds since the relay's answer came.
+ */
+export function liveState(n, sinceS = 0) {
+  if (n.state === RELAY_SILENT) {
+    return { text: `${RELAY_SILENT} (${Math.round((n.silent_s ?? 0) + sinceS)} s ago)`, cls: "down" };
+  }
+  if (n.connected) return { text: "connected", cls: "up" };
+  return n.ended ? { text: "ended", cls: "ended" } : { text: "disconnected", cls: "down" };
+}
+
 const pct = (v) => (v === null || v === undefined ? "–" : `${(100 * v).toFixed(0)}%`);
 
 /**
@@ -217,8 +231,7 @@ const NODE_COLUMNS = 10;
 export function nodesHtml(nodes, stored, open = new Set()) {
   if (!nodes.length) return `<p class="muted">No node has connected yet.</p>`;
   const rows = nodes.map((n) => {
-    const state = stored ? (n.ended ? "stored" : "stored (incomplete)") : n.connected ? "connected" : n.ended ? "ended" : "disconnected";
-    const cls = stored ? "stored" : n.connected ? "up" : n.ended ? "ended" : "down";
+    const { text: state, cls } = stored ? { text: n.ended ? "stored" : "stored (incomplete)", cls: "stored" } : liveState(n);
     const clock = n.clock ?? {};
     const ptp = n.ptp ?? clock.ptp;
     const frames = stored ? n.frames : n.frames?.shown;
