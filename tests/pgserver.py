@@ -7,6 +7,8 @@ one server (the ``postgres`` fixture of tests/conftest.py), each test gets a dat
 check what the relay commits and reads back, not the disk; a server killed mid-test loses nothing the
 tests read. ``PostgresServer(durable=True)`` keeps PostgreSQL's defaults for them instead (all on: a
 commit returns once its WAL is on disk), as users run it: the benchmarks time the relay on that.
+``PostgresServer(listen=[ADDR])`` also listens on ADDR (the host's end of a test's network namespace,
+tests/relay/nsnet.py), trusting clients from the subnets the host is directly connected to.
 """
 
 from __future__ import annotations
@@ -19,10 +21,11 @@ import subprocess
 import tempfile
 import uuid
 from pathlib import Path
+from typing import Sequence
 
 from tests.ports import free_port
 
-SETTINGS = "-c listen_addresses=127.0.0.1 -c max_connections=300 -c shared_buffers=64MB"
+SETTINGS = "-c max_connections=300 -c shared_buffers=64MB"
 FAST = "-c fsync=off -c synchronous_commit=off -c full_page_writes=off"
 """The tests' durability settings: nothing waits for the disk."""
 DURABLE = "-c fsync=on -c synchronous_commit=on -c full_page_writes=on"
@@ -38,11 +41,14 @@ def bindir() -> Path:
 
 
 class PostgresServer:
-    def __init__(self, durable: bool = False) -> None:
+    def __init__(self, durable: bool = False, listen: Sequence[str] = ()) -> None:
         """``durable``: fsync, synchronous_commit and full_page_writes on (PostgreSQL's defaults), not
-        off as the tests run it."""
+        off as the tests run it. ``listen``: addresses to listen on besides 127.0.0.1 (they must exist
+        when the server starts); clients reaching them from a directly connected subnet (pg_hba's
+        ``samenet``: a namespace's end of its veth pair) are trusted, as on loopback."""
         self.durable = durable
-        self.settings = f"{SETTINGS} {DURABLE if durable else FAST}"
+        self.listen = ["127.0.0.1", *listen]
+        self.settings = f"-c listen_addresses={','.join(self.listen)} {SETTINGS} {DURABLE if durable else FAST}"
         self.bin = bindir()
         self.port = free_port()
         self.dir = Path(tempfile.mkdtemp(prefix="dcuscope-pg-"))
@@ -65,6 +71,9 @@ class PostgresServer:
 
     def start(self) -> "PostgresServer":
         self._run("initdb", "-D", str(self.data), "-A", "trust", "-U", "postgres", "-E", "UTF8", "--no-sync")
+        if len(self.listen) > 1:
+            with open(self.data / "pg_hba.conf", "a") as hba:
+                hba.write("host all all samenet trust\n")
         return self.resume()
 
     def resume(self) -> "PostgresServer":
@@ -76,17 +85,18 @@ class PostgresServer:
         """``fast`` ends every connection and stops; ``immediate`` as if the server crashed."""
         self._run("pg_ctl", "-D", str(self.data), "-m", mode, "-w", "stop")
 
-    def url(self, database: str = "postgres") -> str:
-        return f"postgresql://postgres@127.0.0.1:{self.port}/{database}"
+    def url(self, database: str = "postgres", host: str = "127.0.0.1") -> str:
+        """The URL of ``database`` through ``host`` (one of the addresses listened on)."""
+        return f"postgresql://postgres@{host}:{self.port}/{database}"
 
-    def new_database(self) -> str:
-        """A fresh empty database; its URL."""
+    def new_database(self, host: str = "127.0.0.1") -> str:
+        """A fresh empty database; its URL through ``host``."""
         import psycopg
 
         name = "t_" + uuid.uuid4().hex[:12]
         with psycopg.connect(self.url(), autocommit=True) as conn:
             conn.execute(f"CREATE DATABASE {name}")
-        return self.url(name)
+        return self.url(name, host)
 
     def close(self) -> None:
         try:

@@ -37,7 +37,8 @@ def env() -> dict:
 
 
 class RelayProcess:
-    """``python -m relay`` in a subprocess; ``url`` once it listens."""
+    """``python -m relay`` in a subprocess; ``url`` once it listens (at the address it says it listens
+    on: 127.0.0.1 unless ``args`` give ``--host``)."""
 
     def __init__(self, db: Path, port: int = 0, token: str | None = None, clock: str = "auto",
                  log: Path | None = None, args: list[str] | None = None, prefix: list[str] | None = None) -> None:
@@ -50,12 +51,12 @@ class RelayProcess:
         self._log = open(self.log, "ab")
         self.proc = subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=self._log)
         line = _readline(self.proc, 30)
-        m = re.search(r"http://127\.0\.0\.1:(\d+)", line)
+        m = re.search(r"http://(\S+):(\d+)", line)
         if not m:
             self.stop()
             raise RuntimeError(f"relay did not start: {line!r}; log: {self.log.read_text()[-2000:]}")
-        self.port = int(m.group(1))
-        self.url = f"http://127.0.0.1:{self.port}"
+        self.host, self.port = m.group(1).strip("[]"), int(m.group(2))
+        self.url = f"http://[{self.host}]:{self.port}" if ":" in self.host else f"http://{self.host}:{self.port}"
 
     def kill9(self) -> None:
         self.proc.send_signal(signal.SIGKILL)
@@ -98,10 +99,12 @@ def _readline(proc: subprocess.Popen, timeout: float) -> str:
 
 def start_node(url: str, node: str, out: Path, *, frames: int = 100, sources: int = 2, fps: float = 25.0,
                paced: bool = False, offset_ns: int = 0, t0_ns: int = 0, drop_rate: float = 0.0, seed: int = 0,
-               token: str | None = None, extra: list[str] | None = None, linger: bool = False) -> subprocess.Popen:
+               token: str | None = None, extra: list[str] | None = None, linger: bool = False,
+               prefix: list[str] | None = None) -> subprocess.Popen:
     """A ``probes.simnode`` process; with ``linger`` its run stays open after the last event until
-    its stdin closes (``finish_node`` closes it)."""
-    cmd = [sys.executable, "-m", "probes.simnode", "--relay", url, "--node", node, "--out", str(out),
+    its stdin closes (``finish_node`` closes it). ``prefix``: a command that execs the node's command
+    line it is given (``ip netns exec NS``)."""
+    cmd = [*(prefix or []), sys.executable, "-m", "probes.simnode", "--relay", url, "--node", node, "--out", str(out),
            "--frames", str(frames), "--sources", str(sources), "--fps", str(fps), "--seed", str(seed),
            "--clock-offset-ns", str(offset_ns), "--drop-rate", str(drop_rate)]
     if paced:
