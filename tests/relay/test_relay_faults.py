@@ -27,7 +27,7 @@ from tests.relay.nsnet import Namespace, netns_permitted
 from tests.relay.test_fanout import Browser
 from tests.relay.test_fleet import stored_equals_sent
 
-RECOVERY_S = 30
+RECOVERY_S = 45
 """What the tests wait for the nodes to be stored again elsewhere (the goal, 10 s, is what they print)."""
 
 
@@ -76,25 +76,68 @@ def node(urls: str, name: str, tmp_path, frames: int, **kw) -> subprocess.Popen:
                       seed=hash(name) % 1000, **kw)
 
 
+def said_lost(log: str) -> int:
+    """The lines in which a relay that woke up said it lost its runs: another relay took them (its
+    renewal), or its store connection was lost (PostgreSQL ended it, idle in a transaction)."""
+    return log.count("another relay took 2 runs") + log.count("the store connection was lost; the nodes of 3 runs")
+
+
+def listed(relay: RelayProcess, node: str) -> tuple[dict, dict] | None:
+    """``node``'s entry in ``relay``'s ``/api/nodes`` and its row in ``/api/overview`` (None: either lacks it)."""
+    view = next((n for n in get_json(f"{relay.url}/api/nodes", timeout=3) if n["node"] == node), None)
+    row = next((r for r in get_json(f"{relay.url}/api/overview", timeout=3)["rows"] if r["node"] == node), None)
+    return (view, row) if view and row else None
+
+
+async def pushed_rows(relay: RelayProcess, node: str) -> list[dict]:
+    """``node``'s rows in the overview ``relay`` pushes to a page (the connect snapshot, then once a second)."""
+    page = Browser()
+    await page.open(relay.url, [node])
+    for _ in range(50):
+        got = [r for t, e, d in page.got if e == "overview" for r in d["rows"] if r["node"] == node]
+        if len(got) >= 2:
+            break
+        await asyncio.sleep(0.1)
+    await page.sio.disconnect()
+    return got
+
+
 def test_a_frozen_relay_holds_nothing_hostage_and_stores_nothing_when_it_wakes(tmp_path, pg_url):
     """Relay A SIGSTOPped for twice its leases: its nodes move to B, which takes their runs once the
     leases expire, one node streaming on, the other ending its run during the freeze (batches still
-    unacknowledged). Woken, A finds both runs taken, lets them go, says so in one line."""
+    unacknowledged). Woken, A finds both runs taken, lets them go, says so in one line. A third node
+    knows relay A only: B lists it not connected, "relay silent", in its API and its pushes, until A
+    wakes and serves it again."""
     a = RelayProcess(pg_url, log=tmp_path / "a.log", args=["--name", "relay-a"])
     b = RelayProcess(pg_url, log=tmp_path / "b.log", args=["--name", "relay-b"])
     nodes = {}
     try:
         urls = f"{a.url},{b.url}"
         nodes["DCU-L"] = node(urls, "DCU-L", tmp_path, 375)  # 15 s: it streams through the freeze
-        wait_for(lambda: "DCU-L" in holds(a), 30, what="the long node on relay A")
+        nodes["DCU-A"] = node(a.url, "DCU-A", tmp_path, 375)  # relay A only: it waits for A
+        wait_for(lambda: holds(a).keys() == {"DCU-L", "DCU-A"}, 30, what="two nodes on relay A")
         nodes["DCU-S"] = node(urls, "DCU-S", tmp_path, 125)  # 5 s: it ends during the freeze
         wait_for(lambda: "DCU-S" in holds(a), 30, 0.05, what="the short node on relay A")
+        view, row = wait_for(lambda: listed(b, "DCU-A"), 10, what="B listing DCU-A")
+        assert view["state"] == row["state"] == "connected" and view["relay"] == "relay-a", (view, row)
         a.proc.send_signal(signal.SIGSTOP)
         frozen = time.monotonic()
-        stored_again(b, set(nodes), frozen, "a relay frozen")
+        stored_again(b, {"DCU-L", "DCU-S"}, frozen, "a relay frozen")
+
+        view, row = listed(b, "DCU-A")
+        for x in (view, row):
+            assert x["state"] == "relay silent" and x["connected"] is False and x["silent_s"] >= 3.0, x
+        assert row["alerts"][0] == f"relay silent: last heard {row['silent_s']:.0f} s ago", row["alerts"]
+        # A pushes nothing now: B pushes its rows, so that a page shows them (they would age out).
+        got = asyncio.run(pushed_rows(b, "DCU-A"))
+        assert len(got) >= 2 and all(r["state"] == "relay silent" and r["relay"] == "relay-a" for r in got), got
+
         time.sleep(max(0.0, 8 - (time.monotonic() - frozen)))  # frozen for 8 s, twice its leases
         a.proc.send_signal(signal.SIGCONT)
-        wait_for(lambda: "another relay took" in a.log.read_text(), 10, what="A saying it lost its runs")
+        wait_for(lambda: said_lost(a.log.read_text()), 10, what="A saying it lost its runs")
+        view, row = wait_for(lambda: (x := listed(b, "DCU-A")) and x[0]["state"] == "connected" and x, 15,
+                             what="B listing DCU-A connected to A again")
+        assert row["connected"] and "silent_s" not in row and not any(t.startswith("relay silent") for t in row["alerts"])
         counters = {n: finish_node(p, 90) for n, p in nodes.items()}
     finally:
         a.proc.send_signal(signal.SIGCONT)  # a stopped relay ignores SIGTERM until it runs again
@@ -102,8 +145,7 @@ def test_a_frozen_relay_holds_nothing_hostage_and_stores_nothing_when_it_wakes(t
         a.stop()
         b.stop()
     log = a.log.read_text()
-    assert log.count("another relay took") == 1 and "another relay took 2 runs" in log, log[-3000:]
-    assert "Traceback" not in log, log[-3000:]
+    assert said_lost(log) == 1 and "Traceback" not in log, log[-3000:]
     complete(pg_url, tmp_path, counters)
 
 
@@ -188,7 +230,7 @@ def test_a_frozen_redis_holds_back_no_node_and_pushes_resume_when_it_wakes(tmp_p
     b = RelayProcess(pg_url, log=tmp_path / "b.log", args=[*args, "--name", "relay-b"])
     proc = None
     try:
-        proc = node(a.url, "DCU-1", tmp_path, 375)  # 15 s
+        proc = node(a.url, "DCU-1", tmp_path, 300)  # 12 s
         wait_for(lambda: "DCU-1" in holds(a), 30, what="the node on relay A")
 
         async def watch() -> tuple[Browser, float, float]:
@@ -202,7 +244,7 @@ def test_a_frozen_redis_holds_back_no_node_and_pushes_resume_when_it_wakes(tmp_p
             redis_server.proc.send_signal(signal.SIGSTOP)
             frozen = time.monotonic()
             before = holds(a)["DCU-1"]
-            await asyncio.sleep(6)
+            await asyncio.sleep(4)  # four times the fan-out's Redis timeout
             assert holds(a)["DCU-1"] > before, "A stored on while Redis was frozen"
             redis_server.proc.send_signal(signal.SIGCONT)
             woke = time.monotonic()
