@@ -35,11 +35,13 @@ def pytest_itemcollected(item: pytest.Item) -> None:
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Under ``--dist loadgroup`` the groups come first: a group cannot be split, so a long one
-    started last would hold the whole run up."""
+    """Under ``--dist loadgroup`` the groups come first, then the tests marked ``long``: a group
+    cannot be split, and a long test started last would hold the whole run up while the other
+    workers idle."""
     if not getattr(config.option, "loadgroup", False):
         return
-    items.sort(key=lambda item: not any(item.iter_markers("xdist_group")))  # stable: order kept within each
+    # stable: the order is kept within each
+    items.sort(key=lambda item: (not any(item.iter_markers("xdist_group")), not any(item.iter_markers("long"))))
 
 
 def pytest_configure(config: pytest.Config) -> None:

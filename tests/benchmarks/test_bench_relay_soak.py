@@ -27,6 +27,7 @@ HWM_PAYLOADS = 3.0
 restart's transients recurs; it rises when runs' memory is kept: then by ~15 payloads in 20 restarts)."""
 
 
+@pytest.mark.long
 @pytest.mark.parametrize("store", ["sqlite", "postgresql"])
 def test_quick_soak_prints_a_row_per_restart_and_the_relays_memory_stays_flat(store):
     done = run_benchmark("bench_relay_soak.py", "--quick", "--store", store, timeout=240)

@@ -72,6 +72,7 @@ def test_boxes_are_drawn_where_the_detections_are(tmp_path):
         assert changed[~near_boxes].mean() < 0.002
 
 
+@pytest.mark.long
 def test_quad_demo_writes_a_playable_2x2_collage(tmp_path):
     out = tmp_path / "quad.mp4"
     result = run_cli("run", REPO / "configs" / "quad.yaml", "--output", out, "--num-frames", "40", cwd=tmp_path,

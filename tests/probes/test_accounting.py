@@ -8,6 +8,8 @@ import signal
 import subprocess
 import sys
 
+import pytest
+
 from core.gst import Gst
 from probes.delays import node_stats
 from probes.events import DROP, LATE
@@ -54,6 +56,7 @@ def test_frames_the_mux_drops_as_late_are_drop_events_counted_by_reason_in_the_s
     assert st["frames"] == {"complete": 2 * FRAMES - len(mine), "incomplete": len(mine)}
 
 
+@pytest.mark.long
 def test_a_lossy_rtsp_link_reports_lost_packets_and_glass_to_glass_delays(lossy_link, tmp_path):
     server_ns, client_ns = lossy_link
     server = subprocess.Popen(["ip", "netns", "exec", server_ns, sys.executable, "-m", "dcuscope.cli", "serve-rtsp",

@@ -23,6 +23,8 @@ from probes.native import build
 from probes.tracefile import read_trace
 from tests.conftest import REPO, run_cli
 
+pytestmark = pytest.mark.long  # its tests share a module fixture: one group of 30 s or more, started first
+
 APP_SOURCE = Path(__file__).parent / "data" / "probed_app.c"
 RAW = "video/x-raw,width=320,height=240,framerate=30/1"
 

@@ -55,6 +55,7 @@ def stored_equals_sent(store: str, node: str, sent: np.ndarray) -> None:
     assert np.array_equal(sort_events(stored.events), sort_events(sent))  # 0 lost, 0 stored twice
 
 
+@pytest.mark.long
 def test_a_killed_relays_nodes_resume_on_the_other_and_nothing_is_lost_or_stored_twice(tmp_path, pg_url):
     a = RelayProcess(pg_url, log=tmp_path / "a.log")
     b = RelayProcess(pg_url, log=tmp_path / "b.log")

@@ -7,6 +7,8 @@ from __future__ import annotations
 import asyncio
 import time
 
+import pytest
+
 from probes.delays import node_stats
 from tests.relay.fuzzer import fuzz, fuzz_ui
 from tests.relay.helpers import RelayProcess, assert_stats_equal, finish_node, get_json, load_node, start_node
@@ -15,6 +17,7 @@ PAYLOADS = 5_000
 UI_PAYLOADS = 500
 
 
+@pytest.mark.long
 def test_fuzz_while_a_node_streams(tmp_path):
     # 16 fuzzing workers and the good node share one address: above the default per-peer cap.
     relay = RelayProcess(tmp_path / "relay.db", token="t0k", args=["--limit", "connections_per_peer=64"])

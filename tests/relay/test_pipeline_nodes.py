@@ -7,6 +7,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from tests.conftest import REPO, cli_env, run_cli
 from tests.relay.helpers import RelayProcess, assert_stats_equal, get_json
 
@@ -22,6 +24,7 @@ def node_config(tmp_path, name: str, sources: int):
     return path
 
 
+@pytest.mark.long
 def test_two_pipeline_nodes_stats_agree_with_dcuscope_stats_and_export_from_db(tmp_path):
     relay = RelayProcess(tmp_path / "relay.db")
     try:

@@ -27,6 +27,7 @@ from tests.relay.nsnet import Namespace, netns_permitted
 from tests.relay.test_fanout import Browser
 from tests.relay.test_fleet import stored_equals_sent
 
+pytestmark = pytest.mark.long
 RECOVERY_S = 45
 """What the tests wait for the nodes to be stored again elsewhere (the goal, 10 s, is what they print)."""
 

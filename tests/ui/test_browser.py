@@ -13,6 +13,8 @@ import pytest
 from tests.relay.helpers import get_json, wait_for
 from tests.ui.helpers import ROOT, RelayThread, pipeline_nodes, sim_nodes
 
+pytestmark = pytest.mark.long  # its tests share a module fixture: one group of 30 s or more, started first
+
 NODES = ["DCU-1", "DCU-2"]
 FIVE = {"mux": "#e53935", "infer": "#1e88e5", "tiler": "#fdd835", "convert": "#43a047", "osd": "#8e24aa"}
 DEEP_RED, UNDER = "#8b0000", "#78909c"

@@ -25,6 +25,8 @@ from tests.probes.synth import run_commands
 from tests.relay.helpers import get_json, wait_for
 from tests.ui.helpers import RelayThread, sim_nodes
 
+pytestmark = pytest.mark.long  # its tests share a module fixture: one group of 30 s or more, started first
+
 NODES = ["DCU-1", "DCU-2"]
 OFFSET_NS = 3_000_000
 GUTTER = 150  # stageview.js

@@ -16,6 +16,8 @@ from tests.conftest import run_cli
 from tests.relay.helpers import get_json, kill_all, wait_for
 from tests.ui.helpers import ROOT, RelayThread, env, pipeline_nodes
 
+pytestmark = pytest.mark.long  # its tests share a module fixture: one group of 30 s or more, started first
+
 FOREIGN = "CAM-9"
 STAGES = ["src", "capsfilter0", "t", "qa", "sleepy", "sinka", "qb", "enc", "sinkb"]
 BRANCHES = [("t", "qa"), ("qa", "sleepy"), ("sleepy", "sinka"), ("t", "qb"), ("qb", "enc"), ("enc", "sinkb")]

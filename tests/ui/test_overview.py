@@ -23,6 +23,8 @@ from relay.guard.limits import Limits
 from tests.relay.helpers import get_json, wait_for
 from tests.ui.helpers import RelayThread, sim_nodes
 
+pytestmark = pytest.mark.long  # its tests share a module fixture: one group of 30 s or more, started first
+
 NODES = [f"DCU-{k}" for k in range(1, 7)]
 KILLED = "DCU-5"
 SOURCES, FPS = 2, 10.0

@@ -15,6 +15,8 @@ import pytest
 from tests.relay.helpers import get_json, wait_for
 from tests.ui.helpers import RelayThread, sim_nodes
 
+pytestmark = pytest.mark.long  # its tests share a module fixture: one group of 30 s or more, started first
+
 LONG_NODE = "DCU-" + "north-wing-loading-dock-camera-rack-" * 3 + "7"
 RAW_ERRORS = ("xhr", "poll error", "websocket error", "backfill", "no node named", "Failed to fetch")
 
