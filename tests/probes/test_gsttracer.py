@@ -191,8 +191,11 @@ def test_b_tee_each_frame_reaches_both_branches(runner, probed_app, plugin_dir, 
     assert [s["t"], s["qa"]] in h.links and [s["t"], s["qb"]] in h.links
     assert [s["fast"], s["sinka"]] in h.links and [s["slow"], s["sinkb"]] in h.links
     node = stats(trace)
-    assert 1.0 <= node["stages"]["fast"]["p50_ms"] < 3.0
-    assert 6.0 <= node["stages"]["slow"]["p50_ms"] < 8.0
+    fast, slow = node["stages"]["fast"]["p50_ms"], node["stages"]["slow"]["p50_ms"]
+    # Each branch shows its own sleep (1 and 6 ms), and they differ by the sleeps' difference: a
+    # loaded machine delays both branches' threads alike (once 8.02 ms for the 6 ms sleep, beside
+    # five busy workers), not one of them by 5 ms.
+    assert fast >= 1.0 and slow >= 6.0 and 3.5 <= slow - fast <= 7.0, (fast, slow)
 
 
 def test_c_compositor_output_lists_the_source_frames_it_was_made_from(probed_app, plugin_dir, tmp_path):
