@@ -155,10 +155,12 @@ class PostgresDatabase(Database):
     engine = "postgresql"
     shared = True
 
-    def __init__(self, url: str, name: str = "", owner: str | None = None) -> None:
+    def __init__(self, url: str, name: str = "", owner: str | None = None, lease_s: float = LEASE_S) -> None:
         """``owner``: who holds the leases this connection takes (a relay process, the same across
-        its reconnections; default: this connection alone)."""
+        its reconnections; default: this connection alone); ``lease_s``: how long a lease it takes
+        or renews holds."""
         self.location = redact(url)
+        self.lease_s = lease_s
         self.name = name
         self.owner = owner or f"{name or 'relay'} {secrets.token_hex(6)}"
         self.owned: dict[str, int] = {}
@@ -277,7 +279,7 @@ class PostgresDatabase(Database):
                         "ON CONFLICT (run) DO UPDATE SET owner = EXCLUDED.owner, generation = l.generation + 1, "
                         "expires = EXCLUDED.expires, locked = EXCLUDED.locked "
                         "WHERE l.owner = EXCLUDED.owner OR l.expires <= clock_timestamp() OR (l.locked AND %s) "
-                        "RETURNING generation", (run, self.owner, LEASE_S, got, got))
+                        "RETURNING generation", (run, self.owner, self.lease_s, got, got))
             row = cur.fetchone()
             if row is None and got:
                 cur.execute("SELECT pg_advisory_unlock(%s)", (key,))
@@ -316,7 +318,7 @@ class PostgresDatabase(Database):
             "UPDATE leases l SET expires = clock_timestamp() + make_interval(secs => %s) "
             "FROM unnest(%s::text[], %s::bigint[]) AS o(run, generation) "
             "WHERE l.run = o.run AND l.generation = o.generation AND l.owner = %s RETURNING l.run",
-            (LEASE_S, runs, [self.owned[r] for r in runs], self.owner))}
+            (self.lease_s, runs, [self.owned[r] for r in runs], self.owner))}
         return self._forget(set(runs) - kept)
 
     def _forget(self, lost: set[str]) -> set[str]:
@@ -439,6 +441,8 @@ class PostgresDatabase(Database):
                 return cur.rowcount
             cur.execute("DELETE FROM clock_history WHERE run IN (SELECT id FROM runs WHERE session = %s)", (session,))
             n = cur.rowcount
+            cur.execute("DELETE FROM leases WHERE run IN (SELECT id FROM runs WHERE session = %s)", (session,))
+            n += cur.rowcount
             cur.execute("DELETE FROM runs WHERE session = %s", (session,))
             n += cur.rowcount
             cur.execute("DELETE FROM sessions WHERE id = %s", (session,))

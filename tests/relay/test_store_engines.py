@@ -19,13 +19,16 @@ from probes.simnode import header_for, synth_events
 from probes.wire import encode_batch
 from relay.clock.correction import Segment
 from relay.errors import RelayError
-from relay.store.base import LEASE_S, BatchRow, NotOwner
+from relay.store.base import BatchRow, NotOwner
 from relay.store.engines import open_database
+from relay.store.postgres import PostgresDatabase
 from relay.store.runs import frame_starts, list_sessions, load_runs, load_session
 from relay.store.writer import Storage
 from tests.relay.helpers import wait_for
 
 T0 = 1_700_000_000_000_000_000
+SHORT_LEASE_S = 1.0
+"""The lease tests' (a relay's is relay.store.base.LEASE_S, 4 s): what they show does not depend on it."""
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -236,7 +239,8 @@ def test_old_sessions_are_deleted_in_bounded_parts_and_live_ones_kept(store):
         parts = []
         while (n := database.delete_session_part(1, limit=2)):
             parts.append(n)
-        assert parts == [2, 2, 1, 2]  # five batches two at a time, then its run and session
+        # five batches two at a time, then its run and session (and on a shared store its lease)
+        assert parts == [2, 2, 1, 3 if database.shared else 2]
         assert [s["session"] for s in database.list_sessions()] == [2]
     finally:
         database.close()
@@ -359,7 +363,7 @@ def test_a_relay_whose_lease_was_taken_is_refused_by_the_store_fenced_by_its_gen
     connection, and its advisory lock, are still there. X, awake, tries to write a batch it had
     received and the run's end: the store refuses both in their transactions (the generation X took
     is not the lease's any more), writes nothing, and X's next renewal says the run was taken."""
-    x, y = open_database(pg_url, name="x"), open_database(pg_url, name="y")
+    x, y = PostgresDatabase(pg_url, "x", lease_s=SHORT_LEASE_S), PostgresDatabase(pg_url, "y", lease_s=SHORT_LEASE_S)
     run = uuid.uuid4().hex
     events = synth_events(5, 1, 25.0, T0)
     try:
@@ -367,7 +371,7 @@ def test_a_relay_whose_lease_was_taken_is_refused_by_the_store_fenced_by_its_gen
         x.register_run(run, "a", header_for("a", 1).to_dict(), None, None)
         assert x.put_batches([BatchRow(run, 0, len(events), False, payload(run, 0, events, False))], 1) == [True]
         assert not y.own_run(run)  # held, and X's connection holds its advisory lock: no fast path
-        time.sleep(LEASE_S + 0.2)  # X renews nothing meanwhile
+        time.sleep(SHORT_LEASE_S + 0.2)  # X renews nothing meanwhile
         assert y.own_run(run)  # expired: taken, generation 2
         with pytest.raises(NotOwner):
             x.put_batches([BatchRow(run, 1, len(events), False, payload(run, 1, events, False))], 1)
@@ -381,22 +385,24 @@ def test_a_relay_whose_lease_was_taken_is_refused_by_the_store_fenced_by_its_gen
         assert y.stored_seqs(run) == {0, 1}
         # A relay killed (its connection ends, its advisory locks with it) lets its runs go at once,
         # without the wait for their leases: the fast path.
-        other = uuid.uuid4().hex
-        assert y.own_run(other) and not x.own_run(other)
-        y.close()
-        assert x.own_run(other)
+        other, z = uuid.uuid4().hex, PostgresDatabase(pg_url, "z")  # z: a relay's lease, 4 s
+        assert z.own_run(other) and not x.own_run(other)
+        z.close()
+        wait_for(lambda: not y._rows("SELECT 1 FROM pg_stat_activity WHERE application_name = 'dcuscope-relay z'"),
+                 3, 0.02, what="z's session ended")
+        assert x.own_run(other)  # well before z's lease expires
     finally:
         x.close()
         y.close()
 
 
 def test_a_lease_not_renewed_is_lost_at_the_next_renewal(pg_url):
-    x, y = open_database(pg_url, name="x"), open_database(pg_url, name="y")
+    x, y = PostgresDatabase(pg_url, "x", lease_s=SHORT_LEASE_S), PostgresDatabase(pg_url, "y", lease_s=SHORT_LEASE_S)
     run = uuid.uuid4().hex
     try:
         assert x.own_run(run)
         assert x.renew() == set()
-        time.sleep(LEASE_S + 0.2)
+        time.sleep(SHORT_LEASE_S + 0.2)
         assert y.own_run(run)
         assert x.renew() == {run} and not x.owned
     finally:
