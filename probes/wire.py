@@ -47,7 +47,11 @@ waiting for its relay (batches in flight, a request) moves on to its next relay,
 node's run go (another relay may take it). A frozen relay (SIGSTOP, a paused VM) keeps its TCP connections open: only silence
 tells."""
 HEARTBEAT_S = SILENCE_S * 2 / 3
-"""A peer silent this long is pinged; it has the rest of ``SILENCE_S`` to answer."""
+"""A node pings a relay silent this long; it has the rest of ``SILENCE_S`` to answer."""
+RELAY_HEARTBEAT_S = 4.0
+"""A relay pings a node silent this long and lets its run go if no pong comes within half as long
+again (aiohttp's heartbeat: 6 s in all). More patient than the node: a node that moves on says so
+by connecting elsewhere, while a relay's busy event loop may read a pong late."""
 FLAG_ZLIB = 0x01
 HEADER = struct.Struct("<4sBBH16sQII")
 HEADER_SIZE = HEADER.size  # 40

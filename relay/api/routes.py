@@ -1,6 +1,6 @@
 """HTTP JSON API of the relay (aiohttp routes); a token, when set, guards every ``/api`` route.
 
-- ``GET /api/health``: {ok, uptime_s, runs, rejected, clock_rejected, paused, storage {ok[, error, since,
+- ``GET /api/health``: {ok, uptime_s, runs, rejected, clock_rejected, paused, storage {ok[, leases, error, since,
   failed_writes]}, limits, memory {live_bytes, live_budget_bytes, run_budget_bytes, runs_with_live_state},
   heap {available, arena, in_use, free, mmapped, reclaims, collected, last_reclaim_ms, last_trim_ms}: what
   malloc holds, and the passes that gave memory back after runs left it (:mod:`relay.heap`),

@@ -46,7 +46,7 @@ from aiohttp import WSCloseCode, WSMsgType, web
 
 from probes import envelope
 from probes.errors import LimitExceeded, ProtocolError
-from probes.wire import (HEARTBEAT_S, MAX_MESSAGE_BYTES, Batch, decode_batch, decode_clock, decode_end, decode_hello,
+from probes.wire import (MAX_MESSAGE_BYTES, RELAY_HEARTBEAT_S, Batch, decode_batch, decode_clock, decode_end, decode_hello,
                          declared_bytes)
 from relay.clock.correction import ClockSample, ntp_sample, sample_fault
 from relay.clock.udp import ClockUdp
@@ -124,7 +124,7 @@ class Ingest:
         node = self._authorise(http_token(request.headers, request.query))
         if len(self._conns) >= self._limits.connections:
             raise web.HTTPServiceUnavailable(text="too many connections")
-        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=HEARTBEAT_S, timeout=CLOSE_TIMEOUT_S)
+        ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=RELAY_HEARTBEAT_S, timeout=CLOSE_TIMEOUT_S)
         if not ws.can_prepare(request):
             raise web.HTTPBadRequest(text="/ingest takes a WebSocket")
         try:
@@ -224,7 +224,7 @@ class Ingest:
                     await self._on_message(conn, envelope.decode_request(msg.data))
                 elif msg.type == WSMsgType.ERROR:
                     if isinstance(msg.data, (TimeoutError, ConnectionError)):
-                        # No pong within the heartbeat (probes.wire.SILENCE_S): the node froze or the
+                        # No pong within the heartbeat (probes.wire.RELAY_HEARTBEAT_S): the node froze or the
                         # network between is cut. Not its fault: the run is let go, to be resumed.
                         log.info("ingest: %s (run %s) silent: %s", conn.sid, conn.run or "-", msg.data)
                         return

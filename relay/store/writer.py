@@ -133,10 +133,14 @@ class Storage:
         return self._queue.qsize()
 
     def health(self) -> dict:
-        """{ok, engine, location[, relays]} or, while writes fail, also {error, since,
-        failed_writes, failed {what: count}} (for /api/health)."""
+        """{ok, engine, location[, relays, leases]} or, while writes fail, also {error, since,
+        failed_writes, failed {what: count}} (for /api/health). ``leases`` (a shared store):
+        {lease_s, renewed_s_ago, fresh}."""
         failure = self._failure
         out = dict(self._described, reconnects=self.reconnects)
+        if self.shared:
+            out["leases"] = {"lease_s": LEASE_S, "renewed_s_ago": round(time.monotonic() - self._renewed_at, 2),
+                             "fresh": self.leases_fresh()}
         if failure is None:
             return dict(out, ok=True)
         return {**out, **failure, "ok": False, "failed": dict(failure["failed"])}

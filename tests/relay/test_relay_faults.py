@@ -124,6 +124,8 @@ def test_a_frozen_relay_holds_nothing_hostage_and_stores_nothing_when_it_wakes(t
         a.proc.send_signal(signal.SIGSTOP)
         frozen = time.monotonic()
         stored_again(b, {"DCU-L", "DCU-S"}, frozen, "a relay frozen")
+        leases = get_json(f"{b.url}/api/health")["storage"]["leases"]
+        assert leases["fresh"] and leases["renewed_s_ago"] < leases["lease_s"], leases
 
         view, row = listed(b, "DCU-A")
         for x in (view, row):
@@ -136,6 +138,7 @@ def test_a_frozen_relay_holds_nothing_hostage_and_stores_nothing_when_it_wakes(t
         time.sleep(max(0.0, 8 - (time.monotonic() - frozen)))  # frozen for 8 s, twice its leases
         a.proc.send_signal(signal.SIGCONT)
         wait_for(lambda: said_lost(a.log.read_text()), 10, what="A saying it lost its runs")
+        wait_for(lambda: get_json(f"{a.url}/api/health")["storage"]["leases"]["fresh"], 5, what="A renewing again")
         view, row = wait_for(lambda: (x := listed(b, "DCU-A")) and x[0]["state"] == "connected" and x, 15,
                              what="B listing DCU-A connected to A again")
         assert row["connected"] and "silent_s" not in row and not any(t.startswith("relay silent") for t in row["alerts"])
