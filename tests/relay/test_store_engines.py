@@ -325,12 +325,16 @@ def test_a_transaction_postgresql_rolls_back_as_a_deadlock_is_tried_again(pg_url
     a, b = uuid.uuid4().hex, uuid.uuid4().hex
     for run in (a, b):
         database.register_run(run, "a", header_for("a", 1).to_dict(), None, None)
-    other = psycopg.connect(pg_url)
+    # Each waiter checks for a deadlock once, deadlock_timeout after it began to wait: the relay's side
+    # waits first and checks after 3 s, by when the other waits too (a loaded machine once took over
+    # PostgreSQL's default 1 s to get there, and the other's own check then picked the other).
+    other = psycopg.connect(pg_url, options="-c deadlock_timeout=20s")
     locked_b, locked_a = threading.Event(), threading.Event()
     tries = []
 
-    def relay_side(cur) -> None:  # b then a; it waits first, so PostgreSQL's check picks it as the victim
+    def relay_side(cur) -> None:  # b then a; it checks first, so PostgreSQL's check picks it as the victim
         tries.append(1)
+        cur.execute("SET LOCAL deadlock_timeout = '3s'")
         cur.execute("UPDATE runs SET events = events + 1 WHERE id = %s", (b,))
         if len(tries) == 1:
             locked_b.set()
