@@ -32,6 +32,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+from core.clocks import NEVER
 from relay.errors import RelayError
 from relay.store.base import LEASE_S, RENEW_S, BatchRow, Database, NotOwner, StoreUnavailable
 from relay.store.engines import open_database
@@ -95,8 +96,9 @@ class Storage:
         """Called on the event loop with runs another relay took (their leases, or a fenced write)."""
         self._renewed_at = time.monotonic()
         """When the last renewal that succeeded started (monotonic)."""
-        self._tried_at = 0.0
-        """When the last connection attempt to a lost store started (monotonic)."""
+        self._tried_at = NEVER
+        """When the last connection attempt to a lost store started (monotonic; a machine booted a
+        moment ago reads small monotonic times)."""
         self._lost_pending: set[str] = set()
         """Runs a write was refused for (fenced), told with the next renewal's (one word for all)."""
         self._described: dict = self._database.describe()
