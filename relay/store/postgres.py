@@ -299,14 +299,12 @@ class PostgresDatabase(Database):
         return True
 
     def disown_run(self, run: str) -> None:
-        generation = self.owned.pop(run, None)
+        generation = self.owned.get(run)
         if generation is None:
             return
         self._rows("UPDATE leases SET expires = '-infinity' WHERE run = %s AND owner = %s AND generation = %s "
                    "RETURNING run", (run, self.owner, generation))
-        if run in self.locked:
-            self.locked.discard(run)
-            self._rows("SELECT pg_advisory_unlock(%s)", (lock_key(run),))
+        self._forget({run})
 
     def renew(self) -> set[str]:
         """Renew every lease this relay holds; returns the runs whose lease another relay took
@@ -322,7 +320,7 @@ class PostgresDatabase(Database):
         return self._forget(set(runs) - kept)
 
     def _forget(self, lost: set[str]) -> set[str]:
-        """Runs another relay took: no longer owned here (their advisory locks let go)."""
+        """Runs no longer owned here (given back, or taken by another relay): their advisory locks let go."""
         for run in lost:
             self.owned.pop(run, None)
             if run in self.locked:
