@@ -1,7 +1,7 @@
 """Clock estimator benchmark: the relay's correction against an injected truth, UDP vs WebSocket.
 
 Each case runs a relay (``python -m relay --clock estimate``) and a simulated node
-(``python -m probes.simnode --paced``) whose pretend clock is off by OFFSET and runs DRIFT ppm
+(``python -m probes.ship.simnode --paced``) whose pretend clock is off by OFFSET and runs DRIFT ppm
 fast from a start the benchmark fixes (``--clock-start-ns``), so that the true offset at any
 moment is known: true(t) = OFFSET + DRIFT * 1e-6 * (t - start). Every ``--every`` seconds after
 a warm-up it reads the relay's clock view of the node (``/api/nodes``: ``correction_ns`` and
@@ -125,7 +125,7 @@ class Run:
         self.start_ns = time.clock_gettime_ns(time.CLOCK_REALTIME)
         frames = int(self.seconds * FPS)
         self.node = subprocess.Popen(
-            [*_netns(NS_NODE if netns else None), sys.executable, "-m", "probes.simnode", "--relay", self.url,
+            [*_netns(NS_NODE if netns else None), sys.executable, "-m", "probes.ship.simnode", "--relay", self.url,
              "--node", "N", "--frames", str(frames), "--sources", "1", "--fps", str(FPS), "--paced",
              "--clock-offset-ns", str(self.offset_ns), "--clock-drift-ppm", str(self.drift_ppm),
              "--clock-start-ns", str(self.start_ns)],

@@ -32,7 +32,7 @@ def measure(runs: int, seconds: float, hz: float) -> dict:
     """The tick loop on the checkout first on ``sys.path``."""
     import numpy as np
 
-    from probes.simnode import EVENTS_PER_FRAME, header_for, synth_events
+    from probes.ship.simnode import EVENTS_PER_FRAME, header_for, synth_events
     from relay.clock.correction import Correction, Segment
     from relay.live import framepack
     from relay.live import run as live_run

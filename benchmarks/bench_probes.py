@@ -30,6 +30,11 @@ through real conversion and scaling stages: a pipeline that does some work per f
 tracer gives frames their identity at the source itself.
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_probes.py [--frames N] [--reps 5] [--quick]
+        [--against DIR]
+
+``--against DIR`` measures another checkout of dcuscope beside this one (``git worktree add DIR
+REV``), every mode run in both trees in turn, each tree's children from its own code and native
+library; it prints both tables and the CPU cost per tracepoint of this tree over that one.
 
 A figure it cannot produce (no tracepoint counted, a cost of zero to divide by) is ``n/a
 (reason)`` (benchmarks/figures.py). Without the native probes, or when a run fails, it says
@@ -53,9 +58,9 @@ if str(REPO) not in sys.path:  # run as a script: make the project importable
 
 from benchmarks.figures import NA, CannotRun, Notes, fmt, last_line, maximum, median, minimum, ratio, run  # noqa: E402
 from core.gst import Gst  # noqa: E402
-from probes import native  # noqa: E402
-from probes.events import EXIT  # noqa: E402
-from probes.tracer import attach  # noqa: E402
+from probes.capture import native  # noqa: E402
+from probes.trace.events import EXIT  # noqa: E402
+from probes.capture.tracer import attach  # noqa: E402
 
 SCENARIOS = {
     "identity20": "videotestsrc num-buffers={frames} ! video/x-raw,width=16,height=16,format=RGB ! framestamp ! "
@@ -69,7 +74,7 @@ FRAMES = {"identity20": 10000, "video": 2000}
 """Default frames per run: enough for a run of the near-free chain to last about half a second."""
 MODES = ("none", "latency", "probes", "hooks", "tracer", "python")
 ATTACHED = {"probes": ("native", "probes"), "hooks": ("native", "hooks"), "python": ("python", "probes")}
-"""Modes whose tracepoints probes.tracer places: (backend, trigger)."""
+"""Modes whose tracepoints probes.capture.tracer places: (backend, trigger)."""
 
 
 def register_framestamp() -> None:
@@ -82,7 +87,7 @@ def register_framestamp() -> None:
 
 def run_once(description: str, mode: str, frames: int) -> dict:
     """``{wall, cpu, points}`` of one run from PLAYING to EOS: seconds, and the tracepoints per
-    frame that probes.tracer placed (0 in the other modes)."""
+    frame that probes.capture.tracer placed (0 in the other modes)."""
     pipe = Gst.parse_launch(description.format(frames=frames))
     tracer = None
     if mode in ATTACHED:
@@ -117,7 +122,7 @@ def child(scenario: str, mode: str, frames: int, trace: str | None = None) -> No
     result = run_once(description, mode, frames)
     if trace:  # the GST_TRACERS tracer: its trace is complete once GStreamer is deinitialised
         Gst.deinit()
-        from probes.tracefile import read_trace
+        from probes.trace.tracefile import read_trace
 
         t = read_trace(trace)
         hits = int((t.events["point"] <= EXIT).sum())
@@ -127,8 +132,24 @@ def child(scenario: str, mode: str, frames: int, trace: str | None = None) -> No
     print(json.dumps(result))
 
 
-def spawn(scenario: str, mode: str, frames: int) -> dict:
-    env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+_PLUGIN_PATHS: dict[Path, str] = {}
+
+
+def plugin_path(tree: Path) -> str:
+    """The folder of ``tree``'s GStreamer plugin, built by that tree's own code."""
+    if tree not in _PLUGIN_PATHS:
+        env = {**os.environ, "PYTHONPATH": str(tree)}
+        res = subprocess.run([sys.executable, "-m", "dcuscope.cli", "plugin-path"], capture_output=True, text=True,
+                             env=env, cwd=tree)
+        if res.returncode != 0:
+            raise CannotRun(f"cannot build the plugin of {tree}: {last_line(res.stderr or res.stdout)}")
+        _PLUGIN_PATHS[tree] = res.stdout.strip().splitlines()[-1]
+    return _PLUGIN_PATHS[tree]
+
+
+def spawn(scenario: str, mode: str, frames: int, tree: Path = REPO) -> dict:
+    """One run in a fresh process, from ``tree``'s code (this checkout, or ``--against``'s)."""
+    env = {**os.environ, "PYTHONPATH": str(tree) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     env.pop("GST_TRACERS", None)
     with tempfile.TemporaryDirectory() as tmp:
         args = [scenario, mode, str(frames)]
@@ -136,14 +157,15 @@ def spawn(scenario: str, mode: str, frames: int) -> dict:
             env["GST_TRACERS"] = "latency(flags=element)"
         elif mode == "tracer":
             trace = str(Path(tmp) / "bench.trace.jsonl")
-            env["GST_PLUGIN_PATH"] = str(native.build().parent)
+            env["GST_PLUGIN_PATH"] = plugin_path(tree)
             # A ring as large as the other modes' (they drain once, at the end): no drops.
             env["GST_TRACERS"] = f"dcuscope(node=bench,trace={trace},capacity={(frames + 20) * 128})"
             args.append(trace)
-        res = subprocess.run([sys.executable, __file__, "--child", *args], capture_output=True, text=True, env=env,
-                             cwd=REPO)
+        script = tree / "benchmarks" / "bench_probes.py"
+        res = subprocess.run([sys.executable, str(script), "--child", *args], capture_output=True, text=True, env=env,
+                             cwd=tree)
     if res.returncode != 0:
-        raise CannotRun(f"a {scenario}/{mode} run failed: {last_line(res.stderr or res.stdout)}")
+        raise CannotRun(f"a {scenario}/{mode} run of {tree} failed: {last_line(res.stderr or res.stdout)}")
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
@@ -153,7 +175,8 @@ def per_unit(samples: dict, mode: str, base: str, units: float, key: str, what: 
     return [ratio(s[key] - b[key], units, f"no {what} counted") * 1e6 for s, b in zip(samples[mode], samples[base])]
 
 
-def report(name: str, frames: int, samples: dict) -> None:
+def report(name: str, frames: int, samples: dict) -> dict:
+    """Print the table; returns each mode's median CPU µs per tracepoint."""
     med = {m: median(s["wall"] for s in runs) for m, runs in samples.items()}
     points = {m: samples[m][0]["points"] for m in samples}
     points["latency"] = points["hooks"]  # the same pushes; it keeps no records to count
@@ -182,14 +205,28 @@ def report(name: str, frames: int, samples: dict) -> None:
         x, y = cpu_cost[a], cpu_cost[b]
         why = f"the {b} cost per tracepoint was {y:.3f} µs, not above 0" if isinstance(y, (int, float)) and y <= 0 else None
         print(f"{a} / {b} cost per tracepoint: {fmt(ratio(x, y if why is None else 0, why), '.2f', 'x')} (CPU)")
+    return cpu_cost
 
 
-def bench(name: str, frames: int, reps: int) -> None:
-    samples = {m: [] for m in MODES}
+def bench(name: str, frames: int, reps: int, against: Path | None = None) -> None:
+    trees = [REPO] + ([against] if against else [])
+    samples = {tree: {m: [] for m in MODES} for tree in trees}
     for rep in range(reps):
         for mode in MODES[rep % len(MODES):] + MODES[: rep % len(MODES)]:
-            samples[mode].append(spawn(name, mode, frames))
-    report(name, frames, samples)
+            for tree in trees if rep % 2 == 0 else trees[::-1]:
+                samples[tree][mode].append(spawn(name, mode, frames, tree))
+    if against is None:
+        report(name, frames, samples[REPO])
+        return
+    costs = {}
+    for tree in trees:
+        print(f"\n-- tree {tree}")
+        costs[tree] = report(name, frames, samples[tree])
+    print(f"\n{name}: µs per tracepoint (CPU), this tree / {against}:")
+    for m in MODES[1:]:
+        this, that = costs[REPO][m], costs[against][m]
+        why = None if isinstance(that, (int, float)) and that > 0 else "no cost to divide by"
+        print(f"  {m:7} {fmt(this, '.3f')} / {fmt(that, '.3f')} = {fmt(ratio(this, that if why is None else 0, why), '.2f', 'x')}")
 
 
 def main() -> int:
@@ -201,6 +238,8 @@ def main() -> int:
     parser.add_argument("--reps", type=int, default=5)
     parser.add_argument("--scenario", choices=[*SCENARIOS, "all"], default="all")
     parser.add_argument("--quick", action="store_true", help="a smoke test: identity20, 300 frames, 1 repetition")
+    parser.add_argument("--against", type=Path, metavar="DIR",
+                        help="another checkout of dcuscope, measured beside this one (e.g. git worktree add DIR HEAD~1)")
     args = parser.parse_args()
     if args.quick:
         args.frames, args.reps, args.scenario = 300, 1, "identity20"
@@ -208,8 +247,11 @@ def main() -> int:
         parser.error("--reps and --frames must be at least 1")
     if native.load() is None:
         raise CannotRun(f"the native probes are unavailable: {native.unavailable_reason()}")
+    against = args.against.resolve() if args.against else None
+    if against is not None and not (against / "benchmarks" / "bench_probes.py").exists():
+        parser.error(f"--against {args.against}: not a dcuscope checkout (no benchmarks/bench_probes.py)")
     for name in SCENARIOS if args.scenario == "all" else [args.scenario]:
-        bench(name, args.frames or FRAMES[name], args.reps)
+        bench(name, args.frames or FRAMES[name], args.reps, against)
     return 0
 
 

@@ -5,7 +5,7 @@ count (``--nodes``, default 2, 8, 32) and settings (``--settings``, default both
 both phases one after the other:
 
 1. throughput: R relay processes on a fresh store, N simulated node processes (``python -m
-   probes.simnode``) each shipping its share of ``--events`` as fast as the relays acknowledge;
+   probes.ship.simnode``) each shipping its share of ``--events`` as fast as the relays acknowledge;
    the rate is events committed to the store per second between 10 % and 90 % of the total
    (every one of them also went through the live pairing), counted from the store itself (the
    runs of ``/api/sessions``, which every relay on a shared store lists alike);
@@ -23,7 +23,7 @@ both phases one after the other:
 Settings (``--settings``), each combination run once with each, on adjacent rows of the table:
 ``today``, the settings before adaptive batching (nodes with ``--fixed-flush``: a batch every
 50 ms; relays with ``--push-hz 10``), and ``adaptive``, the defaults (nodes ship at once while
-their link is idle, at most one batch per ``min_flush_s``, probes/relayexport.py; relays push a
+their link is idle, at most one batch per ``min_flush_s``, probes/ship/relayexport.py; relays push a
 DCU's frames as they complete, at most their default ``--push-hz`` times a second).
 
 With several relays the nodes are dealt round-robin (node k to relay k mod R), each given the
@@ -163,11 +163,11 @@ def relay_list(urls: str | Sequence[str], k: int) -> str:
 def start_nodes(url: str | Sequence[str], n: int, per_node_events: int, paced: bool, fps: float,
                 batch_events: int = 8192, node_args: Sequence[str] = ()) -> list[subprocess.Popen]:
     """N simulated nodes; with several relays' URLs, dealt round-robin (:func:`relay_list`).
-    ``node_args``: more ``python -m probes.simnode`` options (a settings' ``--fixed-flush``)."""
+    ``node_args``: more ``python -m probes.ship.simnode`` options (a settings' ``--fixed-flush``)."""
     frames = max(1, per_node_events // (EVENTS_PER_FRAME * SOURCES))
     procs = []
     for k in range(n):
-        cmd = [sys.executable, "-m", "probes.simnode", "--relay", relay_list(url, k), "--node", f"DCU-{k + 1}",
+        cmd = [sys.executable, "-m", "probes.ship.simnode", "--relay", relay_list(url, k), "--node", f"DCU-{k + 1}",
                "--sources", str(SOURCES), "--frames", str(frames), "--fps", str(fps), "--seed", str(k),
                "--close-timeout", "120", "--batch-events", str(batch_events), *node_args]
         if paced:

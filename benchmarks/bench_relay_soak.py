@@ -2,8 +2,8 @@
 
 One relay process (``python -m relay``, as ``dcuscope relay``, on a fresh store: an SQLite file, or
 with ``--store postgresql`` a database on a PostgreSQL server of the benchmark's own) and one node
-driven by hand over the ingest WebSocket (:class:`probes.relaylink.Link`). Each run of the
-node says hello, ships ``--events`` events (synthetic frames of ``probes.simnode``) in
+driven by hand over the ingest WebSocket (:class:`probes.ship.relaylink.Link`). Each run of the
+node says hello, ships ``--events`` events (synthetic frames of ``probes.ship.simnode``) in
 compressed batches of ``--batch-events``, all in flight at once as a node keeps them, waits for
 every acknowledgement, and falls silent with its connection left open: the node "crashed". It
 then restarts as a new run under the same node name; the relay refuses the new run while the old
@@ -62,10 +62,10 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
 
 from benchmarks.figures import NA, CannotRun, Notes, dumps, fmt, last_line, run  # noqa: E402
 from benchmarks.stores import SQLITE_SETTINGS, STORES, PostgresStore  # noqa: E402
-from probes.events import EVENT_DTYPE  # noqa: E402
-from probes.relaylink import Link  # noqa: E402
-from probes.simnode import EVENTS_PER_FRAME, header_for, synth_events  # noqa: E402
-from probes.wire import PROTOCOL_VERSION, encode_batch  # noqa: E402
+from probes.trace.events import EVENT_DTYPE  # noqa: E402
+from probes.ship.relaylink import Link  # noqa: E402
+from probes.ship.simnode import EVENTS_PER_FRAME, header_for, synth_events  # noqa: E402
+from probes.ship.wire import PROTOCOL_VERSION, encode_batch  # noqa: E402
 
 NODE = "restarter"
 SOURCES = 2

@@ -18,7 +18,7 @@ and wait and the stage that limits throughput.
    fakesink is written and run by ``dcuscope run --probes`` for ``--duration`` seconds (or, with
    ``--frames N``, until N collages reached the sink: as long as this machine needs), in its
    own process. The first ``--warmup`` seconds of frames are left out; the rest give, through
-   ``probes.delays.node_stats``: A = S/n (the mean frame delay of the frames that reached the
+   ``probes.trace.delays.node_stats``: A = S/n (the mean frame delay of the frames that reached the
    sink), p95, fps per stream, every stage's mean delay, mean service and mean wait (delay =
    service + wait) and utilization, the bottleneck (the stage that limits throughput), and
    the frames each stream lost to ``max-latency``. A series stops at the first stream count
@@ -61,9 +61,9 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.figures import NA, CannotRun, Notes, fmt, run  # noqa: E402
-from probes.delays import node_stats  # noqa: E402
-from probes.events import DROP_REASONS, FACT, LATE, ORIGIN  # noqa: E402
-from probes.tracefile import Trace, read_trace  # noqa: E402
+from probes.trace.delays import node_stats  # noqa: E402
+from probes.trace.events import DROP_REASONS, FACT, LATE, ORIGIN  # noqa: E402
+from probes.trace.tracefile import Trace, read_trace  # noqa: E402
 
 MEDIA = ROOT / "assets" / "media"
 MODELS = {"centernet": ROOT / "assets" / "models" / "centernet_mobilenetv3_coco80.onnx",
@@ -360,7 +360,7 @@ class Measurement:
     utilization: dict[str, float] = field(default_factory=dict)
     """Busy fraction of the run's span of each stage with service times."""
     bottleneck: dict | None = None
-    """``{stage, utilization, thread_utilization, saturated}`` of probes.delays.bottleneck."""
+    """``{stage, utilization, thread_utilization, saturated}`` of probes.trace.delays.bottleneck."""
     delivered: dict[str, int] = field(default_factory=dict)
     """Source id -> frames that reached their origin (decoded and stamped)."""
     late: dict[str, int] = field(default_factory=dict)
@@ -748,7 +748,7 @@ def _stage_table(results: list[Result], model: str, notes: Notes) -> list[str]:
     late_ms = sorted({r.max_latency_ms for r in results if r.max_latency_ms})
     return out + ["", "Stage cells: mean service/wait in ms (delay = service + wait; service is the stage's own "
                   "work on the buffer that carried the frame out, wait is queued, waiting for a batch or blocked "
-                  "downstream). limiting stage: probes.delays' bottleneck with its utilization (busy fraction of "
+                  "downstream). limiting stage: probes.trace.delays' bottleneck with its utilization (busy fraction of "
                   "the run), its streaming thread's when other stages share it, sat. when that thread is saturated "
                   "(>= 90 %). between = A minus the sum of the stage delays: gaps between stages. late drops: "
                   "frames per stream the mux dropped as older than its max-latency"

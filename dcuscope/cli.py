@@ -13,7 +13,7 @@ from core.errors import DcuscopeError, PipelineError
 from dcuscope.dbcommand import add_db_parser
 from dcuscope.shipcommand import add_ship_parser
 from dcuscope.tracecommands import add_export_parser, add_stats_parser
-from probes.sysclock import DEFAULT_UDS
+from probes.clocks.sysclock import DEFAULT_UDS
 from relay.commands import add_relay_parser
 
 DESCRIPTION = """\
@@ -58,7 +58,7 @@ MAX_DRIFT_PPM = 1000.0
 PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
 
 CLOSE_TIMEOUT_S = 60.0
-"""``--close-timeout``'s default: probes.events.EXPORTER_CLOSE_S (not imported here: numpy slows the start)."""
+"""``--close-timeout``'s default: probes.trace.events.EXPORTER_CLOSE_S (not imported here: numpy slows the start)."""
 
 
 def version() -> str:
@@ -180,7 +180,7 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _plugin_path(args: argparse.Namespace) -> int:
-    from probes.native import BuildError, build
+    from probes.capture.native import BuildError, build
 
     try:
         print(build().parent)

@@ -69,7 +69,7 @@ def check_sink(config: PipelineConfig, output: Path | None) -> None:
 
 def run_command(args: argparse.Namespace) -> int:
     if args.relay:
-        from probes.relaylink import parse_relays
+        from probes.ship.relaylink import parse_relays
 
         parse_relays(args.relay)  # a bad list ends the run before the pipeline is built
     config = apply_overrides(load_config(args.config), args)

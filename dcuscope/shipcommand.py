@@ -1,7 +1,7 @@
 """``dcuscope ship TRACE --relay URL``: stream a trace file that another process is writing (the
 GStreamer tracer in any application, or ``dcuscope run``) to a relay, live, with the same
 lossless, acknowledged, resumable protocol and clock exchange as ``dcuscope run --relay``
-(:mod:`probes.tailship`), until the trace ends (its process exited) or Ctrl-C/SIGTERM."""
+(:mod:`probes.ship.tailship`), until the trace ends (its process exited) or Ctrl-C/SIGTERM."""
 
 from __future__ import annotations
 
@@ -41,8 +41,8 @@ def add_ship_parser(sub) -> None:
 
 def _ship(args) -> int:
     # Imported here: the command line must start fast (a Ctrl-C while aiohttp loads is held).
-    from probes.relaylink import check_token
-    from probes.tailship import TailShipper
+    from probes.ship.relaylink import check_token
+    from probes.ship.tailship import TailShipper
 
     if args.settle < 0 or args.wait <= 0 or args.close_timeout <= 0:
         raise DcuscopeError("--settle must be >= 0, --wait and --close-timeout > 0")

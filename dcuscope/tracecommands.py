@@ -7,7 +7,7 @@
 
 Over a stored session each node's statistics carry the ``clock`` entry of :mod:`relay.clock.entry`
 (the correction its timestamps were moved by, at its last event, and its bound), and exports carry
-it per node and per frame (:mod:`probes.export`); trace files hold the node's own clock, uncorrected.
+it per node and per frame (:mod:`probes.trace.export`); trace files hold the node's own clock, uncorrected.
 
 Each ``func`` returns the exit code: 0, or 2 after one ``dcuscope: error: ...`` line on stderr
 for a bad input (missing file, not a trace, no such database or session, unwritable output).
@@ -24,9 +24,9 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from core.errors import DcuscopeError
-from probes.export import BUCKET_NS, perfetto_document, write_csv
-from probes.stats import stats_document
-from probes.tracefile import Trace, read_trace
+from probes.trace.export import BUCKET_NS, perfetto_document, write_csv
+from probes.trace.stats import stats_document
+from probes.trace.tracefile import Trace, read_trace
 from relay.clock.correction import Correction
 from relay.clock.entry import clock_entry
 

@@ -6,7 +6,7 @@
       videotestsrc is-live=true pattern=ball ! video/x-raw,framerate=10/1 ! mix.
 
 Its elements carry no framestamp: ``--probes`` traces it with the dcuscope GStreamer tracer,
-as any application (probes.processtracer), every element a stage, every branch traced.
+as any application (probes.capture.processtracer), every element a stage, every branch traced.
 """
 
 from __future__ import annotations

@@ -27,7 +27,7 @@ from core.gst import Gst, GstBase
 from plugins.frames import drop_structure, read_frames
 
 STOPPED = "stopped"
-"""Reason of the frames a live stop discards (``probes.events.DROP_REASONS``)."""
+"""Reason of the frames a live stop discards (``probes.trace.events.DROP_REASONS``)."""
 QUEUE_FACTORIES = ("queue", "queue2", "multiqueue")
 """Elements that hold frames in a queue of their own, pushed out by a thread of their own."""
 

@@ -14,17 +14,18 @@ from core.clocks import CLOCKS, PretendClock
 from core.errors import UsageError
 from pipeline.build import BuiltPipeline
 from pipeline.config import PipelineConfig
-from probes.errors import ExportError, TraceError
-from probes.events import CAPTURE, EXPORTER_CLOSE_S, Exporter, TraceHeader
-from probes.processtracer import ProcessTracer
-from probes.relayexport import RelayExporter
-from probes.relaylink import check_token
-from probes.shipper import Shipper
-from probes.sourcewatch import SourceWatch
-from probes.sysclock import DEFAULT_UDS
-from probes.tailship import TailShipper
-from probes.tracefile import TraceFileWriter
-from probes.tracer import Tracer, attach
+from probes.ship.errors import ExportError
+from probes.trace.errors import TraceError
+from probes.trace.events import CAPTURE, EXPORTER_CLOSE_S, Exporter, TraceHeader
+from probes.capture.processtracer import ProcessTracer
+from probes.ship.relayexport import RelayExporter
+from probes.ship.relaylink import check_token
+from probes.capture.shipper import Shipper
+from probes.capture.sourcewatch import SourceWatch
+from probes.clocks.sysclock import DEFAULT_UDS
+from probes.ship.tailship import TailShipper
+from probes.trace.tracefile import TraceFileWriter
+from probes.capture.tracer import Tracer, attach
 
 
 class _Shifted:
@@ -115,11 +116,11 @@ def _start_tracer(config: PipelineConfig, relay: str | None, token: str | None, 
     trace = config.probes.trace or default_trace_path(config.node)
     probes = LaunchProbes(ProcessTracer(config.node, trace, config.probes.clock), Path(trace), progress, close_timeout_s)
     if relay is not None:
-        probes.shipper = TailShipper(Path(trace), relay, token, config.node,
+        probes.capture.shipper = TailShipper(Path(trace), relay, token, config.node,
                                      say=lambda line: progress.write(line + "\n") if progress else None,
                                      close_timeout_s=close_timeout_s)
         # No stop event: it ends with the trace's end line, which stop() has the tracer write.
-        probes.thread = threading.Thread(target=probes.shipper.run, args=(threading.Event(), 1.0, 1e9),
+        probes.thread = threading.Thread(target=probes.capture.shipper.run, args=(threading.Event(), 1.0, 1e9),
                                          name="dcuscope-tailship", daemon=True)
         probes.thread.start()
     return probes

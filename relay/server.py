@@ -25,7 +25,7 @@ import socketio
 from aiohttp import web
 
 from core import signals
-from probes.wire import INGEST_PATH, MAX_MESSAGE_BYTES
+from probes.ship.wire import INGEST_PATH, MAX_MESSAGE_BYTES
 from relay.api.fanout import FanoutHealth, FleetManager, create_manager
 from relay.api.fleet import Fleet
 from relay.api.interest import Interest

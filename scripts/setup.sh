@@ -53,7 +53,7 @@ if [ ! -f "$STAMPS/pip-$deps_hash" ]; then
   touch "$STAMPS/pip-$deps_hash"
 fi
 
-"$VENV/bin/python" -m probes.native build >/dev/null || say "warning: native probes not built; Python probes will be used (slower)"
+"$VENV/bin/python" -m probes.capture.native build >/dev/null || say "warning: native probes not built; Python probes will be used (slower)"
 
 if [ -f ui/package-lock.json ]; then
   ui_hash=$(sha256sum ui/package-lock.json | cut -c1-16)

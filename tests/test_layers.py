@@ -16,6 +16,7 @@ cycle is still an edge of the graph.
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import pytest
@@ -132,3 +133,93 @@ def test_relay_parts_import_downward(name):
     below = set(RELAY_LAYERS[:RELAY_LAYERS.index(part)])
     upward = sorted(t for t in GRAPH[name] if relay_part(t) and relay_part(t) not in below | {part})
     assert not upward, f"{MODULES[name].relative_to(REPO)} ({part}) imports {upward}"
+
+
+PROBES_PARTS = {
+    "trace": set(),
+    "clocks": set(),
+    "capture": {"trace"},
+    "ship": {"trace", "clocks"},
+    "instrument": {"trace", "clocks", "capture", "ship"},
+}
+"""probes/'s parts and what each may import of the others (probes/__init__.py says what they hold).
+``instrument`` composes them for ``dcuscope run``; nothing of probes imports it."""
+RELAY_MAY_IMPORT = {"trace", "clocks", "ship"}
+"""The contract between nodes and the relay: the relay never imports capture nor the composition."""
+
+
+def probes_part(name: str) -> str | None:
+    parts = name.split(".")
+    return parts[1] if parts[0] == "probes" and len(parts) > 1 else None
+
+
+def test_probes_holds_only_its_parts():
+    found = {p.name.removesuffix(".py") for p in (REPO / "probes").iterdir()
+             if p.suffix == ".py" or (p / "__init__.py").exists()} - {"__init__"}
+    assert found == set(PROBES_PARTS), "a new part of probes/ needs a place in PROBES_PARTS"
+
+
+@pytest.mark.parametrize("name", sorted(n for n in MODULES if probes_part(n)))
+def test_probes_parts_import_one_way(name):
+    part = probes_part(name)
+    wrong = sorted(t for t in GRAPH[name] if probes_part(t) and probes_part(t) not in PROBES_PARTS[part] | {part})
+    assert not wrong, f"{MODULES[name].relative_to(REPO)} ({part}) imports {wrong}"
+    assert "probes" not in GRAPH[name], f"{MODULES[name].relative_to(REPO)} imports the probes package itself"
+
+
+@pytest.mark.parametrize("name", sorted(n for n in MODULES if n.split(".")[0] == "relay"))
+def test_the_relay_reads_only_the_trace_model_clocks_and_wire(name):
+    wrong = sorted(t for t in GRAPH[name] if t.split(".")[0] == "probes" and probes_part(t) not in RELAY_MAY_IMPORT)
+    assert not wrong, f"{MODULES[name].relative_to(REPO)} imports {wrong}"
+
+
+C_DIR = REPO / "probes" / "capture" / "c"
+
+
+def c_modules() -> list[str]:
+    """The native library's modules, bottom-up, as probes.capture.native compiles them."""
+    tree = ast.parse((REPO / "probes" / "capture" / "native.py").read_text())
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and [getattr(t, "id", "") for t in node.targets] == ["MODULES"]:
+            return list(ast.literal_eval(node.value))
+    raise AssertionError("probes/capture/native.py defines no MODULES")
+
+
+C_MODULES = c_modules()
+C_CALL = re.compile(r"\b(dcu_[a-z0-9_]+)\s*\(")
+C_DEFINITION = re.compile(r"^[A-Za-z_][\w \*]*?\b(dcu_[a-z0-9_]+)\s*\([^;]*\)\s*\{", re.M)
+
+
+def c_text(path: Path) -> str:
+    """The code of a C file without its comments and string literals."""
+    text = re.sub(r"/\*.*?\*/|//[^\n]*", " ", path.read_text(), flags=re.S)
+    return re.sub(r'"(\\.|[^"\\])*"', '""', text)
+
+
+def test_every_c_file_is_a_module_of_the_library():
+    found = {p.stem for p in C_DIR.glob("*.c")}
+    assert found == set(C_MODULES), "a new C file needs a place in probes/capture/native.py's MODULES"
+    headers = {p.stem for p in C_DIR.glob("*.h")}
+    assert headers == set(C_MODULES) - {"plugin"}, "one header per C module (plugin.c, the entry point, has none)"
+
+
+@pytest.mark.parametrize("module", C_MODULES)
+def test_c_modules_include_and_call_only_modules_below_them(module):
+    below = set(C_MODULES[:C_MODULES.index(module)])
+    for path in [C_DIR / f"{module}.c", C_DIR / f"{module}.h"]:
+        if not path.exists():
+            continue
+        included = {Path(name).stem for name in re.findall(r'^#include "([^"]+)"', path.read_text(), re.M)}
+        assert included <= below | {module}, f"{path.name} includes {sorted(included - below - {module})}"
+    defined_by = {fn: m for m in C_MODULES for fn in C_DEFINITION.findall(c_text(C_DIR / f"{m}.c"))}
+    called = set(C_CALL.findall(c_text(C_DIR / f"{module}.c")))
+    upward = sorted(f"{fn} ({defined_by[fn]}.c)" for fn in called if defined_by.get(fn) not in below | {module, None})
+    assert not upward, f"{module}.c calls {upward}"
+
+
+@pytest.mark.parametrize("module", [m for m in C_MODULES if m != "plugin"])
+def test_what_a_c_module_lets_others_call_its_header_declares(module):
+    header = c_text(C_DIR / f"{module}.h")
+    exported = C_DEFINITION.findall(re.sub(r"^static .*", "", c_text(C_DIR / f"{module}.c"), flags=re.M))
+    undeclared = sorted(fn for fn in exported if not re.search(rf"\b{fn}\s*\(", header))
+    assert not undeclared, f"{module}.c defines {undeclared} without declaring them in {module}.h"

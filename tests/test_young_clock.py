@@ -27,9 +27,9 @@ import socketio
 from pipeline.build import build_pipeline
 from pipeline.config import load_config
 from pipeline.run import Runner
-from probes.relayexport import RelayExporter
-from probes.simnode import header_for, synth_events
-from probes.wire import encode_batch
+from probes.ship.relayexport import RelayExporter
+from probes.ship.simnode import header_for, synth_events
+from probes.ship.wire import encode_batch
 from relay import heap
 from relay.api.ui import Ticker
 from relay.live.mirror import Mirrors

@@ -2,7 +2,7 @@
 
 When two DCUs consume the same RTSP stream (the paper's high-availability pair), each frame
 reaches both with the same capture time: the camera's RTCP sender reports map its RTP
-timestamp to the camera's clock (``timestamp/x-ntp``, :mod:`probes.events` point ``capture``),
+timestamp to the camera's clock (``timestamp/x-ntp``, :mod:`probes.trace.events` point ``capture``),
 and both receivers get the same timestamps and the same reports. Matching the two nodes'
 complete frames by that time pairs the frames that show one moment; comparing their ends,
 each moved to the relay's clock by its run's :class:`relay.clock.correction.Correction`, says which DCU
@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from probes.delays import FrameDelays
-from probes.frametable import MISSING
+from probes.trace.delays import FrameDelays
+from probes.trace.frametable import MISSING
 from relay.clock.correction import Correction
 from relay.errors import RelayError
 

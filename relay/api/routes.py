@@ -14,7 +14,7 @@
   (:mod:`relay.live.overview`; as the ``overview`` pushes of :mod:`relay.api.ui`)
 - ``GET /api/stats?node=NAME``, ``/api/frames``, ``/api/moments`` answer for any DCU of the fleet: one
   another relay holds is read from a mirror of its stored batches (:mod:`relay.live.mirror`)
-- ``GET /api/stats?node=NAME``: ``probes.delays.node_stats`` of the node's newest run (stage
+- ``GET /api/stats?node=NAME``: ``probes.trace.delays.node_stats`` of the node's newest run (stage
   shares and bottleneck included), plus the same figures over the rolling ``window``, and
   ``clock`` {applied, why, correction_ns, uncertainty_ns, at_ns}: the correction applied to its
   timestamps and its bound (:mod:`relay.clock.entry`)

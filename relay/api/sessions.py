@@ -4,7 +4,7 @@
   last_ns, dropped, lost, clock, ended}], one per run of the session (a node seen twice: NODE, NODE_2)
 - ``GET /api/sessions/{session}/frames?node=NAME&since=CURSOR&limit=N``: the node's complete
   frames in the order their chains ended, shaped as ``GET /api/frames`` (cursor = position, from 1)
-- ``GET /api/sessions/{session}/stats?node=NAME``: ``probes.delays.node_stats`` over the node's
+- ``GET /api/sessions/{session}/stats?node=NAME``: ``probes.trace.delays.node_stats`` over the node's
   stored events (stage shares and bottleneck included), and the ``clock`` entry of
   :mod:`relay.clock.entry` (the correction applied, at the run's last event, and its bound)
 
@@ -30,11 +30,11 @@ from dataclasses import dataclass
 import numpy as np
 from aiohttp import web
 
-from probes.delays import FrameDelays, delay_stats, frame_delays
-from probes.events import TraceHeader
-from probes.facts import Accounting
-from probes.frametable import frame_table
-from probes.stats import unique_name
+from probes.trace.delays import FrameDelays, delay_stats, frame_delays
+from probes.trace.events import TraceHeader
+from probes.trace.facts import Accounting
+from probes.trace.frametable import frame_table
+from probes.trace.stats import unique_name
 from relay.api.routes import int_arg
 from relay.clock.correction import Correction
 from relay.clock.entry import clock_entry
@@ -96,7 +96,7 @@ class StoredNode:
 
 
 def pair_run(run: StoredRun, name: str) -> StoredNode:
-    """Pair a stored run's events into frames and their delays (:mod:`probes.delays`)."""
+    """Pair a stored run's events into frames and their delays (:mod:`probes.trace.delays`)."""
     fd = frame_delays(frame_table(run.header, run.events))
     accounting = Accounting(run.header.stages)
     accounting.add(run.events)

@@ -40,7 +40,7 @@ import socketio
 from socketio.exceptions import ConnectionRefusedError as Refused
 
 from core.clocks import NEVER
-from probes.wire import MAX_NAME
+from probes.ship.wire import MAX_NAME
 from relay.api.fleet import Fleet
 from relay.api.interest import ALL, MAX_FRAMES, Interest, Wish
 from relay.guard.auth import socket_token, token_matches

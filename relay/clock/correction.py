@@ -1,6 +1,6 @@
 """Clock offset of a node to the relay: NTP-style estimate, and which correction to apply.
 
-The node reads its own PTP state (:mod:`probes.ptp`) and reports it with its clock samples.
+The node reads its own PTP state (:mod:`probes.clocks.ptp`) and reports it with its clock samples.
 
 Sign convention: ``offset_ns`` is the node's clock minus the relay's clock (a node whose clock
 runs 37 ms ahead has offset +37 ms), so a node timestamp is brought to the relay's clock by
@@ -18,8 +18,8 @@ from functools import cached_property
 
 import numpy as np
 
-from probes.frametable import MISSING
-from probes.ptp import ptp_trusted, ptp_uncertainty_ns
+from probes.trace.frametable import MISSING
+from probes.clocks.ptp import ptp_trusted, ptp_uncertainty_ns
 
 CLOCK_MODES = ("ptp", "estimate", "auto")
 MAX_CORRECTION_NS = 10**17
@@ -99,7 +99,7 @@ def correction_ns(mode: str, estimate: ClockEstimate | None, ptp: dict) -> tuple
     """What to subtract from the node's timestamps under ``--clock mode``, and why.
 
     ptp: never correct (PTP is trusted); estimate: always subtract the estimated offset;
-    auto: trust PTP where :func:`probes.ptp.ptp_trusted` does (a locked slave port *and*
+    auto: trust PTP where :func:`probes.clocks.ptp.ptp_trusted` does (a locked slave port *and*
     CLOCK_REALTIME following it), else subtract the estimate.
     """
     if mode not in CLOCK_MODES:

@@ -1,4 +1,4 @@
-"""The relay's end of the UDP clock exchange (datagrams: :mod:`probes.udpclock`).
+"""The relay's end of the UDP clock exchange (datagrams: :mod:`probes.clocks.udpclock`).
 
 Each ingest connection that said hello gets a random key (``register``); a request carrying a
 key the relay handed out is answered with (t2, t3): t2 the kernel's receive time
@@ -19,7 +19,7 @@ import socket
 import time
 from collections import Counter
 
-from probes.udpclock import (decode_request, enable_rx_timestamps, encode_answer, new_key, recv_stamped)
+from probes.clocks.udpclock import (decode_request, enable_rx_timestamps, encode_answer, new_key, recv_stamped)
 from relay.guard.limits import Limits
 
 READS_PER_WAKE = 256

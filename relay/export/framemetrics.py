@@ -20,7 +20,7 @@ import numpy as np
 from prometheus_client.core import CounterMetricFamily, Metric
 from prometheus_client.utils import floatToGoString
 
-from probes.delays import FrameDelays, Series
+from probes.trace.delays import FrameDelays, Series
 from relay.export.buckets import Histograms
 from relay.export.exposition import BulkHistogram
 from relay.live.state import RelayState, RunState

@@ -18,7 +18,7 @@ store never count one run's frames or events twice; of a run it keeps in memory 
 relays on that ground.
 
 Series per node, at most, with S stages (``--limit stages``, 64), K sources (``--limit sources``,
-256), G = min(gap pairs, framemetrics.MAX_GAPS + 1) and R = len(probes.events.DROP_REASONS) (6),
+256), G = min(gap pairs, framemetrics.MAX_GAPS + 1) and R = len(probes.trace.events.DROP_REASONS) (6),
 each histogram series being len(BUCKETS_S) + 3 = 34 samples (buckets, +Inf, sum, count)::
 
     34 (2 + 3 S + G)  +  4 S  +  K (6 + R)  +  18

@@ -6,7 +6,7 @@ loss counts per source), the clock view (``/api/nodes`` clock), the node's PTP r
 counters. The window is the one the UI's pushes use (``RunState.window``: recomputed only when the
 run has new events, at most every ``relay.live.state.WINDOW_MAX_AGE_S``, and less often when windows
 are costly), so that scrapes of many nodes cost little. Every source lists every drop reason a node may send
-(``probes.events.DROP_REASONS``, a closed set the wire checks), at 0 before its first drop, so that
+(``probes.trace.events.DROP_REASONS``, a closed set the wire checks), at 0 before its first drop, so that
 ``increase()`` sees that drop too; sources per node are bounded by ``--limit sources``.
 
 Only the runs this relay holds (``RelayState.holds``) have their figures here. On a shared store a
@@ -24,8 +24,8 @@ from collections.abc import Iterator
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
-from probes.events import DROP_REASONS
-from probes.wire import PTP_STATES
+from probes.trace.events import DROP_REASONS
+from probes.ship.wire import PTP_STATES
 from relay.live.state import RelayState, RunState
 
 MAX_URI_CHARS = 200
@@ -154,7 +154,7 @@ def _node_samples(out: Families, state: RelayState, rs: RunState) -> None:
     out.add("dcuscope_clock_uncertainty_seconds", [node], clock["correction_uncertainty_ns"] / NS_PER_S)
     out.add("dcuscope_clock_correction_seconds", [node], clock["correction_ns"] / NS_PER_S)
     ptp = rs.ptp if isinstance(rs.ptp, dict) else {}
-    for s in PTP_STATES:  # every state a node may report (probes.wire sanitises the rest away)
+    for s in PTP_STATES:  # every state a node may report (probes.ship.wire sanitises the rest away)
         out.add("dcuscope_ptp_state", [node, s], 1.0 if ptp.get("state") == s else 0.0)
     offset = ptp.get("master_offset_ns")
     if isinstance(offset, int) and not isinstance(offset, bool):

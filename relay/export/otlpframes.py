@@ -12,8 +12,8 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from probes.delays import FrameDelays
-from probes.frametable import MISSING
+from probes.trace.delays import FrameDelays
+from probes.trace.frametable import MISSING
 from relay.clock.correction import Correction
 
 

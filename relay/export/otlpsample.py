@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from probes.delays import FrameDelays, Series
+from probes.trace.delays import FrameDelays, Series
 from relay.export.otlpframes import copy_frames
 from relay.export.otlpqueue import FrameQueue, OtlpCounters
 from relay.live.state import RelayState, RunState

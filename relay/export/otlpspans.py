@@ -24,7 +24,7 @@ from opentelemetry.sdk.trace import ReadableSpan
 from opentelemetry.sdk.util.instrumentation import InstrumentationScope
 from opentelemetry.trace import SpanContext, TraceFlags
 
-from probes.frametable import MISSING
+from probes.trace.frametable import MISSING
 from relay.export.otlpframes import FrameBatch
 
 SERVICE_NAME = "dcuscope-relay"

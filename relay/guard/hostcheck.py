@@ -19,7 +19,7 @@ from collections.abc import Iterable
 
 from aiohttp import web
 
-from probes.wire import INGEST_PATH
+from probes.ship.wire import INGEST_PATH
 from relay.errors import http_error
 
 

@@ -2,14 +2,14 @@
 
 A node opens ``ws://HOST:PORT/ingest`` with ``Authorization: Bearer TOKEN`` (or ``?token=``)
 when the relay has a token: a wrong or missing one is refused with HTTP 401 before the upgrade,
-and so is a connection beyond the cap (503). Then, in the envelope of :mod:`probes.envelope`:
+and so is a connection beyond the cap (503). Then, in the envelope of :mod:`probes.ship.envelope`:
 
 - ``hello`` {proto, run, header, lost, floor, ptp[, doubt]} -> reply {ok, run, session[, stored, clock_port,
   clock_key]}; ``stored``: which batches of ``doubt`` (sent, then evicted unacknowledged by the node) this
   run's storage holds;
   first, once; ``clock_key`` (hex) lets this connection use the UDP clock exchange on ``clock_port``
   (:mod:`relay.clock.udp`), whose answered (t2, t3) pairs join the connection's sync replies;
-- a binary batch (:mod:`probes.wire`) -> ``ack`` {seq, ok[, dup]} once the batch is committed
+- a binary batch (:mod:`probes.ship.wire`) -> ``ack`` {seq, ok[, dup]} once the batch is committed
   (or was stored before), then its events reach the live state; ``ok: false`` if storage failed
   (the node sends it again);
 - ``sync`` -> reply {t2, t3}: relay receive and send times (ns, CLOCK_REALTIME);
@@ -44,9 +44,9 @@ from dataclasses import dataclass, field
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
-from probes import envelope
-from probes.errors import LimitExceeded, ProtocolError
-from probes.wire import (MAX_MESSAGE_BYTES, RELAY_HEARTBEAT_S, Batch, decode_batch, decode_clock, decode_end, decode_hello,
+from probes.ship import envelope
+from probes.ship.errors import LimitExceeded, ProtocolError
+from probes.ship.wire import (MAX_MESSAGE_BYTES, RELAY_HEARTBEAT_S, Batch, decode_batch, decode_clock, decode_end, decode_hello,
                          declared_bytes)
 from relay.clock.correction import ClockSample, ntp_sample, sample_fault
 from relay.clock.udp import ClockUdp
@@ -224,7 +224,7 @@ class Ingest:
                     await self._on_message(conn, envelope.decode_request(msg.data))
                 elif msg.type == WSMsgType.ERROR:
                     if isinstance(msg.data, (TimeoutError, ConnectionError)):
-                        # No pong within the heartbeat (probes.wire.RELAY_HEARTBEAT_S): the node froze or the
+                        # No pong within the heartbeat (probes.ship.wire.RELAY_HEARTBEAT_S): the node froze or the
                         # network between is cut. Not its fault: the run is let go, to be resumed.
                         log.info("ingest: %s (run %s) silent: %s", conn.sid, conn.run or "-", msg.data)
                         return

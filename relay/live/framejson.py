@@ -9,7 +9,7 @@ Per frame::
      "capture": ns|null (the camera's clock: never corrected), "glass_ms": corrected end - capture|null,
      "clock_ns": offset subtracted at the origin, "clock_uncertainty_ns": its bound}
 
-one ``stage_<column>_ms`` list per column of the delay model (``probes.delays.STAGE_COLUMNS``),
+one ``stage_<column>_ms`` list per column of the delay model (``probes.trace.delays.STAGE_COLUMNS``),
 every figure taken from it, so that the page only draws. Timestamps are moved to the relay's
 clock by the run's correction (:class:`relay.clock.correction.Correction`, per timestamp, by the estimate in
 force at the frame's origin). A block adds the node, run, stages, their kinds, ``has_exit``
@@ -20,8 +20,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from probes.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays
-from probes.frametable import MISSING
+from probes.trace.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays
+from probes.trace.frametable import MISSING
 from relay.clock.correction import Correction
 
 

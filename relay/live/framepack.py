@@ -6,7 +6,7 @@ one Python dict per frame and JSON-encoded, they cost the relay more than pairin
 push's frames are two arrays built with a few numpy calls, sent as Socket.IO binary attachments:
 
 - ``ints``: int64, one row of ``count`` values per field of :data:`INT_FIELDS` (per-stage fields
-  one row per stage), row after row; :data:`probes.frametable.MISSING` in ``enter``, ``exit`` and
+  one row per stage), row after row; :data:`probes.trace.frametable.MISSING` in ``enter``, ``exit`` and
   ``capture`` is a missing time (null);
 - ``floats``: float64, the same for :data:`FLOAT_FIELDS`; NaN is a missing figure (null).
 
@@ -22,8 +22,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from probes.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays
-from probes.frametable import MISSING
+from probes.trace.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays
+from probes.trace.frametable import MISSING
 from relay.clock.correction import Correction
 
 PER_STAGE = "stage"

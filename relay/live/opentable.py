@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from probes.events import FRAME_CELLS
-from probes.frametable import MISSING
+from probes.trace.events import FRAME_CELLS
+from probes.trace.frametable import MISSING
 
 MIN_ROWS = 64
 

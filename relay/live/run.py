@@ -1,13 +1,13 @@
 """Live per-run delay engine: pairs a node's events by frame as batches arrive (numpy per batch).
 
-Every figure comes from the delay model, :mod:`probes.delays` (``frame_delays``, ``series``,
+Every figure comes from the delay model, :mod:`probes.trace.delays` (``frame_delays``, ``series``,
 ``delay_summary``), so that the relay's statistics over a run equal ``node_stats`` over the
 same events, and its window's are those of the frames in it.
 
 A frame lives in the *open* table (one row per (source, frame): the earliest timestamp of each
 (stage, point) cell, as ``frame_table`` keeps) until it is
 
-- *finalised*: its chain is complete (``probes.delays.chains``) and ``settle_s`` of the node's
+- *finalised*: its chain is complete (``probes.trace.delays.chains``) and ``settle_s`` of the node's
   time passed since its chain ended, so stragglers still land in it; its per-frame delays then
   join the session's value arrays and its row leaves the open table; or
 - *evicted*: incomplete, with no event for ``evict_s`` of the node's time; it is counted.
@@ -36,16 +36,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from probes.delays import NS_PER_MS, Chains, FrameDelays, Series, chains, delay_summary, frame_delays, series
-from probes.events import EXIT, FRAME_CELLS, GROUP, READY, TraceHeader
-from probes.facts import Accounting
-from probes.frametable import MISSING, FrameTable, frame_events, frame_table_from_cells
+from probes.trace.delays import NS_PER_MS, Chains, FrameDelays, Series, chains, delay_summary, frame_delays, series
+from probes.trace.events import EXIT, FRAME_CELLS, GROUP, READY, TraceHeader
+from probes.trace.facts import Accounting
+from probes.trace.frametable import MISSING, FrameTable, frame_events, frame_table_from_cells
 from relay.live import framepack
 from relay.live.opentable import OpenTable
 from relay.live.values import RELATIVE_ERROR, OriginSpans, RunValues
 
 NEVER = np.iinfo(np.int64).max
-KEY_SHIFT = 44  # key = source << 44 | frame; probes.wire bounds both to fit
+KEY_SHIFT = 44  # key = source << 44 | frame; probes.ship.wire bounds both to fit
 FINALISE_PERIOD_NS = 500_000_000
 """Node time between two finalisation/eviction passes."""
 MERGE_EVENTS = 65536
@@ -313,7 +313,7 @@ class LiveRun:
     # --- ingest -------------------------------------------------------------------------------
 
     def add(self, events: np.ndarray) -> None:
-        """Queue a batch of validated events (stage and point in range, see probes.wire).
+        """Queue a batch of validated events (stage and point in range, see probes.ship.wire).
 
         Merging costs a few dozen numpy calls whatever the batch size, so batches wait here
         until the next :meth:`maintain` (the relay's tick) or read, and merge as one.
@@ -584,7 +584,7 @@ class LiveRun:
     # --- statistics -----------------------------------------------------------------------------
 
     def run_stats(self, dropped: int = 0) -> dict:
-        """``probes.delays.node_stats`` of every event received for this run."""
+        """``probes.trace.delays.node_stats`` of every event received for this run."""
         self.maintain()
         fd = self._delays(self._open_frames())
         open_values = series(fd)

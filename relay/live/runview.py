@@ -11,7 +11,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from probes.events import TraceHeader
+from probes.trace.events import TraceHeader
 from relay.clock.correction import Correction
 from relay.live import framepack
 from relay.live.framejson import block, frame_dicts

@@ -4,7 +4,7 @@ A relay may watch many nodes for days; keeping every frame's delays for whole-ru
 would grow without bound (13 values a frame: ~270 MB an hour for one DCU at 360 frames/s).
 
 - :class:`RunValues` keeps the values themselves up to ``exact_limit``, so statistics of
-  runs of that size are exactly ``probes.delays.summarize``'s. They are kept sorted (the
+  runs of that size are exactly ``probes.trace.delays.summarize``'s. They are kept sorted (the
   values finalised since the last summary are merged in when the next is asked, once, not at
   every finalisation), with the sum of their nanoseconds: the relay asks for a run's statistics
   every second while a page shows it, and a
@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from probes.delays import NS_PER_MS, PERCENTILES, summarize
+from probes.trace.delays import NS_PER_MS, PERCENTILES, summarize
 
 RELATIVE_ERROR = 0.01
 """Largest relative error of a percentile once a series is past its exact limit."""
@@ -212,7 +212,7 @@ class OriginSpans:
             self.last[sid] = max(self.last.get(sid, int(o.max())), int(o.max()))
 
     def fps(self, ids: list[int], origins: np.ndarray, sources: np.ndarray) -> dict[str, float]:
-        """probes.delays.fps_by_source's rule, (n - 1) / span, over these and ``origins``."""
+        """probes.trace.delays.fps_by_source's rule, (n - 1) / span, over these and ``origins``."""
         out = {}
         for sid in ids:
             o = origins[sources == sid]

@@ -17,8 +17,8 @@ from benchmarks.streams_sweep import (
     series,
 )
 from pipeline.config import load_config
-from probes.events import DROP, EXIT, FACT, LATE
-from probes.tracefile import Trace
+from probes.trace.events import DROP, EXIT, FACT, LATE
+from probes.trace.tracefile import Trace
 from tests.benchmarks.smoke import assert_cannot_run, assert_every_na_has_a_reason, run_benchmark
 from tests.conftest import REPO, VTEST, cli_env
 from tests.probes.synth import pipeline_run

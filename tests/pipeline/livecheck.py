@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from probes.delays import chains
-from probes.events import DROP, ORIGIN
-from probes.frametable import frame_table
-from probes.tracefile import read_trace
+from probes.trace.delays import chains
+from probes.trace.events import DROP, ORIGIN
+from probes.trace.frametable import frame_table
+from probes.trace.tracefile import read_trace
 from tests.conftest import REPO, cli_env
 
 

@@ -15,8 +15,8 @@ import pytest
 
 from core.errors import ConfigError
 from pipeline.config import load_config
-from probes.events import ENTER, EXIT, ORIGIN
-from probes.tracefile import read_trace
+from probes.trace.events import ENTER, EXIT, ORIGIN
+from probes.trace.tracefile import read_trace
 from tests.conftest import REPO, run_cli
 from tests.pipeline.clips import decode_video
 from tests.ports import free_port

@@ -10,10 +10,10 @@ import time
 
 import numpy as np
 
-from probes.delays import chains
-from probes.events import ORIGIN
-from probes.frametable import frame_table
-from probes.tracefile import TraceError, read_trace
+from probes.trace.delays import chains
+from probes.trace.events import ORIGIN
+from probes.trace.frametable import frame_table
+from probes.trace.tracefile import TraceError, read_trace
 from tests.conftest import BIKES, VTEST, cli_env, run_cli
 from tests.pipeline.clips import MJPEG_MULTIPART, write_clip
 from tests.pipeline.livecheck import check_every_frame_accounted, run_timed

@@ -16,11 +16,11 @@ from pathlib import Path
 import pytest
 
 from plugins.loading import same_sys_path
-from probes.events import ENTER, EXIT
-from probes.native import build
-from probes.tracefile import read_trace
+from probes.trace.events import ENTER, EXIT
+from probes.capture.native import build
+from probes.trace.tracefile import read_trace
 from tests.conftest import REPO
-from tests.probes.test_gsttracer import frames_of, loader_env, stage_points
+from tests.probes.capture.test_gsttracer import frames_of, loader_env, stage_points
 
 PROCESSES = 4
 ROUNDS = 3

@@ -1,7 +1,7 @@
 """Test helpers: a relay process, simulated node processes, JSON over HTTP, stats comparison.
 
 Everything runs on 127.0.0.1 with free ports and bounded waits. A node here is a separate
-process (``python -m probes.simnode``) writing the events it shipped to an .npz; a real
+process (``python -m probes.ship.simnode``) writing the events it shipped to an .npz; a real
 ``dcuscope run --probes --relay ... --trace FILE`` process can take its place, the test then
 reading its trace file instead.
 """
@@ -23,9 +23,9 @@ from pathlib import Path
 import aiohttp
 import numpy as np
 
-from probes.events import TraceHeader
-from probes.relaylink import Link
-from probes.simnode import header_for
+from probes.trace.events import TraceHeader
+from probes.ship.relaylink import Link
+from probes.ship.simnode import header_for
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -101,10 +101,10 @@ def start_node(url: str, node: str, out: Path, *, frames: int = 100, sources: in
                paced: bool = False, offset_ns: int = 0, t0_ns: int = 0, drop_rate: float = 0.0, seed: int = 0,
                token: str | None = None, extra: list[str] | None = None, linger: bool = False,
                prefix: list[str] | None = None) -> subprocess.Popen:
-    """A ``probes.simnode`` process; with ``linger`` its run stays open after the last event until
+    """A ``probes.ship.simnode`` process; with ``linger`` its run stays open after the last event until
     its stdin closes (``finish_node`` closes it). ``prefix``: a command that execs the node's command
     line it is given (``ip netns exec NS``)."""
-    cmd = [*(prefix or []), sys.executable, "-m", "probes.simnode", "--relay", url, "--node", node, "--out", str(out),
+    cmd = [*(prefix or []), sys.executable, "-m", "probes.ship.simnode", "--relay", url, "--node", node, "--out", str(out),
            "--frames", str(frames), "--sources", str(sources), "--fps", str(fps), "--seed", str(seed),
            "--clock-offset-ns", str(offset_ns), "--drop-rate", str(drop_rate)]
     if paced:
@@ -207,7 +207,7 @@ def sort_events(events: np.ndarray) -> np.ndarray:
 
 
 class HandNode:
-    """A node driven by hand on one ingest WebSocket (:class:`probes.relaylink.Link`), for in-process
+    """A node driven by hand on one ingest WebSocket (:class:`probes.ship.relaylink.Link`), for in-process
     tests that send exactly the messages they mean to."""
 
     def __init__(self, session, link, acks, secret: str | None, reply: dict | None = None) -> None:

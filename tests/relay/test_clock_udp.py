@@ -15,11 +15,11 @@ import uuid
 
 import pytest
 
-from probes.events import ORIGIN
-from probes.relayexport import RelayExporter
-from probes.simnode import header_for, synth_events
+from probes.trace.events import ORIGIN
+from probes.ship.relayexport import RelayExporter
+from probes.ship.simnode import header_for, synth_events
 from core.clocks import CLOCKS, PretendClock
-from probes.udpclock import (BURST, UdpClock, decode_answer, enable_rx_timestamps, encode_request, parse_offer,
+from probes.clocks.udpclock import (BURST, UdpClock, decode_answer, enable_rx_timestamps, encode_request, parse_offer,
                              recv_stamped)
 from relay.clock.correction import ntp_sample
 from relay.server import start_relay

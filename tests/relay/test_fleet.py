@@ -14,9 +14,9 @@ import aiohttp
 import numpy as np
 import pytest
 
-from probes.relaylink import Link
-from probes.simnode import header_for
-from probes.tracefile import read_trace
+from probes.ship.relaylink import Link
+from probes.ship.simnode import header_for
+from probes.trace.tracefile import read_trace
 from relay.store.runs import list_sessions, load_runs
 from tests.conftest import cli_env
 from tests.pgserver import PostgresServer

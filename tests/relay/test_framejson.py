@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from probes.simnode import header_for, synth_events
+from probes.ship.simnode import header_for, synth_events
 from relay.clock.correction import Correction, Segment
 from relay.live import framepack
 from relay.live.framejson import frame_dicts

@@ -11,8 +11,8 @@ import weakref
 import numpy as np
 import pytest
 
-from probes.simnode import synth_events
-from probes.wire import encode_batch
+from probes.ship.simnode import synth_events
+from probes.ship.wire import encode_batch
 from relay import heap
 from relay.server import start_relay
 from tests.relay.helpers import HandNode

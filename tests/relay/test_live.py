@@ -1,4 +1,4 @@
-"""The live engine against probes.delays.node_stats over the same events, fed batch by batch."""
+"""The live engine against probes.trace.delays.node_stats over the same events, fed batch by batch."""
 
 from __future__ import annotations
 
@@ -7,10 +7,10 @@ import time
 import numpy as np
 import pytest
 
-from probes.delays import node_stats
-from probes.events import ENTER, EVENT_DTYPE, EXIT, TraceHeader
-from probes.simnode import header_for, synth_events
-from probes.wire import SOURCE_LIMIT
+from probes.trace.delays import node_stats
+from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, TraceHeader
+from probes.ship.simnode import header_for, synth_events
+from probes.ship.wire import SOURCE_LIMIT
 from relay.live.run import LiveConfig, LiveRun
 from tests.probes.synth import pipeline_run
 from tests.relay.helpers import assert_stats_equal

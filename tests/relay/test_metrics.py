@@ -1,6 +1,6 @@
 """``GET /metrics``: a real relay on 127.0.0.1 fed by nodes over its ingest WebSocket, scraped and
 parsed with prometheus_client's own parser; every figure is checked against the delay model over
-the same events (probes.delays) or against ``/api/stats`` taken at the same moment."""
+the same events (probes.trace.delays) or against ``/api/stats`` taken at the same moment."""
 
 from __future__ import annotations
 
@@ -17,11 +17,11 @@ from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from prometheus_client.parser import text_string_to_metric_families
 
-from probes.delays import frame_delays, series
-from probes.events import DROP, DROP_REASONS, ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
-from probes.frametable import frame_table
-from probes.simnode import header_for, synth_events
-from probes.wire import PTP_STATES, encode_batch
+from probes.trace.delays import frame_delays, series
+from probes.trace.events import DROP, DROP_REASONS, ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
+from probes.trace.frametable import frame_table
+from probes.ship.simnode import header_for, synth_events
+from probes.ship.wire import PTP_STATES, encode_batch
 from relay.export.framemetrics import MAX_GAPS, NS_PER_S, gap_stages
 from relay.export.metrics import BUCKETS_S
 from relay.guard.limits import Limits
@@ -439,7 +439,7 @@ def test_ingest_lag_is_the_relays_now_less_the_nodes_newest_event(tmp_path):
 
 
 def test_node_processes_clock_limit_and_bottleneck_as_the_api_gives_them(tmp_path):
-    """Two probes.simnode processes (one clock 2 s ahead) feed a relay process: the clock gauges are
+    """Two probes.ship.simnode processes (one clock 2 s ahead) feed a relay process: the clock gauges are
     /api/nodes' estimate and its bound (which holds the true offset), the frame limit shows for
     the node that has one, each histogram counts the frames the run finalised, the bottleneck
     gauge names /api/stats' stage."""

@@ -1,4 +1,4 @@
-"""The OTLP exporter's parts in-process, on finalised batches of synthetic frames (probes.simnode):
+"""The OTLP exporter's parts in-process, on finalised batches of synthetic frames (probes.ship.simnode):
 which frames the sampler chooses, what a full queue keeps, the spans one frame becomes, and the
 exporter's thread (against a real receiver on loopback): its share of a core, its clean stop."""
 
@@ -11,9 +11,9 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from probes.delays import frame_delays, series
-from probes.frametable import frame_table
-from probes.simnode import STAGES, header_for, synth_events
+from probes.trace.delays import frame_delays, series
+from probes.trace.frametable import frame_table
+from probes.ship.simnode import STAGES, header_for, synth_events
 from relay.live.framelimits import FrameLimits
 from relay.export.otlp import MAX_BUSY, OtlpExporter
 from relay.export.otlpconfig import OtlpConfig

@@ -1,6 +1,6 @@
 """Relays that stop without dying lose nothing and hold nothing hostage (issue 32).
 
-Real relays on a real PostgreSQL, real simulated nodes (``probes.simnode`` processes, paced), real
+Real relays on a real PostgreSQL, real simulated nodes (``probes.ship.simnode`` processes, paced), real
 faults: a relay SIGSTOPped (a paused VM, a hung process), the network between the nodes and a relay
 cut while it still reaches its store, a relay's connection to PostgreSQL cut and PostgreSQL
 restarted, Redis frozen. Cuts are iptables DROP rules inside network namespaces the tests make

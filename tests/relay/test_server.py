@@ -14,9 +14,9 @@ import uuid
 import aiohttp
 import pytest
 
-from probes.errors import ExportError
-from probes.simnode import synth_events
-from probes.wire import INGEST_PATH, encode_batch
+from probes.ship.errors import ExportError
+from probes.ship.simnode import synth_events
+from probes.ship.wire import INGEST_PATH, encode_batch
 from relay.commands import add_relay_parser
 from relay.guard.limits import Limits
 from relay.server import start_relay

@@ -11,8 +11,8 @@ import uuid
 import numpy as np
 import pytest
 
-from probes.simnode import header_for, synth_events
-from probes.wire import encode_batch
+from probes.ship.simnode import header_for, synth_events
+from probes.ship.wire import encode_batch
 from relay.errors import RelayError
 from relay.store import sqlite as db
 from relay.store.runs import load_runs, load_session

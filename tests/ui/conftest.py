@@ -28,7 +28,7 @@ def browser():
 @pytest.fixture(scope="session")
 def feeder_kind() -> str:
     """"pipeline": real ``dcuscope run --probes --relay`` processes (the default once they exist);
-    "sim": ``probes.simnode`` processes. ``DCUSCOPE_UI_FEEDER=sim|pipeline`` chooses."""
+    "sim": ``probes.ship.simnode`` processes. ``DCUSCOPE_UI_FEEDER=sim|pipeline`` chooses."""
     kind = os.environ.get(FEEDER_ENV) or ("pipeline" if REAL_PIPELINES else "sim")
     if kind not in ("sim", "pipeline"):
         raise ValueError(f"{FEEDER_ENV} must be sim or pipeline, not {kind!r}")

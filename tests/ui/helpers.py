@@ -91,7 +91,7 @@ class RelayThread:
 
 @dataclass
 class Feeder:
-    """Node processes feeding a relay; ``kind`` is "sim" (probes.simnode) or "pipeline" (dcuscope run)."""
+    """Node processes feeding a relay; ``kind`` is "sim" (probes.ship.simnode) or "pipeline" (dcuscope run)."""
 
     kind: str
     nodes: list[str]
@@ -126,12 +126,12 @@ class Feeder:
 def sim_nodes(url: str, tmp: Path, nodes: list[str], *, frames: int, sources: int, fps: float, paced: bool,
               token: str | None = None, offsets_ns: list[int] | None = None, seed: int = 0,
               ptp_socket: Path | None = None) -> Feeder:
-    """``python -m probes.simnode`` per node, each writing the events it shipped to ``tmp/NODE.npz``;
+    """``python -m probes.ship.simnode`` per node, each writing the events it shipped to ``tmp/NODE.npz``;
     ``ptp_socket``: the ptp4l socket the nodes read (a path where none is: no PTP, whatever the host runs)."""
     feeder = Feeder("sim", nodes)
     for k, node in enumerate(nodes):
         out = tmp / f"{node}.npz"
-        cmd = [sys.executable, "-m", "probes.simnode", "--relay", url, "--node", node, "--out", str(out),
+        cmd = [sys.executable, "-m", "probes.ship.simnode", "--relay", url, "--node", node, "--out", str(out),
                "--frames", str(frames), "--sources", str(sources), "--fps", str(fps), "--seed", str(seed + k),
                "--clock-offset-ns", str((offsets_ns or [0] * len(nodes))[k])]
         if paced:

@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from probes.native import build
+from probes.capture.native import build
 from tests.conftest import run_cli
 from tests.relay.helpers import get_json, kill_all, wait_for
 from tests.ui.helpers import ROOT, RelayThread, env, pipeline_nodes

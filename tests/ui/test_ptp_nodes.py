@@ -1,5 +1,5 @@
 """PTP end to end: a real relay on the monitoring host (the grandmaster's namespace), a real node
-(probes.simnode) in the PTP client's namespace reading its ptp4l with ``--ptp-socket``; the
+(probes.ship.simnode) in the PTP client's namespace reading its ptp4l with ``--ptp-socket``; the
 relay's API and the UI's nodes panel show the node's PTP state; killing the grandmaster turns
 it "lost" within the stated bound while ``auto`` applies the estimate and says why.
 
@@ -34,7 +34,7 @@ def setup(tmp_path_factory):
                               str(RELAY_PORT), "--db", str(tmp / "relay.db")], "relay", env=env())
         url = f"http://{net.relay_addr}:{RELAY_PORT}"
         _wait(lambda: _get(url, "/api/nodes") is not None, 30, "relay did not answer", net, "relay")
-        net.spawn(net.client_ns, [sys.executable, "-m", "probes.simnode", "--relay", f"http://{GM_ADDR}:{RELAY_PORT}",
+        net.spawn(net.client_ns, [sys.executable, "-m", "probes.ship.simnode", "--relay", f"http://{GM_ADDR}:{RELAY_PORT}",
                                   "--node", "DCU-PTP", "--ptp-socket", str(net.client_uds), "--paced",
                                   "--frames", "3000", "--fps", "25", "--sources", "1"], "node", env=env())
         yield net, url

@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
-from probes import simnode
-from probes.delays import chains, node_stats
-from probes.events import TraceHeader
-from probes.frametable import frame_table
+from probes.ship import simnode
+from probes.trace.delays import chains, node_stats
+from probes.trace.events import TraceHeader
+from probes.trace.frametable import frame_table
 from tests.relay.helpers import get_json, http_status, wait_for
 from tests.ui.helpers import RelayThread, sim_nodes
 

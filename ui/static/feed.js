@@ -14,7 +14,7 @@ const POLL_SLOW_MS = 1000;
 export const OVERVIEW_DOWN_MS = 5000; // GET /api/overview this often while the socket is down
 export const PUSH_MAX_FRAMES = 25; // frames per DCU and push asked of the relay
 export const UNREACHABLE = "relay unreachable, retrying";
-const MISSING = -1n; // probes/frametable.py: no time at this point (packed frames)
+const MISSING = -1n; // probes/trace/frametable.py: no time at this point (packed frames)
 
 /**
  * What the user is told of a failed request or connection: [status kind, text]. Transport

@@ -1,0 +1,231 @@
+"""The node's PTP state, read from linuxptp's ``pmc``, and whether its CLOCK_REALTIME follows it.
+
+ptp4l disciplines the NIC's hardware clock; what the probes read is CLOCK_REALTIME, which
+follows PTP only through phc2sys (or chrony with a PHC refclock, or a ptp4l with software
+timestamping that is not ``free_running``). So the report holds both: ptp4l's view (pmc's
+TIME_STATUS_NP, PORT_DATA_SET, PORT_PROPERTIES_NP) and the system clock's (:mod:`probes.clocks.sysclock`);
+:func:`ptp_trusted` decides from both whether the relay may leave the node's timestamps alone.
+
+The report (sent in the node's hello and every clock message)::
+
+    {"state": "locked"|"unlocked"|"lost"|"unavailable", "reason": str, "master_offset_ns": int,
+     "gm_present": bool, "gm_identity": str, "port_state": "SLAVE"|..., "timestamping":
+     "software"|"hardware", "interface": str, "system_clock": {...}}   # see sysclock.system_clock
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import re
+import shutil
+import tempfile
+from pathlib import Path
+
+from probes.clocks.sysclock import DEFAULT_UDS, observe, system_clock
+
+PTP_LOCK_NS = 100_000
+"""|master_offset| under which a slave port with a grandmaster counts as locked. Locked
+software timestamping holds a few µs, hardware well under 1 µs; the bound is loose so that a
+jittery software path does not flip the node between trusted and estimated every poll. The
+uncertainty stated while trusted is |master_offset| itself (plus the system clock's stated
+error), so a loose bound costs no honesty."""
+PMC_TIMEOUT_S = 2.0
+POLL_INTERVAL_S = 2.0
+QUERIES = ("GET TIME_STATUS_NP", "GET PORT_DATA_SET", "GET PORT_PROPERTIES_NP")
+
+_RESPONSE = re.compile(r"^\s*(\S+)\s+seq\s+\d+\s+RESPONSE\s+MANAGEMENT\s+(\S+)\s*$")
+_FIELD = re.compile(r"^\s+(\w+)\s+(.*?)\s*$")
+
+
+def parse_pmc(text: str) -> dict[str, list[dict[str, str]]]:
+    """pmc's answers by TLV name (one dict per responding port), e.g.
+    ``{"TIME_STATUS_NP": [{"master_offset": "-11", ...}], "PORT_DATA_SET": [...]}``.
+
+    pmc prints ``sending: GET X`` lines between the answers and one tab-indented block per
+    response; a field is any line indented under a RESPONSE header."""
+    out: dict[str, list[dict[str, str]]] = {}
+    block: dict[str, str] | None = None
+    for line in text.splitlines():
+        head = _RESPONSE.match(line)
+        if head:
+            block = {"_port": head.group(1)}
+            out.setdefault(head.group(2), []).append(block)
+        elif block is not None and line.startswith("\t\t") and (m := _FIELD.match(line)):
+            block[m.group(1)] = m.group(2)
+        else:
+            block = None
+    return out
+
+
+def _slave_first(blocks: list[dict[str, str]]) -> dict[str, str]:
+    """Of a boundary clock's ports, the one following a master (else the first)."""
+    return next((b for b in blocks if b.get("portState") == "SLAVE"), blocks[0]) if blocks else {}
+
+
+def ptp_report(answers: dict[str, list[dict[str, str]]]) -> dict:
+    """The PTP part of the report from parsed pmc answers (``unavailable`` without TIME_STATUS_NP)."""
+    status = (answers.get("TIME_STATUS_NP") or [{}])[0]
+    if "master_offset" not in status or "gmPresent" not in status:
+        return {"state": "unavailable", "reason": "no TIME_STATUS_NP answer (is ptp4l running, is its socket readable?)"}
+    try:
+        offset = int(status["master_offset"])
+    except ValueError:
+        return {"state": "unavailable", "reason": f"unreadable master_offset {status['master_offset'][:40]!r}"}
+    report = {"master_offset_ns": offset, "gm_present": status["gmPresent"] == "true"}
+    if "gmIdentity" in status:
+        report["gm_identity"] = status["gmIdentity"]
+    port = _slave_first(answers.get("PORT_DATA_SET", []))
+    props = _slave_first(answers.get("PORT_PROPERTIES_NP", []))
+    if "portState" in port or "portState" in props:
+        report["port_state"] = port.get("portState") or props["portState"]
+    if "timestamping" in props:
+        report["timestamping"] = "software" if props["timestamping"] == "SOFTWARE" else "hardware"
+    if "interface" in props:
+        report["interface"] = props["interface"]
+    locked, why = _locked(report)
+    return {"state": "locked" if locked else "unlocked", "reason": why, **report}
+
+
+def _locked(report: dict) -> tuple[bool, str]:
+    if not report["gm_present"]:
+        port = report.get("port_state")
+        return False, "no grandmaster" + (f" (port {port})" if port else "")
+    if report.get("port_state", "SLAVE") != "SLAVE":
+        return False, f"port {report['port_state']}, not SLAVE"
+    if abs(report["master_offset_ns"]) > PTP_LOCK_NS:
+        return False, f"|master offset| {abs(report['master_offset_ns'])} ns above {PTP_LOCK_NS} ns"
+    return True, f"slave of {report.get('gm_identity', 'the grandmaster')}"
+
+
+def parse_time_status(text: str) -> dict:
+    """The PTP report (without the system clock) from pmc's output."""
+    return ptp_report(parse_pmc(text))
+
+
+async def run_pmc(socket: str = DEFAULT_UDS, timeout_s: float = PMC_TIMEOUT_S) -> tuple[str | None, str]:
+    """pmc's output for :data:`QUERIES` to the ptp4l answering at ``socket``, or (None, why not).
+
+    pmc runs interactively: given its commands as arguments it exits once its last command got
+    no answer for 100 ms, which a busy machine exceeds (answers lost); fed on stdin, it waits as
+    long as stdin is open, closed here once every query got its answer or ``timeout_s`` passed.
+    pmc binds a socket of its own (default ``/var/run/pmc.PID``, writable by root only): it gets
+    one in a private temporary folder instead, so that a node not run as root can ask too."""
+    if shutil.which("pmc") is None:
+        return None, "pmc not installed (Debian package linuxptp)"
+    if not os.path.exists(socket):
+        return None, f"no ptp4l socket at {socket} (is ptp4l running? its uds_address?)"
+    if not os.access(socket, os.W_OK):
+        return None, f"no permission to write {socket} (run as root or in the socket's group, see docs/clocks.md)"
+    with tempfile.TemporaryDirectory(prefix="dcuscope-pmc-") as tmp:
+        try:
+            proc = await asyncio.create_subprocess_exec(
+                "pmc", "-u", "-b", "0", "-s", socket, "-i", str(Path(tmp) / "pmc"), stdin=asyncio.subprocess.PIPE,
+                stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.PIPE)
+        except OSError as exc:
+            return None, f"pmc failed: {exc}"
+        try:
+            text, err = await asyncio.wait_for(_converse(proc, timeout_s), timeout_s + 2)
+        except asyncio.TimeoutError:
+            proc.kill()
+            await proc.wait()
+            return None, "pmc timed out"
+    if "RESPONSE" not in text:
+        problem = err.strip().splitlines()
+        return None, f"no answer from ptp4l at {socket}" + (f": {problem[-1][:120]}" if problem else "")
+    return text, ""
+
+
+async def _converse(proc: asyncio.subprocess.Process, timeout_s: float) -> tuple[str, str]:
+    """One query at a time: pmc reads stdin with stdio, so lines written together would wait in
+    its buffer, unseen by its poll, until stdin closes."""
+    lines: list[str] = []
+    try:
+        async with asyncio.timeout(timeout_s):
+            for query in QUERIES:
+                proc.stdin.write(f"{query}\n".encode())
+                await proc.stdin.drain()
+                while True:
+                    line = (await proc.stdout.readline()).decode(errors="replace")
+                    if not line:
+                        raise TimeoutError  # pmc ended
+                    lines.append(line)
+                    if (head := _RESPONSE.match(line)) is not None and head.group(2) == query.split()[1]:
+                        break
+    except (TimeoutError, BrokenPipeError, ConnectionResetError):
+        pass  # what came is used; a missing TIME_STATUS_NP makes it "unavailable"
+    proc.stdin.close()  # pmc then waits 100 ms for stragglers and exits
+    rest, err = await proc.communicate()
+    return "".join(lines) + rest.decode(errors="replace"), err.decode(errors="replace")
+
+
+async def read_ptp_state(socket: str = DEFAULT_UDS, timeout_s: float = PMC_TIMEOUT_S) -> dict:
+    """ptp4l's state via pmc and what disciplines CLOCK_REALTIME (one read, no memory)."""
+    text, why = await run_pmc(socket, timeout_s)
+    report = ptp_report(parse_pmc(text)) if text is not None else {"state": "unavailable", "reason": why}
+    witnesses = await asyncio.to_thread(observe, report.get("interface", ""))
+    report["system_clock"] = system_clock(witnesses, report.get("interface", ""), socket)
+    return report
+
+
+class PtpWatch:
+    """Successive reads of one ptp4l, remembering whether it was locked: a port that was a
+    locked slave and no longer is (grandmaster gone, port left SLAVE, ptp4l silent) is ``lost``
+    until it locks again."""
+
+    def __init__(self, socket: str = DEFAULT_UDS) -> None:
+        self.socket = socket
+        self._locked_to: str | None = None
+
+    def update(self, report: dict) -> dict:
+        state = report.get("state")
+        if state == "locked":
+            self._locked_to = report.get("gm_identity", "the grandmaster")
+        elif self._locked_to is not None:
+            gone = "grandmaster gone" if report.get("gm_present") is False else report.get("reason", state)
+            report = dict(report, state="lost", reason=f"lost {self._locked_to}: {gone}")
+        return report
+
+    async def read(self) -> dict:
+        return self.update(await read_ptp_state(self.socket))
+
+
+def ptp_trusted(ptp: dict) -> tuple[bool, str]:
+    """Whether node timestamps may be taken as on the grandmaster's clock, and in one line why (not).
+
+    Trusted only when the port is a locked slave of a present grandmaster *and* CLOCK_REALTIME
+    (what the probes read) is synchronised and follows that PTP port."""
+    if not isinstance(ptp, dict) or ptp.get("state") != "locked":
+        state = ptp.get("state", "unavailable") if isinstance(ptp, dict) else "unavailable"
+        reason = ptp.get("reason") if isinstance(ptp, dict) else None
+        return False, f"PTP {state}" + (f" ({reason})" if reason else "")
+    if ptp.get("gm_present") is not True or ptp.get("port_state", "SLAVE") != "SLAVE":
+        return False, f"PTP port {ptp.get('port_state', '?')}, grandmaster present: {ptp.get('gm_present')}"
+    offset = ptp.get("master_offset_ns")
+    if not isinstance(offset, int) or abs(offset) > PTP_LOCK_NS:
+        return False, f"PTP master offset {offset} ns beyond {PTP_LOCK_NS} ns"
+    clock = ptp.get("system_clock")
+    if not isinstance(clock, dict):
+        return False, "ptp4l locked but the node did not say what disciplines CLOCK_REALTIME"
+    if not clock.get("follows_ptp"):
+        return False, f"ptp4l locked but CLOCK_REALTIME not disciplined by PTP ({clock.get('detail') or 'nothing follows it'})"
+    if not clock.get("synced"):
+        return False, f"ptp4l locked, {clock.get('by')} runs, but CLOCK_REALTIME is unsynchronised (adjtimex STA_UNSYNC)"
+    return True, f"PTP locked to {ptp.get('gm_identity', 'the grandmaster')}, offset {offset} ns, CLOCK_REALTIME by {clock.get('by')}"
+
+
+STATED_ERROR_BY = ("chrony", "ntpd")
+"""Daemons that keep adjtimex's esterror up to date; phc2sys and ptp4l leave it untouched (a
+stale or boot-time 16 s) and reset maxerror to 0 each update (it then grows 500 ppm, a kernel
+bound, not an error estimate)."""
+
+
+def ptp_uncertainty_ns(ptp: dict) -> int:
+    """Bound on a trusted node's clock error: |master_offset| plus the system clock's stated
+    error where its daemon states one (chrony, ntpd: adjtimex esterror)."""
+    offset = ptp.get("master_offset_ns")
+    unc = abs(offset) if isinstance(offset, int) and not isinstance(offset, bool) else 0
+    clock = ptp.get("system_clock")
+    if isinstance(clock, dict) and clock.get("by") in STATED_ERROR_BY and isinstance(clock.get("esterror_us"), int):
+        unc += clock["esterror_us"] * 1000
+    return unc

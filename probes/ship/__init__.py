@@ -1,0 +1,11 @@
+"""Shipping: the wire between nodes and relays, and the node's side of the relay protocol.
+
+- :mod:`.wire` (binary batches, protocol constants) and :mod:`.envelope` (the WebSocket's
+  messages): the contract the relay's ingest reads.
+- :mod:`.relaylink` (one WebSocket), :mod:`.outbox` (batches until acknowledged),
+  :mod:`.failover` (which relay, when to move on), :mod:`.clockreport` (clock samples and
+  reports), :mod:`.relayexport` (the exporter that composes them).
+- :mod:`.tailship` (a trace file being written, to a relay) and :mod:`.simnode` (a simulated node).
+
+Imports :mod:`probes.trace` and :mod:`probes.clocks`; never :mod:`probes.capture`.
+"""
