@@ -245,11 +245,11 @@ def main() -> int:
         args.frames, args.reps, args.scenario = 300, 1, "identity20"
     if args.reps < 1 or (args.frames is not None and args.frames < 1):
         parser.error("--reps and --frames must be at least 1")
-    if native.load() is None:
-        raise CannotRun(f"the native probes are unavailable: {native.unavailable_reason()}")
     against = args.against.resolve() if args.against else None
     if against is not None and not (against / "benchmarks" / "bench_probes.py").exists():
         parser.error(f"--against {args.against}: not a dcuscope checkout (no benchmarks/bench_probes.py)")
+    if native.load() is None:
+        raise CannotRun(f"the native probes are unavailable: {native.unavailable_reason()}")
     for name in SCENARIOS if args.scenario == "all" else [args.scenario]:
         bench(name, args.frames or FRAMES[name], args.reps, against)
     return 0

@@ -71,6 +71,11 @@ def test_probes_quick_mode_reports_every_mode():
     assert summary == ["hooks / probes", "hooks / latency", "python / hooks"]
 
 
+def test_probes_against_a_folder_that_is_no_checkout_is_refused_before_any_run(tmp_path):
+    done = run_benchmark("bench_probes.py", "--quick", "--against", str(tmp_path))
+    assert done.returncode == 2 and "not a dcuscope checkout" in done.stderr and not done.stdout
+
+
 def test_probes_report_without_tracepoints_is_n_a_with_the_reason(capsys):
     run = {"wall": 1.0, "cpu": 0.5, "points": 0}
     report("identity20", 100, {m: [dict(run)] for m in ("none", "latency", "probes", "hooks", "tracer", "python")})
