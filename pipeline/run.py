@@ -26,7 +26,9 @@ from pipeline.sourcefaults import describe_fault
 from pipeline.stalls import Stall, StallWatch
 
 EOS_GRACE_S = 15.0
-"""How long to wait for EOS to drain the pipeline after a stop was asked for."""
+"""How long a stop waits for end-of-stream at the sink with no frame reaching the sink meanwhile: a
+pipeline still draining its backlog (a loaded machine, a slow detector) is waited for, a stuck one
+is not."""
 
 
 @dataclass
@@ -70,6 +72,8 @@ class Runner:
         self._error: str | None = None
         self._retired: set = set()  # every element of the sources dropped so far
         self._stop_asked_at: float | None = None
+        self._last_frame_at = NEVER
+        """When the last frame reached the sink (counted or, past --num-frames, dropped there)."""
         self._stopped_by: str | None = None  # what asked for the stop: Ctrl-C, SIGTERM, a limit
         self._live_stop: LiveStop | None = None
         self._started: float | None = None  # time.monotonic() once PLAYING
@@ -136,6 +140,7 @@ class Runner:
 
     # -- callbacks -------------------------------------------------------------------------
     def _count_frame(self, _pad, _info):
+        self._last_frame_at = time.monotonic()
         if self.num_frames is not None and self.result.frames >= self.num_frames:
             return Gst.PadProbeReturn.DROP  # frames still in flight after the limit
         self.result.frames += 1
@@ -182,8 +187,9 @@ class Runner:
         started = self._started is not None
         if started and self.duration is not None and self._stop_asked_at is None and now - self._started >= self.duration:
             self._stop_for(f"--duration {self.duration:g} s")
-        if self._stop_asked_at is not None and now - self._stop_asked_at > EOS_GRACE_S:
-            self._say(f"\nend-of-stream did not reach the sink within {EOS_GRACE_S:.0f} s: stopping anyway")
+        if self._stop_asked_at is not None and now - max(self._stop_asked_at, self._last_frame_at) > EOS_GRACE_S:
+            self._say(f"\nend-of-stream did not reach the sink, nor any frame, within {EOS_GRACE_S:.0f} s: "
+                      "stopping anyway")
             self.result.aborted = "end-of-stream did not reach the sink"
             self._loop.quit()
         if started and self._stop_asked_at is None:

@@ -268,6 +268,8 @@ def test_counters_match_the_relay_once_nodes_ended(live):
     page.fill("#limit-input", str(limit))
     page.click("#set-limit")
     for node in NODES:
+        seen = {}
+
         def settled():
             """Once the relay's live count has caught up with what it stored (it finalises frames on
             a tick) and the page with the relay: the three agree."""
@@ -275,9 +277,13 @@ def test_counters_match_the_relay_once_nodes_ended(live):
             # /api/frames gives the newest frames only; the stored session has every one.
             frames = get_json(f"{relay.url}/api/sessions/{view['session']}/frames?node={node}&limit=10000")["frames"]
             received = debug(page)["stores"][node]["received"]
+            seen.update(page=received, relay=view["frames"]["shown"], stored=len(frames), node_state=view.get("state"))
             return (view, frames) if received == view["frames"]["shown"] == len(frames) else None
 
-        view, frames = wait_for(settled, 30, 0.5, f"every frame of {node} in the relay's count and in the page")
+        try:
+            view, frames = wait_for(settled, 30, 0.5, f"every frame of {node} in the relay's count and in the page")
+        except AssertionError as exc:
+            raise AssertionError(f"{exc}; last seen: {seen}") from None
         over = sum(f["delay_ms"] > limit for f in frames)
         d = wait_for(lambda: (lambda d: d if d["frame"]["limit"] == limit else None)(debug(page)), 5, 0.1, "redraw")
         c = d["frame"]["nodes"][node]
