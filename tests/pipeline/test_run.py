@@ -18,6 +18,7 @@ import pytest
 from core.gst import Gst, GstVideo
 from pipeline.build import build_pipeline
 from pipeline.config import SinkConfig, load_config
+from pipeline import run as run_module
 from pipeline.run import Runner
 from plugins.frames import mapped_video, read_frames, read_objects
 from tests.conftest import REPO, cli_env, run_cli, wait_until_mapped
@@ -87,6 +88,26 @@ def test_quad_demo_writes_a_playable_2x2_collage(tmp_path):
     tiles = [last[:360, :640], last[:360, 640:], last[360:, :640], last[360:, 640:]]
     for a, b in ((0, 1), (0, 3), (2, 1), (2, 3)):
         assert np.abs(tiles[a] - tiles[b]).mean() > 10
+
+
+def draining(tmp_path: Path, sleep_ms: int) -> Runner:
+    """A fast test pattern, a queue of 20 frames and a stage that sleeps ``sleep_ms`` per frame: at
+    a stop, end-of-stream waits behind the queue's backlog."""
+    config = tmp_path / "draining.yaml"
+    config.write_text("sources:\n  - {test: ball, width: 160, height: 120, rate: 30}\nstages:\n"
+                      "  - queue: {max-size-buffers: 20, max-size-bytes: 0, max-size-time: 0}\n"
+                      f"  - {{factory: identity, properties: {{sleep-time: {sleep_ms * 1000}}}}}\n")
+    return Runner(build_pipeline(load_config(config)), num_frames=1, progress=None)
+
+
+def test_a_stop_waits_for_a_pipeline_that_still_drains_and_not_for_a_stuck_one(tmp_path, monkeypatch):
+    monkeypatch.setattr(run_module, "EOS_GRACE_S", 1.0)
+    # A frame every 0.1 s: 20 queued frames take 2 s, twice the grace, and end-of-stream comes.
+    result = draining(tmp_path, 100).run()
+    assert result.aborted is None and result.frames == 1 and result.seconds >= 2.0, result
+    # A frame every 2.5 s: nothing reaches the sink for longer than the grace, the run gives up.
+    result = draining(tmp_path, 2500).run()
+    assert result.aborted == "end-of-stream did not reach the sink" and result.frames == 1, result
 
 
 def test_ctrl_c_ends_the_run_cleanly_and_finalises_the_video(tmp_path):
