@@ -59,8 +59,8 @@ if str(REPO) not in sys.path:  # run as a script: make the project importable
 from benchmarks.figures import NA, CannotRun, Notes, fmt, last_line, maximum, median, minimum, ratio, run  # noqa: E402
 from core.gst import Gst  # noqa: E402
 from probes.capture import native  # noqa: E402
-from probes.trace.events import EXIT  # noqa: E402
 from probes.capture.tracer import attach  # noqa: E402
+from probes.trace.events import EXIT  # noqa: E402
 
 SCENARIOS = {
     "identity20": "videotestsrc num-buffers={frames} ! video/x-raw,width=16,height=16,format=RGB ! framestamp ! "

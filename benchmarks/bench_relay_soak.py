@@ -62,10 +62,10 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
 
 from benchmarks.figures import NA, CannotRun, Notes, dumps, fmt, last_line, run  # noqa: E402
 from benchmarks.stores import SQLITE_SETTINGS, STORES, PostgresStore  # noqa: E402
-from probes.trace.events import EVENT_DTYPE  # noqa: E402
 from probes.ship.relaylink import Link  # noqa: E402
 from probes.ship.simnode import EVENTS_PER_FRAME, header_for, synth_events  # noqa: E402
 from probes.ship.wire import PROTOCOL_VERSION, encode_batch  # noqa: E402
+from probes.trace.events import EVENT_DTYPE  # noqa: E402
 
 NODE = "restarter"
 SOURCES = 2

@@ -14,18 +14,18 @@ from core.clocks import CLOCKS, PretendClock
 from core.errors import UsageError
 from pipeline.build import BuiltPipeline
 from pipeline.config import PipelineConfig
-from probes.ship.errors import ExportError
-from probes.trace.errors import TraceError
-from probes.trace.events import CAPTURE, EXPORTER_CLOSE_S, Exporter, TraceHeader
 from probes.capture.processtracer import ProcessTracer
-from probes.ship.relayexport import RelayExporter
-from probes.ship.relaylink import check_token
 from probes.capture.shipper import Shipper
 from probes.capture.sourcewatch import SourceWatch
-from probes.clocks.sysclock import DEFAULT_UDS
-from probes.ship.tailship import TailShipper
-from probes.trace.tracefile import TraceFileWriter
 from probes.capture.tracer import Tracer, attach
+from probes.clocks.sysclock import DEFAULT_UDS
+from probes.ship.errors import ExportError
+from probes.ship.relayexport import RelayExporter
+from probes.ship.relaylink import check_token
+from probes.ship.tailship import TailShipper
+from probes.trace.errors import TraceError
+from probes.trace.events import CAPTURE, EXPORTER_CLOSE_S, Exporter, TraceHeader
+from probes.trace.tracefile import TraceFileWriter
 
 
 class _Shifted:

@@ -26,8 +26,8 @@ import numpy as np
 
 from core.errors import DcuscopeError
 from core.gst import Gst
-from probes.trace.events import EVENT_DTYPE
 from probes.capture.ring import RingStats
+from probes.trace.events import EVENT_DTYPE
 
 HERE = Path(__file__).resolve().parent
 C_DIR = HERE / "c"

@@ -16,8 +16,8 @@ import json
 import os
 from pathlib import Path
 
-from probes.trace.errors import TraceError
 from probes.capture.native import BuildError, load, unavailable_reason
+from probes.trace.errors import TraceError
 from probes.trace.tracefile import _parse_header
 
 

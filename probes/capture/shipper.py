@@ -18,8 +18,8 @@ import threading
 import time
 from typing import Callable, Sequence
 
-from probes.trace.events import EXPORTER_CLOSE_S, Exporter
 from probes.capture.tracer import Tracer
+from probes.trace.events import EXPORTER_CLOSE_S, Exporter
 
 log = logging.getLogger("dcuscope.probes")
 

@@ -24,9 +24,9 @@ import numpy as np
 from core.clocks import CLOCKS
 from core.errors import PipelineError
 from core.gst import Gst
-from probes.trace.events import ENTER, EXIT, ORIGIN, TraceHeader
 from probes.capture.native import DEFAULT_TRIGGER, BuildError, NativeRing, load, unavailable_reason
 from probes.capture.ring import DEFAULT_CAPACITY, PythonRing, RingStats
+from probes.trace.events import ENTER, EXIT, ORIGIN, TraceHeader
 
 BACKENDS = ("auto", "native", "python")
 FRAMESTAMP = "framestamp"

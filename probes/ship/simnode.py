@@ -22,9 +22,9 @@ import time
 import numpy as np
 
 from core.clocks import PretendClock
-from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
-from probes.ship.relayexport import RelayExporter
 from probes.clocks.sysclock import DEFAULT_UDS
+from probes.ship.relayexport import RelayExporter
+from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
 
 STAGES = ("mux", "infer", "tiler", "convert", "osd")
 STAGE_MEAN_NS = (2_000_000, 30_000_000, 3_000_000, 1_000_000, 4_000_000)

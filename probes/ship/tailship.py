@@ -20,9 +20,9 @@ from typing import Callable
 import numpy as np
 
 from probes.ship.errors import ExportError
+from probes.ship.relayexport import RelayExporter
 from probes.trace.events import EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
 from probes.trace.follow import TraceFollower
-from probes.ship.relayexport import RelayExporter
 
 POLL_S = 0.1
 

@@ -18,8 +18,8 @@ from functools import cached_property
 
 import numpy as np
 
-from probes.trace.frametable import MISSING
 from probes.clocks.ptp import ptp_trusted, ptp_uncertainty_ns
+from probes.trace.frametable import MISSING
 
 CLOCK_MODES = ("ptp", "estimate", "auto")
 MAX_CORRECTION_NS = 10**17

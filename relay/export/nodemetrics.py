@@ -24,8 +24,8 @@ from collections.abc import Iterator
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
-from probes.trace.events import DROP_REASONS
 from probes.ship.wire import PTP_STATES
+from probes.trace.events import DROP_REASONS
 from relay.live.state import RelayState, RunState
 
 MAX_URI_CHARS = 200

@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from core.clocks import NEVER
-from probes.trace.events import TraceHeader
 from probes.ship.wire import decode_payload
+from probes.trace.events import TraceHeader
 from relay.clock.correction import Correction
 from relay.clock.entry import clock_entry
 from relay.errors import RelayError

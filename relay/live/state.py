@@ -13,10 +13,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from core.clocks import NEVER
-from probes.trace.delays import FrameDelays, Series
 from probes.ship.errors import ProtocolError
-from probes.trace.events import TraceHeader
 from probes.ship.wire import Hello
+from probes.trace.delays import FrameDelays, Series
+from probes.trace.events import TraceHeader
 from relay.clock.correction import Correction, correction_of
 from relay.clock.entry import clock_entry
 from relay.clock.model import ClockEstimator, segment_fault

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from probes.trace.events import CAPTURE, EVENT_DTYPE, TraceHeader
 from probes.ship.wire import decode_payload
+from probes.trace.events import CAPTURE, EVENT_DTYPE, TraceHeader
 from relay.clock.correction import NO_CORRECTION, Correction, Segment, stored_correction
 from relay.clock.entry import stored_run_correction
 from relay.clock.model import segment_fault

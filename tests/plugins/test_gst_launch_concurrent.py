@@ -16,8 +16,8 @@ from pathlib import Path
 import pytest
 
 from plugins.loading import same_sys_path
-from probes.trace.events import ENTER, EXIT
 from probes.capture.native import build
+from probes.trace.events import ENTER, EXIT
 from probes.trace.tracefile import read_trace
 from tests.conftest import REPO
 from tests.probes.capture.test_gsttracer import frames_of, loader_env, stage_points

@@ -8,8 +8,8 @@ import time
 import numpy as np
 
 from core.clocks import CLOCKS, PretendClock
-from probes.trace.events import CAPTURE, ORIGIN
 from probes.instrument import _Shifted
+from probes.trace.events import CAPTURE, ORIGIN
 from tests.probes.synth import T0, _events
 
 

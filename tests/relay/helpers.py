@@ -23,9 +23,9 @@ from pathlib import Path
 import aiohttp
 import numpy as np
 
-from probes.trace.events import TraceHeader
 from probes.ship.relaylink import Link
 from probes.ship.simnode import header_for
+from probes.trace.events import TraceHeader
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -13,9 +13,9 @@ import uuid
 
 import numpy as np
 
-from probes.trace.events import ORIGIN
 from probes.ship.simnode import synth_events
 from probes.ship.wire import encode_batch
+from probes.trace.events import ORIGIN
 from relay.store.base import SCHEMA_VERSION
 from relay.store.runs import frame_starts, load_runs
 from tests.relay.helpers import HandNode, RelayProcess, get_json

@@ -15,9 +15,9 @@ import uuid
 
 import pytest
 
-from probes.trace.events import ORIGIN
 from probes.ship.relayexport import RelayExporter
 from probes.ship.simnode import header_for, synth_events
+from probes.trace.events import ORIGIN
 from core.clocks import CLOCKS, PretendClock
 from probes.clocks.udpclock import (BURST, UdpClock, decode_answer, enable_rx_timestamps, encode_request, parse_offer,
                              recv_stamped)

@@ -7,10 +7,10 @@ import time
 import numpy as np
 import pytest
 
-from probes.trace.delays import node_stats
-from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, TraceHeader
 from probes.ship.simnode import header_for, synth_events
 from probes.ship.wire import SOURCE_LIMIT
+from probes.trace.delays import node_stats
+from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, TraceHeader
 from relay.live.run import LiveConfig, LiveRun
 from tests.probes.synth import pipeline_run
 from tests.relay.helpers import assert_stats_equal

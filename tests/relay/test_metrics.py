@@ -17,11 +17,11 @@ from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from prometheus_client.parser import text_string_to_metric_families
 
+from probes.ship.simnode import header_for, synth_events
+from probes.ship.wire import PTP_STATES, encode_batch
 from probes.trace.delays import frame_delays, series
 from probes.trace.events import DROP, DROP_REASONS, ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
 from probes.trace.frametable import frame_table
-from probes.ship.simnode import header_for, synth_events
-from probes.ship.wire import PTP_STATES, encode_batch
 from relay.export.framemetrics import MAX_GAPS, NS_PER_S, gap_stages
 from relay.export.metrics import BUCKETS_S
 from relay.guard.limits import Limits

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from core.clocks import PretendClock
+from probes.instrument import _Shifted
 from probes.trace.delays import frame_delays
 from probes.trace.events import CAPTURE, ENTER, EXIT, ORIGIN, TraceHeader
 from probes.trace.frametable import frame_table
-from probes.instrument import _Shifted
 from relay.api.moments import MATCH_TOLERANCE_NS, MomentsError, Side, compare, match, pairs_of
 from relay.clock.correction import Correction, Segment
 from tests.probes.synth import T0, _events

@@ -11,9 +11,9 @@ from collections import Counter
 import numpy as np
 import pytest
 
+from probes.ship.simnode import STAGES, header_for, synth_events
 from probes.trace.delays import frame_delays, series
 from probes.trace.frametable import frame_table
-from probes.ship.simnode import STAGES, header_for, synth_events
 from relay.live.framelimits import FrameLimits
 from relay.export.otlp import MAX_BUSY, OtlpExporter
 from relay.export.otlpconfig import OtlpConfig

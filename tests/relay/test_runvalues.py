@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from probes.trace.delays import node_stats, summarize
 from probes.ship.simnode import header_for, synth_events
+from probes.trace.delays import node_stats, summarize
 from relay.live.run import LiveConfig, LiveRun
 from relay.live.values import RELATIVE_ERROR, RunValues
 from tests.relay.helpers import assert_stats_equal

@@ -14,9 +14,9 @@ import numpy as np
 import psycopg
 import pytest
 
-from probes.trace.events import CAPTURE, ORIGIN
 from probes.ship.simnode import header_for, synth_events
 from probes.ship.wire import encode_batch
+from probes.trace.events import CAPTURE, ORIGIN
 from relay.clock.correction import Segment
 from relay.errors import RelayError
 from relay.store.base import BatchRow, NotOwner

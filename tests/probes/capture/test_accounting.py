@@ -11,12 +11,12 @@ import sys
 import pytest
 
 from core.gst import Gst
+from probes.capture.sourcewatch import SourceWatch
+from probes.capture.tracer import attach
 from probes.trace.delays import node_stats
 from probes.trace.events import DROP, LATE
 from probes.trace.frametable import MISSING, frame_table
-from probes.capture.sourcewatch import SourceWatch
 from probes.trace.tracefile import read_trace
-from probes.capture.tracer import attach
 from tests.conftest import REPO, VTEST, cli_env
 from tests.pipeline.lossylink import SERVER
 

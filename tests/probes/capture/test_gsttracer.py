@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from probes.capture.native import build
 from probes.trace.delays import frame_delays
 from probes.trace.events import ENTER, EXIT, ORIGIN
 from probes.trace.frametable import frame_table
-from probes.capture.native import build
 from probes.trace.tracefile import read_trace
 from tests.conftest import REPO, run_cli
 

@@ -10,8 +10,8 @@ import pytest
 from core.gst import Gst
 from plugins.frames import FrameId, write_frames
 from probes.capture import native
-from probes.trace.events import ENTER, EVENT_DTYPE, EXIT
 from probes.capture.ring import PythonRing
+from probes.trace.events import ENTER, EVENT_DTYPE, EXIT
 
 REALTIME = 0
 

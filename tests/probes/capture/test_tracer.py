@@ -11,10 +11,10 @@ from core.errors import PipelineError
 from core.gst import Gst
 from plugins.frames import FrameId, write_frames
 from probes.capture import native, tracer as tracer_mod
-from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, FACT, FACT_THREAD, ORIGIN, READY, TraceHeader
 from probes.capture.ring import PythonRing
 from probes.capture.shipper import Shipper
 from probes.capture.tracer import attach
+from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, FACT, FACT_THREAD, ORIGIN, READY, TraceHeader
 from tests.probes.capture import sleeper
 
 BACKENDS = ["native", "python"]

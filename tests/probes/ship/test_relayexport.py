@@ -13,11 +13,11 @@ import pytest
 
 from core.gst import Gst
 from plugins import framestamp
+from probes.capture.shipper import Shipper
+from probes.capture.tracer import attach
 from probes.ship.errors import ExportError
 from probes.ship.relayexport import RelayExporter
-from probes.capture.shipper import Shipper
 from probes.ship.simnode import header_for, synth_events
-from probes.capture.tracer import attach
 from relay.server import start_relay
 from tests.ports import free_port
 from tests.relay.helpers import RelayProcess, wait_for

@@ -25,10 +25,10 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from probes.ship.relayexport import RelayExporter
 from probes.trace.delays import frame_delays, node_stats
 from probes.trace.events import FACT
 from probes.trace.frametable import frame_events, frame_table
-from probes.ship.relayexport import RelayExporter
 from probes.trace.tracefile import write_trace
 from relay.live.run import LiveRun
 from tests.probes.synth import run_commands, troubled_run
