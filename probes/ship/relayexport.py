@@ -193,7 +193,8 @@ class RelayExporter:
             await asyncio.gather(*tasks, return_exceptions=True)
 
     def _hello(self) -> dict:
-        hello = {"proto": PROTOCOL_VERSION, "run": self.run_id, "header": self._header, **self.clocks.report()}
+        hello = {"proto": PROTOCOL_VERSION, "run": self.run_id, "header": self._header, **self.outbox.report(),
+                 "ptp": self.clocks.ptp}
         if self._secret is not None:
             hello["secret"] = self._secret
         return hello
