@@ -29,7 +29,9 @@ DCU's frames as they complete, at most their default ``--push-hz`` times a secon
 With several relays the nodes are dealt round-robin (node k to relay k mod R), each given the
 whole list starting at its own relay (``--relay URL_k,URL_k+1,...``: the others are its failover,
 as a fleet configures them), and the relays share a Redis server of the benchmark's own
-(``--redis``, tests/redisserver.py), as a fleet runs them. SQLite is one relay per file: a
+(``--redis``, tests/redisserver.py), as a fleet runs them. With ``--workers`` the R relays are one
+``python -m relay --workers R`` instead, the processes of one host sharing one port: every node is
+given that one URL, and the kernel deals their connections among the workers. SQLite is one relay per file: a
 combination of SQLite and more than one relay is not run, its figures are ``n/a (SQLite is one
 relay per file)``. PostgreSQL is a server of the benchmark's own (benchmarks/stores.py), a fresh
 database per phase, durable as users run it (fsync, synchronous_commit, full_page_writes on)
@@ -54,7 +56,7 @@ produce is ``"n/a (reason)"`` in the JSON, ``n/a [k]`` with its reason below in 
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_relay.py [--store sqlite postgresql] [--relays 1 2]
         [--nodes 2 8 32] [--settings today adaptive] [--events 2000000] [--batch-events 8192]
-        [--rate 4300] [--seconds 12] [--watch N] [--lag-only] [--pg-not-durable] [--quick]
+        [--rate 4300] [--seconds 12] [--watch N] [--workers] [--lag-only | --bulk-only] [--pg-not-durable] [--quick]
 """
 
 from __future__ import annotations
@@ -116,29 +118,38 @@ def _env() -> dict:
 
 
 class Relay:
-    def __init__(self, db: Path | str, args: Sequence[str] = ()) -> None:
+    def __init__(self, db: Path | str, args: Sequence[str] = (), workers: int = 1) -> None:
         """``db``: an SQLite file or a PostgreSQL URL; ``args``: more ``python -m relay`` options
-        (bench_exporters: --otlp, --frame-limit).
+        (bench_exporters: --otlp, --frame-limit); ``workers`` above 1: ``python -m relay --workers
+        N`` on one port, ready once every worker listens.
         Raises CannotRun, with the relay's last line of error, when it does not start."""
+        self.workers = workers
+        port = "0"
+        if workers > 1:
+            from tests.ports import free_port
+
+            port, args = str(free_port()), [*args, "--workers", str(workers)]
         self._errors = tempfile.TemporaryFile()  # not a pipe: nobody reads it while the relay runs
-        self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", "0", "--db", str(db), *LOOPBACK, *args],
+        self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", port, "--db", str(db), *LOOPBACK, *args],
                                      cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=self._errors)
-        line = self.proc.stdout.readline().decode()
-        m = re.search(r"http://127\.0\.0\.1:(\d+)", line)
-        if not m:
-            self.proc.kill()
-            self.proc.wait(15)
-            self._errors.seek(0)
-            raise CannotRun(f"the relay did not start: {last_line(self._errors.read())}")
-        self.url = f"http://127.0.0.1:{m.group(1)}"
+        listening = []
+        while len(listening) < workers:
+            m = re.search(r"http://127\.0\.0\.1:(\d+)", self.proc.stdout.readline().decode())
+            if not m:
+                self.proc.kill()
+                self.proc.wait(15)
+                self._errors.seek(0)
+                raise CannotRun(f"the relay did not start: {last_line(self._errors.read())}")
+            listening.append(m.group(1))
+        self.url = f"http://127.0.0.1:{listening[0]}"
 
     def get(self, path: str):
         with urllib.request.urlopen(self.url + path, timeout=30) as r:
             return json.loads(r.read())
 
     def cpu_s(self) -> float:
-        """CPU seconds the relay process used so far (user + system)."""
-        return _proc_cpu(self.proc.pid)
+        """CPU seconds the relay process used so far (user + system), its workers' included."""
+        return sum(_proc_cpu(pid) for pid in _process_tree(self.proc.pid))
 
     def stored(self) -> int:
         return sum(run["events"] for s in self.get("/api/sessions") for run in s["runs"])
@@ -245,14 +256,17 @@ class Stores:
 
 
 def _phase(stores: Stores, store: str, relays: int, settings: Settings,
-           measure: Callable[[list[Relay], PostgresStore | None], dict]) -> dict:
+           measure: Callable[[list[Relay], PostgresStore | None], dict], workers: bool = False) -> dict:
     """``measure(relays, server)`` on ``relays`` fresh relay processes sharing a fresh store,
-    started with ``settings`` (and a Redis between them: :meth:`Stores.fanout`)."""
+    started with ``settings`` (and a Redis between them: :meth:`Stores.fanout`); ``workers``: as
+    one ``relay --workers`` on one port, not each on a port of its own."""
     args = [*settings.relay, *stores.fanout(relays)]
     db = stores.fresh(store)
     started: list[Relay] = []
     try:
-        for _ in range(relays):
+        if workers and relays > 1:
+            started.append(Relay(db, args, workers=relays))
+        for _ in range(relays if not started else 0):
             started.append(Relay(db, args))
         return measure(started, stores.server(store))
     finally:
@@ -262,9 +276,9 @@ def _phase(stores: Stores, store: str, relays: int, settings: Settings,
 
 
 def throughput(n: int, total: int, stores: Stores, batch_events: int, store: str, relays: int,
-               settings: Settings) -> dict:
+               settings: Settings, workers: bool = False) -> dict:
     return _phase(stores, store, relays, settings, lambda rs, server: measure_throughput(
-        rs, n, total, batch_events, server, settings.nodes))
+        rs, n, total, batch_events, server, settings.nodes), workers)
 
 
 def measure_throughput(relay: Relay | Sequence[Relay], n: int, total: int, batch_events: int,
@@ -372,19 +386,22 @@ def last_times(block: dict) -> np.ndarray:
 
 
 def lag(n: int, rate: float, seconds: float, stores: Stores, store: str, relays: int, settings: Settings,
-        watch: int | None = None) -> dict:
+        watch: int | None = None, workers: bool = False) -> dict:
     return _phase(stores, store, relays, settings, lambda rs, server: measure_lag(
-        rs, n, rate, seconds, server=server, node_args=settings.nodes, watch=watch))
+        rs, n, rate, seconds, server=server, node_args=settings.nodes, watch=watch), workers)
 
 
 def _received(relays: list[Relay]) -> tuple[set[str], int]:
     """The nodes streaming to ``relays`` (with an event received), and the events all of them received.
     Relays sharing a store each list every node of the fleet: a node counts once, with the highest
-    count listed (its own relay's, live; the others' come from the store, up to a second old)."""
+    count listed (its own relay's, live; the others' come from the store, up to a second old).
+    Workers sharing a port answer in turn, as the kernel deals the connections: each is asked
+    three times per worker, so that the owners' live counts are most likely among the answers."""
     events: dict[str, int] = {}
     for relay in relays:
-        for node in relay.get("/api/nodes"):
-            events[node["node"]] = max(events.get(node["node"], 0), node["events"])
+        for _ in range(1 if relay.workers == 1 else 3 * relay.workers):
+            for node in relay.get("/api/nodes"):
+                events[node["node"]] = max(events.get(node["node"], 0), node["events"])
     return {name for name, n in events.items() if n > 0}, sum(events.values())
 
 
@@ -456,6 +473,19 @@ def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: fl
 NO_SERVER = NA("no store server: SQLite writes run in the relay process, their CPU is in relay_cpu")
 
 
+def _process_tree(pid: int) -> list[int]:
+    """``pid`` and its descendants (a relay with ``--workers``: the parent and its workers)."""
+    out, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        out.append(p)
+        try:
+            todo.extend(int(c) for c in Path(f"/proc/{p}/task/{p}/children").read_text().split())
+        except OSError:
+            pass
+    return out
+
+
 def _proc_cpu(pid: int) -> float:
     try:
         fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -490,16 +520,19 @@ def _choices(values: list[str], allowed: Sequence[str] | None, kind: type, what:
 
 def combination(stores: Stores, store: str, relays: int, n: int, settings: str, args: argparse.Namespace) -> dict:
     """One JSON line: both phases of ``n`` nodes on ``relays`` relays sharing a ``store``, with ``settings``."""
+    workers = args.workers and relays > 1
     result = {"store": store, "relays": relays, "nodes": n, "settings": settings, "cpus": os.cpu_count(),
-              "load_before": round(os.getloadavg()[0], 1)}
+              "load_before": round(os.getloadavg()[0], 1)} | ({"workers": True} if workers else {})
     if store == "sqlite" and relays > 1:
         return result | {"throughput": NA(ONE_RELAY), "lag": NA(ONE_RELAY)}
     chosen = SETTINGS[settings]
-    phases = {"throughput": lambda: throughput(n, args.events, stores, args.batch_events, store, relays, chosen),
-              "lag": lambda: lag(n, args.rate, args.seconds, stores, store, relays, chosen, args.watch)}
-    if args.lag_only:
-        result["throughput"] = NA("not run (--lag-only)")
-        del phases["throughput"]
+    phases = {"throughput": lambda: throughput(n, args.events, stores, args.batch_events, store, relays, chosen,
+                                               workers),
+              "lag": lambda: lag(n, args.rate, args.seconds, stores, store, relays, chosen, args.watch, workers)}
+    for phase, flag in (("throughput", "--lag-only"), ("lag", "--bulk-only")):
+        if getattr(args, flag[2:].replace("-", "_")):
+            result[phase] = NA(f"not run ({flag})")
+            del phases[phase]
     for name, measure in phases.items():
         try:
             result[name] = measure()
@@ -523,7 +556,8 @@ def table(lines: list[dict], rate: float) -> list[str]:
            f"{'ms':>9} {'ms':>9} {'paced':>9} {'bulk':>9}")
     rows = [head, sub]
     for line in lines:
-        rows.append(f"{line['store']:<10} {line['relays']:>6} {line['nodes']:>5} {line['settings']:<8} "
+        relays = f"{line['relays']}w" if line.get("workers") else line["relays"]
+        rows.append(f"{line['store']:<10} {relays:>6} {line['nodes']:>5} {line['settings']:<8} "
                     f"{notes.cell(_figure(line, 'throughput', 'events_per_s'), ',d'):>10} "
                     f"{notes.cell(_figure(line, 'lag', 'relay_cpu_us_per_event'), '.1f'):>10} "
                     f"{notes.cell(_figure(line, 'lag', 'relay_cpu_us_per_event_no_ui'), '.1f'):>10} "
@@ -536,7 +570,7 @@ def table(lines: list[dict], rate: float) -> list[str]:
               f"µs/event: relay CPU (all relay processes) per event received, paced at {rate:g} events/s a node "
               "(the paper's pace: with a /ui client on the first relay, and as long again with none) and in bulk; "
               "lag p50/p99: frame end to its push reaching the /ui client, paced; PG µs/ev: the PostgreSQL "
-              "server's CPU per event")
+              "server's CPU per event; relays Nw: one relay --workers N on one port")
     return rows + [legend] + notes.lines()
 
 
@@ -562,7 +596,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--watch", type=int, metavar="N",
                    help="the lag phase's /ui client shows DCU-1..DCU-N only, as a page with N DCUs opened from the "
                         "fleet overview (default: every DCU, as a page with all of them opened)")
-    p.add_argument("--lag-only", action="store_true", help="run the lag phase only (its throughput figures n/a)")
+    p.add_argument("--workers", action="store_true",
+                   help="run each combination's R relays as one `relay --workers R` on one port, the kernel dealing "
+                        "the nodes' connections among them (one host's relay processes), not R relays on ports of "
+                        "their own with the nodes dealt round-robin; PostgreSQL only")
+    only = p.add_mutually_exclusive_group()
+    only.add_argument("--lag-only", action="store_true", help="run the lag phase only (its throughput figures n/a)")
+    only.add_argument("--bulk-only", action="store_true",
+                      help="run the throughput phase only (its lag figures n/a)")
     p.add_argument("--quick", action="store_true", help="a smoke test: 2 nodes, 100,000 events, a 1 s lag phase")
     args = p.parse_args(argv)
     if args.quick:
@@ -572,6 +613,8 @@ def main(argv: list[str] | None = None) -> int:
     settings = _choices(args.settings or list(SETTINGS), SETTINGS, str, "--settings", p)
     if min(args.nodes) < 1 or min(relay_counts) < 1 or args.events < 1 or args.seconds <= 0 or args.rate <= 0:
         p.error("--nodes, --relays, --events, --seconds and --rate must be positive")
+    if args.workers and "sqlite" in stores:
+        p.error("--workers runs several relays on one store: --store postgresql")
     if args.watch is not None and args.watch < 1:
         p.error("--watch takes a number of DCUs, at least 1")
     lines = []

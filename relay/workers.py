@@ -18,9 +18,10 @@ STOP_TIMEOUT_S = 20
 
 
 def worker_argv(argv: list[str], index: int, clock_port: int) -> list[str]:
-    """A worker's command line: the relay's own, without ``--workers``, with its clock port."""
+    """A worker's command line: ``python -m relay`` with the relay's own options (``argv``, of
+    ``dcuscope relay`` or of ``python -m relay``), without ``--workers``, with its clock port."""
     out, skip = [], False
-    for arg in argv:
+    for arg in argv[1:] if argv[:1] == ["relay"] else argv:
         if skip:
             skip = False
             continue
@@ -29,7 +30,7 @@ def worker_argv(argv: list[str], index: int, clock_port: int) -> list[str]:
             skip = "=" not in arg
             continue
         out.append(arg)
-    return [sys.executable, "-m", "dcuscope.cli", *out, "--reuse-port",
+    return [sys.executable, "-m", "relay", *out, "--reuse-port",
             "--clock-port", str(clock_port + index if clock_port else 0)]
 
 
