@@ -49,7 +49,9 @@ view's pushes are the difference), which other work
 on the machine moves less than a rate; the same for the PostgreSQL server
 (``store_cpu_us_per_event``: the work the relay hands it; with SQLite the writes are the
 relay's own, in its CPU); that of all node processes (``nodes_cpu_pct``), and ``load_before``
-(1-min load average when the combination started: other work on the machine). Prints one JSON
+(1-min load average when the combination started: other work on the machine), and that of the
+/ui client (``client_cpu_pct``, this process: at 100 % it is the client that falls behind, and the
+lag is its own). Prints one JSON
 line per combination and settings, then a table of them side by side; a figure a run could not
 produce is ``"n/a (reason)"`` in the JSON, ``n/a [k]`` with its reason below in the table
 (benchmarks/figures.py).
@@ -436,8 +438,10 @@ def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: fl
     _, events0 = _received(relays)
     cpu0, server0, wall0 = cpu(), server.cpu_s() if server else 0.0, time.monotonic()
     nodes_cpu0 = sum(_proc_cpu(p.pid) for p in procs)
+    client0 = time.process_time()
     lags, transit, seen = asyncio.run(_watch_ui(relays[0].url, seconds, watch))
     relay_cpu, wall = cpu() - cpu0, time.monotonic() - wall0
+    client_cpu = time.process_time() - client0
     server_cpu = server.cpu_s() - server0 if server else 0.0
     _, received = _received(relays)
     if on_window:
@@ -467,7 +471,8 @@ def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: fl
             "lag_p99_ms": round(percentile(lags, 99, no_frame), 1),
             "push_transit_p50_ms": round(percentile(transit, 50, no_push), 1),
             "push_transit_p99_ms": round(percentile(transit, 99, no_push), 1),
-            "relay_cpu_pct": round(100 * relay_cpu / wall), "nodes_cpu_pct": round(100 * nodes_cpu / wall)}
+            "relay_cpu_pct": round(100 * relay_cpu / wall), "nodes_cpu_pct": round(100 * nodes_cpu / wall),
+            "client_cpu_pct": round(100 * client_cpu / wall)}
 
 
 NO_SERVER = NA("no store server: SQLite writes run in the relay process, their CPU is in relay_cpu")
