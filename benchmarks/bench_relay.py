@@ -438,9 +438,11 @@ def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: fl
     _, events0 = _received(relays)
     cpu0, server0, wall0 = cpu(), server.cpu_s() if server else 0.0, time.monotonic()
     nodes_cpu0 = sum(_proc_cpu(p.pid) for p in procs)
+    each0 = [r.cpu_s() for r in relays]
     client0 = time.process_time()
     lags, transit, seen = asyncio.run(_watch_ui(relays[0].url, seconds, watch))
     relay_cpu, wall = cpu() - cpu0, time.monotonic() - wall0
+    each = [round(100 * (r.cpu_s() - c) / wall) for r, c in zip(relays, each0)]
     client_cpu = time.process_time() - client0
     server_cpu = server.cpu_s() - server0 if server else 0.0
     _, received = _received(relays)
@@ -472,7 +474,7 @@ def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: fl
             "push_transit_p50_ms": round(percentile(transit, 50, no_push), 1),
             "push_transit_p99_ms": round(percentile(transit, 99, no_push), 1),
             "relay_cpu_pct": round(100 * relay_cpu / wall), "nodes_cpu_pct": round(100 * nodes_cpu / wall),
-            "client_cpu_pct": round(100 * client_cpu / wall)}
+            "client_cpu_pct": round(100 * client_cpu / wall), "relay_cpu_pct_each": each}
 
 
 NO_SERVER = NA("no store server: SQLite writes run in the relay process, their CPU is in relay_cpu")

@@ -61,6 +61,8 @@ WAITING = ("EpollSelector.select", "Storage._worker")
 class Relay:
     """A relay started from ``checkout`` on ``db`` (an SQLite file or a PostgreSQL URL)."""
 
+    workers = 1  # one process on a port of its own (bench_relay's ``_received`` asks it once)
+
     def __init__(self, checkout: Path, db: str, args: list[str]) -> None:
         env = dict(os.environ, PYTHONPATH=str(checkout))
         self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", "0", "--db", db, *LOOPBACK, *args],

@@ -400,6 +400,39 @@ def test_a_relay_whose_lease_was_taken_is_refused_by_the_store_fenced_by_its_gen
         y.close()
 
 
+def test_a_group_with_one_fenced_run_stores_nothing_and_a_batch_twice_in_a_group_counts_once(pg_url):
+    """PostgreSQL stores a group of batches in one statement (the fence, the rows, the counts): a
+    run of the group whose lease was taken stores nothing of the group, and names only that run;
+    the rest, sent again alone, is stored. A batch queued twice in a group is stored and counted once."""
+    x, y = PostgresDatabase(pg_url, "x", lease_s=SHORT_LEASE_S), PostgresDatabase(pg_url, "y", lease_s=SHORT_LEASE_S)
+    kept, taken = uuid.uuid4().hex, uuid.uuid4().hex
+    events = synth_events(5, 1, 25.0, T0)
+
+    def batch(run: str, seq: int) -> BatchRow:
+        return BatchRow(run, seq, len(events), False, payload(run, seq, events, False))
+
+    def counted(run: str) -> int:
+        return next(r["events"] for s in list_sessions(pg_url) for r in s["runs"] if r["run"] == run)
+
+    try:
+        for run in (kept, taken):
+            assert x.own_run(run)
+            x.register_run(run, "a" if run == kept else "b", header_for("a", 1).to_dict(), None, None)
+        time.sleep(SHORT_LEASE_S + 0.2)  # X renews nothing meanwhile: Y takes one of the two
+        assert y.own_run(taken)
+        with pytest.raises(NotOwner) as refused:
+            x.put_batches([batch(kept, 0), batch(taken, 0)], 1)
+        assert refused.value.runs == {taken} and taken not in x.owned and kept in x.owned
+        assert x.stored_seqs(kept) == set() and counted(kept) == 0
+        assert x.renew() == set()  # the kept lease renewed (it had expired, but nobody took it)
+        assert x.put_batches([batch(kept, 0), batch(kept, 1), batch(kept, 0)], 1) == [True, True, False]
+        assert x.stored_seqs(kept) == {0, 1} and counted(kept) == 2 * len(events)
+        assert x.put_batches([batch(kept, 1)], 1) == [False] and counted(kept) == 2 * len(events)
+    finally:
+        x.close()
+        y.close()
+
+
 def test_a_lease_not_renewed_is_lost_at_the_next_renewal(pg_url):
     x, y = PostgresDatabase(pg_url, "x", lease_s=SHORT_LEASE_S), PostgresDatabase(pg_url, "y", lease_s=SHORT_LEASE_S)
     run = uuid.uuid4().hex
