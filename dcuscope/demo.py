@@ -25,6 +25,11 @@ ROOT = Path(__file__).resolve().parents[1]
 NODES = (("DCU-1", ROOT / "configs" / "demo-dcu1.yaml"), ("DCU-2", ROOT / "configs" / "demo-dcu2.yaml"))
 STATUS_EVERY_S = 5.0
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
+NODE_CLOSE_TIMEOUT_S = 10.0
+"""How long a stopping pipeline waits for the relay to acknowledge its last events. The relay is the
+demo's own, on loopback, and still up while the demo stops its pipelines (it answers within a
+second); should the demo be killed, the relay dies with it, and a minute's wait for it (``dcuscope
+run``'s default, for relays elsewhere that may come back) would only keep the pipelines running on."""
 
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -130,7 +135,7 @@ def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = 
                 break
             print(f"demo: starting {name} ({config.relative_to(ROOT)}) with probes -> {url}", flush=True)
             nodes.append(_start("run", str(config), "--probes", "--relay", url, "--node", name, "-q",
-                                stdout=subprocess.DEVNULL))
+                                "--close-timeout", str(NODE_CLOSE_TIMEOUT_S), stdout=subprocess.DEVNULL))
         if not stop:
             print(f"\n  open {url}/ in a browser to watch the DCUs live. Ctrl-C stops the demo.\n", flush=True)
         started = time.monotonic()
