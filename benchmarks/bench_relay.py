@@ -41,7 +41,8 @@ server reports it.
 The relays and the node processes share this machine's cores (and the PostgreSQL server's
 processes too): on a 2-core machine the nodes take CPU from the relays, so the rates are a
 floor. Each phase reports the relays' CPU summed over the relay processes (% of one core:
-``relay_cpu_pct``; in the throughput phase also within the 10-90 % window) and per event
+``relay_cpu_pct``; in the throughput phase also within the 10-90 % window; in the lag phase each
+relay's too, ``relay_cpu_pct_each``, the first one's holding the /ui client) and per event
 received (``relay_cpu_us_per_event``: relay CPU seconds / events received x 1e6; in the
 throughput phase over the 10-90 % window, in the lag phase over its window, and
 ``relay_cpu_us_per_event_no_ui`` over as long again with the same nodes and no browser: the live
@@ -268,8 +269,9 @@ def _phase(stores: Stores, store: str, relays: int, settings: Settings,
     try:
         if workers and relays > 1:
             started.append(Relay(db, args, workers=relays))
-        for _ in range(relays if not started else 0):
-            started.append(Relay(db, args))
+        else:
+            for _ in range(relays):
+                started.append(Relay(db, args))
         return measure(started, stores.server(store))
     finally:
         for relay in started:
@@ -536,8 +538,8 @@ def combination(stores: Stores, store: str, relays: int, n: int, settings: str, 
     phases = {"throughput": lambda: throughput(n, args.events, stores, args.batch_events, store, relays, chosen,
                                                workers),
               "lag": lambda: lag(n, args.rate, args.seconds, stores, store, relays, chosen, args.watch, workers)}
-    for phase, flag in (("throughput", "--lag-only"), ("lag", "--bulk-only")):
-        if getattr(args, flag[2:].replace("-", "_")):
+    for phase, flag, skipped in (("throughput", "--lag-only", args.lag_only), ("lag", "--bulk-only", args.bulk_only)):
+        if skipped:
             result[phase] = NA(f"not run ({flag})")
             del phases[phase]
     for name, measure in phases.items():
