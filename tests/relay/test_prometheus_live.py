@@ -24,6 +24,7 @@ from pathlib import Path
 import pytest
 
 from core.clocks import NEVER
+from relay.live.state import WINDOW_MAX_AGE_S
 from tests.conftest import cli_env
 from tests.relay.helpers import RelayProcess, get_json, kill_all, wait_for
 from tests.relay.promserver import JOB, PromServer, wait_scrape
@@ -81,10 +82,10 @@ def frame_counts(relay: RelayProcess, prom: PromServer) -> tuple[dict, dict] | N
     return None if scraped == api else (scraped, api)
 
 
-SETTLED_S = (0.2, 1.0)
-"""A scrape's gauge is compared with /api/stats where every reading from 0.2 s before the scrape
-began to 1 s after it agrees: both read the same window, refreshed at most every 0.5 s, and a
-scrape answers within that second."""
+SETTLED_S = (WINDOW_MAX_AGE_S, 1.0)
+"""A scrape's gauge is compared with /api/stats where every reading agrees from the last one taken
+WINDOW_MAX_AGE_S or more before the scrape began (a scrape reuses a window computed up to that long
+before it, e.g. for one of those readings) to 1 s after it (a scrape answers within that second)."""
 
 
 def watch(relay: RelayProcess, prom: PromServer, nodes: dict, seen: dict) -> None:
@@ -108,7 +109,8 @@ def watch(relay: RelayProcess, prom: PromServer, nodes: dict, seen: dict) -> Non
         first, last = readings[node][0][0], readings[node][-1][0]
         if not first <= scraped_at - SETTLED_S[0] < scraped_at + SETTLED_S[1] <= last:
             continue  # not read on both sides
-        around = {b for t, b in readings[node] if scraped_at - SETTLED_S[0] <= t <= scraped_at + SETTLED_S[1]}
+        since = max(t for t, _ in readings[node] if t <= scraped_at - SETTLED_S[0])
+        around = {b for t, b in readings[node] if since <= t <= scraped_at + SETTLED_S[1]}
         if len(around) == 1 and None not in around:
             seen["bottleneck"].append((node, around.pop(), stage))
 
@@ -184,7 +186,11 @@ def test_the_bottleneck_gauge_names_the_stage_api_stats_names(run):
     for node in LIMIT_MS:
         pairs = [(by_api, by_gauge) for n, by_api, by_gauge in seen["bottleneck"] if n == node]
         assert len(pairs) >= 3, (node, seen["bottleneck"])
-        assert all(a == g == "work" for a, g in pairs), (node, pairs)
+        assert all(a == g for a, g in pairs), (node, pairs)
+        # work is the bottleneck by far, but a window holding little more than the pipeline's
+        # start (a loaded machine's) may name mux: work, by the end and in most of the scrapes.
+        named = [a for a, _ in pairs]
+        assert named[-1] == "work" and named.count("work") > len(named) / 2, (node, pairs)
 
 
 def test_the_frame_delay_alert_fires_for_the_node_over_its_limit_only(run):
