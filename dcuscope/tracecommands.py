@@ -20,6 +20,7 @@ import json
 import math
 import os
 import sys
+import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -45,6 +46,11 @@ def add_stats_parser(subparsers) -> argparse.ArgumentParser:
     )
     p.add_argument("traces", nargs="*", metavar="TRACE", help="trace file(s) written by `dcuscope run`")
     _add_db_arguments(p)
+    p.add_argument("--node", metavar="NAME",
+                   help="with --db: one DCU over days or months, from the store's rollups (per minute and hour, "
+                        "written as the relay compacts): counts, means, min, max, drops exact, percentiles within "
+                        "1 %% of the value (a sketch)")
+    p.add_argument("--since", metavar="DURATION", help="with --node: how far back, e.g. 90m, 12h, 30d (default 1d)")
     p.add_argument("--json", action="store_true", help="print one JSON object instead of tables")
     p.set_defaults(func=run_stats)
     return p
@@ -76,6 +82,8 @@ def _add_db_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_stats(args: argparse.Namespace) -> int:
+    if args.node is not None or args.since is not None:
+        return _rollup_stats(args)
     with _user_errors() as failed:
         traces = _inputs(args, "stats")
         doc = stats_document(traces)
@@ -88,6 +96,59 @@ def run_stats(args: argparse.Namespace) -> int:
             else:
                 out.write(format_stats(doc, [_origin(t, args.db) for t in traces]))
     return 2 if failed else 0
+
+
+def _rollup_stats(args: argparse.Namespace) -> int:
+    with _user_errors() as failed:
+        if args.db is None or args.node is None or args.traces or args.session is not None:
+            raise DcuscopeError("stats: --node and --since read a store's rollups: give --db PATH|URL --node NAME "
+                                "[--since DURATION], without TRACE files or --session")
+        from relay.store.history import parse_duration_ns, summary
+        from relay.store.engines import is_url
+
+        if not is_url(args.db) and not Path(args.db).is_file():
+            raise DcuscopeError(f"stats: {args.db}: no such database")
+        started = time.monotonic()
+        now = time.time_ns()
+        doc = summary(args.db, args.node, now - parse_duration_ns(args.since or "1d"), now)
+        doc["elapsed_s"] = round(time.monotonic() - started, 3)
+        if not doc["rows"]:
+            raise DcuscopeError(f"stats: no rollups of node {args.node!r} since {args.since or '1d'} in {args.db} "
+                                "(rollups are written as the relay compacts: batches older than its --compact-after)")
+        with _open_output("-") as out:
+            out.write(json.dumps(doc, indent=2) + "\n" if args.json else format_rollups(doc))
+    return 2 if failed else 0
+
+
+ROLLUP_COLUMNS = ("count", "mean_ms", "min_ms", "p50_ms", "p90_ms", "p99_ms", "max_ms")
+
+
+def format_rollups(doc: dict) -> str:
+    """The table of :func:`relay.store.history.summary`, with what is exact and what is not."""
+    def stamp(ns: int | None) -> str:
+        return "-" if ns is None else time.strftime("%Y-%m-%d %H:%M", time.gmtime(ns / 1e9)) + " UTC"
+
+    lines = [f"node {doc['node']}  (rollups of minutes and hours starting {stamp(doc['first_ns'])} to "
+             f"{stamp(doc['last_ns'])}: {doc['rows']} rows read in {doc.get('elapsed_s', 0):.2f} s)"]
+    rows = [("stage " + k, v) for k, v in doc["stages"].items()] + [("frame (end to end)", doc["frame"])]
+    width = max(len(name) for name, _ in rows)
+    lines.append("  " + " " * width + "".join(f"{c:>10}" for c in ROLLUP_COLUMNS) + f"{'drops':>8}")
+    for name, v in rows:
+        cells = [f"{v['count']:>10}"] + [f"{_num(v[c]):>10}" for c in ROLLUP_COLUMNS[1:]]
+        lines.append(f"  {name:<{width}}" + "".join(cells) + f"{v.get('drops', ''):>8}")
+    split = [(k, v) for k, v in doc["stages"].items() if v["service"]["count"]]
+    if split:
+        lines.append("  " + " " * width + "".join(f"{c:>15}" for c in ("service mean", "service p99", "wait mean",
+                                                                        "wait p99")))
+        for name, v in split:
+            cells = [_num(v["service"]["mean_ms"]), _num(v["service"]["p99_ms"]), _num(v["wait"]["mean_ms"]),
+                     _num(v["wait"]["p99_ms"])]
+            lines.append(f"  {'stage ' + name:<{width}}" + "".join(f"{c:>15}" for c in cells))
+    frame = doc["frame"]
+    lines.append(f"  frames         {frame['count']} complete, {frame['incomplete']} incomplete; {frame['lost']} events lost")
+    lines.append(f"  exact: count, mean, min, max, drops, frames, lost; p50, p90, p99 from the sketch, within "
+                 f"{doc['relative_error']:.0%} of the value")
+    return "\n".join(lines) + "\n"
 
 
 def run_export(args: argparse.Namespace) -> int:

@@ -15,10 +15,13 @@ from relay.export.otlpconfig import DEFAULT_EVERY, DEFAULT_QUEUE, DEFAULT_TIMEOU
 from relay.guard.auth import load_node_tokens
 from relay.guard.limits import Limits, limits_help
 from relay.guard.proxy import TrustedProxies
+from relay.store.compaction import COMPACT_AFTER_S
 from relay.store.engines import is_url
+from relay.store.retention import parse_retention
 from relay.workers import run_workers
 
 TOKEN_ENV = "DCUSCOPE_TOKEN"
+MAX_COMPACT_AFTER_S = 7 * 86_400.0
 
 
 def add_relay_parser(subparsers) -> argparse.ArgumentParser:
@@ -50,9 +53,15 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
                         "store: N cores for ingest; each answers UDP clock exchanges on the clock port + its index "
                         "(default 1)")
     p.add_argument("--reuse-port", action="store_true", help=argparse.SUPPRESS)
-    p.add_argument("--retain", type=float, metavar="DAYS",
-                   help="delete whole sessions last heard from over DAYS ago (checked every minute, deleted in small "
-                        "parts that do not hold ingest up; default: keep everything)")
+    p.add_argument("--retain", metavar="raw=7d,rollups=400d",
+                   help="what the store keeps: raw=TIME deletes whole sessions last heard from longer ago, "
+                        "rollups=TIME the minute and hour rollups (what `dcuscope stats --node --since` and the "
+                        "page's history read) older than that; DAYS alone is raw=DAYS. Checked every minute, deleted "
+                        "in small parts that do not hold ingest up (default: keep everything)")
+    p.add_argument("--compact-after", type=float, default=COMPACT_AFTER_S, metavar="SECONDS",
+                   help="move batches stored this long into compact segments (about 3.5 bytes an event instead of "
+                        f"24-32; read as before by every reader), in a thread of its own (default {COMPACT_AFTER_S:g}; "
+                        "0: never, e.g. when `dcuscope db compact` runs elsewhere)")
     p.add_argument("--token", default=os.environ.get(TOKEN_ENV),
                    help=f"shared secret nodes and browsers must present (default ${TOKEN_ENV})")
     p.add_argument("--node-tokens", metavar="FILE",
@@ -141,8 +150,10 @@ def run_relay(args: argparse.Namespace) -> int:
         if not 0.5 <= args.push_hz <= 240:
             raise RelayError(f"--push-hz must be 0.5..240, not {args.push_hz:g}")
         options["push_hz"] = args.push_hz
-    if args.retain is not None and not args.retain > 0:
-        raise RelayError(f"--retain takes a number of days above 0, not {args.retain:g}")
+    retention = parse_retention(args.retain) if args.retain is not None else None
+    if not 0 <= args.compact_after <= MAX_COMPACT_AFTER_S:
+        raise RelayError(f"--compact-after takes 0 (never) to {MAX_COMPACT_AFTER_S:g} seconds, not {args.compact_after:g}")
+    options["compact_after_s"] = args.compact_after
     if args.workers != 1:
         if not 2 <= args.workers <= 64:
             raise RelayError(f"--workers must be 1..64, not {args.workers}")
@@ -156,7 +167,7 @@ def run_relay(args: argparse.Namespace) -> int:
         check_port_free(args.host, args.port)
     serve(args.host, args.port, args.db, args.token, args.clock, limits=limits, node_tokens=node_tokens,
           allow_hosts=args.allow_host, clock_port=args.clock_port, frame_limits=frame_limits, otlp=otlp,
-          trusted_proxies=trusted, reuse_port=args.reuse_port, retain_days=args.retain, **options)
+          trusted_proxies=trusted, reuse_port=args.reuse_port, retention=retention, **options)
     return 0
 
 

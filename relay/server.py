@@ -30,6 +30,7 @@ from relay.api.fanout import FanoutHealth, FleetManager, create_manager
 from relay.api.fleet import Fleet
 from relay.api.interest import Interest
 from relay.api.routes import add_routes
+from relay.api.history import add_history_routes
 from relay.api.sessions import add_session_routes
 from relay.api.sio import create_sio, sio_errors
 from relay.api.ui import DEFAULT_PUSH_HZ, Ticker, UiNamespace
@@ -49,7 +50,9 @@ from relay.guard.proxy import TrustedProxies
 from relay.ingest.endpoint import SYNCS_KEPT, Ingest
 from relay.live.run import LiveConfig
 from relay.live.state import RelayState
-from relay.store.retention import retain
+from relay.store.compaction import COMPACT_AFTER_S
+from relay.store.compactor import Compactor
+from relay.store.retention import Retention, retain
 from relay.store.writer import Storage
 
 UI_DIR = Path(__file__).resolve().parents[1] / "ui" / "static"
@@ -85,6 +88,8 @@ class Relay:
     """The OTLP trace exporter (``--otlp``), if any."""
     reclaimer: Reclaimer | None = None
     """Gives back the memory of runs that left it (:mod:`relay.heap`)."""
+    compactor: Compactor | None = None
+    """Moves old batches into segments (:mod:`relay.store.compaction`; None: ``--compact-after 0``)."""
     _task: asyncio.Task | None = None
     _retention: asyncio.Task | None = None
     _reclaim: asyncio.Task | None = None
@@ -118,6 +123,8 @@ class Relay:
         if self.runner is not None:
             await self.runner.cleanup()
         self.fleet.close()
+        if self.compactor is not None:
+            await asyncio.to_thread(self.compactor.stop)
         self.storage.stop()
 
 
@@ -126,13 +133,14 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
                node_tokens: dict[str, str] | None = None, allow_hosts: Iterable[str] = (),
                frame_limits: FrameLimits = FrameLimits(), otlp: OtlpConfig | None = None,
                trusted_proxies: TrustedProxies = TrustedProxies(), redis: str | None = None,
-               name: str | None = None) -> tuple[web.Application, Relay]:
+               name: str | None = None, compact_after_s: float = COMPACT_AFTER_S) -> tuple[web.Application, Relay]:
     """The relay's app; without a token, requests must name an IP, localhost or one of ``allow_hosts``
     (:mod:`relay.guard.hostcheck`). ``otlp``: export sampled frames as traces (:mod:`relay.export.otlp`; its
     thread starts with :func:`start_relay`). ``trusted_proxies``: peers whose connections start with a PROXY
     header naming the client (:mod:`relay.guard.proxy`). ``redis``: the URL of the Redis that carries every
     relay's pushes to every relay's browsers (:mod:`relay.api.fanout`). ``name``: how pages and other relays
-    name this one (default: HOST:PORT once listening)."""
+    name this one (default: HOST:PORT once listening). ``compact_after_s``: batches stored that long are
+    compacted (:mod:`relay.store.compaction`; 0: never)."""
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     limits = fit_descriptors(limits)
@@ -162,6 +170,7 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     ticker = Ticker(state, ui, fleet, interest, push_hz)
     reclaimer = Reclaimer(lambda: state.released)
     exporter = OtlpExporter(otlp, state) if otlp is not None else None
+    compactor = Compactor(db, compact_after_s, storage.name) if compact_after_s > 0 else None
 
     def counters() -> dict:
         refused["hello_timeout"] = ingest.hello_timeouts
@@ -175,18 +184,19 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
                 "relay": state.relay_name, "fanout": fanout.view(), "mirrored_runs": len(fleet.mirrors or ()),
                 "pushes": ticker.pushes, "commits": storage.commits, "batches": storage.batches_written,
                 "limits": limits.as_dict(), "released_runs": state.released, "memory": state.memory_view(),
-                "heap": reclaimer.view(),
+                "heap": reclaimer.view(), "compaction": compactor.view() if compactor is not None else None,
                 "otlp": exporter.view() if exporter is not None else None}
 
     add_routes(app, state, fleet, ui, token, counters)
     add_session_routes(app, state)
+    add_history_routes(app, state)
     metrics = RelayCollector(state, ingest, guard)
     add_metrics_route(app, metrics, token)
     _add_ui(app)
     if exporter is not None:
         exporter.attach(metrics)
     return app, Relay(state, storage, sio, ingest, ui, ticker, fleet, fanout, guard, metrics, otlp=exporter,
-                      reclaimer=reclaimer)
+                      reclaimer=reclaimer, compactor=compactor)
 
 
 _tasks: set[asyncio.Task] = set()
@@ -222,11 +232,11 @@ def _add_ui(app: web.Application) -> None:
 
 async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db",
                       token: str | None = None, clock: str = "auto", clock_port: int | None = None,
-                      reuse_port: bool = False, retain_days: float | None = None, **options) -> Relay:
+                      reuse_port: bool = False, retention: Retention | None = None, **options) -> Relay:
     """Start a relay on the running loop; ``port=0`` picks a free port (see ``Relay.port``).
     ``clock_port``: UDP port of the clock exchange (None: the HTTP port's number; 0: none).
     ``reuse_port``: share the port with the host's other relay processes (``--workers``).
-    ``retain_days``: delete sessions older than that (:mod:`relay.store.retention`; None: keep all)."""
+    ``retention``: delete sessions and rollups older than it says (:mod:`relay.store.retention`; None: keep all)."""
     app, relay = create_app(db, token, clock, **options)
     relay.storage.start(asyncio.get_running_loop())
     runner = web.AppRunner(app, access_log=None, handle_signals=False,
@@ -256,10 +266,12 @@ async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path 
         relay.sio.manager.initialize()
     relay._task = asyncio.create_task(relay.ticker.run())
     relay._reclaim = asyncio.create_task(relay.reclaimer.run())
-    if retain_days is not None:
-        relay._retention = asyncio.create_task(retain(relay.storage, retain_days))
+    if retention is not None:
+        relay._retention = asyncio.create_task(retain(relay.storage, retention))
     if relay.otlp is not None:
         relay.otlp.start()
+    if relay.compactor is not None:
+        relay.compactor.start()
     return relay
 
 

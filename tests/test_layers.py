@@ -105,7 +105,7 @@ def test_modules_form_a_dag():
             visit(name)
 
 
-RELAY_LAYERS = ["errors", "urls", "heap", "guard", "clock", "store", "live", "ingest", "export", "api", "server", "workers",
+RELAY_LAYERS = ["errors", "urls", "heap", "guard", "clock", "rollup", "store", "live", "ingest", "export", "api", "server", "workers",
                 "commands", "__main__"]
 """The relay's own parts, bottom-up: each imports only those before it.
 
@@ -113,6 +113,7 @@ RELAY_LAYERS = ["errors", "urls", "heap", "guard", "clock", "store", "live", "in
     heap      giving the memory of runs that left back to the system
     guard     limits, tokens, Host checks, connection caps, PROXY protocol, log rate
     clock     NTP samples, the offset/drift model, corrections, the UDP exchange
+    rollup    per minute and hour, mergeable sketches of each stage's delays, from events
     store     one interface, one module per engine (SQLite, PostgreSQL), stored-run loading
     live      what the relay holds of each run in memory: frames, statistics, sequence sets
     ingest    the nodes' WebSocket, run ownership among relays

@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from core.clocks import NEVER
-from probes.ship.wire import decode_payload
 from probes.trace.events import TraceHeader
 from relay.clock.correction import Correction
 from relay.clock.entry import clock_entry
@@ -143,8 +142,8 @@ class Mirrors:
     def _refresh(self, mirror: Mirror) -> None:
         while True:
             batches = self._read(lambda d: d.batches_after(mirror.run, mirror.last_seq, BATCHES_PER_READ))
-            for seq, payload, compressed in batches:
-                mirror.live.add(decode_payload(payload, compressed))
+            for seq, events in batches:
+                mirror.live.add(events)
                 mirror.live.maintain()
                 mirror.last_seq = seq
             if len(batches) < BATCHES_PER_READ:

@@ -7,7 +7,11 @@ relay, start three nodes" makes one session of three runs. A run that comes back
 restart, or on another relay, keeps its session. Sessions are numbered 1, 2, ...
 
 Events are stored as they arrived, one row per batch (the payload blob, compressed or not),
-keyed by (run, seq): a resent batch is stored once. Timestamps are stored raw (node clock); each
+keyed by (run, seq): a resent batch is stored once. Once a batch is old enough, compaction
+(:mod:`relay.store.compaction`) moves it with its neighbours into a *segment* (:mod:`relay.store.segment`:
+by column, about 3.5 bytes an event where a batch takes 24), one row for a contiguous range of seqs.
+Readers read both: :meth:`Database.event_parts` and :meth:`Database.batches_after` give a run's
+events by seq whichever row holds them. Timestamps are stored raw (node clock); each
 run keeps its last clock view and the history of its clock estimates (``clock_history``), which
 :func:`relay.store.runs.load_runs` applies per timestamp.
 
@@ -26,19 +30,32 @@ from __future__ import annotations
 
 import hashlib
 import hmac
+import itertools
 import json
 from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
+from probes.ship.wire import decode_payload
 from relay.clock.correction import Segment
 from relay.errors import RelayError
+from relay.rollup.compute import FRAME_ROW, HOUR_NS, WIDTHS_NS, Key, Rollup
+from relay.rollup.sketch import Sketch
+from relay.store.segment import decode as decode_segment
+from relay.store.segment import split_batches
 
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 """2 added runs.secret (hash of the run's resume secret) and runs.rejected (why the relay refused it);
 3 added clock_history (each run's clock estimates, each in force from a node time); 4 added
-PostgreSQL's leases (each run's owner, with an expiry and a fencing generation)."""
+PostgreSQL's leases (each run's owner, with an expiry and a fencing generation); 5 added segments
+(batches compacted, :mod:`relay.store.compaction`), rollups (:mod:`relay.rollup.compute`) and
+runs.rolled_lost."""
+READS_SCHEMAS = ("1", "2", "3", "4")
+"""Schemas a store is brought to SCHEMA_VERSION from when a relay opens it (the tables and columns
+they lack are added; nothing stored is rewritten)."""
 LEASE_S = 4.0
 """A shared store: how long a run stays owned after its owner last renewed its lease; another relay
 may take it then, at most this long after its owner stopped (froze, or lost the store)."""
@@ -201,18 +218,137 @@ class Database(ABC):
         :class:`NotOwner` (nothing written) if a run is not owned here."""
 
     def stored_seqs(self, run: str) -> set[int]:
-        return {int(r[0]) for r in self._rows("SELECT seq FROM batches WHERE run = %s", (run,))}
+        """The seqs of a run's stored batches, compacted or not (read in that order: a range compacted
+        between the two reads is found in the second)."""
+        seqs = {int(r[0]) for r in self._rows("SELECT seq FROM batches WHERE run = %s", (run,))}
+        for first, last in self._rows("SELECT first_seq, last_seq FROM segments WHERE run = %s", (run,)):
+            seqs.update(range(int(first), int(last) + 1))
+        return seqs
 
-    def batch_payloads(self, run: str) -> list[tuple[bytes, bool]]:
-        """A run's stored batches, (payload, compressed), by seq."""
-        return [(bytes(data), bool(c)) for data, c in
-                self._rows("SELECT data, compressed FROM batches WHERE run = %s ORDER BY seq", (run,))]
+    def event_parts(self, run: str) -> list[np.ndarray]:
+        """A run's stored events by seq, one array per stored row (a batch or a segment), read in one
+        statement: one snapshot, so that a compaction meanwhile neither hides nor doubles a batch."""
+        return [_events(segment, data, compressed) for _, segment, data, compressed in self._rows(
+            f"{_PARTS} ORDER BY 1", (run, -1, run, -1))]
 
-    def batches_after(self, run: str, seq: int, limit: int) -> list[tuple[int, bytes, bool]]:
-        """Up to ``limit`` of a run's stored batches after ``seq``, (seq, payload, compressed), by seq."""
-        return [(int(s), bytes(data), bool(c)) for s, data, c in self._rows(
-            "SELECT seq, data, compressed FROM batches WHERE run = %s AND seq > %s ORDER BY seq LIMIT %s",
-            (run, seq, limit))]
+    def batches_after(self, run: str, seq: int, limit: int) -> list[tuple[int, np.ndarray]]:
+        """A run's stored batches after ``seq``, (seq, events), by seq: from at least ``limit`` stored
+        rows (fewer at the end), a segment giving back each of its batches."""
+        out = []
+        for first, segment, data, compressed in self._rows(f"{_PARTS} ORDER BY 1 LIMIT %s",
+                                                           (run, seq, run, seq, limit)):
+            if not segment:
+                out.append((int(first), _events(False, data, compressed)))
+                continue
+            counts, events = decode_segment(bytes(data))
+            out.extend((s, e) for s, e in zip(itertools.count(int(first)), split_batches(counts, events)) if s > seq)
+        return out
+
+    # --- compaction (relay.store.compaction) ----------------------------------------------------
+
+    def compaction_due(self, before_ns: int, min_events: int) -> list[tuple[str, bool]]:
+        """Runs with batches stored before ``before_ns``, each with whether it is quiet (ended, or
+        not heard from since then): a run still written only with ``min_events`` of them at least."""
+        return [(run, bool(quiet)) for run, events, quiet in self._rows(
+            "SELECT b.run, sum(b.count), max(CASE WHEN r.ended_ns IS NOT NULL OR r.last_seen_ns < %s THEN 1 ELSE 0 END) "
+            "FROM batches b JOIN runs r ON r.id = b.run WHERE b.received_ns < %s GROUP BY b.run ORDER BY b.run",
+            (before_ns, before_ns)) if quiet or int(events) >= min_events]
+
+    def due_batches(self, run: str, before_ns: int) -> list[tuple[int, int]]:
+        """(seq, events) of the run's batches stored before ``before_ns``, by seq."""
+        return [(int(s), int(c)) for s, c in self._rows(
+            "SELECT seq, count FROM batches WHERE run = %s AND received_ns < %s ORDER BY seq", (run, before_ns))]
+
+    def batch_rows(self, run: str, first: int, last: int) -> list[tuple[int, int, bool, bytes]]:
+        """(seq, events, compressed, payload) of the run's batches ``first..last``, by seq."""
+        return [(int(s), int(c), bool(z), bytes(d)) for s, c, z, d in self._rows(
+            "SELECT seq, count, compressed, data FROM batches WHERE run = %s AND seq BETWEEN %s AND %s ORDER BY seq",
+            (run, first, last))]
+
+    def replace_batches(self, run: str, first: int, last: int, count: int, first_ns: int, last_ns: int,
+                        data: bytes, node: str = "", rollups: dict[Key, Rollup] | None = None) -> bool:
+        """In one transaction: delete batches ``first..last`` of ``run``, store segment ``data`` in
+        their place and merge ``rollups`` (of node ``node``) into the stored ones, with the events
+        the run lost since its last rollups; nothing (False) unless every batch was still there."""
+        class Moved(Exception):
+            pass
+
+        def replace(executor: Any) -> None:
+            deleted = executor.execute(self._sql("DELETE FROM batches WHERE run = %s AND seq BETWEEN %s AND %s"),
+                                       (run, first, last)).rowcount
+            if deleted != last - first + 1:
+                raise Moved()
+            executor.execute(self._sql("INSERT INTO segments (run, first_seq, last_seq, count, first_ns, last_ns, data) "
+                                       "VALUES (%s, %s, %s, %s, %s, %s, %s)"),
+                             (run, first, last, count, first_ns, last_ns, data))
+            if rollups is not None:
+                self._merge_rollups(executor, node, run, dict(rollups), last_ns)
+        try:
+            self._transaction(replace)
+        except Moved:
+            return False
+        return True
+
+    def _merge_rollups(self, executor: Any, node: str, run: str, rollups: dict[Key, Rollup], last_ns: int) -> None:
+        """Add ``rollups`` to the run's stored ones, and the events it lost since the last time to its
+        frame row of ``last_ns`` (runs.rolled_lost: what rollups hold of its ``lost`` so far)."""
+        lost, rolled = executor.execute(self._sql("SELECT lost, rolled_lost FROM runs WHERE id = %s"), (run,)).fetchone()
+        if lost > rolled:
+            for width in WIDTHS_NS:
+                key = (FRAME_ROW, width, last_ns // width * width)
+                rollups[key] = rollups.get(key, Rollup()).merge(Rollup(lost=lost - rolled))
+            executor.execute(self._sql("UPDATE runs SET rolled_lost = %s WHERE id = %s"), (lost, run))
+        for width in WIDTHS_NS:
+            starts = [t for _, w, t in rollups if w == width]
+            if not starts:
+                continue
+            for stage, start, *values in executor.execute(self._sql(
+                    f"SELECT stage, start_ns, {', '.join(ROLLUP_VALUES)} FROM rollups WHERE node = %s AND width_ns = %s "
+                    "AND start_ns BETWEEN %s AND %s AND run = %s"), (node, width, min(starts), max(starts), run)).fetchall():
+                key = (stage, width, int(start))
+                if key in rollups:
+                    rollups[key] = stored_rollup(values).merge(rollups[key])
+        executor.executemany(self._sql(
+            f"INSERT INTO rollups (node, width_ns, start_ns, stage, run, {', '.join(ROLLUP_VALUES)}) "
+            f"VALUES (%s, %s, %s, %s, %s{', %s' * len(ROLLUP_VALUES)}) ON CONFLICT (node, width_ns, start_ns, stage, run) "
+            f"DO UPDATE SET {', '.join(f'{c} = excluded.{c}' for c in ROLLUP_VALUES)}"),
+            [(node, w, t, stage, run, *rollup_values(r)) for (stage, w, t), r in sorted(rollups.items())])
+
+    def run_node(self, run: str) -> tuple[str, str] | None:
+        """(node, header JSON) of a stored run."""
+        rows = self._rows("SELECT node, header FROM runs WHERE id = %s", (run,))
+        return (rows[0][0], rows[0][1]) if rows else None
+
+    def rollup_rows(self, node: str, width_ns: int, since_ns: int, until_ns: int) -> list[tuple]:
+        """(stage, start_ns, run, incomplete, drops, lost, delay, service, wait) of ``node``'s rollups of
+        ``width_ns`` starting in ``since_ns..until_ns`` (excluded), by start."""
+        return self._rows(f"SELECT stage, start_ns, run, {', '.join(ROLLUP_VALUES)} FROM rollups WHERE node = %s "
+                          "AND width_ns = %s AND start_ns >= %s AND start_ns < %s ORDER BY start_ns",
+                          (node, width_ns, since_ns, until_ns))
+
+    def rollup_nodes(self) -> list[tuple[str, int, int]]:
+        """(node, first start_ns, last start_ns) of every node with rollups."""
+        return [(n, int(a), int(b)) for n, a, b in self._rows(
+            "SELECT node, min(start_ns), max(start_ns) FROM rollups WHERE width_ns = %s GROUP BY node ORDER BY node",
+            (HOUR_NS,))]
+
+    def delete_rollups_part(self, before_ns: int, limit: int) -> int:
+        """Delete up to ``limit`` rollup rows that start before ``before_ns`` (one short transaction)."""
+        return self._transaction(lambda x: x.execute(self._sql(
+            "DELETE FROM rollups WHERE (node, width_ns, start_ns, stage, run) IN (SELECT node, width_ns, start_ns, "
+            "stage, run FROM rollups WHERE start_ns < %s LIMIT %s)"), (before_ns, limit)).rowcount)
+
+    def claim_compaction(self, run: str) -> bool:
+        """Whether this connection may compact ``run`` now (on a shared store: no other is)."""
+        return True
+
+    def release_compaction(self, run: str) -> None:
+        pass
+
+    def give_back_space(self, keep_pages: int = 1024) -> int:
+        """Give the store's free space back where the engine does it on request, but ``keep_pages``
+        pages (0: all); the bytes given."""
+        return 0
 
     # --- readers ------------------------------------------------------------------------------
 
@@ -260,6 +396,31 @@ class Database(ABC):
 
     @abstractmethod
     def close(self) -> None: ...
+
+
+ROLLUP_VALUES = ("incomplete", "drops", "lost", "delay", "service", "wait")
+"""A rollup row's values (its key: node, width_ns, start_ns, stage, run)."""
+
+
+def rollup_values(r: Rollup) -> tuple:
+    return r.incomplete, r.drops, r.lost, r.delay.encode(), r.service.encode(), r.wait.encode()
+
+
+def stored_rollup(values: tuple | list) -> Rollup:
+    incomplete, drops, lost, delay, service, wait = values
+    return Rollup(Sketch.decode(bytes(delay)), Sketch.decode(bytes(service)), Sketch.decode(bytes(wait)),
+                  int(incomplete), int(drops), int(lost))
+
+
+_PARTS = ("SELECT seq, 0, data, compressed FROM batches WHERE run = %s AND seq > %s UNION ALL "
+          "SELECT first_seq, 1, data, false FROM segments WHERE run = %s AND last_seq > %s")
+"""A run's stored rows after a seq: (first seq, whether a segment, data, compressed)."""
+
+
+def _events(segment: Any, data: bytes, compressed: Any) -> np.ndarray:
+    if segment:
+        return decode_segment(bytes(data))[1]
+    return decode_payload(bytes(data), bool(compressed))
 
 
 def secret_matches(stored_hash: str | None, presented: str | None) -> bool:

@@ -2,8 +2,8 @@
 
 Everything is copied: sessions (numbered anew, in the same order, after those already in the
 target), runs with their headers, counters, clock views and resume secrets (a node may resume
-its run on a relay of the new store), refused runs (still kept apart), batches as stored, clock
-history. Each run is one transaction, so an interrupted copy leaves whole runs; run again, it
+its run on a relay of the new store), refused runs (still kept apart), batches and segments as
+stored (compacted or not: the relays of the target compact what is due), their rollups, clock history. Each run is one transaction, so an interrupted copy leaves whole runs; run again, it
 copies only the runs the target lacks. The source is only read (a relay may be writing it).
 """
 
@@ -19,8 +19,10 @@ from relay.store.postgres import PostgresDatabase, lock_key
 from relay.store.sqlite import connect
 
 COPIED_RUN_COLUMNS = ("id", "node", "header", "first_seen_ns", "last_seen_ns", "ended_ns", "events", "written", "dropped",
-               "lost", "clock", "secret", "rejected")
+               "lost", "clock", "secret", "rejected", "rolled_lost")
 BATCH_COLUMNS = ("seq", "count", "compressed", "received_ns", "data")
+SEGMENT_COLUMNS = ("first_seq", "last_seq", "count", "first_ns", "last_ns", "data")
+ROLLUP_COLUMNS = ("node", "width_ns", "start_ns", "stage", "incomplete", "drops", "lost", "delay", "service", "wait")
 
 
 @dataclass
@@ -30,6 +32,7 @@ class Copied:
     skipped: int = 0
     """Runs the target already held."""
     batches: int = 0
+    segments: int = 0
     bytes: int = 0
 
 
@@ -85,6 +88,15 @@ def _copy_run(src, dst: PostgresDatabase, run: tuple, session: int, done: Copied
                 copy.write_row((rid, seq, count, bool(compressed), received, data))
                 done.batches += 1
                 done.bytes += len(data)
+        with dst.conn.cursor().copy(f"COPY segments (run, {', '.join(SEGMENT_COLUMNS)}) FROM STDIN") as copy:
+            for row in src.execute(f"SELECT {', '.join(SEGMENT_COLUMNS)} FROM segments WHERE run = ? ORDER BY first_seq",
+                                   (rid,)):
+                copy.write_row((rid, *row))
+                done.segments += 1
+                done.bytes += len(row[-1])
+        with dst.conn.cursor().copy(f"COPY rollups (run, {', '.join(ROLLUP_COLUMNS)}) FROM STDIN") as copy:
+            for row in src.execute(f"SELECT {', '.join(ROLLUP_COLUMNS)} FROM rollups WHERE run = ?", (rid,)):
+                copy.write_row((rid, *row))
         history = src.execute(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history WHERE run = ?",
                               (rid,)).fetchall()
         if history:

@@ -75,8 +75,10 @@ CREATE TABLE IF NOT EXISTS runs (
     clock TEXT NOT NULL DEFAULT '{}',
     secret TEXT,
     rejected TEXT,
-    lock_key BIGINT NOT NULL
+    lock_key BIGINT NOT NULL,
+    rolled_lost BIGINT NOT NULL DEFAULT 0
 );
+ALTER TABLE runs ADD COLUMN IF NOT EXISTS rolled_lost BIGINT NOT NULL DEFAULT 0;
 CREATE TABLE IF NOT EXISTS leases (
     run TEXT PRIMARY KEY,
     owner TEXT NOT NULL,
@@ -106,6 +108,31 @@ CREATE TABLE IF NOT EXISTS clock_history (
     growth_ppb BIGINT NOT NULL,
     PRIMARY KEY (run, from_ns)
 );
+CREATE TABLE IF NOT EXISTS segments (
+    run TEXT NOT NULL,
+    first_seq BIGINT NOT NULL,
+    last_seq BIGINT NOT NULL,
+    count BIGINT NOT NULL,
+    first_ns BIGINT NOT NULL,
+    last_ns BIGINT NOT NULL,
+    data BYTEA NOT NULL,
+    PRIMARY KEY (run, first_seq)
+);
+ALTER TABLE segments ALTER COLUMN data SET STORAGE EXTERNAL;
+CREATE TABLE IF NOT EXISTS rollups (
+    node TEXT NOT NULL,
+    width_ns BIGINT NOT NULL,
+    start_ns BIGINT NOT NULL,
+    stage TEXT NOT NULL,
+    run TEXT NOT NULL,
+    incomplete BIGINT NOT NULL,
+    drops BIGINT NOT NULL,
+    lost BIGINT NOT NULL,
+    delay BYTEA NOT NULL,
+    service BYTEA NOT NULL,
+    wait BYTEA NOT NULL,
+    PRIMARY KEY (node, width_ns, start_ns, stage, run)
+);
 CREATE TABLE IF NOT EXISTS fleet (
     node TEXT PRIMARY KEY,
     run TEXT NOT NULL,
@@ -120,6 +147,9 @@ SCHEMA_LOCK = (LOCKS, 1)
 """Held while a relay creates or migrates the schema (relays starting together)."""
 SESSION_LOCK = (LOCKS, 2)
 """Held while a relay decides a new run's session."""
+COMPACTION_LOCKS = LOCKS + 1
+"""The first key of a run's compaction lock (the second: 31 bits of its UUID): two-key advisory locks
+never meet the one-key ones of the runs' owners."""
 HELD_RUNS = "SELECT run FROM leases WHERE expires > clock_timestamp()"
 """Runs some relay owns now (their lease has not expired)."""
 TAKE_LOCK_TIMEOUT_MS = 1000
@@ -152,6 +182,10 @@ def lock_key(run: str) -> int:
     return int(run[:15], 16)
 
 
+def _compaction_lock(run: str) -> tuple[int, int]:
+    return COMPACTION_LOCKS, int(run[:8], 16) & 0x7FFFFFFF
+
+
 PUT_BATCHES = """
 WITH held AS (
     SELECT l.run FROM leases l JOIN unnest(%(ids)s::text[], %(generations)s::bigint[]) AS o(run, generation)
@@ -163,6 +197,8 @@ WITH held AS (
     FROM unnest(%(run)s::text[], %(seq)s::bigint[], %(count)s::int[], %(compressed)s::bool[], %(data)s::bytea[])
         AS b(r, s, c, z, d)
     WHERE (SELECT count(*) FROM held) = %(held)s
+        AND coalesce((SELECT g.last_seq FROM segments g WHERE g.run = b.r AND g.first_seq <= b.s
+                      ORDER BY g.first_seq DESC LIMIT 1), -1) < b.s
     ON CONFLICT DO NOTHING RETURNING run, seq, count
 ), counted AS (
     UPDATE runs SET events = runs.events + d.n, last_seen_ns = %(now)s
@@ -172,7 +208,8 @@ SELECT (SELECT array_agg(run) FROM held), array_agg(run), array_agg(seq) FROM st
 """
 """A group of batches stored (:meth:`PostgresDatabase.put_batches`): the leases of its runs locked
 and checked (the fence), then its rows inserted, none if a lease is not held (an InitPlan, run
-before the insert), each once (a batch sent again conflicts and is left out), then the events
+before the insert), each once (a batch sent again conflicts and is left out, and so is one a segment
+holds: one index probe), then the events
 of those inserted added to their runs' counts."""
 
 
@@ -222,7 +259,7 @@ class PostgresDatabase(Database):
         row = cur.fetchone()
         if row is None:
             cur.execute("INSERT INTO meta VALUES ('schema', %s)", (str(SCHEMA_VERSION),))
-        elif row[0] == "3":  # schema 4 added the leases table, made by SCHEMA above
+        elif row[0] in ("3", "4"):  # 4 added the leases table, 5 segments and rollups: made by SCHEMA above
             cur.execute("UPDATE meta SET value = %s WHERE key = 'schema'", (str(SCHEMA_VERSION),))
         elif row[0] != str(SCHEMA_VERSION):
             raise RelayError(f"{self.location}: relay database schema {row[0]}, this relay reads {SCHEMA_VERSION}")
@@ -465,10 +502,11 @@ class PostgresDatabase(Database):
 
     def delete_session_part(self, session: int, limit: int) -> int:
         def delete(cur: psycopg.Cursor) -> int:
-            cur.execute("DELETE FROM batches WHERE (run, seq) IN (SELECT run, seq FROM batches WHERE run IN "
-                        "(SELECT id FROM runs WHERE session = %s) LIMIT %s)", (session, limit))
-            if cur.rowcount:
-                return cur.rowcount
+            for table, key in (("batches", "seq"), ("segments", "first_seq")):
+                cur.execute(f"DELETE FROM {table} WHERE (run, {key}) IN (SELECT run, {key} FROM {table} WHERE run IN "
+                            "(SELECT id FROM runs WHERE session = %s) LIMIT %s)", (session, limit))
+                if cur.rowcount:
+                    return cur.rowcount
             cur.execute("DELETE FROM clock_history WHERE run IN (SELECT id FROM runs WHERE session = %s)", (session,))
             n = cur.rowcount
             cur.execute("DELETE FROM leases WHERE run IN (SELECT id FROM runs WHERE session = %s)", (session,))
@@ -479,6 +517,18 @@ class PostgresDatabase(Database):
             return n + cur.rowcount
 
         return self._transaction(delete)
+
+    # --- compaction -----------------------------------------------------------------------------
+
+    def claim_compaction(self, run: str) -> bool:
+        """A lock on compacting ``run`` for this connection (no wait: False if another holds it)."""
+        return bool(self._rows("SELECT pg_try_advisory_lock(%s, %s)", _compaction_lock(run))[0][0])
+
+    def release_compaction(self, run: str) -> None:
+        try:
+            self._rows("SELECT pg_advisory_unlock(%s, %s)", _compaction_lock(run))
+        except StoreUnavailable:  # the connection is gone, and the lock with it
+            pass
 
     # --- the connection -----------------------------------------------------------------------
 

@@ -13,7 +13,6 @@ from pathlib import Path
 
 import numpy as np
 
-from probes.ship.wire import decode_payload
 from probes.trace.events import CAPTURE, EVENT_DTYPE, TraceHeader
 from relay.clock.correction import NO_CORRECTION, Correction, Segment, stored_correction
 from relay.clock.entry import stored_run_correction
@@ -45,8 +44,8 @@ class StoredRun:
 
 
 def run_events(database: Database, run: str) -> np.ndarray:
-    """Every stored event of a run, in batch order (raw node timestamps)."""
-    parts = [decode_payload(data, compressed) for data, compressed in database.batch_payloads(run)]
+    """Every stored event of a run, in batch order (raw node timestamps), compacted or not."""
+    parts = database.event_parts(run)
     return np.concatenate(parts) if parts else np.zeros(0, EVENT_DTYPE)
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from relay.errors import RelayError
-from relay.store.base import (HISTORY_COLUMNS, SCHEMA_VERSION, BatchRow, Database, StoreUnavailable, check_resume,
+from relay.store.base import (HISTORY_COLUMNS, READS_SCHEMAS, SCHEMA_VERSION, BatchRow, Database, StoreUnavailable, check_resume,
                               secret_hash)
 
 SCHEMA = """
@@ -36,7 +36,8 @@ CREATE TABLE IF NOT EXISTS runs (
     lost INTEGER NOT NULL DEFAULT 0,
     clock TEXT NOT NULL DEFAULT '{}',
     secret TEXT,
-    rejected TEXT
+    rejected TEXT,
+    rolled_lost INTEGER NOT NULL DEFAULT 0
 );
 CREATE INDEX IF NOT EXISTS runs_by_session ON runs(session);
 CREATE TABLE IF NOT EXISTS batches (
@@ -58,7 +59,39 @@ CREATE TABLE IF NOT EXISTS clock_history (
     growth_ppb INTEGER NOT NULL,
     PRIMARY KEY (run, from_ns)
 ) WITHOUT ROWID;
+CREATE TABLE IF NOT EXISTS segments (
+    run TEXT NOT NULL,
+    first_seq INTEGER NOT NULL,
+    last_seq INTEGER NOT NULL,
+    count INTEGER NOT NULL,
+    first_ns INTEGER NOT NULL,
+    last_ns INTEGER NOT NULL,
+    data BLOB NOT NULL,
+    PRIMARY KEY (run, first_seq)
+);
+CREATE TABLE IF NOT EXISTS rollups (
+    node TEXT NOT NULL,
+    width_ns INTEGER NOT NULL,
+    start_ns INTEGER NOT NULL,
+    stage TEXT NOT NULL,
+    run TEXT NOT NULL,
+    incomplete INTEGER NOT NULL,
+    drops INTEGER NOT NULL,
+    lost INTEGER NOT NULL,
+    delay BLOB NOT NULL,
+    service BLOB NOT NULL,
+    wait BLOB NOT NULL,
+    PRIMARY KEY (node, width_ns, start_ns, stage, run)
+) WITHOUT ROWID;
 """
+PUT_BATCH = ("INSERT OR IGNORE INTO batches (run, seq, count, compressed, received_ns, data) SELECT ?, ?, ?, ?, ?, ? "
+             "WHERE coalesce((SELECT last_seq FROM segments WHERE run = ? AND first_seq <= ? "
+             "ORDER BY first_seq DESC LIMIT 1), -1) < ?")
+"""A batch stored once: not if stored before (the key), nor if a segment holds it (one index probe)."""
+INCREMENTAL = 2
+"""``PRAGMA auto_vacuum``'s value for incremental."""
+FREE_PAGES_KEPT = 1024
+"""Free pages a file keeps for new rows rather than shrink (4 MiB of 4 KiB pages)."""
 
 
 def connect(path: str | Path, create: bool = True) -> sqlite3.Connection:
@@ -68,13 +101,16 @@ def connect(path: str | Path, create: bool = True) -> sqlite3.Connection:
         raise RelayError(f"{path}: no such relay database")
     try:
         conn = sqlite3.connect(str(path), timeout=30, isolation_level=None, check_same_thread=False)
+        # A new file gives the pages compaction frees back on request (relay.store.compaction);
+        # an older one keeps them for later rows (setting this needs an empty file, before WAL).
+        conn.execute("PRAGMA auto_vacuum=INCREMENTAL")
         conn.execute("PRAGMA journal_mode=WAL")
         # NORMAL in WAL mode: a commit survives a crash of the process (kill -9), only an
         # OS crash or power loss may lose the last transactions.
         conn.execute("PRAGMA synchronous=NORMAL")
         conn.executescript(SCHEMA)
         row = conn.execute("SELECT value FROM meta WHERE key='schema'").fetchone()
-        if row is not None and row[0] in ("1", "2", "3"):
+        if row is not None and row[0] in READS_SCHEMAS:
             _migrate(conn)
             row = (str(SCHEMA_VERSION),)
         if row is None:
@@ -87,15 +123,16 @@ def connect(path: str | Path, create: bool = True) -> sqlite3.Connection:
 
 
 def _migrate(conn: sqlite3.Connection) -> None:
-    """Schema 1 or 2 -> 3, in place: runs stored before schema 2 have no resume secret (they cannot
-    be resumed); runs stored before 3 have no clock history (their last estimate corrects them),
-    its table being made by SCHEMA."""
+    """An older schema -> SCHEMA_VERSION, in place: runs stored before schema 2 have no resume
+    secret (they cannot be resumed); runs stored before 3 have no clock history (their last estimate
+    corrects them); before 5 no segments (their batches are compacted as new ones are). The
+    tables are made by SCHEMA."""
     conn.execute("BEGIN")
     try:
         columns = {r[1] for r in conn.execute("PRAGMA table_info(runs)")}
-        for column in ("secret", "rejected"):
+        for column, kind in (("secret", "TEXT"), ("rejected", "TEXT"), ("rolled_lost", "INTEGER NOT NULL DEFAULT 0")):
             if column not in columns:
-                conn.execute(f"ALTER TABLE runs ADD COLUMN {column} TEXT")
+                conn.execute(f"ALTER TABLE runs ADD COLUMN {column} {kind}")
         conn.execute("UPDATE meta SET value = ? WHERE key = 'schema'", (str(SCHEMA_VERSION),))
         conn.execute("COMMIT")
     except BaseException:
@@ -194,9 +231,8 @@ class SqliteDatabase(Database):
         def insert(conn: sqlite3.Connection) -> list[bool]:
             inserted, per_run = [], {}
             for b in batches:
-                cur = conn.execute("INSERT OR IGNORE INTO batches (run, seq, count, compressed, received_ns, data) "
-                                   "VALUES (?, ?, ?, ?, ?, ?)",
-                                   (b.run, b.seq, b.count, int(b.compressed), now_ns, b.payload))
+                cur = conn.execute(PUT_BATCH, (b.run, b.seq, b.count, int(b.compressed), now_ns, b.payload,
+                                               b.run, b.seq, b.seq))
                 ok = cur.rowcount == 1
                 inserted.append(ok)
                 per_run[b.run] = per_run.get(b.run, 0) + (b.count if ok else 0)
@@ -217,16 +253,31 @@ class SqliteDatabase(Database):
 
     def delete_session_part(self, session: int, limit: int) -> int:
         def delete(conn: sqlite3.Connection) -> int:
-            n = conn.execute("DELETE FROM batches WHERE rowid IN (SELECT b.rowid FROM batches b JOIN runs r "
-                             "ON r.id = b.run WHERE r.session = ? LIMIT ?)", (session, limit)).rowcount
-            if n:
-                return n
+            for table in ("batches", "segments"):
+                n = conn.execute(f"DELETE FROM {table} WHERE rowid IN (SELECT b.rowid FROM {table} b JOIN runs r "
+                                 "ON r.id = b.run WHERE r.session = ? LIMIT ?)", (session, limit)).rowcount
+                if n:
+                    return n
             n = conn.execute("DELETE FROM clock_history WHERE run IN (SELECT id FROM runs WHERE session = ?)",
                              (session,)).rowcount
             n += conn.execute("DELETE FROM runs WHERE session = ?", (session,)).rowcount
             return n + conn.execute("DELETE FROM sessions WHERE id = ?", (session,)).rowcount
 
         return self._transaction(delete)
+
+    def give_back_space(self, keep_pages: int = FREE_PAGES_KEPT) -> int:
+        """A file with incremental auto-vacuum (made by schema 5 or later) shrinks once a quarter of
+        its pages and more than ``keep_pages`` are free (compaction freed them): below that, new
+        batches reuse them."""
+        if self.conn.execute("PRAGMA auto_vacuum").fetchone()[0] != INCREMENTAL:
+            return 0
+        free = self.conn.execute("PRAGMA freelist_count").fetchone()[0]
+        pages, size = (self.conn.execute(f"PRAGMA {p}").fetchone()[0] for p in ("page_count", "page_size"))
+        if not free or free < max(keep_pages, pages // 4 if keep_pages else 0):
+            return 0
+        self.conn.executescript("PRAGMA incremental_vacuum;")  # execute() steps it once: one page
+        self.conn.execute("PRAGMA wal_checkpoint(TRUNCATE)").fetchall()
+        return free * size
 
     # --- the connection -----------------------------------------------------------------------
 

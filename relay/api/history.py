@@ -1,0 +1,57 @@
+"""A DCU's long history, from the store's rollups (:mod:`relay.store.history`): HTTP routes.
+
+- ``GET /api/history/nodes``: [{node, first_ns, last_ns}], every DCU with rollups (hours);
+- ``GET /api/history?node=NAME&since=30d[&until_ns=NS]``: ``{summary, history}``: the node's statistics
+  over that time (``dcuscope stats --db --node --since``'s, exact figures and those from the sketch
+  named) and per stage, and end to end, a point per minute or hour (p50, p99, frames), a time
+  without frames having none (a gap). ``since`` is a duration back from ``until_ns`` (default now).
+
+Each request reads in a worker thread on a connection of its own (ingest goes on meanwhile).
+The token middleware of :mod:`relay.api.routes` guards them like every ``/api`` route.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+
+from aiohttp import web
+
+from relay.errors import RelayError, http_error
+from relay.live.state import RelayState
+from relay.store.history import history, nodes, parse_duration_ns, summary
+
+MAX_NAME = 200
+MAX_NS = 1 << 62
+
+
+def add_history_routes(app: web.Application, state: RelayState) -> None:
+    db = state.storage.db
+
+    async def history_nodes(request: web.Request) -> web.Response:
+        try:
+            return web.json_response(await asyncio.to_thread(nodes, db))
+        except RelayError as exc:
+            raise http_error(web.HTTPServiceUnavailable, str(exc)) from exc
+
+    async def node_history(request: web.Request) -> web.Response:
+        node = request.query.get("node", "")
+        if not node or len(node) > MAX_NAME:
+            raise http_error(web.HTTPBadRequest, f"node=NAME is required (at most {MAX_NAME} characters)")
+        try:
+            span = parse_duration_ns(request.query.get("since", "1d"))
+            until = int(request.query.get("until_ns", time.time_ns()))
+            if not span <= until <= MAX_NS:
+                raise ValueError(f"until_ns must be {span}..{MAX_NS}")
+        except (RelayError, ValueError) as exc:
+            raise http_error(web.HTTPBadRequest, f"since=DURATION (e.g. 30d), until_ns=NS: {exc}") from None
+
+        def read() -> dict:
+            return {"summary": summary(db, node, until - span, until), "history": history(db, node, until - span, until)}
+        try:
+            return web.json_response(await asyncio.to_thread(read))
+        except RelayError as exc:
+            raise http_error(web.HTTPServiceUnavailable, str(exc)) from exc
+
+    app.router.add_get("/api/history/nodes", history_nodes)
+    app.router.add_get("/api/history", node_history)

@@ -1,0 +1,134 @@
+"""Answers from rollups: a DCU's statistics over days or months, and its per-stage history.
+
+:func:`summary` merges a node's rollups of ``since..until``: whole hours from the hour rows, the
+minutes at either end from the minute rows (so a month reads about 720 rows a stage, not 43,200),
+all its runs together. Counts, means, minimum, maximum, drops, incomplete frames and lost events are
+exact (sums of the rows'); percentiles come from the sketch, within ``ALPHA`` of the value
+(:mod:`relay.rollup.sketch`). :func:`history` gives per stage a point per minute or hour (p50, p99,
+frames), a time without frames having no point: a gap.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from relay.errors import RelayError
+from relay.rollup.compute import FRAME_ROW, HOUR_NS, MINUTE_NS, Rollup
+from relay.rollup.sketch import ALPHA, Sketch
+from relay.store.base import Database, stored_rollup
+from relay.store.engines import open_database
+
+QUANTILES = (("p50_ms", 0.50), ("p90_ms", 0.90), ("p99_ms", 0.99))
+EXACT = ("count", "mean_ms", "min_ms", "max_ms", "drops", "incomplete", "lost")
+MAX_POINTS = 2000
+"""A history has at most this many points a stage: minutes up to 33 hours, hours beyond."""
+UNITS = {"s": 1, "m": 60, "h": 3600, "d": 86400, "w": 7 * 86400}
+
+
+def parse_duration_ns(text: str) -> int:
+    """``30d``, ``12h``, ``90m``, ``45s``, ``2w`` (a number alone: seconds) in ns; RelayError otherwise."""
+    t = str(text).strip().lower()
+    unit = UNITS.get(t[-1:]) if t[-1:].isalpha() else 1
+    number = t[:-1] if t[-1:].isalpha() else t
+    try:
+        value = float(number)
+    except ValueError:
+        value = float("nan")
+    if unit is None or not 0 < value < 1e6 * 86400:
+        raise RelayError(f"a duration is a number and a unit, s, m, h, d or w (e.g. 30d), not {text!r}")
+    return int(value * unit * 1e9)
+
+
+def _rows(database: Database, node: str, since_ns: int, until_ns: int) -> list[tuple]:
+    """The rows covering since..until: hours inside, minutes at the ends."""
+    since, until = since_ns // MINUTE_NS * MINUTE_NS, until_ns
+    first_hour = -(-since // HOUR_NS) * HOUR_NS
+    last_hour = until // HOUR_NS * HOUR_NS
+    if last_hour - first_hour < 2 * HOUR_NS:
+        return database.rollup_rows(node, MINUTE_NS, since, until)
+    return (database.rollup_rows(node, MINUTE_NS, since, first_hour)
+            + database.rollup_rows(node, HOUR_NS, first_hour, last_hour)
+            + database.rollup_rows(node, MINUTE_NS, last_hour, until))
+
+
+def summary(db: str | Path, node: str, since_ns: int, until_ns: int) -> dict:
+    """``node``'s statistics over ``since_ns..until_ns`` (relay time, ns) from its rollups."""
+    database = open_database(db, create=False)
+    try:
+        rows = _rows(database, node, since_ns, until_ns)
+        order = _stage_order(database, node, {r[0] for r in rows})
+    finally:
+        database.close()
+    merged: dict[str, Rollup] = {}
+    starts = set()
+    for stage, start, run, *values in rows:
+        r = stored_rollup(values)
+        merged[stage] = merged[stage].merge(r) if stage in merged else r
+        starts.add(int(start))
+    frame = merged.pop(FRAME_ROW, Rollup())
+    stages = {name: {**_figures(r.delay), "drops": r.drops, "service": _figures(r.service), "wait": _figures(r.wait)}
+              for name, r in sorted(merged.items(), key=lambda kv: order.get(kv[0], (1, kv[0])))}
+    return {"node": node, "since_ns": since_ns, "until_ns": until_ns, "rows": len(rows),
+            "first_ns": min(starts) if starts else None, "last_ns": max(starts) if starts else None,
+            "stages": stages, "frame": {**_figures(frame.delay), "incomplete": frame.incomplete, "lost": frame.lost},
+            "exact": list(EXACT), "from_sketch": [q for q, _ in QUANTILES], "relative_error": ALPHA,
+            "source": "rollups"}
+
+
+def history(db: str | Path, node: str, since_ns: int, until_ns: int) -> dict:
+    """Per stage, and for the frame end to end, a point per minute, or per hour past MAX_POINTS
+    minutes: ``{t_ns, frames, p50_ms, p99_ms, mean_ms}``; no point where no frame started (a gap)."""
+    width = MINUTE_NS if (until_ns - since_ns) // MINUTE_NS <= MAX_POINTS else HOUR_NS
+    database = open_database(db, create=False)
+    try:
+        rows = database.rollup_rows(node, width, since_ns // width * width, until_ns)
+        order = _stage_order(database, node, {r[0] for r in rows})
+    finally:
+        database.close()
+    points: dict[str, dict[int, Sketch]] = {}
+    for stage, start, run, _incomplete, _drops, _lost, delay, _service, _wait in rows:
+        at = points.setdefault(stage, {})
+        sketch = Sketch.decode(bytes(delay))
+        at[int(start)] = at[int(start)].merge(sketch) if int(start) in at else sketch
+    def line(at: dict[int, Sketch]) -> list[dict]:
+        return [{"t_ns": t, "frames": s.count, "mean_ms": _ms(s.mean_ns), "p50_ms": _ms(s.quantile(0.5)),
+                 "p99_ms": _ms(s.quantile(0.99))} for t, s in sorted(at.items()) if s.count]
+
+    frame = points.pop(FRAME_ROW, {})
+    stages = {stage: line(points[stage]) for stage in sorted(points, key=lambda s: order.get(s, (1, s)))}
+    return {"node": node, "since_ns": since_ns, "until_ns": until_ns, "width_ns": width, "frame": line(frame),
+            "stages": {k: v for k, v in stages.items() if v}, "relative_error": ALPHA}
+
+
+def nodes(db: str | Path) -> list[dict]:
+    """Every node with rollups: ``{node, first_ns, last_ns}`` (hours)."""
+    database = open_database(db, create=False)
+    try:
+        return [{"node": n, "first_ns": a, "last_ns": b} for n, a, b in database.rollup_nodes()]
+    finally:
+        database.close()
+
+
+def _figures(s: Sketch) -> dict:
+    out = {"count": s.count, "mean_ms": _ms(s.mean_ns), "min_ms": _ms(s.min_ns if s.count else None),
+           "max_ms": _ms(s.max_ns if s.count else None)}
+    out.update({name: _ms(s.quantile(q)) for name, q in QUANTILES})
+    return out
+
+
+def _ms(ns: float | None) -> float | None:
+    return None if ns is None else ns / 1e6
+
+
+def _stage_order(database: Database, node: str, stages: set[str]) -> dict[str, tuple]:
+    """Each stage's place in the pipeline, from the newest stored run that has it (raw retention
+    may have deleted every run: then by name)."""
+    order: dict[str, tuple] = {}
+    for (header,) in database._rows("SELECT header FROM runs WHERE node = %s ORDER BY first_seen_ns DESC LIMIT 50",
+                                    (node,)):
+        for k, name in enumerate(json.loads(header).get("stages", [])):
+            order.setdefault(name, (0, k))
+        if stages <= order.keys():
+            break
+    return order

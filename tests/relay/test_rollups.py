@@ -1,0 +1,162 @@
+"""Rollups (relay/rollup): the sketch's quantiles within its stated error of the exact order statistics,
+merges exact; a run's rollups against exact statistics over the same raw events (counts, means, min,
+max exact); gaps stay gaps; `dcuscope stats --node --since` and /api/history answer from them;
+retention keeps them apart from raw events."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import time
+
+import numpy as np
+import pytest
+
+from probes.ship.simnode import header_for, synth_events
+from probes.trace.delays import frame_delays, node_stats, series
+from probes.trace.frametable import frame_table
+from relay.rollup.compute import HOUR_NS, MINUTE_NS
+from relay.store.history import history, summary
+from relay.rollup.sketch import ALPHA, Sketch, SketchError
+from relay.store.compaction import compact
+from relay.store.engines import open_database
+from relay.store.writer import Storage
+from tests.conftest import run_cli
+from tests.relay.test_compaction import table_rows, write_run
+
+QS = (0.0, 0.01, 0.25, 0.5, 0.9, 0.99, 0.999, 1.0)
+
+
+def assert_within_bound(sketch: Sketch, values: np.ndarray) -> None:
+    """Each quantile within ALPHA of the order statistic of its rank (floor(q * (n - 1)))."""
+    ordered = np.sort(np.rint(values))
+    for q in QS:
+        exact = ordered[math.floor(q * (len(ordered) - 1))]
+        got = sketch.quantile(q)
+        assert abs(got - exact) <= ALPHA * abs(exact) + 1e-9, (q, got, exact)
+
+
+@pytest.mark.parametrize("shape", ["lognormal", "uniform", "two modes", "with zeros", "one value"])
+def test_sketch_quantiles_are_within_the_stated_error_and_merges_are_exact(shape):
+    rng = np.random.default_rng(hash(shape) % 2**32)
+    values = {"lognormal": rng.lognormal(16, 1.5, 20_000), "uniform": rng.uniform(1e3, 5e7, 20_000),
+              "two modes": np.r_[rng.normal(2e6, 1e5, 15_000), rng.normal(4e7, 2e6, 5_000)],
+              "with zeros": np.r_[np.zeros(500), rng.exponential(3e5, 9_500)],
+              "one value": np.full(100, 33_000_000.0)}[shape]
+    whole = Sketch.of(values)
+    assert whole.count == len(values) and whole.total_ns == int(np.rint(values).sum())
+    assert (whole.min_ns, whole.max_ns) == (int(np.rint(values).min()), int(np.rint(values).max()))
+    assert_within_bound(whole, values)
+    parts = np.array_split(rng.permutation(values), 7)
+    merged = Sketch()
+    for p in parts:
+        merged = merged.merge(Sketch.decode(Sketch.of(p).encode()))
+    assert merged.encode() == whole.encode()  # any order, any grouping: the same sketch
+
+
+def test_a_damaged_sketch_is_refused():
+    data = Sketch.of(np.arange(1, 1000) * 1e4).encode()
+    for bad in (data[:10], data[:-1], data + b"\0", b"\x09" + data[1:]):
+        with pytest.raises(SketchError):
+            Sketch.decode(bad)
+    assert Sketch.decode(b"").count == 0
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def store(request, tmp_path) -> str:
+    if request.param == "sqlite":
+        return str(tmp_path / "r.db")
+    return request.getfixturevalue("pg_url")
+
+
+def test_rollups_agree_with_exact_statistics_over_the_same_raw_events(store):
+    """Two runs of one DCU, an hour apart, each compacted in several ranges (frames cross their
+    boundaries): counts, means, min and max as the exact statistics; percentiles within the sketch's
+    error of the exact order statistics; the hour between them a gap."""
+    t0 = (time.time_ns() - 3 * HOUR_NS) // HOUR_NS * HOUR_NS + 30 * 10**9
+    a = synth_events(6000, 2, 50.0, t0, seed=1, drop_rate=0.03)  # 2 minutes
+    b = synth_events(6000, 2, 50.0, t0 + HOUR_NS, seed=2, drop_rate=0.03)
+    for events in (a, b):
+        write_run(store, events)
+    database = open_database(store)
+    try:
+        done = compact(database, time.time_ns(), min_events=1)
+        assert done.segments == 2
+        # A range a sixth of a run: the first run again, its frames crossing six boundaries.
+        c, _ = write_run(store, a)
+        database.conn.execute(database._sql("UPDATE runs SET node = 'c' WHERE id = %s"), (c,))
+        assert compact(database, time.time_ns(), min_events=1, max_events=len(a) // 6 + 1).segments >= 6
+    finally:
+        database.close()
+    header = header_for("a", 2)
+    for node, runs in (("a", (a, b)), ("c", (a,))):
+        # Exact, over the same raw events: each run paired alone (the runs' frame numbers overlap).
+        each = [series(frame_delays(frame_table(header, events))) for events in runs]
+        stats = [node_stats(header, events) for events in runs]
+        got = summary(store, node, t0 - HOUR_NS, time.time_ns())
+        assert got["frame"]["count"] == sum(st["frames"]["complete"] for st in stats)
+        assert got["frame"]["incomplete"] == sum(st["frames"]["incomplete"] for st in stats)
+        assert list(got["stages"]) == list(stats[0]["stages"])  # pipeline order
+        for name in stats[0]["stages"]:
+            values = np.concatenate([s.stages[name] for s in each])
+            r = got["stages"][name]
+            assert r["count"] == len(values)
+            assert r["mean_ms"] == pytest.approx(np.rint(values).sum() / len(values) / 1e6, rel=1e-12)
+            assert (r["min_ms"], r["max_ms"]) == (values.min() / 1e6, values.max() / 1e6)
+            sketch = Sketch.of(values)
+            assert [r[k] for k in ("p50_ms", "p90_ms", "p99_ms")] == [sketch.quantile(q) / 1e6 for q in (.5, .9, .99)]
+            assert_within_bound(sketch, values)
+            assert r["service"]["count"] == sum(len(s.service.get(name, ())) for s in each)
+        frames = np.concatenate([s.frame for s in each])
+        assert got["frame"]["mean_ms"] == pytest.approx(np.rint(frames).sum() / len(frames) / 1e6, rel=1e-12)
+    h = history(store, "a", t0 - HOUR_NS, time.time_ns())
+    assert h["width_ns"] == MINUTE_NS
+    times = [p["t_ns"] for p in h["frame"]]
+    assert len(times) == 6  # 2 minutes and a bit, twice
+    assert times[3] - times[2] > 50 * MINUTE_NS  # the gap between the runs: no points
+    assert sum(p["frames"] for p in h["frame"]) == summary(store, "a", t0 - HOUR_NS, time.time_ns())["frame"]["count"]
+
+
+def test_stats_cli_answers_from_rollups_and_says_what_is_exact(tmp_path):
+    path = str(tmp_path / "r.db")
+    t0 = time.time_ns() - 2 * HOUR_NS
+    events = synth_events(3000, 2, 50.0, t0, seed=3)
+    write_run(path, events)
+    run_cli("db", "compact", path)
+    result = run_cli("stats", "--db", path, "--node", "a", "--since", "30d")
+    assert result.returncode == 0, result.stderr
+    assert "frame (end to end)" in result.stdout and "from the sketch, within 1% of the value" in result.stdout
+    doc = json.loads(run_cli("stats", "--db", path, "--node", "a", "--since", "30d", "--json").stdout)
+    assert doc["frame"]["count"] == node_stats(header_for("a", 2), events)["frames"]["complete"]
+    assert doc["exact"] and doc["from_sketch"] == ["p50_ms", "p90_ms", "p99_ms"] and doc["relative_error"] == ALPHA
+    for args, said in ((["--node", "nobody"], "no rollups of node 'nobody'"), (["--node", "a", "--since", "3q"], "duration"),
+                       (["--since", "1d"], "--db PATH|URL --node NAME")):
+        bad = run_cli("stats", "--db", path, *args)
+        assert bad.returncode == 2 and said in bad.stderr, bad.stderr
+
+
+def test_retention_deletes_old_rollups_apart_from_raw_events(store):
+    from relay.store.retention import expire_rollups
+
+    events = synth_events(500, 2, 50.0, time.time_ns() - 3 * 86_400 * 10**9, seed=4)
+    new = synth_events(500, 2, 50.0, time.time_ns() - HOUR_NS, seed=5)
+    write_run(store, events)
+    write_run(store, new)
+    database = open_database(store)
+    compact(database, time.time_ns(), min_events=1)
+    database.close()
+    before = table_rows(store, "rollups")
+
+    async def scenario():
+        s = Storage(store)
+        s.start(asyncio.get_running_loop())
+        try:
+            return await expire_rollups(s, days=2)
+        finally:
+            s.stop()
+
+    deleted = asyncio.run(scenario())
+    assert 0 < deleted < before and table_rows(store, "rollups") == before - deleted
+    assert table_rows(store, "segments") == 2  # raw events are raw retention's
+    assert summary(store, "a", 0, time.time_ns())["first_ns"] >= time.time_ns() - 2 * HOUR_NS
