@@ -8,6 +8,7 @@
 import { baseName, StageColours } from "./colours.js";
 import { Api, LiveFeed, listSessions, loadSession, SESSION_CAPACITY, tokenFromUrl } from "./feed.js";
 import { FrameView } from "./frameview.js";
+import { HistoryView } from "./historyview.js";
 import { MomentView } from "./momentview.js";
 import { Fleet, OPEN_ALL, openedOf, OverviewTable, parseOpen, withOpen } from "./overview.js";
 import { esc, nodesHtml, setHtml, statsHtml } from "./panels.js";
@@ -71,6 +72,7 @@ const model = {
 };
 const stageView = new StageView($("#stage-canvas"), model);
 const frameView = new FrameView($("#frame-panels"), model);
+const historyView = new HistoryView($("#history-view"), api);
 const momentView = new MomentView($("#moments-view"), api, () => [...live.nodes.keys()].filter(isOpen).sort());
 
 // --- the fleet and the DCUs opened from it ------------------------------------------------------
@@ -543,7 +545,9 @@ function setTab(tab) {
   $("#stage-view").hidden = tab !== "stage";
   $("#frame-view").hidden = tab !== "frame";
   $("#moments-view").hidden = tab !== "moments";
+  $("#history-view").hidden = tab !== "history";
   momentView.show(tab === "moments");
+  historyView.show(tab === "history");
   mouse = null;
   hideTooltip();
   view.dirty = true;
