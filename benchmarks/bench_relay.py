@@ -121,10 +121,11 @@ def _env() -> dict:
 
 
 class Relay:
-    def __init__(self, db: Path | str, args: Sequence[str] = (), workers: int = 1) -> None:
+    def __init__(self, db: Path | str, args: Sequence[str] = (), workers: int = 1, checkout: Path = ROOT) -> None:
         """``db``: an SQLite file or a PostgreSQL URL; ``args``: more ``python -m relay`` options
         (bench_exporters: --otlp, --frame-limit); ``workers`` above 1: ``python -m relay --workers
-        N`` on one port, ready once every worker listens.
+        N`` on one port, ready once every worker listens; ``checkout``: the tree whose relay runs
+        (another one beside this: bench_store_size's --checkout).
         Raises CannotRun, with the relay's last line of error, when it does not start."""
         self.workers = workers
         port = "0"
@@ -134,7 +135,8 @@ class Relay:
             port, args = str(free_port()), [*args, "--workers", str(workers)]
         self._errors = tempfile.TemporaryFile()  # not a pipe: nobody reads it while the relay runs
         self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", port, "--db", str(db), *LOOPBACK, *args],
-                                     cwd=ROOT, env=_env(), stdout=subprocess.PIPE, stderr=self._errors)
+                                     cwd=checkout, env=dict(_env(), PYTHONPATH=str(checkout)), stdout=subprocess.PIPE,
+                                     stderr=self._errors)
         listening = []
         while len(listening) < workers:
             m = re.search(r"http://127\.0\.0\.1:(\d+)", self.proc.stdout.readline().decode())

@@ -16,7 +16,8 @@ Phases alternate, ``--rounds`` times: this checkout with ``--compact-after 0`` (
 before: batches as they arrived), this checkout compacting, and each ``--checkout DIR`` (another
 tree, e.g. a ``git worktree`` of the commit before; its relay runs as it does). Relay CPU is the
 relay process's, from the nodes' start until every event is stored and, when compacting, every
-due batch compacted.
+due batch compacted; the compaction process's (relay/store/compactor.py, a child of the relay) is
+measured over the same time and shown apart.
 
     .venv/bin/python benchmarks/bench_store_size.py [--nodes 4] [--seconds 60] [--store sqlite,postgresql]
         [--compact-after 5] [--rounds 1] [--checkout DIR] [--json]
@@ -26,20 +27,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import re
-import subprocess
 import sys
 import tempfile
 import time
-import urllib.request
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from benchmarks.bench_relay import EVENTS_PER_FRAME, LOOPBACK, SOURCES, Stores, start_nodes, wait_nodes  # noqa: E402
-from benchmarks.bench_relay import _proc_cpu, _process_tree  # noqa: E402
+from benchmarks.bench_relay import EVENTS_PER_FRAME, SOURCES, Relay, Stores, _proc_cpu, start_nodes, wait_nodes  # noqa: E402
 from benchmarks.figures import CannotRun  # noqa: E402
 
 RATE = 4300.0
@@ -48,37 +44,6 @@ EVENT_TABLES = ("batches", "segments")
 """PostgreSQL's: the others (runs, sessions, leases, the fleet's
 rows, each a few pages whatever the events: 1.1 MB in all after a 60 s run of 4 DCUs) are shown apart."""
 DAY_S = 86_400
-
-
-class Relay:
-    """``python -m relay`` of ``checkout`` on ``db``."""
-
-    def __init__(self, checkout: Path, db: str, args: list[str]) -> None:
-        env = dict(os.environ, PYTHONPATH=str(checkout))
-        self._errors = tempfile.TemporaryFile()
-        self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", "0", "--db", db, *LOOPBACK, *args],
-                                     cwd=checkout, env=env, stdout=subprocess.PIPE, stderr=self._errors)
-        m = re.search(r"http://127\.0\.0\.1:(\d+)", self.proc.stdout.readline().decode())
-        if not m:
-            self.proc.kill()
-            self._errors.seek(0)
-            raise CannotRun(f"the relay of {checkout} did not start: {self._errors.read().decode()[-400:]}")
-        self.url = f"http://127.0.0.1:{m.group(1)}"
-
-    def get(self, path: str):
-        with urllib.request.urlopen(self.url + path, timeout=30) as r:
-            return json.loads(r.read())
-
-    def cpu_s(self) -> float:
-        return sum(_proc_cpu(pid) for pid in _process_tree(self.proc.pid))
-
-    def stored(self) -> int:
-        return sum(run["events"] for s in self.get("/api/sessions") for run in s["runs"])
-
-    def stop(self) -> None:
-        self.proc.terminate()
-        self.proc.wait(60)
-        self._errors.close()
 
 
 def uncompacted(db: str) -> int:
@@ -121,12 +86,12 @@ def store_bytes(store: str, db: str) -> dict:
 def phase(label: str, checkout: Path, stores: Stores, store: str, nodes: int, seconds: float, args: list[str],
           compacting: bool) -> dict:
     db = stores.fresh(store)
-    relay = Relay(checkout, db, args)
+    relay = Relay(db, args, checkout=checkout)
     try:
         fps = RATE / (EVENTS_PER_FRAME * SOURCES)
         per_node = int(RATE * seconds)
         expected = nodes * (per_node // (EVENTS_PER_FRAME * SOURCES)) * EVENTS_PER_FRAME * SOURCES
-        cpu0, t0 = relay.cpu_s(), time.monotonic()
+        cpu0, own0, t0 = relay.cpu_s(), _proc_cpu(relay.proc.pid), time.monotonic()
         wait_nodes(start_nodes(relay.url, nodes, per_node, paced=True, fps=fps), seconds + 120)
         deadline = time.monotonic() + 120
         while relay.stored() < expected and time.monotonic() < deadline:
@@ -135,7 +100,7 @@ def phase(label: str, checkout: Path, stores: Stores, store: str, nodes: int, se
         if compacting:
             while uncompacted(db) and time.monotonic() < deadline + 300:
                 time.sleep(0.5)
-        cpu = relay.cpu_s() - cpu0
+        cpu, own = relay.cpu_s() - cpu0, _proc_cpu(relay.proc.pid) - own0
         left = uncompacted(db)
         stored = relay.stored()
     finally:
@@ -146,8 +111,9 @@ def phase(label: str, checkout: Path, stores: Stores, store: str, nodes: int, se
         stores.done(store, db)
     total = sum(sizes.get(t, 0) for t in (EVENT_TABLES if store == "postgresql" else ("file", "wal")))
     return {"phase": label, "store": store, "events": stored, "expected": expected, "batches_left": left,
-            "bytes": sizes, "bytes_per_event": total / max(stored, 1), "relay_cpu_s": cpu, "fed_s": fed_s,
-            "all_bytes_per_event": sum(sizes.values()) / max(stored, 1), "relay_us_per_event": cpu / max(stored, 1) * 1e6,
+            "bytes": sizes, "bytes_per_event": total / max(stored, 1), "relay_cpu_s": own, "fed_s": fed_s,
+            "compactor_us_per_event": (cpu - own) / max(stored, 1) * 1e6,
+            "all_bytes_per_event": sum(sizes.values()) / max(stored, 1), "relay_us_per_event": own / max(stored, 1) * 1e6,
             "gb_per_dcu_day": total / max(stored, 1) * RATE * DAY_S / 1e9}
 
 
@@ -187,7 +153,8 @@ def main(argv: list[str] | None = None) -> int:
                         print(f"  {store:10} {label:28} round {r + 1}: {row['events']:>9,} events "
                               f"{row['bytes_per_event']:6.2f} B/event ({row['gb_per_dcu_day']:.2f} GB per DCU-day; "
                               f"all tables {row['all_bytes_per_event']:.2f}), "
-                              f"relay {row['relay_us_per_event']:.2f} us/event, {row['batches_left']} batches left "
+                              f"relay {row['relay_us_per_event']:.2f} us/event, compaction process "
+                              f"{row['compactor_us_per_event']:.2f}, {row['batches_left']} batches left "
                               f"{'' if row['events'] == row['expected'] else '(expected %d)' % row['expected']}",
                               flush=True)
                         if args.json:
@@ -205,8 +172,10 @@ def main(argv: list[str] | None = None) -> int:
             m = sum(x["bytes_per_event"] for x in mine) / len(mine)
             cb = sum(x["relay_us_per_event"] for x in base) / len(base)
             cm = sum(x["relay_us_per_event"] for x in mine) / len(mine)
+            cc = sum(x["compactor_us_per_event"] for x in mine) / len(mine)
             print(f"{store}: {label} against --compact-after 0: bytes {m / b:.3f}x ({b:.2f} -> {m:.2f}), "
-                  f"relay CPU {cm / cb:.3f}x ({cb:.2f} -> {cm:.2f} us/event)")
+                  f"relay process CPU {cm / cb:.3f}x ({cb:.2f} -> {cm:.2f} us/event), compaction process "
+                  f"{cc:.2f} us/event")
     return 0
 
 

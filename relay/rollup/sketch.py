@@ -110,6 +110,9 @@ class Sketch:
         return float(min(max(value, self.min_ns), self.max_ns))
 
     def encode(self) -> bytes:
+        """The sketch as bytes (an empty one: none, e.g. the service times of frames without a ready point)."""
+        if not self.count:
+            return b""
         counts = self.counts if self.counts is not None else np.zeros(0, np.int64)
         top = int(counts.max()) if len(counts) else 0
         width = next(w for w in WIDTHS if top < 1 << (8 * w))

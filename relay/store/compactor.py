@@ -1,14 +1,26 @@
-"""The relay's compaction thread (``--compact-after SECONDS``, 0: none): what
-:mod:`relay.store.compaction` says, every COMPACT_EVERY_S, on a store connection of its own.
+"""The relay's compaction (``--compact-after SECONDS``, 0: none): what :mod:`relay.store.compaction`
+says, every COMPACT_EVERY_S, in a process of its own beside the relay.
 
-The writer thread's commits never wait for it but for the short transaction that swaps a range
-of batches for its segment (the read and the encoding happen outside it). A store that fails is
-tried again at the next pass, said once when it starts failing and once when it works again.
+A process, not a thread: decoding batches, pairing their frames for the rollups and encoding
+segments cost about a microsecond of CPU an event, which in the relay's process would compete with
+its event loop for Python's one lock. Beside it, the relay's own CPU per event is what it was, and
+compaction runs on another core. The relay's commits never wait for it but for the short
+transaction that swaps a range of batches for its segment.
+
+:class:`Compactor` (in the relay) starts ``python -m relay.store.compactor``, hands it its settings
+on stdin (the store's URL may hold a password: not on a command line) and keeps stdin open: the
+child stops when it closes, so a relay killed outright takes its compactor with it. The child
+prints one JSON line of its totals after each pass, which :meth:`Compactor.view` shows in
+``/api/health``; it logs to the relay's stderr. SIGTERM stops it after the range being moved.
 """
 
 from __future__ import annotations
 
+import json
 import logging
+import signal
+import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -22,72 +34,131 @@ COMPACT_EVERY_S = 30.0
 """How often the due batches are looked for (more often with a short ``--compact-after``); also
 once at the start (a relay restarted compacts what waited meanwhile)."""
 MIN_EVERY_S = 0.5
+STOP_S = 30.0
+"""How long a stopping relay waits for its compactor to finish the range it is moving."""
 
 log = logging.getLogger(__name__)
 
 
 class Compactor:
-    """Compacts the store's due batches in a thread until stopped; :meth:`view` for /api/health."""
+    """The compaction process of a relay: started, watched and stopped; :meth:`view` for /api/health."""
 
-    def __init__(self, db: str | Path, after_s: float, name: str = "", every_s: float = COMPACT_EVERY_S) -> None:
+    def __init__(self, db: str | Path, after_s: float, name: str = "") -> None:
         self.db, self.after_s, self.name = db, after_s, name
-        self.every_s = min(every_s, max(after_s / 2, MIN_EVERY_S))
+        self.every_s = min(COMPACT_EVERY_S, max(after_s / 2, MIN_EVERY_S))
         """Twice as often as batches come due, at most every COMPACT_EVERY_S."""
-        self.done = Compacted()
-        self.passes = 0
-        self.last_pass_s = 0.0
-        self.failing: str | None = None
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, name="dcuscope-relay-compact", daemon=True)
-        self._database: Database | None = None
+        self.last: dict = {}
+        self.proc: subprocess.Popen | None = None
+        self._reader: threading.Thread | None = None
 
     def start(self) -> None:
-        self._thread.start()
+        self.proc = subprocess.Popen([sys.executable, "-m", "relay.store.compactor"], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, text=True)
+        self.proc.stdin.write(json.dumps({"db": str(self.db), "after_s": self.after_s, "every_s": self.every_s,
+                                          "name": self.name}) + "\n")
+        self.proc.stdin.flush()
+        self._reader = threading.Thread(target=self._read, name="dcuscope-relay-compact", daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        for line in self.proc.stdout:
+            try:
+                self.last = json.loads(line)
+            except ValueError:
+                continue
+        code = self.proc.wait()
+        if code not in (0, -signal.SIGTERM):
+            log.warning("the compaction process exited with status %d: batches are no longer compacted until the "
+                        "relay restarts (`dcuscope db compact` compacts them meanwhile)", code)
 
     def stop(self) -> None:
-        """Stop after the range being moved (its transaction is short)."""
-        self._stop.set()
-        self._thread.join(30)
+        if self.proc is None or self.proc.poll() is not None:
+            return
+        self.proc.terminate()
+        try:
+            self.proc.wait(STOP_S)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(5)
 
     def view(self) -> dict:
-        return {"after_s": self.after_s, "passes": self.passes, "last_pass_s": round(self.last_pass_s, 3),
-                **self.done.to_dict(), "failing": self.failing}
+        running = self.proc is not None and self.proc.poll() is None
+        return {"after_s": self.after_s, "every_s": self.every_s, "pid": self.proc.pid if self.proc else None,
+                "running": running, "passes": 0, **Compacted().to_dict(), **self.last}
 
-    def _run(self) -> None:
+
+class Passes:
+    """The child's loop: a pass now, then every ``every_s`` until ``stop`` is set."""
+
+    def __init__(self, db: str, after_s: float, every_s: float, name: str, stop: threading.Event) -> None:
+        self.db, self.after_s, self.every_s, self.name, self.stop = db, after_s, every_s, name, stop
+        self.done = Compacted()
+        self.passes = 0
+        self.failing: str | None = None
+        self._database: Database | None = None
+
+    def run(self) -> None:
         try:
             self.run_pass()
-            while not self._stop.wait(self.every_s):
+            while not self.stop.wait(self.every_s):
                 self.run_pass()
         finally:
             if self._database is not None:
                 self._database.close()
 
-    def run_pass(self) -> Compacted:
-        """One pass: every due batch compacted (now, whatever the timer)."""
-        started = time.monotonic()
+    def run_pass(self) -> None:
+        started, cpu = time.monotonic(), time.process_time()
         try:
             if self._database is None:
                 self._database = open_database(self.db, name=self.name)  # the relay's: one relay in /api/health
-            done = compact(self._database, time.time_ns() - int(self.after_s * 1e9), stop=self._stop.is_set)
+            done = compact(self._database, time.time_ns() - int(self.after_s * 1e9), stop=self.stop.is_set)
             self._database.give_back_space()
         except RelayError as exc:  # the store failed (StoreUnavailable is one): next pass, on a new connection
             if self.failing is None:
                 log.warning("compaction fails, tried again every %g s: %s", self.every_s, exc)
             self.failing = str(exc)
-            if self._database is not None:
-                try:
-                    self._database.close()
-                except Exception:  # noqa: BLE001 - a connection already broken
-                    pass
-                self._database = None
-            return Compacted()
+            self._forget()
+            self._say(started, cpu)
+            return
         if self.failing is not None:
             log.warning("compaction works again")
             self.failing = None
         self.passes += 1
-        self.last_pass_s = time.monotonic() - started
         self.done.add(done)
-        if done.segments:
-            log.debug("compacted %d batches (%d events) into %d segments: %.1f -> %.2f MB in %.2f s", done.batches,
-                      done.events, done.segments, done.bytes_before / 1e6, done.bytes_after / 1e6, self.last_pass_s)
-        return done
+        self._say(started, cpu)
+
+    def _forget(self) -> None:
+        if self._database is not None:
+            try:
+                self._database.close()
+            except Exception:  # noqa: BLE001 - a connection already broken
+                pass
+            self._database = None
+
+    def _say(self, started: float, cpu: float) -> None:
+        print(json.dumps({"passes": self.passes, **self.done.to_dict(), "failing": self.failing,
+                          "last_pass_s": round(time.monotonic() - started, 3),
+                          "cpu_s": round(time.process_time(), 3)}), flush=True)
+
+
+def main() -> int:
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    settings = json.loads(sys.stdin.readline() or "{}")
+    if not settings.get("db"):
+        print("relay.store.compactor: started by the relay (its settings come on stdin)", file=sys.stderr)
+        return 2
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    signal.signal(signal.SIGINT, lambda *_: stop.set())
+
+    def parent_gone() -> None:  # stdin closes when the relay ends, however it ends
+        sys.stdin.read()
+        stop.set()
+
+    threading.Thread(target=parent_gone, daemon=True).start()
+    Passes(settings["db"], float(settings["after_s"]), float(settings["every_s"]), settings.get("name", ""), stop).run()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -24,6 +24,7 @@ from relay.store.engines import open_database
 from relay.store.writer import Storage
 from tests.conftest import run_cli
 from tests.relay.test_compaction import table_rows, write_run
+from tests.relay.test_store_engines import store  # noqa: F401 - the engines' fixture
 
 QS = (0.0, 0.01, 0.25, 0.5, 0.9, 0.99, 0.999, 1.0)
 
@@ -61,13 +62,6 @@ def test_a_damaged_sketch_is_refused():
         with pytest.raises(SketchError):
             Sketch.decode(bad)
     assert Sketch.decode(b"").count == 0
-
-
-@pytest.fixture(params=["sqlite", "postgresql"])
-def store(request, tmp_path) -> str:
-    if request.param == "sqlite":
-        return str(tmp_path / "r.db")
-    return request.getfixturevalue("pg_url")
 
 
 def test_rollups_agree_with_exact_statistics_over_the_same_raw_events(store):
