@@ -60,7 +60,7 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
                         "in small parts that do not hold ingest up (default: keep everything)")
     p.add_argument("--compact-after", type=float, default=COMPACT_AFTER_S, metavar="SECONDS",
                    help="move batches stored this long into compact segments (about 3.5 bytes an event instead of "
-                        f"24-32; read as before by every reader), in a thread of its own (default {COMPACT_AFTER_S:g}; "
+                        f"24-32; read as before by every reader), in a process of its own beside the relay (default {COMPACT_AFTER_S:g}; "
                         "0: never, e.g. when `dcuscope db compact` runs elsewhere)")
     p.add_argument("--token", default=os.environ.get(TOKEN_ENV),
                    help=f"shared secret nodes and browsers must present (default ${TOKEN_ENV})")
