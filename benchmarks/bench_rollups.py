@@ -4,8 +4,9 @@ what rollups cost on disk per DCU-day, on SQLite and on PostgreSQL.
 The store is filled with ``--days`` of rollups of one DCU as compaction writes them: per minute and
 per hour, a row per stage and one per frame, at the paper's pace (4,300 events/s: 358 frames a
 second, 21,500 a minute). Each minute's sketches are those of one real minute of simulated frames
-(``probes.ship.simnode``'s stage delays), drawn from a pool of ``--pool`` minutes; the hours merge
-their 60 minutes. Then :func:`relay.store.history.summary` over the last 30 days is timed
+(``probes.ship.simnode``'s stage delays, each stage's service and wait sketches as large as its
+delay's, as a real pipeline's ready points give), drawn from a pool of ``--pool`` minutes; the hours
+merge their 60 minutes. Then :func:`relay.store.history.summary` over the last 30 days is timed
 (``--repeat`` times, median) in this process, and the CLI as a user runs it (a new process:
 Python's start included).
 
@@ -47,6 +48,11 @@ def pool(n: int) -> list[dict]:
         events = synth_events(int(fps * 60), 2, fps, 0, seed=k, drop_rate=0.001)
         rolls = rollups_of(header_for(NODE, 2), events, np.ones(len(events), bool))
         minute = {stage: r for (stage, w, t), r in rolls.items() if w == MINUTE_NS and t == 0}
+        for stage, r in minute.items():
+            # simnode's frames have no ready point, a real pipeline's do: service and wait sketches
+            # as large as the delay's, so that the rows weigh what a real DCU's do.
+            if stage and not r.service.count:
+                r.service, r.wait = r.delay.copy(), r.delay.copy()
         out.append(minute)
     return out
 

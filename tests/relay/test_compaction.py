@@ -218,3 +218,24 @@ def test_a_relay_compacts_as_it_goes_the_stored_stats_are_the_nodes_and_its_hist
     (stored,) = load_runs(db, list_sessions(db)[0]["session"], corrected=False)
     assert np.array_equal(sort_events(stored.events), sort_events(events))
     assert_stats_equal(node_stats(header, events), node_stats(stored.header, stored.events))
+
+
+def test_a_store_of_the_layout_before_is_read_brought_to_schema_5_and_compacted(store):
+    """A store as a relay before compaction left it (schema 4: batches only): opened, it gains the
+    tables it lacks, reads as before, and compacts."""
+    events = synth_events(100, 2, 25.0, T0, seed=9)
+    run, _ = write_run(store, events)
+    database = open_database(store)
+    for sql in ("DROP TABLE segments", "DROP TABLE rollups", "ALTER TABLE runs DROP COLUMN rolled_lost",
+                "UPDATE meta SET value = '4' WHERE key = 'schema'"):
+        execute(database, sql)
+    database.close()
+    assert np.array_equal(load_runs(store, run, corrected=False)[0].events, events)
+    database = open_database(store)
+    try:
+        assert database._rows("SELECT value FROM meta WHERE key = 'schema'") == [("5",)]
+        assert compact(database, time.time_ns(), min_events=1).events == len(events)
+    finally:
+        database.close()
+    assert np.array_equal(load_runs(store, run, corrected=False)[0].events, events)
+    assert table_rows(store, "rollups") > 0
