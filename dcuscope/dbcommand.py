@@ -52,7 +52,7 @@ def _migrate(args: argparse.Namespace) -> int:
         raise DcuscopeError(f"db migrate: the target must be a postgresql:// URL, not {args.target!r}")
     done = migrate(args.source, args.target, lambda line: print(line, file=sys.stderr, flush=True))
     print(f"copied {done.sessions} sessions, {done.runs} runs, {done.batches} batches, {done.segments} segments "
-          f"({done.bytes / 1e6:.1f} MB); "
+          f"({done.bytes / 1e6:.1f} MB), {done.rollups} rollup rows of runs deleted by retention; "
           f"{done.skipped} runs already there")
     return 0
 

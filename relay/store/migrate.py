@@ -3,7 +3,8 @@
 Everything is copied: sessions (numbered anew, in the same order, after those already in the
 target), runs with their headers, counters, clock views and resume secrets (a node may resume
 its run on a relay of the new store), refused runs (still kept apart), batches and segments as
-stored (compacted or not: the relays of the target compact what is due), their rollups, clock history. Each run is one transaction, so an interrupted copy leaves whole runs; run again, it
+stored (compacted or not: the relays of the target compact what is due), their rollups, clock history,
+and the rollups of runs whose events retention deleted. Each run is one transaction, so an interrupted copy leaves whole runs; run again, it
 copies only the runs the target lacks. The source is only read (a relay may be writing it).
 """
 
@@ -33,6 +34,8 @@ class Copied:
     """Runs the target already held."""
     batches: int = 0
     segments: int = 0
+    rollups: int = 0
+    """Rollup rows of runs whose events retention deleted (those of copied runs go with them)."""
     bytes: int = 0
 
 
@@ -62,6 +65,7 @@ def migrate(source: str | Path, target: str, say: Callable[[str], None] = lambda
             done.sessions += 1
             say(f"session {sid} -> {target_session}: {len(runs) - len(have)} runs, {done.batches - before[0]} "
                 f"batches, {(done.bytes - before[1]) / 1e6:.1f} MB")
+        done.rollups += _copy_orphan_rollups(src, dst)
     finally:
         src.close()
         dst.close()
@@ -103,3 +107,15 @@ def _copy_run(src, dst: PostgresDatabase, run: tuple, session: int, done: Copied
             dst.conn.cursor().executemany(f"INSERT INTO clock_history (run, {', '.join(HISTORY_COLUMNS)}) "
                                           f"VALUES (%s{', %s' * len(HISTORY_COLUMNS)})", [(rid, *h) for h in history])
     done.runs += 1
+
+
+def _copy_orphan_rollups(src, dst: PostgresDatabase) -> int:
+    """The rollups kept longer than their runs (``--retain raw=...,rollups=...``): copied once, each
+    row left alone if the target has it."""
+    rows = src.execute(f"SELECT run, {', '.join(ROLLUP_COLUMNS)} FROM rollups WHERE run NOT IN (SELECT id FROM runs)")
+    with dst.conn.transaction(), dst.conn.cursor() as cur:
+        before = cur.execute("SELECT count(*) FROM rollups").fetchone()[0]
+        while chunk := rows.fetchmany(5000):
+            cur.executemany(f"INSERT INTO rollups (run, {', '.join(ROLLUP_COLUMNS)}) VALUES (%s{', %s' * len(ROLLUP_COLUMNS)}) "
+                            "ON CONFLICT DO NOTHING", chunk)
+        return cur.execute("SELECT count(*) FROM rollups").fetchone()[0] - before
