@@ -32,7 +32,8 @@ from relay.store.engines import open_database
 
 COMPACT_EVERY_S = 30.0
 """How often the due batches are looked for (more often with a short ``--compact-after``); also
-once at the start (a relay restarted compacts what waited meanwhile)."""
+once as the process starts, ``--compact-after`` after the relay did (a relay restarted compacts
+what waited meanwhile)."""
 MIN_EVERY_S = 0.5
 STOP_S = 30.0
 """How long a stopping relay waits for its compactor to finish the range it is moving."""
@@ -50,10 +51,23 @@ class Compactor:
         self.last: dict = {}
         self.proc: subprocess.Popen | None = None
         self._reader: threading.Thread | None = None
+        self._timer: threading.Timer | None = None
+        self._lock = threading.Lock()
+        self._stopped = False
 
     def start(self) -> None:
-        self.proc = subprocess.Popen([sys.executable, "-m", "relay.store.compactor"], stdin=subprocess.PIPE,
-                                     stdout=subprocess.PIPE, text=True)
+        """Start the process once batches can be due (``after_s`` from now): a relay that lives less
+        long costs no process (the CPU of starting one: about half a second)."""
+        self._timer = threading.Timer(self.after_s, self._spawn)
+        self._timer.daemon = True
+        self._timer.start()
+
+    def _spawn(self) -> None:
+        with self._lock:
+            if self._stopped:
+                return
+            self.proc = subprocess.Popen([sys.executable, "-m", "relay.store.compactor"], stdin=subprocess.PIPE,
+                                         stdout=subprocess.PIPE, text=True)
         self.proc.stdin.write(json.dumps({"db": str(self.db), "after_s": self.after_s, "every_s": self.every_s,
                                           "name": self.name}) + "\n")
         self.proc.stdin.flush()
@@ -72,6 +86,10 @@ class Compactor:
                         "relay restarts (`dcuscope db compact` compacts them meanwhile)", code)
 
     def stop(self) -> None:
+        with self._lock:
+            self._stopped = True
+            if self._timer is not None:
+                self._timer.cancel()
         if self.proc is None or self.proc.poll() is not None:
             return
         self.proc.terminate()
