@@ -23,14 +23,14 @@ import math
 import numpy as np
 
 from probes.trace.delays import NS_PER_MS, PERCENTILES, summarize
+from relay.rollup.sketch import ALPHA, GAMMA, LOG_GAMMA
 
-RELATIVE_ERROR = 0.01
-"""Largest relative error of a percentile once a series is past its exact limit."""
-_GAMMA = (1 + RELATIVE_ERROR) / (1 - RELATIVE_ERROR)
-_LOG_GAMMA = math.log(_GAMMA)
+RELATIVE_ERROR = ALPHA
+"""Largest relative error of a percentile once a series is past its exact limit: the rollups' (the
+same buckets' width, :mod:`relay.rollup.sketch`)."""
 _SMALLEST = 1e-6  # ms: |values| below this count as zero
 _LARGEST = 1e8  # ms: a bigger value lands in the last bucket (its max is still exact)
-_BUCKETS = math.ceil(math.log(_LARGEST / _SMALLEST) / _LOG_GAMMA) + 1
+_BUCKETS = math.ceil(math.log(_LARGEST / _SMALLEST) / LOG_GAMMA) + 1
 
 
 class RunValues:
@@ -171,7 +171,7 @@ def _merge(keys: np.ndarray, counts: np.ndarray, values: np.ndarray) -> tuple[np
     if not len(values):
         return keys, counts
     magnitude = np.abs(values)
-    index = np.ceil(np.log(np.maximum(magnitude, _SMALLEST) / _SMALLEST) / _LOG_GAMMA).astype(np.int64)
+    index = np.ceil(np.log(np.maximum(magnitude, _SMALLEST) / _SMALLEST) / LOG_GAMMA).astype(np.int64)
     np.clip(index, 0, _BUCKETS - 1, out=index)
     signed = np.where(magnitude < _SMALLEST, 0, np.where(values > 0, index + 1, -(index + 1)))
     new, n = np.unique(signed, return_counts=True)
@@ -193,7 +193,7 @@ def _quantile(keys: np.ndarray, counts: np.ndarray, count: int, q: float) -> flo
 def _representative(index: int) -> float:
     # Bucket i holds (SMALLEST * gamma^(i-1), SMALLEST * gamma^i]; this point is within the
     # relative error of every value in it.
-    return _SMALLEST * 2 * _GAMMA ** index / (_GAMMA + 1)
+    return _SMALLEST * 2 * GAMMA ** index / (GAMMA + 1)
 
 
 class OriginSpans:
