@@ -127,15 +127,15 @@ def test_retention_deletes_segments_and_migrate_copies_them(tmp_path, pg_url):
     assert np.array_equal(load_runs(path, run)[0].events, load_runs(pg_url, run)[0].events)
     assert table_rows(pg_url, "rollups") == table_rows(path, "rollups")
     assert "0 rollup rows" in run_cli("db", "migrate", path, pg_url).stdout
-    for store in (path, pg_url):
-        database = open_database(store)
+    for where in (path, pg_url):
+        database = open_database(where)
         try:
-            session = list_sessions(store)[0]["session"]
+            session = list_sessions(where)[0]["session"]
             while database.delete_session_part(session, 1):
                 pass
         finally:
             database.close()
-        assert table_rows(store, "segments") == 0 and list_sessions(store) == []
+        assert table_rows(where, "segments") == 0 and list_sessions(where) == []
 
 
 def test_db_compact_compacts_on_request_and_says_what_it_did(tmp_path):
