@@ -10,8 +10,10 @@ from pathlib import Path
 
 from core import signals
 from core.errors import DcuscopeError, PipelineError
+from dcuscope.comparecommand import add_compare_parser
 from dcuscope.dbcommand import add_db_parser
 from dcuscope.shipcommand import add_ship_parser
+from dcuscope.traceapp import add_trace_parser
 from dcuscope.tracecommands import add_export_parser, add_stats_parser
 from probes.clocks.sysclock import DEFAULT_UDS
 from relay.commands import add_relay_parser
@@ -141,6 +143,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_ship_parser(sub)
     add_stats_parser(sub)
     add_export_parser(sub)
+    add_compare_parser(sub)
+    add_trace_parser(sub)
     add_relay_parser(sub)
     add_db_parser(sub)
     return parser

@@ -59,6 +59,11 @@ class TailShipper:
             ended, dropped = update.ended, update.dropped
             if not ended:
                 stop.wait(POLL_S)
+        if not ended:  # stopped: what was written until now still goes
+            update = self.follower.poll()
+            if not update.header_changed:
+                self._write(update.events)
+                ended, dropped = update.ended, update.dropped
         self._close(dropped)
         state = "ended" if ended else "still being written"
         self.say(f"ship: {self.sent} events of {self._name(self.follower.header)} sent to {self.relay} in "

@@ -1,0 +1,129 @@
+"""The comparison document (:mod:`probes.trace.compare`) as a terminal table or Markdown.
+
+Per stage and kind a block: one line per input with frames, mean, p50, p90, p99 in ms; under
+each input after BASE, the change of each figure in % of BASE (ms where BASE is 0) with its
+95 % interval, marked ``▲`` slower or ``▼`` faster where that is the verdict.
+"""
+
+from __future__ import annotations
+
+from probes.trace.bootstrap import FIGURES
+from probes.trace.compare import E2E, SAME, SLOWER
+
+NEVER_WAIT_MS = 0.001
+MARK = {SLOWER: " ▲", SAME: "", "faster": " ▼"}
+
+
+def _title(row: dict) -> str:
+    if row["stage"] == E2E:
+        return "end to end (frame delay)"
+    return f"{row['stage']} ({row['kind']})" if row["kind"] != "delay" else row["stage"]
+
+
+def _change(c: dict | None) -> str:
+    if c is None:
+        return "-"
+    if c["pct"] is not None:
+        text = f"{c['pct']:+.1f}% [{c['pct_low']:+.1f}, {c['pct_high']:+.1f}]"
+    else:
+        text = f"{c['delta']:+.3f}ms [{c['low']:+.3f}, {c['high']:+.3f}]"
+    return text + MARK[c["verdict"]]
+
+
+def _value(v: dict | None, figure: str) -> str:
+    return "-" if v is None else f"{v[figure]:.3f}"
+
+
+def never_wait(doc: dict) -> list[str]:
+    """Stages whose frames never wait (p99 of wait under 1 µs in every input): service = delay."""
+    return [r["stage"] for r in doc["rows"] if r["kind"] == "wait"
+            and all(v is None or v["p99"] < NEVER_WAIT_MS for v in r["values"])]
+
+
+def blocks(doc: dict) -> list[tuple[str, list[list[str]]]]:
+    """(title, lines of cells: name, frames, mean, p50, p90, p99) per row of the document; the
+    service and wait rows of stages that never wait are left out (they repeat the delay)."""
+    labels = [i["label"] for i in doc["inputs"]]
+    skip = set(never_wait(doc))
+    out = []
+    for row in doc["rows"]:
+        if row["kind"] != "delay" and row["stage"] in skip:
+            continue
+        lines = []
+        for k, (label, v) in enumerate(zip(labels, row["values"])):
+            lines.append([label, "-" if v is None else str(v["frames"])] + [_value(v, f) for f in FIGURES])
+            if k:
+                c = row["changes"][k]
+                lines.append(["  change", ""] + [_change(None if c is None else c[f]) for f in FIGURES])
+        out.append((_title(row), lines))
+    return out
+
+
+def _head(doc: dict) -> list[str]:
+    lines = []
+    for k, i in enumerate(doc["inputs"]):
+        role = "BASE" if k == 0 else "NEW " if len(doc["inputs"]) == 2 else f"NEW{k}"
+        lines.append(f"{role} {i['label']}: {i['origin']}, node {i['node']}, {i['frames']} complete frames"
+                     + (f" ({i['incomplete']} incomplete)" if i["incomplete"] else ""))
+    return lines
+
+
+def verdict_lines(doc: dict) -> list[str]:
+    """Per input after BASE its verdict over the whole table (Holm), naming the figures."""
+    out = []
+    base = doc["inputs"][0]["label"]
+    for i, v in zip(doc["inputs"][1:], doc["verdicts"][1:]):
+        named = v["slower"] or v["faster"]
+        what = f": {', '.join(named[:6])}{' ...' if len(named) > 6 else ''}" if named else ""
+        out.append(f"{i['label']} vs {base}: {v['verdict'].upper() if v['verdict'] != SAME else v['verdict']}{what} "
+                   f"({v['figures']} figures, family-wise 5 %)")
+    return out
+
+
+def method_line(doc: dict) -> str:
+    m = doc["method"]
+    return (f"intervals: {m['interval']}; {m['resamples']} resamples; changes under {m['noise_pct']:g}% of BASE "
+            f"or {m['noise_ms']:g} ms count as noise")
+
+
+def format_table(doc: dict) -> str:
+    """Aligned text for a terminal."""
+    heads = ["", "frames"] + [f"{f} ms" for f in FIGURES]
+    body = blocks(doc)
+    widths = [max(len(heads[c]), *(len(cells[c]) for _, lines in body for cells in lines)) for c in range(len(heads))]
+    widths[0] = max(widths[0], *(len(t) for t, _ in body))
+
+    def line(cells: list[str]) -> str:
+        return "  ".join(c.ljust(widths[0]) if j == 0 else c.rjust(widths[j]) for j, c in enumerate(cells)).rstrip()
+
+    out = _head(doc) + [""]
+    for title, lines in body:
+        out.append(line([title] + heads[1:]))
+        out += ["  " + line(cells) for cells in lines]
+        out.append("")
+    out += verdict_lines(doc)
+    out += _skipped(doc)
+    out.append("▲ slower, ▼ faster: 95 % interval entirely past 0 and the change at least the noise threshold")
+    out.append(method_line(doc))
+    return "\n".join(out) + "\n"
+
+
+def _skipped(doc: dict) -> list[str]:
+    stages = never_wait(doc)
+    return [f"service = delay, wait 0 (not shown): {', '.join(stages)}"] if stages else []
+
+
+def format_markdown(doc: dict) -> str:
+    """A Markdown table for a pull-request comment."""
+    out = ["### dcuscope compare", ""]
+    out += [f"- **{v}**" for v in verdict_lines(doc)]
+    out += [f"- {line}" for line in _head(doc)] + [""]
+    out.append("| stage | input | frames | " + " | ".join(f"{f} ms" for f in FIGURES) + " |")
+    out.append("|---|---|---:|" + "---:|" * len(FIGURES))
+    for title, lines in blocks(doc):
+        for j, cells in enumerate(lines):
+            name = cells[0].strip()
+            out.append(f"| {title if j == 0 else ''} | {'*' + name + '*' if name == 'change' else '`' + name + '`'} | "
+                       + " | ".join(cells[1:]) + " |")
+    out += [""] + _skipped(doc) + ["", f"<sub>▲ slower, ▼ faster. {method_line(doc)}.</sub>"]
+    return "\n".join(out) + "\n"

@@ -1,0 +1,90 @@
+"""``dcuscope compare --fail-if``: bounds on a comparison's changes, for CI.
+
+A bound reads ``STAGE[.KIND].FIGURE OP VALUE``: ``infer.p99 > +5%``, ``e2e.p50 > +2ms``,
+``infer.service.mean > +0.5ms``, ``convert.wait.p90 >= 10%``; KIND is delay (the default),
+service or wait, FIGURE mean, p50, p90 or p99, OP one of > >= < <=, VALUE in ms, us, s or % of
+BASE. A bound *fails* only when the whole confidence interval of the change is past it: a change
+that may be inside it (noise) passes.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from core.errors import DcuscopeError
+from probes.trace.bootstrap import FIGURES
+from probes.trace.compare import KINDS, find_row
+
+_BOUND = re.compile(r"^\s*(?P<metric>[^<>=\s]+)\s*(?P<op>>=|<=|>|<)\s*(?P<value>[+-]?(\d+(\.\d*)?|\.\d+))\s*"
+                    r"(?P<unit>%|ms|us|µs|s)\s*$")
+_TO_MS = {"ms": 1.0, "us": 1e-3, "µs": 1e-3, "s": 1e3}
+
+
+@dataclass(frozen=True)
+class Bound:
+    text: str
+    stage: str
+    kind: str
+    figure: str
+    op: str
+    value: float
+    """ms, or % of BASE when ``percent``."""
+    percent: bool
+
+
+def parse_bound(text: str) -> Bound:
+    """A ``--fail-if`` bound, or a DcuscopeError that shows the form."""
+    m = _BOUND.match(text)
+    if not m:
+        raise DcuscopeError(f"--fail-if {text!r}: expected STAGE[.KIND].FIGURE OP VALUE, e.g. \"infer.p99 > +5%\" or "
+                            "\"e2e.p50 > +2ms\" (OP: > >= < <=; VALUE in %, ms, us or s)")
+    parts = m["metric"].split(".")
+    figure = parts[-1]
+    kind = parts[-2] if len(parts) >= 3 and parts[-2] in KINDS else "delay"
+    stage = ".".join(parts[:-2] if len(parts) >= 3 and parts[-2] in KINDS else parts[:-1])
+    if not stage or figure not in FIGURES:
+        raise DcuscopeError(f"--fail-if {text!r}: the figure must be one of {', '.join(FIGURES)} after a stage name "
+                            "(or e2e), e.g. infer.p99")
+    percent = m["unit"] == "%"
+    value = float(m["value"]) * (1.0 if percent else _TO_MS[m["unit"]])
+    return Bound(text=text.strip(), stage=stage, kind=kind, figure=figure, op=m["op"], value=value, percent=percent)
+
+
+@dataclass
+class Outcome:
+    bound: Bound
+    input: str
+    failed: bool
+    reason: str
+    """One line: the bound, the change and its interval, and the input."""
+
+
+def check(doc: dict, bound: Bound) -> list[Outcome]:
+    """The bound against every input after BASE; a DcuscopeError when the document cannot say."""
+    row = find_row(doc, bound.stage, bound.kind)
+    if row is None:
+        names = ", ".join(doc["stages"] + ["e2e"])
+        raise DcuscopeError(f"--fail-if {bound.text!r}: no {bound.kind} of stage {bound.stage!r} in the inputs "
+                            f"(stages: {names})")
+    out = []
+    for k, inp in enumerate(doc["inputs"][1:], start=1):
+        c = row["changes"][k]
+        if c is None:
+            raise DcuscopeError(f"--fail-if {bound.text!r}: {inp['label']} or BASE has no {bound.kind} of "
+                                f"{bound.stage!r} to compare")
+        c = c[bound.figure]
+        if bound.percent:
+            if c["pct"] is None:
+                raise DcuscopeError(f"--fail-if {bound.text!r}: BASE's {bound.figure} is 0 ms, no change in %: "
+                                    "give the bound in ms")
+            est, low, high, unit, digits = c["pct"], c["pct_low"], c["pct_high"], "%", 1
+        else:
+            est, low, high, unit, digits = c["delta"], c["low"], c["high"], " ms", 3
+        failed = {">": low > bound.value, ">=": low >= bound.value,
+                  "<": high < bound.value, "<=": high <= bound.value}[bound.op]
+        why = "the whole interval is past the bound" if failed else "the interval reaches inside the bound"
+        reason = (f"{'FAILED' if failed else 'passed'}: {bound.text}: {inp['label']} vs {doc['inputs'][0]['label']} "
+                  f"{est:+.{digits}f}{unit} [{low:+.{digits}f}, {high:+.{digits}f}]: {why}")
+        out.append(Outcome(bound=bound, input=inp["label"], failed=failed, reason=reason))
+    return out

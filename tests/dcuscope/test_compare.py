@@ -1,0 +1,127 @@
+"""``dcuscope compare`` on real runs: a known injected delay found, identical configs found the same,
+the gate's exit codes, the table, JSON and Markdown.
+
+Three ``dcuscope run`` pipelines run at the same time (so that they share the machine's load): A
+and B of one config, C whose identity sleeps 2 ms more per frame. The model-free pipeline keeps
+CPU contention low; the module runs alone (a timing comparison beside five busy workers compares
+the workers)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from tests.conftest import REPO, cli_env, run_cli
+
+pytestmark = pytest.mark.alone
+
+FRAMES = 300
+CONFIG = """\
+node: DCU-1
+launch: videotestsrc is-live=true pattern=ball ! video/x-raw,width=320,height=240,framerate=60/1 ! queue name=q !
+  identity name=work sleep-time={sleep_us} ! videoconvert name=convert ! fakesink name=sink
+"""
+EXTRA_MS = 2.0
+
+
+@pytest.fixture(scope="module")
+def traces(tmp_path_factory) -> dict:
+    tmp = tmp_path_factory.mktemp("compare")
+    procs, out = [], {}
+    for name, sleep_us in (("a", 2000), ("b", 2000), ("c", 2000 + int(EXTRA_MS * 1000))):
+        config = tmp / f"{name}.yaml"
+        config.write_text(CONFIG.format(sleep_us=sleep_us))
+        out[name] = tmp / f"{name}.trace.jsonl"
+        procs.append(subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "run", str(config), "--probes", "--trace",
+                                       str(out[name]), "-n", str(FRAMES), "-q"], cwd=REPO, env=cli_env(),
+                                      stderr=subprocess.PIPE, text=True))
+    for p in procs:
+        assert p.wait(timeout=120) == 0, p.stderr.read()
+    return out
+
+
+def compare_json(*args) -> dict:
+    result = run_cli("compare", *args, "--json")
+    assert result.returncode == 0, result.stderr
+    return json.loads(result.stdout)
+
+
+def row(doc: dict, stage: str, kind: str = "delay") -> dict:
+    return next(r for r in doc["rows"] if r["stage"] == stage and r["kind"] == kind)
+
+
+def test_two_more_milliseconds_of_sleep_are_found_where_they_are(traces):
+    doc = compare_json(traces["a"], traces["c"])
+    work = row(doc, "work")["changes"][1]
+    for figure in ("mean", "p50", "p90"):
+        c = work[figure]
+        assert c["verdict"] == "slower" and 1.8 < c["low"] <= c["high"] < 2.5, (figure, c)
+    e2e = row(doc, "e2e")["changes"][1]["p50"]  # the queue before work and the other stages add their own noise
+    assert e2e["verdict"] == "slower" and 1.5 < e2e["low"] <= e2e["high"] < 2.5, e2e
+    assert row(doc, "convert")["changes"][1]["p50"]["verdict"] == "no significant change"
+    verdict = doc["verdicts"][1]
+    assert verdict["verdict"] == "slower" and verdict["slower"][0].startswith(("work", "e2e")), verdict
+    assert all(name.split(".")[0] in ("work", "e2e") for name in verdict["slower"]), verdict
+
+
+def test_identical_configs_show_no_significant_change(traces):
+    doc = compare_json(traces["a"], traces["b"])
+    assert doc["verdicts"][1]["verdict"] == "no significant change", doc["verdicts"][1]
+    for r in doc["rows"]:
+        if r["stage"] in ("work", "e2e"):
+            c = r["changes"][1]["p50"]
+            assert c["low"] - 0.1 < 0 < c["high"] + 0.1, (r["stage"], c)  # within 0.1 ms of no change
+    assert [i["frames"] for i in doc["inputs"]] == [FRAMES, FRAMES]
+
+
+def test_the_gate_exits_0_1_2_with_one_line_each(traces):
+    a, b, c = traces["a"], traces["b"], traces["c"]
+    ok = run_cli("compare", a, b, "--fail-if", "work.p50 > +5%", "--fail-if", "e2e.p50 > +1ms")
+    assert ok.returncode == 0, ok.stderr
+    assert [line.startswith("dcuscope: gate passed: ") for line in ok.stderr.splitlines()] == [True, True]
+
+    bad = run_cli("compare", a, b, c, "--fail-if", "work.p50 > +1ms", "--fail-if", "e2e.mean > +50%")
+    assert bad.returncode == 1
+    lines = bad.stderr.splitlines()
+    assert len(lines) == 4, lines
+    assert sum("FAILED" in line for line in lines) == 2 and all("c vs a" in line for line in lines if "FAILED" in line)
+    assert "the whole interval is past the bound" in bad.stderr
+
+    # A change that may be under the bound passes: 2 ms more is not surely more than 2.5 ms more.
+    assert run_cli("compare", a, c, "--fail-if", "work.mean > +2.5ms").returncode == 0
+
+    for args, says in ((("work.p50 > 5",), "expected STAGE[.KIND].FIGURE OP VALUE"),
+                       (("nosuch.p99 > +5%",), "no delay of stage 'nosuch'"),
+                       (("work.p75 > +5%",), "the figure must be one of"),
+                       (("work.wait.p50 > +5%",), "BASE's p50 is 0 ms")):
+        result = run_cli("compare", a, c, "--fail-if", *args)
+        assert result.returncode == 2 and says in result.stderr, (args, result.stderr)
+        assert len(result.stderr.splitlines()) == 1 and not result.stdout
+
+
+def test_bad_inputs_exit_2_with_one_line(traces, tmp_path):
+    (tmp_path / "junk.jsonl").write_text("not json\n")
+    for args, says in (((traces["a"],), "give BASE and at least one NEW"),
+                       ((traces["a"], tmp_path / "missing.jsonl"), "cannot read trace file"),
+                       ((traces["a"], tmp_path / "junk.jsonl"), "junk.jsonl"),
+                       ((traces["a"], "session:1"), "give --db"),
+                       ((traces["a"], "7"), "session:7 with --db"),
+                       ((traces["a"], "session:1", "--db", tmp_path / "none.db"), "no such database")):
+        result = run_cli("compare", *args)
+        assert result.returncode == 2 and says in result.stderr, (args, result.stderr)
+        assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.stderr
+
+
+def test_table_and_markdown_put_inputs_side_by_side(traces):
+    table = run_cli("compare", traces["a"], traces["b"], traces["c"])
+    assert table.returncode == 0, table.stderr
+    lines = table.stdout.splitlines()
+    work = lines.index(next(line for line in lines if line.startswith("work ")))
+    assert [line.split()[0] for line in lines[work + 1:work + 6]] == ["a", "b", "change", "c", "change"]
+    assert "▲" in lines[work + 5] and "c vs a: SLOWER" in table.stdout and "b vs a: no significant change" in table.stdout
+    md = run_cli("compare", traces["a"], traces["c"], "--markdown").stdout
+    assert md.startswith("### dcuscope compare") and "| stage | input | frames | mean ms | p50 ms | p90 ms | p99 ms |" in md
+    assert "| work | `a` | 300 |" in md and "**c vs a: SLOWER" in md
