@@ -8,10 +8,14 @@ each input after BASE, the change of each figure in % of BASE (ms where BASE is 
 from __future__ import annotations
 
 from probes.trace.bootstrap import FIGURES
-from probes.trace.compare import E2E, SAME, SLOWER
+from probes.trace.compare import E2E, FEW, MIN_TAIL, SAME, SLOWER
 
 NEVER_WAIT_MS = 0.001
-MARK = {SLOWER: " ▲", SAME: "", "faster": " ▼"}
+MARK = {SLOWER: " ▲", SAME: "", "faster": " ▼", FEW: " ?"}
+
+
+LEGEND = (f"▲ slower, ▼ faster: 95 % interval entirely past 0 and the change at least the noise threshold; "
+          f"? too few frames: under {MIN_TAIL} beyond that percentile in a run (p99 of under 1,000 frames)")
 
 
 def _title(row: dict) -> str:
@@ -103,7 +107,7 @@ def format_table(doc: dict) -> str:
         out.append("")
     out += verdict_lines(doc)
     out += _skipped(doc)
-    out.append("▲ slower, ▼ faster: 95 % interval entirely past 0 and the change at least the noise threshold")
+    out.append(LEGEND)
     out.append(method_line(doc))
     return "\n".join(out) + "\n"
 
@@ -125,5 +129,5 @@ def format_markdown(doc: dict) -> str:
             name = cells[0].strip()
             out.append(f"| {title if j == 0 else ''} | {'*' + name + '*' if name == 'change' else '`' + name + '`'} | "
                        + " | ".join(cells[1:]) + " |")
-    out += [""] + _skipped(doc) + ["", f"<sub>▲ slower, ▼ faster. {method_line(doc)}.</sub>"]
+    out += [""] + _skipped(doc) + ["", f"<sub>{LEGEND}. {method_line(doc)}.</sub>"]
     return "\n".join(out) + "\n"

@@ -30,6 +30,7 @@ from relay.api.fanout import FanoutHealth, FleetManager, create_manager
 from relay.api.fleet import Fleet
 from relay.api.interest import Interest
 from relay.api.routes import add_routes
+from relay.api.compare import add_compare_routes
 from relay.api.history import add_history_routes
 from relay.api.sessions import add_session_routes
 from relay.api.sio import create_sio, sio_errors
@@ -188,7 +189,7 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
                 "otlp": exporter.view() if exporter is not None else None}
 
     add_routes(app, state, fleet, ui, token, counters)
-    add_session_routes(app, state)
+    add_compare_routes(app, add_session_routes(app, state))
     add_history_routes(app, state)
     metrics = RelayCollector(state, ingest, guard)
     add_metrics_route(app, metrics, token)

@@ -9,7 +9,8 @@ order of their origin.
 
 Verdicts. A figure is *slower* (*faster*) when its whole interval lies above (below) zero and the
 change is at least ``noise_pct`` of BASE and ``noise_ms`` (smaller ones are noise however sure:
-Criterion's noise threshold); else *no significant change*. Each interval is 95 % on its own: among the 40-odd
+Criterion's noise threshold); else *no significant change*; a percentile with fewer than :data:`MIN_TAIL` frames beyond it in a run
+(p99 of fewer than 1,000 frames) gets *too few frames*. Each interval is 95 % on its own: among the 40-odd
 figures of a pipeline about two would cross zero by chance. The verdict of a whole input is
 therefore Holm's, which keeps the chance of any false verdict in the table at 5 %: *slower* when
 some figure is still slower after Holm's correction (listed largest change first).
@@ -34,7 +35,11 @@ NOISE_MS = 0.1
 thread takes tens of µs more in one run than in the next (a wake-up), surely and of no consequence."""
 METHOD = ("circular block bootstrap (Politis & Romano) over each run's frames in time order, block length by "
           "Politis & White's rule; 95 % percentile intervals of NEW - BASE; input verdicts by Holm's correction")
-SLOWER, FASTER, SAME = "slower", "faster", "no significant change"
+SLOWER, FASTER, SAME, FEW = "slower", "faster", "no significant change", "too few frames"
+MIN_TAIL = 10
+"""A percentile needs this many frames beyond it in each run for its interval to mean much (p99: 1,000
+frames): with fewer, the resamples' p99 is one of a handful of values, and the interval is lopsided
+or wide. Such a figure is shown, its verdict is ``too few frames``, and Holm's family leaves it out."""
 
 
 @dataclass
@@ -112,18 +117,21 @@ def _row(stage: str, kind: str, series: list[dict], resampled: list[Resampled | 
         v = s.get((stage, kind))
         values.append(None if r is None else {"frames": len(v), "block": r.block, **r.estimate})
     base = resampled[0]
-    for r in resampled[1:]:
+    for k, r in enumerate(resampled[1:], start=1):
         if base is None or r is None:
             changes.append(None)
             continue
-        changes.append({f: _change_dict(change(base, r, f, LEVEL), noise_pct, noise_ms) for f in FIGURES})
+        few = [f for f in FIGURES if f != "mean" and min(values[0]["frames"], values[k]["frames"]) * (1 - int(f[1:]) / 100) < MIN_TAIL]
+        changes.append({f: _change_dict(change(base, r, f, LEVEL), noise_pct, noise_ms, f in few) for f in FIGURES})
     return {"stage": stage, "kind": kind, "values": values, "changes": [None] + changes}
 
 
-def _change_dict(c, noise_pct: float, noise_ms: float) -> dict:
+def _change_dict(c, noise_pct: float, noise_ms: float, few: bool) -> dict:
     past_noise = (c.pct is None or abs(c.pct) >= noise_pct) and abs(c.delta) >= noise_ms
     verdict = SAME
-    if c.low > 0 and past_noise:
+    if few:
+        verdict = FEW
+    elif c.low > 0 and past_noise:
         verdict = SLOWER
     elif c.high < 0 and past_noise:
         verdict = FASTER
@@ -133,7 +141,8 @@ def _change_dict(c, noise_pct: float, noise_ms: float) -> dict:
 
 def _input_verdict(rows: list[dict], k: int) -> dict:
     """Input k against BASE over the whole table, with Holm's correction (see the module docstring)."""
-    figures = [(f"{_name(r)}.{f}", c) for r in rows if r["changes"][k] for f, c in r["changes"][k].items()]
+    figures = [(f"{_name(r)}.{f}", c) for r in rows if r["changes"][k] for f, c in r["changes"][k].items()
+               if c["verdict"] != FEW]
     kept = holm([c["p_value"] for _, c in figures])
     figures, kept = zip(*sorted(zip(figures, kept), key=lambda fk: -abs(fk[0][1]["delta"]))) if figures else ((), ())
     slower = [name for (name, c), ok in zip(figures, kept) if ok and c["verdict"] == SLOWER]

@@ -7,6 +7,7 @@
 
 import { baseName, StageColours } from "./colours.js";
 import { Api, LiveFeed, listSessions, loadSession, SESSION_CAPACITY, tokenFromUrl } from "./feed.js";
+import { CompareView } from "./compareview.js";
 import { FrameView } from "./frameview.js";
 import { HistoryView } from "./historyview.js";
 import { MomentView } from "./momentview.js";
@@ -73,6 +74,7 @@ const model = {
 const stageView = new StageView($("#stage-canvas"), model);
 const frameView = new FrameView($("#frame-panels"), model);
 const historyView = new HistoryView($("#history-view"), api);
+const compareView = new CompareView($("#compare-view"), api);
 const momentView = new MomentView($("#moments-view"), api, () => [...live.nodes.keys()].filter(isOpen).sort());
 
 // --- the fleet and the DCUs opened from it ------------------------------------------------------
@@ -546,8 +548,10 @@ function setTab(tab) {
   $("#frame-view").hidden = tab !== "frame";
   $("#moments-view").hidden = tab !== "moments";
   $("#history-view").hidden = tab !== "history";
+  $("#compare-view").hidden = tab !== "compare";
   momentView.show(tab === "moments");
   historyView.show(tab === "history");
+  compareView.show(tab === "compare");
   mouse = null;
   hideTooltip();
   view.dirty = true;
