@@ -81,12 +81,20 @@ def compare(inputs: list[Input], resamples: int = RESAMPLES, seed: int = 0, nois
     series = [time_series(i.fd) for i in inputs]
     keys = _row_keys(inputs, series)
     total, done = sum(k in s for k in keys for s in series), 0
+    seen: list[dict] = [{} for _ in inputs]  # per input, stage -> (its delays, their resamples)
     rows = []
     for stage, kind in keys:
         resampled: list[Resampled | None] = []
-        for s in series:
+        for k, s in enumerate(series):
             v = s.get((stage, kind))
-            resampled.append(resample(v, rng, resamples) if v is not None and len(v) >= 2 else None)
+            same = seen[k].get(stage)
+            if v is None or len(v) < 2:
+                resampled.append(None)
+            elif same is not None and np.array_equal(same[0], v):  # service = delay where a stage never waits
+                resampled.append(same[1])
+            else:
+                resampled.append(resample(v, rng, resamples))
+                seen[k].setdefault(stage, (v, resampled[-1]))
             done += v is not None
             if progress:
                 progress(done, total)

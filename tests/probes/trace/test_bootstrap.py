@@ -59,6 +59,8 @@ def test_block_length_follows_the_correlation():
     weak, strong = block_length(ar1(rng, 5000, 0.5)), block_length(ar1(rng, 5000, 0.9))
     assert 3 <= weak < strong, (weak, strong)
     assert block_length(np.full(100, 4.0)) == 1 and block_length(np.arange(3.0)) == 1
+    flat = resample(np.zeros(50), rng, 10)  # a stage that never waits: nothing to resample
+    assert flat.estimate["p99"] == 0 and flat.replicates["mean"].tolist() == [0.0] * 10
 
 
 def test_identical_runs_give_zero_and_a_change_in_percent():
