@@ -1,8 +1,9 @@
 """``dcuscope compare`` on real runs: a known injected delay found, identical configs found the same,
 the gate's exit codes, the table, JSON and Markdown.
 
-Three ``dcuscope run`` pipelines run at the same time (so that they share the machine's load): A
-and B of one config, C whose identity sleeps 2 ms more per frame. The model-free pipeline keeps
+Two ``dcuscope run`` pipelines of one config, A and B, run at the same time (so that they share the
+machine's load); then A2, a third of that config, beside C, whose identity sleeps 2 ms more per
+frame. Each comparison is of two runs made side by side. The model-free pipeline keeps
 CPU contention low; the module runs alone (a timing comparison beside five busy workers compares
 the workers)."""
 
@@ -21,25 +22,29 @@ pytestmark = pytest.mark.alone
 FRAMES = 300
 CONFIG = """\
 node: DCU-1
-launch: videotestsrc is-live=true pattern=ball ! video/x-raw,width=320,height=240,framerate=60/1 ! queue name=q !
+launch: videotestsrc is-live=true pattern=ball ! video/x-raw,width=320,height=240,framerate=60/1 !
   identity name=work sleep-time={sleep_us} ! videoconvert name=convert ! fakesink name=sink
 """
+"""One streaming thread: a queue's hand-over to its thread, with three pipelines on two cores, differs
+from one run to the next by more than the noise threshold (docs/compare.md: what intervals do not hold)."""
 EXTRA_MS = 2.0
 
 
 @pytest.fixture(scope="module")
 def traces(tmp_path_factory) -> dict:
     tmp = tmp_path_factory.mktemp("compare")
-    procs, out = [], {}
-    for name, sleep_us in (("a", 2000), ("b", 2000), ("c", 2000 + int(EXTRA_MS * 1000))):
-        config = tmp / f"{name}.yaml"
-        config.write_text(CONFIG.format(sleep_us=sleep_us))
-        out[name] = tmp / f"{name}.trace.jsonl"
-        procs.append(subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "run", str(config), "--probes", "--trace",
-                                       str(out[name]), "-n", str(FRAMES), "-q"], cwd=REPO, env=cli_env(),
-                                      stderr=subprocess.PIPE, text=True))
-    for p in procs:
-        assert p.wait(timeout=120) == 0, p.stderr.read()
+    out = {}
+    for together in ((("a", 2000), ("b", 2000)), (("a2", 2000), ("c", 2000 + int(EXTRA_MS * 1000)))):
+        procs = []
+        for name, sleep_us in together:
+            config = tmp / f"{name}.yaml"
+            config.write_text(CONFIG.format(sleep_us=sleep_us))
+            out[name] = tmp / f"{name}.trace.jsonl"
+            procs.append(subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "run", str(config), "--probes",
+                                           "--trace", str(out[name]), "-n", str(FRAMES), "-q"], cwd=REPO,
+                                          env=cli_env(), stderr=subprocess.PIPE, text=True))
+        for p in procs:
+            assert p.wait(timeout=120) == 0, p.stderr.read()
     return out
 
 
@@ -54,13 +59,12 @@ def row(doc: dict, stage: str, kind: str = "delay") -> dict:
 
 
 def test_two_more_milliseconds_of_sleep_are_found_where_they_are(traces):
-    doc = compare_json(traces["a"], traces["c"])
+    doc = compare_json(traces["a2"], traces["c"])
     work = row(doc, "work")["changes"][1]
-    for figure in ("mean", "p50", "p90"):
-        c = work[figure]
-        assert c["verdict"] == "slower" and 1.8 < c["low"] <= c["high"] < 2.5, (figure, c)
-    e2e = row(doc, "e2e")["changes"][1]["p50"]  # the queue before work and the other stages add their own noise
-    assert e2e["verdict"] == "slower" and 1.5 < e2e["low"] <= e2e["high"] < 2.5, e2e
+    e2e = row(doc, "e2e")["changes"][1]
+    for c in (work["mean"], work["p50"], work["p90"], e2e["mean"], e2e["p50"]):
+        # The interval holds the 2 ms (and the few µs more a longer sleep overshoots), far from 0.
+        assert c["verdict"] == "slower" and 1.0 < c["low"] < EXTRA_MS + 0.15 and EXTRA_MS - 0.05 < c["high"] < 3, c
     assert row(doc, "convert")["changes"][1]["p50"]["verdict"] == "no significant change"
     verdict = doc["verdicts"][1]
     assert verdict["verdict"] == "slower" and verdict["slower"][0].startswith(("work", "e2e")), verdict
@@ -91,7 +95,7 @@ def test_the_gate_exits_0_1_2_with_one_line_each(traces):
     assert "the whole interval is past the bound" in bad.stderr
 
     # A change that may be under the bound passes: 2 ms more is not surely more than 2.5 ms more.
-    assert run_cli("compare", a, c, "--fail-if", "work.mean > +2.5ms").returncode == 0
+    assert run_cli("compare", traces["a2"], c, "--fail-if", "work.mean > +2.5ms").returncode == 0
 
     for args, says in ((("work.p50 > 5",), "expected STAGE[.KIND].FIGURE OP VALUE"),
                        (("nosuch.p99 > +5%",), "no delay of stage 'nosuch'"),

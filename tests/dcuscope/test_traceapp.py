@@ -53,7 +53,7 @@ def test_ctrl_c_goes_to_gst_launch_which_ends_cleanly_and_the_summary_follows(tm
     t = read_trace(trace)
     assert t.complete and t.header.node == "CAM-1"
     assert "dcuscope: gst-launch-1.0 traced" in err and "stage work" in err and "no end line" not in err
-    assert 1.9 < stage_p50_ms(trace, "work") < 4
+    assert stage_p50_ms(trace, "work") >= 1.95  # it sleeps 2 ms a frame (a loaded machine only adds to that)
 
 
 def test_sigterm_goes_to_cmd_and_its_status_comes_back(tmp_path):
@@ -104,7 +104,7 @@ def test_a_python_program_traced_and_its_exit_status_returned(tmp_path):
     assert result.returncode == 3, result.stderr
     trace = tmp_path / "PY-APP.trace.jsonl"  # the default: NODE.trace.jsonl in the working folder
     assert read_trace(trace).complete and "stage py" in result.stderr
-    assert 0.9 < stage_p50_ms(trace, "py") < 3
+    assert stage_p50_ms(trace, "py") >= 0.95  # it sleeps 1 ms a frame; a loaded machine adds to it, never takes
 
 
 def test_shipped_live_the_stored_run_is_the_trace(tmp_path):
