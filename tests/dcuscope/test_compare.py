@@ -113,7 +113,8 @@ def test_bad_inputs_exit_2_with_one_line(traces, tmp_path):
                        ((traces["a"], tmp_path / "junk.jsonl"), "junk.jsonl"),
                        ((traces["a"], "session:1"), "give --db"),
                        ((traces["a"], "7"), "session:7 with --db"),
-                       ((traces["a"], "session:1", "--db", tmp_path / "none.db"), "no such database")):
+                       ((traces["a"], "session:1", "--db", tmp_path / "none.db"), "no such database"),
+                       ((traces["a"], traces["b"], "--node", "DCU-9"), "has no node 'DCU-9' (it has DCU-1)")):
         result = run_cli("compare", *args)
         assert result.returncode == 2 and says in result.stderr, (args, result.stderr)
         assert len(result.stderr.strip().splitlines()) == 1 and "Traceback" not in result.stderr
