@@ -127,12 +127,8 @@ def _forward(child: subprocess.Popen, signum: int) -> None:
 
 
 def _wait(child: subprocess.Popen) -> int:
-    while True:
-        try:
-            code = child.wait()
-            break
-        except InterruptedError:
-            continue
+    """CMD's exit status as a shell gives it (128 + N for signal N); the handlers above run meanwhile."""
+    code = child.wait()
     return 128 - code if code < 0 else code
 
 

@@ -9,11 +9,12 @@ order of their origin.
 
 Verdicts. A figure is *slower* (*faster*) when its whole interval lies above (below) zero and the
 change is at least ``noise_pct`` of BASE and ``noise_ms`` (smaller ones are noise however sure:
-Criterion's noise threshold); else *no significant change*; a percentile with fewer than :data:`MIN_TAIL` frames beyond it in a run
-(p99 of fewer than 1,000 frames) gets *too few frames*. Each interval is 95 % on its own: among the 40-odd
-figures of a pipeline about two would cross zero by chance. The verdict of a whole input is
-therefore Holm's, which keeps the chance of any false verdict in the table at 5 %: *slower* when
-some figure is still slower after Holm's correction (listed largest change first).
+Criterion's noise threshold); else *no significant change*; a percentile with fewer than
+:data:`MIN_TAIL` frames beyond it in a run (p99 of fewer than 1,000 frames) gets *too few frames*.
+Each interval is 95 % on its own: among the 40-odd figures of a pipeline about two would cross zero
+by chance. The verdict of a whole input is therefore Holm's, which keeps the chance of any false
+verdict in the table at 5 %: *slower* when some figure is still slower after Holm's correction
+(listed largest change first).
 """
 
 from __future__ import annotations
@@ -129,7 +130,8 @@ def _row(stage: str, kind: str, series: list[dict], resampled: list[Resampled | 
         if base is None or r is None:
             changes.append(None)
             continue
-        few = [f for f in FIGURES if f != "mean" and min(values[0]["frames"], values[k]["frames"]) * (1 - int(f[1:]) / 100) < MIN_TAIL]
+        frames = min(values[0]["frames"], values[k]["frames"])
+        few = [f for f in FIGURES if f != "mean" and frames * (1 - int(f[1:]) / 100) < MIN_TAIL]
         changes.append({f: _change_dict(change(base, r, f, LEVEL), noise_pct, noise_ms, f in few) for f in FIGURES})
     return {"stage": stage, "kind": kind, "values": values, "changes": [None] + changes}
 
