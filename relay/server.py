@@ -61,6 +61,11 @@ LOOPBACK = ("127.0.0.1", "::1", "localhost")
 LOG_FLUSH_S = 10.0
 STOP_BROWSERS_S = 2.0
 """How long a stopping relay waits for its browsers' connections to close."""
+STOP_REQUESTS_S = 1.5
+"""How long a stopping relay lets requests in progress finish before it cancels them, and then waits
+for them to end (aiohttp's 60 s held a stop for a minute on a page's Socket.IO request that outlives
+its closed engine.io socket). The nodes' websockets are closed before; what a cancelled ingest had
+not acknowledged, its node sends again wherever it resumes."""
 REFUSALS = ("peer_cap", "tcp_cap", "header_timeout", "hello_timeout", "host", "proxy_header")
 PLACEHOLDER = """<!doctype html><html><head><meta charset="utf-8"><title>dcuscope relay</title></head>
 <body><h1>dcuscope relay</h1><p>The UI is not installed (ui/static/index.html). The JSON API is at
@@ -106,6 +111,11 @@ class Relay:
                 task.cancel()
         if self.ingest.clock_udp is not None:
             self.ingest.clock_udp.stop()
+        # No new connection from here on: a page told to disconnect below reconnects at once, and the
+        # web runner would then wait out its new websocket (15 s and more with a page open).
+        if self.runner is not None:
+            for site in list(self.runner.sites):
+                await site.stop()
         # Close every client's websocket first: the web runner would wait out their pings.
         await self.ingest.close_all()
         if self.otlp is not None:
@@ -241,7 +251,7 @@ async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path 
     app, relay = create_app(db, token, clock, **options)
     relay.storage.start(asyncio.get_running_loop())
     runner = web.AppRunner(app, access_log=None, handle_signals=False,
-                           keepalive_timeout=relay.guard.limits.keepalive_s)
+                           keepalive_timeout=relay.guard.limits.keepalive_s, shutdown_timeout=STOP_REQUESTS_S)
     await runner.setup()
     site = GuardedSite(runner, host, port, relay.guard, reuse_port=reuse_port)
     try:
