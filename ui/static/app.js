@@ -12,6 +12,7 @@ import { FrameView } from "./frameview.js";
 import { HistoryView } from "./historyview.js";
 import { MomentView } from "./momentview.js";
 import { Fleet, OPEN_ALL, openedOf, OverviewTable, parseOpen, withOpen } from "./overview.js";
+import { installGrip } from "./overviewsize.js";
 import { esc, nodesHtml, setHtml, statsHtml } from "./panels.js";
 import { GUTTER, StageView } from "./stageview.js";
 import { DELAY_CAPACITY, LIVE_CAPACITY, NodeStore } from "./store.js";
@@ -150,6 +151,9 @@ function renderOverview(now) {
   const empty = emptyText();
   if (empty !== emptySaid) {
     emptySaid = empty;
+    // No DCU opened: the overview takes the screen and the views of opened DCUs collapse (style.css).
+    document.body.classList.toggle("fleet-only", empty !== null);
+    for (const el of document.querySelectorAll(".view-empty")) el.textContent = empty ?? "";
     view.dirty = view.panelsDirty = true;
   }
 }
@@ -191,6 +195,7 @@ function setStatus(kind, text) {
   const el = $("#conn");
   el.className = `conn conn-${kind}`;
   el.textContent = text;
+  el.title = text; // in full where the header cuts it short
   if (kind === "error" && /unauthori[sz]ed/i.test(text)) {
     showBanner(`The relay refused this page: ${text}. Open it with ?token=TOKEN in its address.`);
   } else if (kind === "live") {
@@ -251,8 +256,10 @@ async function refreshSessions() {
   const chosen = select.value;
   const options = [`<option value="live">Live</option>`].concat(sessions.map((s) => {
     const when = s.created_ns ? formatClock(s.created_ns / 1e6).slice(0, 8) : "";
-    const nodes = [...new Set(s.runs.map((r) => r.node))].join(", ");
-    return `<option value="${s.session}">Session ${s.session} · ${when} · ${nodes.replace(/[<&]/g, "")}</option>`;
+    const nodes = [...new Set(s.runs.map((r) => r.node))].sort();
+    // A short entry (the selector is as wide as its longest); every DCU in the entry's tooltip.
+    const named = nodes.length > 2 ? `${nodes.slice(0, 2).join(", ")} +${nodes.length - 2}` : nodes.join(", ");
+    return `<option value="${s.session}" title="${esc(nodes.join(", "))}">Session ${s.session} · ${when} · ${esc(named)}</option>`;
   }));
   const html = options.join("");
   if (select._html !== html) {
@@ -610,7 +617,7 @@ function renderPanels() {
   for (const [node, stats] of current.stats) {
     if (!current.stores.has(node)) entries.push([node, stats, current.nodes.get(node)?.stages ?? [], lineage(node)]);
   }
-  const none = emptyText();
+  const none = emptyText() && "No DCU opened."; // the view above says the rest, in its one line
   setHtml($("#stats-body"), none && !entries.length ? `<p class="muted">${esc(none)}</p>`
     : statsHtml(entries, colours, view.windowed && current.kind === "live", view.openGaps));
   const nodes = [...current.nodes.values()].sort((a, b) => (a.node < b.node ? -1 : 1));
@@ -700,6 +707,16 @@ $("#overview-open").addEventListener("click", () => {
   choose(next);
 });
 $("#overview-close").addEventListener("click", () => choose(new Set()));
+installGrip($(".overview-wrap"), $("#overview-grip"));
+document.addEventListener("keydown", (ev) => {
+  // "/" focuses the fleet's filter, as in Grafana and GitHub; typed into a field, it is the character.
+  if (ev.key !== "/" || ev.ctrlKey || ev.metaKey || ev.altKey || ev.defaultPrevented) return;
+  if (ev.target.closest?.("input, textarea, select, [contenteditable]")) return;
+  ev.preventDefault();
+  const filter = $("#overview-filter");
+  filter.focus();
+  filter.select();
+});
 $("#session-select").addEventListener("change", (ev) => chooseData(ev.target.value));
 $("#session-select").addEventListener("focus", refreshSessions);
 for (const b of document.querySelectorAll(".tab")) b.addEventListener("click", () => setTab(b.dataset.tab));

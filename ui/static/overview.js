@@ -14,7 +14,8 @@ export const OPEN_ALL = "*"; // ?open=* : every DCU of the fleet, those to come 
 
 export const WORST_FIRST = "Worst first: DCUs down or unheard of first (disconnected, their relay silent, or a stale row), "
   + "then most alerts (a stale row counts one), then the busiest bottleneck (its utilization, in whole percent), "
-  + "then the longest frame p99, then by name. The order holds still while the pointer is over the table.";
+  + "then the longest frame p99, then by name. The order holds still while the pointer is over the table "
+  + "or a row has the keyboard's focus.";
 
 /** A row made from a node's entry in a `nodes` list (GET /api/nodes): what a relay without overview tells. */
 export function rowFromNode(n) {
@@ -214,20 +215,24 @@ export class OverviewTable {
     this.hintEl = root.querySelector("#overview-hint");
     this.trs = new Map(); // node -> <tr>, with _cells and _html
     this.order = []; // nodes in table order (all rows, filtered ones hidden)
-    this.hold = false; // the pointer is over the table: keep the order still
     this.last = { rows: [], shown: 0, total: 0 };
     this.body.addEventListener("click", (ev) => {
       const tr = ev.target.closest("tr[data-node]");
       if (tr && !window.getSelection()?.toString()) onToggle(tr.dataset.node);
     });
-    this.body.addEventListener("keydown", (ev) => {
-      const tr = ev.target.closest("tr[data-node]");
-      if (!tr || (ev.key !== "Enter" && ev.key !== " ")) return;
+    this.body.addEventListener("keydown", (ev) => this.rowKey(ev, onToggle));
+    this.filterBox.addEventListener("keydown", (ev) => {
+      if (ev.key !== "ArrowDown" || ev.altKey || ev.ctrlKey || ev.metaKey) return;
       ev.preventDefault();
-      onToggle(tr.dataset.node);
+      this.focusRow(this.visibleRows()[0]);
     });
-    this.body.addEventListener("mouseenter", () => { this.hold = true; });
-    this.body.addEventListener("mouseleave", () => { this.hold = false; });
+    // The order holds still while the pointer is over the rows, or one of them has the keys' focus.
+    this.pointerIn = false;
+    this.focusIn = false;
+    this.body.addEventListener("mouseenter", () => { this.pointerIn = true; });
+    this.body.addEventListener("mouseleave", () => { this.pointerIn = false; });
+    this.body.addEventListener("focusin", () => { this.focusIn = true; });
+    this.body.addEventListener("focusout", (ev) => { this.focusIn = this.body.contains(ev.relatedTarget); });
     const head = root.querySelector("thead tr");
     head.innerHTML = COLUMNS.map(([name, title]) => `<th class="ov-${name.replace(/\s+/g, "-")}" title="${esc(title)}">${esc(name)}</th>`).join("");
     root.querySelector("#overview-order").title = WORST_FIRST;
@@ -237,12 +242,47 @@ export class OverviewTable {
     return this.filterBox.value;
   }
 
+  get hold() {
+    return this.pointerIn || this.focusIn;
+  }
+
+  /** The rows the filter shows, in table order. */
+  visibleRows() {
+    return [...this.body.children].filter((tr) => !tr.hidden);
+  }
+
+  focusRow(tr) {
+    if (!tr) return;
+    tr.focus({ preventScroll: true });
+    tr.scrollIntoView({ block: "nearest" }); // within the overview's box, clear of its sticky head
+  }
+
+  /** Keys on a row: up and down (Home, End) move, Enter or space opens or closes, Escape goes to the filter. */
+  rowKey(ev, onToggle) {
+    const tr = ev.target.closest("tr[data-node]");
+    if (!tr || ev.altKey || ev.ctrlKey || ev.metaKey) return;
+    const rows = this.visibleRows();
+    const i = rows.indexOf(tr);
+    const to = { ArrowDown: i + 1, ArrowUp: i - 1, Home: 0, End: rows.length - 1 }[ev.key];
+    if (ev.key === "Enter" || ev.key === " ") {
+      onToggle(tr.dataset.node);
+    } else if (ev.key === "Escape") {
+      this.filterBox.focus();
+    } else if (to !== undefined) {
+      if (ev.key === "ArrowUp" && i === 0) this.filterBox.focus(); // above the first row: the filter
+      else this.focusRow(rows[Math.max(0, Math.min(rows.length - 1, to))]);
+    } else {
+      return;
+    }
+    ev.preventDefault();
+  }
+
   row(node) {
     let tr = this.trs.get(node);
     if (!tr) {
       tr = document.createElement("tr");
       tr.dataset.node = node;
-      tr.tabIndex = 0; // Enter or space toggles it too
+      tr.tabIndex = 0; // the keys: see rowKey
       tr._cells = COLUMNS.map(([name]) => {
         const td = document.createElement("td");
         td.className = `ov-${name.replace(/\s+/g, "-")}`;
@@ -271,6 +311,7 @@ export class OverviewTable {
     } else {
       order = rows.sort((a, b) => worstFirst(a, b, now)).map((r) => r.node);
     }
+    const focused = this.body.contains(document.activeElement) ? document.activeElement : null;
     const filter = this.filter;
     let shown = 0;
     const listed = [];
@@ -300,12 +341,15 @@ export class OverviewTable {
       if (this.body.children[i] !== tr) this.body.insertBefore(tr, this.body.children[i] ?? null);
     });
     this.order = order;
+    // A row moved in the DOM loses the focus: the keys' place is kept.
+    if (focused && document.activeElement !== focused && focused.isConnected && !focused.hidden) {
+      focused.focus({ preventScroll: true });
+    }
     const total = rows.length;
     const count = `${shown.toLocaleString("en-US")} of ${total.toLocaleString("en-US")} DCU${total === 1 ? "" : "s"}`
       + ` · ${opened.size.toLocaleString("en-US")} opened`;
     if (this.countEl.textContent !== count) this.countEl.textContent = count;
-    const hint = !total ? "No DCU has reported yet."
-      : !opened.size ? "Click a DCU to open its stage, frame and moments views." : "Click a row to open or close its DCU.";
+    const hint = !total ? "No DCU has reported yet." : ""; // else the keys' line beside it says what a row does
     if (this.hintEl.textContent !== hint) this.hintEl.textContent = hint;
     this.last = { rows: listed, shown, total, opened: opened.size };
   }
