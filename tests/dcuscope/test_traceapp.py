@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import signal
+import statistics
 import subprocess
 import sys
 import textwrap
@@ -82,7 +83,9 @@ def test_a_c_program_traced_unchanged(tmp_path):
         crossings[pad][int(pts)] = int(at)
     truth = sorted(crossings["src"][p] - crossings["sink"][p] for p in crossings["sink"])
     assert len(truth) == 40 and read_trace(trace).header.node == "C-APP"
-    assert stage_p50_ms(trace, "slow") == pytest.approx(truth[20] / 1e6, abs=0.2)
+    # The median as stats takes it (numpy's, linear: of 40, halfway between the 20th and the 21st; a loaded
+    # machine's sleeps spread those two apart by 0.2 ms and more).
+    assert stage_p50_ms(trace, "slow") == pytest.approx(statistics.median(truth) / 1e6, abs=0.2)
     assert "stage slow" in result.stderr
 
 
