@@ -82,22 +82,26 @@ def frame_counts(relay: RelayProcess, prom: PromServer) -> tuple[dict, dict] | N
     return None if scraped == api else (scraped, api)
 
 
-SETTLED_S = (WINDOW_MAX_AGE_S, 1.0)
-"""A scrape's gauge is compared with /api/stats where every reading agrees from the last one taken
+SETTLED_S = (WINDOW_MAX_AGE_S, 1.0 + WINDOW_MAX_AGE_S)
+"""A scrape's gauge is compared with /api/stats where every reading agrees from the last one answered
 WINDOW_MAX_AGE_S or more before the scrape began (a scrape reuses a window computed up to that long
-before it, e.g. for one of those readings) to 1 s after it (a scrape answers within that second)."""
+before it, e.g. for one of those readings) to the first one asked 1 s + WINDOW_MAX_AGE_S after it (a
+scrape answers within that second; that reading may reuse a window as old). A reading counts from
+when it was asked to when it was answered: on a loaded machine an answer comes long after its question."""
 
 
 def watch(relay: RelayProcess, prom: PromServer, nodes: dict, seen: dict) -> None:
     """While the nodes run: the bottleneck by /api/stats, read every 0.2 s; Prometheus' gauge with
     the time of the scrape it came from; the alert's states. Then each scrape's gauge beside what
     /api/stats said around that scrape (``seen["bottleneck"]``), where that was settled."""
-    readings: dict[str, list[tuple[float, str | None]]] = {n: [] for n in nodes}
+    readings: dict[str, list[tuple[float, float, str | None]]] = {n: [] for n in nodes}  # asked, answered, stage
     scrapes: set[tuple[str, float, str]] = set()
     last_query = NEVER
     while any(p.poll() is None for p in nodes.values()):
         for n in nodes:
-            readings[n].append((time.time(), window_bottleneck(relay, n)))
+            asked = time.time()
+            stage = window_bottleneck(relay, n)
+            readings[n].append((asked, time.time(), stage))
         if time.monotonic() - last_query >= 0.5:
             last_query = time.monotonic()
             for s in prom.query("timestamp(dcuscope_bottleneck == 1)"):  # the scrape's time, labels kept
@@ -106,11 +110,12 @@ def watch(relay: RelayProcess, prom: PromServer, nodes: dict, seen: dict) -> Non
                 seen["alert"].add((a["labels"]["node"], a["state"]))
         time.sleep(0.2)
     for node, scraped_at, stage in sorted(scrapes, key=lambda s: s[1]):
-        first, last = readings[node][0][0], readings[node][-1][0]
-        if not first <= scraped_at - SETTLED_S[0] < scraped_at + SETTLED_S[1] <= last:
+        before = [r for r in readings[node] if r[1] <= scraped_at - SETTLED_S[0]]
+        after = [r for r in readings[node] if r[0] >= scraped_at + SETTLED_S[1]]
+        if not before or not after:
             continue  # not read on both sides
-        since = max(t for t, _ in readings[node] if t <= scraped_at - SETTLED_S[0])
-        around = {b for t, b in readings[node] if since <= t <= scraped_at + SETTLED_S[1]}
+        since, until = before[-1][0], after[0][1]
+        around = {b for asked, answered, b in readings[node] if since <= asked and answered <= until}
         if len(around) == 1 and None not in around:
             seen["bottleneck"].append((node, around.pop(), stage))
 
