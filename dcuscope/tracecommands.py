@@ -288,14 +288,15 @@ def _bottleneck_lines(st: dict) -> list[str]:
     b = st.get("bottleneck")
     if not b:
         return []
-    head = "bottleneck" if b.get("saturated") else "busiest"
-    return [f"  {head:<14} {b['stage']}: {b['reason']}"]
+    # Unsaturated, the reason names the busiest stage itself: said once, not as the bottleneck's name too.
+    what = f"{b['stage']}: " if b.get("saturated") is not False else "none: "
+    return [f"  {'bottleneck':<14} {what}{b['reason']}"]
 
 
 def _source_lines(st: dict) -> list[str]:
     lines = []
     for sid, src in st.get("sources", {}).items():
-        nominal = f" of {src['nominal_fps']:.2f} nominal" if src.get("nominal_fps") else ""
+        nominal = _against_nominal(src["fps"], src.get("nominal_fps"))
         dropped = ", ".join(f"{reason} {n}" for reason, n in src["dropped"].items()) or "0"
         lines.append(f"  source {sid:<7} {src['delivered']} delivered, {src['fps']:.2f} frames/s{nominal}; "
                      f"RTP packets lost {src['lost_upstream']}, decoder dropped {src['decoder_dropped']}, "
@@ -304,6 +305,19 @@ def _source_lines(st: dict) -> list[str]:
         fps = "  ".join(f"src {k}: {v:.2f}" for k, v in st["fps"].items()) or "-"
         lines.append(f"  frames/s       {fps}")
     return lines
+
+
+FASTER_THAN_NOMINAL = 1.05
+"""A source delivering this much above its nominal rate was read faster than real time (a file
+not paced as a camera): its shortfall against the nominal rate would mean nothing."""
+
+
+def _against_nominal(fps: float, nominal: float | None) -> str:
+    if not nominal:
+        return ""
+    if fps > nominal * FASTER_THAN_NOMINAL:
+        return f" (read faster than real time: nominal {nominal:.2f})"
+    return f" of {nominal:.2f} nominal"
 
 
 def _clock_lines(st: dict) -> list[str]:

@@ -24,6 +24,7 @@ from pipeline.build import BuiltPipeline
 from pipeline.livestop import LiveStop
 from pipeline.sourcefaults import describe_fault
 from pipeline.stalls import Stall, StallWatch
+from plugins.frames import read_frames
 
 EOS_GRACE_S = 15.0
 """How long a stop waits for end-of-stream at the sink with no frame reaching the sink meanwhile: a
@@ -34,6 +35,13 @@ is not."""
 @dataclass
 class RunResult:
     frames: int = 0
+    """Buffers that reached the sink (with several sources, each a collage or batch of camera frames)."""
+    camera_frames: int = 0
+    """The camera frames those buffers carry (their identity meta), 0 where frames carry none."""
+    past_limit: int = 0
+    """Buffers that reached the sink after ``--num-frames`` was reached (they had passed every stage:
+    a trace counts their frames complete), dropped there."""
+    past_limit_camera_frames: int = 0
     seconds: float = 0.0
     interrupted: bool = False
     """Stopped by Ctrl-C or SIGTERM."""
@@ -139,11 +147,15 @@ class Runner:
         self.built.pipeline.send_event(Gst.Event.new_eos())
 
     # -- callbacks -------------------------------------------------------------------------
-    def _count_frame(self, _pad, _info):
+    def _count_frame(self, _pad, info):
         self._last_frame_at = time.monotonic()
+        carried = len(read_frames(info.get_buffer()))
         if self.num_frames is not None and self.result.frames >= self.num_frames:
+            self.result.past_limit += 1
+            self.result.past_limit_camera_frames += carried
             return Gst.PadProbeReturn.DROP  # frames still in flight after the limit
         self.result.frames += 1
+        self.result.camera_frames += carried
         if self.num_frames is not None and self.result.frames == self.num_frames:
             GLib.idle_add(self._stop_once)
         return Gst.PadProbeReturn.OK
@@ -282,12 +294,27 @@ class Runner:
         rate = (self.result.frames - last_frames) / (now - last_t) if last_t != NEVER and now > last_t else 0.0
         if final:
             line = f"{self.result.frames} frames in {elapsed:.1f} s ({self.result.frames / elapsed if elapsed else 0:.1f} fps)"
+            line += self._what_was_counted()
         else:
             target = f"/{self.num_frames}" if self.num_frames else ""
             line = f"{elapsed:7.1f} s  frames {self.result.frames}{target}  {rate:5.1f} fps"
         tty = self.progress.isatty()
         self.progress.write(("\r" + line + ("\n" if final else "")) if tty else line + "\n")
         self.progress.flush()
+
+    def _what_was_counted(self) -> str:
+        """What the count is, where a trace of the run counts otherwise: camera frames (a buffer at
+        the sink may carry several), and frames past ``--num-frames`` (processed, then not written)."""
+        r = self.result
+        text = ""
+        if r.camera_frames and r.camera_frames != r.frames:
+            text += f", {r.camera_frames} camera frames in them"
+        if r.past_limit:
+            them = "it" if r.past_limit == 1 else "them"
+            camera = f" ({r.past_limit_camera_frames} camera frames)" if r.past_limit_camera_frames != r.past_limit else ""
+            text += (f"; {r.past_limit} more{camera} had passed every stage when the limit was reached and were not "
+                     f"written (a trace counts {them} complete)")
+        return text
 
     def _say(self, text: str) -> None:
         if self.progress is not None:

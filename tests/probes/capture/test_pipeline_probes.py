@@ -19,12 +19,15 @@ MODEL = REPO / "assets" / "models" / "ssdlite_mobilenetv2_person.onnx"
 FIVE = ("mux", "infer", "tiler", "convert", "osd")
 
 
-def probed_run(tmp_path: Path, yaml: str, frames: int, *extra: str, env: dict | None = None):
+def probed_run(tmp_path: Path, yaml: str, frames: int, *extra: str, env: dict | None = None, output: list | None = None):
+    """The trace of ``dcuscope run --num-frames FRAMES``; ``output`` gets the run's stderr."""
     config = tmp_path / "p.yaml"
     config.write_text(yaml)
     trace = tmp_path / "t.jsonl"
     result = run_cli("run", config, "--probes", "--trace", trace, "--num-frames", frames, *extra, cwd=tmp_path, env=env)
     assert result.returncode == 0, result.stderr
+    if output is not None:
+        output.append(result.stderr)
     return read_trace(trace)
 
 
@@ -48,7 +51,8 @@ stages:
 
 
 def test_lineage_every_frame_has_one_origin_and_one_enter_exit_per_stage(tmp_path):
-    trace = probed_run(tmp_path, quad_yaml(), 30)
+    said: list[str] = []
+    trace = probed_run(tmp_path, quad_yaml(), 30, output=said)
     header, events = trace.header, trace.events
     assert header.stages == ["src0", "src1", "src2", "src3", *FIVE, "sink"]
     assert [header.kinds[s] for s in header.stages[:-1]] == ["framestamp"] * 4 + list(FIVE)
@@ -66,6 +70,12 @@ def test_lineage_every_frame_has_one_origin_and_one_enter_exit_per_stage(tmp_pat
             assert seen.get((source, frame, s, ENTER)) == 1, (source, frame, stage)
             assert seen.get((source, frame, s, EXIT)) == 1, (source, frame, stage)
         assert seen.get((source, frame, sink, ENTER)) == 1
+    # The run's count says what it counts: 30 collages at the sink, the camera frames in them, and those
+    # past the limit (not written), which add up to the frames the trace saw reach the sink.
+    counts = re.search(r"^30 frames in [\d.]+ s \([\d.]+ fps\), (\d+) camera frames in them"
+                       r"(?:; (\d+) more \((\d+) camera frames\) had passed every stage)?", said[0], re.M)
+    assert counts, said[0]
+    assert int(counts[1]) + int(counts[3] or 0) == len(reached), said[0]
 
 
 def test_frame_delay_is_the_sum_of_its_stage_delays_and_gaps(tmp_path):

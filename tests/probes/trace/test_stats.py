@@ -240,9 +240,23 @@ def test_stats_cli_table_has_one_aligned_block_per_node(two_traces):
         f"{inf['service']['mean_ms']:.3f}", f"{inf['service']['p99_ms']:.3f}", f"{inf['wait']['mean_ms']:.3f}",
         f"{inf['utilization'] * 100:.1f}", "%", f"{inf['share'] * 100:.1f}", "%", f"{inf['occupancy']:.2f}"]
     b = st["bottleneck"]
-    assert f"  {'bottleneck' if b['saturated'] else 'busiest':<14} {b['stage']}: {b['reason']}" in lines
+    assert f"  {'bottleneck':<14} {b['stage'] + ': ' if b['saturated'] else 'none: '}{b['reason']}" in lines
     assert "source 0       8 delivered, 10.00 frames/s of 10.00 nominal; RTP packets lost 0" in blocks[0]
     assert "16 complete, 0 incomplete" in blocks[0]
+
+
+def test_stats_says_the_busiest_stage_once_and_a_file_read_faster_than_real_time_is_not_held_to_its_rate():
+    from dcuscope.tracecommands import format_stats
+
+    header, events, _ = pipeline_run(8, n_sources=1, jitter_ns=3_000_000, seed=0)
+    st = node_stats(header, events)
+    st["bottleneck"] = bottleneck({"mux": {"utilization": 0.004, "mean_ms": 3.0, "share": 0.9},
+                                   "infer": {"utilization": 0.002, "mean_ms": 0.3, "share": 0.1}})
+    st["sources"]["0"]["fps"] = st["sources"]["0"]["nominal_fps"] * 4.5  # a file read as fast as it goes
+    text = format_stats({"nodes": {"dcu1": st}})
+    neck = next(ln for ln in text.splitlines() if ln.startswith("  bottleneck"))
+    assert neck.count("mux") == 2 and "busiest" in neck and neck.count("busiest") == 1, neck
+    assert "frames/s (read faster than real time: nominal 10.00)" in text and " of 10.00 nominal" not in text
 
 
 @pytest.mark.parametrize("content", [None, b"hello\n"])
