@@ -152,16 +152,19 @@ def _read(text: str, db: str | None) -> list[tuple]:
         if kind == "run" and (len(key) < 6 or any(c not in "0123456789abcdef" for c in key.lower())):
             raise DcuscopeError(f"compare: {text}: a run id is 6 or more hexadecimal digits")
         from relay.store.engines import is_url
-        from relay.store.runs import load_runs, run_label, session_nodes
+        from relay.store.runs import find_runs, load_runs, run_label, session_nodes
 
         if not is_url(db) and not Path(db).is_file():
             raise DcuscopeError(f"compare: {db}: no such database")
+        if kind == "run":  # by its whole id: a prefix of digits only would name a session
+            found = find_runs(db, key.lower())
+            if len(found) > 1:
+                raise DcuscopeError(f"compare: {text} begins {len(found)} run ids "
+                                    f"({', '.join(run[:8] for run, _ in found)}): give more digits")
+            key = found[0][0] if found else key
         runs = load_runs(db, key, corrected=False)
         if kind == "session" and any(r.session != int(key) for r in runs):
             raise DcuscopeError(f"compare: {db} has no session {key}")
-        if kind == "run" and len(runs) > 1:
-            raise DcuscopeError(f"compare: {text} begins {len(runs)} run ids ({', '.join(r.run[:8] for r in runs)}): "
-                                "give more digits")
         nodes = [r.header.node for r in runs] if kind == "session" else session_nodes(db, runs[0].session)
         out = []
         for r in runs:

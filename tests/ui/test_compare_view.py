@@ -7,6 +7,7 @@ names them; the headline speaks of the figure shown; no value label lies under a
 from __future__ import annotations
 
 import json
+import sqlite3
 import urllib.error
 import urllib.request
 
@@ -159,7 +160,7 @@ def test_the_api_names_runs_by_id_and_says_what_is_wrong(stored):
     ids = (base, new, other)
     absent = next(p for p in (f"{k:06x}" for k in range(1 << 12)) if not any(r.startswith(p) for r in ids))
     for query, status, says in (
-            (f"base={base[:6].upper()}&new={new}", 200, ""),
+            (f"base={base[:7].upper()}&new={new}", 200, ""),
             (f"base={session}&base_node={OTHER}&new={new}", 200, ""),
             (f"base={session}&base_node={NODE}&new={new}", 400, f"holds 2 runs of node '{NODE}': name one as base=RUN"),
             (f"base={base}&new={new[:5]}", 400, "new=RUN is required"),
@@ -189,3 +190,16 @@ def test_the_cli_says_each_thing_once_in_short_unique_labels(stored):
     assert [i["origin"] for i in same["inputs"]] == [f"{db}, run {other[:8]}"] * 2
     twins = run_cli("compare", "--db", db, f"session:{session}", f"run:{new}", "--node", NODE)
     assert twins.returncode == 2 and f"name one as run:{base[:8]} or run:{new[:8]}" in twins.stderr, twins.stderr
+
+
+def test_a_prefix_of_two_runs_asks_for_more_digits(stored):
+    relay, db, session, (base, new), _ = stored
+    # A run the relay refused keeps its row: a prefix may begin its id and another's.
+    twin = base[:6] + ("1" if base[6] == "0" else "0") + base[7:]
+    with sqlite3.connect(db, timeout=10) as conn:
+        conn.execute("INSERT INTO runs (id, session, node, header, first_seen_ns, last_seen_ns, rejected) "
+                     "SELECT ?, session, node, header, 1, 1, 'refused' FROM runs WHERE id = ?", (twin, base))
+    status, body = answer(f"{relay.url}/api/compare?base={base[:6]}&new={new}")
+    assert status == 400 and body["error"] == f"base={base[:6]} begins 2 run ids: give more digits", body
+    cli = run_cli("compare", "--db", db, f"run:{base[:6]}", f"run:{new}")
+    assert cli.returncode == 2 and f"run:{base[:6]} begins 2 run ids" in cli.stderr, cli.stderr
