@@ -123,36 +123,26 @@ def _progress():
 
 
 def _load_inputs(args: argparse.Namespace) -> list:
-    from probes.trace.compare import Input
+    from probes.trace.compare import Input, distinct_labels
     from probes.trace.delays import frame_delays
     from probes.trace.frametable import frame_table
-    from probes.trace.stats import unique_name
 
     out: list[Input] = []
-    taken: set[str] = set()
     for text in args.inputs:
-        origin, candidates = _read(text, args.db)
-        header, events, where = _pick_node(text, candidates, args.node)
+        header, events, label, origin, _ = _pick_node(text, _read(text, args.db), args.node)
         fd = frame_delays(frame_table(header, events))
         if not fd.chains.complete.any():
             raise DcuscopeError(f"compare: {text}: no complete frame of node {header.node} (did the run carry frames "
                                 "through every stage?)")
-        label = unique_name(_label(text), taken)
-        taken.add(label)
-        out.append(Input(label=label, origin=origin + where, node=header.node, fd=fd))
+        out.append(Input(label=label, origin=origin, node=header.node, fd=fd))
+    for i, label in zip(out, distinct_labels([i.label for i in out])):
+        i.label = label
     return out
 
 
-def _label(text: str) -> str:
-    if text.startswith(("session:", "run:")):
-        kind, _, key = text.partition(":")
-        return f"{kind} {key[:8]}"
-    name = Path(text).name
-    return name.removesuffix(".jsonl").removesuffix(".trace") or name
-
-
-def _read(text: str, db: str | None) -> tuple[str, list[tuple]]:
-    """(where it came from, [(header, events, run description)]) of one input."""
+def _read(text: str, db: str | None) -> list[tuple]:
+    """[(header, events, label, origin, run id)] of one input: one per run it holds. The label names the
+    input shortly (a file's name; a stored run as the page names it), the origin says the rest once."""
     if text.startswith(("session:", "run:")):
         kind, _, key = text.partition(":")
         if db is None:
@@ -162,20 +152,34 @@ def _read(text: str, db: str | None) -> tuple[str, list[tuple]]:
         if kind == "run" and (len(key) < 6 or any(c not in "0123456789abcdef" for c in key.lower())):
             raise DcuscopeError(f"compare: {text}: a run id is 6 or more hexadecimal digits")
         from relay.store.engines import is_url
-        from relay.store.runs import load_runs
+        from relay.store.runs import find_runs, load_runs, run_label, session_nodes
 
         if not is_url(db) and not Path(db).is_file():
             raise DcuscopeError(f"compare: {db}: no such database")
+        if kind == "run":  # by its whole id: a prefix of digits only would name a session
+            found = find_runs(db, key.lower())
+            if len(found) > 1:
+                raise DcuscopeError(f"compare: {text} begins {len(found)} run ids "
+                                    f"({', '.join(run[:8] for run, _ in found)}): give more digits")
+            key = found[0][0] if found else key
         runs = load_runs(db, key, corrected=False)
         if kind == "session" and any(r.session != int(key) for r in runs):
             raise DcuscopeError(f"compare: {db} has no session {key}")
-        return f"{db} {kind} {key}", [(r.header, r.events, f", run {r.run[:8]}") for r in runs]
+        nodes = [r.header.node for r in runs] if kind == "session" else session_nodes(db, runs[0].session)
+        out = []
+        for r in runs:
+            twins = nodes.count(r.header.node) > 1
+            out.append((r.header, r.events, run_label(r.session, r.header.node, r.run, twins),
+                        str(db) if twins else f"{db}, run {r.run[:8]}", r.run))
+        return out
     from probes.trace.tracefile import read_trace
 
     if not Path(text).exists() and text.isdigit():
         raise DcuscopeError(f"compare: {text}: no such file (a stored session is session:{text} with --db)")
     trace = read_trace(text)
-    return text, [(trace.header, trace.events, "" if trace.complete else " (no end line)")]
+    name = Path(text).name
+    return [(trace.header, trace.events, name.removesuffix(".jsonl").removesuffix(".trace") or name,
+             f"{text}, node {trace.header.node}" + ("" if trace.complete else " (no end line)"), "")]
 
 
 def _pick_node(text: str, candidates: list[tuple], node: str | None) -> tuple:
@@ -184,7 +188,8 @@ def _pick_node(text: str, candidates: list[tuple], node: str | None) -> tuple:
         if not chosen:
             raise DcuscopeError(f"compare: {text} has no node {node!r} (it has {_nodes(candidates)})")
         if len(chosen) > 1:
-            raise DcuscopeError(f"compare: {text} has {len(chosen)} runs of node {node!r}: name one as run:ID")
+            raise DcuscopeError(f"compare: {text} has {len(chosen)} runs of node {node!r}: name one as "
+                                f"{' or '.join('run:' + c[4][:8] for c in chosen)}")
         return chosen[0]
     if len(candidates) > 1:
         raise DcuscopeError(f"compare: {text} holds the nodes {_nodes(candidates)}: pick one with --node NAME")

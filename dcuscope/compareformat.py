@@ -67,7 +67,7 @@ def _head(doc: dict) -> list[str]:
     lines = []
     for k, i in enumerate(doc["inputs"]):
         role = "BASE" if k == 0 else "NEW " if len(doc["inputs"]) == 2 else f"NEW{k}"
-        lines.append(f"{role} {i['label']}: {i['origin']}, node {i['node']}, {i['frames']} complete frames"
+        lines.append(f"{role} {i['label']}: {i['origin']}, {i['frames']} complete frames"
                      + (f" ({i['incomplete']} incomplete)" if i["incomplete"] else ""))
     return lines
 

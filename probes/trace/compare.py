@@ -48,11 +48,24 @@ class Input:
     """One side of a comparison: a node's frames and where they came from."""
 
     label: str
-    """Short name for column heads: the trace's file name, ``session 4``, ``run 1a2b3c4d``."""
+    """Short name for column heads, unique among the inputs: the trace's file name, or a stored run's
+    :func:`relay.store.runs.run_label` (``session 4 · DCU-1``)."""
     origin: str
     """Where it came from, in full."""
     node: str
     fd: FrameDelays
+
+
+def distinct_labels(labels: list[str]) -> list[str]:
+    """``labels`` with a repeated one numbered from its second time: ``session 1 · DCU-1 (2)``."""
+    out: list[str] = []
+    for label in labels:
+        k, name = 1, label
+        while name in out:
+            k += 1
+            name = f"{label} ({k})"
+        out.append(name)
+    return out
 
 
 def time_series(fd: FrameDelays) -> dict[tuple[str, str], np.ndarray]:

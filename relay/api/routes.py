@@ -29,7 +29,7 @@
   the difference, the share each node finished first, and whether the mean exceeds the error bar
   (:mod:`relay.api.moments`). Sources are those both run headers name by URI unless given; the newest
   ``limit`` (200, at most 2000) moments are listed, the summary covers every kept frame
-- ``GET /api/sessions``: stored sessions and their runs, newest first
+- ``GET /api/sessions``: stored sessions and their runs (node, times, counts, clock, stages), newest first
 - ``GET /api/sessions/ID/{nodes,stats,frames}``: a stored session browsed like a live one
   (:mod:`relay.api.sessions`)
 

@@ -365,14 +365,15 @@ class Database(ABC):
 
     def list_sessions(self) -> list[dict]:
         """Sessions, newest first, each with its runs (refused runs left out, and sessions of
-        refused runs only)."""
+        refused runs only); a run's ``stages`` tell which runs are of one pipeline."""
         runs: dict[int, list[dict]] = {}
-        for (rid, session, node, first, last, ended, events, written, dropped, lost, clock) in self._rows(
+        for (rid, session, node, first, last, ended, events, written, dropped, lost, clock, header) in self._rows(
                 "SELECT id, session, node, first_seen_ns, last_seen_ns, ended_ns, events, written, dropped, lost, "
-                "clock FROM runs WHERE rejected IS NULL ORDER BY first_seen_ns"):
+                "clock, header FROM runs WHERE rejected IS NULL ORDER BY first_seen_ns"):
             runs.setdefault(session, []).append({
                 "run": rid, "node": node, "first_seen_ns": first, "last_seen_ns": last, "ended_ns": ended,
-                "events": events, "written": written, "dropped": dropped, "lost": lost, "clock": json.loads(clock)})
+                "events": events, "written": written, "dropped": dropped, "lost": lost, "clock": json.loads(clock),
+                "stages": json.loads(header).get("stages", [])})
         return [{"session": sid, "created_ns": created, "runs": runs[sid]}
                 for sid, created in self._rows("SELECT id, created_ns FROM sessions ORDER BY id DESC") if sid in runs]
 

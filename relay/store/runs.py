@@ -22,6 +22,8 @@ from relay.store.base import Database, StoreUnavailable
 from relay.store.engines import open_database
 
 MAX_SESSION_DIGITS = 18
+RUN_DIGITS_SHOWN = 8
+"""A run is shown by its id's first 8 hex digits (``run fcef7528``), which ``run:ID`` takes back (6 or more)."""
 
 log = logging.getLogger(__name__)
 
@@ -133,6 +135,35 @@ def run_clock(run: str, text: str, history: list[Segment]) -> tuple[dict, Correc
 def load_session(db: str | Path, session_id: int | str, corrected: bool = True) -> list[tuple[TraceHeader, np.ndarray]]:
     """``[(header, events), ...]`` of every run of a stored session (for ``dcuscope export``)."""
     return [(r.header, r.events) for r in load_runs(db, session_id, corrected)]
+
+
+def find_runs(db: str | Path, prefix: str) -> list[tuple[str, int]]:
+    """(run, session) of each run, refused ones included, whose id starts with ``prefix`` (lower-case hex)."""
+    database = open_database(db, create=False)
+    try:
+        return [(r.run, int(r.session)) for r in database.runs_with_prefix(prefix)]
+    except StoreUnavailable as exc:
+        raise RelayError(f"cannot look up run {prefix!r}: {exc}") from exc
+    finally:
+        database.close()
+
+
+def session_nodes(db: str | Path, session: int) -> list[str]:
+    """The node of each stored run of ``session``: a node that ran twice in it, twice."""
+    database = open_database(db, create=False)
+    try:
+        return [json.loads(r.header)["node"] for r in database.session_runs(session)]
+    except StoreUnavailable as exc:
+        raise RelayError(f"cannot read session {session}: {exc}") from exc
+    finally:
+        database.close()
+
+
+def run_label(session: int, node: str, run: str, twins: bool) -> str:
+    """A stored run as ``dcuscope compare`` and the page's Compare tab name it: ``session 3 · DCU-1``;
+    where the session holds ``twins`` (other runs of the node), with the first 8 digits of the run's
+    id, as ``run:ID`` takes it: ``session 1 · vm · run fcef7528``."""
+    return f"session {session} · {node}" + (f" · run {run[:RUN_DIGITS_SHOWN]}" if twins else "")
 
 
 def list_sessions(db: str | Path) -> list[dict]:

@@ -1,18 +1,55 @@
-// Compare view: two stored runs side by side (two sessions, or two runs of one DCU), from
-// GET /api/compare (`dcuscope compare`'s document). Per stage, and end to end, a bar for BASE and
-// one for NEW of the chosen figure (mean, p50, p90, p99 of delay, service or wait); across NEW's
-// bar a whisker spans its 95 % interval (BASE + the change's interval, from the block bootstrap);
-// beside it the change in % (ms where BASE is 0) with that interval and the verdict.
+// Compare view: two stored runs side by side, from GET /api/compare?base=RUN&new=RUN (`dcuscope
+// compare`'s document). Every stored run is one entry of BASE and NEW, its value the run's id. Per
+// stage, and end to end, a bar for BASE and one for NEW of the chosen figure (mean, p50, p90, p99 of
+// delay, service or wait); across NEW's bar a whisker spans its 95 % interval (BASE + the change's
+// interval, from the block bootstrap); each value stands right of its bar's track, apart from the
+// whisker; beside them the change in % (ms where BASE is 0) with that interval and the verdict.
 
 import { esc } from "./panels.js";
 
-const FIGURES = ["mean", "p50", "p90", "p99"];
 const q = encodeURIComponent;
+const FEW = "too few frames";
 const FEW_TITLE = ' title="fewer than 10 frames beyond this percentile in a run (p99 of fewer than 1,000 frames): its interval means little"';
 
-function runLabel(s, r) {
-  const when = new Date(r.first_seen_ns / 1e6).toISOString().slice(0, 19).replace("T", " ");
-  return `Session ${s.session} · ${r.node} · ${when} UTC${r.ended_ns ? "" : " · recording"}`;
+const pad = (n) => String(n).padStart(2, "0");
+
+/** A run's start for its entry: "14:03:21" today, else "2026-11-02 14:03" (the browser's time zone). */
+function startText(ns, now = new Date()) {
+  const d = new Date(ns / 1e6);
+  const time = `${pad(d.getHours())}:${pad(d.getMinutes())}`;
+  if (d.toDateString() === now.toDateString()) return `${time}:${pad(d.getSeconds())}`;
+  return `${d.getFullYear()}-${pad(d.getMonth() + 1)}-${pad(d.getDate())} ${time}`;
+}
+
+/** Every stored run of GET /api/sessions, newest first: {run, session, node, stages, label, text}. `label`
+ * names it as `dcuscope compare` does (relay.store.runs.run_label: "session 1 · vm", with "· run
+ * fcef7528" where the session holds several runs of the node); `text`, its entry, adds its start. */
+export function storedRuns(sessions, now = new Date()) {
+  const runs = [];
+  for (const s of sessions) {
+    const count = {};
+    for (const r of s.runs) count[r.node] = (count[r.node] ?? 0) + 1;
+    for (const r of s.runs) {
+      const label = `session ${s.session} · ${r.node}${count[r.node] > 1 ? ` · run ${r.run.slice(0, 8)}` : ""}`;
+      runs.push({ run: r.run, session: s.session, node: r.node, stages: r.stages ?? [], first: r.first_seen_ns,
+                  label, text: `${label} · ${startText(r.first_seen_ns, now)}${r.ended_ns ? "" : " · recording"}` });
+    }
+  }
+  return runs.sort((a, b) => b.first - a.first);
+}
+
+const samePipeline = (a, b) => a.stages.join("\n") === b.stages.join("\n");
+
+/** [BASE, NEW, why] by default among runs (newest first): the two newest runs of one DCU; where no DCU
+ * has two, of one pipeline (the same stages); else the two newest runs, of different pipelines. */
+export function defaultPair(runs) {
+  for (const [same, why] of [[(a, b) => a.node === b.node, "dcu"], [samePipeline, "pipeline"]]) {
+    for (let i = 0; i < runs.length; i++) {
+      const older = runs.slice(i + 1).find((r) => same(r, runs[i]));
+      if (older) return [older, runs[i], why];
+    }
+  }
+  return [runs[1], runs[0], "different"];
 }
 
 const signed = (v, digits) => `${v >= 0 ? "+" : ""}${v.toFixed(digits)}`;
@@ -21,6 +58,30 @@ function fmtChange(c) {
   if (!c) return "";
   if (c.pct !== null) return `${signed(c.pct, 1)} % [${signed(c.pct_low, 1)}, ${signed(c.pct_high, 1)}]`;
   return `${signed(c.delta, 3)} ms [${signed(c.low, 3)}, ${signed(c.high, 3)}]`;
+}
+
+const rowName = (r) => (r.stage === "e2e" ? "end to end" : r.stage);
+const verdictClass = (v) => `verdict-${v.replace(/ /g, "-")}`;
+
+/** What the rows shown say of `figure`: [text, verdict class]. */
+function shownVerdict(rows, figure) {
+  const changes = rows.map((r) => [r, r.changes[1]?.[figure]]).filter(([, c]) => c);
+  const named = (verdict) => changes.filter(([, c]) => c.verdict === verdict).map(([r]) => rowName(r));
+  const [slower, faster, few] = [named("slower"), named("faster"), named(FEW)];
+  const parts = [];
+  if (slower.length) parts.push(`slower in ${slower.join(", ")}`);
+  if (faster.length) parts.push(`faster in ${faster.join(", ")}`);
+  const rest = changes.length - slower.length - faster.length - few.length;
+  if (!parts.length) {
+    if (!changes.length) return ["no row in both runs", "verdict-none"];
+    if (!rest) {
+      const need = Math.round(10 / (1 - Number(figure.slice(1)) / 100)); // 10 frames beyond it (MIN_TAIL)
+      return [`no row decided: ${FEW} (a ${figure} needs ${need.toLocaleString("en")} frames in each run)`, verdictClass(FEW)];
+    }
+    parts.push(`no significant change in ${rest} row${rest === 1 ? "" : "s"}`);
+  }
+  if (few.length) parts.push(`${few.length} with ${FEW}`);
+  return [parts.join("; "), slower.length ? "verdict-slower" : faster.length ? "verdict-faster" : "verdict-none"];
 }
 
 export class CompareView {
@@ -33,6 +94,7 @@ export class CompareView {
     this.body = section.querySelector("#compare-body");
     this.note = section.querySelector("#compare-note");
     this.doc = null;
+    this.runs = new Map();
     this.seq = 0;
     for (const sel of [this.baseSel, this.newSel]) sel.addEventListener("change", () => this.load());
     for (const sel of [this.figureSel, this.kindSel]) sel.addEventListener("change", () => this.draw());
@@ -47,24 +109,22 @@ export class CompareView {
       this.say(`Stored sessions unavailable: ${err.message}`);
       return;
     }
-    const runs = sessions.flatMap((s) => s.runs.map((r) => ({ value: `${s.session}|${r.node}`, label: runLabel(s, r),
-                                                           node: r.node })));
+    const runs = storedRuns(sessions);
+    this.runs = new Map(runs.map((r) => [r.run, r]));
     if (runs.length < 2) {
-      this.say("Compare needs two stored runs: record two sessions (or two runs of one DCU) first.");
+      this.say(`Compare needs two stored runs; ${runs.length ? "one is" : "none is"} stored yet (two runs of one DCU compare best).`);
       this.body.innerHTML = "";
       return;
     }
-    const options = runs.map((r) => `<option value="${esc(r.value)}">${esc(r.label)}</option>`).join("");
+    const options = runs.map((r) => `<option value="${esc(r.run)}">${esc(r.text)}</option>`).join("");
     const [base, next] = [this.baseSel.value, this.newSel.value];
     this.baseSel.innerHTML = options;
     this.newSel.innerHTML = options;
-    const values = runs.map((r) => r.value);
-    if (values.includes(base) && values.includes(next)) {
+    if (this.runs.has(base) && this.runs.has(next)) {
       [this.baseSel.value, this.newSel.value] = [base, next];
     } else {
-      // Newest first: NEW is the newest run, BASE the one before it of the same DCU (else the next newest).
-      const older = runs.slice(1).find((r) => r.node === runs[0].node) ?? runs[1];
-      [this.baseSel.value, this.newSel.value] = [older.value, runs[0].value];
+      const [older, newer] = defaultPair(runs);
+      [this.baseSel.value, this.newSel.value] = [older.run, newer.run];
     }
     await this.load();
   }
@@ -74,14 +134,13 @@ export class CompareView {
   }
 
   async load() {
-    const [bs, bn] = this.baseSel.value.split("|");
-    const [ns, nn] = this.newSel.value.split("|");
-    if (!bs || !ns) return;
+    const [base, next] = [this.baseSel.value, this.newSel.value];
+    if (!base || !next) return;
     const seq = ++this.seq;
     this.say("comparing… (resampling each run's frames in blocks)");
     let doc;
     try {
-      doc = await this.api.get(`/api/compare?base=${q(bs)}&base_node=${q(bn)}&new=${q(ns)}&new_node=${q(nn)}`);
+      doc = await this.api.get(`/api/compare?base=${q(base)}&new=${q(next)}`);
     } catch (err) {
       if (seq === this.seq) {
         this.say(`Cannot compare: ${err.message}`);
@@ -106,25 +165,31 @@ export class CompareView {
       return [r.values[0]?.[figure] ?? 0, r.values[1]?.[figure] ?? 0, c ? (r.values[0]?.[figure] ?? 0) + c.high : 0];
     }));
     const pct = (v) => `${Math.max(0, Math.min(100, (100 * v) / top)).toFixed(2)}%`;
+    const [shown, shownClass] = shownVerdict(rows, figure);
     const v = doc.verdicts[1];
     const named = [...v.slower, ...v.faster].slice(0, 5).join(", ");
+    const [b, n] = [this.runs.get(this.baseSel.value), this.runs.get(this.newSel.value)];
+    const apart = b && n && !samePipeline(b, n) ? " · different pipelines: stages matched by name" : "";
     this.say("");
-    const head = `<p class="compare-verdict verdict-${v.verdict.replace(/ /g, "-")}">NEW against BASE: <b>${esc(v.verdict)}</b>` +
-      `${named ? ` (${esc(named)})` : ""} <span class="muted">over ${v.figures} figures, family-wise 5 %</span></p>` +
+    const head = `<p class="compare-verdict"><span class="compare-shown ${shownClass}"><b>${esc(figure)} of ${esc(kind)}</b>, ` +
+      `NEW against BASE: ${esc(shown)}</span> <span class="compare-whole ${verdictClass(v.verdict)}">` +
+      `<span class="muted">over the whole table (all ${v.figures} figures, Holm, family-wise 5 %):</span> ` +
+      `${esc(v.verdict)}${named ? ` (${esc(named)})` : ""}</span></p>` +
       `<p class="muted compare-inputs">BASE ${esc(doc.inputs[0].label)}: ${doc.inputs[0].frames} frames · ` +
-      `NEW ${esc(doc.inputs[1].label)}: ${doc.inputs[1].frames} frames</p>`;
+      `NEW ${esc(doc.inputs[1].label)}: ${doc.inputs[1].frames} frames${apart}</p>`;
     const body = rows.map((r) => {
-      const name = r.stage === "e2e" ? "end to end" : r.stage;
-      const [b, n] = [r.values[0], r.values[1]];
+      const name = rowName(r);
+      const [bv, nv] = [r.values[0], r.values[1]];
       const c = r.changes[1]?.[figure] ?? null;
-      const whisker = c && b ? `<span class="ci" style="left:${pct(b[figure] + c.low)};width:calc(${pct(b[figure] + c.high)} - ${pct(b[figure] + c.low)})"` +
-        ` title="95 % interval of NEW: ${(b[figure] + c.low).toFixed(3)} to ${(b[figure] + c.high).toFixed(3)} ms"></span>` : "";
-      const bar = (val, cls) => (val ? `<div class="cmp-track"><span class="cmp-bar ${cls}" style="width:${pct(val[figure])}"></span>` +
-        `${cls === "new" ? whisker : ""}<span class="cmp-val">${val[figure].toFixed(3)} ms</span></div>` : `<div class="cmp-track muted">none</div>`);
+      const whisker = c && bv ? `<span class="ci" style="left:${pct(bv[figure] + c.low)};width:calc(${pct(bv[figure] + c.high)} - ${pct(bv[figure] + c.low)})"` +
+        ` title="95 % interval of NEW: ${(bv[figure] + c.low).toFixed(3)} to ${(bv[figure] + c.high).toFixed(3)} ms"></span>` : "";
+      const track = (val, cls, role) => (val ? `<div class="cmp-track ${cls}" title="${role}: ${val.frames} frames">` +
+        `<div class="cmp-plot"><span class="cmp-bar ${cls}" style="width:${pct(val[figure])}"></span>${cls === "new" ? whisker : ""}</div>` +
+        `<span class="cmp-val">${val[figure].toFixed(3)} ms</span></div>` : `<div class="cmp-track ${cls} muted">none</div>`);
       const verdict = c ? c.verdict : "not in both";
       return `<div class="cmp-row" data-stage="${esc(r.stage)}"><div class="cmp-name" title="${esc(name)}">${esc(name)}</div>` +
-        `<div class="cmp-bars">${bar(b, "base")}${bar(n, "new")}</div>` +
-        `<div class="cmp-change verdict-${verdict.replace(/ /g, "-")}"${verdict === "too few frames" ? FEW_TITLE : ""}>${esc(fmtChange(c))}<br><span>${esc(verdict)}</span></div></div>`;
+        `<div class="cmp-bars">${track(bv, "base", "BASE")}${track(nv, "new", "NEW")}</div>` +
+        `<div class="cmp-change ${verdictClass(verdict)}"${verdict === FEW ? FEW_TITLE : ""}>${esc(fmtChange(c))}<br><span>${esc(verdict)}</span></div></div>`;
     }).join("");
     this.body.innerHTML = head + `<div class="cmp-key"><span class="swatch cmp-key-base"></span>BASE` +
       ` <span class="swatch cmp-key-new"></span>NEW <span class="swatch cmp-key-ci"></span>NEW's 95 % interval</div>` +
