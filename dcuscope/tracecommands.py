@@ -113,11 +113,26 @@ def _rollup_stats(args: argparse.Namespace) -> int:
         doc = summary(args.db, args.node, now - parse_duration_ns(args.since or "1d"), now)
         doc["elapsed_s"] = round(time.monotonic() - started, 3)
         if not doc["rows"]:
-            raise DcuscopeError(f"stats: no rollups of node {args.node!r} since {args.since or '1d'} in {args.db} "
-                                "(rollups are written as the relay compacts: batches older than its --compact-after)")
+            raise DcuscopeError(_no_rollups(args))
         with _open_output("-") as out:
             out.write(json.dumps(doc, indent=2) + "\n" if args.json else format_rollups(doc))
     return 2 if failed else 0
+
+
+def _no_rollups(args: argparse.Namespace) -> str:
+    """Why ``stats --node --since`` has nothing to say yet, when it will, and how to have it now."""
+    from relay.store.compaction import COMPACT_AFTER_S
+    from relay.store.compactor import rollups_within_s
+    from relay.store.history import nodes
+    from relay.urls import redact
+
+    db = redact(args.db)
+    known = [n["node"] for n in nodes(args.db)]
+    others = f" (nodes with rollups: {', '.join(known[:10])})" if known and args.node not in known else ""
+    return (f"stats: no rollups of node {args.node!r} since {args.since or '1d'} in {db}{others}. A relay writes a "
+            f"run's rollups as it compacts its batches: within {rollups_within_s(COMPACT_AFTER_S):.0f} s of the run's "
+            f"start with the default --compact-after {COMPACT_AFTER_S:g}, never with --compact-after 0. To write them "
+            f"now: dcuscope db compact {db} (batches stored over {COMPACT_AFTER_S:g} s ago; --after 0: all of them)")
 
 
 ROLLUP_COLUMNS = ("count", "mean_ms", "min_ms", "p50_ms", "p90_ms", "p99_ms", "max_ms")

@@ -246,13 +246,18 @@ class Database(ABC):
 
     # --- compaction (relay.store.compaction) ----------------------------------------------------
 
-    def compaction_due(self, before_ns: int, min_events: int) -> list[tuple[str, bool]]:
-        """Runs with batches stored before ``before_ns``, each with whether it is quiet (ended, or
-        not heard from since then): a run still written only with ``min_events`` of them at least."""
-        return [(run, bool(quiet)) for run, events, quiet in self._rows(
-            "SELECT b.run, sum(b.count), max(CASE WHEN r.ended_ns IS NOT NULL OR r.last_seen_ns < %s THEN 1 ELSE 0 END) "
+    def compaction_due(self, before_ns: int, min_events: int, waited_ns: int | None = None) -> list[tuple[str, bool]]:
+        """Runs with batches stored before ``before_ns``, each with whether all of them go (the run
+        is quiet: ended, or not heard from since then; or its oldest was stored before ``waited_ns``):
+        a run still written otherwise only with ``min_events`` of them at least."""
+        rows = self._rows(
+            "SELECT b.run, sum(b.count), min(b.received_ns), "
+            "max(CASE WHEN r.ended_ns IS NOT NULL OR r.last_seen_ns < %s THEN 1 ELSE 0 END) "
             "FROM batches b JOIN runs r ON r.id = b.run WHERE b.received_ns < %s GROUP BY b.run ORDER BY b.run",
-            (before_ns, before_ns)) if quiet or int(events) >= min_events]
+            (before_ns, before_ns))
+        due = [(run, bool(quiet) or (waited_ns is not None and int(oldest) < waited_ns), int(events))
+               for run, events, oldest, quiet in rows]
+        return [(run, whole) for run, whole, events in due if whole or events >= min_events]
 
     def due_batches(self, run: str, before_ns: int) -> list[tuple[int, int]]:
         """(seq, events) of the run's batches stored before ``before_ns``, by seq."""

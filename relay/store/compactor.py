@@ -1,5 +1,6 @@
 """The relay's compaction (``--compact-after SECONDS``, 0: none): what :mod:`relay.store.compaction`
-says, every COMPACT_EVERY_S, in a process of its own beside the relay.
+says, every COMPACT_EVERY_S, in a process of its own beside the relay. A run's rollups come with
+it: the first within :func:`rollups_within_s` of its start (90 s by default), then at every pass.
 
 A process, not a thread: decoding batches, pairing their frames for the rollups and encoding
 segments cost about a microsecond of CPU an event, which in the relay's process would compete with
@@ -27,7 +28,7 @@ from pathlib import Path
 
 from relay.errors import RelayError
 from relay.store.base import Database
-from relay.store.compaction import Compacted, compact
+from relay.store.compaction import LIVE_WAIT_S, Compacted, compact
 from relay.store.engines import open_database
 
 COMPACT_EVERY_S = 30.0
@@ -41,13 +42,26 @@ STOP_S = 30.0
 log = logging.getLogger(__name__)
 
 
+def pass_every_s(after_s: float) -> float:
+    """How often a relay compacting ``after_s`` after storing looks: twice as often as batches come
+    due, at most every COMPACT_EVERY_S."""
+    return min(COMPACT_EVERY_S, max(after_s / 2, MIN_EVERY_S))
+
+
+def rollups_within_s(after_s: float) -> float:
+    """How long after a run's start its first rollups are written, at most (the compaction process
+    starts ``after_s`` after the relay, a run's first batch comes due ``after_s`` after it was stored
+    and, the run going on, is compacted at the first pass once it waited LIVE_WAIT_S): 90 s with
+    the default ``--compact-after``, and then as often as the relay compacts it."""
+    return max(after_s, LIVE_WAIT_S) + pass_every_s(after_s)
+
+
 class Compactor:
     """The compaction process of a relay: started, watched and stopped; :meth:`view` for /api/health."""
 
     def __init__(self, db: str | Path, after_s: float, name: str = "") -> None:
         self.db, self.after_s, self.name = db, after_s, name
-        self.every_s = min(COMPACT_EVERY_S, max(after_s / 2, MIN_EVERY_S))
-        """Twice as often as batches come due, at most every COMPACT_EVERY_S."""
+        self.every_s = pass_every_s(after_s)
         self.last: dict = {}
         self.proc: subprocess.Popen | None = None
         self._reader: threading.Thread | None = None
@@ -101,7 +115,8 @@ class Compactor:
 
     def view(self) -> dict:
         running = self.proc is not None and self.proc.poll() is None
-        return {"after_s": self.after_s, "every_s": self.every_s, "pid": self.proc.pid if self.proc else None,
+        return {"after_s": self.after_s, "every_s": self.every_s, "rollups_within_s": rollups_within_s(self.after_s),
+                "pid": self.proc.pid if self.proc else None,
                 "running": running, "passes": 0, **Compacted().to_dict(), **self.last}
 
 
@@ -129,7 +144,9 @@ class Passes:
         try:
             if self._database is None:
                 self._database = open_database(self.db, name=self.name)  # the relay's: one relay in /api/health
-            done = compact(self._database, time.time_ns() - int(self.after_s * 1e9), stop=self.stop.is_set)
+            now = time.time_ns()
+            done = compact(self._database, now - int(self.after_s * 1e9), stop=self.stop.is_set,
+                           waited_ns=now - int(LIVE_WAIT_S * 1e9))
             self._database.give_back_space()
         except RelayError as exc:  # the store failed (StoreUnavailable is one): next pass, on a new connection
             if self.failing is None:

@@ -57,7 +57,7 @@ def summary(db: str | Path, node: str, since_ns: int, until_ns: int) -> dict:
     database = open_database(db, create=False)
     try:
         rows = _rows(database, node, since_ns, until_ns)
-        order = _stage_order(database, node, {r[0] for r in rows})
+        order, _ = _pipeline(database, node, {r[0] for r in rows})
     finally:
         database.close()
     merged: dict[str, Rollup] = {}
@@ -78,12 +78,13 @@ def summary(db: str | Path, node: str, since_ns: int, until_ns: int) -> dict:
 
 def history(db: str | Path, node: str, since_ns: int, until_ns: int) -> dict:
     """Per stage, and for the frame end to end, a point per minute, or per hour past MAX_POINTS
-    minutes: ``{t_ns, frames, p50_ms, p99_ms, mean_ms}``; no point where no frame started (a gap)."""
+    minutes: ``{t_ns, frames, p50_ms, p99_ms, mean_ms}``; no point where no frame started (a gap);
+    ``kinds``: each stage's element factory, as the live views have it (the page colours by it)."""
     width = MINUTE_NS if (until_ns - since_ns) // MINUTE_NS <= MAX_POINTS else HOUR_NS
     database = open_database(db, create=False)
     try:
         rows = database.rollup_rows(node, width, since_ns // width * width, until_ns)
-        order = _stage_order(database, node, {r[0] for r in rows})
+        order, kinds = _pipeline(database, node, {r[0] for r in rows})
     finally:
         database.close()
     points: dict[str, dict[int, Sketch]] = {}
@@ -98,7 +99,8 @@ def history(db: str | Path, node: str, since_ns: int, until_ns: int) -> dict:
     frame = points.pop(FRAME_ROW, {})
     stages = {stage: line(points[stage]) for stage in sorted(points, key=lambda s: order.get(s, (1, s)))}
     return {"node": node, "since_ns": since_ns, "until_ns": until_ns, "width_ns": width, "frame": line(frame),
-            "stages": {k: v for k, v in stages.items() if v}, "relative_error": ALPHA}
+            "stages": {k: v for k, v in stages.items() if v}, "kinds": {k: kinds[k] for k in stages if k in kinds},
+            "relative_error": ALPHA}
 
 
 def nodes(db: str | Path) -> list[dict]:
@@ -121,14 +123,18 @@ def _ms(ns: float | None) -> float | None:
     return None if ns is None else ns / 1e6
 
 
-def _stage_order(database: Database, node: str, stages: set[str]) -> dict[str, tuple]:
-    """Each stage's place in the pipeline, from the newest stored run that has it (raw retention
-    may have deleted every run: then by name)."""
+def _pipeline(database: Database, node: str, stages: set[str]) -> tuple[dict[str, tuple], dict[str, str]]:
+    """Each stage's place in the pipeline and its element's factory, from the newest stored run that
+    has it (raw retention may have deleted every run: then by name, and no factory)."""
     order: dict[str, tuple] = {}
+    kinds: dict[str, str] = {}
     for (header,) in database._rows("SELECT header FROM runs WHERE node = %s ORDER BY first_seen_ns DESC LIMIT 50",
                                     (node,)):
-        for k, name in enumerate(json.loads(header).get("stages", [])):
+        doc = json.loads(header)
+        for k, name in enumerate(doc.get("stages", [])):
             order.setdefault(name, (0, k))
+        for name, kind in doc.get("kinds", {}).items():
+            kinds.setdefault(name, str(kind))
         if stages <= order.keys():
             break
-    return order
+    return order, kinds

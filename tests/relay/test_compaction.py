@@ -86,21 +86,27 @@ def test_every_reader_reads_a_compacted_run_as_before_from_any_seq(store):
     assert np.array_equal(after.events, events)  # by seq: 7, stored last, reads in its place
 
 
-def test_a_live_run_waits_for_a_large_range_and_a_quiet_one_does_not(store):
+def test_a_live_run_waits_for_a_large_range_or_a_while_and_a_quiet_one_does_not(store):
+    """A run still written waits for a range of ``min_events``, or until its oldest due batch was
+    stored before ``waited_ns`` (the relay's: LIVE_WAIT_S ago); one that ended does not wait."""
     events = synth_events(100, 2, 25.0, T0, seed=5)
-    live, _ = write_run(store, events)
+    live, _ = write_run(store, events)  # stored at 1 ns
+    waited, _ = write_run(store, events)
     database = open_database(store)
     try:
-        execute(database, "UPDATE runs SET ended_ns = NULL, last_seen_ns = %s WHERE id = %s", (time.time_ns(), live))
-        assert compact(database, 10, min_events=len(events) + 1).segments == 0
-        assert compact(database, 10, min_events=len(events)).segments == 1
+        for run in (live, waited):
+            execute(database, "UPDATE runs SET ended_ns = NULL, last_seen_ns = %s WHERE id = %s", (time.time_ns(), run))
+        assert compact(database, 10, min_events=len(events) + 1, waited_ns=1).segments == 0  # at 1: not before 1
+        execute(database, "UPDATE batches SET received_ns = 0 WHERE run = %s", (waited,))
+        assert compact(database, 10, min_events=len(events) + 1, waited_ns=1).segments == 1  # few, but waited
+        assert compact(database, 10, min_events=len(events)).segments == 1  # enough
         quiet, _ = write_run(store, events)
         assert compact(database, 10, min_events=len(events) + 1).segments == 1  # ended: compacted whole
         young, _ = write_run(store, events, received_ns=time.time_ns())
         assert compact(database, time.time_ns() - 60 * 10**9, min_events=1).segments == 0  # not due yet
     finally:
         database.close()
-    assert {r for r, in open_database(store)._rows("SELECT run FROM segments")} == {live, quiet}
+    assert {r for r, in open_database(store)._rows("SELECT run FROM segments")} == {live, waited, quiet}
 
 
 def test_retention_deletes_segments_and_migrate_copies_them(tmp_path, pg_url):

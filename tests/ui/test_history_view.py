@@ -1,9 +1,13 @@
-"""The page's history view in Chromium: one DCU's per-stage p50/p99 from the store's rollups, a gap
-between two runs drawn as a gap, the statistics of the span as `dcuscope stats --node --since`
-gives them, the wheel zooming in (a finer span asked of the relay)."""
+"""The page's history view in Chromium: one DCU's per-stage p50/p99 from the store's rollups, the span
+fitted to its data, a gap between two runs drawn as a gap, axes that say what they show (µs below a
+millisecond) with every label whole inside the chart, the stage view's colours, the statistics of the
+span as `dcuscope stats --node --since` gives them, the wheel zooming in (a finer span asked of the
+relay); and a live DCU, on a relay with the default --compact-after, in History within 150 s."""
 
 from __future__ import annotations
 
+import json
+import re
 import time
 
 import pytest
@@ -13,21 +17,30 @@ from relay.rollup.compute import HOUR_NS, MINUTE_NS
 from relay.store.history import summary
 from relay.store.compaction import compact
 from relay.store.engines import open_database
+from tests.conftest import run_cli
+from tests.relay.helpers import RelayProcess, get_json, start_node
 from tests.relay.test_compaction import write_run
 from tests.ui.helpers import RelayThread
 
 NODE = "DCU-7"
+FAST = "DCU-8"
+"""A DCU whose stages take microseconds."""
+LIVE_WITHIN_S = 150
 
 
 @pytest.fixture
 def store(tmp_path):
-    """Two runs of DCU-7, three minutes each, 3 hours and 1 hour ago, compacted (their rollups written)."""
+    """Two runs of DCU-7, three minutes each, 3 hours and 1 hour ago, and one of DCU-8 (delays a
+    hundredth of DCU-7's), 30 minutes ago, compacted (their rollups written)."""
     path = str(tmp_path / "relay.db")
     now = time.time_ns()
-    for k, ago in enumerate((3 * HOUR_NS, HOUR_NS)):
-        run, _ = write_run(path, synth_events(4500, 2, 25.0, now - ago, seed=k))
+    fast = synth_events(600, 2, 25.0, 0, seed=2)
+    fast["ts"] = now - 30 * MINUTE_NS + fast["ts"] // 100
+    for k, (node, events) in enumerate(((NODE, synth_events(4500, 2, 25.0, now - 3 * HOUR_NS, seed=0)),
+                                        (NODE, synth_events(4500, 2, 25.0, now - HOUR_NS, seed=1)), (FAST, fast))):
+        run, _ = write_run(path, events)
         database = open_database(path)
-        database.conn.execute("UPDATE runs SET node = ? WHERE id = ?", (NODE, run))
+        database.conn.execute("UPDATE runs SET node = ? WHERE id = ?", (node, run))
         database.close()
     database = open_database(path)
     compact(database, time.time_ns(), min_events=1)
@@ -44,6 +57,34 @@ def drawn(page, action) -> str:
     return answer.value.url
 
 
+def chart(page) -> dict:
+    """The chart's geometry: its box and each text's (page px), the plot's x range (viewBox units),
+    the x of every point of the frame's p99 line, the y axis' labels."""
+    return page.evaluate("""() => {
+      const svg = document.querySelector('#history-chart');
+      const box = (r) => [r.left, r.top, r.right, r.bottom];
+      const d = svg.querySelector('path.history-line[data-stage=frame][data-q=p99_ms]').getAttribute('d');
+      const grid = svg.querySelector('line.grid');
+      return {svg: box(svg.getBoundingClientRect()), width: svg.viewBox.baseVal.width,
+              texts: [...svg.querySelectorAll('text')].map((t) => [t.textContent, box(t.getBoundingClientRect())]),
+              plot: [Number(grid.getAttribute('x1')), Number(grid.getAttribute('x2'))],
+              xs: [...d.matchAll(/[ML]([\\d.]+),/g)].map((m) => Number(m[1])),
+              y: [...svg.querySelectorAll('text.axis-y')].map((t) => t.textContent)};
+    }""")
+
+
+def assert_labels_whole(geometry: dict) -> None:
+    left, top, right, bottom = geometry["svg"]
+    for text, (l, t, r, b) in geometry["texts"]:
+        assert left <= l and r <= right and top <= t and b <= bottom, (text, (l, t, r, b), geometry["svg"])
+
+
+def strokes(page) -> dict:
+    """Each stage's p99 line's colour, as drawn (rgb())."""
+    return page.eval_on_selector_all("path.history-line[data-q=p99_ms]",
+                                     "ps => Object.fromEntries(ps.map(p => [p.dataset.stage, getComputedStyle(p).stroke]))")
+
+
 def test_the_history_view_draws_rollups_with_gaps_and_the_spans_statistics(browser, store, tmp_path):
     relay = RelayThread(tmp_path / "relay.db")
     page = browser.new_page(viewport={"width": 1280, "height": 900})
@@ -53,7 +94,24 @@ def test_the_history_view_draws_rollups_with_gaps_and_the_spans_statistics(brows
         page.goto(relay.url + "/")
         with page.expect_response(lambda r: "/api/history?" in r.url):
             page.click(".tab[data-tab=history]")
-        assert page.input_value("#history-node") == NODE
+        page.wait_for_selector("path.history-line", state="attached")
+        assert page.input_value("#history-node") == NODE and page.input_value("#history-span") == "fit"
+        # Opened fitted to the data: its first and last minutes near the plot's two ends.
+        fitted = chart(page)
+        (x0, x1), xs = fitted["plot"], fitted["xs"]
+        assert min(xs) - x0 < 0.1 * (x1 - x0) and x1 - max(xs) < 0.1 * (x1 - x0), (xs, x0, x1)
+        assert "all its data" in page.text_content("#history-note")
+        assert_labels_whole(fitted)
+        assert "time (UTC)" in [t for t, _ in fitted["texts"]]
+        # The stage view's colours (colours.js: infer blue), by the stages' kinds.
+        colours = page.evaluate("async () => { const c = await import('/colours.js'); const s = document.createElement('i');"
+                                " document.body.append(s); const out = {}; for (const [k, v] of Object.entries(c.STAGE_COLOURS))"
+                                " { s.style.color = v; out[k] = getComputedStyle(s).color; } s.remove(); return out; }")
+        drawn_colours = strokes(page)
+        assert {k: drawn_colours[k] for k in colours} == colours and colours["infer"] == "rgb(30, 136, 229)"
+        swatches = page.eval_on_selector_all(".history-legend .legend-item", "es => Object.fromEntries(es.map(e => "
+                                             "[e.dataset.stage, getComputedStyle(e.querySelector('.swatch')).backgroundColor]))")
+        assert swatches == drawn_colours
         drawn(page, lambda: page.select_option("#history-span", "21600"))  # 6 hours
         d = page.get_attribute("path.history-line[data-stage=frame][data-q=p99_ms]", "d")
         assert d.count("M") == 2, d  # two runs, the two hours between them a gap
@@ -65,14 +123,73 @@ def test_the_history_view_draws_rollups_with_gaps_and_the_spans_statistics(brows
         assert int(cells[-1][1]) == expected["frame"]["count"] > 0
         assert "within 1 % of the value" in page.text_content("#history-summary")
         assert "a point per minute" in page.text_content("#history-note")
+        assert_labels_whole(chart(page))
         page.screenshot(path=str(tmp_path / "history.png"), full_page=True)
         # The wheel over the chart zooms in around the pointer: a shorter span, asked again.
         box = page.locator("#history-chart").bounding_box()
         page.mouse.move(box["x"] + box["width"] * 0.9, box["y"] + box["height"] / 2)
         asked = drawn(page, lambda: page.mouse.wheel(0, -300))
         since_s = int(asked.split("since=")[1].split("s&")[0])
-        assert 10 * MINUTE_NS <= since_s * 1e9 < 6 * HOUR_NS
+        assert 5 * MINUTE_NS <= since_s * 1e9 < 6 * HOUR_NS
+        # A DCU of microseconds: its delay axis in µs, each label its own value.
+        drawn(page, lambda: page.select_option("#history-node", FAST))
+        fast = chart(page)
+        assert len(set(fast["y"])) == len(fast["y"]) >= 3, fast["y"]
+        assert sum(label.endswith(" µs") for label in fast["y"]) >= 2 and "0.0 ms" not in fast["y"], fast["y"]
+        assert_labels_whole(fast)
     finally:
         page.close()
         relay.stop()
+    assert not errors, errors
+
+
+@pytest.mark.long
+def test_a_live_dcu_shows_in_history_and_stats_within_150_s_of_its_start(browser, tmp_path):
+    """A relay with the default --compact-after and a slow paced DCU (120 events/s, where rollups
+    once waited for 100,000): while its rollups are still to come, the History tab and `stats --since`
+    say when they will come and how to have them now; the tab, left open, then shows the DCU's series
+    by itself within 150 s of its start, in the stage view's colours, and `stats --since` answers
+    as /api/history does."""
+    db = tmp_path / "relay.db"
+    relay = RelayProcess(db)
+    node = start_node(relay.url, "DCU-1", tmp_path / "n.npz", frames=5 * 200, fps=5.0, sources=2, paced=True)
+    started = time.monotonic()
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    errors: list[str] = []
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    try:
+        page.goto(relay.url + "/")
+        page.wait_for_selector("#legend .legend-item[data-stage=infer]")
+        live = page.eval_on_selector_all("#legend .legend-item", "es => Object.fromEntries(es.map(e => "
+                                         "[e.dataset.stage, getComputedStyle(e.querySelector('.swatch')).backgroundColor]))")
+        page.click(".tab[data-tab=history]")
+        page.wait_for_function("() => document.querySelector('#history-note').textContent !== ''")
+        early_note = page.text_content("#history-note")
+        early_stats = run_cli("stats", "--db", db, "--node", "DCU-1", "--since", "1h")
+        # The tab as left: the series come by themselves.
+        left_s = LIVE_WITHIN_S - (time.monotonic() - started)
+        page.wait_for_selector("path.history-line[data-stage=infer][data-q=p99_ms]", state="attached",
+                                timeout=left_s * 1000)
+        shown_s = time.monotonic() - started
+        assert shown_s < LIVE_WITHIN_S
+        paths = page.eval_on_selector_all("path.history-line[data-q=p99_ms]", "ps => ps.map(p => [p.dataset.stage, p.getAttribute('d')])")
+        assert [s for s, _ in paths] == ["frame", "mux", "infer", "tiler", "convert", "osd"] and all(d for _, d in paths)
+        assert {k: v for k, v in strokes(page).items() if k != "frame"} == {k: live[k] for k in live if k in strokes(page)}
+        assert_labels_whole(chart(page))
+        for _ in range(3):  # the CLI and the relay read the same rollups: between two compaction passes
+            passes = get_json(relay.url + "/api/health")["compaction"]["passes"]
+            late = run_cli("stats", "--db", db, "--node", "DCU-1", "--since", "1h", "--json")
+            answer = get_json(relay.url + "/api/history?node=DCU-1&since=1h")
+            if get_json(relay.url + "/api/health")["compaction"]["passes"] == passes:
+                break
+    finally:
+        page.close()
+        node.kill()
+        node.wait(10)
+        relay.stop()
+    assert early_stats.returncode == 2, early_stats.stdout
+    for said in (early_note, early_stats.stderr):
+        assert "dcuscope db compact" in said and re.search(r"within 90 s\b", said), said
+    assert late.returncode == 0, late.stderr
+    assert 0 < json.loads(late.stdout)["frame"]["count"] == answer["summary"]["frame"]["count"] <= shown_s * 5 * 2
     assert not errors, errors

@@ -74,7 +74,7 @@ const model = {
 };
 const stageView = new StageView($("#stage-canvas"), model);
 const frameView = new FrameView($("#frame-panels"), model);
-const historyView = new HistoryView($("#history-view"), api);
+const historyView = new HistoryView($("#history-view"), api, colours);
 const compareView = new CompareView($("#compare-view"), api);
 const momentView = new MomentView($("#moments-view"), api, () => [...live.nodes.keys()].filter(isOpen).sort());
 

@@ -63,6 +63,11 @@ export class StageColours {
     return colour;
   }
 
+  /** Whether `stage` has its colour yet (a view of stored data colours the others apart: the legend stays the live one). */
+  has(stage) {
+    return this.assigned.has(stage);
+  }
+
   /** [[stage, colour]] in order of first use: the legend. */
   entries() {
     return [...this.assigned.entries()];
