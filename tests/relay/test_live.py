@@ -97,6 +97,12 @@ def test_window_covers_recent_frames_only():
     assert w["fps"]["0"] == pytest.approx(10.0, rel=0.02)
     assert w["frame"]["count"] == w["frames"]["complete"]
     assert run.run_stats()["frames"]["complete"] == 500
+    # It ends at the present: the node's newest event, later while the node is silent, never before it.
+    assert run.newest <= w["end_ns"] <= run.present_ns()
+    assert run.present_ns(bound_ns=run.newest - 1) == run.newest
+    # A run silent for longer than the window has nothing in it.
+    gone = run.window_stats(run.newest + 10_500_000_000)
+    assert gone["frames"] == {"complete": 0, "incomplete": 0} and gone["fps"] == {"0": 0.0}
 
 
 def test_visible_frames_and_bottleneck():

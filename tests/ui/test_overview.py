@@ -21,7 +21,7 @@ import pytest
 
 from relay.guard.limits import Limits
 from tests.relay.helpers import get_json, wait_for
-from tests.ui.helpers import RelayThread, sim_nodes
+from tests.ui.helpers import RelayThread, sim_nodes, source_fps
 
 pytestmark = pytest.mark.long  # its tests share a module fixture: one group of 30 s or more, started first
 
@@ -251,6 +251,26 @@ def test_a_click_opens_one_dcu_and_the_relay_pushes_only_its_frames(fleet, page)
     page.wait_for_timeout(2000)
     assert traffic.nodes_in(since)["frames"] == set()
     assert debug(page)["liveStores"] == []
+
+
+def test_the_killed_dcu_reads_0_fps_once_its_frames_left_the_window(fleet, page):
+    """Killed a test or two ago, silent since: its row, /api/overview and /metrics give it 0 frames/s
+    once its last frames are older than the rolling window (10 s), not its rate before."""
+    relay, _ = fleet
+    page, _ = page
+    last = {}
+
+    def decayed():
+        row = next(r for r in get_json(f"{relay.url}/api/overview")["rows"] if r["node"] == KILLED)
+        last.update(api=row["fps"], cell=cells(page, KILLED)[2], metrics=source_fps(relay.url, KILLED))
+        return row["fps"] == 0.0 and last["cell"] == "0.0" and set(last["metrics"].values()) == {0.0}
+
+    try:
+        wait_for(decayed, 40, 0.5, f"{KILLED} at 0 frames/s")
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}: {last}") from None
+    assert len(last["metrics"]) == SOURCES
+    assert float(cells(page, "DCU-1")[2]) > 0  # the others stream on
 
 
 def test_two_opened_dcus_are_what_the_moments_view_offers(fleet, page):

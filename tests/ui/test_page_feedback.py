@@ -1,8 +1,9 @@
 """What the page tells its user, and how it copes, in headless Chromium against a real relay.
 
 Bad limits are refused inline, tooltips stay inside the viewport, a stored session says that
-its statistics have no rolling window, the favicon is served, and a relay that restarts on
-its port is reported as unreachable (not as a transport error) and then followed again.
+its statistics have no rolling window, the favicon is served, a run that ended shows no frame
+rate, and a relay that restarts on its port is reported as unreachable (not as a transport
+error) and then followed again.
 """
 
 from __future__ import annotations
@@ -12,8 +13,9 @@ import urllib.request
 
 import pytest
 
+from dcuscope.demo import status_lines
 from tests.relay.helpers import get_json, wait_for
-from tests.ui.helpers import RelayThread, sim_nodes
+from tests.ui.helpers import RelayThread, sim_nodes, source_fps
 
 pytestmark = pytest.mark.long  # its tests share a module fixture: one group of 30 s or more, started first
 
@@ -132,6 +134,24 @@ def test_favicon_is_served_and_loading_the_page_logs_no_error(ended, browser):
             with urllib.request.urlopen(url, timeout=10) as r:
                 assert r.status == 200 and r.headers["Content-Type"].startswith("image/svg+xml")
                 assert b"<svg" in r.read()
+        assert not errors, errors
+    finally:
+        page.close()
+
+
+def test_an_ended_run_shows_no_fps_in_its_row_the_api_metrics_and_the_demo_line(ended, browser):
+    """It has no rate: its row says "ended" where the fps was, /api/overview gives fps null, /metrics
+    0 frames/s for its sources, and the demo's status line says it ended. (A run gone silent
+    without ending reads 0 once its frames left the window: tests/ui/test_overview.py.)"""
+    page, errors = open_page(browser, ended.url)
+    try:
+        cell = page.locator(f'#overview tbody tr[data-node="{LONG_NODE}"] td.ov-fps')
+        wait_for(lambda: cell.count() == 1 and cell.inner_text() != "", 15, 0.2, "its row")
+        row = next(r for r in get_json(f"{ended.url}/api/overview")["rows"] if r["node"] == LONG_NODE)
+        assert (row["state"], row["fps"]) == ("ended", None), row
+        assert cell.inner_text() == "ended"
+        assert source_fps(ended.url, LONG_NODE) == {"0": 0.0, "1": 0.0, "2": 0.0}
+        assert status_lines(ended.url) == [f"{LONG_NODE}: ended (600 frames)"]
         assert not errors, errors
     finally:
         page.close()
