@@ -428,6 +428,7 @@ class RelayState:
 
     def node_view(self, rs: RunState) -> dict:
         live = rs.live
+        limit = self.frame_limits.limit_ns(rs.node)
         return {
             "node": rs.node, "run": rs.run, "session": rs.session, "connected": rs.sid is not None,
             "ended": rs.ended, "stages": rs.header.stages, "kinds": rs.header.kinds, "sources": {str(k): v for k, v in rs.header.sources.items()},
@@ -438,7 +439,7 @@ class RelayState:
             "conflicts": rs.conflicts, "conflict_at": rs.conflict_at,
             "frames": {"shown": live.visible, "finalised": live.finalised, "evicted": live.evicted,
                        "late_events": live.late},
-            "last_seen": rs.last_seen,
+            "last_seen": rs.last_seen, "frame_limit_ms": None if limit is None else limit / 1e6,
         }
 
     def nodes_view(self) -> list[dict]:
