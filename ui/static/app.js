@@ -96,7 +96,11 @@ const stageView = new StageView($("#stage-canvas"), model);
 const frameView = new FrameView($("#frame-panels"), model);
 const historyView = new HistoryView($("#history-view"), api);
 const compareView = new CompareView($("#compare-view"), api);
-const momentView = new MomentView($("#moments-view"), api, () => [...live.nodes.keys()].filter(isOpen).sort());
+const momentView = new MomentView($("#moments-view"), api, {
+  opened: () => [...live.nodes.keys()].filter(isOpen).sort(),
+  fleet: () => fleet.names(),
+  sources: (node) => live.nodes.get(node)?.sources,
+});
 
 // --- the fleet and the DCUs opened from it ------------------------------------------------------
 
