@@ -40,11 +40,10 @@ def window_end_ns(live: LiveRun, correction: Correction) -> int:
     """Where ``live``'s rolling window ends now (:meth:`LiveRun.present_ns`): bounded by the relay's
     clock moved to the node's where the run's correction is known, so that a run read back from the
     store (a mirror, a relay restarted) is not taken for one heard from just now."""
-    bound = None
-    if correction.applied in KNOWN_CLOCK:
-        live.maintain()
-        bound = time.time_ns() + correction.at(live.newest)[0]
-    return live.present_ns(bound)
+    present = live.present_ns()  # merges what came: live.newest is the newest event now
+    if correction.applied not in KNOWN_CLOCK:
+        return present
+    return live.present_ns(time.time_ns() + correction.at(live.newest)[0])
 
 
 def frames_block(view: RunView, since: int = 0, limit: int = 200, newest: bool = False) -> dict:

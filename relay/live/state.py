@@ -80,11 +80,12 @@ class WindowStats:
 
     The window ends at the present on the node's clock (:func:`relay.live.runview.window_end_ns`),
     so it changes as new events come and as its frames age out. Once it holds nothing (a run that
-    ended or went silent ``window_s`` ago) it stays as it is until new events come. Otherwise it is
-    recomputed, unless asked ``fresh`` (the HTTP API, which stores what it computed), at most every
-    WINDOW_MAX_AGE_S, and no more often than keeps all runs' windows within WINDOW_SHARE of the
-    relay's time: a window over many frames (a node far above the paper's rate) then refreshes
-    less often instead of slowing the ingest."""
+    ended or went silent ``window_s`` ago) it stays as it is until new events come; it is
+    recomputed at once when it comes to hold nothing. Otherwise it is recomputed, unless asked
+    ``fresh`` (the HTTP API, which stores what it computed), at most every WINDOW_MAX_AGE_S, and
+    no more often than keeps all runs' windows within WINDOW_SHARE of the relay's time: a window
+    over many frames (a node far above the paper's rate) then refreshes less often instead of
+    slowing the ingest."""
 
     stats: dict | None = None
     events: int = -1
@@ -103,8 +104,13 @@ class WindowStats:
         now = time.monotonic()
         if self.settled(live):
             return self.stats
-        if fresh or self.stats is None or now - self.at >= max(WINDOW_MAX_AGE_S, self.cost * runs / WINDOW_SHARE):
-            self.stats, self.events = live.window_stats(window_end_ns(live, correction)), live.events
+        end = window_end_ns(live, correction)
+        # Every event of the run is older than the window now: it is empty, and cheap to say so
+        # (whatever the last one cost), so a silent run reads 0 within window_s on a busy relay too.
+        emptied = self.events == live.events and end - int(live.config.window_s * 1e9) > live.newest
+        if (fresh or emptied or self.stats is None
+                or now - self.at >= max(WINDOW_MAX_AGE_S, self.cost * runs / WINDOW_SHARE)):
+            self.stats, self.events = live.window_stats(end), live.events
             self.at, self.cost = now, time.monotonic() - now
         return self.stats
 
