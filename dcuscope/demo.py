@@ -15,6 +15,7 @@ import signal
 import subprocess
 import sys
 import time
+import urllib.parse
 import urllib.request
 from pathlib import Path
 
@@ -83,27 +84,37 @@ def _wait_for_relay(url: str, relay: subprocess.Popen, stop: _StopRequest, timeo
         raise PipelineError(f"the relay did not answer at {url} within {timeout_s:.0f} s")
 
 
-def _status_lines(url: str) -> list[str]:
-    """One line per DCU (frames/s, mean frame delay, verdict), aligned: two DCUs on one line
-    would run past a terminal's width every 5 s."""
+def status_lines(url: str) -> list[str]:
+    """One line per DCU, aligned (two DCUs on one line would run past a terminal's width every 5 s):
+    over the relay's rolling window (the last 10 s, as the page's overview), frames/s, mean frame
+    delay and verdict; a run that ended says so, and one gone silent that no frame came in the window."""
     try:
         nodes = _get_json(f"{url}/api/nodes")
     except OSError as exc:
         return [f"relay unreachable: {exc}"]
-    names = [node.get("node", "?") for node in (nodes if isinstance(nodes, list) else nodes.get("nodes", []))]
-    width = max((len(name) for name in names), default=0) + 1
+    nodes = [n for n in (nodes if isinstance(nodes, list) else nodes.get("nodes", [])) if isinstance(n, dict)]
+    width = max((len(n.get("node", "?")) for n in nodes), default=0) + 1
     lines = []
-    for name in names:
+    for node in nodes:
+        name = node.get("node", "?")
         head = f"{name + ':':<{width}}"
+        shown = (node.get("frames") or {}).get("shown", 0)
+        if node.get("ended"):
+            lines.append(f"{head} ended ({shown:,} frames)")
+            continue
         try:
-            stats = _get_json(f"{url}/api/stats?node={name}")
-            frame = stats.get("frame", {})
-            fps = sum((stats.get("fps") or {}).values())
-            mean = frame.get("mean_ms")
-            lines.append(f"{head} {fps:5.1f} fps, frame delay {mean:7.1f} ms, {_verdict(stats.get('bottleneck'))}"
-                         if mean is not None else f"{head} waiting for frames")
+            window = _get_json(f"{url}/api/stats?node={urllib.parse.quote(name)}").get("window") or {}
         except OSError:
             lines.append(f"{head} no stats yet")
+            continue
+        fps = sum((window.get("fps") or {}).values())
+        mean = (window.get("frame") or {}).get("mean_ms")
+        if mean is not None:
+            lines.append(f"{head} {fps:5.1f} fps, frame delay {mean:7.1f} ms, {_verdict(window.get('bottleneck'))}")
+        elif shown:
+            lines.append(f"{head} no frame in the last {window.get('window_s', 10):.0f} s ({node.get('state', '?')})")
+        else:
+            lines.append(f"{head} waiting for frames")
     return lines or ["no node connected yet"]
 
 
@@ -146,7 +157,7 @@ def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = 
                 raise PipelineError("a demo process exited early (see its message above)")
             if time.monotonic() - last_status >= STATUS_EVERY_S:
                 last_status = time.monotonic()
-                print("\n".join(f"demo: {line}" for line in _status_lines(url)), flush=True)
+                print("\n".join(f"demo: {line}" for line in status_lines(url)), flush=True)
         if stop:
             status = 128 + stop.signum
             said = "" if stop.signum == signal.SIGINT else f" {signal.Signals(stop.signum).name} received,"

@@ -10,9 +10,10 @@ Every row and node view carries a ``state``: "connected", "disconnected" (its ru
 "ended", or "relay silent". A row of a live run that its relay stopped refreshing for ``STALE_S`` is
 marked ``stale`` and listed as not connected, whatever that relay last wrote (frozen, it serves
 nobody; cut off from the store, nothing says it does): ``state`` "relay silent", ``silent_s`` since
-it last wrote the row, ``relay`` still naming it, and on the overview row the alert "relay silent:
-last heard N s ago". A relay that died lets its DCUs reconnect to another within seconds, whose
-rows then take over; one nobody refreshed for ``ROW_TTL_S`` is deleted.
+it last wrote the row, ``relay`` still naming it, ``fps`` None (nobody measures its rate now), and
+on the overview row the alert "relay silent: last heard N s ago". A relay that died lets its DCUs
+reconnect to another within seconds, whose rows then take over; one nobody refreshed for
+``ROW_TTL_S`` is deleted.
 """
 
 from __future__ import annotations
@@ -61,6 +62,7 @@ class Remote:
         row = self.heard(self.row, now_ns)
         if row["stale"]:
             row["alerts"] = [f"relay silent: last heard {row['silent_s']:.0f} s ago", *row["alerts"]]
+            row["fps"] = None
         return row
 
 
@@ -89,7 +91,7 @@ class Fleet:
             if rs is None or not state.holds(rs):
                 continue
             view = views[node] = self.local_view(rs)
-            window = rs.window.get(rs.live, False, len(state.runs))
+            window = state.window(rs, fresh=False)
             drops = self._drops.setdefault(run, CountHistory()).recent(view["drops"], now)
             incomplete = self._incomplete.setdefault(run, CountHistory()).recent(view["frames"]["evicted"], now)
             rows[node] = overview_row(view, window, state.relay_name, state.frame_limits.limit_ns(node), drops,

@@ -32,6 +32,8 @@ camera are at least 4 ms apart (240 frames/s), so 1 ms never pairs a frame with 
 and leaves room for a receiver that mapped a frame with an older sender report."""
 DEFAULT_LIMIT = 200
 MAX_LIMIT = 2000
+RTSP_SCHEMES = ("rtsp://", "rtsps://", "rtspt://", "rtspu://")
+"""Sources whose frames carry a capture time (rtspsrc's ``add-reference-timestamp-meta``, pipeline.sources)."""
 UNKNOWN_BOUND = ("none", "ignored", "raw")
 """Corrections whose bound is unknown (no estimate yet): a difference cannot be judged against it."""
 
@@ -139,7 +141,7 @@ def summary(a: str, b: str, diff_ns: np.ndarray, error_ns: np.ndarray, known: bo
     n = len(diff_ns)
     if n == 0:
         return {"matched": 0, "diff_ms": None, "error_ms": None, "first_share": {a: None, b: None},
-                "significant": None, "verdict": "no moment matched yet"}
+                "significant": None, "verdict": None}  # compare says why (none_matched)
     mean, bar = float(diff_ns.mean()), float(error_ns.mean())
     p50, p95 = np.percentile(diff_ns, [50, 95])
     stats = {"mean": mean / 1e6, "p50": float(p50) / 1e6, "p95": float(p95) / 1e6,
@@ -149,6 +151,37 @@ def summary(a: str, b: str, diff_ns: np.ndarray, error_ns: np.ndarray, known: bo
             "first_share": {a: float((diff_ns > 0).mean()), b: float((diff_ns < 0).mean())},
             "significant_moments": int((np.abs(diff_ns) > error_ns).sum()), "significant": significant,
             "verdict": _verdict(a, b, n, mean, bar, significant)}
+
+
+def none_matched(a: str, b: str, uris: list[str], frames: dict[str, int], tolerance_ns: int) -> str:
+    """Why no moment matched, and what would make one: ``frames``, each node's complete frames of
+    the shared sources ``uris`` that carry a capture time."""
+    if not frames[a] and not frames[b]:
+        if not any(_rtsp(u) for u in uris):
+            return ("no capture times: moments match the frames of one camera on two DCUs by its capture time, which "
+                    "an RTSP camera's RTCP sender reports give (docs/relay.md, \"The same moment on two DCUs\"); "
+                    f"{', '.join(_shown(u) for u in uris)} {'is' if len(uris) == 1 else 'are'} not RTSP, and files "
+                    "and test sources have none")
+        return ("no capture time yet: an RTSP camera's frames carry one once its first RTCP sender report came "
+                "(within seconds of the stream's start)")
+    for side, other in ((a, b), (b, a)):
+        if not frames[side]:
+            return (f"{side} has no frame with a capture time of the shared cameras yet ({other} has {frames[other]}): "
+                    "moments need both DCUs' frames of one moment")
+    return (f"none of {a}'s {frames[a]} and {b}'s {frames[b]} frames with a capture time match within "
+            f"{tolerance_ns / 1e6:g} ms: the two DCUs hold frames of different moments (one of them started later, "
+            "or the URI names two different cameras)")
+
+
+def _rtsp(uri: str) -> bool:
+    """Whether a run header's source (``uri:rtsp://...``) is an RTSP stream, whose frames get capture times."""
+    return uri.removeprefix("uri:").lower().startswith(RTSP_SCHEMES)
+
+
+def _shown(uri: str, most: int = 80) -> str:
+    """A source as a message names it: its URI without the header's ``uri:``, the end kept if long."""
+    u = uri.removeprefix("uri:")
+    return u if len(u) <= most else "…" + u[-most:]
 
 
 def _verdict(a: str, b: str, n: int, mean: float, bar: float, significant: bool | None) -> str:
@@ -210,6 +243,8 @@ def compare(pairs: list[tuple[NodeFrames, NodeFrames, str]], limit: int = DEFAUL
     moments.sort(key=lambda m: m[0])
     known = all(f.clock not in UNKNOWN_BOUND for p in pairs for f in p[:2])
     agg = summary(a, b, np.concatenate(diffs), np.concatenate(errors), known)
+    if not agg["matched"]:
+        agg["verdict"] = none_matched(a, b, [uri for _, _, uri in pairs], frames, tolerance_ns)
     return {"a": a, "b": b, "clock": {a: fa0.clock, b: fb0.clock}, "tolerance_ms": tolerance_ns / 1e6,
             "sources": [{"uri": uri, "a": fa.source, "b": fb.source} for fa, fb, uri in pairs],
             "summary": dict(agg, unmatched=unmatched, frames=frames, capture_spread_us=spread / 1e3),

@@ -15,7 +15,8 @@ gets every DCU of the fleet; each relay sends only what it holds:
   is shaped as ``GET /api/frames`` and holds the newest of those frames, at most ``max_frames``, packed
   (``packed`` instead of ``frames``: binary columns, :mod:`relay.live.framepack`; ``cursor`` tells how
   many completed in all, so a gap is visible and backfilled with ``GET /api/frames``);
-- ``stats`` {"nodes": {NODE: stats}} once a second for subscribed DCUs whose events changed, each as
+- ``stats`` {"nodes": {NODE: stats}} once a second for subscribed DCUs whose events changed or whose
+  rolling window still holds frames (it ends at the present: a silent DCU's empties), each as
   ``GET /api/stats?node=NODE`` (whole-run figures of long runs refresh less often, the rolling window
   every time; with many DCUs on a busy relay, less than once a second: the frames go first).
 
@@ -176,7 +177,7 @@ class Ticker:
         self._stats_at = NEVER
         self._stats_due: list[str] = []
         self._stats_share = 1
-        self._stats_versions: dict[str, int] = {}
+        self._stats_versions: dict[str, int | None] = {}
 
     async def run(self) -> None:
         await asyncio.gather(self._push_loop(), self._housekeeping_loop(), self.interest.run())
@@ -305,9 +306,12 @@ class Ticker:
             node = self._stats_due.pop(0)
             done += 1
             rs = state.node_run(node)
-            if rs is None or not state.holds(rs) or self._stats_versions.get(rs.run) == rs.live.events:
+            # Unchanged since the last push: no new events, and a window with nothing left to age out.
+            version = rs.live.events if rs is not None and rs.window.settled(rs.live) else None
+            if rs is None or not state.holds(rs) or (version is not None
+                                                     and self._stats_versions.get(rs.run) == version):
                 continue
-            self._stats_versions[rs.run] = rs.live.events
+            self._stats_versions[rs.run] = version
             stats = state.stats(rs, fresh=False)
             everyone[node] = stats
             for m in wanted.get(node, ()):

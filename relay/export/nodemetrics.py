@@ -3,9 +3,11 @@
 Every figure is one the relay already derives: the rolling window's statistics (what
 ``/api/stats`` gives as ``window``: utilization, bottleneck, fps per source, the run's drop and
 loss counts per source), the clock view (``/api/nodes`` clock), the node's PTP report and its
-counters. The window is the one the UI's pushes use (``RunState.window``: recomputed only when the
-run has new events, at most every ``relay.live.state.WINDOW_MAX_AGE_S``, and less often when windows
-are costly), so that scrapes of many nodes cost little. Every source lists every drop reason a node may send
+counters. The window is the one the UI's pushes use (``RunState.window``: it ends at the present, so
+the fps of a run that went silent falls to 0 within ``window_s``; that of a run that ended is 0 at
+once. Recomputed at most every ``relay.live.state.WINDOW_MAX_AGE_S``, less often when windows are
+costly, and no more once it holds nothing until new events come), so that scrapes of many nodes
+cost little. Every source lists every drop reason a node may send
 (``probes.trace.events.DROP_REASONS``, a closed set the wire checks), at 0 before its first drop, so that
 ``increase()`` sees that drop too; sources per node are bounded by ``--limit sources``.
 
@@ -90,15 +92,15 @@ class NodeMetrics:
     def families(self) -> Iterator[Metric]:
         out = Families()
         runs = [self._state.runs[run] for _, run in sorted(self._state.nodes.items()) if run in self._state.runs]
-        held = [rs for rs in runs if self._state.holds(rs)]
         for rs in runs:
             _state_samples(out, rs)
             if not self._state.holds(rs):
                 continue  # kept to be shown, another relay's to take: its state only
-            window = rs.window.get(rs.live, fresh=False, runs=len(held))
+            window = self._state.window(rs, fresh=False)
             _window_samples(out, rs.node, window)
-            # The counters now (cheap), the fps as of the window.
-            _source_samples(out, rs, rs.live.accounting.sources(window["fps"]), self._state.limits.sources)
+            # The counters now (cheap), the fps as of the window: 0 once the run ended (it has no rate).
+            fps = {} if rs.ended else window["fps"]
+            _source_samples(out, rs, rs.live.accounting.sources(fps), self._state.limits.sources)
             _node_samples(out, self._state, rs)
         return iter(out)
 

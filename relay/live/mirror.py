@@ -32,7 +32,7 @@ from relay.clock.correction import Correction
 from relay.clock.entry import clock_entry
 from relay.errors import RelayError
 from relay.live.run import LiveConfig, LiveRun
-from relay.live.runview import RunView
+from relay.live.runview import RunView, window_end_ns
 from relay.store.base import Database, RunRow, StoreUnavailable
 from relay.store.engines import open_database
 from relay.store.runs import run_clock
@@ -60,7 +60,8 @@ class Mirror:
     lock: asyncio.Lock = field(default_factory=asyncio.Lock)
 
     def stats(self, fresh: bool = True) -> dict:
-        return dict(self.live.run_stats(self.dropped), window=self.live.window_stats(), node=self.node, run=self.run,
+        window = self.live.window_stats(window_end_ns(self.live, self.correction))
+        return dict(self.live.run_stats(self.dropped), window=window, node=self.node, run=self.run,
                     session=self.session, lost=self.lost, clock=clock_entry(self.correction, time.time_ns()))
 
     def view(self) -> RunView:

@@ -2,8 +2,9 @@
 
 A row holds what tells which DCU needs a look: its state (:func:`connection_state`) and, from the
 run's rolling window (the figures the stage view's "window" shows), frames per second over all
-sources, the frame delay p99, the bottleneck and its utilization, the clock's state, drops, and
-alerts: short texts for what the shipped Prometheus alert rules (configs/prometheus/dcuscope-rules.yml)
+sources (None once the run ended: it has no rate, and says "ended"; a run gone silent reads 0
+within the window's 10 s, :meth:`relay.live.run.LiveRun.present_ns`), the frame delay p99, the
+bottleneck and its utilization, the clock's state, drops, and alerts: short texts for what the shipped Prometheus alert rules (configs/prometheus/dcuscope-rules.yml)
 would fire on, judged here from the relay's own figures so that a page without Prometheus shows
 them too.
 """
@@ -48,7 +49,7 @@ def overview_row(view: dict, window: dict, relay: str, limit_ns: int | None, dro
     (``--frame-limit``, None without one), ``drops_recent`` frames dropped or lost and
     ``incomplete_recent`` frames given up incomplete (evicted) within DROPS_WINDOW_S."""
     fps_by_source = window.get("fps") or {}
-    fps = float(sum(fps_by_source.values())) if fps_by_source else None
+    fps = float(sum(fps_by_source.values())) if fps_by_source and not view["ended"] else None
     p99 = (window.get("frame") or {}).get("p99_ms")
     neck = window.get("bottleneck")
     bottleneck = ({"stage": neck["stage"], "utilization": neck.get("utilization"), "saturated": neck.get("saturated")}

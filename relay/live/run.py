@@ -13,8 +13,11 @@ A frame lives in the *open* table (one row per (source, frame): the earliest tim
 - *evicted*: incomplete, with no event for ``evict_s`` of the node's time; it is counted.
 
 Time here is the node's own event time (its newest timestamp), so a network cut or a replay
-after a relay restart ages nothing. Events for a frame already finalised or evicted (at or
-below the source's watermark) are counted as ``late`` and ignored. Frames show up for the UI as
+after a relay restart ages nothing. The rolling window alone is cut at the present instead
+(:meth:`LiveRun.present_ns`): the node's newest event plus the relay's time since it last heard
+from the node, so that the window of a run that ended or went silent empties within ``window_s``
+rather than holding its last frames for ever. Events for a frame already finalised or evicted
+(at or below the source's watermark) are counted as ``late`` and ignored. Frames show up for the UI as
 soon as their chain is complete (:meth:`LiveRun.recent`).
 
 Memory is bounded in bytes (:meth:`LiveRun.set_budget`): the budget is split between the open
@@ -31,6 +34,7 @@ is judged by the exits the whole run has seen.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
@@ -207,6 +211,8 @@ class LiveRun:
         self._framed = np.zeros(0, bool)
         """Sources with frame timestamps (not only drops or facts)."""
         self.newest = 0
+        self._heard_ns: int | None = None
+        """``time.monotonic_ns()`` when the last batch was added (None before the first)."""
         # Finalised frames.
         self._values: dict[str, dict[str, RunValues]] = {kind: {} for kind in ("stages", "gaps", "service", "wait")}
         self._open_cap = config.max_open_frames
@@ -322,6 +328,19 @@ class LiveRun:
             self._note_sources(self._new_sources(events["source"]))
             self._pending.append(events)
             self.events += len(events)
+            self._heard_ns = time.monotonic_ns()
+
+    def present_ns(self, bound_ns: int | None = None) -> int:
+        """The present on the node's clock, as far as the relay can tell: the node's newest event
+        plus the relay's time since it last heard from the node (a silent node's clock goes on
+        without events), no later than ``bound_ns`` (the relay's clock moved to the node's, where
+        its correction is known) and never before the newest event."""
+        self._merge_pending()
+        silent = 0 if self._heard_ns is None else time.monotonic_ns() - self._heard_ns
+        present = self.newest + silent
+        if bound_ns is not None:
+            present = min(present, bound_ns)
+        return max(self.newest, present)
 
     def _merge_pending(self) -> None:
         while self._pending:
@@ -623,10 +642,12 @@ class LiveRun:
             return self._glass_values.summary(values_ms)
         return self._series(kind, name).summary(values_ms)
 
-    def window_stats(self) -> dict:
-        """The same statistics over frames whose chain ended in the last ``window_s`` (node time)."""
+    def window_stats(self, end_ns: int | None = None) -> dict:
+        """The same statistics over frames whose chain ended in the ``window_s`` before ``end_ns``
+        (node time; by default :meth:`present_ns`), which the answer gives as ``end_ns``."""
         self.maintain()
-        cutoff = self.newest - int(self.config.window_s * 1e9)
+        end = self.present_ns() if end_ns is None else end_ns
+        cutoff = end - int(self.config.window_s * 1e9)
         ring = self._ring
         sel = ring["end"].view >= cutoff
         open_ = self._open_frames()
@@ -640,6 +661,7 @@ class LiveRun:
         fps = OriginSpans().fps(self._all_sources(), fd.table.origin[c], fd.table.source[c])
         return {
             "window_s": self.config.window_s,
+            "end_ns": end,
             **delay_summary(series(fd, self.accounting.threads())),
             "fps": fps,
             "sources": self.accounting.sources(fps),

@@ -32,6 +32,20 @@ class RunView:
     """The name of the relay holding the run."""
 
 
+KNOWN_CLOCK = ("estimate", "ptp")
+"""Corrections that say where the node's clock stands against the relay's."""
+
+
+def window_end_ns(live: LiveRun, correction: Correction) -> int:
+    """Where ``live``'s rolling window ends now (:meth:`LiveRun.present_ns`): bounded by the relay's
+    clock moved to the node's where the run's correction is known, so that a run read back from the
+    store (a mirror, a relay restarted) is not taken for one heard from just now."""
+    present = live.present_ns()  # merges what came: live.newest is the newest event now
+    if correction.applied not in KNOWN_CLOCK:
+        return present
+    return live.present_ns(time.time_ns() + correction.at(live.newest)[0])
+
+
 def frames_block(view: RunView, since: int = 0, limit: int = 200, newest: bool = False) -> dict:
     """Complete frames after cursor ``since``, clock-corrected, as the UI draws them: the first
     ``limit`` of them (paging), or with ``newest`` the last ``limit`` (pushes)."""

@@ -24,7 +24,7 @@ from relay.errors import RelayError
 from relay.live.framelimits import FrameLimits
 from relay.guard.limits import MIB, Limits
 from relay.live.run import LiveConfig, LiveRun
-from relay.live.runview import RunView, columns_block, frames_block
+from relay.live.runview import RunView, columns_block, frames_block, window_end_ns
 from relay.live.seqset import SeqSet
 from relay.store import base as db
 from relay.store.runs import run_events
@@ -76,13 +76,16 @@ class WholeRunStats:
 
 @dataclass
 class WindowStats:
-    """A run's rolling-window statistics, shared by the UI's pushes and ``/metrics``.
+    """A run's rolling-window statistics, shared by the UI's pushes, the overview's rows and ``/metrics``.
 
-    They are a function of the run's events alone (the window ends at its newest event), so they
-    are recomputed only when new events came; unless asked ``fresh`` (the HTTP API, which stores
-    what it computed), at most every WINDOW_MAX_AGE_S, and no more often than keeps all runs'
-    windows within WINDOW_SHARE of the relay's time: a window over many frames (a node far above
-    the paper's rate) then refreshes less often instead of slowing the ingest."""
+    The window ends at the present on the node's clock (:func:`relay.live.runview.window_end_ns`),
+    so it changes as new events come and as its frames age out. Once it holds nothing (a run that
+    ended or went silent ``window_s`` ago) it stays as it is until new events come; it is
+    recomputed at once when it comes to hold nothing. Otherwise it is recomputed, unless asked
+    ``fresh`` (the HTTP API, which stores what it computed), at most every WINDOW_MAX_AGE_S, and
+    no more often than keeps all runs' windows within WINDOW_SHARE of the relay's time: a window
+    over many frames (a node far above the paper's rate) then refreshes less often instead of
+    slowing the ingest."""
 
     stats: dict | None = None
     events: int = -1
@@ -90,13 +93,24 @@ class WindowStats:
     at: float = NEVER
     cost: float = 0.0
 
-    def get(self, live: LiveRun, fresh: bool, runs: int = 1) -> dict:
+    def settled(self, live: LiveRun) -> bool:
+        """Whether the statistics held stay as they are until ``live`` gets new events: nothing is left
+        in the window to age out."""
+        return (self.stats is not None and self.events == live.events
+                and not self.stats["frames"]["complete"] and not self.stats["frames"]["incomplete"])
+
+    def get(self, live: LiveRun, correction: Correction, fresh: bool, runs: int = 1) -> dict:
         """``runs``: how many runs' windows are kept up to date this way (their share is split)."""
         now = time.monotonic()
-        if self.stats is not None and self.events == live.events:
+        if self.settled(live):
             return self.stats
-        if fresh or self.stats is None or now - self.at >= max(WINDOW_MAX_AGE_S, self.cost * runs / WINDOW_SHARE):
-            self.stats, self.events = live.window_stats(), live.events
+        end = window_end_ns(live, correction)
+        # Every event of the run is older than the window now: it is empty, and cheap to say so
+        # (whatever the last one cost), so a silent run reads 0 within window_s on a busy relay too.
+        emptied = self.events == live.events and end - int(live.config.window_s * 1e9) > live.newest
+        if (fresh or emptied or self.stats is None
+                or now - self.at >= max(WINDOW_MAX_AGE_S, self.cost * runs / WINDOW_SHARE)):
+            self.stats, self.events = live.window_stats(end), live.events
             self.at, self.cost = now, time.monotonic() - now
         return self.stats
 
@@ -420,6 +434,7 @@ class RelayState:
 
     def node_view(self, rs: RunState) -> dict:
         live = rs.live
+        limit = self.frame_limits.limit_ns(rs.node)
         return {
             "node": rs.node, "run": rs.run, "session": rs.session, "connected": rs.sid is not None,
             "ended": rs.ended, "stages": rs.header.stages, "kinds": rs.header.kinds, "sources": {str(k): v for k, v in rs.header.sources.items()},
@@ -430,7 +445,7 @@ class RelayState:
             "conflicts": rs.conflicts, "conflict_at": rs.conflict_at,
             "frames": {"shown": live.visible, "finalised": live.finalised, "evicted": live.evicted,
                        "late_events": live.late},
-            "last_seen": rs.last_seen,
+            "last_seen": rs.last_seen, "frame_limit_ms": None if limit is None else limit / 1e6,
         }
 
     def nodes_view(self) -> list[dict]:
@@ -446,9 +461,12 @@ class RelayState:
         however long and however many the runs. The window, unless ``fresh``, as
         :class:`WindowStats` allows (which ``/metrics`` shares).
         """
-        runs = len(self.runs)
-        return dict(rs.whole.get(rs.live, rs.dropped, fresh, runs), window=rs.window.get(rs.live, fresh, runs), node=rs.node,
+        return dict(rs.whole.get(rs.live, rs.dropped, fresh, len(self.runs)), window=self.window(rs, fresh), node=rs.node,
                     run=rs.run, session=rs.session, lost=rs.lost, clock=clock_entry(self.correction(rs), time.time_ns()))
+
+    def window(self, rs: RunState, fresh: bool = True) -> dict:
+        """The run's rolling-window statistics, as :class:`WindowStats` allows unless ``fresh``."""
+        return rs.window.get(rs.live, self.correction(rs), fresh, len(self.runs))
 
     def view(self, rs: RunState) -> RunView:
         """What the HTTP API and the pushes read of ``rs`` (:mod:`relay.live.runview`)."""

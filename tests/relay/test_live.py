@@ -97,6 +97,12 @@ def test_window_covers_recent_frames_only():
     assert w["fps"]["0"] == pytest.approx(10.0, rel=0.02)
     assert w["frame"]["count"] == w["frames"]["complete"]
     assert run.run_stats()["frames"]["complete"] == 500
+    # It ends at the present: the node's newest event, later while the node is silent, never before it.
+    assert run.newest <= w["end_ns"] <= run.present_ns()
+    assert run.present_ns(bound_ns=run.newest - 1) == run.newest
+    # A run silent for longer than the window has nothing in it.
+    gone = run.window_stats(run.newest + 10_500_000_000)
+    assert gone["frames"] == {"complete": 0, "incomplete": 0} and gone["fps"] == {"0": 0.0}
 
 
 def test_visible_frames_and_bottleneck():
@@ -278,6 +284,24 @@ def test_whole_run_statistics_of_many_runs_share_one_share_of_the_relays_time():
     assert second is not first and second["frames"]["complete"] > first["frames"]["complete"]
     run.add(events[:10])
     assert whole.get(run, 0, fresh=True, runs=32) is not second
+
+
+def test_a_silent_runs_window_empties_however_long_its_last_one_took():
+    """A window waits its turn (its last cost, times the runs, within WINDOW_SHARE), except once every
+    event of its run is older than it: then it is empty, said at once, and kept until new events come."""
+    from relay.clock.correction import NO_CORRECTION
+    from relay.live.state import WindowStats
+
+    run = LiveRun(header_for("n", 1), LiveConfig(window_s=0.05))
+    run.add(synth_events(20, 1, 1000.0, T0, seed=3))  # 20 ms of frames
+    window = WindowStats()
+    full = window.get(run, NO_CORRECTION, fresh=False)
+    assert full["frames"]["complete"] > 10
+    window.cost = 1000.0  # its next turn would come in hours
+    time.sleep(0.06)  # silent for longer than the window
+    empty = window.get(run, NO_CORRECTION, fresh=False)
+    assert empty["frames"] == {"complete": 0, "incomplete": 0} and empty["fps"] == {"0": 0.0}
+    assert window.settled(run) and window.get(run, NO_CORRECTION, fresh=True) is empty
 
 
 def test_runs_maintained_together_show_and_state_exactly_what_each_alone_does():

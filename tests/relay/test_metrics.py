@@ -121,7 +121,10 @@ def test_histograms_gauges_and_counters_equal_the_delay_model_and_api_stats(tmp_
     values = series(frame_delays(frame_table(header, events)))
 
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db", live=LiveConfig(settle_s=0.0))
+        # A window longer than the run: the scrape's and /api/stats' windows, taken a moment apart, hold
+        # the same frames (a window ends at the present, and a loaded machine may let the run's first
+        # frames age out of a 10 s one between the two).
+        relay = await start_relay(port=0, db=tmp_path / "r.db", live=LiveConfig(settle_s=0.0, window_s=600.0))
         url = f"http://127.0.0.1:{relay.port}"
         run = uuid.uuid4().hex
         try:

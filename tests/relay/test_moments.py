@@ -20,17 +20,20 @@ URI = "uri:rtsp://127.0.0.1:8554/cam0"
 PERIOD = 100_000_000
 
 
-def node_run(node: str, captures: np.ndarray, delay_ns: int, offset_ns: int = 0, source: int = 0):
+def node_run(node: str, captures: np.ndarray, delay_ns: int, offset_ns: int = 0, source: int = 0,
+             with_capture: bool = True):
     """FrameDelays of one node: one frame per capture time, origin 30 ms after capture, ``delay_ns``
-    from origin to the sink, every node timestamp (not the capture) shifted by ``offset_ns``."""
+    from origin to the sink, every node timestamp (not the capture) shifted by ``offset_ns``;
+    without ``with_capture``, the frames carry no capture time (a file's)."""
     n = len(captures)
     frame = np.arange(n, dtype=np.int64)
     src = np.full(n, source, np.int32)
     origin = captures + 30_000_000 + offset_ns
     header = TraceHeader(node=node, clock="realtime", stages=["src0", "work", "sink"],
                          sources={source: URI}, started_ns=T0)
+    k = n if with_capture else 0
     events = np.concatenate([
-        _events(captures, src, frame, 0, CAPTURE), _events(origin, src, frame, 0, ORIGIN),
+        _events(captures[:k], src[:k], frame[:k], 0, CAPTURE), _events(origin, src, frame, 0, ORIGIN),
         _events(origin + 1000, src, frame, 1, ENTER), _events(origin + delay_ns - 1000, src, frame, 1, EXIT),
         _events(origin + delay_ns, src, frame, 2, ENTER)])
     return header, frame_delays(frame_table(header, events))
@@ -89,6 +92,23 @@ def test_a_difference_within_the_error_bar_is_not_significant_and_an_unknown_bou
     none = compare(pairs_of(Side("a", {0: URI}, fa, estimate(0, 1)),
                             Side("b", {0: URI}, node_run("b", captures + 7_000_000, 1)[1], estimate(0, 1))))
     assert none["summary"]["matched"] == 0 and none["moments"] == [] and none["summary"]["unmatched"]["a"] == 20
+    assert none["summary"]["verdict"].startswith("none of a's 20 and b's 20 frames with a capture time match within 1 ms")
+
+
+@pytest.mark.parametrize("uris, with_b, said", [
+    (("uri:/media/vtest.avi",) * 2, False, "no capture times: moments match the frames of one camera on two DCUs by its "
+                                           "capture time, which an RTSP camera's RTCP sender reports give"),
+    ((URI, URI), False, "no capture time yet: an RTSP camera's frames carry one once its first RTCP sender report came"),
+    ((URI, URI), True, "a has no frame with a capture time of the shared cameras yet (b has 5)"),
+])
+def test_when_no_moment_matched_the_verdict_says_what_is_missing(uris, with_b, said):
+    captures = T0 + np.arange(5, dtype=np.int64) * PERIOD
+    fa = node_run("a", captures, 1_000_000, with_capture=False)[1]
+    fb = node_run("b", captures, 1_000_000, with_capture=with_b)[1]
+    out = compare(pairs_of(Side("a", {0: uris[0]}, fa, estimate(0, 1)), Side("b", {0: uris[1]}, fb, estimate(0, 1))))
+    assert out["summary"]["matched"] == 0 and out["summary"]["verdict"].startswith(said), out["summary"]["verdict"]
+    if not uris[0].startswith("uri:rtsp"):
+        assert out["summary"]["verdict"].endswith("/media/vtest.avi is not RTSP, and files and test sources have none")
 
 
 def test_sources_are_matched_by_uri_or_named_explicitly_and_a_missing_one_is_said():

@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 import threading
+import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -161,6 +162,16 @@ def pipeline_nodes(url: str, tmp: Path, nodes: list[str], *, configs: tuple[str,
         feeder.procs.append(subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE))
         feeder.outs.append(tmp / f"{node}.jsonl")
     return feeder
+
+
+def source_fps(url: str, node: str) -> dict[str, float]:
+    """``dcuscope_source_fps`` of ``node`` per source, as the relay's ``/metrics`` gives it now."""
+    from prometheus_client.parser import text_string_to_metric_families
+
+    with urllib.request.urlopen(f"{url}/metrics", timeout=10) as r:
+        text = r.read().decode()
+    return {s.labels["source"]: s.value for family in text_string_to_metric_families(text)
+            if family.name == "dcuscope_source_fps" for s in family.samples if s.labels["node"] == node}
 
 
 def launch_chromium(playwright, extra_args: list[str] | None = None):

@@ -8,6 +8,8 @@ HTTP-polling fallback, then, once the nodes ended, exact counters and the stored
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from tests.relay.helpers import get_json, wait_for
@@ -94,8 +96,8 @@ PANEL_TEXT_JS = """() => {
   const d = window.dcuscope.debug();
   d.text = {};
   for (const p of document.querySelectorAll('.frame-panel')) {
-    d.text[p.dataset.node] = { over: p.querySelector('.over-count').textContent,
-                               share: p.querySelector('.over-share').textContent };
+    d.text[p.dataset.node] = { over: p.querySelector('.over-count')?.textContent ?? null,
+                               share: p.querySelector('.over-share')?.textContent ?? null };
   }
   return d;
 }"""
@@ -228,8 +230,22 @@ def test_frame_view_limit_turns_bars_deep_red_and_counts(live):
         return wait_for(lambda: (lambda d: d if d["frame"]["limit"] == float(value) else None)(
             debug_with_panel_text(page)), 5, 0.1, f"limit {value}")
 
-    # Below every measured delay: every bar deep red, the counters say all of them.
+    # No limit by default (the relay has no --frame-limit): no bar judged, 75 bars a pixel apart, and
+    # the counts say what they count.
     page.click("#pause")
+    d = debug(page)
+    assert d["frame"]["limit"] is None
+    for node in NODES:
+        c = d["frame"]["nodes"][node]
+        assert c["limit"] is None and c["overShown"] == c["overReceived"] == 0 and 0 < c["shown"] <= 75
+        assert 3 <= c["bar"] < c["pitch"], c
+        assert frame_pixels(page, node)[DEEP_RED] == 0
+        head = page.locator(f'.frame-panel[data-node="{node}"] .frame-head')
+        said = rf"{c['shown']} shown · no limit set: type one above \(its p99: [\d.]+ [mµ]?s\)"
+        wait_for(lambda: re.search(said, head.inner_text()), 5, 0.1, f"{node}'s counts: {head.inner_text()}")
+        total = page.locator(f'.frame-panel[data-node="{node}"] .frame-total').inner_text()
+        assert re.fullmatch(r"[\d,]+ frames received since \d\d:\d\d:\d\d", total), total
+    # Below every measured delay: every bar deep red, the counters say all of them.
     d = set_limit("0.001")
     for node in NODES:
         c = d["frame"]["nodes"][node]

@@ -21,7 +21,7 @@ import pytest
 
 from relay.guard.limits import Limits
 from tests.relay.helpers import get_json, wait_for
-from tests.ui.helpers import RelayThread, sim_nodes
+from tests.ui.helpers import RelayThread, sim_nodes, source_fps
 
 pytestmark = pytest.mark.long  # its tests share a module fixture: one group of 30 s or more, started first
 
@@ -253,15 +253,53 @@ def test_a_click_opens_one_dcu_and_the_relay_pushes_only_its_frames(fleet, page)
     assert debug(page)["liveStores"] == []
 
 
-def test_two_opened_dcus_are_what_the_moments_view_offers(fleet, page):
+def test_the_killed_dcu_reads_0_fps_once_its_frames_left_the_window(fleet, page):
+    """Killed a test or two ago, silent since: its row, /api/overview and /metrics give it 0 frames/s
+    once its last frames are older than the rolling window (10 s), not its rate before."""
+    relay, _ = fleet
     page, _ = page
-    for node in ("DCU-1", "DCU-2"):
-        page.click(f'#overview tbody tr[data-node="{node}"]')
-    assert page.url.endswith("/?open=DCU-1,DCU-2")
+    last = {}
+
+    def decayed():
+        row = next(r for r in get_json(f"{relay.url}/api/overview")["rows"] if r["node"] == KILLED)
+        last.update(api=row["fps"], cell=cells(page, KILLED)[2], metrics=source_fps(relay.url, KILLED))
+        return row["fps"] == 0.0 and last["cell"] == "0.0" and set(last["metrics"].values()) == {0.0}
+
+    try:
+        wait_for(decayed, 40, 0.5, f"{KILLED} at 0 frames/s")
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}: {last}") from None
+    assert len(last["metrics"]) == SOURCES
+    assert float(cells(page, "DCU-1")[2]) > 0  # the others stream on
+
+
+def test_two_opened_dcus_are_what_the_moments_view_offers_and_it_says_what_is_missing(fleet, page):
+    relay, _ = fleet
+    page, _ = page
+    line = page.locator("#moments-summary")
+
+    def says(text: str) -> str:
+        wait_for(lambda: line.inner_text() == text, 10, 0.2, f"the moments line to say {text!r}, not {line.inner_text()!r}")
+        return line.get_attribute("class") or ""
+
+    page.click('#overview tbody tr[data-node="DCU-1"]')
     page.click(".tab[data-tab=moments]")
+    # One DCU open of six: open another (said plainly, not as an error).
+    assert "field-msg" not in says("Moments need two DCUs open: only DCU-1 is open. Open another in the fleet "
+                                   "overview above (click its row).")
+    page.click('#overview tbody tr[data-node="DCU-2"]')
+    assert page.url.endswith("/?open=DCU-1,DCU-2")
     wait_for(lambda: page.locator("#moments-a option").all_inner_texts() == ["DCU-1", "DCU-2"], 10, 0.2,
              "the opened DCUs in the moments selectors")
     assert page.locator("#moments-b option").all_inner_texts() == ["DCU-1", "DCU-2"]
+    # Both read the simulated cameras, whose frames carry no capture time: the relay says so, and what would.
+    verdict = get_json(f"{relay.url}/api/moments?a=DCU-1&b=DCU-2")["summary"]["verdict"]
+    assert verdict.startswith("no capture times: moments match the frames of one camera on two DCUs by its capture "
+                              "time, which an RTSP camera's RTCP sender reports give")
+    assert verdict.endswith("sim://camera0, sim://camera1 are not RTSP, and files and test sources have none")
+    assert "field-msg" not in says(verdict)
+    page.select_option("#moments-b", "DCU-1")
+    assert "field-msg" in says("DCU a and DCU b are both DCU-1: choose two different DCUs.")
     page.click(".tab[data-tab=stage]")
     page.click("#overview-close")
     assert page.url.endswith("/?open=") and debug(page)["opened"] == []

@@ -1,8 +1,9 @@
 """What the page tells its user, and how it copes, in headless Chromium against a real relay.
 
-Bad limits are refused inline, tooltips stay inside the viewport, a stored session says that
-its statistics have no rolling window, the favicon is served, and a relay that restarts on
-its port is reported as unreachable (not as a transport error) and then followed again.
+Bad limits are refused inline (an empty box clears the limit), tooltips stay inside the viewport, a stored session says that
+its statistics have no rolling window, the favicon is served, a run that ended shows no frame
+rate, and a relay that restarts on its port is reported as unreachable (not as a transport
+error) and then followed again.
 """
 
 from __future__ import annotations
@@ -12,8 +13,9 @@ import urllib.request
 
 import pytest
 
+from dcuscope.demo import status_lines
 from tests.relay.helpers import get_json, wait_for
-from tests.ui.helpers import RelayThread, sim_nodes
+from tests.ui.helpers import RelayThread, sim_nodes, source_fps
 
 pytestmark = pytest.mark.long  # its tests share a module fixture: one group of 30 s or more, started first
 
@@ -54,22 +56,34 @@ def ended(tmp_path_factory):
         relay.stop()
 
 
-def test_set_limit_refuses_zero_negative_and_empty_saying_why(ended, browser):
+def test_set_limit_refuses_zero_and_negative_saying_why_and_an_empty_box_clears_it(ended, browser):
     page, errors = open_page(browser, ended.url)
     try:
         page.click(".tab[data-tab=frame]")
-        for typed, said in (("0", "“0”"), ("-3", "“-3”"), ("", "empty")):
+        counts = page.locator(f'.frame-panel[data-node="{LONG_NODE}"] .frame-head')
+        # No limit by default (the relay has no --frame-limit): nothing judged, and the line says how to set one.
+        wait_for(lambda: "no limit set" in counts.inner_text(), 15, 0.2, "the counts without a limit")
+        d = debug(page)
+        assert d["limit"] is None and d["frame"]["nodes"][LONG_NODE]["limit"] is None
+        p99 = d["stats"][LONG_NODE]["frame"]["p99_ms"]
+        assert f"no limit set: type one above (its p99: " in counts.inner_text() and p99 > 0
+        for typed, before, box in (("0", "none", ""), ("-3", "none", ""), ("12.5", None, "12.5"), ("0", "12.5 ms", "12.5")):
             page.fill("#limit-input", typed)
             page.click("#set-limit")
+            if before is None:  # taken
+                wait_for(lambda: debug(page)["frame"]["limit"] == 12.5, 5, 0.1, "the new limit drawn")
+                assert page.locator("#limit-msg").is_hidden() and page.input_value("#limit-input") == "12.5"
+                continue
             page.wait_for_selector("#limit-msg", state="visible", timeout=5000)
             msg = page.locator("#limit-msg").inner_text()
-            assert said in msg and "still 50 ms" in msg, msg
+            assert f"“{typed}” is not a delay above 0 ms" in msg and f"still {before}" in msg, msg
             # The box shows the limit in force, not what was refused.
-            assert page.input_value("#limit-input") == "50" and debug(page)["limit"] == 50
-        page.fill("#limit-input", "12.5")
+            assert page.input_value("#limit-input") == box
+        assert "shown over 12.5 ms" in counts.inner_text()
+        page.fill("#limit-input", "")
         page.press("#limit-input", "Enter")
-        wait_for(lambda: debug(page)["frame"]["limit"] == 12.5, 5, 0.1, "the new limit drawn")
-        assert page.locator("#limit-msg").is_hidden() and page.input_value("#limit-input") == "12.5"
+        wait_for(lambda: debug(page)["frame"]["nodes"][LONG_NODE]["limit"] is None, 5, 0.1, "the limit cleared")
+        assert page.locator("#limit-msg").is_hidden() and "no limit set" in counts.inner_text()
         assert not errors, errors
     finally:
         page.close()
@@ -84,7 +98,7 @@ def test_frame_tooltip_stays_in_the_viewport_with_its_text_in_its_box(ended, bro
         canvas = page.locator(f'.frame-panel[data-node="{LONG_NODE}"] canvas')
         canvas.scroll_into_view_if_needed()
         box = canvas.bounding_box()
-        # Bars span the plot's full height (300 frames); the points are near the viewport's right and bottom.
+        # Bars span the plot's full height (75 frames, 4 px each); the points are near the viewport's right and bottom.
         for x, y in ((box["x"] + box["width"] - 20, box["y"] + 60),
                      (box["x"] + box["width"] - 20, min(box["y"] + 300, 560 - 4)),
                      (box["x"] + 100, min(box["y"] + 300, 560 - 4))):
@@ -132,6 +146,24 @@ def test_favicon_is_served_and_loading_the_page_logs_no_error(ended, browser):
             with urllib.request.urlopen(url, timeout=10) as r:
                 assert r.status == 200 and r.headers["Content-Type"].startswith("image/svg+xml")
                 assert b"<svg" in r.read()
+        assert not errors, errors
+    finally:
+        page.close()
+
+
+def test_an_ended_run_shows_no_fps_in_its_row_the_api_metrics_and_the_demo_line(ended, browser):
+    """It has no rate: its row says "ended" where the fps was, /api/overview gives fps null, /metrics
+    0 frames/s for its sources, and the demo's status line says it ended. (A run gone silent
+    without ending reads 0 once its frames left the window: tests/ui/test_overview.py.)"""
+    page, errors = open_page(browser, ended.url)
+    try:
+        cell = page.locator(f'#overview tbody tr[data-node="{LONG_NODE}"] td.ov-fps')
+        wait_for(lambda: cell.count() == 1 and cell.inner_text() != "", 15, 0.2, "its row")
+        row = next(r for r in get_json(f"{ended.url}/api/overview")["rows"] if r["node"] == LONG_NODE)
+        assert (row["state"], row["fps"]) == ("ended", None), row
+        assert cell.inner_text() == "ended"
+        assert source_fps(ended.url, LONG_NODE) == {"0": 0.0, "1": 0.0, "2": 0.0}
+        assert status_lines(ended.url) == [f"{LONG_NODE}: ended (600 frames)"]
         assert not errors, errors
     finally:
         page.close()

@@ -45,10 +45,19 @@ def test_delay_ring_counts_over_limit_with_eviction(page):
         const seen = [];
         for (const d of [10, 60, 70, 20, 80, 30]) { r.push(d); seen.push(r.over); }
         r.setLimit(25);
-        return {seen, size: r.size, over: r.over};""")
+        // No limit: none counted; `since` is the first origin until the ring wraps.
+        const n = new m.DelayRing(2);
+        n.push(10, 1000);
+        n.push(90, 2000);
+        const unjudged = {over: n.over, since: n.since, wrapped: n.wrapped};
+        n.push(5, 3000);
+        n.setLimit(8);
+        return {seen, size: r.size, over: r.over, unjudged, after: {over: n.over, wrapped: n.wrapped}};""")
     # Ring of 4: after 6 pushes it holds 70, 20, 80, 30.
     assert out["seen"] == [0, 1, 2, 2, 3, 2]
     assert out["size"] == 4 and out["over"] == 3
+    assert out["unjudged"] == {"over": 0, "since": 1000, "wrapped": False}
+    assert out["after"] == {"over": 1, "wrapped": True}  # it holds 90 and 5
 
 
 def test_node_store_is_bounded_and_searchable(page):

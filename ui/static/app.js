@@ -49,8 +49,8 @@ const colours = new StageColours();
 const live = new Dataset("live");
 let current = live;
 const view = {
-  follow: true, width: DEFAULT_WIDTH_MS, end: Date.now(), limit: 50, perSource: false, expanded: new Set(), raw: false,
-  tab: "stage", windowed: false, frameCount: 300, dirty: true, panelsDirty: true, openGaps: new Set(), openNodes: new Set(),
+  follow: true, width: DEFAULT_WIDTH_MS, end: Date.now(), limit: null, perSource: false, expanded: new Set(), raw: false,
+  tab: "stage", windowed: false, frameCount: 75, dirty: true, panelsDirty: true, openGaps: new Set(), openNodes: new Set(),
 };
 let skewSamples = [];
 let skew = 0;
@@ -63,12 +63,32 @@ function describe(node, source) {
   return info?.sources?.[String(source)] ?? `source ${source}`;
 }
 
+/** The frame delay limit (ms) of a DCU of `ds`: the one set on the page, else the relay's --frame-limit for it, else null. */
+function limitOf(ds, node) {
+  return view.limit ?? ds.nodes.get(node)?.frame_limit_ms ?? null;
+}
+
+/** Bring every store's over-limit count to its DCU's limit (recounted only where it changed). */
+function applyLimits() {
+  for (const ds of new Set([live, current])) {
+    for (const store of ds.stores.values()) {
+      const limit = limitOf(ds, store.node);
+      if (store.delays.limit !== limit) {
+        store.delays.setLimit(limit);
+        if (ds === current) view.dirty = true;
+      }
+    }
+  }
+}
+
 const model = {
   stores: () => current.sorted(),
   colours,
   expanded: (node) => view.perSource || view.expanded.has(node),
   describe,
-  limit: () => view.limit,
+  limit: (node) => limitOf(current, node),
+  chosenLimit: () => view.limit,
+  p99: (node) => current.stats.get(node)?.frame?.p99_ms ?? null,
   raw: () => view.raw,
   empty: () => emptyText(),
 };
@@ -76,7 +96,11 @@ const stageView = new StageView($("#stage-canvas"), model);
 const frameView = new FrameView($("#frame-panels"), model);
 const historyView = new HistoryView($("#history-view"), api, colours);
 const compareView = new CompareView($("#compare-view"), api);
-const momentView = new MomentView($("#moments-view"), api, () => [...live.nodes.keys()].filter(isOpen).sort());
+const momentView = new MomentView($("#moments-view"), api, {
+  opened: () => [...live.nodes.keys()].filter(isOpen).sort(),
+  fleet: () => fleet.names(),
+  sources: (node) => live.nodes.get(node)?.sources,
+});
 
 // --- the fleet and the DCUs opened from it ------------------------------------------------------
 
@@ -181,7 +205,7 @@ function ingest(ds, node, block, capacity = LIVE_CAPACITY) {
   colours.learn(block.kinds);
   let store = ds.stores.get(node);
   if (!store) {
-    store = new NodeStore(node, block.stages, capacity, ds.kind === "live" ? DELAY_CAPACITY : capacity, view.limit);
+    store = new NodeStore(node, block.stages, capacity, ds.kind === "live" ? DELAY_CAPACITY : capacity, limitOf(ds, node));
     ds.stores.set(node, store);
   }
   if (store.ingest(block)) {
@@ -218,6 +242,7 @@ const feed = new LiveFeed(api, {
       live.nodes.set(n.node, n);
       colours.learn(n.kinds);
     }
+    applyLimits(); // a DCU's --frame-limit, once the relay says it
     if (current === live) view.panelsDirty = true;
   },
   frames(node, block) {
@@ -227,6 +252,7 @@ const feed = new LiveFeed(api, {
     if (!isOpen(node)) return;
     live.stats.set(node, stats);
     if (current === live) view.panelsDirty = true;
+    if (current === live && view.tab === "frame") view.dirty = true; // the counts' p99 hint
   },
   overview(msg, keepMs) {
     fleet.merge(msg?.rows, Date.now(), keepMs);
@@ -292,7 +318,7 @@ async function openSession(id) {
         ds.nodes.set(n.node, n);
         colours.learn(n.kinds);
         ds.stores.set(n.node, new NodeStore(n.node, n.stages, Math.max(1, Math.min(n.frames, SESSION_CAPACITY)),
-          Math.max(1, Math.min(n.frames, SESSION_CAPACITY)), view.limit));
+          Math.max(1, Math.min(n.frames, SESSION_CAPACITY)), limitOf(ds, n.node)));
         view.panelsDirty = true;
       },
       onBlock(n, block) {
@@ -398,22 +424,31 @@ function resetView() {
   updatePauseButton();
 }
 
-/** Set the frame view's limit; anything but a delay above 0 is refused, saying why, and the box shows the limit in force. */
+/** The limit set on the page, in words. */
+function limitText() {
+  return view.limit === null ? "none (each DCU's own --frame-limit, where the relay has one)" : `${view.limit} ms`;
+}
+
+/**
+ * Set the frame view's limit for every DCU; an empty box clears it (each DCU's own, else none). Anything
+ * but a delay above 0 is refused, saying why, and the box shows the limit in force.
+ */
 function setLimit(value) {
   const typed = String(value ?? "").trim();
-  const v = typed === "" ? NaN : Number(typed);
+  const v = typed === "" ? null : Number(typed);
   const msg = $("#limit-msg");
-  if (!(v > 0) || !Number.isFinite(v)) {
-    msg.textContent = `Not set: ${typed === "" ? "the box is empty" : `“${typed}” is not a delay above 0 ms`}.`
-      + ` The limit is still ${view.limit} ms.`;
+  const garbled = typed === "" && $("#limit-input").validity?.badInput; // a number box reads "" for "12,5ms"
+  if (garbled || (v !== null && (!(v > 0) || !Number.isFinite(v)))) {
+    msg.textContent = `Not set: ${garbled ? "that is not a number" : `“${typed}” is not a delay above 0 ms`}.`
+      + ` The limit is still ${limitText()}.`;
     msg.hidden = false;
-    $("#limit-input").value = String(view.limit);
+    $("#limit-input").value = view.limit === null ? "" : String(view.limit);
     return false;
   }
   msg.hidden = true;
-  $("#limit-input").value = String(v);
+  $("#limit-input").value = v === null ? "" : String(v);
   view.limit = v;
-  for (const ds of [live, current]) for (const store of ds.stores.values()) store.delays.setLimit(v);
+  applyLimits();
   view.dirty = true;
   return true;
 }
@@ -533,7 +568,7 @@ function updateTooltip() {
     else if (h) lines = StageView.describeHit(h, describe);
   } else {
     const h = frameView.hit(mouse.node, x, y);
-    if (h) lines = FrameView.describeHit(h, describe, view.limit);
+    if (h) lines = FrameView.describeHit(h, describe, model.limit(h.node));
   }
   if (lines) showTooltip(lines, mouse.clientX, mouse.clientY);
   else hideTooltip();

@@ -1,8 +1,10 @@
 // Frame view (the paper's Figure 14): per DCU one horizontal bar per frame, as long as the
 // frame's end-to-end delay, a red vertical limit line, bars over the limit in deep red, and the
-// count and share of frames over the limit.
+// count and share of frames over the limit. A DCU's limit is the page's, else the relay's
+// --frame-limit for it, else none: then no frame is judged, and the counts say how to set one.
 
 import { LIMIT_LINE, OVER_LIMIT, UNDER_LIMIT } from "./colours.js";
+import { esc } from "./panels.js";
 import { delayTicks, formatClock, formatClockPrecise, formatDelay, formatTick, niceCeil } from "./timefmt.js";
 
 const GUTTER = 96;
@@ -10,19 +12,27 @@ const TOP = 18;
 const AXIS_H = 22;
 const RIGHT_PAD = 12;
 const CANVAS_H = 340;
+const MAX_PITCH = 14; // px per frame at most (few frames)
+const GAP_FROM = 2; // px per frame from which bars are drawn a pixel apart
+
+export const RECEIVED_TITLE = "The frames of this DCU the page received: the relay's most recent ones (a few thousand "
+  + "at most) when the DCU was opened here, then every new one; at most the last 1,048,576.";
 
 const fmtInt = (n) => n.toLocaleString("en-US");
 const pct = (a, b) => (b ? `${((100 * a) / b).toFixed(1)}%` : "–");
 
 export class FrameView {
-  /** @param model {stores(): NodeStore[], limit(): ms, describe(node, source): string} */
+  /**
+   * @param model {stores(): NodeStore[], limit(node): ms | null (the DCU's limit in force), chosenLimit(): ms | null
+   *   (the page's), p99(node): ms | null, describe(node, source): string}
+   */
   constructor(container, model) {
     this.container = container;
     this.model = model;
     this.panels = new Map();
     this.emptyEl = document.createElement("p");
     this.emptyEl.className = "muted frame-empty";
-    this.last = { nodes: {}, xmax: 0, limit: 0 };
+    this.last = { nodes: {}, xmax: 0, limit: null };
   }
 
   /** One panel (header with counters + canvas) per node, in node order. */
@@ -40,11 +50,8 @@ export class FrameView {
       const el = document.createElement("div");
       el.className = "frame-panel";
       el.dataset.node = store.node;
-      el.innerHTML = `<div class="frame-head"><b class="frame-node"></b>
-        <span class="frame-counts"><span class="over-count">0</span> of <span class="shown-count">0</span> shown
-        over <span class="limit-text"></span> (<span class="over-share">–</span>)</span>
-        <span class="frame-total muted">all received: <span class="over-total">0</span> of
-        <span class="received">0</span> (<span class="over-total-share">–</span>)</span></div>
+      el.innerHTML = `<div class="frame-head"><b class="frame-node"></b> <span class="frame-counts"></span>
+        <span class="frame-total muted" title="${esc(RECEIVED_TITLE)}"></span></div>
         <canvas class="frame-canvas"></canvas>`;
       el.querySelector(".frame-node").textContent = store.node;
       const canvas = el.querySelector("canvas");
@@ -62,24 +69,27 @@ export class FrameView {
   /** Draw the last `count` frames of every node that ended at or before `tEnd`. */
   draw(tEnd, count) {
     this.sync();
-    const limit = this.model.limit();
     const ranges = [];
     let maxDelay = 0;
+    let maxLimit = 0;
     for (const store of this.model.stores()) {
       const hi = store.firstEndingBeyond(tEnd);
       const lo = Math.max(0, hi - count);
       for (let i = lo; i < hi; i++) maxDelay = Math.max(maxDelay, store.delay[store.slot(i)]);
-      ranges.push({ store, lo, hi });
+      const limit = this.model.limit(store.node);
+      if (limit !== null) maxLimit = Math.max(maxLimit, limit);
+      ranges.push({ store, lo, hi, limit });
     }
     // One delay scale for every DCU, so their bars compare at a glance.
-    const xmax = niceCeil(Math.max(limit * 1.25, maxDelay * 1.05, 1));
+    const xmax = niceCeil(Math.max(maxLimit * 1.25, maxDelay * 1.05, 1));
     const nodes = {};
-    for (const { store, lo, hi } of ranges) {
+    for (const { store, lo, hi, limit } of ranges) {
       nodes[store.node] = this.drawPanel(this.panels.get(store.node), store, lo, hi, xmax, limit);
     }
-    this.last = { nodes, xmax, limit, tEnd, count };
+    this.last = { nodes, xmax, limit: this.model.chosenLimit(), tEnd, count };
   }
 
+  /** One DCU's bars; `limit` null: none, no frame judged. */
   drawPanel(panel, store, lo, hi, xmax, limit) {
     const { canvas, ctx } = panel;
     const dpr = window.devicePixelRatio || 1;
@@ -112,32 +122,33 @@ export class FrameView {
     }
 
     const K = hi - lo;
+    const judged = limit !== null;
     let over = 0;
     const under = new Path2D();
     const overPath = new Path2D();
     let rows;
     if (K > 0 && PH / K >= 1) {
-      // A bar per frame, oldest at the top.
-      const pitch = Math.min(PH / K, 14);
-      const h = pitch >= 4 ? pitch - 1 : pitch;
-      rows = { pitch, lo, K, binned: false };
+      // A bar per frame, oldest at the top, a pixel apart where there is room.
+      const pitch = Math.min(PH / K, MAX_PITCH);
+      const h = pitch >= GAP_FROM ? pitch - 1 : pitch;
+      rows = { pitch, lo, K, binned: false, bar: h };
       for (let i = 0; i < K; i++) {
         const d = store.delay[store.slot(lo + i)];
-        const isOver = d > limit;
+        const isOver = judged && d > limit;
         if (isOver) over++;
         (isOver ? overPath : under).rect(GUTTER, TOP + i * pitch, Math.max(1, d * kx), h);
       }
     } else if (K > 0) {
       // More frames than pixel rows: a row shows the slowest frame of its bin, so no frame over
       // the limit can hide behind a faster neighbour.
-      rows = { pitch: PH / K, lo, K, binned: true };
-      for (let i = 0; i < K; i++) if (store.delay[store.slot(lo + i)] > limit) over++;
+      rows = { pitch: PH / K, lo, K, binned: true, bar: 1 };
+      if (judged) for (let i = 0; i < K; i++) if (store.delay[store.slot(lo + i)] > limit) over++;
       for (let r = 0; r < PH; r++) {
         const a = Math.floor((r * K) / PH);
         const b = Math.max(a + 1, Math.floor(((r + 1) * K) / PH));
         let d = 0;
         for (let i = a; i < b; i++) d = Math.max(d, store.delay[store.slot(lo + i)]);
-        (d > limit ? overPath : under).rect(GUTTER, TOP + r, Math.max(1, d * kx), 1);
+        (judged && d > limit ? overPath : under).rect(GUTTER, TOP + r, Math.max(1, d * kx), 1);
       }
     }
     ctx.fillStyle = UNDER_LIMIT;
@@ -163,34 +174,48 @@ export class FrameView {
       ctx.fillText("no frames yet", GUTTER + 8, TOP + 20);
     }
 
-    const lx = Math.round(GUTTER + limit * kx);
-    ctx.fillStyle = LIMIT_LINE;
-    ctx.fillRect(lx - 1, TOP - 4, 2, PH + 4);
-    ctx.font = "bold 11px system-ui, sans-serif";
-    ctx.textBaseline = "top";
-    ctx.textAlign = lx > W - 90 ? "right" : "left";
-    ctx.fillText(`limit ${formatTick(limit)}`, lx + (lx > W - 90 ? -4 : 4), 2);
+    if (judged) {
+      const lx = Math.round(GUTTER + limit * kx);
+      ctx.fillStyle = LIMIT_LINE;
+      ctx.fillRect(lx - 1, TOP - 4, 2, PH + 4);
+      ctx.font = "bold 11px system-ui, sans-serif";
+      ctx.textBaseline = "top";
+      ctx.textAlign = lx > W - 90 ? "right" : "left";
+      ctx.fillText(`limit ${formatTick(limit)}`, lx + (lx > W - 90 ? -4 : 4), 2);
+    }
     ctx.fillStyle = "#90a4ae";
     ctx.fillRect(GUTTER, TOP + PH, PW, 1);
 
     const ring = store.delays;
-    const counts = { shown: K, overShown: over, received: ring.size, overReceived: ring.over, binned: !!rows?.binned };
-    this.updateCounts(panel, counts, limit);
+    const counts = { shown: K, overShown: over, received: ring.size, overReceived: ring.over, binned: !!rows?.binned,
+      limit, pitch: rows?.pitch ?? null, bar: rows?.bar ?? null, since: ring.since, wrapped: ring.wrapped };
+    this.updateCounts(panel, counts, this.model.p99?.(store.node) ?? null);
     return counts;
   }
 
-  updateCounts(panel, c, limit) {
-    const set = (cls, text) => {
+  /** The panel's two count lines: frames drawn, and every frame the page received (`p99`: a hint without a limit). */
+  updateCounts(panel, c, p99) {
+    const set = (cls, html) => {
       const el = panel.el.querySelector(cls);
-      if (el.textContent !== text) el.textContent = text;
+      if (el._html !== html) {
+        el._html = html;
+        el.innerHTML = html;
+      }
     };
-    set(".over-count", fmtInt(c.overShown));
-    set(".shown-count", fmtInt(c.shown));
-    set(".over-share", pct(c.overShown, c.shown));
-    set(".limit-text", formatTick(limit));
-    set(".over-total", fmtInt(c.overReceived));
-    set(".received", fmtInt(c.received));
-    set(".over-total-share", pct(c.overReceived, c.received));
+    const n = `<span class="received">${fmtInt(c.received)}</span>`;
+    const since = c.since === null ? "" : ` since ${esc(formatClock(c.since).slice(0, 8))}`;
+    const received = c.wrapped ? `the last ${n} frames received` : `${n} frames received${since}`;
+    if (c.limit === null) {
+      const hint = p99 === null ? "" : ` (its p99: ${esc(formatDelay(p99))})`;
+      set(".frame-counts", `<span class="shown-count">${fmtInt(c.shown)}</span> shown · no limit set: type one above${hint}`);
+      set(".frame-total", received);
+      return;
+    }
+    set(".frame-counts", `<span class="over-count">${fmtInt(c.overShown)}</span> of <span class="shown-count">`
+      + `${fmtInt(c.shown)}</span> shown over <span class="limit-text">${esc(formatTick(c.limit))}</span>`
+      + ` (<span class="over-share">${pct(c.overShown, c.shown)}</span>)`);
+    set(".frame-total", `<span class="over-total">${fmtInt(c.overReceived)}</span> of ${c.wrapped ? "" : "the "}${received}`
+      + ` were over it (<span class="over-total-share">${pct(c.overReceived, c.received)}</span>)`);
   }
 
   /** The frame under (x, y) of a panel's canvas, or null. */
@@ -223,7 +248,7 @@ export class FrameView {
     const lines = [
       `${h.node} · source ${h.source} (${describe(h.node, h.source)}) · frame ${h.frame}`,
       `origin ${formatClockPrecise(h.origin)}`,
-      `end-to-end delay ${formatDelay(h.delay)}${h.delay > limit ? "  (over the limit)" : ""}`,
+      `end-to-end delay ${formatDelay(h.delay)}${limit !== null && h.delay > limit ? "  (over the limit)" : ""}`,
     ];
     if (h.stages.length) lines.push(h.stages.map(([s, d]) => `${s} ${formatDelay(d)}`).join(" · "));
     return lines;

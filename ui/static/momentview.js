@@ -20,20 +20,28 @@ const MOMENTS = 300;
 const q = encodeURIComponent;
 
 export class MomentView {
-  /** @param nodes {() => string[]} the live nodes' names, sorted */
-  constructor(section, api, nodes) {
+  /**
+   * @param dcus {opened(): string[], fleet(): string[], sources(node): {id: uri} | undefined}: the opened live
+   *   DCUs' names (sorted), every DCU of the fleet, and a DCU's sources as its run header names them
+   */
+  constructor(section, api, dcus) {
     this.api = api;
-    this.nodes = nodes;
+    this.dcus = dcus;
     this.selA = section.querySelector("#moments-a");
     this.selB = section.querySelector("#moments-b");
     this.line = section.querySelector("#moments-summary");
     this.canvas = section.querySelector("#moments-canvas");
     this.ctx = this.canvas.getContext("2d", { alpha: false });
     this.data = null;
-    this.error = null;
+    this.note = null; // {text, error}: what the line says instead of a summary
     this.timer = null;
-    this.last = { moments: 0, bars: { a: 0, b: 0 }, summary: null, error: null };
-    for (const sel of [this.selA, this.selB]) sel.addEventListener("change", () => this.poll());
+    this.last = { moments: 0, bars: { a: 0, b: 0 }, summary: null, message: null, error: null };
+    for (const sel of [this.selA, this.selB]) {
+      sel.addEventListener("change", () => {
+        sel._chosen = true;
+        this.poll();
+      });
+    }
   }
 
   /** Poll the relay while the view is shown on live data; stop otherwise. */
@@ -45,47 +53,53 @@ export class MomentView {
     this.timer = setInterval(() => this.poll(), POLL_MS);
   }
 
+  /** The menus list the opened DCUs; each keeps its DCU while open, and b is another than a unless the user chose it. */
   syncNodes() {
-    const names = this.nodes();
-    for (const [sel, k] of [[this.selA, 0], [this.selB, 1]]) {
-      const html = names.map((n) => `<option value="${esc(n)}">${esc(n)}</option>`).join("");
-      if (sel._html === html) continue;
-      const chosen = sel.value;
+    const names = this.dcus.opened();
+    const html = names.map((n) => `<option value="${esc(n)}">${esc(n)}</option>`).join("");
+    if (this.selA._html === html) return;
+    const [a, b] = [this.selA.value, this.selB.value];
+    for (const sel of [this.selA, this.selB]) {
       sel._html = html;
       sel.innerHTML = html;
-      sel.value = names.includes(chosen) ? chosen : names[Math.min(k, names.length - 1)] ?? "";
     }
+    this.selA.value = names.includes(a) ? a : names[0] ?? "";
+    const other = names.find((n) => n !== this.selA.value) ?? this.selA.value;
+    this.selB.value = names.includes(b) && (b !== this.selA.value || this.selB._chosen) ? b : other;
   }
 
   async poll() {
     this.syncNodes();
     const a = this.selA.value;
     const b = this.selB.value;
-    if (!a || !b || a === b) {
-      this.showError(a && a === b ? "choose two different DCUs" : "two DCUs are needed");
+    const missing = missingFor(a, b, this.dcus);
+    if (missing) {
+      this.say(missing);
       return;
     }
     try {
       this.data = await this.api.get(`/api/moments?a=${q(a)}&b=${q(b)}&limit=${MOMENTS}`);
-      this.error = null;
+      this.note = null;
     } catch (err) {
       this.data = null;
-      this.error = err.message;
+      this.note = { text: err.message, error: true };
     }
     this.draw();
   }
 
-  showError(text) {
+  say(note) {
     this.data = null;
-    this.error = text;
+    this.note = note;
     this.draw();
   }
 
   draw() {
     const d = this.data;
     const s = d?.summary;
-    this.line.textContent = this.error ?? (s ? summaryLine(d) : "");
-    this.line.classList.toggle("field-msg", !!this.error);
+    const text = this.note?.text ?? (s ? summaryLine(d) : "");
+    const error = this.note?.error ? this.note.text : null;
+    if (this.line.textContent !== text) this.line.textContent = text;
+    this.line.classList.toggle("field-msg", !!error);
     const W = Math.max(240, this.canvas.parentElement.clientWidth - 2);
     const dpr = window.devicePixelRatio || 1;
     if (this.W !== W || this.dpr !== dpr) {
@@ -101,7 +115,7 @@ export class MomentView {
     ctx.fillStyle = "#ffffff";
     ctx.fillRect(0, 0, W, CANVAS_H);
     const moments = d?.moments ?? [];
-    this.last = { moments: moments.length, bars: { a: 0, b: 0 }, summary: s ?? null, error: this.error, a: d?.a, b: d?.b };
+    this.last = { moments: moments.length, bars: { a: 0, b: 0 }, summary: s ?? null, message: text, error, a: d?.a, b: d?.b };
     if (!moments.length) return;
     this.drawBars(ctx, moments, W, d);
   }
@@ -162,10 +176,36 @@ export class MomentView {
   }
 }
 
+/**
+ * What keeps DCUs `a` and `b` (the menus' choices) from having moments, as {text, error}, or null when the
+ * relay can be asked: two DCUs open, two different ones, and a camera both read (by the URIs their runs name).
+ */
+export function missingFor(a, b, dcus) {
+  const opened = dcus.opened();
+  const fleet = dcus.fleet();
+  if (opened.length < 2) {
+    if (fleet.length >= 2) {
+      const now = opened.length ? `only ${opened[0]} is open` : "none is open";
+      return { text: `Moments need two DCUs open: ${now}. Open another in the fleet overview above (click its row).` };
+    }
+    const now = fleet.length ? `only ${fleet[0]} reports to this relay` : "no DCU reports to this relay yet";
+    return { text: `Moments need two DCUs that process the same camera: ${now}.` };
+  }
+  if (a === b) return { text: `DCU a and DCU b are both ${a}: choose two different DCUs.`, error: true };
+  const sa = Object.values(dcus.sources(a) ?? {});
+  const sb = Object.values(dcus.sources(b) ?? {});
+  if (sa.length && sb.length && !sa.some((u) => sb.includes(u))) {
+    const list = (us) => us.map((u) => String(u).replace(/^uri:/, "")).join(", ");
+    return { text: `${a} and ${b} read no camera in common (${a}: ${list(sa)}; ${b}: ${list(sb)}). Moments compare `
+      + "the frames of one camera on two DCUs: both need it among their sources." };
+  }
+  return null;
+}
+
 /** One line: the verdict, the difference's mean/p50/p95, who finished first how often, what matched. */
 export function summaryLine(d) {
   const s = d.summary;
-  if (!s.matched) return `${s.verdict} (${d.a}: ${s.frames[d.a]} frames, ${d.b}: ${s.frames[d.b]} frames with a capture time)`;
+  if (!s.matched) return s.verdict; // the relay says what is missing (relay/api/moments.py none_matched)
   const pct = (x) => `${(100 * x).toFixed(0)}%`;
   return `${s.verdict} · ${d.b} − ${d.a}: mean ${formatDelay(s.diff_ms.mean)}, p50 ${formatDelay(s.diff_ms.p50)}, `
     + `p95 ${formatDelay(s.diff_ms.p95)} · first: ${d.a} ${pct(s.first_share[d.a])}, ${d.b} ${pct(s.first_share[d.b])}`

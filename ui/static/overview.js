@@ -164,6 +164,12 @@ export function openedOf(choice, names) {
 const int = (v) => (v === null || v === undefined ? "–" : Number(v).toLocaleString("en-US"));
 const dash = `<span class="muted">–</span>`;
 
+/** The fps cell: "ended" for a run that ended (it has no rate), else the relay's figure over its window. */
+function fpsCell(row) {
+  if (row.ended) return `<span class="muted" title="the DCU's run ended">ended</span>`;
+  return row.fps === null || row.fps === undefined ? dash : Number(row.fps).toFixed(1);
+}
+
 /** The cells of a row as HTML, in column order (the table rewrites a cell only when its HTML changed). */
 export function rowCells(row, isOpen, now) {
   const { text: stateText, cls: state } = liveState(row, Math.max(0, (now - row.seen) / 1000));
@@ -181,7 +187,7 @@ export function rowCells(row, isOpen, now) {
     `${row.relay === null || row.relay === undefined ? dash : esc(row.relay)}`
       + `${stale ? ` <span class="badge stale" title="${row.stale ? "its relay stopped refreshing it" : `not refreshed for ${age} s`}">`
         + `${silent ? esc(stateText) : "stale"}</span>` : ""}`,
-    row.fps === null || row.fps === undefined ? dash : Number(row.fps).toFixed(1),
+    fpsCell(row),
     row.p99_ms === null || row.p99_ms === undefined ? dash : esc(formatDelay(row.p99_ms)),
     neck?.stage ? `${esc(neck.stage)}${u === null || u === undefined ? "" : ` <b>${Math.round(100 * u)} %</b>`}` : dash,
     `<span class="clock-state clock-${cs.cls}">${esc(cs.label)}</span> <span class="ov-offset">${offsetText(row.clock)}</span>`,
@@ -193,7 +199,7 @@ export function rowCells(row, isOpen, now) {
 export const COLUMNS = [
   ["DCU", "click a row to open or close the DCU's stage, frame and moments views"],
   ["relay", "the relay holding the DCU"],
-  ["fps", "frames per second over the relay's rolling window, all sources"],
+  ["fps", "frames per second over the relay's rolling window (its last 10 s), all sources: 0 when no frame came in it, \"ended\" once the DCU's run ended"],
   ["frame p99", "end-to-end frame delay, 99th percentile over the window"],
   ["bottleneck", "the relay's bottleneck stage and its utilization (busy share of wall time)"],
   ["clock", "what the relay does with the DCU's timestamps; node clock − relay clock ± its bound"],

@@ -4,34 +4,45 @@
 export const LIVE_CAPACITY = 65536; // frames per node kept whole (3 min at 6 x 60 fps)
 export const DELAY_CAPACITY = 1 << 20; // frame delays per node kept for the over-limit counts
 
-/** The last `capacity` frame delays and how many exceed `limit` (kept up to date on push). */
+/**
+ * The last `capacity` frame delays a page received for a DCU and how many exceed `limit` (null: no
+ * limit, none counted), kept up to date on push; `since` is the origin (ms) of the first one, until
+ * the ring wraps (`wrapped`: from then on it holds the last `capacity`).
+ */
 export class DelayRing {
-  constructor(capacity = DELAY_CAPACITY, limit = 50) {
+  constructor(capacity = DELAY_CAPACITY, limit = null) {
     this.values = new Float32Array(capacity);
     this.capacity = capacity;
     this.head = 0;
     this.size = 0;
     this.limit = limit;
     this.over = 0;
+    this.since = null;
+    this.wrapped = false;
   }
 
-  push(ms) {
+  push(ms, origin = null) {
+    const limit = this.limit;
     if (this.size === this.capacity) {
-      if (this.values[this.head] > this.limit) this.over--;
+      if (limit !== null && this.values[this.head] > limit) this.over--;
       this.values[this.head] = ms;
       this.head = (this.head + 1) % this.capacity;
+      this.wrapped = true;
     } else {
+      if (this.size === 0 && this.since === null) this.since = origin;
       this.values[(this.head + this.size) % this.capacity] = ms;
       this.size++;
     }
-    if (ms > this.limit) this.over++;
+    if (limit !== null && ms > limit) this.over++;
   }
 
   setLimit(limit) {
     this.limit = limit;
     let over = 0;
-    const v = this.values;
-    for (let i = 0; i < this.size; i++) if (v[(this.head + i) % this.capacity] > limit) over++;
+    if (limit !== null) {
+      const v = this.values;
+      for (let i = 0; i < this.size; i++) if (v[(this.head + i) % this.capacity] > limit) over++;
+    }
     this.over = over;
   }
 }
@@ -41,7 +52,7 @@ export class NodeStore {
    * Frames of one node (one run, or consecutive runs with the same stages), oldest evicted
    * first. Times are ms since the epoch (relay clock); a missing tracepoint is NaN.
    */
-  constructor(node, stages, capacity = LIVE_CAPACITY, delayCapacity = DELAY_CAPACITY, limit = 50) {
+  constructor(node, stages, capacity = LIVE_CAPACITY, delayCapacity = DELAY_CAPACITY, limit = null) {
     this.node = node;
     this.capacity = capacity;
     this.delays = new DelayRing(delayCapacity, limit);
@@ -167,7 +178,7 @@ export class NodeStore {
     const c = this.sourceCounts.get(f.source);
     if (c === undefined) this._sources = null;
     this.sourceCounts.set(f.source, (c ?? 0) + 1);
-    this.delays.push(f.delay_ms);
+    this.delays.push(f.delay_ms, origin);
     this.received++;
   }
 
