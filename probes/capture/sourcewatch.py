@@ -78,8 +78,12 @@ class SourceWatch:
             stage = self._origin_stage.get(source, 0)
             if c.nominal_fps:
                 facts.append((source, stage, FACT_NOMINAL_MHZ, round(c.nominal_fps * 1000)))
-            facts += [(source, stage, FACT_LOST_UPSTREAM, c.lost_upstream),
-                      (source, stage, FACT_DECODER_DROPPED, c.decoder_dropped)]
+            # Both counters are cumulative, and never go back: at the stop rtspsrc takes its
+            # jitter buffers out of the pipeline (and the bus watcher is closed) before the
+            # shipper's last poll, which would read 0 and have it stand as the run's last word.
+            facts += [(source, stage, kind, max(value, self._last.get((source, kind), 0)))
+                      for kind, value in ((FACT_LOST_UPSTREAM, c.lost_upstream),
+                                          (FACT_DECODER_DROPPED, c.decoder_dropped))]
         changed = [f for f in facts if self._last.get((f[0], f[2])) != f[3]]
         if changed:
             ts = self._now()
