@@ -126,9 +126,10 @@ class Feeder:
 
 def sim_nodes(url: str, tmp: Path, nodes: list[str], *, frames: int, sources: int, fps: float, paced: bool,
               token: str | None = None, offsets_ns: list[int] | None = None, seed: int = 0,
-              ptp_socket: Path | None = None) -> Feeder:
+              ptp_socket: Path | None = None, t0_ns: int | None = None) -> Feeder:
     """``python -m probes.ship.simnode`` per node, each writing the events it shipped to ``tmp/NODE.npz``;
-    ``ptp_socket``: the ptp4l socket the nodes read (a path where none is: no PTP, whatever the host runs)."""
+    ``ptp_socket``: the ptp4l socket the nodes read (a path where none is: no PTP, whatever the host runs);
+    ``t0_ns``: the true time of every node's frame 0 (default: each node's start + 0.2 s)."""
     feeder = Feeder("sim", nodes)
     for k, node in enumerate(nodes):
         out = tmp / f"{node}.npz"
@@ -141,6 +142,8 @@ def sim_nodes(url: str, tmp: Path, nodes: list[str], *, frames: int, sources: in
             cmd += ["--token", token]
         if ptp_socket is not None:
             cmd += ["--ptp-socket", str(ptp_socket)]
+        if t0_ns is not None:
+            cmd += ["--t0-ns", str(t0_ns)]
         feeder.procs.append(subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE))
         feeder.outs.append(out)
     return feeder

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import time
 
 import numpy as np
 import pytest
@@ -22,8 +23,11 @@ def stored(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("sessionapi")
     relay = RelayThread(tmp / "relay.db", token=TOKEN)
     try:
+        # One session: both runs are live at once. Each paced run lasts 2 s, so they share a frame 0
+        # 5 s ahead, which both nodes reach even when a loaded machine starts one of them late.
+        t0 = time.clock_gettime_ns(time.CLOCK_REALTIME) + 5_000_000_000
         feeder = sim_nodes(relay.url, tmp, ["DCU-1", "DCU-2"], frames=60, sources=3, fps=30, paced=True,
-                           token=TOKEN, offsets_ns=[0, 4_000_000])
+                           token=TOKEN, offsets_ns=[0, 4_000_000], t0_ns=t0)
         feeder.wait(120)
         shipped = {}
         for node, out in zip(feeder.nodes, feeder.outs):
