@@ -21,7 +21,8 @@ def streaming(tmp_path_factory):
     """A relay, two nodes streaming to it with no ptp4l to read, both with a clock estimate."""
     tmp = tmp_path_factory.mktemp("nodespanel")
     relay = RelayThread(tmp / "relay.db")
-    feeder = sim_nodes(relay.url, tmp, NODES, frames=1800, sources=2, fps=30, paced=True,
+    # 4 minutes of frames: the nodes outlive the module even on a loaded machine (they are stopped after it)
+    feeder = sim_nodes(relay.url, tmp, NODES, frames=7200, sources=2, fps=30, paced=True,
                        offsets_ns=[0, 3_000_000], ptp_socket=tmp / "no-ptp4l-here")
     try:
         wait_for(lambda: len(n := get_json(f"{relay.url}/api/nodes")) == 2
@@ -39,8 +40,13 @@ def page(browser, streaming):
     page.on("pageerror", lambda e: errors.append(str(e)))
     page.goto(streaming.url + "/")
     for node in NODES:
-        page.wait_for_function(f"() => document.querySelector('#nodes-body tr[data-node=\"{node}\"] .clock-state')"
-                               "?.textContent === 'estimate'", timeout=20_000)
+        try:
+            page.wait_for_function(f"() => document.querySelector('#nodes-body tr[data-node=\"{node}\"] .clock-state')"
+                                   "?.textContent === 'estimate'", timeout=40_000)
+        except PlaywrightTimeout:
+            rows = page.evaluate("() => [...document.querySelectorAll('#nodes-body tr')].map((r) => r.innerText)")
+            clocks = {n["node"]: n["clock"] for n in get_json(f"{streaming.url}/api/nodes")}
+            raise AssertionError(f"{node}'s row never said 'estimate' in 40 s: rows {rows}; the API: {clocks}") from None
     yield page
     page.close()
     assert not errors, errors
