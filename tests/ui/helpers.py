@@ -7,6 +7,8 @@ behind its connection guard) run on its own event loop in a background thread.
 from __future__ import annotations
 
 import asyncio
+import contextlib
+import dataclasses
 import os
 import signal
 import subprocess
@@ -16,7 +18,9 @@ import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from relay.guard.limits import Limits
 from relay.server import start_relay
+from tests.relay.helpers import get_json, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 CHROMIUM = "/usr/bin/chromium"
@@ -147,6 +151,22 @@ def sim_nodes(url: str, tmp: Path, nodes: list[str], *, frames: int, sources: in
         feeder.procs.append(subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE))
         feeder.outs.append(out)
     return feeder
+
+
+@contextlib.contextmanager
+def streaming_fleet(tmp: Path, nodes: list[str], *, frames: int, sources: int, fps: float, within_s: float):
+    """A relay and ``nodes`` simulated DCUs streaming to it (paced), once the overview has a row for
+    each (within ``within_s``): yields (relay, feeder); stops both after. Every DCU and page connects
+    from 127.0.0.1, so the relay takes 64 connections per peer."""
+    relay = RelayThread(tmp / "relay.db", limits=dataclasses.replace(Limits(), connections_per_peer=64))
+    feeder = sim_nodes(relay.url, tmp, nodes, frames=frames, sources=sources, fps=fps, paced=True)
+    try:
+        wait_for(lambda: len(get_json(f"{relay.url}/api/overview")["rows"]) == len(nodes), within_s, 0.3,
+                 f"{len(nodes)} DCUs' rows")
+        yield relay, feeder
+    finally:
+        feeder.stop()
+        relay.stop()
 
 
 DEMO_CONFIGS = ("configs/demo-dcu1.yaml", "configs/demo-dcu2.yaml")

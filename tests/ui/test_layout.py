@@ -11,14 +11,12 @@ last stops it and checks the header still fits at 1024 px with the longest statu
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 
 import pytest
 
-from relay.guard.limits import Limits
-from tests.relay.helpers import get_json, wait_for
-from tests.ui.helpers import RelayThread, sim_nodes
+from tests.relay.helpers import wait_for
+from tests.ui.helpers import streaming_fleet
 from tests.ui.test_browser import SHOTS
 
 NODES = [f"DCU-{k:02d}" for k in range(1, 17)]
@@ -55,15 +53,9 @@ ROWS_JS = """() => {
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
     """A relay and 16 simulated DCUs streaming to it (one camera each at 2 fps, paced, up to 5 minutes)."""
-    tmp = tmp_path_factory.mktemp("ui-layout")
-    relay = RelayThread(tmp / "relay.db", limits=dataclasses.replace(Limits(), connections_per_peer=64))
-    feeder = sim_nodes(relay.url, tmp, NODES, frames=600, sources=1, fps=2.0, paced=True)
-    try:
-        wait_for(lambda: len(get_json(f"{relay.url}/api/overview")["rows"]) == len(NODES), 90, 0.3, "16 DCUs' rows")
-        yield relay, feeder
-    finally:
-        feeder.stop()
-        relay.stop()
+    with streaming_fleet(tmp_path_factory.mktemp("ui-layout"), NODES, frames=600, sources=1, fps=2.0,
+                         within_s=90) as fleet:
+        yield fleet
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,6 @@ in the address, the same without Socket.IO (polling the HTTP API), and last the 
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import re
 import signal
@@ -19,9 +18,8 @@ import time
 
 import pytest
 
-from relay.guard.limits import Limits
 from tests.relay.helpers import get_json, wait_for
-from tests.ui.helpers import RelayThread, sim_nodes, source_fps
+from tests.ui.helpers import source_fps, streaming_fleet
 
 pytestmark = pytest.mark.long  # its tests share a module fixture: one group of 30 s or more, started first
 
@@ -33,16 +31,9 @@ SOURCES, FPS = 2, 10.0
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
     """A relay and six simulated DCUs streaming to it (paced, for up to 5 minutes)."""
-    tmp = tmp_path_factory.mktemp("ui-overview")
-    # Every DCU and page connects from 127.0.0.1: six DCUs and two pages (each up to 7 connections) pass 16.
-    relay = RelayThread(tmp / "relay.db", limits=dataclasses.replace(Limits(), connections_per_peer=64))
-    feeder = sim_nodes(relay.url, tmp, NODES, frames=int(FPS * 300), sources=SOURCES, fps=FPS, paced=True)
-    try:
-        wait_for(lambda: len(get_json(f"{relay.url}/api/overview")["rows"]) == len(NODES), 60, 0.3, "every DCU's row")
-        yield relay, feeder
-    finally:
-        feeder.stop()
-        relay.stop()
+    with streaming_fleet(tmp_path_factory.mktemp("ui-overview"), NODES, frames=int(FPS * 300), sources=SOURCES,
+                         fps=FPS, within_s=60) as fleet:
+        yield fleet
 
 
 class Traffic:
