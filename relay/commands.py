@@ -106,7 +106,11 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
                    help="Redis that carries every relay's live pushes to every relay's browsers "
                         "(redis://HOST:PORT/DB; python-socketio's AsyncRedisManager): with relays sharing "
                         "--db postgresql://..., a page on any relay shows every DCU of the fleet live. Redis "
-                        "down: ingest and storage go on, other relays' pages catch up when it returns")
+                        "down: ingest and storage go on, other relays' pages catch up when it returns; rediss://: "
+                        "over TLS, the server's certificate checked (the system's CAs, or --redis-ca)")
+    p.add_argument("--redis-ca", metavar="FILE",
+                   help="with --redis rediss://...: the CA certificates (PEM) the Redis server's certificate must "
+                        "come from, instead of the system's (the same as the URL's ssl_ca_certs=FILE)")
     p.add_argument("--name", metavar="NAME",
                    help="how pages and other relays name this relay (default HOST:PORT)")
     p.add_argument("--push-hz", type=float, default=None, metavar="HZ",
@@ -141,7 +145,9 @@ def run_relay(args: argparse.Namespace) -> int:
     if args.redis is not None:
         from relay.api.fanout import check_url
 
-        options["redis"] = check_url(args.redis)
+        options["redis"] = check_url(args.redis, args.redis_ca)
+    elif args.redis_ca is not None:
+        raise RelayError("--redis-ca needs --redis rediss://...")
     if args.name is not None:
         if not 0 < len(args.name) <= 100 or not args.name.isprintable():
             raise RelayError("--name takes 1 to 100 printable characters")

@@ -5,15 +5,19 @@ and no secret of the URL is ever printed."""
 
 from __future__ import annotations
 
+import asyncio
 import subprocess
 import sys
 from urllib.parse import quote, urlsplit
 
 import pytest
 
+from dcuscope.cli import main as cli_main
 from tests.conftest import cli_env
 from tests.pgserver import PASSWORD, PostgresServer
-from tests.relay.helpers import RelayProcess, finish_node, load_node, start_node
+from tests.redisserver import RedisServer
+from tests.relay.helpers import RelayProcess, finish_node, get_json, load_node, start_node, wait_for
+from tests.relay.test_fanout import Browser
 from tests.relay.test_fleet import stored_equals_sent
 from tests.tlscerts import TestCA
 
@@ -74,3 +78,59 @@ def test_a_relay_stores_over_verify_full_and_refuses_a_server_it_cannot_verify(t
     in_query = named.replace(f":{quote(PASSWORD, safe='')}@", "@") + f"&hostaddr=127.0.0.1&password={quote(PASSWORD)}"
     wrong_name = cli("db", "compact", in_query)
     one_line_error(wrong_name, 'does not match host name "db.example"')
+
+
+@pytest.fixture(scope="module")
+def tls_redis(cas):
+    server = RedisServer(tls=cas[0].issue("redis")).start()
+    yield server
+    server.close()
+
+
+def test_relays_on_a_rediss_redis_reach_each_others_browsers_and_refuse_another_ca(tmp_path, cas, tls_postgres,
+                                                                                   tls_redis):
+    ca, other = cas
+    assert tls_redis.url.startswith("rediss://")
+    url = tls_postgres.new_database()
+    relays = [RelayProcess(url, log=tmp_path / f"{name}.log", args=["--redis", tls_redis.url, "--redis-ca", str(cert),
+                                                                     "--name", name])
+              for name, cert in (("relay-a", ca.cert), ("relay-b", ca.cert), ("relay-c", other.cert))]
+    a, b, c = relays
+    try:
+        node = start_node(a.url, "DCU-A", tmp_path / "a.npz", frames=200, fps=40, paced=True, linger=True)
+        wait_for(lambda: [n["node"] for n in get_json(f"{b.url}/api/nodes")] == ["DCU-A"], 30, what="B lists A's DCU")
+
+        async def watch() -> Browser:
+            browser = Browser()
+            await browser.open(b.url, ["DCU-A"])
+            for _ in range(200):  # within a second unloaded
+                if browser.frames("DCU-A"):
+                    break
+                await asyncio.sleep(0.1)
+            await browser.sio.disconnect()
+            return browser
+
+        # A's pushes of its DCU's frames reached B's browser through Redis over TLS.
+        assert asyncio.run(watch()).frames("DCU-A")
+        finish_node(node)
+        fanout = {r: get_json(f"{r.url}/api/health")["fanout"] for r in relays}
+        assert fanout[a]["ok"] and fanout[b]["ok"] and fanout[b]["received"] > 0, fanout
+        # C does not trust the server's CA: never connected, one line says why, and it serves on.
+        assert not fanout[c]["ok"] and "certificate verify failed" in fanout[c]["error"], fanout[c]
+        assert get_json(f"{c.url}/api/health")["relay"] == "relay-c"
+    finally:
+        for relay in relays:
+            relay.stop()
+    lines = [ln for ln in (tmp_path / "relay-c.log").read_text().splitlines() if "redis" in ln.lower()]
+    assert len(lines) == 1 and "certificate verify failed" in lines[0], lines
+
+
+@pytest.mark.parametrize("args, says", [
+    (["--redis", "redis://127.0.0.1:6379/0", "--redis-ca", "ca.pem"], "give a rediss:// URL"),
+    (["--redis-ca", "ca.pem"], "--redis-ca needs --redis rediss://"),
+    (["--redis", "rediss://127.0.0.1:6379/0", "--redis-ca", "missing.pem"], "--redis-ca missing.pem: No such file"),
+])
+def test_bad_tls_options_get_a_one_line_error(tmp_path, capsys, args, says):
+    assert cli_main(["relay", "--port", "0", "--db", str(tmp_path / "r.db"), *args]) == 2
+    err = capsys.readouterr().err
+    assert says in err and err.count("\n") == 1 and "Traceback" not in err, err
