@@ -102,6 +102,9 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--otlp-timeout", type=float, metavar="S",
                    help=f"with --otlp: seconds one export request may take, retries included (default "
                         f"{DEFAULT_TIMEOUT_S:g}); its frames are dropped and counted after it")
+    p.add_argument("--otlp-ca", metavar="FILE",
+                   help="with --otlp https://...: the CA certificates (PEM) the collector's certificate must come "
+                        "from (default: OTEL_EXPORTER_OTLP_CERTIFICATE, REQUESTS_CA_BUNDLE, else certifi's CAs)")
     p.add_argument("--redis", metavar="URL",
                    help="Redis that carries every relay's live pushes to every relay's browsers "
                         "(redis://HOST:PORT/DB; python-socketio's AsyncRedisManager): with relays sharing "
@@ -178,7 +181,8 @@ def run_relay(args: argparse.Namespace) -> int:
 
 
 def _otlp(args: argparse.Namespace, frame_limits: FrameLimits) -> OtlpConfig | None:
-    options = {"--otlp-every": args.otlp_every, "--otlp-queue": args.otlp_queue, "--otlp-timeout": args.otlp_timeout}
+    options = {"--otlp-every": args.otlp_every, "--otlp-queue": args.otlp_queue, "--otlp-timeout": args.otlp_timeout,
+               "--otlp-ca": args.otlp_ca}
     if args.otlp is None:
         given = [name for name, value in options.items() if value is not None]
         if given:
@@ -187,4 +191,4 @@ def _otlp(args: argparse.Namespace, frame_limits: FrameLimits) -> OtlpConfig | N
     has_limit = frame_limits.default_ns is not None or bool(frame_limits.per_node_ns)
     return otlp_config(args.otlp, DEFAULT_EVERY if args.otlp_every is None else args.otlp_every,
                        DEFAULT_QUEUE if args.otlp_queue is None else args.otlp_queue,
-                       DEFAULT_TIMEOUT_S if args.otlp_timeout is None else args.otlp_timeout, has_limit)
+                       DEFAULT_TIMEOUT_S if args.otlp_timeout is None else args.otlp_timeout, has_limit, args.otlp_ca)

@@ -16,6 +16,7 @@ from dcuscope.cli import main as cli_main
 from tests.conftest import cli_env
 from tests.pgserver import PASSWORD, PostgresServer
 from tests.redisserver import RedisServer
+from tests.relay.otlpreceiver import OtlpReceiver
 from tests.relay.helpers import RelayProcess, finish_node, get_json, load_node, start_node, wait_for
 from tests.relay.test_fanout import Browser
 from tests.relay.test_fleet import stored_equals_sent
@@ -129,8 +130,43 @@ def test_relays_on_a_rediss_redis_reach_each_others_browsers_and_refuse_another_
     (["--redis", "redis://127.0.0.1:6379/0", "--redis-ca", "ca.pem"], "give a rediss:// URL"),
     (["--redis-ca", "ca.pem"], "--redis-ca needs --redis rediss://"),
     (["--redis", "rediss://127.0.0.1:6379/0", "--redis-ca", "missing.pem"], "--redis-ca missing.pem: No such file"),
+    (["--otlp", "http://c:4318", "--otlp-ca", "ca.pem"], "give an https:// --otlp URL"),
+    (["--otlp-ca", "ca.pem"], "--otlp-ca needs --otlp URL"),
+    (["--otlp", "https://c:4318", "--otlp-ca", "missing.pem"], "--otlp-ca missing.pem: No such file"),
 ])
 def test_bad_tls_options_get_a_one_line_error(tmp_path, capsys, args, says):
     assert cli_main(["relay", "--port", "0", "--db", str(tmp_path / "r.db"), *args]) == 2
     err = capsys.readouterr().err
     assert says in err and err.count("\n") == 1 and "Traceback" not in err, err
+
+
+def test_otlp_over_https_checks_the_collectors_certificate(tmp_path, cas):
+    ca, other = cas
+    with OtlpReceiver(tls=ca.issue("collector")) as receiver:
+        assert receiver.url.startswith("https://")
+        relays = {cert: RelayProcess(tmp_path / f"{name}.db", args=["--otlp", receiver.url, "--otlp-ca", str(cert),
+                                                                   "--otlp-every", "1", "--otlp-timeout", "2"])
+                  for name, cert in (("good", ca.cert), ("other", other.cert))}
+        try:
+            nodes = [start_node(r.url, "DCU-1", tmp_path / f"{i}.npz", frames=150) for i, r in enumerate(relays.values())]
+            sent = [finish_node(n) for n in nodes]
+            trusting = relays[ca.cert].url
+
+            def all_exported() -> dict | None:  # 1 in 1: every frame the relay finalised
+                finalised = get_json(f"{trusting}/api/nodes")[0]["frames"]["finalised"]
+                otlp = get_json(f"{trusting}/api/health")["otlp"]
+                return otlp if 0 < finalised == otlp["frames_exported"] else None
+
+            good = wait_for(all_exported, 30, 0.2, "the trusted collector took every finalised frame")
+            bad = wait_for(lambda: (lambda o: o if o["dropped"]["export_failed"] else None)(
+                get_json(f"{relays[other.cert].url}/api/health")["otlp"]), 30, 0.2, "an export to the untrusted collector failed")
+            alive = [r.alive() for r in relays.values()]
+        finally:
+            codes = [r.stop() for r in relays.values()]
+    assert all(s["acked"] == s["events"] and s["lost"] == 0 for s in sent) and all(alive) and codes == [0, 0]
+    assert good["frames_exported"] == sum(good["frames"].values()) and good["dropped"]["export_failed"] == 0
+    # Every span the receiver decoded came from the relay that trusts its CA: the other sent none.
+    assert good["spans_exported"] == len(receiver.spans) > 0 and receiver.refused == []
+    assert bad["frames_exported"] == 0
+    lines = [ln for ln in relays[other.cert].log.read_text().splitlines() if "OTLP" in ln or "opentelemetry" in ln]
+    assert len(lines) == 1 and "failing" in lines[0] and "CERTIFICATE_VERIFY_FAILED" in lines[0], lines
