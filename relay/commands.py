@@ -102,11 +102,18 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--otlp-timeout", type=float, metavar="S",
                    help=f"with --otlp: seconds one export request may take, retries included (default "
                         f"{DEFAULT_TIMEOUT_S:g}); its frames are dropped and counted after it")
+    p.add_argument("--otlp-ca", metavar="FILE",
+                   help="with --otlp https://...: the CA certificates (PEM) the collector's certificate must come "
+                        "from (default: OTEL_EXPORTER_OTLP_CERTIFICATE, REQUESTS_CA_BUNDLE, else certifi's CAs)")
     p.add_argument("--redis", metavar="URL",
                    help="Redis that carries every relay's live pushes to every relay's browsers "
                         "(redis://HOST:PORT/DB; python-socketio's AsyncRedisManager): with relays sharing "
                         "--db postgresql://..., a page on any relay shows every DCU of the fleet live. Redis "
-                        "down: ingest and storage go on, other relays' pages catch up when it returns")
+                        "down: ingest and storage go on, other relays' pages catch up when it returns; rediss://: "
+                        "over TLS, the server's certificate checked (the system's CAs, or --redis-ca)")
+    p.add_argument("--redis-ca", metavar="FILE",
+                   help="with --redis rediss://...: the CA certificates (PEM) the Redis server's certificate must "
+                        "come from, instead of the system's (the same as the URL's ssl_ca_certs=FILE)")
     p.add_argument("--name", metavar="NAME",
                    help="how pages and other relays name this relay (default HOST:PORT)")
     p.add_argument("--push-hz", type=float, default=None, metavar="HZ",
@@ -141,7 +148,9 @@ def run_relay(args: argparse.Namespace) -> int:
     if args.redis is not None:
         from relay.api.fanout import check_url
 
-        options["redis"] = check_url(args.redis)
+        options["redis"] = check_url(args.redis, args.redis_ca)
+    elif args.redis_ca is not None:
+        raise RelayError("--redis-ca needs --redis rediss://...")
     if args.name is not None:
         if not 0 < len(args.name) <= 100 or not args.name.isprintable():
             raise RelayError("--name takes 1 to 100 printable characters")
@@ -172,7 +181,8 @@ def run_relay(args: argparse.Namespace) -> int:
 
 
 def _otlp(args: argparse.Namespace, frame_limits: FrameLimits) -> OtlpConfig | None:
-    options = {"--otlp-every": args.otlp_every, "--otlp-queue": args.otlp_queue, "--otlp-timeout": args.otlp_timeout}
+    options = {"--otlp-every": args.otlp_every, "--otlp-queue": args.otlp_queue, "--otlp-timeout": args.otlp_timeout,
+               "--otlp-ca": args.otlp_ca}
     if args.otlp is None:
         given = [name for name, value in options.items() if value is not None]
         if given:
@@ -181,4 +191,4 @@ def _otlp(args: argparse.Namespace, frame_limits: FrameLimits) -> OtlpConfig | N
     has_limit = frame_limits.default_ns is not None or bool(frame_limits.per_node_ns)
     return otlp_config(args.otlp, DEFAULT_EVERY if args.otlp_every is None else args.otlp_every,
                        DEFAULT_QUEUE if args.otlp_queue is None else args.otlp_queue,
-                       DEFAULT_TIMEOUT_S if args.otlp_timeout is None else args.otlp_timeout, has_limit)
+                       DEFAULT_TIMEOUT_S if args.otlp_timeout is None else args.otlp_timeout, has_limit, args.otlp_ca)

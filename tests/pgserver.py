@@ -9,6 +9,9 @@ tests read. ``PostgresServer(durable=True)`` keeps PostgreSQL's defaults for the
 commit returns once its WAL is on disk), as users run it: the benchmarks time the relay on that.
 ``PostgresServer(listen=[ADDR])`` also listens on ADDR (the host's end of a test's network namespace,
 tests/relay/nsnet.py), trusting clients from the subnets the host is directly connected to.
+``PostgresServer(tls=ISSUED)`` (a server certificate of tests/tlscerts.py) takes TLS connections only
+(``ssl=on``, pg_hba's ``hostssl``; plain TCP is refused): user ``postgres`` without a password, and user
+``USER`` (:data:`USER`) with password :data:`PASSWORD` (scram-sha-256), as a relay would log in.
 """
 
 from __future__ import annotations
@@ -22,6 +25,7 @@ import tempfile
 import uuid
 from pathlib import Path
 from typing import Sequence
+from urllib.parse import quote
 
 from tests.ports import free_port
 
@@ -30,6 +34,11 @@ FAST = "-c fsync=off -c synchronous_commit=off -c full_page_writes=off"
 """The tests' durability settings: nothing waits for the disk."""
 DURABLE = "-c fsync=on -c synchronous_commit=on -c full_page_writes=on"
 """PostgreSQL's defaults, said explicitly: every commit waits for its WAL to reach the disk."""
+USER = "dcuscope"
+PASSWORD = "s3cret pw/ok"
+"""A TLS server's password user: its password has characters a URL must escape."""
+TLS_HBA = ("local all all trust\nhostssl all postgres 127.0.0.1/32 trust\n"
+           f"hostssl all {USER} 127.0.0.1/32 scram-sha-256\nhostnossl all all all reject\n")
 
 
 def bindir() -> Path:
@@ -41,12 +50,14 @@ def bindir() -> Path:
 
 
 class PostgresServer:
-    def __init__(self, durable: bool = False, listen: Sequence[str] = ()) -> None:
+    def __init__(self, durable: bool = False, listen: Sequence[str] = (), tls=None) -> None:
         """``durable``: fsync, synchronous_commit and full_page_writes on (PostgreSQL's defaults), not
         off as the tests run it. ``listen``: addresses to listen on besides 127.0.0.1 (they must exist
         when the server starts); clients reaching them from a directly connected subnet (pg_hba's
-        ``samenet``: a namespace's end of its veth pair) are trusted, as on loopback."""
+        ``samenet``: a namespace's end of its veth pair) are trusted, as on loopback. ``tls``: the
+        server's certificate and key (tests/tlscerts.py ``Issued``): TLS connections only."""
         self.durable = durable
+        self.tls = tls
         self.listen = ["127.0.0.1", *listen]
         self.settings = f"-c listen_addresses={','.join(self.listen)} {SETTINGS} {DURABLE if durable else FAST}"
         self.bin = bindir()
@@ -58,6 +69,14 @@ class PostgresServer:
         if self.as_root:
             user = pwd.getpwnam("postgres")
             os.chown(self.dir, user.pw_uid, user.pw_gid)
+        if tls is not None:
+            # PostgreSQL reads a key owned by its user, mode 0600, and no one else's.
+            for name, source in (("server.crt", tls.cert), ("server.key", tls.key)):
+                shutil.copyfile(source, self.dir / name)
+                os.chmod(self.dir / name, 0o600)
+                if self.as_root:
+                    os.chown(self.dir / name, user.pw_uid, user.pw_gid)
+            self.settings += f" -c ssl=on -c ssl_cert_file={self.dir / 'server.crt'} -c ssl_key_file={self.dir / 'server.key'}"
 
     def _run(self, *args: str, timeout: float = 60) -> str:
         cmd = [str(self.bin / args[0]), *args[1:]]
@@ -74,7 +93,15 @@ class PostgresServer:
         if len(self.listen) > 1:
             with open(self.data / "pg_hba.conf", "a") as hba:
                 hba.write("host all all samenet trust\n")
-        return self.resume()
+        if self.tls is not None:
+            (self.data / "pg_hba.conf").write_text(TLS_HBA)
+        self.resume()
+        if self.tls is not None:
+            import psycopg
+
+            with psycopg.connect(self.url(), autocommit=True) as conn:
+                conn.execute(f"CREATE ROLE {USER} LOGIN PASSWORD '{PASSWORD}'")
+        return self
 
     def resume(self) -> "PostgresServer":
         self._run("pg_ctl", "-D", str(self.data), "-l", str(self.log), "-w", "-t", "60",
@@ -86,8 +113,15 @@ class PostgresServer:
         self._run("pg_ctl", "-D", str(self.data), "-m", mode, "-w", "stop")
 
     def url(self, database: str = "postgres", host: str = "127.0.0.1") -> str:
-        """The URL of ``database`` through ``host`` (one of the addresses listened on)."""
-        return f"postgresql://postgres@{host}:{self.port}/{database}"
+        """The URL of ``database`` through ``host`` (one of the addresses listened on); a TLS server's
+        over TLS, its certificate unchecked (the tests' own connections)."""
+        return f"postgresql://postgres@{host}:{self.port}/{database}" + ("?sslmode=require" if self.tls else "")
+
+    def user_url(self, database: str, ca, host: str = "127.0.0.1") -> str:
+        """A TLS server's URL of ``database`` as user :data:`USER` with its password, the server's
+        certificate checked against ``ca`` (a file) and ``host`` (``sslmode=verify-full``)."""
+        return (f"postgresql://{USER}:{quote(PASSWORD, safe='')}@{host}:{self.port}/{database}"
+                f"?sslmode=verify-full&sslrootcert={quote(str(ca))}")
 
     def new_database(self, host: str = "127.0.0.1") -> str:
         """A fresh empty database; its URL through ``host``."""
@@ -95,7 +129,7 @@ class PostgresServer:
 
         name = "t_" + uuid.uuid4().hex[:12]
         with psycopg.connect(self.url(), autocommit=True) as conn:
-            conn.execute(f"CREATE DATABASE {name}")
+            conn.execute(f"CREATE DATABASE {name}" + (f" OWNER {USER}" if self.tls else ""))
         return self.url(name, host)
 
     def close(self) -> None:

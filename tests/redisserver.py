@@ -2,13 +2,16 @@
 
 Started without persistence (no RDB snapshots, no AOF): the relays keep nothing in Redis that must
 outlive it (it carries their live pushes; the store keeps the data). ``stop()`` then ``start()``
-again on the same port is a Redis restart as an operator's would be.
+again on the same port is a Redis restart as an operator's would be. ``RedisServer(tls=ISSUED)`` (a
+server certificate of tests/tlscerts.py) takes TLS connections only (``--tls-port``, ``--port 0``),
+without asking clients for certificates; its URL is ``rediss://``.
 """
 
 from __future__ import annotations
 
 import shutil
 import socket
+import ssl
 import subprocess
 import tempfile
 import time
@@ -25,19 +28,24 @@ def redis_binary() -> str:
 
 
 class RedisServer:
-    def __init__(self, port: int | None = None) -> None:
+    def __init__(self, port: int | None = None, tls=None) -> None:
         self.port = port or free_port()
+        self.tls = tls
         self.dir = Path(tempfile.mkdtemp(prefix="dcuscope-redis-"))
         self.log = self.dir / "redis.log"
         self.proc: subprocess.Popen | None = None
 
     @property
     def url(self) -> str:
-        return f"redis://127.0.0.1:{self.port}/0"
+        return f"{'rediss' if self.tls else 'redis'}://127.0.0.1:{self.port}/0"
 
     def start(self, timeout: float = 20.0) -> "RedisServer":
+        port = ["--port", str(self.port)]
+        if self.tls is not None:
+            port = ["--port", "0", "--tls-port", str(self.port), "--tls-cert-file", str(self.tls.cert),
+                    "--tls-key-file", str(self.tls.key), "--tls-auth-clients", "no"]
         self.proc = subprocess.Popen(
-            [redis_binary(), "--port", str(self.port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
+            [redis_binary(), *port, "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
              "--dir", str(self.dir), "--logfile", str(self.log), "--daemonize", "no", "--protected-mode", "yes"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         deadline = time.monotonic() + timeout
@@ -51,11 +59,20 @@ class RedisServer:
 
     def ping(self) -> bool:
         try:
-            with socket.create_connection(("127.0.0.1", self.port), timeout=0.5) as s:
+            with socket.create_connection(("127.0.0.1", self.port), timeout=0.5) as raw:
+                s = self._unchecked_tls().wrap_socket(raw) if self.tls else raw
                 s.sendall(b"PING\r\n")
                 return s.recv(16).startswith(b"+PONG")
         except OSError:
             return False
+
+    @staticmethod
+    def _unchecked_tls() -> ssl.SSLContext:
+        """TLS for the readiness check only: whether it answers, not whom."""
+        context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+        context.check_hostname = False
+        context.verify_mode = ssl.CERT_NONE
+        return context
 
     def stop(self) -> None:
         if self.proc is not None and self.proc.poll() is None:

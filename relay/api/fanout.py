@@ -30,6 +30,10 @@ Redis is not needed for anything but those pushes. While it is down or restartin
   minute, so pushes resume within a second of Redis' return;
 - ``/api/health``'s ``fanout`` says so, and the log has one line per change (python-socketio's own
   line per failed attempt is held back).
+
+``rediss://`` is Redis over TLS: the server's certificate is checked against the system's CAs, or
+those of ``--redis-ca FILE`` (:func:`check_url`), and its name against the URL's host. A certificate
+that fails the check is a Redis that cannot be reached: one line in the log, ``fanout.error`` says why.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ import asyncio
 import base64
 import logging
 import time
-from urllib.parse import urlsplit
+from urllib.parse import urlencode, urlsplit, urlunsplit
 
 import socketio
 from socketio.packet import Packet
@@ -62,12 +66,26 @@ joined that room misses at most this much, which the page fills from GET /api/fr
 log = logging.getLogger(__name__)
 
 
-def check_url(url: str) -> str:
-    """``url`` if it names a Redis server python-socketio can use; RelayError saying why not otherwise."""
-    scheme = urlsplit(url).scheme.lower()
+def check_url(url: str, ca: str | None = None) -> str:
+    """``url`` if it names a Redis server python-socketio can use; RelayError saying why not otherwise.
+    ``ca`` (``--redis-ca``): the file of the CAs that a ``rediss://`` server's certificate must come
+    from, put in the URL as redis-py's ``ssl_ca_certs`` parameter, so that every connection made from
+    the URL (python-socketio's manager, :mod:`relay.api.interest`) checks it; without it, the URL's own
+    ``ssl_ca_certs``, else the system's CAs."""
+    parts = urlsplit(url)
+    scheme = parts.scheme.lower()
     if scheme not in ("redis", "rediss", "unix", "redis+sentinel"):
         raise RelayError(f"--redis {redact(url)!r}: not a Redis URL (redis://HOST:PORT/DB, rediss://, unix://)")
-    return url
+    if ca is None:
+        return url
+    if scheme != "rediss":
+        raise RelayError(f"--redis-ca checks a TLS server's certificate: give a rediss:// URL, not {redact(url)!r}")
+    try:
+        open(ca, "rb").close()
+    except OSError as exc:
+        raise RelayError(f"--redis-ca {ca}: {exc.strerror}") from None
+    query = "&".join(q for q in (parts.query, urlencode({"ssl_ca_certs": ca}, safe="/")) if q)
+    return urlunsplit(parts._replace(query=query))
 
 
 class FanoutHealth:
@@ -269,4 +287,4 @@ def _quiet_logger() -> logging.Logger:
 
 def _describe(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-    return f"{type(exc).__name__}: {text[:120]}" if text else type(exc).__name__
+    return f"{type(exc).__name__}: {text[:200]}" if text else type(exc).__name__

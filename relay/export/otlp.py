@@ -8,6 +8,10 @@ waits for it: a full queue drops frames, a failed export drops its frames, both 
 (``dcuscope_otlp_frames_dropped_total{reason}`` in ``/metrics``, ``otlp`` in ``/api/health``).
 :meth:`OtlpExporter.stop` sends what is queued while the backend answers (within the timeout)
 and ends the thread.
+
+An https endpoint's certificate is checked against ``--otlp-ca`` (:class:`PinnedCA`), else the SDK's
+default. A collector that cannot be reached or verified is one log line when exports start failing
+(the SDK's own line per attempt is held back, its last kept as the reason) and one when they succeed again.
 """
 
 from __future__ import annotations
@@ -18,6 +22,7 @@ import threading
 import time
 from collections.abc import Iterator
 
+import requests
 from opentelemetry.exporter.otlp.proto.http.trace_exporter import OTLPSpanExporter
 from opentelemetry.sdk.resources import Resource
 from opentelemetry.sdk.trace.export import SpanExportResult
@@ -43,6 +48,33 @@ a span, mostly the SDK's encoder): past it, it rests, the queue fills and frames
 MAX_REST_S = 5.0
 
 log = logging.getLogger(__name__)
+SDK_LOG = logging.getLogger(OTLPSpanExporter.__module__)
+"""Where the SDK's exporter logs each failed attempt (a line per retry)."""
+
+
+class PinnedCA(requests.Session):
+    """A session whose ``verify`` (``--otlp-ca``) the environment cannot replace: requests lets
+    ``REQUESTS_CA_BUNDLE`` or ``CURL_CA_BUNDLE`` win over a session's own (psf/requests#3829)."""
+
+    def merge_environment_settings(self, url, proxies, stream, verify, cert):
+        settings = super().merge_environment_settings(url, proxies, stream, verify, cert)
+        settings["verify"] = self.verify
+        return settings
+
+
+class _FirstReason(logging.Filter):
+    """Holds back the SDK's lines of a failed export, keeping the first (the cause; the last says only
+    that the retries ran out) as its reason."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.first = ""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.levelno >= logging.WARNING:
+            self.first = self.first or record.getMessage()[:400]
+            return False
+        return True
 
 
 class OtlpExporter:
@@ -51,7 +83,10 @@ class OtlpExporter:
         self.counters = OtlpCounters()
         self.queue = FrameQueue(config.queue)
         self.sampler = Sampler(state, config.every, self.queue, self.counters)
-        self._exporter = OTLPSpanExporter(endpoint=config.url, timeout=config.timeout_s)
+        self._exporter = OTLPSpanExporter(endpoint=config.url, timeout=config.timeout_s, certificate_file=config.ca,
+                                          session=PinnedCA() if config.ca else None)
+        self._reason = _FirstReason()
+        SDK_LOG.addFilter(self._reason)
         self._resources: dict[str, Resource] = {}
         self._thread = threading.Thread(target=self._run, name="dcuscope-otlp", daemon=True)
         self._failing = False
@@ -77,6 +112,7 @@ class OtlpExporter:
             # An export in flight when the time is up ends by its own timeout; the thread is a daemon.
             await asyncio.to_thread(self._thread.join, 2 * self.config.timeout_s + 1)
         self._exporter.shutdown()
+        SDK_LOG.removeFilter(self._reason)
 
     def _run(self) -> None:
         while batches := self.queue.take(EXPORT_FRAMES, LINGER_S):
@@ -93,6 +129,7 @@ class OtlpExporter:
         t0, cpu0 = time.perf_counter(), time.thread_time()
         frames = sum(map(len, batches))
         spans = []
+        self._reason.first = ""
         try:
             for batch in batches:
                 spans += spans_of(batch, self._resource(batch.node))
@@ -107,6 +144,13 @@ class OtlpExporter:
             c.spans_exported += len(spans)
         else:
             c.dropped["export_failed"] += frames
+        if ok == self._failing:
+            if ok:
+                log.warning("OTLP export to %s works again", self.config.url)
+            else:
+                log.warning("OTLP export to %s failing (%s); its frames are dropped and counted "
+                            "(dcuscope_otlp_frames_dropped_total) until one succeeds", self.config.url,
+                            self._reason.first or "no reason given")
         self._failing = not ok
         cpu = time.thread_time() - cpu0
         c.export_seconds += time.perf_counter() - t0

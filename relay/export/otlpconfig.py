@@ -1,4 +1,4 @@
-"""What ``dcuscope relay --otlp URL [--otlp-every N] [--otlp-queue N] [--otlp-timeout S]`` asks for.
+"""What ``dcuscope relay --otlp URL [--otlp-every N] [--otlp-queue N] [--otlp-timeout S] [--otlp-ca FILE]`` asks for.
 
 Kept apart from the exporter (:mod:`relay.export.otlp`) so that the command line checks its values
 without loading the OpenTelemetry SDK.
@@ -32,9 +32,13 @@ class OtlpConfig:
     """Frames waiting for export at most; beyond, frames are dropped (and counted), never waited for."""
     timeout_s: float = DEFAULT_TIMEOUT_S
     """How long one export request (with the exporter's retries) may take before its frames count as dropped."""
+    ca: str | None = None
+    """With an https URL: the CA certificates (PEM) the collector's certificate must come from; None:
+    the exporter's default (``OTEL_EXPORTER_OTLP_CERTIFICATE``, ``REQUESTS_CA_BUNDLE``, else certifi's)."""
 
 
-def otlp_config(url: str, every: int, queue: int, timeout_s: float, has_limit: bool) -> OtlpConfig:
+def otlp_config(url: str, every: int, queue: int, timeout_s: float, has_limit: bool,
+                ca: str | None = None) -> OtlpConfig:
     """The checked configuration; RelayError names the option at fault. ``has_limit``: some
     node has a ``--frame-limit`` (without one, ``--otlp-every 0`` would send nothing)."""
     if every < 0:
@@ -45,7 +49,15 @@ def otlp_config(url: str, every: int, queue: int, timeout_s: float, has_limit: b
         raise RelayError(f"--otlp-queue must be 1..{MAX_QUEUE} frames, not {queue}")
     if not (math.isfinite(timeout_s) and 0 < timeout_s <= MAX_TIMEOUT_S):
         raise RelayError(f"--otlp-timeout must be over 0 and at most {MAX_TIMEOUT_S:.0f} s, not {timeout_s}")
-    return OtlpConfig(traces_endpoint(url), every, queue, timeout_s)
+    endpoint = traces_endpoint(url)
+    if ca is not None:
+        if not endpoint.startswith("https:"):
+            raise RelayError(f"--otlp-ca checks a collector's certificate: give an https:// --otlp URL, not {url!r}")
+        try:
+            open(ca, "rb").close()
+        except OSError as exc:
+            raise RelayError(f"--otlp-ca {ca}: {exc.strerror}") from None
+    return OtlpConfig(endpoint, every, queue, timeout_s, ca)
 
 
 def traces_endpoint(url: str) -> str:

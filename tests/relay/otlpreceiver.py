@@ -3,12 +3,14 @@ decoded with the official definitions (``opentelemetry-proto``'s ExportTraceServ
 
 ``mode``: ``ok`` answers 200 with an empty ExportTraceServiceResponse; ``stall`` holds every
 request unanswered until the receiver stops (a backend that hangs); ``fail`` answers 500. Each
-span received is kept as a flat :class:`Span` with its resource's attributes.
+span received is kept as a flat :class:`Span` with its resource's attributes. ``tls``: a server
+certificate of tests/tlscerts.py: the receiver takes HTTPS only (a collector with TLS on).
 """
 
 from __future__ import annotations
 
 import gzip
+import ssl
 import threading
 from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -39,8 +41,9 @@ def value_of(v: AnyValue):
 
 
 class OtlpReceiver:
-    def __init__(self, mode: str = "ok") -> None:
+    def __init__(self, mode: str = "ok", tls=None) -> None:
         self.mode = mode
+        self.tls = tls
         self.spans: list[Span] = []
         self.requests = 0
         self.gzipped = 0
@@ -50,11 +53,16 @@ class OtlpReceiver:
         self._release = threading.Event()
         self._server = ThreadingHTTPServer(("127.0.0.1", 0), self._handler())
         self._server.daemon_threads = True
+        if tls is not None:
+            context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+            context.load_cert_chain(tls.cert, tls.key)
+            # A client that refuses the certificate fails its handshake in accept(): socketserver drops it.
+            self._server.socket = context.wrap_socket(self._server.socket, server_side=True)
         self._thread = threading.Thread(target=self._server.serve_forever, daemon=True)
 
     @property
     def url(self) -> str:
-        return f"http://127.0.0.1:{self._server.server_port}{PATH}"
+        return f"{'https' if self.tls else 'http'}://127.0.0.1:{self._server.server_port}{PATH}"
 
     def __enter__(self) -> OtlpReceiver:
         self._thread.start()

@@ -14,6 +14,7 @@ import pytest
 import yaml
 
 from tests.relay.promserver import require_tool
+from tests.tlscerts import TestCA
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "prometheus"
 RULES, UNIT_TEST, CONFIG = "dcuscope-rules.yml", "dcuscope-rules.test.yml", "prometheus.yml"
@@ -42,6 +43,15 @@ def test_promtool_checks_the_shipped_rules_and_config(shipped):
     assert rules.returncode == 0 and "SUCCESS" in rules.stdout, rules.stdout + rules.stderr
     config = promtool("check", "config", CONFIG, cwd=shipped)
     assert config.returncode == 0 and "SUCCESS: 1 rule files found" in config.stdout, config.stdout + config.stderr
+    # The commented HTTPS job, in place of the plain one (its CA file must exist: promtool reads it).
+    text = (shipped / CONFIG).read_text()
+    job = yaml.safe_load("\n".join(ln.split("#~ ", 1)[1] for ln in text.splitlines()
+                                   if ln.lstrip().startswith("#~ ")))
+    assert job[0]["scheme"] == "https" and job[0]["tls_config"]["ca_file"] == "/etc/prometheus/dcuscope-ca.pem"
+    job[0]["tls_config"]["ca_file"] = str(TestCA(shipped.parent).cert)
+    (shipped / "https.yml").write_text(yaml.safe_dump({**yaml.safe_load(text), "scrape_configs": job}))
+    config = promtool("check", "config", "https.yml", cwd=shipped)
+    assert config.returncode == 0 and "SUCCESS" in config.stdout, config.stdout + config.stderr
 
 
 def test_the_rules_unit_test_passes_and_covers_every_alert(shipped):
