@@ -88,7 +88,7 @@ def _answers(s: socket.socket) -> list[tuple[int, int, int, int]]:
             return out
         answer = decode_answer(data)
         if answer is not None:
-            out.append((*answer, t4))
+            out.append((answer.nonce, answer.t2, answer.t3, t4))
 
 
 def _health_udp(relay: RelayProcess) -> dict:
@@ -374,3 +374,47 @@ def test_a_tagged_exchange_is_answered_only_by_the_relay_and_an_untagged_one_sti
             udp.stop()
 
     asyncio.run(scenario())
+
+
+def test_only_a_private_connection_gets_a_clock_secret_and_its_node_refuses_moved_answers(tmp_path, caplog):
+    """The ingest's one condition (``private_channel``: TLS in use) said yes without TLS: the hello
+    reply carries a secret, a node's datagrams pass an on-path proxy that moves every answer, and the
+    node refuses them, counts them, says so once naming the relay, and its estimate holds the truth
+    over the WebSocket. A plaintext connection gets no secret."""
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db", clock="estimate")
+        url = f"http://127.0.0.1:{relay.port}"
+        exporter = None
+        try:
+            plain = await HandNode.open(url, "P", uuid.uuid4().hex)
+            await plain.close()
+            assert "clock_secret" not in plain.reply and parse_offer(plain.reply).secret is None
+            relay.ingest.private_channel = lambda request: True
+            private = await HandNode.open(url, "Q", uuid.uuid4().hex)
+            await private.close()
+            offer = parse_offer(private.reply)
+            assert offer is not None and len(offer.secret) == 32
+            assert parse_offer(dict(private.reply, clock_secret=private.reply["clock_secret"][:-2])) is None
+
+            proxy = AnswerRewriter(relay.clock_port)
+            relay.ingest.clock_udp.port = proxy.port  # the node's datagrams take the attacker's path
+            try:
+                exporter = RelayExporter(url, "A", pretend=PretendClock(offset_ns=NODE_OFFSET_NS), close_timeout_s=8.0)
+                exporter.start(header_for("A", 2))
+                deadline = time.monotonic() + 20
+                while exporter.counters()["clock_via"] != "websocket":
+                    assert time.monotonic() < deadline, "no clock report over the WebSocket"
+                    await asyncio.sleep(0.05)
+                await asyncio.to_thread(exporter.close, 0)
+            finally:
+                proxy.close()
+            counters = exporter.counters()
+            assert counters["clock_forged"] == proxy.answers > 0, (counters, proxy.answers)
+            estimate = relay.state.runs[exporter.run_id].clock.estimate()
+            assert abs(estimate.offset_ns - NODE_OFFSET_NS) <= estimate.uncertainty_ns, estimate
+        finally:
+            await relay.stop()
+
+    asyncio.run(scenario())
+    said = [r.getMessage() for r in caplog.records if "refused for a wrong tag" in r.getMessage()]
+    assert len(said) == 1 and "from 127.0.0.1" in said[0], said
