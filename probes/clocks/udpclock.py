@@ -39,7 +39,6 @@ import secrets
 import socket
 import struct
 import time
-
 from typing import NamedTuple
 
 from core.clocks import CLOCKS, PretendClock
