@@ -82,6 +82,7 @@ class ClockReporter:
                     report.update(samples=samples, via="udp")
                 else:
                     report["samples"] = await self._ws_burst(link, burst)
+                report["forged"] = self.forged
                 self.via = report.get("via", "websocket")
                 await self.send(link, report)
                 synced.set()

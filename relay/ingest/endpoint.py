@@ -15,11 +15,12 @@ and so is a connection beyond the cap (503). Then, in the envelope of :mod:`prob
   (or was stored before), then its events reach the live state; ``ok: false`` if storage failed
   (the node sends it again);
 - ``sync`` -> reply {t2, t3}: relay receive and send times (ns, CLOCK_REALTIME);
-- ``clock`` {samples, lost, floor, ptp[, via, doubt]}: the node's completed NTP samples and state (with
+- ``clock`` {samples, lost, floor, ptp[, via, doubt, forged]}: the node's completed NTP samples and state (with
   ``doubt``, as in hello, a request: the reply says ``stored``). A sample
   counts only if its t2/t3 are a pair this relay sent on this connection or to its UDP key (each once) and its
   offset and round trip are within ``clock_offset_s``/``clock_rtt_s``; others are counted
-  (``clock.rejected``) and dropped;
+  (``clock.rejected``) and dropped; ``forged``, the UDP answers the node refused for a wrong tag, is
+  shown as ``clock.forged``;
 - ``end`` {events, dropped, lost} -> reply {ok}.
 
 ``floor``: every batch below it was acknowledged or given up by the node, so the relay stops
@@ -373,6 +374,7 @@ class Ingest:
         rs.clock.add_samples(accepted)
         rs.ptp = report.ptp
         rs.lost = max(rs.lost, report.lost)
+        rs.clock_forged = max(rs.clock_forged, report.forged)
         stored = await self._stored_of(rs, report.doubt)
         rs.seqs.advance(report.floor)
         clock = dict(self.state.clock_view(rs), ptp=rs.ptp)

@@ -402,15 +402,17 @@ def test_only_a_private_connection_gets_a_clock_secret_and_its_node_refuses_move
                 exporter = RelayExporter(url, "A", pretend=PretendClock(offset_ns=NODE_OFFSET_NS), close_timeout_s=8.0)
                 exporter.start(header_for("A", 2))
                 deadline = time.monotonic() + 20
-                while exporter.counters()["clock_via"] != "websocket":
-                    assert time.monotonic() < deadline, "no clock report over the WebSocket"
+                while not (exporter.counters()["clock_via"] == "websocket" and exporter.run_id in relay.state.runs
+                           and relay.state.runs[exporter.run_id].clock_forged):
+                    assert time.monotonic() < deadline, "no clock report over the WebSocket telling the forged answers"
                     await asyncio.sleep(0.05)
                 await asyncio.to_thread(exporter.close, 0)
             finally:
                 proxy.close()
-            counters = exporter.counters()
+            counters, rs = exporter.counters(), relay.state.runs[exporter.run_id]
             assert counters["clock_forged"] == proxy.answers > 0, (counters, proxy.answers)
-            estimate = relay.state.runs[exporter.run_id].clock.estimate()
+            assert relay.state.clock_view(rs)["forged"] == proxy.answers  # the relay's page shows them too
+            estimate = rs.clock.estimate()
             assert abs(estimate.offset_ns - NODE_OFFSET_NS) <= estimate.uncertainty_ns, estimate
         finally:
             await relay.stop()
