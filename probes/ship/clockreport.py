@@ -4,8 +4,10 @@
 On each connection the node measures the clock offset to the relay and reports the samples with
 the node's linuxptp state (``clock``); the relay estimates. The exchanges go over UDP beside the
 WebSocket when the relay offers it (:mod:`probes.clocks.udpclock`: kernel timestamps, bursts of
-16), else, or when UDP gets no answer, over the WebSocket (``sync``): said once. A report also
-tells what the outbox lost and asks about its doubtful batches (:meth:`probes.ship.outbox.Outbox.report`).
+16), else, or when UDP gets no answer, over the WebSocket (``sync``): said once. Over a tagged
+exchange (the relay gave a secret) an answer with a wrong tag is refused and counted (``forged``),
+and said at most once a minute, naming the relay. A report also tells what the outbox lost and asks
+about its doubtful batches (:meth:`probes.ship.outbox.Outbox.report`).
 """
 
 from __future__ import annotations
@@ -18,7 +20,7 @@ from yarl import URL
 
 from core.clocks import PretendClock
 from probes.clocks.ptp import PtpWatch
-from probes.clocks.udpclock import UdpClock
+from probes.clocks.udpclock import Offer, UdpClock
 from probes.ship.aio import describe
 from probes.ship.outbox import Outbox
 from probes.ship.relaylink import Link
@@ -27,6 +29,7 @@ SYNC_BURST_FIRST, SYNC_BURST = 8, 4
 SYNC_TIMEOUT_S = 10.0
 UDP_RETRY_S = 30.0
 """After a UDP burst got no answer, the WebSocket exchanges serve this long before UDP is tried again."""
+FORGED_SAID_EVERY_S = 60.0
 
 log = logging.getLogger(__name__)
 
@@ -45,6 +48,9 @@ class ClockReporter:
         self._udp_said = False
         self.via = ""
         """How the last clock samples travelled: udp or websocket."""
+        self.forged = 0
+        """UDP answers refused for a wrong or missing tag, all connections of the run."""
+        self._forged_said_at: float | None = None
 
     async def watch_ptp(self) -> None:
         while True:
@@ -63,19 +69,20 @@ class ClockReporter:
         if isinstance(reply, dict):
             self._outbox.settle_doubts(report["doubt"], reply)
 
-    async def run(self, link: Link, url: str, offer: tuple[int, bytes] | None, synced: asyncio.Event) -> None:
+    async def run(self, link: Link, url: str, offer: Offer | None, synced: asyncio.Event) -> None:
         """Report on ``link`` until cancelled; ``synced`` is set once the relay got a report.
-        ``offer``: the (port, key) of the UDP exchange the relay offered on this connection."""
+        ``offer``: the UDP exchange the relay offered on this connection."""
         udp = await self._open_udp(url, offer)
         burst = SYNC_BURST_FIRST
         try:
             while True:
                 report = self.report()
-                samples = await self._udp_burst(udp, offer) if udp is not None else []
+                samples = await self._udp_burst(udp, offer, url) if udp is not None else []
                 if samples:
                     report.update(samples=samples, via="udp")
                 else:
                     report["samples"] = await self._ws_burst(link, burst)
+                report["forged"] = self.forged
                 self.via = report.get("via", "websocket")
                 await self.send(link, report)
                 synced.set()
@@ -85,27 +92,39 @@ class ClockReporter:
             if udp is not None:
                 udp.close()
 
-    async def _open_udp(self, url: str, offer: tuple[int, bytes] | None) -> UdpClock | None:
+    async def _open_udp(self, url: str, offer: Offer | None) -> UdpClock | None:
         if offer is None:
             self._say_once("the relay offers no UDP clock exchange (an older relay, or --clock-port 0)")
             return None
         host = URL(url).host or ""
         try:
-            return await UdpClock.open(host, offer[0], offer[1], self._pretend)
+            return await UdpClock.open(host, offer.port, offer.key, self._pretend, offer.secret)
         except OSError as exc:
-            self._say_once(f"cannot open the UDP clock exchange to {host}:{offer[0]}: {describe(exc)}")
+            self._say_once(f"cannot open the UDP clock exchange to {host}:{offer.port}: {describe(exc)}")
             return None
 
-    async def _udp_burst(self, udp: UdpClock, offer: tuple[int, bytes] | None) -> list[list[int]]:
+    async def _udp_burst(self, udp: UdpClock, offer: Offer | None, url: str) -> list[list[int]]:
         if self._udp_failed_at is not None and time.monotonic() - self._udp_failed_at < UDP_RETRY_S:
             return []
+        forged = udp.forged
         samples = await udp.burst()
+        self._count_forged(udp.forged - forged, url)
         if samples:
             self._udp_failed_at = None
             return samples
         self._udp_failed_at = time.monotonic()
-        self._say_once(f"no answer to UDP clock exchanges on port {offer[0] if offer else '?'} (blocked?)")
+        self._say_once(f"no answer to UDP clock exchanges on port {offer.port if offer else '?'} (blocked?)")
         return []
+
+    def _count_forged(self, new: int, url: str) -> None:
+        if not new:
+            return
+        self.forged += new
+        now = time.monotonic()
+        if self._forged_said_at is None or now - self._forged_said_at >= FORGED_SAID_EVERY_S:
+            self._forged_said_at = now
+            log.warning("relay exporter %s: UDP clock answers from %s refused for a wrong tag, forged or altered on "
+                        "the way (%d so far)", self._node, URL(url).host, self.forged)
 
     def _say_once(self, why: str) -> None:
         """Falling back to the WebSocket exchange is said once per run, not per connection."""

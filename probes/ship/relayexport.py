@@ -163,6 +163,7 @@ class RelayExporter:
             "written": box.written, "sent": box.sent, "acked": box.acked, "lost": self.lost,
             "buffered": box.unacked_n + box.pending_n, "retries": box.retries,
             "last_error": self.relays.last_error, "clock_via": self.clocks.via,
+            "clock_forged": self.clocks.forged,
         }
 
     # --- loop thread --------------------------------------------------------------------------

@@ -115,6 +115,8 @@ class ClockReport:
     """Transport of the samples' exchanges (one of CLOCK_VIAS)."""
     doubt: tuple[int, ...] = ()
     """As :attr:`Hello.doubt` (the report is then a request: the reply says ``stored``)."""
+    forged: int = 0
+    """UDP clock answers the node refused for a wrong tag (forged or altered on the way), in its run."""
 
 
 def encode_batch(run: str, seq: int, events: np.ndarray, compress: bool = False) -> bytes:
@@ -337,7 +339,8 @@ def decode_clock(obj: object) -> ClockReport:
     if via not in CLOCK_VIAS:
         raise ProtocolError(f"clock.via must be one of {', '.join(CLOCK_VIAS)}, not {str(via)[:20]!r}")
     return ClockReport(out, _int(d.get("lost", 0), "clock.lost"), sanitize_ptp(d.get("ptp")),
-                       _int(d.get("floor", 0), "clock.floor"), via, _doubt(d, "clock"))
+                       _int(d.get("floor", 0), "clock.floor"), via, _doubt(d, "clock"),
+                       _int(d.get("forged", 0), "clock.forged"))
 
 
 def decode_end(obj: object) -> tuple[int, int, int]:

@@ -1,13 +1,16 @@
 """The relay's end of the UDP clock exchange (datagrams: :mod:`probes.clocks.udpclock`).
 
-Each ingest connection that said hello gets a random key (``register``); a request carrying a
-key the relay handed out is answered with (t2, t3): t2 the kernel's receive time
-(``SO_TIMESTAMPNS``), t3 read just before ``sendto``. The pair is remembered in that
-connection's ``syncs``, where the ingest checks the samples its node reports (each pair counts
-once, a bounded number kept). Anything else is dropped unanswered and counted: a datagram of the
-wrong size or shape (``malformed``, ``oversize``), an unknown key (``unknown_key``), one beyond
-its key's rate (``Limits.clock_packets_per_s``) or beyond all keys' rate together
-(``Limits.total_clock_packets_per_s``). An answer is never larger than its request.
+Each ingest connection that said hello gets a random key (``register``), and over TLS a secret
+too; a request carrying a key the relay handed out is answered with (t2, t3): t2 the kernel's
+receive time (``SO_TIMESTAMPNS``), t3 read just before the answer is tagged and sent. The pair
+is remembered in that connection's ``syncs``, where the ingest checks the samples its node
+reports (each pair counts once, a bounded number kept). Anything else is dropped unanswered and
+counted: a datagram of the wrong size or shape (``malformed``, ``oversize``), an unknown key
+(``unknown_key``), a key with a secret whose request has a wrong or no tag, or a tagged request
+for a key without one (``bad_tag``), one beyond its key's rate
+(``Limits.clock_packets_per_s``) or beyond all keys' rate together
+(``Limits.total_clock_packets_per_s``). An answer is never larger than its request, and has
+the request's version.
 """
 
 from __future__ import annotations
@@ -19,13 +22,14 @@ import socket
 import time
 from collections import Counter
 
-from probes.clocks.udpclock import (decode_request, enable_rx_timestamps, encode_answer, new_key, recv_stamped)
+from probes.clocks.udpclock import (Tagger, decode_request, enable_rx_timestamps, encode_answer, new_key,
+                                    recv_stamped)
 from relay.guard.limits import Limits
 
 READS_PER_WAKE = 256
 """Datagrams read per readiness callback: a flood cannot hold the event loop for longer; the
 kernel drops what its socket buffer cannot hold."""
-COUNTS = ("answered", "malformed", "oversize", "unknown_key", "rate_key", "rate_total")
+COUNTS = ("answered", "malformed", "oversize", "unknown_key", "bad_tag", "rate_key", "rate_total")
 
 log = logging.getLogger(__name__)
 
@@ -49,10 +53,10 @@ class PacketBucket:
 
 
 class _Key:
-    __slots__ = ("syncs", "bucket")
+    __slots__ = ("syncs", "bucket", "tagger")
 
-    def __init__(self, syncs: dict[tuple[int, int], None], rate: float) -> None:
-        self.syncs, self.bucket = syncs, PacketBucket(rate)
+    def __init__(self, syncs: dict[tuple[int, int], None], rate: float, tagger: Tagger | None) -> None:
+        self.syncs, self.bucket, self.tagger = syncs, PacketBucket(rate), tagger
 
 
 class ClockUdp:
@@ -88,10 +92,12 @@ class ClockUdp:
             self._sock.close()
             self._sock = None
 
-    def register(self, syncs: dict[tuple[int, int], None]) -> bytes:
-        """A new key whose answers are remembered in ``syncs`` (one connection's)."""
+    def register(self, syncs: dict[tuple[int, int], None], secret: bytes | None = None) -> bytes:
+        """A new key whose answers are remembered in ``syncs`` (one connection's); with
+        ``secret``, only tagged requests are answered, tagged."""
         key = new_key()
-        self._keys[key] = _Key(syncs, self._limits.clock_packets_per_s)
+        tagger = Tagger(secret, key) if secret is not None else None
+        self._keys[key] = _Key(syncs, self._limits.clock_packets_per_s, tagger)
         return key
 
     def forget(self, key: bytes) -> None:
@@ -122,10 +128,13 @@ class ClockUdp:
         if request is None:
             self.counts["malformed"] += 1
             return
-        key, nonce = request
-        entry = self._keys.get(key)
+        entry = self._keys.get(request.key)
         if entry is None:
             self.counts["unknown_key"] += 1
+            return
+        tagger = entry.tagger
+        if request.tagged != (tagger is not None) or tagger is not None and not tagger.check(data):
+            self.counts["bad_tag"] += 1
             return
         if not entry.bucket.take():
             self.counts["rate_key"] += 1
@@ -135,7 +144,7 @@ class ClockUdp:
             return
         t3 = time.time_ns()
         try:
-            sock.sendto(encode_answer(nonce, t2, t3), sender)
+            sock.sendto(encode_answer(request.nonce, t2, t3, tagger), sender)
         except OSError:  # the node's socket went away: its pair is never reported
             return
         entry.syncs[(t2, t3)] = None

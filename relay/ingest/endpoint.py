@@ -5,19 +5,22 @@ when the relay has a token: a wrong or missing one is refused with HTTP 401 befo
 and so is a connection beyond the cap (503). Then, in the envelope of :mod:`probes.ship.envelope`:
 
 - ``hello`` {proto, run, header, lost, floor, ptp[, doubt]} -> reply {ok, run, session[, stored, clock_port,
-  clock_key]}; ``stored``: which batches of ``doubt`` (sent, then evicted unacknowledged by the node) this
+  clock_key, clock_secret]}; ``stored``: which batches of ``doubt`` (sent, then evicted unacknowledged by the node) this
   run's storage holds;
   first, once; ``clock_key`` (hex) lets this connection use the UDP clock exchange on ``clock_port``
   (:mod:`relay.clock.udp`), whose answered (t2, t3) pairs join the connection's sync replies;
+  ``clock_secret`` (hex, only on a private connection: :attr:`Ingest.private_channel`) makes that
+  exchange tagged, so that nobody who sees its datagrams can answer them;
 - a binary batch (:mod:`probes.ship.wire`) -> ``ack`` {seq, ok[, dup]} once the batch is committed
   (or was stored before), then its events reach the live state; ``ok: false`` if storage failed
   (the node sends it again);
 - ``sync`` -> reply {t2, t3}: relay receive and send times (ns, CLOCK_REALTIME);
-- ``clock`` {samples, lost, floor, ptp[, via, doubt]}: the node's completed NTP samples and state (with
+- ``clock`` {samples, lost, floor, ptp[, via, doubt, forged]}: the node's completed NTP samples and state (with
   ``doubt``, as in hello, a request: the reply says ``stored``). A sample
   counts only if its t2/t3 are a pair this relay sent on this connection or to its UDP key (each once) and its
   offset and round trip are within ``clock_offset_s``/``clock_rtt_s``; others are counted
-  (``clock.rejected``) and dropped;
+  (``clock.rejected``) and dropped; ``forged``, the UDP answers the node refused for a wrong tag, is
+  shown as ``clock.forged``;
 - ``end`` {events, dropped, lost} -> reply {ok}.
 
 ``floor``: every batch below it was acknowledged or given up by the node, so the relay stops
@@ -40,6 +43,7 @@ import asyncio
 import itertools
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from aiohttp import WSCloseCode, WSMsgType, web
@@ -49,6 +53,7 @@ from probes.ship.errors import LimitExceeded, ProtocolError
 from probes.ship.wire import (MAX_MESSAGE_BYTES, RELAY_HEARTBEAT_S, Batch, decode_batch, decode_clock, decode_end, decode_hello,
                          declared_bytes)
 from relay.clock.correction import ClockSample, ntp_sample, sample_fault
+from probes.clocks.udpclock import new_secret
 from relay.clock.udp import ClockUdp
 from relay.errors import RelayError
 from relay.guard.auth import http_token, node_for_token, token_matches
@@ -82,6 +87,8 @@ class _Conn:
     """(t2, t3) of the sync replies sent (WebSocket and UDP) and not yet reported, oldest first."""
     clock_key: bytes | None = None
     """This connection's key to the UDP clock exchange (given with the hello reply)."""
+    private: bool = False
+    """Nobody on the way can read it (TLS): its hello reply may carry a clock secret."""
     closing: bool = False
     hello: bool = False
     """Whether it said hello (taking it may wait on the store: not overdue meanwhile)."""
@@ -114,6 +121,9 @@ class Ingest:
         """Events and batches stored and fed to the live state (``/metrics``)."""
         self.clock_udp: ClockUdp | None = None
         """The UDP clock exchange, once the server listens for it (None: not offered)."""
+        self.private_channel: Callable[[web.BaseRequest], bool] = _over_tls
+        """Whether a connection cannot be read on the way: the one place that decides which get
+        a clock secret (a test without TLS may make it say yes)."""
 
     @property
     def connected(self) -> int:
@@ -135,7 +145,7 @@ class Ingest:
             raise web.HTTPBadRequest(text="connection closed during the handshake") from None
         lim = self._limits
         conn = _Conn(f"ws{next(self._ids)}", ws, TokenBucket(lim), ByteBucket(lim.bytes_per_s, lim.byte_burst),
-                     node)
+                     node, private=self.private_channel(request))
         self._conns[conn.sid] = conn
         # A connection that never says hello would hold one of the few ingest places for ever.
         expiry = asyncio.get_running_loop().call_later(self._limits.hello_timeout_s, self._hello_overdue, conn)
@@ -338,8 +348,12 @@ class Ingest:
         if attached.secret is not None:
             answer["secret"] = attached.secret
         if self.clock_udp is not None:
-            conn.clock_key = self.clock_udp.register(conn.syncs)
+            # Over plaintext a secret would be seen by whoever sees the datagrams it guards.
+            secret = new_secret() if conn.private else None
+            conn.clock_key = self.clock_udp.register(conn.syncs, secret)
             answer.update(clock_port=self.clock_udp.port, clock_key=conn.clock_key.hex())
+            if secret is not None:
+                answer["clock_secret"] = secret.hex()
         return answer
 
     async def _stored_of(self, rs: RunState, doubt: tuple[int, ...]) -> list[int]:
@@ -360,6 +374,7 @@ class Ingest:
         rs.clock.add_samples(accepted)
         rs.ptp = report.ptp
         rs.lost = max(rs.lost, report.lost)
+        rs.clock_forged = max(rs.clock_forged, report.forged)
         stored = await self._stored_of(rs, report.doubt)
         rs.seqs.advance(report.floor)
         clock = dict(self.state.clock_view(rs), ptp=rs.ptp)
@@ -496,3 +511,7 @@ def _report_failure(task: asyncio.Task) -> None:
     # A bug, not a node's fault: said loudly, since nobody awaits these tasks' results.
     if not task.cancelled() and task.exception() is not None:
         log.error("ingest: storing a batch failed", exc_info=task.exception())
+
+
+def _over_tls(request: web.BaseRequest) -> bool:
+    return request.secure

@@ -129,6 +129,8 @@ class RunState:
     clock: ClockEstimator = field(default_factory=ClockEstimator)
     clock_rejected: int = 0
     """Clock samples refused (not from this relay's sync replies, or offset/round trip out of bounds)."""
+    clock_forged: int = 0
+    """UDP clock answers its node refused for a wrong tag, as it last reported."""
     clock_fault: str = ""
     """Why the last one was refused."""
     unsaved: dict = field(default_factory=dict)
@@ -418,7 +420,7 @@ class RelayState:
         corr, bound = correction.at(time.time_ns() + (est.offset_ns if est is not None else 0))
         view = {"mode": self.clock_mode, "applied": correction.applied, "why": correction.why,
                 "correction_ns": corr, "correction_us": corr / 1e3, "correction_uncertainty_ns": bound,
-                "rejected": rs.clock_rejected}
+                "rejected": rs.clock_rejected, "forged": rs.clock_forged}
         if rs.clock_fault:
             view["rejected_why"] = rs.clock_fault
         if est is not None:

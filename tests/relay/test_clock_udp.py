@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import os
 import socket
+import struct
 import subprocess
 import sys
 import time
@@ -19,9 +20,11 @@ from probes.ship.relayexport import RelayExporter
 from probes.ship.simnode import header_for, synth_events
 from probes.trace.events import ORIGIN
 from core.clocks import CLOCKS, PretendClock
-from probes.clocks.udpclock import (BURST, UdpClock, decode_answer, enable_rx_timestamps, encode_request, parse_offer,
-                             recv_stamped)
-from relay.clock.correction import ntp_sample
+from probes.clocks.udpclock import (BURST, DATAGRAM_BYTES, VERSION, Tagger, UdpClock, decode_answer,
+                                    enable_rx_timestamps, encode_request, new_secret, parse_offer, recv_stamped)
+from relay.clock.correction import ClockSample, ntp_sample
+from relay.clock.udp import ClockUdp
+from relay.guard.limits import Limits
 from relay.server import start_relay
 from tests.relay.helpers import (ROOT, HandNode, RelayProcess, env, finish_node, get_json, start_node, wait_for)
 
@@ -85,7 +88,7 @@ def _answers(s: socket.socket) -> list[tuple[int, int, int, int]]:
             return out
         answer = decode_answer(data)
         if answer is not None:
-            out.append((*answer, t4))
+            out.append((answer.nonce, answer.t2, answer.t3, t4))
 
 
 def _health_udp(relay: RelayProcess) -> dict:
@@ -248,7 +251,7 @@ def test_kernel_receive_times_are_moved_to_the_probes_clock(tmp_path, clock):
     async def scenario():
         relay = await start_relay(port=0, db=tmp_path / "r.db", clock="estimate")
         node = await HandNode.open(f"http://127.0.0.1:{relay.port}", "A", uuid.uuid4().hex)
-        port, key = parse_offer(node.reply)
+        port, key, _ = parse_offer(node.reply)
         udp = await UdpClock.open("127.0.0.1", port, key, PretendClock(clock_id=clock_id))
         try:
             samples = await udp.burst()
@@ -263,3 +266,157 @@ def test_kernel_receive_times_are_moved_to_the_probes_clock(tmp_path, clock):
             assert 0 <= s.rtt_ns < 50_000_000 and abs(s.offset_ns - truth) <= s.rtt_ns // 2 + 2_000, (s, truth)
 
     asyncio.run(scenario())
+
+
+SHIFT_NS = 5_000_000
+"""What the on-path proxy adds to the relay's t2 and t3."""
+NODE_OFFSET_NS = 37_000_000
+
+
+class AnswerRewriter:
+    """An on-path attacker: a UDP proxy the node talks to, that forwards its requests to the relay
+    and the relay's answers back, t2 and t3 moved by ``SHIFT_NS`` (tag left as it was; with
+    ``strip``, the answer is also made an untagged one)."""
+
+    def __init__(self, relay_port: int, strip: bool = False) -> None:
+        self.front, self.back = _udp_socket(), _udp_socket()
+        self.front.bind(("127.0.0.1", 0))
+        self.back.connect(("127.0.0.1", relay_port))
+        self.port = self.front.getsockname()[1]
+        self.strip, self.node, self.answers = strip, None, 0
+        loop = asyncio.get_running_loop()
+        loop.add_reader(self.front.fileno(), self._from_node)
+        loop.add_reader(self.back.fileno(), self._from_relay)
+
+    def _from_node(self) -> None:
+        data, self.node = self.front.recvfrom(2048)
+        self.back.send(data)
+
+    def _from_relay(self) -> None:
+        data = bytearray(self.back.recv(2048))
+        nonce, t2, t3 = struct.unpack_from("<Qqq", data, 8)
+        struct.pack_into("<qq", data, 16, t2 + SHIFT_NS, t3 + SHIFT_NS)
+        if self.strip:
+            data[4] = VERSION
+            del data[DATAGRAM_BYTES:]
+        self.front.sendto(bytes(data), self.node)
+        self.answers += 1
+
+    def close(self) -> None:
+        loop = asyncio.get_running_loop()
+        for s in (self.front, self.back):
+            loop.remove_reader(s.fileno())
+            s.close()
+
+
+async def _burst(port: int, key: bytes, secret: bytes | None) -> tuple[list[ClockSample], int]:
+    """The samples of one burst by a node NODE_OFFSET_NS ahead of the relay, and the answers it refused."""
+    udp = await UdpClock.open("127.0.0.1", port, key, PretendClock(offset_ns=NODE_OFFSET_NS), secret)
+    try:
+        return [ntp_sample(*times) for times in await udp.burst()], udp.forged
+    finally:
+        udp.close()
+
+
+def _holds_offset(samples: list[ClockSample], offset_ns: int) -> bool:
+    return all(abs(s.offset_ns - offset_ns) <= s.rtt_ns // 2 + 2_000 for s in samples)
+
+
+def test_a_tagged_exchange_is_answered_only_by_the_relay_and_an_untagged_one_still_works():
+    """Over loopback with a real relay side and node side: an honest tagged exchange gives the
+    offsets an untagged one gives; a proxy that moves the answers' times moves an untagged node's
+    offset by as much, while a tagged node refuses and counts every such answer, stripped of its
+    tag or not. The relay answers the old format for a key without a secret only."""
+    async def scenario():
+        udp = ClockUdp(Limits(), 256)
+        udp.start("127.0.0.1", 0)
+        secret = new_secret()
+        tagged_syncs, plain_syncs = {}, {}
+        tagged, plain = udp.register(tagged_syncs, secret), udp.register(plain_syncs)
+        try:
+            honest, forged = await _burst(udp.port, tagged, secret)
+            assert len(honest) == BURST and forged == 0 and _holds_offset(honest, NODE_OFFSET_NS), honest
+            assert {s.at_ns for s in honest} == {t2 for t2, _ in tagged_syncs}  # the pairs the relay answered
+            old, _ = await _burst(udp.port, plain, None)
+            assert len(old) == BURST and _holds_offset(old, NODE_OFFSET_NS), old
+            assert len(tagged_syncs) == len(plain_syncs) == BURST
+
+            proxy = AnswerRewriter(udp.port)
+            try:  # the attack is real: an untagged node takes the moved times
+                moved, _ = await _burst(proxy.port, plain, None)
+                assert len(moved) == BURST and _holds_offset(moved, NODE_OFFSET_NS - SHIFT_NS), moved
+                refused, forged = await _burst(proxy.port, tagged, secret)
+                assert refused == [] and forged == proxy.answers - BURST > 0
+            finally:
+                proxy.close()
+            proxy = AnswerRewriter(udp.port, strip=True)
+            try:
+                refused, forged = await _burst(proxy.port, tagged, secret)
+                assert refused == [] and forged == proxy.answers > 0
+            finally:
+                proxy.close()
+
+            s = _udp_socket()
+            try:  # wrong tags, or none, for the tagged key; a tag for the plain one
+                before = dict(udp.counts)
+                s.sendto(encode_request(tagged, 1), ("127.0.0.1", udp.port))
+                s.sendto(encode_request(tagged, 2, Tagger(new_secret(), tagged)), ("127.0.0.1", udp.port))
+                s.sendto(encode_request(plain, 3, Tagger(secret, plain)), ("127.0.0.1", udp.port))
+                for _ in range(100):
+                    if udp.counts["bad_tag"] == before["bad_tag"] + 3:
+                        break
+                    await asyncio.sleep(0.01)
+                assert udp.counts["bad_tag"] == before["bad_tag"] + 3 and udp.counts["answered"] == before["answered"]
+                assert _answers(s) == []
+            finally:
+                s.close()
+        finally:
+            udp.stop()
+
+    asyncio.run(scenario())
+
+
+def test_only_a_private_connection_gets_a_clock_secret_and_its_node_refuses_moved_answers(tmp_path, caplog):
+    """The ingest's one condition (``private_channel``: TLS in use) said yes without TLS: the hello
+    reply carries a secret, a node's datagrams pass an on-path proxy that moves every answer, and the
+    node refuses them, counts them, says so once naming the relay, and its estimate holds the truth
+    over the WebSocket. A plaintext connection gets no secret."""
+    async def scenario():
+        relay = await start_relay(port=0, db=tmp_path / "r.db", clock="estimate")
+        url = f"http://127.0.0.1:{relay.port}"
+        exporter = None
+        try:
+            plain = await HandNode.open(url, "P", uuid.uuid4().hex)
+            await plain.close()
+            assert "clock_secret" not in plain.reply and parse_offer(plain.reply).secret is None
+            relay.ingest.private_channel = lambda request: True
+            private = await HandNode.open(url, "Q", uuid.uuid4().hex)
+            await private.close()
+            offer = parse_offer(private.reply)
+            assert offer is not None and len(offer.secret) == 32
+            assert parse_offer(dict(private.reply, clock_secret=private.reply["clock_secret"][:-2])) is None
+
+            proxy = AnswerRewriter(relay.clock_port)
+            relay.ingest.clock_udp.port = proxy.port  # the node's datagrams take the attacker's path
+            try:
+                exporter = RelayExporter(url, "A", pretend=PretendClock(offset_ns=NODE_OFFSET_NS), close_timeout_s=8.0)
+                exporter.start(header_for("A", 2))
+                deadline = time.monotonic() + 20
+                while not (exporter.counters()["clock_via"] == "websocket" and exporter.run_id in relay.state.runs
+                           and relay.state.runs[exporter.run_id].clock_forged):
+                    assert time.monotonic() < deadline, "no clock report over the WebSocket telling the forged answers"
+                    await asyncio.sleep(0.05)
+                await asyncio.to_thread(exporter.close, 0)
+            finally:
+                proxy.close()
+            counters, rs = exporter.counters(), relay.state.runs[exporter.run_id]
+            assert counters["clock_forged"] == proxy.answers > 0, (counters, proxy.answers)
+            assert relay.state.clock_view(rs)["forged"] == proxy.answers  # the relay's page shows them too
+            estimate = rs.clock.estimate()
+            assert abs(estimate.offset_ns - NODE_OFFSET_NS) <= estimate.uncertainty_ns, estimate
+        finally:
+            await relay.stop()
+
+    asyncio.run(scenario())
+    said = [r.getMessage() for r in caplog.records if "refused for a wrong tag" in r.getMessage()]
+    assert len(said) == 1 and "from 127.0.0.1" in said[0], said

@@ -205,6 +205,7 @@ function clockDetail(clock, stored) {
       + `${clock.history ? `, ${int(clock.history)} estimates kept` : ""}${clock.restarts ? `, ${int(clock.restarts)} restarts` : ""}`);
   }
   if (clock.rejected) parts.push(`<span class="sc-not">${int(clock.rejected)} samples rejected${clock.rejected_why ? `: ${esc(clock.rejected_why)}` : ""}</span>`);
+  if (clock.forged) parts.push(`<span class="sc-not">${int(clock.forged)} UDP answers refused by the node (wrong tag: forged or altered on the way)</span>`);
   if (clock.mode) parts.push(`relay --clock ${esc(clock.mode)}`);
   return [why, parts.join(" · ")].filter(Boolean).join("<br>") || `<span class="muted">–</span>`;
 }
