@@ -89,6 +89,8 @@ class Refusal:
 
 
 _ACTIONS = web.AppKey("access_actions", dict)
+PRINCIPAL = web.RequestKey("principal", Principal)
+"""Who a request let through is (``request[PRINCIPAL]``)."""
 
 
 def declare(app: web.Application, action: Action, *routes: web.AbstractRoute | web.AbstractResource) -> None:
@@ -246,7 +248,7 @@ class Policy:
         if isinstance(verdict, Refusal):
             kind = web.HTTPUnauthorized if verdict.status == 401 else web.HTTPForbidden
             raise http_error(kind, verdict.reason)
-        request["principal"] = verdict
+        request[PRINCIPAL] = verdict
         return await handler(request)
 
 

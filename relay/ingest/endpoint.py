@@ -52,7 +52,7 @@ from probes.ship.wire import (MAX_MESSAGE_BYTES, RELAY_HEARTBEAT_S, Batch, decod
 from relay.clock.correction import ClockSample, ntp_sample, sample_fault
 from relay.clock.udp import ClockUdp
 from relay.errors import RelayError
-from relay.guard.policy import Principal
+from relay.guard.policy import PRINCIPAL
 from relay.guard.limits import ByteBucket, Limits, TokenBucket
 from relay.live.state import OWNED_RETRY_MS, RelayState, RunState, TryLater
 from relay.store.base import NotOwner, StoreUnavailable
@@ -156,8 +156,7 @@ class Ingest:
     def _authorise(request: web.Request) -> str | None:
         """The node name a connection is bound to (None: any): the policy's middleware let only a
         principal that may stream through, and says which."""
-        principal: Principal = request["principal"]
-        return principal.node
+        return request[PRINCIPAL].node
 
     def _hello_overdue(self, conn: _Conn) -> None:
         if not conn.hello and not conn.closing:

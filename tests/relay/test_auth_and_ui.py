@@ -16,14 +16,16 @@ from tests.relay.helpers import (RelayProcess, finish_node, get_json, http_statu
 TOKEN = "s3cret-token"
 
 
-async def ui_connect(url: str, auth: dict | None, query: str = "") -> tuple[socketio.AsyncClient, list]:
+async def ui_connect(url: str, auth: dict | None, query: str = "",
+                     headers: dict | None = None) -> tuple[socketio.AsyncClient, list]:
     sio = socketio.AsyncClient(reconnection=False)
     got: list = []
     for event in ("nodes", "frames", "stats"):
         unpacked = unpack_push if event == "frames" else (lambda data: data)
         sio.on(event, (lambda e, read: lambda data: got.append((time.monotonic(), e, read(data))))(event, unpacked),
                namespace="/ui")
-    await sio.connect(url + query, auth=auth, namespaces=["/ui"], transports=["websocket"], wait_timeout=5)
+    await sio.connect(url + query, auth=auth, headers=headers or {}, namespaces=["/ui"], transports=["websocket"],
+                      wait_timeout=5)
     return sio, got
 
 
@@ -38,19 +40,20 @@ def test_token_refusals(tmp_path):
         good = start_node(relay.url, "DCU-1", tmp_path / "good.npz", frames=20, fps=50, token=TOKEN)
         assert finish_node(good, 30)["acked"] > 0
 
-        # HTTP: header or query token, nothing else.
+        # HTTP: the header (or the page's cookie, tests/relay/test_policy.py); a token in the address is none.
         assert http_status(f"{relay.url}/api/nodes") == 401
         assert http_status(f"{relay.url}/api/stats?node=DCU-1", {"Authorization": "Bearer wrong"}) == 401
         assert http_status(f"{relay.url}/api/nodes", {"Authorization": f"Bearer {TOKEN}"}) == 200
-        assert http_status(f"{relay.url}/api/sessions?token={TOKEN}") == 200
+        assert http_status(f"{relay.url}/api/sessions?token={TOKEN}") == 401
         assert [n["node"] for n in get_json(f"{relay.url}/api/nodes", TOKEN)] == ["DCU-1"]
 
         async def browsers():
-            for auth, query in ((None, ""), ({"token": "wrong"}, ""), (None, "?token=wrong")):
+            for auth, query, headers in ((None, "", None), (None, "", {"Authorization": "Bearer wrong"}),
+                                         ({"token": TOKEN}, f"?token={TOKEN}", None)):
                 with pytest.raises(socketio.exceptions.ConnectionError):
-                    await ui_connect(relay.url, auth, query)
-            for auth, query in (({"token": TOKEN}, ""), (None, f"?token={TOKEN}")):
-                sio, got = await ui_connect(relay.url, auth, query)
+                    await ui_connect(relay.url, auth, query, headers)
+            for headers in ({"Authorization": f"Bearer {TOKEN}"},):
+                sio, got = await ui_connect(relay.url, None, "", headers)
                 for _ in range(50):
                     if got:
                         break
