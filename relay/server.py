@@ -234,9 +234,7 @@ def _add_ui(app: web.Application, policy: Policy) -> None:
     icon = UI_DIR / "favicon.svg"
 
     async def root(request: web.Request) -> web.StreamResponse:
-        moved = from_address(request, policy)
-        if moved is not None:
-            return moved
+        from_address(request, policy)  # ?token=T: signed in and sent on without it
         if index.is_file():
             return web.FileResponse(index)
         return web.Response(text=PLACEHOLDER, content_type="text/html")

@@ -57,10 +57,10 @@ def add_signin_routes(app: web.Application, policy: Policy) -> None:
             app.router.add_post("/signout", sign_out))
 
 
-def from_address(request: web.Request, policy: Policy) -> web.Response | None:
-    """For ``GET /?token=T``: a 303 to the address without ``token`` (with the cookie when T may read)."""
+def from_address(request: web.Request, policy: Policy) -> None:
+    """For ``GET /?token=T``: raise a 303 to the address without ``token`` (with the cookie when T may read)."""
     if "token" not in request.query:
-        return None
+        return
     rest = [(k, v) for k, v in request.query.items() if k != "token"]
     response = web.HTTPSeeOther(request.path + ("?" + urlencode(rest) if rest else ""))
     principal = policy.by_token(request.query["token"])
@@ -70,7 +70,7 @@ def from_address(request: web.Request, policy: Policy) -> web.Response | None:
                             httponly=True, samesite="Strict", secure=request.secure)
     elif not policy.reads_open or principal is not None:
         policy.refused["credential_wrong" if principal is None else "role"] += 1
-    return response
+    raise response
 
 
 def _same_site(request: web.Request) -> None:

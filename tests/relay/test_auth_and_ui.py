@@ -14,6 +14,7 @@ from tests.conftest import run_cli
 from tests.relay.helpers import (RelayProcess, finish_node, get_json, http_status, load_node, start_node)
 
 TOKEN = "s3cret-token"
+VIEWER = "viewer-token-0123456789"
 
 
 async def ui_connect(url: str, auth: dict | None, query: str = "",
@@ -30,13 +31,17 @@ async def ui_connect(url: str, auth: dict | None, query: str = "",
 
 
 def test_token_refusals(tmp_path):
-    relay = RelayProcess(tmp_path / "relay.db", token=TOKEN)
+    viewers = tmp_path / "viewers"
+    viewers.write_text(f"ann {VIEWER}\n")
+    relay = RelayProcess(tmp_path / "relay.db", token=TOKEN, args=["--viewer-tokens", str(viewers)])
     try:
-        # A node without the token ships nothing and says why.
-        bad = start_node(relay.url, "intruder", tmp_path / "bad.npz", frames=20, fps=50,
-                         extra=["--close-timeout", "2"])
-        counters = finish_node(bad, 30)
-        assert counters["acked"] == 0 and "refused the token" in counters["last_error"]
+        # A node without the token, or with a viewer's, ships nothing and says why.
+        for name, token in (("intruder", None), ("viewer", VIEWER)):
+            bad = start_node(relay.url, name, tmp_path / f"{name}.npz", frames=20, fps=50, token=token,
+                             extra=["--close-timeout", "2"])
+            counters = finish_node(bad, 30)
+            assert counters["acked"] == 0 and "refused the token" in counters["last_error"], name
+        assert get_json(f"{relay.url}/api/health", VIEWER)["refused"]["role"] >= 1
         good = start_node(relay.url, "DCU-1", tmp_path / "good.npz", frames=20, fps=50, token=TOKEN)
         assert finish_node(good, 30)["acked"] > 0
 

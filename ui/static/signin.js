@@ -28,6 +28,8 @@ export async function signedIn() {
 /** Show the sign-in form, saying why when the relay refused the page (an expired session). */
 export function showSignIn(reason) {
   $("#signin").hidden = false;
+  $("#conn").className = "conn conn-wait";
+  $("#conn").textContent = "signed out";
   $("#signin-error").textContent = reason || "";
   $("#signin-token").focus();
 }
