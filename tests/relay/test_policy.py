@@ -111,7 +111,9 @@ def test_every_route_and_ui_event_answers_each_role_as_the_policy_says(tmp_path,
     assert not [line for line in lines if any(token in line for token in (ADMIN, VIEWER, NODE))]
 
 
-def test_the_page_signs_in_with_a_cookie_and_never_keeps_a_token_in_its_address(tmp_path):
+def test_the_page_signs_in_with_a_cookie_and_never_keeps_a_token_in_its_address(tmp_path, caplog):
+    caplog.set_level(logging.DEBUG)
+
     async def scenario():
         relay = await start_relay(port=0, db=tmp_path / "r.db", token=ADMIN, viewer_tokens={"ann": VIEWER},
                                   node_tokens={"DCU-1": NODE}, clock_port=0)
@@ -161,6 +163,10 @@ def test_the_page_signs_in_with_a_cookie_and_never_keeps_a_token_in_its_address(
     assert out["signin admin"] == 204 and out["who admin"]["principal"] == {"role": "admin", "name": "admin"}
     assert out["wrong redirect"] == (303, "/", "")
     assert out["cookie at ingest"] == 401  # a page's cookie never streams
+    session = cookie.split(";")[0].split("=", 1)[1]
+    lines = [r.getMessage() for r in caplog.records]
+    assert any("access: " in line for line in lines)
+    assert not [line for line in lines if any(secret in line for secret in (ADMIN, VIEWER, NODE, session))]
 
 
 def test_session_cookies_are_signed_by_the_credential_and_expire():
