@@ -32,16 +32,16 @@ def add_signin_routes(app: web.Application, policy: Policy) -> None:
 
     async def sign_in(request: web.Request) -> web.Response:
         _same_site(request)
-        form = await request.post()
-        principal = policy.by_token(form.get("token"))
-        verdict = policy.decide(principal, True, Action.READ) if principal is not None else \
-            Refusal(401, "unauthorized: wrong credential", "credential_wrong")
-        if isinstance(verdict, Refusal) or verdict.role is Role.NODE:
-            verdict = verdict if isinstance(verdict, Refusal) else \
-                Refusal(403, "forbidden: a node's credential may not read", "role")
-            policy.refused[verdict.count] += 1
-            kind = web.HTTPUnauthorized if verdict.status == 401 else web.HTTPForbidden
-            raise http_error(kind, verdict.reason)
+        principal = policy.by_token((await request.post()).get("token"))
+        if principal is None:
+            refusal = Refusal(401, "unauthorized: wrong credential", "credential_wrong")
+        elif principal.role is Role.NODE:
+            refusal = Refusal(403, "forbidden: a node's credential may not read", "role")
+        else:
+            refusal = None
+        if refusal is not None:
+            policy.refused[refusal.count] += 1
+            raise http_error(web.HTTPUnauthorized if refusal.status == 401 else web.HTTPForbidden, refusal.reason)
         response = web.Response(status=204)
         response.set_cookie(COOKIE, policy.cookie_for(principal), max_age=COOKIE_LIFETIME_S, path="/",
                             httponly=True, samesite="Strict", secure=request.secure)
