@@ -12,7 +12,7 @@ from relay.clock.correction import CLOCK_MODES
 from relay.errors import RelayError
 from relay.live.framelimits import FrameLimits
 from relay.export.otlpconfig import DEFAULT_EVERY, DEFAULT_QUEUE, DEFAULT_TIMEOUT_S, OtlpConfig, otlp_config
-from relay.guard.auth import load_node_tokens
+from relay.guard.auth import load_tokens
 from relay.guard.limits import Limits, limits_help
 from relay.guard.proxy import TrustedProxies
 from relay.store.compaction import COMPACT_AFTER_S
@@ -63,10 +63,16 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
                         f"24-32; read as before by every reader), in a process of its own beside the relay (default {COMPACT_AFTER_S:g}; "
                         "0: never, e.g. when `dcuscope db compact` runs elsewhere)")
     p.add_argument("--token", default=os.environ.get(TOKEN_ENV),
-                   help=f"shared secret nodes and browsers must present (default ${TOKEN_ENV})")
+                   help=f"the admin's secret: it may do everything (read the page, the API and /metrics, and stream "
+                        f"as any node). Once --token or --viewer-tokens is given, nothing but the page's shell "
+                        f"answers without a credential (default ${TOKEN_ENV})")
+    p.add_argument("--viewer-tokens", metavar="FILE",
+                   help="read-only credentials: a file of 'NAME TOKEN' lines; a viewer may read the page, GET "
+                        "/api/* and /metrics, and never stream")
     p.add_argument("--node-tokens", metavar="FILE",
                    help="per-node credentials: a file of 'NODE TOKEN' lines; a node presenting its own token "
-                        "may stream under its own name only (beside --token, which lets a node use any name)")
+                        "may stream under its own name only, and read nothing (beside --token, which lets a node "
+                        "use any name)")
     p.add_argument("--clock", choices=CLOCK_MODES, default="auto",
                    help="ptp: never correct node timestamps; estimate: subtract each node's estimated "
                         "offset; auto: trust PTP where the node reports it locked and its system clock following it, "
@@ -141,7 +147,8 @@ def run_relay(args: argparse.Namespace) -> int:
         trusted = TrustedProxies.parse(args.trusted_proxy)
     except ValueError as exc:
         raise RelayError(f"--trusted-proxy: {exc}") from None
-    node_tokens = load_node_tokens(args.node_tokens) if args.node_tokens else None
+    node_tokens = load_tokens(args.node_tokens, "--node-tokens") if args.node_tokens else None
+    viewer_tokens = load_tokens(args.viewer_tokens, "--viewer-tokens") if args.viewer_tokens else None
     frame_limits = FrameLimits.parse(args.frame_limit)
     otlp = _otlp(args, frame_limits)
     options = {}
@@ -175,8 +182,8 @@ def run_relay(args: argparse.Namespace) -> int:
     if not args.reuse_port:
         check_port_free(args.host, args.port)
     serve(args.host, args.port, args.db, args.token, args.clock, limits=limits, node_tokens=node_tokens,
-          allow_hosts=args.allow_host, clock_port=args.clock_port, frame_limits=frame_limits, otlp=otlp,
-          trusted_proxies=trusted, reuse_port=args.reuse_port, retention=retention, **options)
+          viewer_tokens=viewer_tokens, allow_hosts=args.allow_host, clock_port=args.clock_port,
+          frame_limits=frame_limits, otlp=otlp, trusted_proxies=trusted, reuse_port=args.reuse_port, retention=retention, **options)
     return 0
 
 

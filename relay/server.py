@@ -33,7 +33,7 @@ from relay.api.routes import add_routes
 from relay.api.compare import add_compare_routes
 from relay.api.history import add_history_routes
 from relay.api.sessions import add_session_routes
-from relay.api.sio import create_sio, sio_errors
+from relay.api.sio import SIO_PATH, create_sio, sio_errors
 from relay.api.ui import DEFAULT_PUSH_HZ, Ticker, UiNamespace
 from relay.clock.correction import CLOCK_MODES
 from relay.clock.udp import ClockUdp
@@ -46,6 +46,8 @@ from relay.guard import lograte
 from relay.guard.connections import ConnGuard, GuardedSite, fit_descriptors
 from relay.guard.hostcheck import HostCheck
 from relay.guard.limits import Limits
+from relay.guard.policy import Action, Policy, declare
+from relay.guard.signin import add_signin_routes, from_address
 from relay.heap import Reclaimer
 from relay.guard.proxy import TrustedProxies
 from relay.ingest.endpoint import SYNCS_KEPT, Ingest
@@ -66,7 +68,8 @@ STOP_REQUESTS_S = 1.5
 for them to end (aiohttp's 60 s held a stop for a minute on a page's Socket.IO request that outlives
 its closed engine.io socket). The nodes' websockets are closed before; what a cancelled ingest had
 not acknowledged, its node sends again wherever it resumes."""
-REFUSALS = ("peer_cap", "tcp_cap", "header_timeout", "hello_timeout", "host", "proxy_header")
+REFUSALS = ("peer_cap", "tcp_cap", "header_timeout", "hello_timeout", "host", "proxy_header", "credential_missing",
+            "credential_wrong", "role", "undeclared")
 PLACEHOLDER = """<!doctype html><html><head><meta charset="utf-8"><title>dcuscope relay</title></head>
 <body><h1>dcuscope relay</h1><p>The UI is not installed (ui/static/index.html). The JSON API is at
 <a href="/api/nodes">/api/nodes</a>, <a href="/api/sessions">/api/sessions</a>,
@@ -141,11 +144,12 @@ class Relay:
 
 def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *, limits: Limits = Limits(),
                live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ,
-               node_tokens: dict[str, str] | None = None, allow_hosts: Iterable[str] = (),
+               node_tokens: dict[str, str] | None = None, viewer_tokens: dict[str, str] | None = None, allow_hosts: Iterable[str] = (),
                frame_limits: FrameLimits = FrameLimits(), otlp: OtlpConfig | None = None,
                trusted_proxies: TrustedProxies = TrustedProxies(), redis: str | None = None,
                name: str | None = None, compact_after_s: float = COMPACT_AFTER_S) -> tuple[web.Application, Relay]:
-    """The relay's app; without a token, requests must name an IP, localhost or one of ``allow_hosts``
+    """The relay's app; who may do what is :mod:`relay.guard.policy`'s (``token``: the admin's, ``viewer_tokens``
+    and ``node_tokens``: NAME -> token); while anyone may read, requests must name an IP, localhost or one of ``allow_hosts``
     (:mod:`relay.guard.hostcheck`). ``otlp``: export sampled frames as traces (:mod:`relay.export.otlp`; its
     thread starts with :func:`start_relay`). ``trusted_proxies``: peers whose connections start with a PROXY
     header naming the client (:mod:`relay.guard.proxy`). ``redis``: the URL of the Redis that carries every
@@ -154,6 +158,8 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     compacted (:mod:`relay.store.compaction`; 0: never)."""
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
+    refused: Counter = Counter()
+    policy = Policy(token, viewer_tokens, node_tokens, refused)  # a token given twice: before anything starts
     limits = fit_descriptors(limits)
     # The name other relays sharing the store see (/api/health's store.relays).
     storage = Storage(db, name=f"{socket.gethostname()} pid {os.getpid()}")
@@ -161,34 +167,37 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     state.relay_name = name or ""
     manager, fanout = create_manager(redis)
     sio = create_sio(manager)
-    ingest = Ingest(state, token, limits, node_tokens)
+    ingest = Ingest(state, limits)
     storage.on_owners_lost = lambda: _background(ingest.let_go())
     storage.on_runs_lost = lambda runs: _background(ingest.let_go_runs(runs))
     fleet = Fleet(state)
-    ui = UiNamespace(state, fleet, token)
+    ui = UiNamespace(state, fleet, policy)
     sio.register_namespace(ui)
-    refused: Counter = Counter()
     guard = ConnGuard(limits, refused, trusted_proxies)
     # The guard's first: a request refused further in still counts as one the connection sent.
     middlewares = [guard.middleware]
-    if token is None:
+    if policy.reads_open:
         # Nodes' own tokens (node_tokens) guard /ingest, not the API or the page.
         middlewares.append(HostCheck(allow_hosts, refused, INGEST_PATH if node_tokens else None).middleware)
-    app = web.Application(client_max_size=MAX_MESSAGE_BYTES, middlewares=[*middlewares, sio_errors])
-    app.router.add_get(INGEST_PATH, ingest.handle)
+    app = web.Application(client_max_size=MAX_MESSAGE_BYTES, middlewares=[*middlewares, policy.middleware, sio_errors])
+    declare(app, Action.INGEST, app.router.add_get(INGEST_PATH, ingest.handle))
     sio.attach(app)
+    declare(app, Action.SOCKET, *(r for r in app.router.resources() if r.canonical.startswith(SIO_PATH.rstrip("/"))))
     interest = Interest(ui.wishes, redis, fanout, me=f"{socket.gethostname()} pid {os.getpid()} {id(state):x}")
     ticker = Ticker(state, ui, fleet, interest, push_hz)
     reclaimer = Reclaimer(lambda: state.released)
     exporter = OtlpExporter(otlp, state) if otlp is not None else None
     compactor = Compactor(db, compact_after_s, storage.name) if compact_after_s > 0 else None
 
-    def counters() -> dict:
+    def refusals() -> dict[str, int]:
         refused["hello_timeout"] = ingest.hello_timeouts
+        return {**state.refused, **{k: refused[k] for k in REFUSALS}}
+
+    def counters() -> dict:
         udp = ingest.clock_udp
         return {"rejected": ingest.rejected, "clock_rejected": ingest.clock_rejected, "paused": ingest.paused,
                 "clock_udp": dict(udp.counts, port=udp.port, keys=udp.keys) if udp is not None else None,
-                "refused": {**state.refused, **{k: refused[k] for k in REFUSALS}},
+                "refused": refusals(),
                 "connections": {"tcp": guard.open, "ingest": ingest.connected},
                 "proxy": {"trusted": trusted_proxies.as_list(), "proxied": guard.proxied,
                           "proxied_open": guard.proxied_open} if trusted_proxies else None,
@@ -198,12 +207,13 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
                 "heap": reclaimer.view(), "compaction": compactor.view() if compactor is not None else None,
                 "otlp": exporter.view() if exporter is not None else None}
 
-    add_routes(app, state, fleet, ui, token, counters)
+    add_routes(app, state, fleet, ui, counters)
     add_compare_routes(app, add_session_routes(app, state))
     add_history_routes(app, state)
-    metrics = RelayCollector(state, ingest, guard)
-    add_metrics_route(app, metrics, token)
-    _add_ui(app)
+    metrics = RelayCollector(state, ingest, guard, refusals)
+    add_metrics_route(app, metrics)
+    add_signin_routes(app, policy)
+    _add_ui(app, policy)
     if exporter is not None:
         exporter.attach(metrics)
     return app, Relay(state, storage, sio, ingest, ui, ticker, fleet, fanout, guard, metrics, otlp=exporter,
@@ -219,11 +229,12 @@ def _background(coro) -> None:
     task.add_done_callback(_tasks.discard)
 
 
-def _add_ui(app: web.Application) -> None:
+def _add_ui(app: web.Application, policy: Policy) -> None:
     index = UI_DIR / "index.html"
     icon = UI_DIR / "favicon.svg"
 
     async def root(request: web.Request) -> web.StreamResponse:
+        from_address(request, policy)  # ?token=T: signed in and sent on without it
         if index.is_file():
             return web.FileResponse(index)
         return web.Response(text=PLACEHOLDER, content_type="text/html")
@@ -234,11 +245,11 @@ def _add_ui(app: web.Application) -> None:
             return web.FileResponse(icon, headers={"Content-Type": "image/svg+xml"})
         raise web.HTTPNotFound()
 
-    app.router.add_get("/", root)
-    app.router.add_get("/favicon.ico", favicon)
+    # The page's shell and files hold no data: it asks for that with its cookie.
+    declare(app, Action.PUBLIC, app.router.add_get("/", root), app.router.add_get("/favicon.ico", favicon))
     if UI_DIR.is_dir():
         # Registered last: every other route wins; aiohttp refuses paths leaving the folder.
-        app.router.add_static("/", UI_DIR, follow_symlinks=False)
+        declare(app, Action.PUBLIC, app.router.add_static("/", UI_DIR, follow_symlinks=False))
 
 
 async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db",
@@ -307,7 +318,7 @@ def _start_clock_udp(relay: Relay, host: str, clock_port: int | None) -> None:
 def serve(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db", token: str | None = None,
           clock: str = "auto", limits: Limits = Limits(), **options) -> None:
     """Run the relay until SIGINT or SIGTERM; ``options`` as :func:`start_relay`'s."""
-    if host not in LOOPBACK and token is None and not options.get("node_tokens"):
+    if host not in LOOPBACK and token is None and not options.get("node_tokens") and not options.get("viewer_tokens"):
         log.warning("relay listens on %s without --token: anyone who can reach it may feed or read it", host)
     rate = lograte.install(limits.log_repeats_per_min)
     asyncio.run(_serve(host, port, db, token, clock, rate, limits=limits, **options))

@@ -25,6 +25,7 @@ from aiohttp import web
 from probes.trace.compare import NOISE_PCT, Input, compare, distinct_labels
 from relay.api.sessions import MAX_SESSION_DIGITS, SessionCache, StoredNode
 from relay.errors import RelayError, http_error
+from relay.guard.policy import add_read
 from relay.store.runs import find_runs, run_label
 
 CACHED = 8
@@ -104,4 +105,4 @@ def add_compare_routes(app: web.Application, sessions: SessionCache) -> None:
                 done.popitem(last=False)
         return web.json_response(doc)
 
-    app.router.add_get("/api/compare", handler)
+    add_read(app, "/api/compare", handler)

@@ -18,6 +18,7 @@ import time
 from aiohttp import web
 
 from relay.errors import RelayError, http_error
+from relay.guard.policy import add_read
 from relay.live.state import RelayState
 from relay.store.history import history, nodes, parse_duration_ns, summary
 
@@ -53,5 +54,5 @@ def add_history_routes(app: web.Application, state: RelayState) -> None:
         except RelayError as exc:
             raise http_error(web.HTTPServiceUnavailable, str(exc)) from exc
 
-    app.router.add_get("/api/history/nodes", history_nodes)
-    app.router.add_get("/api/history", node_history)
+    add_read(app, "/api/history/nodes", history_nodes)
+    add_read(app, "/api/history", node_history)

@@ -1,4 +1,4 @@
-"""HTTP JSON API of the relay (aiohttp routes); a token, when set, guards every ``/api`` route.
+"""HTTP JSON API of the relay (aiohttp routes); each is READ in :mod:`relay.guard.policy`.
 
 - ``GET /api/health``: {ok, uptime_s, runs, rejected, clock_rejected, paused, storage {ok[, leases, error, since,
   failed_writes]}, limits, memory {live_bytes, live_budget_bytes, run_budget_bytes, runs_with_live_state},
@@ -33,7 +33,7 @@
 - ``GET /api/sessions/ID/{nodes,stats,frames}``: a stored session browsed like a live one
   (:mod:`relay.api.sessions`)
 
-Beside them, ``GET /metrics`` (Prometheus, :mod:`relay.export.metrics`), guarded by the same token.
+Beside them, ``GET /metrics`` (Prometheus, :mod:`relay.export.metrics`), READ too.
 """
 
 from __future__ import annotations
@@ -45,23 +45,15 @@ from aiohttp import web
 from relay.api import moments as mo
 from relay.api.fleet import Fleet
 from relay.errors import RelayError, http_error
-from relay.guard.auth import http_token, token_matches
+from relay.guard.policy import add_read
 from relay.live.runview import RunView, frames_block
 from relay.live.state import RelayState
 
 MAX_FRAMES_PER_REQUEST = 2000
 
 
-def add_routes(app: web.Application, state: RelayState, fleet: Fleet, ui, token: str | None, counters) -> None:
+def add_routes(app: web.Application, state: RelayState, fleet: Fleet, ui, counters) -> None:
     """``counters()`` returns extra figures for /api/health (rejected connections, pushes)."""
-
-    @web.middleware
-    async def guard(request: web.Request, handler):
-        if request.path.startswith("/api/") and not token_matches(token, http_token(request.headers, request.query)):
-            return web.json_response({"error": "unauthorized: wrong or missing token"}, status=401)
-        return await handler(request)
-
-    app.middlewares.append(guard)
 
     async def run_of(request: web.Request, key: str = "node") -> RunView:
         node = request.query.get(key)
@@ -118,13 +110,13 @@ def add_routes(app: web.Application, state: RelayState, fleet: Fleet, ui, token:
     async def sessions(request: web.Request) -> web.Response:
         return web.json_response(await state.storage.call("list_sessions"))
 
-    app.router.add_get("/api/health", health)
-    app.router.add_get("/api/nodes", nodes)
-    app.router.add_get("/api/overview", overview)
-    app.router.add_get("/api/stats", stats)
-    app.router.add_get("/api/frames", frames)
-    app.router.add_get("/api/moments", moments)
-    app.router.add_get("/api/sessions", sessions)
+    add_read(app, "/api/health", health)
+    add_read(app, "/api/nodes", nodes)
+    add_read(app, "/api/overview", overview)
+    add_read(app, "/api/stats", stats)
+    add_read(app, "/api/frames", frames)
+    add_read(app, "/api/moments", moments)
+    add_read(app, "/api/sessions", sessions)
 
 
 def int_arg(request: web.Request, name: str, default: int, lo: int, hi: int) -> int:

@@ -39,6 +39,7 @@ from relay.api.routes import int_arg
 from relay.clock.correction import Correction
 from relay.clock.entry import clock_entry
 from relay.errors import RelayError, http_error
+from relay.guard.policy import add_read
 from relay.live.framejson import block, frame_dicts
 from relay.live.state import RelayState
 from relay.store.runs import StoredRun, load_runs
@@ -185,7 +186,7 @@ def add_session_routes(app: web.Application, state: RelayState) -> SessionCache:
         return web.json_response((await node_of(request)).stats)
 
     for route, handler in zip(ROUTES, (nodes, frames, stats)):
-        app.router.add_get(route, handler)
+        add_read(app, route, handler)
     return cache
 
 

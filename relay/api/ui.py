@@ -1,6 +1,7 @@
 """Socket.IO namespace ``/ui``: the fleet overview and the live views of the DCUs a browser shows.
 
-Connect with ``auth={"token": T}`` (or ``?token=T``) when the relay has a token. With ``--redis``
+A browser connects with its session cookie (:mod:`relay.guard.signin`), a script with ``Authorization:
+Bearer T`` on the engine.io requests: :mod:`relay.guard.policy` must let it READ. With ``--redis``
 every relay's emits reach every relay's browsers (:mod:`relay.api.fanout`), so a page on any relay
 gets every DCU of the fleet; each relay sends only what it holds:
 
@@ -44,7 +45,7 @@ from core.clocks import NEVER
 from probes.ship.wire import MAX_NAME
 from relay.api.fleet import Fleet
 from relay.api.interest import ALL, MAX_FRAMES, Interest, Wish
-from relay.guard.auth import socket_token, token_matches
+from relay.guard.policy import Action, Policy, Refusal
 from relay.live import framepack
 from relay.live.run import maintain_all
 from relay.live.state import RelayState
@@ -82,10 +83,10 @@ def every_room(max_frames: int) -> str:
 
 
 class UiNamespace(socketio.AsyncNamespace):
-    def __init__(self, state: RelayState, fleet: Fleet, token: str | None) -> None:
+    def __init__(self, state: RelayState, fleet: Fleet, policy: Policy) -> None:
         super().__init__(NAMESPACE)
         self.state, self.fleet = state, fleet
-        self._token = token
+        self._policy = policy
         self.wishes: dict[str, Wish] = {}
         """sid -> what that browser shows (:class:`relay.api.interest.Wish`)."""
         self._rooms: dict[str, set[str]] = {}
@@ -107,8 +108,9 @@ class UiNamespace(socketio.AsyncNamespace):
             return {"ok": False, "error": "malformed message"}
 
     async def on_connect(self, sid: str, environ: dict, auth: object = None) -> None:
-        if not token_matches(self._token, socket_token(auth, environ)):
-            raise Refused("unauthorized: wrong or missing token")
+        verdict = self._policy.check(environ["aiohttp.request"], Action.READ)
+        if isinstance(verdict, Refusal):
+            raise Refused(verdict.reason)
         # A page may subscribe as it connects (auth {"subscribe": {...}}): nothing else reaches it meanwhile.
         asked = auth.get("subscribe") if isinstance(auth, dict) else None
         wish, overview = Wish(None, DEFAULT_MAX_FRAMES), True

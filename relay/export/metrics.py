@@ -6,8 +6,8 @@
 relay's own figures (events and batches ingested, queue depths, connections, live bytes).
 Exporters add theirs through :attr:`RelayCollector.extra`. The text is what
 ``generate_latest(collector.registry)`` writes, its histograms written in bulk
-(:mod:`relay.export.exposition`). The route is guarded by the relay's token like ``/api``
-(``Authorization: Bearer TOKEN`` or ``?token=``).
+(:mod:`relay.export.exposition`). The route is READ in :mod:`relay.guard.policy`, as ``/api`` is
+(``Authorization: Bearer TOKEN``: the admin's or a viewer's).
 
 Every per-node series is labelled ``node`` (its newest run only); no label holds a frame
 number, and only ``dcuscope_node_info`` a run id. A relay shows the figures of the runs it holds
@@ -24,7 +24,8 @@ each histogram series being len(BUCKETS_S) + 3 = 34 samples (buckets, +Inf, sum,
     34 (2 + 3 S + G)  +  4 S  +  K (6 + R)  +  18
 
 (~1,250 for a typical node: 8 stages, 8 gaps, 4 sources; 14,328 at every default
-limit), plus 7 for the relay itself and those of :attr:`RelayCollector.extra`.
+limit), plus 7 for the relay itself, one per refusal reason (``dcuscope_relay_refused_total``) and those
+of :attr:`RelayCollector.extra`.
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ from prometheus_client.registry import Collector
 from relay.export.exposition import exposition
 from relay.export.framemetrics import FrameMetrics
 from relay.export.nodemetrics import NodeMetrics
-from relay.guard.auth import http_token, token_matches
+from relay.guard.policy import add_read
 from relay.guard.connections import ConnGuard
 from relay.ingest.endpoint import Ingest
 from relay.live.state import RelayState
@@ -53,8 +54,9 @@ METRICS_PATH = "/metrics"
 class RelayCollector(Collector):
     """Every family of ``/metrics``, built from the relay's state when scraped."""
 
-    def __init__(self, state: RelayState, ingest: Ingest, guard: ConnGuard) -> None:
-        self.state, self.ingest, self.guard = state, ingest, guard
+    def __init__(self, state: RelayState, ingest: Ingest, guard: ConnGuard,
+                 refusals: Callable[[], dict[str, int]] = dict) -> None:
+        self.state, self.ingest, self.guard, self.refusals = state, ingest, guard, refusals
         self.frames = FrameMetrics(state, BUCKETS_S)
         state.observers.append(self.frames.observe)
         self.nodes = NodeMetrics(state)
@@ -94,18 +96,21 @@ class RelayCollector(Collector):
         yield conns
         yield GaugeMetricFamily("dcuscope_relay_live_bytes", "Bytes the runs' live states hold",
                                 value=state.memory_view()["live_bytes"])
+        refused = CounterMetricFamily("dcuscope_relay_refused", "Connections, requests and hellos refused, by reason "
+                                      "(as /api/health's refused: credentials, roles, limits, names)", labels=["reason"])
+        for reason, count in sorted(self.refusals().items()):
+            refused.add_metric([reason], count)
+        yield refused
 
     def exposition(self) -> bytes:
         """The text format of every family now (what ``generate_latest(self.registry)`` writes, faster)."""
         return exposition(self.collect())
 
 
-def add_metrics_route(app: web.Application, collector: RelayCollector, token: str | None) -> None:
-    """``GET /metrics``, guarded by ``token`` (when set) as ``/api`` is."""
+def add_metrics_route(app: web.Application, collector: RelayCollector) -> None:
+    """``GET /metrics``, for READ principals as ``/api`` is."""
 
     async def metrics(request: web.Request) -> web.Response:
-        if not token_matches(token, http_token(request.headers, request.query)):
-            return web.json_response({"error": "unauthorized: wrong or missing token"}, status=401)
         return web.Response(body=collector.exposition(), headers={"Content-Type": CONTENT_TYPE_LATEST})
 
-    app.router.add_get(METRICS_PATH, metrics)
+    add_read(app, METRICS_PATH, metrics)

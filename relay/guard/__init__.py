@@ -1,1 +1,2 @@
-"""Guards of the relay: limits, tokens, Host and Origin checks, connection caps, log rate."""
+"""Guards of the relay: the access policy and sign-in, token files, limits, Host and Origin checks,
+connection caps, log rate."""

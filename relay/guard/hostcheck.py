@@ -8,7 +8,8 @@ Host an IP address, ``localhost`` or a name given with ``--allow-host``, and a b
 ``Origin``, when present, must be the relay itself (same host and port as Host) or an allowed
 name. One exception: an ``/ingest`` upgrade without ``Origin`` comes from a node, not a page
 (browsers send ``Origin`` with every WebSocket handshake), so nodes may name the relay by any
-host name. With a token set, the token is the guard and these checks are off.
+host name. Once reading takes a credential (``--token``, ``--viewer-tokens``), the credential is
+the guard (:mod:`relay.guard.policy`) and these checks are off.
 """
 
 from __future__ import annotations

@@ -1,8 +1,9 @@
 """The ingest WebSocket ``GET /ingest``: where nodes connect, say hello, ship batches, sync clocks.
 
 A node opens ``ws://HOST:PORT/ingest`` with ``Authorization: Bearer TOKEN`` (or ``?token=``)
-when the relay has a token: a wrong or missing one is refused with HTTP 401 before the upgrade,
-and so is a connection beyond the cap (503). Then, in the envelope of :mod:`probes.ship.envelope`:
+when the relay takes credentials: :mod:`relay.guard.policy` refuses one that may not stream with HTTP
+401 and its reason before the upgrade (a viewer's included), and binds a node's own to its name; a
+connection beyond the cap is refused too (503). Then, in the envelope of :mod:`probes.ship.envelope`:
 
 - ``hello`` {proto, run, header, lost, floor, ptp[, doubt]} -> reply {ok, run, session[, stored, clock_port,
   clock_key, clock_secret]}; ``stored``: which batches of ``doubt`` (sent, then evicted unacknowledged by the node) this
@@ -56,7 +57,7 @@ from relay.clock.correction import ClockSample, ntp_sample, sample_fault
 from probes.clocks.udpclock import new_secret
 from relay.clock.udp import ClockUdp
 from relay.errors import RelayError
-from relay.guard.auth import http_token, node_for_token, token_matches
+from relay.guard.policy import PRINCIPAL
 from relay.guard.limits import ByteBucket, Limits, TokenBucket
 from relay.live.state import OWNED_RETRY_MS, RelayState, RunState, TryLater
 from relay.store.base import NotOwner, StoreUnavailable
@@ -81,7 +82,7 @@ class _Conn:
     bucket: TokenBucket
     bytes: ByteBucket
     node: str | None = None
-    """The only node name this connection may use (it presented that node's own token)."""
+    """The only node name this connection may use (it presented that node's own credential)."""
     run: str | None = None
     syncs: dict[tuple[int, int], None] = field(default_factory=dict)
     """(t2, t3) of the sync replies sent (WebSocket and UDP) and not yet reported, oldest first."""
@@ -98,11 +99,8 @@ class _Conn:
 class Ingest:
     """The ``/ingest`` handler and the connections it holds."""
 
-    def __init__(self, state: RelayState, token: str | None, limits: Limits = Limits(),
-                 node_tokens: dict[str, str] | None = None) -> None:
+    def __init__(self, state: RelayState, limits: Limits = Limits()) -> None:
         self.state = state
-        self._token = token
-        self._node_tokens = node_tokens or {}
         self._limits = limits
         self._conns: dict[str, _Conn] = {}
         self._ids = itertools.count(1)
@@ -131,7 +129,7 @@ class Ingest:
         return len(self._conns)
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
-        node = self._authorise(http_token(request.headers, request.query))
+        node = self._authorise(request)
         if len(self._conns) >= self._limits.connections:
             raise web.HTTPServiceUnavailable(text="too many connections")
         ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=RELAY_HEARTBEAT_S, timeout=CLOSE_TIMEOUT_S)
@@ -164,17 +162,11 @@ class Ingest:
                 self.state.detach(conn.run, conn.sid)
         return ws
 
-    def _authorise(self, presented: object) -> str | None:
-        """The node name a connection is bound to (None: any), or HTTP 401. The shared token
-        lets a node use any name; a node's own token (--node-tokens) only its own."""
-        if self._token is None and not self._node_tokens:
-            return None
-        if self._token is not None and token_matches(self._token, presented):
-            return None
-        node = node_for_token(self._node_tokens, presented)
-        if node is None:
-            raise web.HTTPUnauthorized(text="unauthorized: wrong or missing token")
-        return node
+    @staticmethod
+    def _authorise(request: web.Request) -> str | None:
+        """The node name a connection is bound to (None: any): the policy's middleware let only a
+        principal that may stream through, and says which."""
+        return request[PRINCIPAL].node
 
     def _hello_overdue(self, conn: _Conn) -> None:
         if not conn.hello and not conn.closing:

@@ -226,10 +226,11 @@ async def fuzz_ui(url: str, count: int, token: str | None = None, workers: int =
     async def one(session: aiohttp.ClientSession, rng: random.Random) -> None:
         kind, frames = _ui_garbage(rng)
         kinds[kind] += 1
-        async with session.ws_connect(ws_url, max_msg_size=0) as ws:
+        headers = {"Authorization": f"Bearer {token}"} if token else {}
+        async with session.ws_connect(ws_url, max_msg_size=0, headers=headers) as ws:
             opening = await ws.receive(5)
             assert opening.type == aiohttp.WSMsgType.TEXT and opening.data.startswith("0"), opening
-            await ws.send_str(f"40{UI}," + json.dumps({"token": token}))
+            await ws.send_str(f"40{UI},{{}}")
             try:
                 for frame in frames:
                     await _send(ws, frame)

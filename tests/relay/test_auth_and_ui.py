@@ -14,43 +14,51 @@ from tests.conftest import run_cli
 from tests.relay.helpers import (RelayProcess, finish_node, get_json, http_status, load_node, start_node)
 
 TOKEN = "s3cret-token"
+VIEWER = "viewer-token-0123456789"
 
 
-async def ui_connect(url: str, auth: dict | None, query: str = "") -> tuple[socketio.AsyncClient, list]:
+async def ui_connect(url: str, auth: dict | None, query: str = "",
+                     headers: dict | None = None) -> tuple[socketio.AsyncClient, list]:
     sio = socketio.AsyncClient(reconnection=False)
     got: list = []
     for event in ("nodes", "frames", "stats"):
         unpacked = unpack_push if event == "frames" else (lambda data: data)
         sio.on(event, (lambda e, read: lambda data: got.append((time.monotonic(), e, read(data))))(event, unpacked),
                namespace="/ui")
-    await sio.connect(url + query, auth=auth, namespaces=["/ui"], transports=["websocket"], wait_timeout=5)
+    await sio.connect(url + query, auth=auth, headers=headers or {}, namespaces=["/ui"], transports=["websocket"],
+                      wait_timeout=5)
     return sio, got
 
 
 def test_token_refusals(tmp_path):
-    relay = RelayProcess(tmp_path / "relay.db", token=TOKEN)
+    viewers = tmp_path / "viewers"
+    viewers.write_text(f"ann {VIEWER}\n")
+    relay = RelayProcess(tmp_path / "relay.db", token=TOKEN, args=["--viewer-tokens", str(viewers)])
     try:
-        # A node without the token ships nothing and says why.
-        bad = start_node(relay.url, "intruder", tmp_path / "bad.npz", frames=20, fps=50,
-                         extra=["--close-timeout", "2"])
-        counters = finish_node(bad, 30)
-        assert counters["acked"] == 0 and "refused the token" in counters["last_error"]
+        # A node without the token, or with a viewer's, ships nothing and says why.
+        for name, token in (("intruder", None), ("viewer", VIEWER)):
+            bad = start_node(relay.url, name, tmp_path / f"{name}.npz", frames=20, fps=50, token=token,
+                             extra=["--close-timeout", "2"])
+            counters = finish_node(bad, 30)
+            assert counters["acked"] == 0 and "refused the token" in counters["last_error"], name
+        assert get_json(f"{relay.url}/api/health", VIEWER)["refused"]["role"] >= 1
         good = start_node(relay.url, "DCU-1", tmp_path / "good.npz", frames=20, fps=50, token=TOKEN)
         assert finish_node(good, 30)["acked"] > 0
 
-        # HTTP: header or query token, nothing else.
+        # HTTP: the header (or the page's cookie, tests/relay/test_policy.py); a token in the address is none.
         assert http_status(f"{relay.url}/api/nodes") == 401
         assert http_status(f"{relay.url}/api/stats?node=DCU-1", {"Authorization": "Bearer wrong"}) == 401
         assert http_status(f"{relay.url}/api/nodes", {"Authorization": f"Bearer {TOKEN}"}) == 200
-        assert http_status(f"{relay.url}/api/sessions?token={TOKEN}") == 200
+        assert http_status(f"{relay.url}/api/sessions?token={TOKEN}") == 401
         assert [n["node"] for n in get_json(f"{relay.url}/api/nodes", TOKEN)] == ["DCU-1"]
 
         async def browsers():
-            for auth, query in ((None, ""), ({"token": "wrong"}, ""), (None, "?token=wrong")):
+            for auth, query, headers in ((None, "", None), (None, "", {"Authorization": "Bearer wrong"}),
+                                         ({"token": TOKEN}, f"?token={TOKEN}", None)):
                 with pytest.raises(socketio.exceptions.ConnectionError):
-                    await ui_connect(relay.url, auth, query)
-            for auth, query in (({"token": TOKEN}, ""), (None, f"?token={TOKEN}")):
-                sio, got = await ui_connect(relay.url, auth, query)
+                    await ui_connect(relay.url, auth, query, headers)
+            for headers in ({"Authorization": f"Bearer {TOKEN}"},):
+                sio, got = await ui_connect(relay.url, None, "", headers)
                 for _ in range(50):
                     if got:
                         break

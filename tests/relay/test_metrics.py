@@ -181,7 +181,7 @@ def test_histograms_gauges_and_counters_equal_the_delay_model_and_api_stats(tmp_
     assert values_of(fams, "dcuscope_node_ended", "dcuscope_node_ended") == {(("node", "A"),): 0.0}
 
 
-def test_the_token_guards_metrics_as_it_guards_the_api(tmp_path):
+def test_the_policy_guards_metrics_as_it_guards_the_api(tmp_path):
     async def scenario():
         relay = await start_relay(port=0, db=tmp_path / "r.db", token=TOKEN)
         url = f"http://127.0.0.1:{relay.port}"
@@ -201,8 +201,10 @@ def test_the_token_guards_metrics_as_it_guards_the_api(tmp_path):
         return statuses, by_header, by_query
 
     statuses, by_header, by_query = asyncio.run(scenario())
-    assert statuses == [(401, {"error": "unauthorized: wrong or missing token"})] * 3
-    assert "dcuscope_relay_events" in by_header and by_query == 200
+    assert statuses == [(401, {"error": "unauthorized: a credential is required"})] * 2 + \
+        [(401, {"error": "unauthorized: wrong or expired credential"})]
+    # A token in the address is no credential (it would end in logs and histories).
+    assert "dcuscope_relay_events" in by_header and by_query == 401
 
 
 def test_a_nodes_new_run_starts_its_series_afresh(tmp_path):

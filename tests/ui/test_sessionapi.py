@@ -88,12 +88,12 @@ def test_session_nodes_frames_and_stats_match_what_was_shipped(stored):
 def test_session_routes_refuse_bad_requests(stored):
     relay, _ = stored
     base = f"{relay.url}/api/sessions"
-    assert http_status(f"{base}/1/nodes") == 401  # the relay's token guard covers these routes
-    q = f"token={TOKEN}"
-    assert http_status(f"{base}/999/nodes?{q}") == 404
-    assert http_status(f"{base}/1/frames?{q}") == 400
-    assert http_status(f"{base}/1/frames?node=nobody&{q}") == 404
-    assert http_status(f"{base}/1/frames?node=DCU-1&since=x&{q}") == 400
-    assert http_status(f"{base}/abc/nodes?{q}") == 404
-    page = wait_for(lambda: get_json(f"{base}/1/frames?node=DCU-1&since=170&limit=100000&{q}"), 10)
+    assert http_status(f"{base}/1/nodes") == 401  # the access policy covers these routes
+    bearer = {"Authorization": f"Bearer {TOKEN}"}
+    assert http_status(f"{base}/999/nodes", bearer) == 404
+    assert http_status(f"{base}/1/frames", bearer) == 400
+    assert http_status(f"{base}/1/frames?node=nobody", bearer) == 404
+    assert http_status(f"{base}/1/frames?node=DCU-1&since=x", bearer) == 400
+    assert http_status(f"{base}/abc/nodes", bearer) == 404
+    page = wait_for(lambda: get_json(f"{base}/1/frames?node=DCU-1&since=170&limit=100000", TOKEN), 10)
     assert len(page["frames"]) == 10 and page["cursor"] == 180

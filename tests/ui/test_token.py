@@ -1,36 +1,65 @@
-"""A relay started with --token: the page takes ?token= from its address for Socket.IO and the API."""
+"""A relay that asks for a credential: the page shows its sign-in form, signs in with a session cookie
+(relay/guard/signin.py), never keeps a token in its address (also when opened with ?token=), and signs
+out in one click. Screenshots at 1280x800 go to build/screenshots (docs/signin.png and docs/signed-in.png
+are copies of them)."""
 
 from __future__ import annotations
 
 from tests.relay.helpers import wait_for
-from tests.ui.helpers import RelayThread, sim_nodes
+from tests.ui.helpers import ROOT, RelayThread, sim_nodes
 
-TOKEN = "tok-3f9a"
+TOKEN = "tok-3f9a-admin-0123"
+VIEWER = "tok-viewer-0123456789"
+SHOTS = ROOT / "build" / "screenshots"
 
 
-def test_page_uses_the_token_of_its_address(browser, tmp_path):
-    relay = RelayThread(tmp_path / "relay.db", token=TOKEN)
+def _frames(page, at_least: int) -> dict:
+    return wait_for(lambda: (lambda d: d if d["stores"].get("DCU-1", {}).get("size", 0) >= at_least else None)(
+        page.evaluate("window.dcuscope.debug()")), 60, 0.2, f"{at_least} frames of DCU-1")
+
+
+def test_page_signs_in_with_its_form_and_keeps_no_token_in_its_address(browser, tmp_path):
+    relay = RelayThread(tmp_path / "relay.db", token=TOKEN, viewer_tokens={"ann": VIEWER})
+    # Paced, 2 sources at 25 fps for 40 s: still streaming when the signed-in page is shot.
+    feeder = sim_nodes(relay.url, tmp_path, ["DCU-1"], frames=1000, sources=2, fps=25, paced=True, token=TOKEN)
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
     try:
-        feeder = sim_nodes(relay.url, tmp_path, ["DCU-1"], frames=40, sources=2, fps=40, paced=False, token=TOKEN)
-        feeder.wait(60)
-        page = browser.new_page()
-        try:
-            # Without the token: refused, and the page says how to get in.
-            page.goto(relay.url + "/")
-            page.wait_for_selector("#banner:not([hidden])", timeout=30000)
-            assert "?token=" in page.locator("#banner").inner_text()
-            assert "unauthorized" in page.locator("#conn").inner_text()
-            assert page.evaluate("window.dcuscope.debug().stores") == {}
+        page.goto(relay.url + "/")
+        page.wait_for_selector("#signin:not([hidden])", timeout=30000)
+        assert page.locator("#signout").is_hidden()
+        assert page.evaluate("window.dcuscope.debug().stores") == {}
+        assert page.locator("#conn").inner_text() == "signed out"
+        page.screenshot(path=str(SHOTS / "signin.png"))
+        shots = {"signin": page.url}
 
-            # With it: live socket, backfilled frames, statistics and the session list (HTTP API).
-            page.goto(f"{relay.url}/?token={TOKEN}")
-            d = wait_for(lambda: (lambda d: d if d["stores"].get("DCU-1", {}).get("size") == 80 else None)(
-                page.evaluate("window.dcuscope.debug()")), 60, 0.2, "the node's 80 frames")
-            assert d["transport"] == "socket.io" and page.locator("#banner").is_hidden()
-            # Statistics arrived: a marked bottleneck, or the relay's reason that no stage saturates.
-            page.wait_for_selector("#stats-body tr.bottleneck, #stats-body .bottleneck-reason", timeout=10000)
-            page.wait_for_selector('#session-select option[value="1"]', state="attached", timeout=15000)
-        finally:
-            page.close()
+        page.fill("#signin-token", "not-the-token")
+        page.click("#signin button[type=submit]")
+        page.wait_for_function("document.querySelector('#signin-error').textContent.includes('wrong')", timeout=10000)
+
+        page.fill("#signin-token", VIEWER)
+        page.click("#signin button[type=submit]")
+        page.wait_for_selector("#signout:not([hidden])", timeout=30000)
+        d = _frames(page, 120)  # a view filled for the screenshot
+        assert d["transport"] == "socket.io" and page.locator("#signin").is_hidden()
+        assert "ann" in page.locator("#signout").get_attribute("title")
+        page.wait_for_selector("#stats-body tr.bottleneck, #stats-body .bottleneck-reason", timeout=15000)
+        page.screenshot(path=str(SHOTS / "signed-in.png"))
+        shots["signed-in"] = page.url
+        assert all(url == relay.url + "/" for url in shots.values()), shots
+        print("page.url of the screenshots:", shots)
+
+        # Signing out is one click, and the form is back.
+        page.click("#signout")
+        page.wait_for_selector("#signin:not([hidden])", timeout=30000)
+
+        # An old bookmark with ?token=: signed in, and the token leaves the address (and the history).
+        page.goto(f"{relay.url}/?token={TOKEN}&open=DCU-1")
+        _frames(page, 10)
+        assert TOKEN not in page.url and page.url.startswith(relay.url + "/?open=DCU-1"), page.url
+        assert TOKEN not in page.evaluate("JSON.stringify([location.href, history.length, document.referrer])")
+        page.wait_for_selector('#session-select option[value="1"]', state="attached", timeout=15000)
     finally:
+        page.close()
+        feeder.stop()
         relay.stop()

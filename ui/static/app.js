@@ -6,7 +6,7 @@
 // every DCU) says which are opened; without it a fleet of at most AUTO_OPEN_MAX DCUs is opened whole.
 
 import { baseName, StageColours } from "./colours.js";
-import { Api, LiveFeed, listSessions, loadSession, SESSION_CAPACITY, tokenFromUrl } from "./feed.js";
+import { Api, LiveFeed, listSessions, loadSession, SESSION_CAPACITY } from "./feed.js";
 import { CompareView } from "./compareview.js";
 import { FrameView } from "./frameview.js";
 import { HistoryView } from "./historyview.js";
@@ -14,6 +14,7 @@ import { MomentView } from "./momentview.js";
 import { Fleet, OPEN_ALL, openedOf, OverviewTable, parseOpen, withOpen } from "./overview.js";
 import { installGrip } from "./overviewsize.js";
 import { esc, nodesHtml, setHtml, statsHtml } from "./panels.js";
+import { showSignIn, signedIn } from "./signin.js";
 import { GUTTER, StageView } from "./stageview.js";
 import { DELAY_CAPACITY, LIVE_CAPACITY, NodeStore } from "./store.js";
 import { formatClock } from "./timefmt.js";
@@ -44,7 +45,7 @@ class Dataset {
   }
 }
 
-const api = new Api(tokenFromUrl());
+const api = new Api();
 const colours = new StageColours();
 const live = new Dataset("live");
 let current = live;
@@ -221,7 +222,7 @@ function setStatus(kind, text) {
   el.textContent = text;
   el.title = text; // in full where the header cuts it short
   if (kind === "error" && /unauthori[sz]ed/i.test(text)) {
-    showBanner(`The relay refused this page: ${text}. Open it with ?token=TOKEN in its address.`);
+    showSignIn(`The relay refused this page: ${text}`);
   } else if (kind === "live") {
     showBanner(null);
   }
@@ -803,7 +804,9 @@ window.dcuscope = {
 
 setClockMode(false);
 syncOpened();
-feed.start();
-refreshSessions();
-setInterval(refreshSessions, 10000);
 requestAnimationFrame(frame);
+if (await signedIn()) {
+  feed.start();
+  refreshSessions();
+  setInterval(refreshSessions, 10000);
+}

@@ -1,6 +1,7 @@
 // Where the page's data comes from: the relay's Socket.IO namespace /ui (live pushes), its HTTP
 // API (backfill, statistics, the fleet's overview, stored sessions), or polling the API when the
-// Socket.IO client is not installed. A token from ?token= goes with every request.
+// Socket.IO client is not installed. A relay that asks for a credential gets the session cookie the
+// page signed in with (signin.js), which the browser sends with every request, engine.io's included.
 //
 // The page subscribes to the DCUs it shows (`want`): the relay pushes frames, statistics and node
 // views of those only, and the fleet's overview rows (a row per DCU) to every page; frames and
@@ -35,19 +36,9 @@ export class ApiError extends Error {
   }
 }
 
-/** The token the page was opened with (?token=...), or null. */
-export function tokenFromUrl(search = location.search) {
-  return new URLSearchParams(search).get("token");
-}
-
 export class Api {
-  constructor(token) {
-    this.token = token;
-  }
-
   async get(path) {
-    const headers = this.token ? { Authorization: `Bearer ${this.token}` } : {};
-    const r = await fetch(path, { headers, cache: "no-store" });
+    const r = await fetch(path, { cache: "no-store" });
     if (!r.ok) {
       let message = `${r.status} ${r.statusText}`;
       try {
@@ -189,7 +180,7 @@ export class LiveFeed {
     this.transport = "socket.io";
     // The subscription goes with every (re)connection, so that the relay pushes nothing else meanwhile
     // (without it, every DCU until the `subscribe` below arrives).
-    const auth = (cb) => cb({ ...(this.api.token ? { token: this.api.token } : {}), subscribe: this.subscription() });
+    const auth = (cb) => cb({ subscribe: this.subscription() });
     const socket = window.io("/ui", { auth, reconnectionDelayMax: 5000 });
     this.socket = socket;
     socket.on("connect", () => {

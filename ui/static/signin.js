@@ -1,0 +1,58 @@
+// The page's sign-in (relay/guard/signin.py): a form while the relay asks for a credential, and a
+// one-click sign-out once signed in. The credential becomes an HttpOnly session cookie: it never
+// enters the page's address, and the page never reads it back.
+
+const $ = (sel) => document.querySelector(sel);
+
+/** Whether the page may read the relay's data; shows the form when it must sign in first. */
+export async function signedIn() {
+  let who;
+  try {
+    const r = await fetch("/signin", { cache: "no-store" });
+    who = await r.json();
+  } catch (_) {
+    return true; // the relay is unreachable: the feed says so and retries
+  }
+  if (who.principal) {
+    const out = $("#signout");
+    out.hidden = false;
+    out.title = `signed in as ${who.principal.name} (${who.principal.role}): sign out`;
+  }
+  if (who.required && !who.principal) {
+    showSignIn(null);
+    return false;
+  }
+  return true;
+}
+
+/** Show the sign-in form, saying why when the relay refused the page (an expired session). */
+export function showSignIn(reason) {
+  $("#signin").hidden = false;
+  $("#conn").className = "conn conn-wait";
+  $("#conn").textContent = "signed out";
+  $("#signin-error").textContent = reason || "";
+  $("#signin-token").focus();
+}
+
+$("#signin").addEventListener("submit", async (event) => {
+  event.preventDefault();
+  const body = new URLSearchParams({ token: $("#signin-token").value });
+  let message;
+  try {
+    const r = await fetch("/signin", { method: "POST", body });
+    if (r.ok) {
+      location.reload(); // the same address, now with the cookie: everything starts signed in
+      return;
+    }
+    message = `${r.status} ${r.statusText}`;
+    message = (await r.json()).error ?? message;
+  } catch (err) {
+    message = message || String(err);
+  }
+  $("#signin-error").textContent = message;
+});
+
+$("#signout").addEventListener("click", async () => {
+  await fetch("/signout", { method: "POST" });
+  location.reload();
+});
