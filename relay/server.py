@@ -48,6 +48,7 @@ from relay.guard.hostcheck import HostCheck
 from relay.guard.limits import Limits
 from relay.heap import Reclaimer
 from relay.guard.proxy import TrustedProxies
+from relay.guard.tls import ServerTls
 from relay.ingest.endpoint import SYNCS_KEPT, Ingest
 from relay.live.run import LiveConfig
 from relay.live.state import RelayState
@@ -66,7 +67,8 @@ STOP_REQUESTS_S = 1.5
 for them to end (aiohttp's 60 s held a stop for a minute on a page's Socket.IO request that outlives
 its closed engine.io socket). The nodes' websockets are closed before; what a cancelled ingest had
 not acknowledged, its node sends again wherever it resumes."""
-REFUSALS = ("peer_cap", "tcp_cap", "header_timeout", "hello_timeout", "host", "proxy_header")
+REFUSALS = ("peer_cap", "tcp_cap", "header_timeout", "hello_timeout", "host", "proxy_header", "plaintext",
+            "tls_timeout", "tls_handshake")
 PLACEHOLDER = """<!doctype html><html><head><meta charset="utf-8"><title>dcuscope relay</title></head>
 <body><h1>dcuscope relay</h1><p>The UI is not installed (ui/static/index.html). The JSON API is at
 <a href="/api/nodes">/api/nodes</a>, <a href="/api/sessions">/api/sessions</a>,
@@ -144,14 +146,16 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
                node_tokens: dict[str, str] | None = None, allow_hosts: Iterable[str] = (),
                frame_limits: FrameLimits = FrameLimits(), otlp: OtlpConfig | None = None,
                trusted_proxies: TrustedProxies = TrustedProxies(), redis: str | None = None,
-               name: str | None = None, compact_after_s: float = COMPACT_AFTER_S) -> tuple[web.Application, Relay]:
+               name: str | None = None, compact_after_s: float = COMPACT_AFTER_S,
+               tls: ServerTls | None = None) -> tuple[web.Application, Relay]:
     """The relay's app; without a token, requests must name an IP, localhost or one of ``allow_hosts``
     (:mod:`relay.guard.hostcheck`). ``otlp``: export sampled frames as traces (:mod:`relay.export.otlp`; its
     thread starts with :func:`start_relay`). ``trusted_proxies``: peers whose connections start with a PROXY
     header naming the client (:mod:`relay.guard.proxy`). ``redis``: the URL of the Redis that carries every
     relay's pushes to every relay's browsers (:mod:`relay.api.fanout`). ``name``: how pages and other relays
     name this one (default: HOST:PORT once listening). ``compact_after_s``: batches stored that long are
-    compacted (:mod:`relay.store.compaction`; 0: never)."""
+    compacted (:mod:`relay.store.compaction`; 0: never). ``tls``: the port speaks HTTPS only
+    (:mod:`relay.guard.tls`; with its client CA, ``/ingest`` takes only nodes with a certificate it signed)."""
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     limits = fit_descriptors(limits)
@@ -161,14 +165,14 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     state.relay_name = name or ""
     manager, fanout = create_manager(redis)
     sio = create_sio(manager)
-    ingest = Ingest(state, token, limits, node_tokens)
+    ingest = Ingest(state, token, limits, node_tokens, certified=tls is not None and tls.verifies_clients)
     storage.on_owners_lost = lambda: _background(ingest.let_go())
     storage.on_runs_lost = lambda runs: _background(ingest.let_go_runs(runs))
     fleet = Fleet(state)
     ui = UiNamespace(state, fleet, token)
     sio.register_namespace(ui)
     refused: Counter = Counter()
-    guard = ConnGuard(limits, refused, trusted_proxies)
+    guard = ConnGuard(limits, refused, trusted_proxies, tls)
     # The guard's first: a request refused further in still counts as one the connection sent.
     middlewares = [guard.middleware]
     if token is None:
@@ -321,10 +325,13 @@ async def _serve(host: str, port: int, db: str | Path, token: str | None, clock:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
+    if relay.guard.tls is not None:  # a renewed certificate, without a restart
+        loop.add_signal_handler(signal.SIGHUP, relay.guard.tls.reload)
     if signals.held() is not None:  # Ctrl-C while starting up
         stop.set()
     udp = f"UDP clock exchange on port {relay.clock_port}" if relay.clock_port else "no UDP clock exchange"
-    print(f"dcuscope relay: listening on http://{host}:{relay.port} (db {relay.storage.location}, clock {clock}; "
+    scheme = "https" if relay.guard.tls is not None else "http"
+    print(f"dcuscope relay: listening on {scheme}://{host}:{relay.port} (db {relay.storage.location}, clock {clock}; "
           f"{udp})", flush=True)
     try:
         await stop.wait()

@@ -2,7 +2,8 @@
 
 A node opens ``ws://HOST:PORT/ingest`` with ``Authorization: Bearer TOKEN`` (or ``?token=``)
 when the relay has a token: a wrong or missing one is refused with HTTP 401 before the upgrade,
-and so is a connection beyond the cap (503). Then, in the envelope of :mod:`probes.ship.envelope`:
+and so is a connection beyond the cap (503). With ``--tls-client-ca`` a node must also present a
+client certificate that CA signed (else 403), and may stream under the name it gives only. Then, in the envelope of :mod:`probes.ship.envelope`:
 
 - ``hello`` {proto, run, header, lost, floor, ptp[, doubt]} -> reply {ok, run, session[, stored, clock_port,
   clock_key]}; ``stored``: which batches of ``doubt`` (sent, then evicted unacknowledged by the node) this
@@ -53,6 +54,7 @@ from relay.clock.udp import ClockUdp
 from relay.errors import RelayError
 from relay.guard.auth import http_token, node_for_token, token_matches
 from relay.guard.limits import ByteBucket, Limits, TokenBucket
+from relay.guard.tls import certificate_node
 from relay.live.state import OWNED_RETRY_MS, RelayState, RunState, TryLater
 from relay.store.base import NotOwner, StoreUnavailable
 
@@ -92,8 +94,10 @@ class Ingest:
     """The ``/ingest`` handler and the connections it holds."""
 
     def __init__(self, state: RelayState, token: str | None, limits: Limits = Limits(),
-                 node_tokens: dict[str, str] | None = None) -> None:
+                 node_tokens: dict[str, str] | None = None, certified: bool = False) -> None:
         self.state = state
+        self._certified = certified
+        """Nodes must present a verified client certificate (``--tls-client-ca``), which names them."""
         self._token = token
         self._node_tokens = node_tokens or {}
         self._limits = limits
@@ -122,6 +126,8 @@ class Ingest:
 
     async def handle(self, request: web.Request) -> web.StreamResponse:
         node = self._authorise(http_token(request.headers, request.query))
+        if self._certified:
+            node = certified_node(request, node)
         if len(self._conns) >= self._limits.connections:
             raise web.HTTPServiceUnavailable(text="too many connections")
         ws = web.WebSocketResponse(max_msg_size=MAX_MESSAGE_BYTES, heartbeat=RELAY_HEARTBEAT_S, timeout=CLOSE_TIMEOUT_S)
@@ -496,3 +502,16 @@ def _report_failure(task: asyncio.Task) -> None:
     # A bug, not a node's fault: said loudly, since nobody awaits these tasks' results.
     if not task.cancelled() and task.exception() is not None:
         log.error("ingest: storing a batch failed", exc_info=task.exception())
+
+
+def certified_node(request: web.Request, node: str | None) -> str:
+    """The node name the connection's verified client certificate gives (:mod:`relay.guard.tls`),
+    which it may stream under only; HTTP 403 without one, or where its token binds another name."""
+    transport = request.transport
+    named = certificate_node(transport.get_extra_info("peercert") if transport is not None else None)
+    if named is None:
+        raise web.HTTPForbidden(text="forbidden: /ingest takes a client certificate signed by the relay's "
+                                     "--tls-client-ca")
+    if node is not None and node != named:
+        raise web.HTTPForbidden(text=f"forbidden: the certificate names node {named!r}, the token {node!r}")
+    return named
