@@ -726,7 +726,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             for store in stores:
                 print(f"store {store}: {rig.settings(store)}", flush=True)
-            for name in settings:
+            for name in [] if args.tls else settings:
                 print(f"settings {name}: {SETTINGS[name].about}", flush=True)
             print(f"machine: {os.cpu_count()} CPUs, 1-min load {os.getloadavg()[0]:.1f} at start", flush=True)
             for store in stores:

@@ -18,12 +18,15 @@ import pytest
 from probes.ship.errors import ExportError
 from probes.ship.nodetls import RelayTls
 from probes.ship.relaylink import Link
+from probes.ship.wire import MAX_MESSAGE_BYTES
 from probes.trace.delays import node_stats
 from tests.relay.helpers import (HandNode, RelayProcess, assert_stats_equal, finish_node, get_json, load_node,
                                  read_http_answer, start_node, wait_for)
 from tests.tlscerts import TestCA, served_serial
 
 HEADER_S = 1.0
+PER_PEER = 16
+"""The relay's default connections_per_peer."""
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +34,8 @@ def pki(tmp_path_factory):
     folder = tmp_path_factory.mktemp("pki")
     ca, other = TestCA(folder), TestCA(folder, "other")
     return {"folder": folder, "ca": ca, "other": other, "server": ca.issue("relay"),
-            "dcu1": ca.issue("DCU-1", client=True), "stranger": other.issue("DCU-1", client=True)}
+            "dcu1": ca.issue("DCU-1", client=True), "dcu3": ca.issue("DCU-3", client=True),
+            "stranger": other.issue("DCU-1", client=True)}
 
 
 @pytest.fixture(scope="module")
@@ -90,6 +94,23 @@ def test_a_node_streams_over_tls_and_each_refusal_has_its_reason(relay, pki, tmp
         s.settimeout(HEADER_S + 10)
         assert s.recv(1024) == b""
 
+    # The hostile clients of test_hostile_connections, over TLS: a flood of stalled handshakes from
+    # one address holds at most its per-address share (idle ones make room), an oversize frame
+    # closes its own connection only.
+    flood = []
+    for _ in range(3 * PER_PEER):
+        s = socket.create_connection(("127.0.0.1", relay.port), 10, source_address=("127.0.0.7", 0))
+        s.sendall(b"\x16\x03\x01")
+        flood.append(s)
+    # Evicted connections leave on the relay's next loop turns: what the relay holds settles at its cap.
+    held = wait_for(lambda: (h := health(relay, pki))["connections"]["tcp"] <= PER_PEER + 3 and h, 5,
+                    what="the flood held to its per-address share")
+    for s in flood:
+        s.close()
+    assert held["refused"]["peer_cap"] >= 2 * PER_PEER, held["refused"]
+    asyncio.run(oversize(relay.url, node_tls(pki, "dcu3").context()))
+    assert health(relay, pki)["rejected"] >= 1
+
     async def refusals() -> dict[str, str]:
         stranger = node_tls(pki, "stranger")
         return {"no certificate": await connect(relay.url, node_tls(pki, None)),
@@ -126,6 +147,16 @@ async def as_another(url: str, context: ssl.SSLContext) -> str:
         return str(exc)
     await node.close()
     return ""
+
+
+async def oversize(url: str, context: ssl.SSLContext) -> None:
+    """A binary frame over the relay's bound: the relay closes the connection (within 10 s)."""
+    node = await HandNode.open(url, "DCU-3", "3" * 32, ssl=context)
+    try:
+        await node.link.send_batch(b"\0" * (MAX_MESSAGE_BYTES + 1))
+        await asyncio.wait_for(node.link.closed(), 10)
+    finally:
+        await node.close()
 
 
 def _get_text(url: str, context: ssl.SSLContext) -> str:
