@@ -27,6 +27,8 @@ from tests.tlscerts import TestCA, served_serial
 HEADER_S = 1.0
 PER_PEER = 16
 """The relay's default connections_per_peer."""
+PROXY = "127.0.0.9"
+"""The module relay's trusted proxy: its connections start with a PROXY header, then TLS."""
 
 
 @pytest.fixture(scope="module")
@@ -44,7 +46,8 @@ def relay(pki, tmp_path_factory):
     server = pki["server"]
     proc = RelayProcess(tmp_path_factory.mktemp("tls") / "relay.db",
                         args=["--tls-cert", str(server.cert), "--tls-key", str(server.key),
-                              "--tls-client-ca", str(pki["ca"].cert), "--limit", f"header_timeout_s={HEADER_S}"])
+                              "--tls-client-ca", str(pki["ca"].cert), "--limit", f"header_timeout_s={HEADER_S}",
+                              "--trusted-proxy", PROXY])
     yield proc
     proc.stop()
 
@@ -163,6 +166,27 @@ def _get_text(url: str, context: ssl.SSLContext) -> str:
     import urllib.request
     with urllib.request.urlopen(url, timeout=10, context=context) as r:
         return r.read().decode()
+
+
+def test_a_trusted_proxys_connection_carries_its_header_before_tls(relay, pki):
+    def via_proxy(header: bytes) -> dict | None:
+        """/api/health through a connection from the proxy starting with ``header`` (None: closed)."""
+        with socket.create_connection(("127.0.0.1", relay.port), 10, source_address=(PROXY, 0)) as raw:
+            raw.sendall(header)
+            try:
+                with browser(pki).wrap_socket(raw, server_hostname="127.0.0.1") as tls:
+                    tls.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+                    status, body = read_http_answer(tls)
+            except OSError:
+                return None
+        assert status == 200, (status, body)
+        return json.loads(body)
+
+    before = health(relay, pki)
+    answer = via_proxy(b"PROXY TCP4 10.1.2.3 127.0.0.1 5555 443\r\n")
+    assert answer is not None and answer["proxy"]["proxied"] == before["proxy"]["proxied"] + 1, answer["proxy"]
+    assert via_proxy(b"GARBAGE\r\n") is None
+    assert health(relay, pki)["refused"]["proxy_header"] == before["refused"]["proxy_header"] + 1
 
 
 def test_failover_past_an_unknown_ca_and_a_renewed_certificate(relay, pki, tmp_path):
