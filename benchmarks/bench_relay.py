@@ -60,6 +60,12 @@ produce is ``"n/a (reason)"`` in the JSON, ``n/a [k]`` with its reason below in 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_relay.py [--store sqlite postgresql] [--relays 1 2]
         [--nodes 2 8 32] [--settings today adaptive] [--events 2000000] [--batch-events 8192]
         [--rate 4300] [--seconds 12] [--watch N] [--workers] [--lag-only | --bulk-only] [--pg-not-durable] [--quick]
+
+``--tls`` measures what TLS costs the relay instead: for each store and node count, N nodes paced at
+``--rate`` stream for ``--seconds`` to one relay over plaintext, then as long to a fresh relay over
+TLS (``--tls-cert``, a certificate of a CA made for the run, tests/tlscerts.py; the nodes verify it
+with ``--relay-ca``), no browser; relay CPU per event received on each, and their ratio (the goal:
+within 1.15x).
 """
 
 from __future__ import annotations
@@ -70,6 +76,7 @@ import json
 import os
 import re
 import resource
+import ssl
 import subprocess
 import sys
 import tempfile
@@ -121,13 +128,16 @@ def _env() -> dict:
 
 
 class Relay:
-    def __init__(self, db: Path | str, args: Sequence[str] = (), workers: int = 1, checkout: Path = ROOT) -> None:
+    def __init__(self, db: Path | str, args: Sequence[str] = (), workers: int = 1, checkout: Path = ROOT,
+                 context: ssl.SSLContext | None = None) -> None:
         """``db``: an SQLite file or a PostgreSQL URL; ``args``: more ``python -m relay`` options
         (bench_exporters: --otlp, --frame-limit); ``workers`` above 1: ``python -m relay --workers
         N`` on one port, ready once every worker listens; ``checkout``: the tree whose relay runs
-        (another one beside this: bench_store_size's --checkout).
+        (another one beside this: bench_store_size's --checkout); ``context``: how this process
+        verifies a relay started with ``--tls-cert``.
         Raises CannotRun, with the relay's last line of error, when it does not start."""
         self.workers = workers
+        self.context = context
         port = "0"
         if workers > 1:
             from tests.ports import free_port
@@ -139,17 +149,17 @@ class Relay:
                                      stderr=self._errors)
         listening = []
         while len(listening) < workers:
-            m = re.search(r"http://127\.0\.0\.1:(\d+)", self.proc.stdout.readline().decode())
+            m = re.search(r"(https?)://127\.0\.0\.1:(\d+)", self.proc.stdout.readline().decode())
             if not m:
                 self.proc.kill()
                 self.proc.wait(15)
                 self._errors.seek(0)
                 raise CannotRun(f"the relay did not start: {last_line(self._errors.read())}")
-            listening.append(m.group(1))
-        self.url = f"http://127.0.0.1:{listening[0]}"
+            listening.append(m.groups())
+        self.url = f"{listening[0][0]}://127.0.0.1:{listening[0][1]}"
 
     def get(self, path: str):
-        with urllib.request.urlopen(self.url + path, timeout=30) as r:
+        with urllib.request.urlopen(self.url + path, timeout=30, context=self.context) as r:
             return json.loads(r.read())
 
     def cpu_s(self) -> float:
@@ -241,6 +251,10 @@ class Stores:
 
     def settings(self, name: str) -> str:
         return self.pg.describe() if name == "postgresql" else SQLITE_SETTINGS
+
+    def fresh_count(self) -> int:
+        """Stores made so far (a name for what a phase makes beside its store)."""
+        return self._made
 
     def fresh(self, name: str) -> str:
         self._made += 1
@@ -481,6 +495,81 @@ def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: fl
             "client_cpu_pct": round(100 * client_cpu / wall), "relay_cpu_pct_each": each}
 
 
+def tls_cost(n: int, rate: float, seconds: float, stores: Stores, store: str) -> dict:
+    """Relay CPU per event of ``n`` nodes paced at ``rate``, over plaintext and over TLS (each on a
+    fresh relay and store, one after the other), and the ratio TLS / plaintext."""
+    from tests.tlscerts import TestCA
+
+    ca = TestCA(stores.tmp, f"pki{stores.fresh_count()}")
+    server = ca.issue("relay")
+    ways = {"plain": ((), (), None),
+            "tls": (("--tls-cert", str(server.cert), "--tls-key", str(server.key)), ("--relay-ca", str(ca.cert)),
+                    ssl.create_default_context(cafile=str(ca.cert)))}
+    result: dict = {"rate_per_node": rate, "seconds": seconds}
+    for name, (relay_args, node_args, context) in ways.items():
+        db = stores.fresh(store)
+        relay = None
+        try:
+            relay = Relay(db, relay_args, context=context)
+            result[name] = measure_paced_cpu(relay, n, rate, seconds, node_args)
+        except CannotRun as exc:
+            result[name] = NA(str(exc))
+        finally:
+            if relay is not None:
+                relay.stop()
+            stores.done(store, db)
+    plain, tls = (_figure(result, name, "relay_cpu_us_per_event") for name in ("plain", "tls"))
+    result["ratio"] = (round(tls / plain, 3) if not isinstance(plain, NA) and not isinstance(tls, NA) and plain > 0
+                       else NA("a side has no figure"))
+    return result
+
+
+def measure_paced_cpu(relay: Relay, n: int, rate: float, seconds: float, node_args: Sequence[str] = ()) -> dict:
+    """Relay CPU per event received from ``n`` nodes paced at ``rate`` events/s, over ``seconds``
+    once all of them stream (no browser)."""
+    fps = rate / (EVENTS_PER_FRAME * SOURCES)
+    procs = start_nodes(relay.url, n, int(rate * (seconds + 60)), paced=True, fps=fps, node_args=node_args)
+    try:
+        deadline = time.monotonic() + 120
+        while len(_received([relay])[0]) < n:
+            if time.monotonic() > deadline:
+                raise CannotRun(f"not all {n} nodes streamed within 120 s")
+            time.sleep(0.5)
+        time.sleep(min(1.0, seconds / 3))
+        cpu0, (_, events0) = relay.cpu_s(), _received([relay])
+        time.sleep(seconds)
+        cpu1, (_, events1) = relay.cpu_s(), _received([relay])
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            p.wait(30)
+    none = f"the relay received no event in the {seconds:g} s window"
+    return {"events_in_window": events1 - events0,
+            "relay_cpu_us_per_event": round(1e6 * ratio(cpu1 - cpu0, events1 - events0, none), 2)}
+
+
+def _cost(line: dict, side: str):
+    """Relay CPU per event of one side (plain, tls) of a ``--tls`` line, or why there is none."""
+    part = line["tls_cost"]
+    part = part if isinstance(part, NA) else part[side]
+    return part if isinstance(part, NA) else part["relay_cpu_us_per_event"]
+
+
+def tls_table(lines: list[dict]) -> list[str]:
+    notes = Notes()
+    rows = [f"{'store':<10} {'nodes':>5} {'µs/event':>10} {'µs/event':>10} {'TLS /':>8}",
+            f"{'':<10} {'':>5} {'plain':>10} {'TLS':>10} {'plain':>8}"]
+    for line in lines:
+        rows.append(f"{line['store']:<10} {line['nodes']:>5} {notes.cell(_cost(line, 'plain'), '.1f'):>10} "
+                    f"{notes.cell(_cost(line, 'tls'), '.1f'):>10} "
+                    f"{notes.cell(_figure(line, 'tls_cost', 'ratio'), '.3f'):>8}")
+    legend = (f"µs/event: relay CPU per event received, nodes paced at {lines[0]['tls_cost']['rate_per_node']:g} "
+              "events/s each, no browser; over plaintext, then over TLS (a fresh relay each); goal: TLS / plain "
+              "within 1.15") if lines and not isinstance(lines[0]["tls_cost"], NA) else "µs/event: relay CPU per event"
+    return rows + [legend] + notes.lines()
+
+
 NO_SERVER = NA("no store server: SQLite writes run in the relay process, their CPU is in relay_cpu")
 
 
@@ -616,6 +705,9 @@ def main(argv: list[str] | None = None) -> int:
     only.add_argument("--bulk-only", action="store_true",
                       help="run the throughput phase only (its lag figures n/a)")
     p.add_argument("--quick", action="store_true", help="a smoke test: 2 nodes, 100,000 events, a 1 s lag phase")
+    p.add_argument("--tls", action="store_true",
+                   help="instead of the phases above: relay CPU per paced event over plaintext and over TLS, side by "
+                        "side, and their ratio (one relay; each --store and --nodes)")
     args = p.parse_args(argv)
     if args.quick:
         args.nodes, args.events, args.seconds = [2], 100_000, 1.0
@@ -634,10 +726,17 @@ def main(argv: list[str] | None = None) -> int:
         try:
             for store in stores:
                 print(f"store {store}: {rig.settings(store)}", flush=True)
-            for name in settings:
+            for name in [] if args.tls else settings:
                 print(f"settings {name}: {SETTINGS[name].about}", flush=True)
             print(f"machine: {os.cpu_count()} CPUs, 1-min load {os.getloadavg()[0]:.1f} at start", flush=True)
             for store in stores:
+                if args.tls:
+                    for n in args.nodes:
+                        lines.append({"store": store, "relays": 1, "nodes": n, "cpus": os.cpu_count(),
+                                      "load_before": round(os.getloadavg()[0], 1),
+                                      "tls_cost": tls_cost(n, args.rate, args.seconds, rig, store)})
+                        print(dumps(lines[-1]), flush=True)
+                    continue
                 for relays in relay_counts:
                     for n in args.nodes:
                         for name in settings:
@@ -645,7 +744,7 @@ def main(argv: list[str] | None = None) -> int:
                             print(dumps(lines[-1]), flush=True)
         finally:
             rig.close()
-    print("\n".join(table(lines, args.rate)), flush=True)
+    print("\n".join(tls_table(lines) if args.tls else table(lines, args.rate)), flush=True)
     return 0
 
 

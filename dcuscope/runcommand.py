@@ -95,7 +95,9 @@ def _run_built(args: argparse.Namespace, config: PipelineConfig, built) -> int:
     if config.probes.enabled:
         from probes.instrument import start_probes
 
-        probing = start_probes(built, config, relay=args.relay, token=args.token,
+        from probes.ship.nodetls import tls_from_args
+
+        probing = start_probes(built, config, relay=args.relay, token=args.token, tls=tls_from_args(args),
                                clock_offset_ns=int(args.clock_offset_ms * 1e6), progress=progress,
                                clock_drift_ppm=args.clock_drift_ppm, ptp_socket=args.ptp_socket,
                                close_timeout_s=args.close_timeout)

@@ -12,6 +12,7 @@ from pathlib import Path
 
 from core import signals
 from core.errors import DcuscopeError
+from probes.ship.nodetls import add_tls_arguments, tls_from_args
 
 
 def add_ship_parser(sub) -> None:
@@ -28,6 +29,7 @@ def add_ship_parser(sub) -> None:
     p.add_argument("--relay", required=True, metavar="URL[,URL...]",
                    help="the relay, http://HOST:PORT; or several, comma-separated, tried in turn")
     p.add_argument("--token", help="the relay's node token, if it asks for one")
+    add_tls_arguments(p)
     p.add_argument("--node", help="the node's name on the relay (default: the trace's)")
     p.add_argument("--settle", type=float, default=1.0, metavar="S",
                    help="seconds the trace's stages must stay the same before connecting (default 1)")
@@ -46,13 +48,14 @@ def _ship(args) -> int:
 
     if args.settle < 0 or args.wait <= 0 or args.close_timeout <= 0:
         raise DcuscopeError("--settle must be >= 0, --wait and --close-timeout > 0")
-    check_token(args.relay, args.token)
+    tls = tls_from_args(args)
+    check_token(args.relay, args.token, tls=tls)
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: stop.set())
     if signals.held():
         return 0
-    shipper = TailShipper(args.trace, args.relay, args.token, args.node, close_timeout_s=args.close_timeout)
+    shipper = TailShipper(args.trace, args.relay, args.token, args.node, close_timeout_s=args.close_timeout, tls=tls)
     try:
         return shipper.run(stop, args.settle, args.wait)
     finally:

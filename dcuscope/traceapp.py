@@ -26,6 +26,7 @@ import threading
 from pathlib import Path
 
 from core.errors import DcuscopeError
+from probes.ship.nodetls import add_tls_arguments, tls_from_args
 
 EPILOG = """\
 examples:
@@ -52,13 +53,15 @@ def add_trace_parser(sub) -> None:
                     "runs gets per-frame enter/exit tracepoints, written to TRACE and, with --relay, shipped live. "
                     "When CMD ends, print the trace's statistics (as `dcuscope stats`) and return CMD's exit status.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
-        usage="dcuscope trace [-h] [--node NAME] [-o TRACE] [--relay URL[,URL...]] [--token TOKEN] [--quiet] "
+        usage="dcuscope trace [-h] [--node NAME] [-o TRACE] [--relay URL[,URL...]] [--token TOKEN] [--relay-ca FILE] "
+              "[--relay-cert FILE [--relay-key FILE]] [--quiet] "
               "-- CMD [ARGS...]")
     p.add_argument("--node", metavar="NAME", help="the node's name in the trace and on the relay (default: the host name)")
     p.add_argument("-o", "--output", type=Path, metavar="TRACE", help="the trace file (default NODE.trace.jsonl)")
     p.add_argument("--relay", metavar="URL[,URL...]", help="ship the trace live to this relay (several, comma-separated: "
                                                           "the next when one cannot be reached)")
     p.add_argument("--token", metavar="TOKEN", help="the relay's node token, if it asks for one")
+    add_tls_arguments(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no summary when CMD ends (the trace is still written)")
     p.add_argument("command", nargs=argparse.REMAINDER, metavar="CMD", help="the program and its arguments, after --")
     p.set_defaults(func=run_trace)
@@ -93,7 +96,7 @@ def run_trace(args: argparse.Namespace) -> int:
     if args.relay:
         from probes.ship.relaylink import check_token
 
-        check_token(args.relay, args.token)
+        check_token(args.relay, args.token, tls=tls_from_args(args))
     env = dict(os.environ)
     env["GST_PLUGIN_PATH"] = os.pathsep.join(p for p in (str(plugin_dir), env.get("GST_PLUGIN_PATH")) if p)
     env["GST_TRACERS"] = ";".join(t for t in (env.get("GST_TRACERS"), tracer_spec(node, trace)) if t)
@@ -135,7 +138,7 @@ def _wait(child: subprocess.Popen) -> int:
 def _start_shipper(args: argparse.Namespace, trace: Path, stop: threading.Event) -> threading.Thread:
     from probes.ship.tailship import TailShipper
 
-    shipper = TailShipper(trace, args.relay, args.token, args.node)
+    shipper = TailShipper(trace, args.relay, args.token, args.node, tls=tls_from_args(args))
 
     def ship() -> None:
         try:

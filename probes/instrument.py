@@ -20,6 +20,7 @@ from probes.capture.sourcewatch import SourceWatch
 from probes.capture.tracer import Tracer, attach
 from probes.clocks.sysclock import DEFAULT_UDS
 from probes.ship.errors import ExportError
+from probes.ship.nodetls import RelayTls
 from probes.ship.relayexport import RelayExporter
 from probes.ship.relaylink import check_token
 from probes.ship.tailship import TailShipper
@@ -112,13 +113,13 @@ class LaunchProbes:
 
 
 def _start_tracer(config: PipelineConfig, relay: str | None, token: str | None, progress: TextIO | None,
-                  close_timeout_s: float) -> LaunchProbes:
+                  close_timeout_s: float, tls: RelayTls | None) -> LaunchProbes:
     trace = config.probes.trace or default_trace_path(config.node)
     probes = LaunchProbes(ProcessTracer(config.node, trace, config.probes.clock), Path(trace), progress, close_timeout_s)
     if relay is not None:
         probes.capture.shipper = TailShipper(Path(trace), relay, token, config.node,
                                      say=lambda line: progress.write(line + "\n") if progress else None,
-                                     close_timeout_s=close_timeout_s)
+                                     close_timeout_s=close_timeout_s, tls=tls)
         # No stop event: it ends with the trace's end line, which stop() has the tracer write.
         probes.thread = threading.Thread(target=probes.capture.shipper.run, args=(threading.Event(), 1.0, 1e9),
                                          name="dcuscope-tailship", daemon=True)
@@ -128,16 +129,17 @@ def _start_tracer(config: PipelineConfig, relay: str | None, token: str | None, 
 
 def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None = None, token: str | None = None,
                  clock_offset_ns: int = 0, progress: TextIO | None = None, clock_drift_ppm: float = 0.0,
-                 ptp_socket: str = DEFAULT_UDS, close_timeout_s: float = EXPORTER_CLOSE_S) -> RunProbes | LaunchProbes:
+                 ptp_socket: str = DEFAULT_UDS, close_timeout_s: float = EXPORTER_CLOSE_S,
+                 tls: RelayTls | None = None) -> RunProbes | LaunchProbes:
     """Attach tracepoints to every element of ``built`` (not yet playing) and start shipping.
     ``clock_offset_ns`` and ``clock_drift_ppm``: testing aids (:class:`core.clocks.PretendClock`).
     A ``launch:`` pipeline is traced by the dcuscope GStreamer tracer (:class:`LaunchProbes`)."""
     if relay is not None:
-        check_token(relay, token)  # a wrong token ends the run before it starts, not after
+        check_token(relay, token, tls=tls)  # a wrong token ends the run before it starts, not after
     if config.launch is not None:
         if clock_offset_ns or clock_drift_ppm:
             raise UsageError("--clock-offset-ms and --clock-drift-ppm are not for launch: pipelines")
-        return _start_tracer(config, relay, token, progress, close_timeout_s)
+        return _start_tracer(config, relay, token, progress, close_timeout_s, tls)
     sources = {s.index: s.config.description for s in built.sources}
     tracer = attach(built.pipeline, config.node, clock=config.probes.clock, sources=sources,
                     trigger=config.probes.trigger)
@@ -151,7 +153,7 @@ def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None
     relay_exporter = None
     if relay is not None:
         relay_exporter = RelayExporter(relay, config.node, token=token, clock=config.probes.clock, pretend=pretend,
-                                       ptp_socket=ptp_socket, close_timeout_s=close_timeout_s)
+                                       ptp_socket=ptp_socket, close_timeout_s=close_timeout_s, tls=tls)
         exporters.append(relay_exporter)
     if pretend.shifts:
         exporters = [_Shifted(e, pretend) for e in exporters]

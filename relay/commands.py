@@ -73,6 +73,14 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
                    help="per-node credentials: a file of 'NODE TOKEN' lines; a node presenting its own token "
                         "may stream under its own name only, and read nothing (beside --token, which lets a node "
                         "use any name)")
+    p.add_argument("--tls-cert", metavar="FILE",
+                   help="serve the page, the API, /metrics and the nodes' WebSocket over HTTPS/WSS only, with this "
+                        "certificate (PEM, its chain after it); SIGHUP rereads it and --tls-key (renewals need no "
+                        "restart: new connections get the new one; a file that cannot be loaded keeps the old)")
+    p.add_argument("--tls-key", metavar="FILE", help="the private key of --tls-cert (PEM)")
+    p.add_argument("--tls-client-ca", metavar="FILE",
+                   help="with --tls-cert: nodes must present a certificate this CA (PEM) signed, and stream under "
+                        "the name it gives (its first DNS subjectAltName, else its CN) only; browsers need none")
     p.add_argument("--clock", choices=CLOCK_MODES, default="auto",
                    help="ptp: never correct node timestamps; estimate: subtract each node's estimated "
                         "offset; auto: trust PTP where the node reports it locked and its system clock following it, "
@@ -167,6 +175,12 @@ def run_relay(args: argparse.Namespace) -> int:
             raise RelayError(f"--push-hz must be 0.5..240, not {args.push_hz:g}")
         options["push_hz"] = args.push_hz
     retention = parse_retention(args.retain) if args.retain is not None else None
+    if args.tls_cert or args.tls_key or args.tls_client_ca:
+        if not (args.tls_cert and args.tls_key):
+            raise RelayError("--tls-cert and --tls-key go together (--tls-client-ca needs both)")
+        from relay.guard.tls import ServerTls
+
+        options["tls"] = ServerTls(args.tls_cert, args.tls_key, args.tls_client_ca)
     if not 0 <= args.compact_after <= MAX_COMPACT_AFTER_S:
         raise RelayError(f"--compact-after takes 0 (never) to {MAX_COMPACT_AFTER_S:g} seconds, not {args.compact_after:g}")
     options["compact_after_s"] = args.compact_after

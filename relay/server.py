@@ -50,6 +50,7 @@ from relay.guard.policy import Action, Policy, declare
 from relay.guard.signin import add_signin_routes, from_address
 from relay.heap import Reclaimer
 from relay.guard.proxy import TrustedProxies
+from relay.guard.tls import ServerTls
 from relay.ingest.endpoint import SYNCS_KEPT, Ingest
 from relay.live.run import LiveConfig
 from relay.live.state import RelayState
@@ -68,8 +69,9 @@ STOP_REQUESTS_S = 1.5
 for them to end (aiohttp's 60 s held a stop for a minute on a page's Socket.IO request that outlives
 its closed engine.io socket). The nodes' websockets are closed before; what a cancelled ingest had
 not acknowledged, its node sends again wherever it resumes."""
-REFUSALS = ("peer_cap", "tcp_cap", "header_timeout", "hello_timeout", "host", "proxy_header", "credential_missing",
-            "credential_wrong", "role", "undeclared")
+REFUSALS = ("peer_cap", "tcp_cap", "header_timeout", "hello_timeout", "host", "proxy_header", "plaintext",
+            "tls_timeout", "tls_handshake", "credential_missing", "credential_wrong", "certificate_missing", "role",
+            "undeclared")
 PLACEHOLDER = """<!doctype html><html><head><meta charset="utf-8"><title>dcuscope relay</title></head>
 <body><h1>dcuscope relay</h1><p>The UI is not installed (ui/static/index.html). The JSON API is at
 <a href="/api/nodes">/api/nodes</a>, <a href="/api/sessions">/api/sessions</a>,
@@ -147,7 +149,8 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
                node_tokens: dict[str, str] | None = None, viewer_tokens: dict[str, str] | None = None, allow_hosts: Iterable[str] = (),
                frame_limits: FrameLimits = FrameLimits(), otlp: OtlpConfig | None = None,
                trusted_proxies: TrustedProxies = TrustedProxies(), redis: str | None = None,
-               name: str | None = None, compact_after_s: float = COMPACT_AFTER_S) -> tuple[web.Application, Relay]:
+               name: str | None = None, compact_after_s: float = COMPACT_AFTER_S,
+               tls: ServerTls | None = None) -> tuple[web.Application, Relay]:
     """The relay's app; who may do what is :mod:`relay.guard.policy`'s (``token``: the admin's, ``viewer_tokens``
     and ``node_tokens``: NAME -> token); while anyone may read, requests must name an IP, localhost or one of ``allow_hosts``
     (:mod:`relay.guard.hostcheck`). ``otlp``: export sampled frames as traces (:mod:`relay.export.otlp`; its
@@ -155,11 +158,12 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     header naming the client (:mod:`relay.guard.proxy`). ``redis``: the URL of the Redis that carries every
     relay's pushes to every relay's browsers (:mod:`relay.api.fanout`). ``name``: how pages and other relays
     name this one (default: HOST:PORT once listening). ``compact_after_s``: batches stored that long are
-    compacted (:mod:`relay.store.compaction`; 0: never)."""
+    compacted (:mod:`relay.store.compaction`; 0: never). ``tls``: the port speaks HTTPS only
+    (:mod:`relay.guard.tls`; with its client CA, ``/ingest`` takes only nodes with a certificate it signed)."""
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     refused: Counter = Counter()
-    policy = Policy(token, viewer_tokens, node_tokens, refused)  # a token given twice: before anything starts
+    policy = Policy(token, viewer_tokens, node_tokens, refused, certified=tls is not None and tls.verifies_clients)  # a token given twice: before anything starts
     limits = fit_descriptors(limits)
     # The name other relays sharing the store see (/api/health's store.relays).
     storage = Storage(db, name=f"{socket.gethostname()} pid {os.getpid()}")
@@ -173,7 +177,7 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     fleet = Fleet(state)
     ui = UiNamespace(state, fleet, policy)
     sio.register_namespace(ui)
-    guard = ConnGuard(limits, refused, trusted_proxies)
+    guard = ConnGuard(limits, refused, trusted_proxies, tls)
     # The guard's first: a request refused further in still counts as one the connection sent.
     middlewares = [guard.middleware]
     if policy.reads_open:
@@ -332,10 +336,13 @@ async def _serve(host: str, port: int, db: str | Path, token: str | None, clock:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, stop.set)
+    if relay.guard.tls is not None:  # a renewed certificate, without a restart
+        loop.add_signal_handler(signal.SIGHUP, relay.guard.tls.reload)
     if signals.held() is not None:  # Ctrl-C while starting up
         stop.set()
     udp = f"UDP clock exchange on port {relay.clock_port}" if relay.clock_port else "no UDP clock exchange"
-    print(f"dcuscope relay: listening on http://{host}:{relay.port} (db {relay.storage.location}, clock {clock}; "
+    scheme = "https" if relay.guard.tls is not None else "http"
+    print(f"dcuscope relay: listening on {scheme}://{host}:{relay.port} (db {relay.storage.location}, clock {clock}; "
           f"{udp})", flush=True)
     try:
         await stop.wait()

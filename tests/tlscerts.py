@@ -86,3 +86,16 @@ class TestCA:
         _openssl("ca", "-batch", "-config", str(conf), "-in", str(csr), "-out", str(cert), "-notext",
                  "-startdate", "20000101000000Z", "-enddate", "20000102000000Z", "-extfile", str(ext),
                  cwd=self.dir)
+
+
+def served_serial(port: int, host: str = "127.0.0.1") -> int:
+    """The serial number of the certificate a TLS server on ``port`` shows now (unverified)."""
+    import socket
+    import ssl
+    context = ssl.SSLContext(ssl.PROTOCOL_TLS_CLIENT)
+    context.check_hostname, context.verify_mode = False, ssl.CERT_NONE
+    with socket.create_connection((host, port), 10) as raw, context.wrap_socket(raw) as tls:
+        der = tls.getpeercert(binary_form=True)
+    done = subprocess.run(["openssl", "x509", "-inform", "DER", "-noout", "-serial"], input=der,
+                          capture_output=True, timeout=30, check=True)
+    return int(done.stdout.decode().strip().split("=", 1)[1], 16)

@@ -29,6 +29,7 @@ import aiohttp
 
 from probes.ship.aio import describe, seconds, wait_event
 from probes.ship.errors import ExportError
+from probes.ship.nodetls import RelayTls
 from probes.ship.relaylink import ELSEWHERE, Link, Refused, asked_retry_ms, parse_relays
 
 CONNECT_TIMEOUT_S = 2.0
@@ -63,8 +64,10 @@ class Failover:
     which one is in use, when to try the next, and what is said meanwhile."""
 
     def __init__(self, urls: str | Sequence[str], node: str, token: str | None,
-                 backoff_s: tuple[float, float] = (0.1, 5.0)) -> None:
+                 backoff_s: tuple[float, float] = (0.1, 5.0), tls: RelayTls | None = None) -> None:
         self.urls = parse_relays(urls)
+        self._ssl = tls.context() if tls is not None else True
+        """How https:// relays are verified (True: against the system's CAs; ``tls``: its CAs, its certificate)."""
         self.url = self.urls[0]
         """The relay of ``urls`` in use: connected, or the one tried next."""
         self._node, self._token, self._backoff = node, token, backoff_s
@@ -90,7 +93,7 @@ class Failover:
         laters = 0  # relays in a row that asked to come back later
         # total=None: the handshake has its own bound (relaylink), and the WebSocket lives on.
         timeout = aiohttp.ClientTimeout(total=None, sock_connect=CONNECT_TIMEOUT_S)
-        async with aiohttp.ClientSession(timeout=timeout) as session:
+        async with aiohttp.ClientSession(timeout=timeout, connector=aiohttp.TCPConnector(ssl=self._ssl)) as session:
             while not stop.is_set():
                 outcome = await _unless(stop, self._connect(session, hello, on_ack))
                 if self.refused:

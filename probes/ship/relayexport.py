@@ -39,6 +39,7 @@ from probes.ship.aio import describe, wait_event
 from probes.ship.clockreport import ClockReporter
 from probes.ship.errors import ExportError
 from probes.ship.failover import Failover
+from probes.ship.nodetls import RelayTls
 from probes.ship.outbox import (DEFAULT_BATCH_EVENTS, DEFAULT_FLUSH_INTERVAL_S, DEFAULT_MAX_BUFFER_EVENTS,
                                 DEFAULT_MIN_FLUSH_S, DEFAULT_WINDOW, Outbox)
 from probes.ship.relaylink import Link
@@ -66,7 +67,8 @@ class RelayExporter:
     ``close_timeout_s`` bounds ``close`` as a whole (waiting for acknowledgements included).
     ``ptp_socket``: the UDS of the local ptp4l, read every ``ptp_interval_s`` with pmc.
     ``adaptive``, ``min_flush_s``, ``flush_interval_s``, ``batch_events``: how pending events are
-    cut into batches (:mod:`probes.ship.outbox`).
+    cut into batches (:mod:`probes.ship.outbox`). ``tls``: how ``https://`` relays are verified and
+    this node's certificate (:mod:`probes.ship.nodetls`; None: the system's CAs, no certificate).
     """
 
     def __init__(self, url: str | Sequence[str], node: str, token: str | None = None, clock: str = "realtime",
@@ -77,10 +79,10 @@ class RelayExporter:
                  sync_interval_s: float = 2.0, ptp_interval_s: float = POLL_INTERVAL_S,
                  ptp_socket: str = DEFAULT_UDS,
                  close_timeout_s: float = EXPORTER_CLOSE_S,
-                 backoff_s: tuple[float, float] = (0.1, 5.0)) -> None:
+                 backoff_s: tuple[float, float] = (0.1, 5.0), tls: RelayTls | None = None) -> None:
         if clock not in CLOCKS:
             raise ExportError(f"relay exporter: unknown clock {clock!r} (one of {', '.join(CLOCKS)})")
-        self.relays = Failover(url, node, token, backoff_s)
+        self.relays = Failover(url, node, token, backoff_s, tls)
         if not node:
             raise ExportError("relay exporter: the node needs a name")
         self.node = node

@@ -25,6 +25,7 @@ from aiohttp import WSMsgType
 
 from probes.ship import envelope
 from probes.ship.errors import ExportError, ProtocolError
+from probes.ship.nodetls import RelayTls, tls_failure
 from probes.ship.wire import INGEST_PATH, MAX_MESSAGE_BYTES
 
 HANDSHAKE_TIMEOUT_S = 5.0
@@ -57,19 +58,22 @@ def parse_relays(relays: str | Sequence[str]) -> tuple[str, ...]:
     return tuple(urls)
 
 
-def check_token(relays: str | Sequence[str], token: str | None, timeout_s: float = 3.0) -> None:
+def check_token(relays: str | Sequence[str], token: str | None, timeout_s: float = 3.0,
+                tls: RelayTls | None = None) -> None:
     """Raise :class:`Refused` if a relay of ``relays`` (:func:`parse_relays`) refuses ``token``,
     before a run starts; :class:`ExportError` if one is no relay URL.
 
     A plain GET of the ingest path is answered 401 for a wrong token before anything else.
     A relay that does not answer passes: the exporter keeps trying, and loses nothing. Every
-    relay of a list is asked, one after the other: the node may land on any of them.
+    relay of a list is asked, one after the other: the node may land on any of them. So does one
+    that fails TLS: the exporter says why, and moves on.
     """
+    context = (tls or RelayTls()).context()
     headers = {"Authorization": f"Bearer {token}"} if token else {}
     for url in parse_relays(relays):
         try:
             request = urllib.request.Request(url + INGEST_PATH, headers=headers)
-            urllib.request.urlopen(request, timeout=timeout_s).close()
+            urllib.request.urlopen(request, timeout=timeout_s, context=context).close()
         except urllib.error.HTTPError as exc:
             if exc.code == 401:
                 raise Refused(f"relay {url} refused the token (HTTP 401)") from None
@@ -110,9 +114,18 @@ class Link:
         except aiohttp.WSServerHandshakeError as exc:
             if exc.status == 401:
                 raise Refused(f"relay {url} refused the token (HTTP 401)") from exc
+            if exc.status == 403 and url.startswith("https://"):
+                raise ExportError(f"HTTP 403 {exc.message}: the relay wants a client certificate it trusts, "
+                                  "naming this node (--relay-cert)") from exc
             raise ExportError(f"HTTP {exc.status} {exc.message}") from exc
         except (aiohttp.ClientError, OSError, TimeoutError) as exc:
-            raise ExportError(str(exc) or type(exc).__name__) from exc
+            why = tls_failure(exc)
+            if why is None and url.startswith("https://") and dropped_after_handshake(exc):
+                # A relay that fails a client certificate's handshake closes without an alert
+                # (asyncio's TLS transport aborts): TLS 1.3 tells the client only then.
+                why = ("TLS: the relay closed the connection after the handshake: it refuses this node's "
+                       "certificate, or wants one (--relay-cert)")
+            raise ExportError(why or str(exc) or type(exc).__name__) from exc
         return cls(ws, on_ack)
 
     async def call(self, kind: str, data: object, timeout: float) -> object:
@@ -196,6 +209,12 @@ class Link:
     def elsewhere(self) -> bool:
         """The relay closed the connection because another relay holds this node's run."""
         return self.error.startswith("relay error") and ELSEWHERE.search(self.error) is not None
+
+
+def dropped_after_handshake(exc: BaseException) -> bool:
+    """Whether the relay closed the connection once connected, before answering the upgrade."""
+    return (isinstance(exc, (aiohttp.ServerDisconnectedError, aiohttp.ClientOSError, ConnectionResetError))
+            and not isinstance(exc, aiohttp.ClientConnectorError))
 
 
 def asked_retry_ms(d: object) -> int | None:

@@ -23,6 +23,7 @@ import numpy as np
 
 from core.clocks import PretendClock
 from probes.clocks.sysclock import DEFAULT_UDS
+from probes.ship.nodetls import add_tls_arguments, tls_from_args
 from probes.ship.relayexport import RelayExporter
 from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
 
@@ -101,6 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--relay", required=True)
     p.add_argument("--node", required=True)
     p.add_argument("--token")
+    add_tls_arguments(p)
     p.add_argument("--sources", type=int, default=2)
     p.add_argument("--fps", type=float, default=25.0, help="frames per second per source")
     p.add_argument("--frames", type=int, default=100, help="frames per source")
@@ -126,6 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--linger", action="store_true",
                    help="after the last event, keep the run open (connected, not ended) until standard input closes")
     args = p.parse_args(argv)
+    tls = tls_from_args(args)
 
     pretend = PretendClock(args.clock_offset_ns, args.clock_drift_ppm, start_ns=args.clock_start_ns)
     t0 = args.t0_ns or time.clock_gettime_ns(time.CLOCK_REALTIME) + 200_000_000
@@ -136,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
                              batch_events=args.batch_events, flush_interval_s=args.flush_interval,
                              adaptive=not args.fixed_flush,
                              max_buffer_events=args.max_buffer_events, close_timeout_s=args.close_timeout,
-                             ptp_socket=args.ptp_socket)
+                             ptp_socket=args.ptp_socket, tls=tls)
     started = time.monotonic()
     exporter.start(header)
     feed(exporter, events, paced=args.paced, clock=pretend)

@@ -20,6 +20,7 @@ from typing import Callable
 import numpy as np
 
 from probes.ship.errors import ExportError
+from probes.ship.nodetls import RelayTls
 from probes.ship.relayexport import RelayExporter
 from probes.trace.events import EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
 from probes.trace.follow import TraceFollower
@@ -33,7 +34,9 @@ def _stderr(line: str) -> None:
 
 class TailShipper:
     def __init__(self, trace: Path, relay: str, token: str | None = None, node: str | None = None,
-                 say: Callable[[str], None] = _stderr, close_timeout_s: float = EXPORTER_CLOSE_S) -> None:
+                 say: Callable[[str], None] = _stderr, close_timeout_s: float = EXPORTER_CLOSE_S,
+                 tls: RelayTls | None = None) -> None:
+        self.tls = tls
         self.follower = TraceFollower(trace)
         self.close_timeout_s = close_timeout_s
         self.relay, self.token, self.node, self.say = relay, token, node, say
@@ -95,7 +98,7 @@ class TailShipper:
 
     def _connect(self, header: TraceHeader) -> None:
         self.exporter = RelayExporter(self.relay, self._name(header), token=self.token, clock=header.clock,
-                                      close_timeout_s=self.close_timeout_s)
+                                      close_timeout_s=self.close_timeout_s, tls=self.tls)
         self.exporter.start(header)
         self.runs += 1
 

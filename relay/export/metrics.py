@@ -94,6 +94,11 @@ class RelayCollector(Collector):
         conns.add_metric(["ingest"], ingest.connected)
         conns.add_metric(["tcp"], self.guard.open)
         yield conns
+        refused = CounterMetricFamily("dcuscope_relay_refused", "Connections and requests the guards refused, by "
+                                      "reason (as /api/health's refused)", labels=["reason"])
+        for reason, count in sorted(self.guard.refused.items()):
+            refused.add_metric([reason], count)
+        yield refused
         yield GaugeMetricFamily("dcuscope_relay_live_bytes", "Bytes the runs' live states hold",
                                 value=state.memory_view()["live_bytes"])
         refused = CounterMetricFamily("dcuscope_relay_refused", "Connections, requests and hellos refused, by reason "

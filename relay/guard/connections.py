@@ -21,7 +21,15 @@ server) and hands each admitted socket to :class:`ConnGuard`, which
   (the transport's ``peername``) is the client's. It takes a place in the total cap while the
   header comes, as any connection that has not sent its request head (so it may make room, and
   ``header_timeout_s`` covers header and request head together); one whose header is malformed,
-  or does not come in time, is closed and counted (``proxy_header``).
+  or does not come in time, is closed and counted (``proxy_header``);
+- with TLS (``--tls-cert``, :mod:`relay.guard.tls`), peeks at a connection's first byte (after the
+  PROXY header, if any): a TLS handshake's (0x16) goes to asyncio's TLS transport, anything else is
+  answered one short HTTP 400 and closed (``plaintext``). The connection holds its place and may
+  make room while it handshakes, as one waiting for its request head; header, peek and handshake
+  must be done within ``header_timeout_s`` (else ``tls_timeout``), and a failed handshake (an
+  unknown client certificate, a client that dislikes the relay's) is counted (``tls_handshake``).
+  aiohttp sees the connection once the handshake is done, and its request head then has another
+  ``header_timeout_s``.
 
 Accepting one socket at a time and closing a refused one at once keeps the descriptors in use
 within ``tcp_connections`` plus one: :func:`fit_descriptors` raises the process's soft
@@ -35,13 +43,16 @@ import asyncio
 import logging
 import resource
 import socket
+import ssl
 from collections import Counter, OrderedDict
 from dataclasses import replace
 
 from aiohttp import web
 
 from relay.guard.limits import Limits
-from relay.guard.proxy import ProxyHeader, ProxyHeaderError, TrustedProxies, parse_header
+from relay.guard.proxy import (V2_FIXED_BYTES, V2_SIGNATURE, ProxyHeader, ProxyHeaderError, TrustedProxies,
+                               parse_header)
+from relay.guard.tls import ServerTls
 
 RESERVED_FDS = 128
 """Descriptors kept for all but client connections: SQLite (the writer and the session readers'
@@ -52,6 +63,10 @@ EVICTING = 16
 ACCEPT_BURST = 64
 """Connections accepted in a row before the loop lets other work run (a flood cannot starve it)."""
 ACCEPT_RETRY_S = 0.5
+TLS_HANDSHAKE = 0x16
+"""The first byte of a TLS record that starts a handshake (ClientHello)."""
+PLAINTEXT_REPLY = (b"HTTP/1.1 400 Bad Request\r\nContent-Type: text/plain\r\nConnection: close\r\n"
+                   b"Content-Length: 28\r\n\r\nthis port speaks HTTPS only\n")
 
 log = logging.getLogger(__name__)
 
@@ -77,12 +92,18 @@ def fit_descriptors(limits: Limits) -> Limits:
 class ConnGuard:
     """Admits, times and counts the relay's TCP connections (see the module docstring)."""
 
-    def __init__(self, limits: Limits, refused: Counter, trusted: TrustedProxies = TrustedProxies()) -> None:
+    def __init__(self, limits: Limits, refused: Counter, trusted: TrustedProxies = TrustedProxies(),
+                 tls: ServerTls | None = None) -> None:
         self.limits = limits
         self.refused = refused
-        """Shared with the other guards: ``peer_cap``, ``tcp_cap``, ``header_timeout``, ``proxy_header`` here."""
+        """Shared with the other guards: ``peer_cap``, ``tcp_cap``, ``header_timeout``, ``proxy_header``,
+        ``plaintext``, ``tls_timeout``, ``tls_handshake`` here."""
         self.trusted = trusted
         """Peers whose connections start with a PROXY header (``--trusted-proxy``)."""
+        self.tls = tls
+        """The port speaks TLS only (None: plain HTTP only)."""
+        self._opening: set[asyncio.Task] = set()
+        """Connections being read for a header, peeked at or handshaking (TLS)."""
         self.proxied = 0
         """Connections a trusted proxy's header gave a client address, so far."""
         self._open: set[_Guarded] = set()
@@ -158,11 +179,27 @@ class ConnGuard:
                 if not self.admit(None if proxy else peer):
                     sock.close()
                     continue
+                if self.tls is not None:
+                    self._open_tls(sock, _Guarded(self, factory, peer, proxy))
+                    continue
                 try:
                     await loop.connect_accepted_socket(lambda: _Guarded(self, factory, peer, proxy), sock)
                 except OSError:  # the peer left meanwhile
                     sock.close()
             await asyncio.sleep(0)
+
+    def _open_tls(self, sock: socket.socket, conn: "_Guarded") -> None:
+        """Serve ``sock`` over TLS through ``conn``, which holds its place meanwhile."""
+        self._opened(conn)
+        task = asyncio.create_task(conn.open_tls(sock, self.tls.context))
+        conn.opening = task
+        self._opening.add(task)
+        task.add_done_callback(self._opening.discard)
+
+    def cancel_opening(self) -> None:
+        """Drop the connections not yet handed to aiohttp (the site stops)."""
+        for task in list(self._opening):
+            task.cancel()
 
     @web.middleware
     async def middleware(self, request: web.Request, handler) -> web.StreamResponse:
@@ -180,6 +217,8 @@ class ConnGuard:
     # --- bookkeeping of _Guarded -----------------------------------------------------------------
 
     def _opened(self, conn: "_Guarded") -> None:
+        if conn in self._open:  # a TLS connection, counted from its accept, is now handshaken
+            return
         self._open.add(conn)
         if conn.peer is not None:  # a proxy's connection counts once its header names the client
             self._peers[conn.peer] += 1
@@ -238,11 +277,17 @@ class _Guarded(asyncio.Protocol):
         """The start of the PROXY header while it comes; None once read, or for a direct connection."""
         self._serving = not proxy
         """Whether aiohttp has the connection (a proxied one: once its header is read and admitted)."""
+        self.opening: asyncio.Task | None = None
+        """A TLS connection's header, peek and handshake (:meth:`open_tls`), until aiohttp has it."""
+        self._client: tuple | None = None
+        """The client's address a PROXY header gave, for the transport's ``peername``."""
 
     def connection_made(self, transport: asyncio.BaseTransport) -> None:
         self.transport = transport
         self.guard._opened(self)
         self._await_head()
+        if self._client is not None:
+            _set_peername(transport, self._client)
         if self._serving:
             self.inner.connection_made(transport)
 
@@ -308,12 +353,9 @@ class _Guarded(asyncio.Protocol):
             return False
         self.proxied = True
         self.guard.proxied += 1
-        # asyncio's transports answer get_extra_info() from this dict and offer no way to set it;
-        # aiohttp reads peername only once it has the transport, which is after this.
-        extra = getattr(self.transport, "_extra", None)
-        if isinstance(extra, dict):
-            extra["proxy_peername"] = extra.get("peername")
-            extra["peername"] = (host, port) if ":" not in host else (host, port, 0, 0)
+        self._client = (host, port) if ":" not in host else (host, port, 0, 0)
+        if self.transport is not None:  # else (TLS) once the handshake gives the transport
+            _set_peername(self.transport, self._client)
         return True
 
     def _refuse_header(self, why: str) -> None:
@@ -337,6 +379,72 @@ class _Guarded(asyncio.Protocol):
         self.guard._now_busy(self)
         if self.transport is not None:
             self.transport.abort()
+        elif self.opening is not None:
+            self.opening.cancel()
+
+    # --- TLS ----------------------------------------------------------------------------------------
+
+    async def open_tls(self, sock: socket.socket, context) -> None:
+        """Read the PROXY header (a trusted proxy's connection), peek at the first byte, and hand
+        a TLS handshake to asyncio's TLS transport with this protocol; all within
+        ``header_timeout_s``. Anything else is refused, and counted (see the module docstring)."""
+        loop = asyncio.get_running_loop()
+        limit = self.guard.limits.header_timeout_s
+        why = "tls_timeout"
+        handed = False
+        try:
+            async with asyncio.timeout(limit):
+                if self._header is not None:
+                    why = "proxy_header"
+                    if not await self._read_proxy_header(loop, sock):
+                        return
+                    why = "tls_timeout"
+                first = await _peek(loop, sock)
+                if not first:
+                    return  # closed without a byte: a TCP health check
+                if first[0] != TLS_HANDSHAKE:
+                    self.guard.refused["plaintext"] += 1
+                    try:
+                        sock.send(PLAINTEXT_REPLY)
+                    except OSError:
+                        pass
+                    return
+                self._serving = True
+                handed = True  # asyncio's transport owns the socket from here, and closes it on failure
+                await loop.connect_accepted_socket(lambda: self, sock, ssl=context,
+                                                   ssl_handshake_timeout=limit)
+        except TimeoutError:
+            if why == "proxy_header":
+                log.warning("closing a connection from trusted proxy %s: no complete PROXY header within %g s",
+                            self.via, limit)
+            self.guard.refused[why] += 1
+        except ProxyHeaderError as exc:
+            self.guard.refused["proxy_header"] += 1
+            log.warning("closing a connection from trusted proxy %s: %s", self.via, exc)
+        except (OSError, ssl.SSLError):  # a failed handshake, or the peer left
+            self.guard.refused["tls_handshake"] += 1
+        finally:
+            self.opening = None
+            if self.transport is None:  # never handshaken: aiohttp never saw it
+                self._serving = False
+                if not handed:
+                    sock.close()
+                self.guard._closed(self)
+
+    async def _read_proxy_header(self, loop: asyncio.AbstractEventLoop, sock: socket.socket) -> bool:
+        """Consume exactly the PROXY header (the TLS bytes after it stay in the socket) and admit
+        its client; whether the connection goes on."""
+        while True:
+            chunk = await loop.sock_recv(sock, _header_wants(self._header))
+            if not chunk:
+                if self._header:
+                    raise ProxyHeaderError("the connection ended within the PROXY header")
+                return False  # a proxy's TCP health check
+            self._header += chunk
+            header = parse_header(self._header)
+            if header is not None:
+                self._header = None
+                return self._admit(header)
 
     def _await_head(self) -> None:
         loop = asyncio.get_running_loop()
@@ -376,7 +484,7 @@ class GuardedSite(web.BaseSite):
 
     @property
     def name(self) -> str:
-        return f"http://{self._host}:{self.port}"
+        return f"{'https' if self._guard.tls is not None else 'http'}://{self._host}:{self.port}"
 
     async def start(self) -> None:
         await super().start()
@@ -393,6 +501,7 @@ class GuardedSite(web.BaseSite):
     async def stop(self) -> None:
         for task in self._tasks:
             task.cancel()
+        self._guard.cancel_opening()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         self._close_sockets()
         await super().stop()
@@ -419,6 +528,41 @@ class GuardedSite(web.BaseSite):
     def _close_sockets(self) -> None:
         for sock in self._socks:
             sock.close()
+
+
+def _set_peername(transport: asyncio.BaseTransport, client: tuple) -> None:
+    """Make ``client`` the transport's ``peername``, which aiohttp reads for ``request.remote``."""
+    # asyncio's transports answer get_extra_info() from these dicts and offer no way to set them;
+    # aiohttp reads peername only once it has the transport, which is after this. A TLS transport
+    # asks its TLS protocol's dict first.
+    ssl_protocol = getattr(transport, "_ssl_protocol", None)
+    extra = getattr(ssl_protocol if ssl_protocol is not None else transport, "_extra", None)
+    if isinstance(extra, dict):
+        extra["proxy_peername"] = transport.get_extra_info("peername")
+        extra["peername"] = client
+
+
+def _header_wants(header: bytearray) -> int:
+    """How many bytes a PROXY header being read may take next without reading past its end:
+    a v2 header's whole rest once its length is known, else one (a v1 line ends with its CRLF)."""
+    if len(header) >= V2_FIXED_BYTES and header.startswith(V2_SIGNATURE):
+        return V2_FIXED_BYTES + int.from_bytes(header[14:16], "big") - len(header)
+    return 1
+
+
+async def _peek(loop: asyncio.AbstractEventLoop, sock: socket.socket) -> bytes:
+    """The first byte waiting on ``sock``, left there (b"": the peer closed)."""
+    while True:
+        try:
+            return sock.recv(1, socket.MSG_PEEK)
+        except (BlockingIOError, InterruptedError):
+            pass
+        readable = loop.create_future()
+        loop.add_reader(sock.fileno(), lambda: readable.done() or readable.set_result(None))
+        try:
+            await readable
+        finally:
+            loop.remove_reader(sock.fileno())
 
 
 def _report_end(task: asyncio.Task) -> None:

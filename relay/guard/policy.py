@@ -123,11 +123,18 @@ def certificate_principal(peercert: Mapping | None) -> Principal | None:
     return Principal(Role.NODE, names[0]) if names else None
 
 
+def certificate_of(request: web.BaseRequest) -> Principal | None:
+    """The NODE of the client certificate the request's TLS connection verified, if any."""
+    transport = request.transport
+    return certificate_principal(transport.get_extra_info("peercert")) if transport is not None else None
+
+
 class Policy:
     """The credentials a relay takes and what each may do; counts refusals in ``refused``."""
 
     def __init__(self, token: str | None = None, viewer_tokens: Mapping[str, str] | None = None,
-                 node_tokens: Mapping[str, str] | None = None, refused: Counter | None = None) -> None:
+                 node_tokens: Mapping[str, str] | None = None, refused: Counter | None = None,
+                 certified: bool = False) -> None:
         self._by_token: list[tuple[bytes, Principal]] = []
         self._keys: dict[tuple[Role, str], bytes] = {}
         if token is not None:
@@ -140,6 +147,9 @@ class Policy:
         """Anyone may read (the loopback demo; :mod:`relay.guard.hostcheck` guards it then)."""
         self.ingest_open = self.reads_open and not node_tokens
         self.refused = refused if refused is not None else Counter()
+        self.certified = certified
+        """Nodes must present a client certificate the relay's ``--tls-client-ca`` signed, whose name
+        they stream under (the TLS layer verified it; a token presented beside it must not say otherwise)."""
 
     def _add(self, secret: str, principal: Principal) -> None:
         if any(hmac.compare_digest(secret.encode("utf-8", "surrogateescape"), known) for known, _ in self._by_token):
@@ -198,9 +208,24 @@ class Policy:
             return self.by_cookie(cookie), True
         if action is Action.INGEST and "token" in request.query:
             return self.by_token(request.query["token"]), True
-        transport = request.transport
-        cert = certificate_principal(transport.get_extra_info("peercert")) if transport is not None else None
+        cert = certificate_of(request)
         return cert, cert is not None
+
+    def _certified(self, cert: Principal | None, principal: Principal | None, presented: bool) -> Principal | Refusal:
+        """The verdict at ``/ingest`` when nodes must present a certificate (``certified``): the node the
+        certificate names, unless a token beside it is wrong, a viewer's, or another node's."""
+        if cert is None:
+            return Refusal(403, "forbidden: /ingest takes a client certificate signed by the relay's --tls-client-ca",
+                           "certificate_missing")
+        if principal is None and presented:
+            return Refusal(401, "unauthorized: wrong or expired credential", "credential_wrong")
+        if principal is not None and principal is not cert:
+            if principal.role is Role.VIEWER:
+                return Refusal(401, "unauthorized: a viewer's credential may not stream", "role")
+            if principal.role is Role.NODE and principal.name != cert.name:
+                return Refusal(403, f"forbidden: the certificate names node {cert.name!r}, the token {principal.name!r}",
+                               "role")
+        return cert
 
     def decide(self, principal: Principal | None, presented: bool, action: Action) -> Principal | Refusal:
         """What the policy says of ``principal`` (None: none or an invalid credential) asking for ``action``."""
@@ -225,7 +250,10 @@ class Policy:
     def check(self, request: web.Request, action: Action) -> Principal | Refusal:
         """:meth:`decide` for ``request``; a refusal is counted and logged (one line, no credential)."""
         principal, presented = self.principal_of(request, action)
-        verdict = self.decide(principal, presented, action)
+        if action is Action.INGEST and self.certified:
+            verdict = self._certified(certificate_of(request), principal, presented)
+        else:
+            verdict = self.decide(principal, presented, action)
         if isinstance(verdict, Refusal):
             self.refused[verdict.count] += 1
             log.info("access: %s %s from %s refused (%d): %s", request.method, request.path[:100], request.remote,

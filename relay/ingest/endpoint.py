@@ -2,8 +2,9 @@
 
 A node opens ``ws://HOST:PORT/ingest`` with ``Authorization: Bearer TOKEN`` (or ``?token=``)
 when the relay takes credentials: :mod:`relay.guard.policy` refuses one that may not stream with HTTP
-401 and its reason before the upgrade (a viewer's included), and binds a node's own to its name; a
-connection beyond the cap is refused too (503). Then, in the envelope of :mod:`probes.ship.envelope`:
+401 and its reason before the upgrade (a viewer's included), and binds a node's own to its name (with
+``--tls-client-ca``, the name its client certificate gives: 403 without one); a connection beyond the
+cap is refused too (503). Then, in the envelope of :mod:`probes.ship.envelope`:
 
 - ``hello`` {proto, run, header, lost, floor, ptp[, doubt]} -> reply {ok, run, session[, stored, clock_port,
   clock_key, clock_secret]}; ``stored``: which batches of ``doubt`` (sent, then evicted unacknowledged by the node) this

@@ -94,3 +94,14 @@ def test_bench_ui_starts_the_relay_of_this_benchmark_which_takes_32_nodes_and_th
     from benchmarks import bench_ui
 
     assert bench_ui.Relay is Relay
+
+
+def test_tls_quick_mode_prints_the_relay_cpu_over_plaintext_and_tls_and_their_ratio():
+    done = run_benchmark("bench_relay.py", "--quick", "--tls", timeout=180)
+    assert_ran(done)
+    (line,) = json_lines(done.stdout)
+    cost = line["tls_cost"]
+    for side in ("plain", "tls"):
+        assert cost[side]["events_in_window"] > 0 and cost[side]["relay_cpu_us_per_event"] > 0, cost
+    assert cost["ratio"] == round(cost["tls"]["relay_cpu_us_per_event"] / cost["plain"]["relay_cpu_us_per_event"], 3)
+    assert "TLS / plain within 1.15" in done.stdout

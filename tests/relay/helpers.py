@@ -51,12 +51,12 @@ class RelayProcess:
         self._log = open(self.log, "ab")
         self.proc = subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=self._log)
         line = _readline(self.proc, 30)
-        m = re.search(r"http://(\S+):(\d+)", line)
+        m = re.search(r"(https?)://(\S+):(\d+)", line)
         if not m:
             self.stop()
             raise RuntimeError(f"relay did not start: {line!r}; log: {self.log.read_text()[-2000:]}")
-        self.host, self.port = m.group(1).strip("[]"), int(m.group(2))
-        self.url = f"http://[{self.host}]:{self.port}" if ":" in self.host else f"http://{self.host}:{self.port}"
+        scheme, self.host, self.port = m.group(1), m.group(2).strip("[]"), int(m.group(3))
+        self.url = f"{scheme}://[{self.host}]:{self.port}" if ":" in self.host else f"{scheme}://{self.host}:{self.port}"
 
     def kill9(self) -> None:
         self.proc.send_signal(signal.SIGKILL)
@@ -131,11 +131,12 @@ def load_node(out: Path) -> tuple[TraceHeader, np.ndarray]:
     return TraceHeader.from_dict(json.loads(str(z["header"]))), z["events"]
 
 
-def get_json(url: str, token: str | None = None, timeout: float = 10):
+def get_json(url: str, token: str | None = None, timeout: float = 10, context=None):
+    """``context``: the SSLContext an https:// ``url`` is verified with."""
     req = urllib.request.Request(url)
     if token:
         req.add_header("Authorization", f"Bearer {token}")
-    with urllib.request.urlopen(req, timeout=timeout) as r:
+    with urllib.request.urlopen(req, timeout=timeout, context=context) as r:
         return json.loads(r.read())
 
 
@@ -219,10 +220,11 @@ class HandNode:
 
     @classmethod
     async def open(cls, url: str, node: str, run: str, token: str | None = None, stages: int = 1,
-                   secret: str | None = None, header: TraceHeader | None = None) -> "HandNode":
+                   secret: str | None = None, header: TraceHeader | None = None, ssl=None) -> "HandNode":
         """Say hello for ``run``, as ``node`` with ``header`` (by default that of a simulated node of
-        ``stages`` sources); resuming a run takes the ``secret`` its first hello was given."""
-        session = aiohttp.ClientSession()
+        ``stages`` sources); resuming a run takes the ``secret`` its first hello was given. ``ssl``:
+        the SSLContext of an https:// ``url``."""
+        session = aiohttp.ClientSession(connector=aiohttp.TCPConnector(ssl=ssl) if ssl is not None else None)
         acks: asyncio.Queue = asyncio.Queue()
         try:
             link = await Link.open(session, url, token, acks.put_nowait)

@@ -1,0 +1,70 @@
+"""TLS on the relay's port (``dcuscope relay --tls-cert FILE --tls-key FILE [--tls-client-ca FILE]``).
+
+:class:`ServerTls` holds the server's context; :meth:`ServerTls.reload` (SIGHUP) rereads the files,
+so a renewed certificate needs no restart: connections accepted after it get the new one, and a
+new file that cannot be loaded leaves the old context in place, said in one log line.
+:class:`~relay.guard.connections.ConnGuard` hands it each connection whose first byte is a TLS
+handshake's; anything else on that port is refused (``refused["plaintext"]``).
+
+With ``--tls-client-ca`` the context asks every client for a certificate (CERT_OPTIONAL: a browser
+that has none still gets the page and the API) and fails the handshake of one that CA did not sign;
+``/ingest`` then takes only connections that presented a verified one, and the node streams under
+the name it gives (:func:`relay.guard.policy.certificate_principal`: its first DNS subjectAltName, else its CN) only.
+"""
+
+from __future__ import annotations
+
+import logging
+import ssl
+from pathlib import Path
+
+from relay.errors import RelayError
+
+log = logging.getLogger(__name__)
+
+
+class ServerTls:
+    """The relay's TLS context, from PEM files (see the module docstring)."""
+
+    def __init__(self, cert: str | Path, key: str | Path, client_ca: str | Path | None = None) -> None:
+        self.cert, self.key = Path(cert), Path(key)
+        self.client_ca = Path(client_ca) if client_ca is not None else None
+        self.context = self._load()
+        """The context new connections are served with (replaced whole by :meth:`reload`)."""
+
+    @property
+    def verifies_clients(self) -> bool:
+        """Whether nodes must present a certificate ``client_ca`` signed."""
+        return self.client_ca is not None
+
+    def reload(self) -> bool:
+        """Reread the files; whether the new ones are in use (else the old context stays)."""
+        try:
+            context = self._load()
+        except RelayError as exc:
+            log.error("TLS: keeping the certificate in use: %s", exc)
+            return False
+        self.context = context
+        log.warning("TLS: certificate reread from %s", self.cert)
+        return True
+
+    def _load(self) -> ssl.SSLContext:
+        context = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+        context.minimum_version = ssl.TLSVersion.TLSv1_2
+        try:
+            context.load_cert_chain(self.cert, self.key)
+        except (OSError, ssl.SSLError) as exc:
+            raise RelayError(f"--tls-cert {self.cert} --tls-key {self.key}: {_reason(exc)}") from None
+        if self.client_ca is not None:
+            try:
+                context.load_verify_locations(cafile=self.client_ca)
+            except (OSError, ssl.SSLError) as exc:
+                raise RelayError(f"--tls-client-ca {self.client_ca}: {_reason(exc)}") from None
+            context.verify_mode = ssl.CERT_OPTIONAL
+        return context
+
+
+def _reason(exc: BaseException) -> str:
+    if isinstance(exc, ssl.SSLError):
+        return exc.reason or str(exc)
+    return getattr(exc, "strerror", None) or str(exc)
