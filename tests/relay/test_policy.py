@@ -213,3 +213,15 @@ def test_an_open_relay_lets_anyone_read_but_a_node_credential_still_may_not():
     assert not viewers_only.ingest_open and viewers_only.decide(None, False, Action.INGEST).status == 401
     demo = Policy()
     assert demo.decide(None, False, Action.READ).name == "" and demo.decide(None, True, Action.INGEST).name == ""
+
+
+def test_a_relay_that_certifies_nodes_takes_the_certificates_name_and_no_token_against_it():
+    policy = Policy(ADMIN, {"ann": VIEWER}, {"DCU-1": NODE}, certified=True)
+    cert = Principal(Role.NODE, "DCU-7")
+    assert policy._certified(None, policy.by_token(ADMIN), True).count == "certificate_missing"
+    assert policy._certified(cert, None, False) == cert  # the certificate alone is the credential
+    assert policy._certified(cert, policy.by_token(ADMIN), True) == cert  # the admin's token: bound to the certificate
+    assert policy._certified(cert, None, True).count == "credential_wrong"
+    assert policy._certified(cert, policy.by_token(VIEWER), True).count == "role"
+    other = policy._certified(cert, policy.by_token(NODE), True)
+    assert other.status == 403 and "'DCU-7'" in other.reason and "'DCU-1'" in other.reason
