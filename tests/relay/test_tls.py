@@ -111,8 +111,10 @@ def test_a_node_streams_over_tls_and_each_refusal_has_its_reason(relay, pki, tmp
     for s in flood:
         s.close()
     assert held["refused"]["peer_cap"] >= 2 * PER_PEER, held["refused"]
-    asyncio.run(oversize(relay.url, node_tls(pki, "dcu3").context()))
+    reply = asyncio.run(oversize(relay.url, node_tls(pki, "dcu3").context()))
     assert health(relay, pki)["rejected"] >= 1
+    # Over TLS the hello reply carries the UDP clock exchange's secret (tests/relay/test_clock_udp.py: none over ws).
+    assert len(bytes.fromhex(reply["clock_secret"])) == 32, reply
 
     async def refusals() -> dict[str, str]:
         stranger = node_tls(pki, "stranger")
@@ -129,6 +131,10 @@ def test_a_node_streams_over_tls_and_each_refusal_has_its_reason(relay, pki, tmp
 
     counters = finish_node(node, 60)
     assert counters["acked"] == counters["events"] and counters["lost"] == 0, counters
+    # Its clock samples came over UDP, tagged with that secret: the relay answered them all, found no bad tag.
+    assert counters["clock_via"] == "udp" and counters["clock_forged"] == 0, counters
+    udp = health(relay, pki)["clock_udp"]
+    assert udp["answered"] >= 16 and udp["bad_tag"] == 0, udp
     header, events = load_node(tmp_path / "good.npz")
     url = f"{relay.url}/api/stats?node=DCU-1"
     wait_for(lambda: get_json(f"{relay.url}/api/nodes", context=browser(pki))[0]["ended"], 10, what="the run's end")
@@ -152,14 +158,16 @@ async def as_another(url: str, context: ssl.SSLContext) -> str:
     return ""
 
 
-async def oversize(url: str, context: ssl.SSLContext) -> None:
-    """A binary frame over the relay's bound: the relay closes the connection (within 10 s)."""
+async def oversize(url: str, context: ssl.SSLContext) -> dict:
+    """A binary frame over the relay's bound: the relay closes the connection (within 10 s). The
+    relay's hello reply."""
     node = await HandNode.open(url, "DCU-3", "3" * 32, ssl=context)
     try:
         await node.link.send_batch(b"\0" * (MAX_MESSAGE_BYTES + 1))
         await asyncio.wait_for(node.link.closed(), 10)
     finally:
         await node.close()
+    return node.reply
 
 
 def _get_text(url: str, context: ssl.SSLContext) -> str:
