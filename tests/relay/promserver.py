@@ -37,11 +37,14 @@ def require_tool(name: str) -> str:
 
 
 def scrape_config(target: str, folder: Path, token: str | None, rule_files: list[Path], every_s: float,
-                  extra_jobs: list[dict] = ()) -> dict:
-    """A Prometheus configuration scraping ``target`` (host:port) as job ``dcuscope-relay``, and ``extra_jobs``."""
+                  extra_jobs: list[dict] = (), tls_ca: Path | None = None) -> dict:
+    """A Prometheus configuration scraping ``target`` (host:port) as job ``dcuscope-relay``, and ``extra_jobs``;
+    over HTTPS, verifying the relay's certificate against ``tls_ca``, where given."""
     every = f"{round(every_s * 1000)}ms"  # Prometheus' durations take no fractions
     job = {"job_name": JOB, "scrape_interval": every, "scrape_timeout": every,
            "static_configs": [{"targets": [target]}]}
+    if tls_ca is not None:
+        job.update(scheme="https", tls_config={"ca_file": str(tls_ca)})
     if token is not None:
         credentials = folder / "relay.token"
         credentials.write_text(token)
@@ -55,11 +58,12 @@ class PromServer:
     """``prometheus`` in a subprocess, ready (``/-/ready``) once constructed; :meth:`stop` ends it."""
 
     def __init__(self, folder: Path, target: str, token: str | None = None, rule_files: list[Path] = (),
-                 every_s: float = 1.0, extra_jobs: list[dict] = ()) -> None:
+                 every_s: float = 1.0, extra_jobs: list[dict] = (), tls_ca: Path | None = None) -> None:
         binary = require_tool("prometheus")
         folder.mkdir(parents=True, exist_ok=True)
         self.config = folder / "prometheus.yml"
-        self.config.write_text(yaml.safe_dump(scrape_config(target, folder, token, list(rule_files), every_s, list(extra_jobs))))
+        self.config.write_text(yaml.safe_dump(scrape_config(target, folder, token, list(rule_files), every_s, list(extra_jobs),
+                                                                   tls_ca)))
         self.log = folder / "prometheus.log"
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"

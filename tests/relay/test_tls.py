@@ -27,6 +27,8 @@ from tests.tlscerts import TestCA, served_serial
 HEADER_S = 1.0
 PER_PEER = 16
 """The relay's default connections_per_peer."""
+VIEWER = "viewer-token-0123456789"
+"""The module relay's viewer (--viewer-tokens): what browsers, the tests and Prometheus read with."""
 PROXY = "127.0.0.9"
 """The module relay's trusted proxy: its connections start with a PROXY header, then TLS."""
 
@@ -44,10 +46,12 @@ def pki(tmp_path_factory):
 def relay(pki, tmp_path_factory):
     """A relay that speaks TLS only and takes nodes with a certificate of ``pki``'s CA."""
     server = pki["server"]
+    viewers = tmp_path_factory.mktemp("viewers") / "viewers.txt"
+    viewers.write_text(f"prometheus {VIEWER}\n")
     proc = RelayProcess(tmp_path_factory.mktemp("tls") / "relay.db",
                         args=["--tls-cert", str(server.cert), "--tls-key", str(server.key),
                               "--tls-client-ca", str(pki["ca"].cert), "--limit", f"header_timeout_s={HEADER_S}",
-                              "--trusted-proxy", PROXY])
+                              "--trusted-proxy", PROXY, "--viewer-tokens", str(viewers)])
     yield proc
     proc.stop()
 
@@ -78,7 +82,7 @@ async def connect(url: str, tls: RelayTls) -> str:
 
 
 def health(relay: RelayProcess, pki) -> dict:
-    return get_json(f"{relay.url}/api/health", context=browser(pki))
+    return get_json(f"{relay.url}/api/health", VIEWER, context=browser(pki))
 
 
 def test_a_node_streams_over_tls_and_each_refusal_has_its_reason(relay, pki, tmp_path):
@@ -137,13 +141,13 @@ def test_a_node_streams_over_tls_and_each_refusal_has_its_reason(relay, pki, tmp
     assert udp["answered"] >= 16 and udp["bad_tag"] == 0, udp
     header, events = load_node(tmp_path / "good.npz")
     url = f"{relay.url}/api/stats?node=DCU-1"
-    wait_for(lambda: get_json(f"{relay.url}/api/nodes", context=browser(pki))[0]["ended"], 10, what="the run's end")
-    assert_stats_equal(node_stats(header, events), get_json(url, context=browser(pki)))
+    wait_for(lambda: get_json(f"{relay.url}/api/nodes", VIEWER, context=browser(pki))[0]["ended"], 10, what="the run's end")
+    assert_stats_equal(node_stats(header, events), get_json(url, VIEWER, context=browser(pki)))
 
     refused = health(relay, pki)["refused"]
     assert refused["plaintext"] >= 1 and refused["tls_timeout"] >= 1 and refused["tls_handshake"] >= 1, refused
     with pytest.raises(OSError):  # no certificate of the CA: no handshake
-        get_json(f"{relay.url}/api/health", context=ssl.create_default_context())
+        get_json(f"{relay.url}/api/health", VIEWER, context=ssl.create_default_context())
     metrics = _get_text(f"{relay.url}/metrics", browser(pki))
     assert f'dcuscope_relay_refused_total{{reason="plaintext"}} {refused["plaintext"]}' in metrics, metrics[-2000:]
 
@@ -172,7 +176,8 @@ async def oversize(url: str, context: ssl.SSLContext) -> dict:
 
 def _get_text(url: str, context: ssl.SSLContext) -> str:
     import urllib.request
-    with urllib.request.urlopen(url, timeout=10, context=context) as r:
+    request = urllib.request.Request(url, headers={"Authorization": f"Bearer {VIEWER}"})
+    with urllib.request.urlopen(request, timeout=10, context=context) as r:
         return r.read().decode()
 
 
@@ -183,7 +188,8 @@ def test_a_trusted_proxys_connection_carries_its_header_before_tls(relay, pki):
             raw.sendall(header)
             try:
                 with browser(pki).wrap_socket(raw, server_hostname="127.0.0.1") as tls:
-                    tls.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n\r\n")
+                    tls.sendall(b"GET /api/health HTTP/1.1\r\nHost: 127.0.0.1\r\nConnection: close\r\n"
+                                b"Authorization: Bearer " + VIEWER.encode() + b"\r\n\r\n")
                     status, body = read_http_answer(tls)
             except OSError:
                 return None
@@ -217,12 +223,12 @@ def test_failover_past_an_unknown_ca_and_a_renewed_certificate(relay, pki, tmp_p
         counters = json.loads(out.decode().strip().splitlines()[-1])
         assert counters["acked"] == counters["events"] and counters["lost"] == 0, counters
         header, events = load_node(tmp_path / "failover.npz")
-        run = wait_for(lambda: [r for r in get_json(f"{relay.url}/api/nodes", context=browser(pki))
+        run = wait_for(lambda: [r for r in get_json(f"{relay.url}/api/nodes", VIEWER, context=browser(pki))
                                 if r.get("run") == counters["run"] and r["ended"]], 10, what="the run on relay B")
         assert run, counters
         # Relay B's newest run of DCU-1 is this one: stored == sent.
         assert_stats_equal(node_stats(header, events), get_json(f"{relay.url}/api/stats?node=DCU-1",
-                                                                context=browser(pki)))
+                                                                VIEWER, context=browser(pki)))
         said = [line for line in stderr.splitlines() if a.url in line]
         assert len(said) == 1 and "failed verification" in said[0], stderr
         print("\nthe node said:", *said, sep="\n")
@@ -248,3 +254,26 @@ def test_failover_past_an_unknown_ca_and_a_renewed_certificate(relay, pki, tmp_p
         assert len([line for line in a.log.read_text().splitlines() if "keeping" in line]) == 1
     finally:
         a.stop()
+
+
+def test_prometheus_scrapes_metrics_over_https_with_a_viewers_bearer_token(relay, pki, tmp_path):
+    """Debian's Prometheus, configured as configs/prometheus/prometheus.yml's HTTPS job says (scheme
+    https, tls_config.ca_file, a viewer's token in credentials_file), scrapes the TLS relay; the same
+    job without the token is refused (401), and one over plain HTTP gets the relay's plaintext refusal."""
+    from tests.relay.promserver import JOB, PromServer
+
+    target = f"127.0.0.1:{relay.port}"
+    tls = {"scheme": "https", "tls_config": {"ca_file": str(pki["ca"].cert)}}
+    others = [{"job_name": "no-token", "static_configs": [{"targets": [target]}], **tls},
+              {"job_name": "plain-http", "static_configs": [{"targets": [target]}]}]
+    prom = PromServer(tmp_path / "prom", target, VIEWER, extra_jobs=others, tls_ca=pki["ca"].cert)
+    try:
+        health_of = wait_for(lambda: (h := {t["labels"]["job"]: t for t in prom.targets() if t["health"] != "unknown"})
+                             and len(h) == 3 and h, 20, 0.5, "every job scraped once")
+        assert health_of[JOB]["health"] == "up" and health_of[JOB]["scrapeUrl"].startswith("https://"), health_of[JOB]
+        assert health_of["no-token"]["health"] == "down" and "401" in health_of["no-token"]["lastError"], health_of
+        assert health_of["plain-http"]["health"] == "down" and "400" in health_of["plain-http"]["lastError"], health_of
+        events = prom.values(f'dcuscope_relay_events_total{{job="{JOB}"}}', "job")
+        assert events.get(JOB, 0) > 0, events  # the first test's node streamed through this relay
+    finally:
+        prom.stop()
