@@ -73,9 +73,25 @@ def create_sio(manager: socketio.AsyncManager | None = None) -> socketio.AsyncSe
     """The relay's Socket.IO server for browsers (attach it to the aiohttp app); ``manager``: its
     client manager (:mod:`relay.api.fanout`; None: python-socketio's in-process one)."""
     return socketio.AsyncServer(async_mode="aiohttp", serializer=JsonPacket, client_manager=manager,
-                                max_http_buffer_size=MAX_UI_MESSAGE_BYTES,
+                                max_http_buffer_size=MAX_UI_MESSAGE_BYTES, cors_allowed_origins=same_origin,
                                 logger=_quiet_logger("relay.sio"), engineio_logger=_quiet_logger("relay.eio"),
                                 ping_interval=10, ping_timeout=10)
+
+
+def same_origin(origin: str | None, environ: dict) -> bool:
+    """Whether a browser's ``Origin`` is the relay's own page: Engine.IO's default check, but over TLS
+    too (its aiohttp driver takes every request for ``http`` unless a proxy said ``X-Forwarded-Proto``,
+    so it refused the page of a relay serving HTTPS itself)."""
+    host = environ.get("HTTP_HOST")
+    if origin is None or host is None:
+        return False
+    request = environ.get("aiohttp.request")
+    scheme = "https" if request is not None and request.secure else environ.get("wsgi.url_scheme", "http")
+    allowed = {f"{scheme}://{host}"}
+    if "HTTP_X_FORWARDED_PROTO" in environ or "HTTP_X_FORWARDED_HOST" in environ:  # as Engine.IO's default
+        forwarded = environ.get("HTTP_X_FORWARDED_PROTO", scheme).split(",")[0].strip()
+        allowed.add(f"{forwarded}://{environ.get('HTTP_X_FORWARDED_HOST', host).split(',')[0].strip()}")
+    return origin in allowed
 
 
 @web.middleware

@@ -54,7 +54,7 @@ class RelayThread:
         self._thread.start()
         if not self._ready.wait(30) or self._error is not None:
             raise RuntimeError(f"relay did not start: {self._error!r}")
-        self.url = f"http://127.0.0.1:{self.port}"
+        self.url = f"{'https' if options.get('tls') else 'http'}://127.0.0.1:{self.port}"
 
     def _main(self) -> None:
         asyncio.run(self._serve())
@@ -130,10 +130,11 @@ class Feeder:
 
 def sim_nodes(url: str, tmp: Path, nodes: list[str], *, frames: int, sources: int, fps: float, paced: bool,
               token: str | None = None, offsets_ns: list[int] | None = None, seed: int = 0,
-              ptp_socket: Path | None = None, t0_ns: int | None = None) -> Feeder:
+              ptp_socket: Path | None = None, t0_ns: int | None = None, extra: list[str] = ()) -> Feeder:
     """``python -m probes.ship.simnode`` per node, each writing the events it shipped to ``tmp/NODE.npz``;
     ``ptp_socket``: the ptp4l socket the nodes read (a path where none is: no PTP, whatever the host runs);
-    ``t0_ns``: the true time of every node's frame 0 (default: each node's start + 0.2 s)."""
+    ``t0_ns``: the true time of every node's frame 0 (default: each node's start + 0.2 s); ``extra``: more
+    options of every node (``--relay-ca FILE``)."""
     feeder = Feeder("sim", nodes)
     for k, node in enumerate(nodes):
         out = tmp / f"{node}.npz"
@@ -148,6 +149,7 @@ def sim_nodes(url: str, tmp: Path, nodes: list[str], *, frames: int, sources: in
             cmd += ["--ptp-socket", str(ptp_socket)]
         if t0_ns is not None:
             cmd += ["--t0-ns", str(t0_ns)]
+        cmd += extra
         feeder.procs.append(subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE))
         feeder.outs.append(out)
     return feeder
@@ -218,3 +220,16 @@ def units_page(browser, db: Path):
     finally:
         page.close()
         relay.stop()
+
+
+def screenshot_with_address(page, path: Path, height: int = 34) -> None:
+    """``page``'s screenshot with a strip above it giving its address (``page.url``), as a browser's
+    address bar would: headless Chromium draws none."""
+    import cv2
+    import numpy as np
+
+    page.screenshot(path=str(path))
+    shot = cv2.imread(str(path))
+    strip = np.full((height, shot.shape[1], 3), 236, np.uint8)
+    cv2.putText(strip, page.url, (12, height - 11), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (40, 40, 40), 1, cv2.LINE_AA)
+    cv2.imwrite(str(path), np.vstack([strip, shot]))

@@ -1,12 +1,14 @@
-"""A relay that asks for a credential: the page shows its sign-in form, signs in with a session cookie
-(relay/guard/signin.py), never keeps a token in its address (also when opened with ?token=), and signs
-out in one click. Screenshots at 1280x800 go to build/screenshots (docs/signin.png and docs/signed-in.png
-are copies of them)."""
+"""A relay over HTTPS that asks for a credential: the page shows its sign-in form, signs in with a
+session cookie (relay/guard/signin.py; Secure, HttpOnly, SameSite=Strict), never keeps a token in its
+address (also when opened with ?token=), and signs out in one click. Screenshots at 1280x800, with the
+page's address drawn above, go to build/screenshots (docs/signin.png and docs/signed-in.png are copies)."""
 
 from __future__ import annotations
 
+from relay.guard.tls import ServerTls
 from tests.relay.helpers import wait_for
-from tests.ui.helpers import ROOT, RelayThread, sim_nodes
+from tests.tlscerts import TestCA
+from tests.ui.helpers import ROOT, RelayThread, screenshot_with_address, sim_nodes
 
 TOKEN = "tok-3f9a-admin-0123"
 VIEWER = "tok-viewer-0123456789"
@@ -19,18 +21,25 @@ def _frames(page, at_least: int) -> dict:
 
 
 def test_page_signs_in_with_its_form_and_keeps_no_token_in_its_address(browser, tmp_path):
-    relay = RelayThread(tmp_path / "relay.db", token=TOKEN, viewer_tokens={"ann": VIEWER})
+    ca = TestCA(tmp_path)
+    server = ca.issue("relay")
+    relay = RelayThread(tmp_path / "relay.db", token=TOKEN, viewer_tokens={"ann": VIEWER},
+                        tls=ServerTls(server.cert, server.key))
+    assert relay.url.startswith("https://")
     # Paced, 2 sources at 25 fps for 40 s: still streaming when the signed-in page is shot.
-    feeder = sim_nodes(relay.url, tmp_path, ["DCU-1"], frames=1000, sources=2, fps=25, paced=True, token=TOKEN)
+    feeder = sim_nodes(relay.url, tmp_path, ["DCU-1"], frames=1000, sources=2, fps=25, paced=True, token=TOKEN,
+                       extra=["--relay-ca", str(ca.cert)])
     SHOTS.mkdir(parents=True, exist_ok=True)
-    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    # Chromium does not know the test's CA: the page is served over TLS all the same.
+    context = browser.new_context(viewport={"width": 1280, "height": 800}, ignore_https_errors=True)
+    page = context.new_page()
     try:
         page.goto(relay.url + "/")
         page.wait_for_selector("#signin:not([hidden])", timeout=30000)
         assert page.locator("#signout").is_hidden()
         assert page.evaluate("window.dcuscope.debug().stores") == {}
         assert page.locator("#conn").inner_text() == "signed out"
-        page.screenshot(path=str(SHOTS / "signin.png"))
+        screenshot_with_address(page, SHOTS / "signin.png")
         shots = {"signin": page.url}
 
         page.fill("#signin-token", "not-the-token")
@@ -44,10 +53,13 @@ def test_page_signs_in_with_its_form_and_keeps_no_token_in_its_address(browser, 
         assert d["transport"] == "socket.io" and page.locator("#signin").is_hidden()
         assert "ann" in page.locator("#signout").get_attribute("title")
         page.wait_for_selector("#stats-body tr.bottleneck, #stats-body .bottleneck-reason", timeout=15000)
-        page.screenshot(path=str(SHOTS / "signed-in.png"))
+        screenshot_with_address(page, SHOTS / "signed-in.png")
         shots["signed-in"] = page.url
         assert all(url == relay.url + "/" for url in shots.values()), shots
         print("page.url of the screenshots:", shots)
+        cookie, = context.cookies()
+        assert cookie["secure"] and cookie["httpOnly"] and cookie["sameSite"] == "Strict", cookie
+        assert VIEWER not in cookie["value"] and TOKEN not in cookie["value"], cookie
 
         # Signing out is one click, and the form is back.
         page.click("#signout")
@@ -60,6 +72,6 @@ def test_page_signs_in_with_its_form_and_keeps_no_token_in_its_address(browser, 
         assert TOKEN not in page.evaluate("JSON.stringify([location.href, history.length, document.referrer])")
         page.wait_for_selector('#session-select option[value="1"]', state="attached", timeout=15000)
     finally:
-        page.close()
+        context.close()
         feeder.stop()
         relay.stop()
