@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import asyncio
 import itertools
+import json
 import re
 import time
 import urllib.error
@@ -76,9 +77,18 @@ def check_token(relays: str | Sequence[str], token: str | None, timeout_s: float
             urllib.request.urlopen(request, timeout=timeout_s, context=context).close()
         except urllib.error.HTTPError as exc:
             if exc.code == 401:
-                raise Refused(f"relay {url} refused the token (HTTP 401)") from None
+                raise Refused(f"relay {url} refused the token (HTTP 401{_said(exc)})") from None
         except (OSError, ValueError):
             pass
+
+
+def _said(exc: urllib.error.HTTPError) -> str:
+    """The relay's reason in a refusal's body (``{"error": ...}``), as ``": REASON"``; "" if none."""
+    try:
+        reason = json.loads(exc.read(2000)).get("error")
+    except (OSError, ValueError, AttributeError):
+        return ""
+    return f": {reason[:200]}" if isinstance(reason, str) and reason.isprintable() else ""
 
 
 class Link:

@@ -404,6 +404,7 @@ class _Guarded(asyncio.Protocol):
                     return  # closed without a byte: a TCP health check
                 if first[0] != TLS_HANDSHAKE:
                     self.guard.refused["plaintext"] += 1
+                    log.info("refused a plaintext request from %s: this port speaks HTTPS only", self._who())
                     try:
                         sock.send(PLAINTEXT_REPLY)
                     except OSError:
@@ -417,12 +418,17 @@ class _Guarded(asyncio.Protocol):
             if why == "proxy_header":
                 log.warning("closing a connection from trusted proxy %s: no complete PROXY header within %g s",
                             self.via, limit)
+            else:
+                log.info("closed a connection from %s: no TLS handshake within %g s", self._who(), limit)
             self.guard.refused[why] += 1
         except ProxyHeaderError as exc:
             self.guard.refused["proxy_header"] += 1
             log.warning("closing a connection from trusted proxy %s: %s", self.via, exc)
-        except (OSError, ssl.SSLError):  # a failed handshake, or the peer left
+        except (OSError, ssl.SSLError) as exc:  # a failed handshake, or the peer left
             self.guard.refused["tls_handshake"] += 1
+            reason = getattr(exc, "reason", None) if isinstance(exc, ssl.SSLError) else None
+            reason = reason or "the client ended it (does it trust this relay's certificate?)"
+            log.info("TLS handshake with %s failed: %s", self._who(), reason)
         finally:
             self.opening = None
             if self.transport is None:  # never handshaken: aiohttp never saw it
@@ -430,6 +436,10 @@ class _Guarded(asyncio.Protocol):
                 if not handed:
                     sock.close()
                 self.guard._closed(self)
+
+    def _who(self) -> str:
+        """The client's address, as the log names it (a proxied client's, once its header named it)."""
+        return self.peer or self.via or "?"
 
     async def _read_proxy_header(self, loop: asyncio.AbstractEventLoop, sock: socket.socket) -> bool:
         """Consume exactly the PROXY header (the TLS bytes after it stay in the socket) and admit

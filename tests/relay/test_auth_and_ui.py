@@ -160,7 +160,8 @@ def test_a_node_with_a_wrong_token_exits_non_zero_with_one_line(tmp_path):
     finally:
         relay.stop()
     assert result.returncode == 2, result.stderr
-    assert result.stderr.strip().splitlines() == [f"dcuscope: error: relay {relay.url} refused the token (HTTP 401)"]
+    assert result.stderr.strip().splitlines() == [f"dcuscope: error: relay {relay.url} refused the token "
+                                                   "(HTTP 401: unauthorized: wrong or expired credential)"]
 
 
 def test_a_browser_may_subscribe_as_it_connects_and_a_malformed_wish_is_refused(tmp_path):
