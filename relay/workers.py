@@ -4,8 +4,8 @@ Each worker is a whole relay (``dcuscope relay`` again, with ``--reuse-port``): 
 new connections over them (SO_REUSEPORT), and since any relay may take any node of a shared store
 (:mod:`relay.store.postgres`), nothing else is shared between them. Each answers UDP clock
 exchanges on a port of its own (the clock port + its index), which it hands its nodes at hello.
-This process only starts them, passes SIGINT/SIGTERM on, and restarts none: a worker that dies
-leaves its nodes to reconnect to the others.
+This process only starts them, passes SIGINT/SIGTERM on (and SIGHUP: reread the TLS certificate),
+and restarts none: a worker that dies leaves its nodes to reconnect to the others.
 """
 
 from __future__ import annotations
@@ -35,15 +35,15 @@ def worker_argv(argv: list[str], index: int, clock_port: int) -> list[str]:
 
 
 def run_workers(argv: list[str], workers: int, clock_port: int) -> int:
-    """Run ``workers`` relays until SIGINT/SIGTERM (passed on); the worst exit status."""
+    """Run ``workers`` relays until SIGINT/SIGTERM (passed on, as SIGHUP is); the worst exit status."""
     procs = [subprocess.Popen(worker_argv(argv, i, clock_port)) for i in range(workers)]
 
-    def stop(signum: int, _frame) -> None:
+    def pass_on(signum: int, _frame) -> None:
         for p in procs:
             if p.poll() is None:
                 p.send_signal(signum)
 
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, stop)
+    for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, pass_on)
     codes = [p.wait() for p in procs]
     return max(codes, key=abs)
