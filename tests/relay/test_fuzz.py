@@ -15,20 +15,24 @@ from tests.relay.helpers import RelayProcess, assert_stats_equal, finish_node, g
 
 PAYLOADS = 5_000
 UI_PAYLOADS = 500
+UI_WORKERS = 32
+"""Each garbage packet the relay leaves open costs its connection fuzz_ui's 0.3 s wait: 32 at once."""
+NODE_FRAMES = 750
+"""The good node's run: 15 s at 50 fps, longer than the two fuzzers take (about 10 s)."""
 
 
 @pytest.mark.long
 def test_fuzz_while_a_node_streams(tmp_path):
-    # 16 fuzzing workers and the good node share one address: above the default per-peer cap.
+    # 16 ingest fuzzers, then 32 UI ones, and the good node share one address: above the default per-peer cap.
     relay = RelayProcess(tmp_path / "relay.db", token="t0k", args=["--limit", "connections_per_peer=64"])
     try:
-        node = start_node(relay.url, "good", tmp_path / "good.npz", frames=1000, sources=2, fps=50, paced=True,
+        node = start_node(relay.url, "good", tmp_path / "good.npz", frames=NODE_FRAMES, sources=2, fps=50, paced=True,
                           drop_rate=0.01, token="t0k")
         started = time.monotonic()
         report = asyncio.run(fuzz(relay.url, PAYLOADS, token="t0k", workers=16, timeout=5.0))
         elapsed = time.monotonic() - started
         streaming = node.poll() is None
-        ui_kinds = asyncio.run(fuzz_ui(relay.url, UI_PAYLOADS, token="t0k"))
+        ui_kinds = asyncio.run(fuzz_ui(relay.url, UI_PAYLOADS, token="t0k", workers=UI_WORKERS))
         assert relay.alive()
         counters = finish_node(node, 120)
 
