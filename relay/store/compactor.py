@@ -126,7 +126,8 @@ class Compactor:
 
     def view(self) -> dict:
         running = self.proc is not None and self.proc.poll() is None
-        return {"after_s": self.after_s, "every_s": self.every_s, "rollups_within_s": rollups_within_s(self.after_s, self.live_wait_s),
+        return {"after_s": self.after_s, "every_s": self.every_s,
+                "rollups_within_s": rollups_within_s(self.after_s, self.live_wait_s),
                 "pid": self.proc.pid if self.proc else None,
                 "running": running, "passes": 0, **Compacted().to_dict(), **self.last}
 
