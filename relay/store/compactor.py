@@ -13,12 +13,16 @@ on stdin (the store's URL may hold a password: not on a command line) and keeps 
 child stops when it closes, so a relay killed outright takes its compactor with it. The child
 prints one JSON line of its totals after each pass, which :meth:`Compactor.view` shows in
 ``/api/health``; it logs to the relay's stderr. SIGTERM stops it after the range being moved.
+
+For tests only, ``DCUSCOPE_TEST_LIVE_WAIT_S`` in the relay's environment replaces LIVE_WAIT_S: with a
+short ``--compact-after`` it has a live run's rollups come in seconds, not in a minute and a half.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import os
 import signal
 import subprocess
 import sys
@@ -38,6 +42,7 @@ what waited meanwhile)."""
 MIN_EVERY_S = 0.5
 STOP_S = 30.0
 """How long a stopping relay waits for its compactor to finish the range it is moving."""
+TEST_LIVE_WAIT_ENV = "DCUSCOPE_TEST_LIVE_WAIT_S"
 
 log = logging.getLogger(__name__)
 
@@ -48,12 +53,17 @@ def pass_every_s(after_s: float) -> float:
     return min(COMPACT_EVERY_S, max(after_s / 2, MIN_EVERY_S))
 
 
-def rollups_within_s(after_s: float) -> float:
+def live_wait_s() -> float:
+    """LIVE_WAIT_S, unless a test set TEST_LIVE_WAIT_ENV."""
+    return float(os.environ.get(TEST_LIVE_WAIT_ENV, LIVE_WAIT_S))
+
+
+def rollups_within_s(after_s: float, live_wait: float = LIVE_WAIT_S) -> float:
     """How long after a run's start its first rollups are written, at most (the compaction process
     starts ``after_s`` after the relay, a run's first batch comes due ``after_s`` after it was stored
-    and, the run going on, is compacted at the first pass once it waited LIVE_WAIT_S): 90 s with
+    and, the run going on, is compacted at the first pass once it waited ``live_wait``): 90 s with
     the default ``--compact-after``, and then as often as the relay compacts it."""
-    return max(after_s, LIVE_WAIT_S) + pass_every_s(after_s)
+    return max(after_s, live_wait) + pass_every_s(after_s)
 
 
 class Compactor:
@@ -62,6 +72,7 @@ class Compactor:
     def __init__(self, db: str | Path, after_s: float, name: str = "") -> None:
         self.db, self.after_s, self.name = db, after_s, name
         self.every_s = pass_every_s(after_s)
+        self.live_wait_s = live_wait_s()
         self.last: dict = {}
         self.proc: subprocess.Popen | None = None
         self._reader: threading.Thread | None = None
@@ -83,7 +94,7 @@ class Compactor:
             self.proc = subprocess.Popen([sys.executable, "-m", "relay.store.compactor"], stdin=subprocess.PIPE,
                                          stdout=subprocess.PIPE, text=True)
         self.proc.stdin.write(json.dumps({"db": str(self.db), "after_s": self.after_s, "every_s": self.every_s,
-                                          "name": self.name}) + "\n")
+                                          "live_wait_s": self.live_wait_s, "name": self.name}) + "\n")
         self.proc.stdin.flush()
         self._reader = threading.Thread(target=self._read, name="dcuscope-relay-compact", daemon=True)
         self._reader.start()
@@ -115,7 +126,8 @@ class Compactor:
 
     def view(self) -> dict:
         running = self.proc is not None and self.proc.poll() is None
-        return {"after_s": self.after_s, "every_s": self.every_s, "rollups_within_s": rollups_within_s(self.after_s),
+        return {"after_s": self.after_s, "every_s": self.every_s,
+                "rollups_within_s": rollups_within_s(self.after_s, self.live_wait_s),
                 "pid": self.proc.pid if self.proc else None,
                 "running": running, "passes": 0, **Compacted().to_dict(), **self.last}
 
@@ -123,8 +135,10 @@ class Compactor:
 class Passes:
     """The child's loop: a pass now, then every ``every_s`` until ``stop`` is set."""
 
-    def __init__(self, db: str, after_s: float, every_s: float, name: str, stop: threading.Event) -> None:
+    def __init__(self, db: str, after_s: float, every_s: float, name: str, stop: threading.Event,
+                 live_wait: float = LIVE_WAIT_S) -> None:
         self.db, self.after_s, self.every_s, self.name, self.stop = db, after_s, every_s, name, stop
+        self.live_wait = live_wait
         self.done = Compacted()
         self.passes = 0
         self.failing: str | None = None
@@ -146,7 +160,7 @@ class Passes:
                 self._database = open_database(self.db, name=self.name)  # the relay's: one relay in /api/health
             now = time.time_ns()
             done = compact(self._database, now - int(self.after_s * 1e9), stop=self.stop.is_set,
-                           waited_ns=now - int(LIVE_WAIT_S * 1e9))
+                           waited_ns=now - int(self.live_wait * 1e9))
             self._database.give_back_space()
         except RelayError as exc:  # the store failed (StoreUnavailable is one): next pass, on a new connection
             if self.failing is None:
@@ -191,7 +205,8 @@ def main() -> int:
         stop.set()
 
     threading.Thread(target=parent_gone, daemon=True).start()
-    Passes(settings["db"], float(settings["after_s"]), float(settings["every_s"]), settings.get("name", ""), stop).run()
+    Passes(settings["db"], float(settings["after_s"]), float(settings["every_s"]), settings.get("name", ""), stop,
+           float(settings.get("live_wait_s", LIVE_WAIT_S))).run()
     return 0
 
 

@@ -105,6 +105,11 @@ class Case:
             (True, "hello-twice", lambda: [_msg("hello", self.hello())]),
         ]
 
+    @staticmethod
+    def kinds() -> set[str]:
+        """Every kind of misbehaviour a case may pick."""
+        return {kind for _, kind, _ in Case(random.Random(0), uuid.UUID(int=0).hex, "fuzz")._choices()}
+
     def hello(self) -> dict:
         hello = {"proto": V, "run": self.run, "header": header_for(self.node, 2).to_dict(), "lost": 0}
         if self.secret is not None:
