@@ -62,10 +62,10 @@ produce is ``"n/a (reason)"`` in the JSON, ``n/a [k]`` with its reason below in 
         [--rate 4300] [--seconds 12] [--watch N] [--workers] [--lag-only | --bulk-only] [--pg-not-durable] [--quick]
 
 ``--tls`` measures what TLS costs the relay instead: for each store and node count, N nodes paced at
-``--rate`` stream for ``--seconds`` to one relay over plaintext, then as long to a fresh relay over
+``--rate`` stream for ``--seconds`` to one relay over plaintext, and as long to a fresh relay over
 TLS (``--tls-cert``, a certificate of a CA made for the run, tests/tlscerts.py; the nodes verify it
-with ``--relay-ca``), no browser; relay CPU per event received on each, and their ratio (the goal:
-within 1.15x).
+with ``--relay-ca``), no browser, ``--repeats`` rounds in alternating order; relay CPU per event
+received on each (the median of its rounds), and their ratio (the goal: within 1.15x).
 """
 
 from __future__ import annotations
@@ -77,6 +77,7 @@ import os
 import re
 import resource
 import ssl
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -495,9 +496,11 @@ def measure_lag(relay: Relay | Sequence[Relay], n: int, rate: float, seconds: fl
             "client_cpu_pct": round(100 * client_cpu / wall), "relay_cpu_pct_each": each}
 
 
-def tls_cost(n: int, rate: float, seconds: float, stores: Stores, store: str) -> dict:
-    """Relay CPU per event of ``n`` nodes paced at ``rate``, over plaintext and over TLS (each on a
-    fresh relay and store, one after the other), and the ratio TLS / plaintext."""
+def tls_cost(n: int, rate: float, seconds: float, stores: Stores, store: str, repeats: int = 3) -> dict:
+    """Relay CPU per event of ``n`` nodes paced at ``rate``, over plaintext and over TLS, each on a
+    fresh relay and store; ``repeats`` rounds, the order alternating (plain then TLS, TLS then plain,
+    ...) so that a machine getting busier or quieter weighs on both sides alike. Each side's figure
+    is the median of its rounds; the ratio TLS / plaintext is of the medians."""
     from tests.tlscerts import TestCA
 
     ca = TestCA(stores.tmp, f"pki{stores.fresh_count()}")
@@ -505,19 +508,28 @@ def tls_cost(n: int, rate: float, seconds: float, stores: Stores, store: str) ->
     ways = {"plain": ((), (), None),
             "tls": (("--tls-cert", str(server.cert), "--tls-key", str(server.key)), ("--relay-ca", str(ca.cert)),
                     ssl.create_default_context(cafile=str(ca.cert)))}
-    result: dict = {"rate_per_node": rate, "seconds": seconds}
-    for name, (relay_args, node_args, context) in ways.items():
-        db = stores.fresh(store)
-        relay = None
-        try:
-            relay = Relay(db, relay_args, context=context)
-            result[name] = measure_paced_cpu(relay, n, rate, seconds, node_args)
-        except CannotRun as exc:
-            result[name] = NA(str(exc))
-        finally:
-            if relay is not None:
-                relay.stop()
-            stores.done(store, db)
+    result: dict = {"rate_per_node": rate, "seconds": seconds, "repeats": repeats}
+    runs: dict[str, list] = {"plain": [], "tls": []}
+    for round_ in range(repeats):
+        for name in ("plain", "tls") if round_ % 2 == 0 else ("tls", "plain"):
+            relay_args, node_args, context = ways[name]
+            db = stores.fresh(store)
+            relay = None
+            try:
+                relay = Relay(db, relay_args, context=context)
+                runs[name].append(measure_paced_cpu(relay, n, rate, seconds, node_args))
+            except CannotRun as exc:
+                runs[name].append(NA(str(exc)))
+            finally:
+                if relay is not None:
+                    relay.stop()
+                stores.done(store, db)
+    for name, measured in runs.items():
+        failed = [m for m in measured if isinstance(m, NA)]
+        result[name] = failed[0] if failed else {
+            "events_in_window": sum(m["events_in_window"] for m in measured),
+            "rounds_us_per_event": [m["relay_cpu_us_per_event"] for m in measured],
+            "relay_cpu_us_per_event": round(statistics.median(m["relay_cpu_us_per_event"] for m in measured), 2)}
     plain, tls = (_figure(result, name, "relay_cpu_us_per_event") for name in ("plain", "tls"))
     result["ratio"] = (round(tls / plain, 3) if not isinstance(plain, NA) and not isinstance(tls, NA) and plain > 0
                        else NA("a side has no figure"))
@@ -565,8 +577,8 @@ def tls_table(lines: list[dict]) -> list[str]:
                     f"{notes.cell(_cost(line, 'tls'), '.1f'):>10} "
                     f"{notes.cell(_figure(line, 'tls_cost', 'ratio'), '.3f'):>8}")
     legend = (f"µs/event: relay CPU per event received, nodes paced at {lines[0]['tls_cost']['rate_per_node']:g} "
-              "events/s each, no browser; over plaintext, then over TLS (a fresh relay each); goal: TLS / plain "
-              "within 1.15") if lines and not isinstance(lines[0]["tls_cost"], NA) else "µs/event: relay CPU per event"
+              f"events/s each, no browser; over plaintext and over TLS (a fresh relay each), "
+              f"median of {lines[0]['tls_cost']['repeats']} rounds in alternating order; goal: TLS / plain within 1.15") if lines and not isinstance(lines[0]["tls_cost"], NA) else "µs/event: relay CPU per event"
     return rows + [legend] + notes.lines()
 
 
@@ -708,9 +720,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--tls", action="store_true",
                    help="instead of the phases above: relay CPU per paced event over plaintext and over TLS, side by "
                         "side, and their ratio (one relay; each --store and --nodes)")
+    p.add_argument("--repeats", type=int, default=3, metavar="N",
+                   help="with --tls: rounds of each side, in alternating order; the medians are compared (default 3; "
+                        "--quick: 1)")
     args = p.parse_args(argv)
     if args.quick:
-        args.nodes, args.events, args.seconds = [2], 100_000, 1.0
+        args.nodes, args.events, args.seconds, args.repeats = [2], 100_000, 1.0, 1
+    if args.repeats < 1:
+        p.error("--repeats takes 1 or more")
     stores = _choices(args.store or ["sqlite"], STORES, str, "--store", p)
     relay_counts = _choices(args.relays or ["1"], None, int, "--relays", p)
     settings = _choices(args.settings or list(SETTINGS), SETTINGS, str, "--settings", p)
@@ -734,7 +751,7 @@ def main(argv: list[str] | None = None) -> int:
                     for n in args.nodes:
                         lines.append({"store": store, "relays": 1, "nodes": n, "cpus": os.cpu_count(),
                                       "load_before": round(os.getloadavg()[0], 1),
-                                      "tls_cost": tls_cost(n, args.rate, args.seconds, rig, store)})
+                                      "tls_cost": tls_cost(n, args.rate, args.seconds, rig, store, args.repeats)})
                         print(dumps(lines[-1]), flush=True)
                     continue
                 for relays in relay_counts:
