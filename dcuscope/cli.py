@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import importlib.metadata
 import sys
 import tomllib
@@ -16,7 +17,7 @@ from dcuscope.shipcommand import add_ship_parser
 from dcuscope.traceapp import add_trace_parser
 from dcuscope.tracecommands import add_export_parser, add_stats_parser
 from probes.clocks.sysclock import DEFAULT_UDS
-from probes.ship.nodetls import add_tls_arguments
+from probes.ship.nodetls import TOKEN_ENV, add_tls_arguments
 from relay.commands import add_relay_parser
 
 DESCRIPTION = """\
@@ -101,7 +102,8 @@ def build_parser() -> argparse.ArgumentParser:
     probes.add_argument("--relay", metavar="URL[,URL...]",
                         help="stream probe events to a relay, e.g. http://127.0.0.1:3000; several, comma-separated "
                              "(sharing one database): the node moves to the next when its relay cannot be reached")
-    probes.add_argument("--token", metavar="TOKEN", help="token the relay asks for")
+    probes.add_argument("--token", metavar="TOKEN", default=os.environ.get(TOKEN_ENV),
+                        help=f"the credential the relay asks for (default ${TOKEN_ENV}, which keeps it out of process listings)")
     add_tls_arguments(probes)
     probes.add_argument("--close-timeout", type=_positive_float, default=CLOSE_TIMEOUT_S, metavar="S",
                         help="at the end of the run, keep trying every --relay for up to S seconds until all that "

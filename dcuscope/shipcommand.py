@@ -6,13 +6,14 @@ lossless, acknowledged, resumable protocol and clock exchange as ``dcuscope run 
 from __future__ import annotations
 
 import argparse
+import os
 import signal
 import threading
 from pathlib import Path
 
 from core import signals
 from core.errors import DcuscopeError
-from probes.ship.nodetls import add_tls_arguments, tls_from_args
+from probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
 
 
 def add_ship_parser(sub) -> None:
@@ -28,7 +29,8 @@ def add_ship_parser(sub) -> None:
     p.add_argument("trace", type=Path, metavar="TRACE", help="the trace file being written")
     p.add_argument("--relay", required=True, metavar="URL[,URL...]",
                    help="the relay, http://HOST:PORT; or several, comma-separated, tried in turn")
-    p.add_argument("--token", help="the relay's node token, if it asks for one")
+    p.add_argument("--token", default=os.environ.get(TOKEN_ENV),
+                   help=f"the relay's node token, if it asks for one (default ${TOKEN_ENV})")
     add_tls_arguments(p)
     p.add_argument("--node", help="the node's name on the relay (default: the trace's)")
     p.add_argument("--settle", type=float, default=1.0, metavar="S",

@@ -26,7 +26,7 @@ import threading
 from pathlib import Path
 
 from core.errors import DcuscopeError
-from probes.ship.nodetls import add_tls_arguments, tls_from_args
+from probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
 
 EPILOG = """\
 examples:
@@ -60,7 +60,8 @@ def add_trace_parser(sub) -> None:
     p.add_argument("-o", "--output", type=Path, metavar="TRACE", help="the trace file (default NODE.trace.jsonl)")
     p.add_argument("--relay", metavar="URL[,URL...]", help="ship the trace live to this relay (several, comma-separated: "
                                                           "the next when one cannot be reached)")
-    p.add_argument("--token", metavar="TOKEN", help="the relay's node token, if it asks for one")
+    p.add_argument("--token", metavar="TOKEN", default=os.environ.get(TOKEN_ENV),
+                   help=f"the relay's node token, if it asks for one (default ${TOKEN_ENV})")
     add_tls_arguments(p)
     p.add_argument("--quiet", "-q", action="store_true", help="no summary when CMD ends (the trace is still written)")
     p.add_argument("command", nargs=argparse.REMAINDER, metavar="CMD", help="the program and its arguments, after --")

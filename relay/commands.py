@@ -9,6 +9,7 @@ import sys
 
 from core.ports import check_port_free
 from relay.clock.correction import CLOCK_MODES
+from probes.ship.nodetls import TOKEN_ENV
 from relay.errors import RelayError
 from relay.live.framelimits import FrameLimits
 from relay.export.otlpconfig import DEFAULT_EVERY, DEFAULT_QUEUE, DEFAULT_TIMEOUT_S, OtlpConfig, otlp_config
@@ -20,7 +21,6 @@ from relay.store.engines import is_url
 from relay.store.retention import parse_retention
 from relay.workers import run_workers
 
-TOKEN_ENV = "DCUSCOPE_TOKEN"
 MAX_COMPACT_AFTER_S = 7 * 86_400.0
 
 

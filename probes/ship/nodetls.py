@@ -17,6 +17,10 @@ from dataclasses import dataclass
 
 from probes.ship.errors import ExportError
 
+TOKEN_ENV = "DCUSCOPE_TOKEN"
+"""The environment variable a node's ``--token`` (and the relay's) defaults to: a secret given on a
+command line is in every process listing."""
+
 
 @dataclass(frozen=True)
 class RelayTls:

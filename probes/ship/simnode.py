@@ -15,6 +15,7 @@ to ``--out`` (.npz with the header) so a test can compute ``node_stats`` over ex
 from __future__ import annotations
 
 import argparse
+import os
 import json
 import sys
 import time
@@ -23,7 +24,7 @@ import numpy as np
 
 from core.clocks import PretendClock
 from probes.clocks.sysclock import DEFAULT_UDS
-from probes.ship.nodetls import add_tls_arguments, tls_from_args
+from probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
 from probes.ship.relayexport import RelayExporter
 from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
 
@@ -101,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m probes.ship.simnode", description=__doc__.splitlines()[0])
     p.add_argument("--relay", required=True)
     p.add_argument("--node", required=True)
-    p.add_argument("--token")
+    p.add_argument("--token", default=os.environ.get(TOKEN_ENV))
     add_tls_arguments(p)
     p.add_argument("--sources", type=int, default=2)
     p.add_argument("--fps", type=float, default=25.0, help="frames per second per source")
