@@ -43,8 +43,7 @@ def add_signin_routes(app: web.Application, policy: Policy) -> None:
             policy.refused[refusal.count] += 1
             raise http_error(web.HTTPUnauthorized if refusal.status == 401 else web.HTTPForbidden, refusal.reason)
         response = web.Response(status=204)
-        response.set_cookie(COOKIE, policy.cookie_for(principal), max_age=COOKIE_LIFETIME_S, path="/",
-                            httponly=True, samesite="Strict", secure=request.secure)
+        _sign_in(response, request, policy, principal)
         return response
 
     async def sign_out(request: web.Request) -> web.Response:
@@ -66,11 +65,16 @@ def from_address(request: web.Request, policy: Policy) -> None:
     principal = policy.by_token(request.query["token"])
     verdict = policy.decide(principal, True, Action.READ)
     if isinstance(verdict, Principal) and verdict.name and verdict.role is not Role.NODE:
-        response.set_cookie(COOKIE, policy.cookie_for(verdict), max_age=COOKIE_LIFETIME_S, path="/",
-                            httponly=True, samesite="Strict", secure=request.secure)
+        _sign_in(response, request, policy, verdict)
     elif not policy.reads_open or principal is not None:
         policy.refused["credential_wrong" if principal is None else "role"] += 1
     raise response
+
+
+def _sign_in(response: web.StreamResponse, request: web.Request, policy: Policy, principal: Principal) -> None:
+    """Set the session cookie that signs ``principal`` in (Secure when ``request`` came over TLS)."""
+    response.set_cookie(COOKIE, policy.cookie_for(principal), max_age=COOKIE_LIFETIME_S, path="/",
+                        httponly=True, samesite="Strict", secure=request.secure)
 
 
 def _same_site(request: web.Request) -> None:

@@ -11,6 +11,7 @@ import shutil
 import signal
 import socket
 import ssl
+import urllib.request
 
 import aiohttp
 import pytest
@@ -175,7 +176,6 @@ async def oversize(url: str, context: ssl.SSLContext) -> dict:
 
 
 def _get_text(url: str, context: ssl.SSLContext) -> str:
-    import urllib.request
     request = urllib.request.Request(url, headers={"Authorization": f"Bearer {VIEWER}"})
     with urllib.request.urlopen(request, timeout=10, context=context) as r:
         return r.read().decode()
