@@ -10,6 +10,7 @@ import subprocess
 import sys
 
 import pytest
+from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
 from probes.capture.native import build
 from tests.conftest import run_cli
@@ -111,6 +112,9 @@ def test_the_page_says_where_frame_lineage_stops(browser, tmp_path):
                           "video/x-raw,width=160,height=120", "!", "gdppay", "!", "gdpdepay", "!", "videoconvert", "!",
                           "fakesink"], env=genv, capture_output=True, text=True, timeout=60)
     page = browser.new_page(viewport={"width": 1400, "height": 1100})
+    said: list[str] = []
+    page.on("pageerror", lambda e: said.append(str(e)))
+    page.on("console", lambda m: m.type == "error" and said.append(m.text))
     try:
         assert app.returncode == 0, app.stderr
         ship = subprocess.run([sys.executable, "-m", "dcuscope.cli", "ship", str(trace), "--relay", relay.url,
@@ -120,7 +124,15 @@ def test_the_page_says_where_frame_lineage_stops(browser, tmp_path):
         assert node["lineage_unknown"] == ["gdppay0"] and node["sources"] == {"0": "videotestsrc0", "1": "gdpdepay0"}
         page.goto(relay.url + "/")
         badge = page.locator('.stats-node[data-node="GDP"] tr[data-stage="gdppay0"] .badge.lineage')
-        badge.wait_for(timeout=30_000)
+        try:
+            badge.wait_for(timeout=30_000)
+        except PlaywrightTimeout:  # say what the page held instead
+            held = page.evaluate("window.dcuscope ? (({stats, nodes, opened, subscription, transport}) => ({"
+                                 "stats: Object.keys(stats), nodes: nodes.map((n) => [n.node, n.lineage_unknown]), "
+                                 "opened, subscription, transport}))(window.dcuscope.debug()) "
+                                 ": `no script: ${document.body.innerText.slice(0, 300)}`")
+            raise AssertionError(f"no lineage badge on GDP's gdppay0 row; the page held {held}; "
+                                 f"its errors: {said}") from None
         assert badge.inner_text() == "lineage stops" and "cannot be followed" in badge.get_attribute("title")
         assert page.locator('.stats-node[data-node="GDP"] .badge.lineage').count() == 1
     finally:
