@@ -23,4 +23,4 @@ bench: setup
 	$(PY) benchmarks/bench_probes.py
 
 clean:
-	rm -rf .venv probes/capture/_build ui/node_modules ui/static/vendor .pytest_cache
+	rm -rf .venv probes/capture/_build ui/node_modules ui/static/vendor .pytest_cache build dist

@@ -1,7 +1,7 @@
 """Clock estimator benchmark: the relay's correction against an injected truth, UDP vs WebSocket.
 
-Each case runs a relay (``python -m relay --clock estimate``) and a simulated node
-(``python -m probes.ship.simnode --paced``) whose pretend clock is off by OFFSET and runs DRIFT ppm
+Each case runs a relay (``python -m dcuscope.relay --clock estimate``) and a simulated node
+(``python -m dcuscope.probes.ship.simnode --paced``) whose pretend clock is off by OFFSET and runs DRIFT ppm
 fast from a start the benchmark fixes (``--clock-start-ns``), so that the true offset at any
 moment is known: true(t) = OFFSET + DRIFT * 1e-6 * (t - start). Every ``--every`` seconds after
 a warm-up it reads the relay's clock view of the node (``/api/nodes``: ``correction_ns`` and
@@ -101,7 +101,7 @@ class Run:
         """Its relay's process, starting (:meth:`start_node` waits until it listens)."""
         netns = PATHS[self.path] is not None
         host = RELAY_IP if netns else "127.0.0.1"
-        cmd = [*_netns(NS_RELAY if netns else None), sys.executable, "-m", "relay", "--host", host,
+        cmd = [*_netns(NS_RELAY if netns else None), sys.executable, "-m", "dcuscope.relay", "--host", host,
                "--port", "0", "--db", str(db), "--clock", "estimate"]
         if self.transport == "websocket":
             cmd += ["--clock-port", "0"]
@@ -125,7 +125,7 @@ class Run:
         self.start_ns = time.clock_gettime_ns(time.CLOCK_REALTIME)
         frames = int(self.seconds * FPS)
         self.node = subprocess.Popen(
-            [*_netns(NS_NODE if netns else None), sys.executable, "-m", "probes.ship.simnode", "--relay", self.url,
+            [*_netns(NS_NODE if netns else None), sys.executable, "-m", "dcuscope.probes.ship.simnode", "--relay", self.url,
              "--node", "N", "--frames", str(frames), "--sources", "1", "--fps", str(FPS), "--paced",
              "--clock-offset-ns", str(self.offset_ns), "--clock-drift-ppm", str(self.drift_ppm),
              "--clock-start-ns", str(self.start_ns)],

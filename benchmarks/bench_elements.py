@@ -29,8 +29,8 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from benchmarks.figures import NA, Figure, fmt, maximum, median, minimum, one_line, ratio  # noqa: E402
-from core.gst import GLib, Gst  # noqa: E402
-from plugins import convert, frames, tiler  # noqa: E402
+from dcuscope.core.gst import GLib, Gst  # noqa: E402
+from dcuscope.plugins import convert, frames, tiler  # noqa: E402
 
 IN_W, IN_H = 1920, 1080
 OUT_W, OUT_H = 1280, 720

@@ -69,7 +69,7 @@ from benchmarks.bench_relay import (  # noqa: E402
     EVENTS_PER_FRAME, SOURCES, Relay, _proc_cpu, measure_lag, measure_throughput,
 )
 from benchmarks.figures import NA, CannotRun, Notes, dumps, known, last_line, median, ratio, run  # noqa: E402
-from probes.ship.simnode import synth_events  # noqa: E402
+from dcuscope.probes.ship.simnode import synth_events  # noqa: E402
 
 PROMETHEUS = "/usr/bin/prometheus"
 ARMS = {"a": (False, False), "b": (True, True), "m": (True, False), "o": (False, True)}

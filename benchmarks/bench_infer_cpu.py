@@ -27,7 +27,7 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.figures import CannotRun, dumps, median, ratio, run  # noqa: E402
-from plugins.models import DEFAULT_MODEL, ModelError, open_session  # noqa: E402
+from dcuscope.plugins.models import DEFAULT_MODEL, ModelError, open_session  # noqa: E402
 
 SSD = DEFAULT_MODEL.parent / "ssdlite_mobilenetv2_person.onnx"
 

@@ -1,7 +1,7 @@
 """The infer element's detector on each ONNX Runtime execution provider: speed and agreement.
 
 Decodes frames of the shipped vtest clip, then runs the detector the ``infer`` element uses
-(:class:`plugins.models.Detector`: the same preprocessing, session options and decoders) once
+(:class:`dcuscope.plugins.models.Detector`: the same preprocessing, session options and decoders) once
 per provider list, side by side with interleaved repetitions, and reports per batch size the
 median ms per batch (in all, and in the model alone), frames/s, the ratio to the first provider
 list, and whether the detections agree with the first list's (one to one, same class, box
@@ -31,7 +31,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from benchmarks.figures import NA, CannotRun, dumps, median, ratio, run  # noqa: E402
-from plugins.models import (  # noqa: E402
+from dcuscope.plugins.models import (  # noqa: E402
     DEFAULT_MODEL, Detector, ModelError, inspect_model, open_session, select_providers,
 )
 

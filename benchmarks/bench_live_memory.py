@@ -25,8 +25,8 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.figures import dumps, ratio  # noqa: E402
-from probes.ship.simnode import header_for, synth_events  # noqa: E402
-from relay.live.run import LiveConfig, LiveRun  # noqa: E402
+from dcuscope.probes.ship.simnode import header_for, synth_events  # noqa: E402
+from dcuscope.relay.live.run import LiveConfig, LiveRun  # noqa: E402
 
 SOURCES, FPS = 6, 60.0
 T0 = 1_700_000_000_000_000_000

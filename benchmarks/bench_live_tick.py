@@ -32,11 +32,11 @@ def measure(runs: int, seconds: float, hz: float) -> dict:
     """The tick loop on the checkout first on ``sys.path``."""
     import numpy as np
 
-    from probes.ship.simnode import EVENTS_PER_FRAME, header_for, synth_events
-    from relay.clock.correction import Correction, Segment
-    from relay.live import framepack
-    from relay.live import run as live_run
-    from relay.live.run import LiveRun
+    from dcuscope.probes.ship.simnode import EVENTS_PER_FRAME, header_for, synth_events
+    from dcuscope.relay.clock.correction import Correction, Segment
+    from dcuscope.relay.live import framepack
+    from dcuscope.relay.live import run as live_run
+    from dcuscope.relay.live.run import LiveRun
 
     fps = RATE / (EVENTS_PER_FRAME * SOURCES)
     corr = Correction("estimate", "bench", (Segment(from_ns=0, ref_ns=T0, offset_ns=1000, drift_ppb=20, uncertainty_ns=20000),))

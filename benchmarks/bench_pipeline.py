@@ -24,11 +24,11 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.figures import NA, CannotRun, Figure, Notes, fmt, median, ratio, run  # noqa: E402
-from core.errors import DcuscopeError  # noqa: E402
-from core.gst import Gst  # noqa: E402
-from pipeline.build import build_pipeline  # noqa: E402
-from pipeline.config import load_config  # noqa: E402
-from pipeline.run import Runner  # noqa: E402
+from dcuscope.core.errors import DcuscopeError  # noqa: E402
+from dcuscope.core.gst import Gst  # noqa: E402
+from dcuscope.pipeline.build import build_pipeline  # noqa: E402
+from dcuscope.pipeline.config import load_config  # noqa: E402
+from dcuscope.pipeline.run import Runner  # noqa: E402
 
 WARMUP = 5
 MODELS = {"centernet": "centernet_mobilenetv3_coco80.onnx", "ssd": "ssdlite_mobilenetv2_person.onnx"}
@@ -70,7 +70,7 @@ def _measure(sources: int, probes: bool, frames: int, model: str, workdir: Path)
                                                lambda *_: stamps.append(time.perf_counter()) or Gst.PadProbeReturn.OK)
     probing = None
     if probes:
-        from probes.instrument import start_probes
+        from dcuscope.probes.instrument import start_probes
 
         config = replace(config, probes=replace(config.probes, trace=workdir / f"trace-{sources}.jsonl"))
         probing = start_probes(built, config)

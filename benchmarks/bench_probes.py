@@ -33,8 +33,10 @@ tracer gives frames their identity at the source itself.
         [--against DIR]
 
 ``--against DIR`` measures another checkout of dcuscope beside this one (``git worktree add DIR
-REV``), every mode run in both trees in turn, each tree's children from its own code and native
-library; it prints both tables and the CPU cost per tracepoint of this tree over that one.
+REV``), or a venv where dcuscope is installed (``pip install``: its Python, its site-packages'
+dcuscope and the native library its install built), every mode run in both trees in turn, each
+tree's children from its own code and native library; it prints both tables (each with the
+dcuscope it imported) and the CPU cost per tracepoint of this tree over that one.
 
 A figure it cannot produce (no tracepoint counted, a cost of zero to divide by) is ``n/a
 (reason)`` (benchmarks/figures.py). Without the native probes, or when a run fails, it says
@@ -53,14 +55,20 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+INSTALLED_ENV = "DCUSCOPE_BENCH_INSTALLED"
+"""Set in a child measuring an installed dcuscope: ``benchmarks`` comes from this checkout, dcuscope
+from the venv's site-packages (the checkout goes last on sys.path)."""
 if str(REPO) not in sys.path:  # run as a script: make the project importable
-    sys.path.insert(0, str(REPO))
+    if os.environ.get(INSTALLED_ENV):
+        sys.path.append(str(REPO))
+    else:
+        sys.path.insert(0, str(REPO))
 
 from benchmarks.figures import NA, CannotRun, Notes, fmt, last_line, maximum, median, minimum, ratio, run  # noqa: E402
-from core.gst import Gst  # noqa: E402
-from probes.capture import native  # noqa: E402
-from probes.capture.tracer import attach  # noqa: E402
-from probes.trace.events import EXIT  # noqa: E402
+from dcuscope.core.gst import Gst  # noqa: E402
+from dcuscope.probes.capture import native  # noqa: E402
+from dcuscope.probes.capture.tracer import attach  # noqa: E402
+from dcuscope.probes.trace.events import EXIT  # noqa: E402
 
 SCENARIOS = {
     "identity20": "videotestsrc num-buffers={frames} ! video/x-raw,width=16,height=16,format=RGB ! framestamp ! "
@@ -78,7 +86,7 @@ ATTACHED = {"probes": ("native", "probes"), "hooks": ("native", "hooks"), "pytho
 
 
 def register_framestamp() -> None:
-    from plugins import framestamp
+    from dcuscope.plugins import framestamp
 
     name, rank, cls = framestamp.__gstelementfactory__
     if Gst.ElementFactory.find(name) is None:
@@ -111,7 +119,9 @@ def run_once(description: str, mode: str, frames: int) -> dict:
         if hits != frames * points or stats.dropped or stats.unidentified:
             raise SystemExit(f"{mode}: {hits} events for {frames} frames x {points} tracepoints, "
                              f"{stats.dropped} dropped, {stats.unidentified} unidentified")
-    return {"wall": wall, "cpu": cpu, "points": points}
+    import dcuscope
+
+    return {"wall": wall, "cpu": cpu, "points": points, "code": str(Path(dcuscope.__file__).parent)}
 
 
 def child(scenario: str, mode: str, frames: int, trace: str | None = None) -> None:
@@ -122,7 +132,7 @@ def child(scenario: str, mode: str, frames: int, trace: str | None = None) -> No
     result = run_once(description, mode, frames)
     if trace:  # the GST_TRACERS tracer: its trace is complete once GStreamer is deinitialised
         Gst.deinit()
-        from probes.trace.tracefile import read_trace
+        from dcuscope.probes.trace.tracefile import read_trace
 
         t = read_trace(trace)
         hits = int((t.events["point"] <= EXIT).sum())
@@ -135,12 +145,25 @@ def child(scenario: str, mode: str, frames: int, trace: str | None = None) -> No
 _PLUGIN_PATHS: dict[Path, str] = {}
 
 
+def installed(tree: Path) -> bool:
+    """Whether ``tree`` is a venv with dcuscope installed (else a checkout)."""
+    return (tree / "bin" / "dcuscope").exists() and not (tree / "benchmarks" / "bench_probes.py").exists()
+
+
+def tree_env(tree: Path) -> dict:
+    """The environment a child of ``tree`` runs in: its code first on the path."""
+    if installed(tree):
+        return {**{k: v for k, v in os.environ.items() if k != "PYTHONPATH"}, INSTALLED_ENV: "1"}
+    return {**os.environ, "PYTHONPATH": str(tree) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+
+
 def plugin_path(tree: Path) -> str:
-    """The folder of ``tree``'s GStreamer plugin, built by that tree's own code."""
+    """The folder of ``tree``'s GStreamer plugin, built by that tree's own code (installed: the one
+    its install built)."""
     if tree not in _PLUGIN_PATHS:
-        env = {**os.environ, "PYTHONPATH": str(tree)}
-        res = subprocess.run([sys.executable, "-m", "dcuscope.cli", "plugin-path"], capture_output=True, text=True,
-                             env=env, cwd=tree)
+        cmd = [str(tree / "bin" / "dcuscope")] if installed(tree) else [sys.executable, "-m", "dcuscope.cli"]
+        res = subprocess.run([*cmd, "plugin-path"], capture_output=True, text=True, env=tree_env(tree),
+                             cwd=tempfile.gettempdir() if installed(tree) else tree)
         if res.returncode != 0:
             raise CannotRun(f"cannot build the plugin of {tree}: {last_line(res.stderr or res.stdout)}")
         _PLUGIN_PATHS[tree] = res.stdout.strip().splitlines()[-1]
@@ -149,7 +172,7 @@ def plugin_path(tree: Path) -> str:
 
 def spawn(scenario: str, mode: str, frames: int, tree: Path = REPO) -> dict:
     """One run in a fresh process, from ``tree``'s code (this checkout, or ``--against``'s)."""
-    env = {**os.environ, "PYTHONPATH": str(tree) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    env = tree_env(tree)
     env.pop("GST_TRACERS", None)
     with tempfile.TemporaryDirectory() as tmp:
         args = [scenario, mode, str(frames)]
@@ -161,9 +184,9 @@ def spawn(scenario: str, mode: str, frames: int, tree: Path = REPO) -> dict:
             # A ring as large as the other modes' (they drain once, at the end): no drops.
             env["GST_TRACERS"] = f"dcuscope(node=bench,trace={trace},capacity={(frames + 20) * 128})"
             args.append(trace)
-        script = tree / "benchmarks" / "bench_probes.py"
-        res = subprocess.run([sys.executable, str(script), "--child", *args], capture_output=True, text=True, env=env,
-                             cwd=tree)
+        python, script = (tree / "bin" / "python", REPO) if installed(tree) else (sys.executable, tree)
+        res = subprocess.run([str(python), str(script / "benchmarks" / "bench_probes.py"), "--child", *args],
+                             capture_output=True, text=True, env=env, cwd=tmp)
     if res.returncode != 0:
         raise CannotRun(f"a {scenario}/{mode} run of {tree} failed: {last_line(res.stderr or res.stdout)}")
     return json.loads(res.stdout.strip().splitlines()[-1])
@@ -220,7 +243,7 @@ def bench(name: str, frames: int, reps: int, against: Path | None = None) -> Non
         return
     costs = {}
     for tree in trees:
-        print(f"\n-- tree {tree}")
+        print(f"\n-- tree {tree} (its dcuscope: {samples[tree]['none'][0]['code']})")
         costs[tree] = report(name, frames, samples[tree])
     print(f"\n{name}: µs per tracepoint (CPU), this tree / {against}:")
     for m in MODES[1:]:
@@ -239,15 +262,17 @@ def main() -> int:
     parser.add_argument("--scenario", choices=[*SCENARIOS, "all"], default="all")
     parser.add_argument("--quick", action="store_true", help="a smoke test: identity20, 300 frames, 1 repetition")
     parser.add_argument("--against", type=Path, metavar="DIR",
-                        help="another checkout of dcuscope, measured beside this one (e.g. git worktree add DIR HEAD~1)")
+                        help="another checkout of dcuscope (e.g. git worktree add DIR HEAD~1), or a venv where "
+                             "dcuscope is installed (pip install), measured beside this one")
     args = parser.parse_args()
     if args.quick:
         args.frames, args.reps, args.scenario = 300, 1, "identity20"
     if args.reps < 1 or (args.frames is not None and args.frames < 1):
         parser.error("--reps and --frames must be at least 1")
     against = args.against.resolve() if args.against else None
-    if against is not None and not (against / "benchmarks" / "bench_probes.py").exists():
-        parser.error(f"--against {args.against}: not a dcuscope checkout (no benchmarks/bench_probes.py)")
+    if against is not None and not (against / "benchmarks" / "bench_probes.py").exists() and not installed(against):
+        parser.error(f"--against {args.against}: neither a dcuscope checkout (no benchmarks/bench_probes.py) "
+                     f"nor a venv with dcuscope installed (no bin/dcuscope)")
     if native.load() is None:
         raise CannotRun(f"the native probes are unavailable: {native.unavailable_reason()}")
     for name in SCENARIOS if args.scenario == "all" else [args.scenario]:

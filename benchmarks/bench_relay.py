@@ -30,7 +30,7 @@ With several relays the nodes are dealt round-robin (node k to relay k mod R), e
 whole list starting at its own relay (``--relay URL_k,URL_k+1,...``: the others are its failover,
 as a fleet configures them), and the relays share a Redis server of the benchmark's own
 (``--redis``, tests/redisserver.py), as a fleet runs them. With ``--workers`` the R relays are one
-``python -m relay --workers R`` instead, the processes of one host sharing one port: every node is
+``python -m dcuscope.relay --workers R`` instead, the processes of one host sharing one port: every node is
 given that one URL, and the kernel deals their connections among the workers. SQLite is one relay per file: a
 combination of SQLite and more than one relay is not run, its figures are ``n/a (SQLite is one
 relay per file)``. PostgreSQL is a server of the benchmark's own (benchmarks/stores.py), a fresh
@@ -96,7 +96,7 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
 
 from benchmarks.figures import NA, CannotRun, Notes, dumps, last_line, one_line, percentile, ratio, run  # noqa: E402
 from benchmarks.stores import ONE_RELAY, SQLITE_SETTINGS, STORES, PostgresStore  # noqa: E402
-from relay.live.framepack import MISSING, columns_of  # noqa: E402
+from dcuscope.relay.live.framepack import MISSING, columns_of  # noqa: E402
 
 SOURCES = 2
 EVENTS_PER_FRAME = 12  # origin, 5 stages x enter/exit, sink enter
@@ -131,8 +131,8 @@ def _env() -> dict:
 class Relay:
     def __init__(self, db: Path | str, args: Sequence[str] = (), workers: int = 1, checkout: Path = ROOT,
                  context: ssl.SSLContext | None = None) -> None:
-        """``db``: an SQLite file or a PostgreSQL URL; ``args``: more ``python -m relay`` options
-        (bench_exporters: --otlp, --frame-limit); ``workers`` above 1: ``python -m relay --workers
+        """``db``: an SQLite file or a PostgreSQL URL; ``args``: more ``python -m dcuscope.relay`` options
+        (bench_exporters: --otlp, --frame-limit); ``workers`` above 1: ``python -m dcuscope.relay --workers
         N`` on one port, ready once every worker listens; ``checkout``: the tree whose relay runs
         (another one beside this: bench_store_size's --checkout); ``context``: how this process
         verifies a relay started with ``--tls-cert``.
@@ -145,7 +145,7 @@ class Relay:
 
             port, args = str(free_port()), [*args, "--workers", str(workers)]
         self._errors = tempfile.TemporaryFile()  # not a pipe: nobody reads it while the relay runs
-        self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", port, "--db", str(db), *LOOPBACK, *args],
+        self.proc = subprocess.Popen([sys.executable, "-m", "dcuscope.relay", "--port", port, "--db", str(db), *LOOPBACK, *args],
                                      cwd=checkout, env=dict(_env(), PYTHONPATH=str(checkout)), stdout=subprocess.PIPE,
                                      stderr=self._errors)
         listening = []
@@ -190,11 +190,11 @@ def relay_list(urls: str | Sequence[str], k: int) -> str:
 def start_nodes(url: str | Sequence[str], n: int, per_node_events: int, paced: bool, fps: float,
                 batch_events: int = 8192, node_args: Sequence[str] = ()) -> list[subprocess.Popen]:
     """N simulated nodes; with several relays' URLs, dealt round-robin (:func:`relay_list`).
-    ``node_args``: more ``python -m probes.ship.simnode`` options (a settings' ``--fixed-flush``)."""
+    ``node_args``: more ``python -m dcuscope.probes.ship.simnode`` options (a settings' ``--fixed-flush``)."""
     frames = max(1, per_node_events // (EVENTS_PER_FRAME * SOURCES))
     procs = []
     for k in range(n):
-        cmd = [sys.executable, "-m", "probes.ship.simnode", "--relay", relay_list(url, k), "--node", f"DCU-{k + 1}",
+        cmd = [sys.executable, "-m", "dcuscope.probes.ship.simnode", "--relay", relay_list(url, k), "--node", f"DCU-{k + 1}",
                "--sources", str(SOURCES), "--frames", str(frames), "--fps", str(fps), "--seed", str(k),
                "--close-timeout", "120", "--batch-events", str(batch_events), *node_args]
         if paced:

@@ -1,8 +1,8 @@
 """Relay soak: the resident memory of a relay whose node restarts again and again.
 
-One relay process (``python -m relay``, as ``dcuscope relay``, on a fresh store: an SQLite file, or
+One relay process (``python -m dcuscope.relay``, as ``dcuscope relay``, on a fresh store: an SQLite file, or
 with ``--store postgresql`` a database on a PostgreSQL server of the benchmark's own) and one node
-driven by hand over the ingest WebSocket (:class:`probes.ship.relaylink.Link`). Each run of the
+driven by hand over the ingest WebSocket (:class:`dcuscope.probes.ship.relaylink.Link`). Each run of the
 node says hello, ships ``--events`` events (synthetic frames of ``probes.ship.simnode``) in
 compressed batches of ``--batch-events``, all in flight at once as a node keeps them, waits for
 every acknowledgement, and falls silent with its connection left open: the node "crashed". It
@@ -16,7 +16,7 @@ After each restart's run is stored and merged, and the node was silent for ``sil
 relay's resident memory (``VmRSS`` of /proc/PID/status, and its high-water mark ``VmHWM``) is
 sampled beside what the relay itself says it holds (``/api/health``: ``memory.live_bytes``,
 ``runs``; ``heap``: what malloc holds in use and free inside its arenas, and the reclaim passes of
-:mod:`relay.heap`) and its thread count (each thread may get a malloc arena of its own). The
+:mod:`dcuscope.relay.heap`) and its thread count (each thread may get a malloc arena of its own). The
 verdict, over restarts 5..N (allocator arenas and caches warmed up before): the RSS after restart
 5, the maximum, a Theil-Sen slope (robust to a sample taken just after a reclaim pass), and how much the high-water mark rose after restart 5 (the
 peak of one restart's transients is the same each time: it rises only when memory is kept across
@@ -62,10 +62,10 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
 
 from benchmarks.figures import NA, CannotRun, Notes, dumps, fmt, last_line, run  # noqa: E402
 from benchmarks.stores import SQLITE_SETTINGS, STORES, PostgresStore  # noqa: E402
-from probes.ship.relaylink import Link  # noqa: E402
-from probes.ship.simnode import EVENTS_PER_FRAME, header_for, synth_events  # noqa: E402
-from probes.ship.wire import PROTOCOL_VERSION, encode_batch  # noqa: E402
-from probes.trace.events import EVENT_DTYPE  # noqa: E402
+from dcuscope.probes.ship.relaylink import Link  # noqa: E402
+from dcuscope.probes.ship.simnode import EVENTS_PER_FRAME, header_for, synth_events  # noqa: E402
+from dcuscope.probes.ship.wire import PROTOCOL_VERSION, encode_batch  # noqa: E402
+from dcuscope.probes.trace.events import EVENT_DTYPE  # noqa: E402
 
 NODE = "restarter"
 SOURCES = 2
@@ -86,12 +86,12 @@ def _env(extra: dict[str, str]) -> dict:
 
 
 class Relay:
-    """``python -m relay`` on a free port; ``url`` once it listens."""
+    """``python -m dcuscope.relay`` on a free port; ``url`` once it listens."""
 
     def __init__(self, db: Path | str, silent_s: float, env: dict[str, str]) -> None:
         """``db``: an SQLite file or a PostgreSQL URL."""
         self._errors = tempfile.TemporaryFile()  # not a pipe: nobody reads it while the relay runs
-        cmd = [sys.executable, "-m", "relay", "--port", "0", "--db", str(db), "--clock-port", "0",
+        cmd = [sys.executable, "-m", "dcuscope.relay", "--port", "0", "--db", str(db), "--clock-port", "0",
                "--limit", f"silent_s={silent_s:g}"]
         self.proc = subprocess.Popen(cmd, cwd=ROOT, env=_env(env), stdout=subprocess.PIPE, stderr=self._errors)
         line = self.proc.stdout.readline().decode()

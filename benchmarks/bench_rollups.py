@@ -6,7 +6,7 @@ per hour, a row per stage and one per frame, at the paper's pace (4,300 events/s
 second, 21,500 a minute). Each minute's sketches are those of one real minute of simulated frames
 (``probes.ship.simnode``'s stage delays, each stage's service and wait sketches as large as its
 delay's, as a real pipeline's ready points give), drawn from a pool of ``--pool`` minutes; the hours
-merge their 60 minutes. Then :func:`relay.store.history.summary` over the last 30 days is timed
+merge their 60 minutes. Then :func:`dcuscope.relay.store.history.summary` over the last 30 days is timed
 (``--repeat`` times, median) in this process, and the CLI as a user runs it (a new process:
 Python's start included).
 
@@ -29,11 +29,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.stores import PostgresStore  # noqa: E402
-from probes.ship.simnode import header_for, synth_events  # noqa: E402
-from relay.rollup.compute import HOUR_NS, MINUTE_NS, rollups_of  # noqa: E402
-from relay.store.history import summary  # noqa: E402
-from relay.store.base import ROLLUP_VALUES, rollup_values  # noqa: E402
-from relay.store.engines import open_database  # noqa: E402
+from dcuscope.probes.ship.simnode import header_for, synth_events  # noqa: E402
+from dcuscope.relay.rollup.compute import HOUR_NS, MINUTE_NS, rollups_of  # noqa: E402
+from dcuscope.relay.store.history import summary  # noqa: E402
+from dcuscope.relay.store.base import ROLLUP_VALUES, rollup_values  # noqa: E402
+from dcuscope.relay.store.engines import open_database  # noqa: E402
 
 RATE = 4300.0
 NODE = "DCU-7"

@@ -48,7 +48,7 @@ DAY_S = 86_400
 
 def uncompacted(db: str) -> int:
     """Batches still in the store's ``batches`` table."""
-    from relay.store.engines import open_database
+    from dcuscope.relay.store.engines import open_database
 
     database = open_database(db, create=False)
     try:

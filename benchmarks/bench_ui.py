@@ -3,7 +3,7 @@
     PYTHONPATH=. .venv/bin/python benchmarks/bench_ui.py [--minutes 5] [--nodes 2] [--sources 6] [--fps 60] [--quick]
     PYTHONPATH=. .venv/bin/python benchmarks/bench_ui.py --fleet --nodes 64 --sources 4 --fps 30 [--minutes 5] [--open-minutes 1]
 
-A relay (``python -m relay``) is fed by simulated nodes (``probes.ship.simnode --paced``: every event
+A relay (``python -m dcuscope.relay``) is fed by simulated nodes (``probes.ship.simnode --paced``: every event
 shipped when its time comes), by default 2 DCUs x 6 sources x 60 fps = 720 frames/s, 8,640
 events/s. Measured per period: requestAnimationFrame rate (an rAF counter of the benchmark's own,
 beside the page's), the page's drawing time per frame, bars drawn, JS heap after a forced GC

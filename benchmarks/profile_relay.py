@@ -65,7 +65,7 @@ class Relay:
 
     def __init__(self, checkout: Path, db: str, args: list[str]) -> None:
         env = dict(os.environ, PYTHONPATH=str(checkout))
-        self.proc = subprocess.Popen([sys.executable, "-m", "relay", "--port", "0", "--db", db, *LOOPBACK, *args],
+        self.proc = subprocess.Popen([sys.executable, "-m", "dcuscope.relay", "--port", "0", "--db", db, *LOOPBACK, *args],
                                      cwd=checkout, env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
         m = re.search(r"http://127\.0\.0\.1:(\d+)", self.proc.stdout.readline().decode())
         if not m:

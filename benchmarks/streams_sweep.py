@@ -61,9 +61,9 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.figures import NA, CannotRun, Notes, fmt, run  # noqa: E402
-from probes.trace.delays import node_stats  # noqa: E402
-from probes.trace.events import DROP_REASONS, FACT, LATE, ORIGIN  # noqa: E402
-from probes.trace.tracefile import Trace, read_trace  # noqa: E402
+from dcuscope.probes.trace.delays import node_stats  # noqa: E402
+from dcuscope.probes.trace.events import DROP_REASONS, FACT, LATE, ORIGIN  # noqa: E402
+from dcuscope.probes.trace.tracefile import Trace, read_trace  # noqa: E402
 
 MEDIA = ROOT / "assets" / "media"
 MODELS = {"centernet": ROOT / "assets" / "models" / "centernet_mobilenetv3_coco80.onnx",
@@ -128,7 +128,7 @@ def clip_pipeline(spec: ClipSpec, target: Path) -> str:
 def make_clip(spec: ClipSpec, cache: Path, progress: Callable[[str], None] = lambda _: None,
               timeout_s: float = 600.0) -> Path:
     """Encode ``spec`` into ``cache`` unless it is there already; return its path."""
-    from core.gst import Gst
+    from dcuscope.core.gst import Gst
 
     target = cache / spec.name
     if target.is_file() and target.stat().st_size > 0:
@@ -571,7 +571,7 @@ def fmt_duration(seconds: float) -> str:
 def sweep(args: argparse.Namespace, log: Callable[[str], None],
           on_result: Callable[[list[Result]], None] = lambda _: None) -> list[Result]:
     """Make the clips, then run every point of the plan; ``on_result`` sees the results so far after each run."""
-    from core.gst import GLib
+    from dcuscope.core.gst import GLib
 
     plan = list(series(args.kinds, args.rates, args.bitrates, args.bitrates_at))
     specs = sorted({clip_for(i, fps, b, args.clip_seconds, args.preset, args.size)

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import socket
 
-from core.errors import UsageError
+from dcuscope.core.errors import UsageError
 
 
 def check_port_free(host: str, port: int, hint: str = "pick a free one with --port", option: str | None = "--port") -> None:

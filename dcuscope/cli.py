@@ -9,16 +9,17 @@ import sys
 import tomllib
 from pathlib import Path
 
-from core import signals
-from core.errors import DcuscopeError, PipelineError
+from dcuscope.core import signals
+from dcuscope.core.errors import DcuscopeError, PipelineError
 from dcuscope.comparecommand import add_compare_parser
 from dcuscope.dbcommand import add_db_parser
 from dcuscope.shipcommand import add_ship_parser
+from dcuscope.shipped import add_configs_parser
 from dcuscope.traceapp import add_trace_parser
 from dcuscope.tracecommands import add_export_parser, add_stats_parser
-from probes.clocks.sysclock import DEFAULT_UDS
-from probes.ship.nodetls import TOKEN_ENV, add_tls_arguments
-from relay.commands import add_relay_parser
+from dcuscope.probes.clocks.sysclock import DEFAULT_UDS
+from dcuscope.probes.ship.nodetls import TOKEN_ENV, add_tls_arguments
+from dcuscope.relay.commands import add_relay_parser
 
 DESCRIPTION = """\
 dcuscope: see where the time goes in multi-camera video-analytics pipelines.
@@ -84,7 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser("run", help="run a pipeline from a YAML configuration",
                          description="Run a pipeline from a YAML configuration (see configs/).", epilog=RUN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
-    run.add_argument("config", type=Path, metavar="CONFIG", help="pipeline configuration (YAML)")
+    run.add_argument("config", type=Path, metavar="CONFIG",
+                     help="pipeline configuration (YAML), or the name of a shipped one (dcuscope configs lists them)")
     run.add_argument("--output", "-o", type=Path, metavar="PATH",
                      help="write the osd's frames: NAME.mp4, .mkv or .avi (H.264) or a folder/ for PNG frames (overrides sink:)")
     limit = run.add_mutually_exclusive_group()
@@ -144,6 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog=PLUGIN_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     plugin.set_defaults(func=_plugin_path)
 
+    add_configs_parser(sub)
     add_ship_parser(sub)
     add_stats_parser(sub)
     add_export_parser(sub)
@@ -188,18 +191,18 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _plugin_path(args: argparse.Namespace) -> int:
-    from probes.capture.native import BuildError, build
+    from dcuscope.probes.capture.native import BuildError, build
 
     try:
         print(build().parent)
     except BuildError as exc:
-        print(f"dcuscope: error: cannot build the GStreamer plugin: {exc}", file=sys.stderr)
+        print(f"dcuscope: error: no GStreamer plugin: {exc}", file=sys.stderr)
         return 1
     return 0
 
 
 def _serve_rtsp(args: argparse.Namespace) -> int:
-    from pipeline.rtsp import serve
+    from dcuscope.pipeline.rtsp import serve
 
     serve(args.clips, host=args.host, port=args.port, bitrate=args.bitrate, announce=lambda line: print(line, flush=True))
     return 0

@@ -11,7 +11,7 @@ import json
 import sys
 from pathlib import Path
 
-from core.errors import DcuscopeError
+from dcuscope.core.errors import DcuscopeError
 
 DESCRIPTION = """\
 Compare runs of a pipeline: for each stage (matched by name) and end to end, the frames and the
@@ -82,7 +82,7 @@ def add_compare_parser(sub) -> None:
 def run_compare(args: argparse.Namespace) -> int:
     from dcuscope.compareformat import format_markdown, format_table
     from dcuscope.gate import check, parse_bound
-    from probes.trace.compare import compare
+    from dcuscope.probes.trace.compare import compare
 
     try:
         bounds = [parse_bound(text) for text in args.fail_if or ()]
@@ -123,9 +123,9 @@ def _progress():
 
 
 def _load_inputs(args: argparse.Namespace) -> list:
-    from probes.trace.compare import Input, distinct_labels
-    from probes.trace.delays import frame_delays
-    from probes.trace.frametable import frame_table
+    from dcuscope.probes.trace.compare import Input, distinct_labels
+    from dcuscope.probes.trace.delays import frame_delays
+    from dcuscope.probes.trace.frametable import frame_table
 
     out: list[Input] = []
     for text in args.inputs:
@@ -151,8 +151,8 @@ def _read(text: str, db: str | None) -> list[tuple]:
             raise DcuscopeError(f"compare: {text}: a session id is a number (see /api/sessions)")
         if kind == "run" and (len(key) < 6 or any(c not in "0123456789abcdef" for c in key.lower())):
             raise DcuscopeError(f"compare: {text}: a run id is 6 or more hexadecimal digits")
-        from relay.store.engines import is_url
-        from relay.store.runs import find_runs, load_runs, run_label, session_nodes
+        from dcuscope.relay.store.engines import is_url
+        from dcuscope.relay.store.runs import find_runs, load_runs, run_label, session_nodes
 
         if not is_url(db) and not Path(db).is_file():
             raise DcuscopeError(f"compare: {db}: no such database")
@@ -172,7 +172,7 @@ def _read(text: str, db: str | None) -> list[tuple]:
             out.append((r.header, r.events, run_label(r.session, r.header.node, r.run, twins),
                         str(db) if twins else f"{db}, run {r.run[:8]}", r.run))
         return out
-    from probes.trace.tracefile import read_trace
+    from dcuscope.probes.trace.tracefile import read_trace
 
     if not Path(text).exists() and text.isdigit():
         raise DcuscopeError(f"compare: {text}: no such file (a stored session is session:{text} with --db)")

@@ -1,4 +1,4 @@
-"""The comparison document (:mod:`probes.trace.compare`) as a terminal table or Markdown.
+"""The comparison document (:mod:`dcuscope.probes.trace.compare`) as a terminal table or Markdown.
 
 Per stage and kind a block: one line per input with frames, mean, p50, p90, p99 in ms; under
 each input after BASE, the change of each figure in % of BASE (ms where BASE is 0) with its
@@ -7,8 +7,8 @@ each input after BASE, the change of each figure in % of BASE (ms where BASE is 
 
 from __future__ import annotations
 
-from probes.trace.bootstrap import FIGURES
-from probes.trace.compare import E2E, FEW, MIN_TAIL, SAME, SLOWER
+from dcuscope.probes.trace.bootstrap import FIGURES
+from dcuscope.probes.trace.compare import E2E, FEW, MIN_TAIL, SAME, SLOWER
 
 NEVER_WAIT_MS = 0.001
 MARK = {SLOWER: " ▲", SAME: "", "faster": " ▼", FEW: " ?"}

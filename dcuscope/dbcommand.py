@@ -7,7 +7,7 @@ import argparse
 import sys
 import time
 
-from core.errors import DcuscopeError
+from dcuscope.core.errors import DcuscopeError
 
 
 def add_db_parser(sub) -> None:
@@ -45,8 +45,8 @@ def add_db_parser(sub) -> None:
 
 
 def _migrate(args: argparse.Namespace) -> int:
-    from relay.store.engines import is_url
-    from relay.store.migrate import migrate  # psycopg loads only for this command
+    from dcuscope.relay.store.engines import is_url
+    from dcuscope.relay.store.migrate import migrate  # psycopg loads only for this command
 
     if not is_url(args.target):
         raise DcuscopeError(f"db migrate: the target must be a postgresql:// URL, not {args.target!r}")
@@ -58,8 +58,8 @@ def _migrate(args: argparse.Namespace) -> int:
 
 
 def _compact(args: argparse.Namespace) -> int:
-    from relay.store.compaction import COMPACT_AFTER_S, compact
-    from relay.store.engines import open_database
+    from dcuscope.relay.store.compaction import COMPACT_AFTER_S, compact
+    from dcuscope.relay.store.engines import open_database
 
     after = COMPACT_AFTER_S if args.after is None else args.after
     if not after >= 0:

@@ -19,11 +19,11 @@ import urllib.parse
 import urllib.request
 from pathlib import Path
 
-from core.errors import PipelineError
-from core.ports import check_port_free
+from dcuscope import DATA
+from dcuscope.core.errors import PipelineError
+from dcuscope.core.ports import check_port_free
 
-ROOT = Path(__file__).resolve().parents[1]
-NODES = (("DCU-1", ROOT / "configs" / "demo-dcu1.yaml"), ("DCU-2", ROOT / "configs" / "demo-dcu2.yaml"))
+NODES = (("DCU-1", DATA / "configs" / "demo-dcu1.yaml"), ("DCU-2", DATA / "configs" / "demo-dcu2.yaml"))
 STATUS_EVERY_S = 5.0
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
 NODE_CLOSE_TIMEOUT_S = 10.0
@@ -144,7 +144,7 @@ def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = 
         for name, config in NODES:
             if stop:
                 break
-            print(f"demo: starting {name} ({config.relative_to(ROOT)}) with probes -> {url}", flush=True)
+            print(f"demo: starting {name} ({config.relative_to(DATA)}) with probes -> {url}", flush=True)
             nodes.append(_start("run", str(config), "--probes", "--relay", url, "--node", name, "-q",
                                 "--close-timeout", str(NODE_CLOSE_TIMEOUT_S), stdout=subprocess.DEVNULL))
         if not stop:

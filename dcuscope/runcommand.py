@@ -7,19 +7,23 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
-from core.console import Console
-from core.errors import UsageError
-from core.ports import check_port_free
-from pipeline.build import build_pipeline
-from pipeline.launch import build_launch
-from pipeline.config import PipelineConfig, SinkConfig, load_config
-from pipeline.outputs import check_frames_folder, check_video_file
-from pipeline.run import Runner
-from pipeline.stalls import describe
+from dcuscope.core.console import Console
+from dcuscope.core.errors import UsageError
+from dcuscope.core.ports import check_port_free
+from dcuscope.pipeline.build import build_pipeline
+from dcuscope.pipeline.launch import build_launch
+from dcuscope.pipeline.config import PipelineConfig, SinkConfig, load_config
+from dcuscope.pipeline.outputs import check_frames_folder, check_video_file
+from dcuscope.pipeline.run import Runner
+from dcuscope.pipeline.stalls import describe
+from dcuscope.shipped import resolve
 
 ABORTED_STATUS = 130
 """A run the user aborted with Ctrl-C before end-of-stream reached the sink (128 + SIGINT); one
 whose end-of-stream never reached the sink by itself exits 1, a pipeline failure."""
+
+MOST_COMMON = 5
+"""Labels named in the detection line at the end of a run."""
 
 
 def apply_overrides(config: PipelineConfig, args: argparse.Namespace) -> PipelineConfig:
@@ -69,10 +73,10 @@ def check_sink(config: PipelineConfig, output: Path | None) -> None:
 
 def run_command(args: argparse.Namespace) -> int:
     if args.relay:
-        from probes.ship.relaylink import parse_relays
+        from dcuscope.probes.ship.relaylink import parse_relays
 
         parse_relays(args.relay)  # a bad list ends the run before the pipeline is built
-    config = apply_overrides(load_config(args.config), args)
+    config = apply_overrides(load_config(resolve(args.config)), args)
     if config.launch is not None and args.output is not None:
         raise UsageError("--output: a launch: pipeline says its own sinks")
     check_sink(config, args.output)
@@ -93,9 +97,9 @@ def _run_built(args: argparse.Namespace, config: PipelineConfig, built) -> int:
                     progress_every=1.0 if console.isatty() else 5.0)
     probing = None
     if config.probes.enabled:
-        from probes.instrument import start_probes
+        from dcuscope.probes.instrument import start_probes
 
-        from probes.ship.nodetls import tls_from_args
+        from dcuscope.probes.ship.nodetls import tls_from_args
 
         probing = start_probes(built, config, relay=args.relay, token=args.token, tls=tls_from_args(args),
                                clock_offset_ns=int(args.clock_offset_ms * 1e6), progress=progress,
@@ -121,7 +125,25 @@ def _run_built(args: argparse.Namespace, config: PipelineConfig, built) -> int:
                              for sink in config.sinks)
         console.write(f"dcuscope: {result.aborted}{incomplete}\n")
         return ABORTED_STATUS if result.interrupted else 1
+    if progress is not None:
+        for line in detection_lines(built.stages):
+            console.write(line + "\n")
     for sink in config.sinks:
         if sink.path is not None and progress is not None:
             console.write(f"output: {sink.path}\n")
     return 0
+
+
+def detection_lines(stages) -> list[str]:
+    """What each infer stage found: 'infer0: 57 objects in 20 frames (person 52, car 5)'."""
+    lines = []
+    for stage in stages:
+        found = getattr(stage, "found", None)  # dcuscope's infer (plugins/infer.py)
+        if found is None:
+            continue
+        kinds = ", ".join(f"{label} {n}" for label, n in found.most_common(MOST_COMMON))
+        more = len(found) - MOST_COMMON
+        kinds += f", {more} more kinds" if more > 0 else ""
+        lines.append(f"{stage.get_name()}: {found.total()} objects in {stage.inferred_frames} frames"
+                     + (f" ({kinds})" if kinds else ""))
+    return lines

@@ -1,7 +1,7 @@
 """``dcuscope ship TRACE --relay URL``: stream a trace file that another process is writing (the
 GStreamer tracer in any application, or ``dcuscope run``) to a relay, live, with the same
 lossless, acknowledged, resumable protocol and clock exchange as ``dcuscope run --relay``
-(:mod:`probes.ship.tailship`), until the trace ends (its process exited) or Ctrl-C/SIGTERM."""
+(:mod:`dcuscope.probes.ship.tailship`), until the trace ends (its process exited) or Ctrl-C/SIGTERM."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import signal
 import threading
 from pathlib import Path
 
-from core import signals
-from core.errors import DcuscopeError
-from probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
+from dcuscope.core import signals
+from dcuscope.core.errors import DcuscopeError
+from dcuscope.probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
 
 
 def add_ship_parser(sub) -> None:
@@ -45,8 +45,8 @@ def add_ship_parser(sub) -> None:
 
 def _ship(args) -> int:
     # Imported here: the command line must start fast (a Ctrl-C while aiohttp loads is held).
-    from probes.ship.relaylink import check_token
-    from probes.ship.tailship import TailShipper
+    from dcuscope.probes.ship.relaylink import check_token
+    from dcuscope.probes.ship.tailship import TailShipper
 
     if args.settle < 0 or args.wait <= 0 or args.close_timeout <= 0:
         raise DcuscopeError("--settle must be >= 0, --wait and --close-timeout > 0")

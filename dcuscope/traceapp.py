@@ -4,7 +4,7 @@ traced per frame, as ``perf record -- CMD`` or ``nsys profile CMD`` would.
 CMD runs with dcuscope's plugin on ``GST_PLUGIN_PATH`` and the ``dcuscope`` tracer in
 ``GST_TRACERS`` (docs/tracer.md), so gst-launch-1.0, a C program and a Python program are traced
 alike, unchanged. With ``--relay`` the trace is shipped live while CMD runs
-(:class:`probes.ship.tailship.TailShipper`). When CMD ends, its trace's ``stats`` summary goes to
+(:class:`dcuscope.probes.ship.tailship.TailShipper`). When CMD ends, its trace's ``stats`` summary goes to
 stderr (CMD's stdout stays its own) and CMD's exit status is returned (128 + N for a signal N).
 
 Signals: CMD runs in a process group of its own; SIGINT (Ctrl-C), SIGTERM and SIGHUP sent to
@@ -25,8 +25,8 @@ import sys
 import threading
 from pathlib import Path
 
-from core.errors import DcuscopeError
-from probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
+from dcuscope.core.errors import DcuscopeError
+from dcuscope.probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
 
 EPILOG = """\
 examples:
@@ -82,7 +82,7 @@ def run_trace(args: argparse.Namespace) -> int:
     program = shutil.which(command[0])
     if program is None:
         raise DcuscopeError(f"trace: {command[0]}: no such program (not found on PATH, nor a file that can be run)")
-    from probes.capture.native import BuildError, build
+    from dcuscope.probes.capture.native import BuildError, build
 
     try:
         plugin_dir = build().parent
@@ -95,7 +95,7 @@ def run_trace(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise DcuscopeError(f"trace: {trace}: cannot replace it: {exc.strerror or exc}") from exc
     if args.relay:
-        from probes.ship.relaylink import check_token
+        from dcuscope.probes.ship.relaylink import check_token
 
         check_token(args.relay, args.token, tls=tls_from_args(args))
     env = dict(os.environ)
@@ -137,7 +137,7 @@ def _wait(child: subprocess.Popen) -> int:
 
 
 def _start_shipper(args: argparse.Namespace, trace: Path, stop: threading.Event) -> threading.Thread:
-    from probes.ship.tailship import TailShipper
+    from dcuscope.probes.ship.tailship import TailShipper
 
     shipper = TailShipper(trace, args.relay, args.token, args.node, tls=tls_from_args(args))
 
@@ -153,8 +153,8 @@ def _start_shipper(args: argparse.Namespace, trace: Path, stop: threading.Event)
 
 def _summary(trace: Path, program: str) -> None:
     from dcuscope.tracecommands import format_stats
-    from probes.trace.stats import stats_document
-    from probes.trace.tracefile import read_trace
+    from dcuscope.probes.trace.stats import stats_document
+    from dcuscope.probes.trace.tracefile import read_trace
 
     if not trace.exists():
         print(f"dcuscope: {program} wrote no trace to {trace}: it ran no GStreamer pipeline that carried a frame "

@@ -5,9 +5,9 @@
     add_stats_parser(subparsers); add_export_parser(subparsers)
     args = parser.parse_args(); sys.exit(args.func(args))
 
-Over a stored session each node's statistics carry the ``clock`` entry of :mod:`relay.clock.entry`
+Over a stored session each node's statistics carry the ``clock`` entry of :mod:`dcuscope.relay.clock.entry`
 (the correction its timestamps were moved by, at its last event, and its bound), and exports carry
-it per node and per frame (:mod:`probes.trace.export`); trace files hold the node's own clock, uncorrected.
+it per node and per frame (:mod:`dcuscope.probes.trace.export`); trace files hold the node's own clock, uncorrected.
 
 Each ``func`` returns the exit code: 0, or 2 after one ``dcuscope: error: ...`` line on stderr
 for a bad input (missing file, not a trace, no such database or session, unwritable output).
@@ -24,12 +24,12 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-from core.errors import DcuscopeError
-from probes.trace.export import BUCKET_NS, perfetto_document, write_csv
-from probes.trace.stats import stats_document
-from probes.trace.tracefile import Trace, read_trace
-from relay.clock.correction import Correction
-from relay.clock.entry import clock_entry
+from dcuscope.core.errors import DcuscopeError
+from dcuscope.probes.trace.export import BUCKET_NS, perfetto_document, write_csv
+from dcuscope.probes.trace.stats import stats_document
+from dcuscope.probes.trace.tracefile import Trace, read_trace
+from dcuscope.relay.clock.correction import Correction
+from dcuscope.relay.clock.entry import clock_entry
 
 STAT_COLUMNS = ("count", "mean_ms", "p50_ms", "p95_ms", "p99_ms", "max_ms")
 
@@ -103,8 +103,8 @@ def _rollup_stats(args: argparse.Namespace) -> int:
         if args.db is None or args.node is None or args.traces or args.session is not None:
             raise DcuscopeError("stats: --node and --since read a store's rollups: give --db PATH|URL --node NAME "
                                 "[--since DURATION], without TRACE files or --session")
-        from relay.store.history import parse_duration_ns, summary
-        from relay.store.engines import is_url
+        from dcuscope.relay.store.history import parse_duration_ns, summary
+        from dcuscope.relay.store.engines import is_url
 
         if not is_url(args.db) and not Path(args.db).is_file():
             raise DcuscopeError(f"stats: {args.db}: no such database")
@@ -121,10 +121,10 @@ def _rollup_stats(args: argparse.Namespace) -> int:
 
 def _no_rollups(args: argparse.Namespace) -> str:
     """Why ``stats --node --since`` has nothing to say yet, when it will, and how to have it now."""
-    from relay.store.compaction import COMPACT_AFTER_S
-    from relay.store.compactor import rollups_within_s
-    from relay.store.history import nodes
-    from relay.urls import redact
+    from dcuscope.relay.store.compaction import COMPACT_AFTER_S
+    from dcuscope.relay.store.compactor import rollups_within_s
+    from dcuscope.relay.store.history import nodes
+    from dcuscope.relay.urls import redact
 
     db = redact(args.db)
     known = [n["node"] for n in nodes(args.db)]
@@ -139,7 +139,7 @@ ROLLUP_COLUMNS = ("count", "mean_ms", "min_ms", "p50_ms", "p90_ms", "p99_ms", "m
 
 
 def format_rollups(doc: dict) -> str:
-    """The table of :func:`relay.store.history.summary`, with what is exact and what is not."""
+    """The table of :func:`dcuscope.relay.store.history.summary`, with what is exact and what is not."""
     def stamp(ns: int | None) -> str:
         return "-" if ns is None else time.strftime("%Y-%m-%d %H:%M", time.gmtime(ns / 1e9)) + " UTC"
 
@@ -196,8 +196,8 @@ def _inputs(args: argparse.Namespace, command: str) -> list:
         return [read_trace(path) for path in args.traces]
     if args.traces or args.db is None or args.session is None:
         raise DcuscopeError(f"{command}: give either TRACE files, or --db PATH with --session ID")
-    from relay.store.engines import is_url
-    from relay.store.runs import load_runs  # the relay's modules load only for this input
+    from dcuscope.relay.store.engines import is_url
+    from dcuscope.relay.store.runs import load_runs  # the relay's modules load only for this input
 
     if not is_url(args.db) and not Path(args.db).is_file():
         raise DcuscopeError(f"{command}: {args.db}: no such database")

@@ -4,14 +4,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-from core.clocks import CLOCKS
-from core.errors import ConfigError, PipelineError
-from core.gst import Gst
-from pipeline.config import PipelineConfig
-from pipeline.elements import make_stage_element
-from pipeline.sinks import Outputs, build_outputs, link_outputs
-from pipeline.sources import SourceBin
-import plugins
+from dcuscope.core.clocks import CLOCKS
+from dcuscope.core.errors import ConfigError, PipelineError
+from dcuscope.core.gst import Gst
+from dcuscope.pipeline.config import PipelineConfig
+from dcuscope.pipeline.elements import make_stage_element
+from dcuscope.pipeline.sinks import Outputs, build_outputs, link_outputs
+from dcuscope.pipeline.sources import SourceBin
+from dcuscope import plugins
 
 
 @dataclass

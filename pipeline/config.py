@@ -40,12 +40,12 @@ does not hold the others)::
 Any graph the structured form cannot say is one ``launch:`` line in gst-launch syntax, with
 dcuscope's elements available (``pipeline.launch``): it replaces sources, stages and sinks.
 
-This module checks the structure (keys, types, files); :mod:`pipeline.elements` checks the
+This module checks the structure (keys, types, files); :mod:`dcuscope.pipeline.elements` checks the
 stages against the installed GStreamer elements and their properties.
 
 The objects are frozen: once checked, a configuration is not changed by whoever uses it. A
 command-line override makes a new one (``dataclasses.replace``); building a pipeline returns
-what it resolved (:class:`pipeline.build.BuiltPipeline`) instead of writing it back here.
+what it resolved (:class:`dcuscope.pipeline.build.BuiltPipeline`) instead of writing it back here.
 """
 
 from __future__ import annotations
@@ -56,7 +56,7 @@ from pathlib import Path
 from types import MappingProxyType
 from typing import Any, Mapping
 
-from pipeline.yamlsource import Document, KeyPath, load_document
+from dcuscope.pipeline.yamlsource import Document, KeyPath, load_document
 
 STAGE_SHORTHANDS = ("mux", "infer", "tiler", "convert", "osd", "queue")
 """Stage kinds written as ``- KIND: {properties}``; anything else is ``- factory: NAME``."""

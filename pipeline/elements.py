@@ -9,9 +9,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-from core.gst import GObject, Gst
-from pipeline.config import PipelineConfig, StageConfig
-from plugins.models import ModelError, check_model
+from dcuscope.core.gst import GObject, Gst
+from dcuscope.pipeline.config import PipelineConfig, StageConfig
+from dcuscope.plugins.models import ModelError, check_model
 
 FILE_PROPERTIES = {"infer": ("model", "labels")}
 """Properties that name files: resolved against the configuration's folder and checked."""

@@ -11,10 +11,10 @@ as any application (probes.capture.processtracer), every element a stage, every 
 
 from __future__ import annotations
 
-from core.gst import GLib, Gst
-from pipeline.build import BuiltPipeline
-from pipeline.config import PipelineConfig
-import plugins
+from dcuscope.core.gst import GLib, Gst
+from dcuscope.pipeline.build import BuiltPipeline
+from dcuscope.pipeline.config import PipelineConfig
+from dcuscope import plugins
 
 
 def build_launch(config: PipelineConfig) -> BuiltPipeline:

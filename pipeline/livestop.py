@@ -6,7 +6,7 @@ backlog in front of its slowest stage (the mux's inputs, queues) and before its 
 only behind all of it: a run told to stop drains for as long as it lags, without bound. A live
 stop instead:
 
-- ends every source at its frame stamp (:meth:`pipeline.sources.SourceBin.end_now`): frames not
+- ends every source at its frame stamp (:meth:`dcuscope.pipeline.sources.SourceBin.end_now`): frames not
   stamped yet are discarded without ever getting an identity, and end-of-stream follows the
   last frame the source stamped;
 - discards the frames still waiting in the stages that queue them (the mux, which is an
@@ -23,8 +23,8 @@ from __future__ import annotations
 import time
 from typing import Iterable
 
-from core.gst import Gst, GstBase
-from plugins.frames import drop_structure, read_frames
+from dcuscope.core.gst import Gst, GstBase
+from dcuscope.plugins.frames import drop_structure, read_frames
 
 STOPPED = "stopped"
 """Reason of the frames a live stop discards (``probes.trace.events.DROP_REASONS``)."""

@@ -11,13 +11,13 @@ import sys
 from pathlib import Path
 from typing import Callable
 
-from core import signals
-from core.errors import ConfigError, PipelineError, UsageError
-from core.gst import GLib, Gst
-from core.ports import check_port_free
-from pipeline.config import SourceConfig
-from pipeline.sources import SourceBin
-import plugins
+from dcuscope.core import signals
+from dcuscope.core.errors import ConfigError, PipelineError, UsageError
+from dcuscope.core.gst import GLib, Gst
+from dcuscope.core.ports import check_port_free
+from dcuscope.pipeline.config import SourceConfig
+from dcuscope.pipeline.sources import SourceBin
+from dcuscope import plugins
 
 from gi.repository import GstRtspServer  # noqa: E402  (version pinned by core.gst)
 

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import threading
 
-from core.errors import PipelineError
-from core.gst import GLib, Gst
-from pipeline.config import SinkConfig
+from dcuscope.core.errors import PipelineError
+from dcuscope.core.gst import GLib, Gst
+from dcuscope.pipeline.config import SinkConfig
 
 from gi.repository import GstApp, GstRtspServer  # noqa: E402  (versions pinned by core.gst)
 

@@ -4,7 +4,7 @@ A stop (``--num-frames``, ``--duration``, the first Ctrl-C, SIGTERM) ends the ru
 end-of-stream, so that the sink finishes (an MP4 gets its index). Files drain: every frame read
 goes through. Live sources do not wait for a pipeline that lags, so a live run that drained
 would stop only when its backlog ran out, however long it is: it stops at once instead
-(:mod:`pipeline.livestop`), the frames still queued counted as dropped. Only Ctrl-C while
+(:mod:`dcuscope.pipeline.livestop`), the frames still queued counted as dropped. Only Ctrl-C while
 stopping aborts; SIGTERM is always the clean stop (what service managers and ``timeout`` send).
 """
 
@@ -16,15 +16,15 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, TextIO
 
-from core import signals
-from core.clocks import NEVER
-from core.errors import PipelineError
-from core.gst import GLib, Gst
-from pipeline.build import BuiltPipeline
-from pipeline.livestop import LiveStop
-from pipeline.sourcefaults import describe_fault
-from pipeline.stalls import Stall, StallWatch
-from plugins.frames import read_frames
+from dcuscope.core import signals
+from dcuscope.core.clocks import NEVER
+from dcuscope.core.errors import PipelineError
+from dcuscope.core.gst import GLib, Gst
+from dcuscope.pipeline.build import BuiltPipeline
+from dcuscope.pipeline.livestop import LiveStop
+from dcuscope.pipeline.sourcefaults import describe_fault
+from dcuscope.pipeline.stalls import Stall, StallWatch
+from dcuscope.plugins.frames import read_frames
 
 EOS_GRACE_S = 15.0
 """How long a stop waits for end-of-stream at the sink with no frame reaching the sink meanwhile: a
@@ -133,7 +133,7 @@ class Runner:
 
     def stop(self) -> None:
         """Ask for a clean stop: end-of-stream from every source, then wait for it to reach the sink.
-        Files drain; live sources end now, and the frames still queued are dropped (:mod:`pipeline.livestop`)."""
+        Files drain; live sources end now, and the frames still queued are dropped (:mod:`dcuscope.pipeline.livestop`)."""
         if self._stop_asked_at is not None:
             return
         self._stop_asked_at = time.monotonic()

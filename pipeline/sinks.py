@@ -5,7 +5,7 @@ for the one ``sink:`` of a config, else as ``sinks:`` names it.
 - ``file``: H.264 in the container the file's name says (``videoconvert ! x264enc ! h264parse
   ! mp4mux|matroskamux|avimux ! filesink``), finalised when the run ends with EOS;
 - ``frames``: numbered PNG images in a folder (``frame_00000.png`` ...);
-- ``rtsp``: served live as H.264 over RTSP (:mod:`pipeline.rtspout`).
+- ``rtsp``: served live as H.264 over RTSP (:mod:`dcuscope.pipeline.rtspout`).
 
 Several sinks hang off a ``tee`` (named ``tee``), each behind a queue of its own (``NAME_queue``,
 leaky: an output more than 30 frames behind drops the oldest there instead of holding the
@@ -16,11 +16,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from core.errors import PipelineError
-from core.gst import Gst
-from pipeline.config import SinkConfig
-from pipeline.outputs import CONTAINERS, FRAME_PATTERN
-from pipeline.rtspout import RtspOut, rtsp_chain
+from dcuscope.core.errors import PipelineError
+from dcuscope.core.gst import Gst
+from dcuscope.pipeline.config import SinkConfig
+from dcuscope.pipeline.outputs import CONTAINERS, FRAME_PATTERN
+from dcuscope.pipeline.rtspout import RtspOut, rtsp_chain
 
 
 @dataclass

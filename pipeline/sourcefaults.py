@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from urllib.parse import urlsplit
 
-from core.gst import GLib, Gst
+from dcuscope.core.gst import GLib, Gst
 
 RTSP_SCHEMES = ("rtsp://", "rtsps://", "rtspt://", "rtspu://")
 RTSP_DEFAULT_PORT = 554

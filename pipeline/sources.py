@@ -15,9 +15,9 @@ from __future__ import annotations
 import threading
 from typing import Callable
 
-from core.errors import PipelineError
-from core.gst import GLib, Gst
-from pipeline.config import SourceConfig
+from dcuscope.core.errors import PipelineError
+from dcuscope.core.gst import GLib, Gst
+from dcuscope.pipeline.config import SourceConfig
 
 
 class SourceBin(Gst.Bin):

@@ -1,7 +1,7 @@
 """Per-source counters of what happened to a source's frames before they got their identity.
 
 A source is keyed by its ``framestamp``'s ``source-id``; its elements are those of the
-top-level bin that holds the framestamp (a :class:`pipeline.sources.SourceBin`), or, for a
+top-level bin that holds the framestamp (a :class:`dcuscope.pipeline.sources.SourceBin`), or, for a
 framestamp placed at the top level (gst-launch), everything upstream of it. Reading the
 counters walks those elements and reads a few properties: cheap enough to do once a second
 from any thread, and it never raises, whatever the pipeline holds or whatever state it is in.
@@ -12,7 +12,7 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 
-from core.gst import Gst
+from dcuscope.core.gst import Gst
 
 FRAMESTAMP = "framestamp"
 JITTERBUFFER = "rtpjitterbuffer"

@@ -8,7 +8,7 @@ from typing import Any
 
 import yaml
 
-from core.errors import ConfigError
+from dcuscope.core.errors import ConfigError
 
 KeyPath = tuple  # of str (mapping keys) and int (sequence indexes)
 

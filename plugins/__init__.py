@@ -17,10 +17,10 @@ def register() -> None:
     global _registered
     if _registered:
         return
-    from core.gst import Gst
+    from dcuscope.core.gst import Gst
 
     for name in ELEMENT_MODULES:
-        module = importlib.import_module(f"plugins.{name}")
+        module = importlib.import_module(f"dcuscope.plugins.{name}")
         factory, rank, cls = module.__gstelementfactory__
         if Gst.ElementFactory.find(factory) is None:
             Gst.Element.register(None, factory, rank, cls.__gtype__)

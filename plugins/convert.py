@@ -14,10 +14,10 @@ from typing import Iterator
 
 import numpy as np
 
-from core.gst import GLib, GObject, Gst, GstBase, GstVideo
-from plugins.colorspace import BT601, FORMATS, YUV420, Converter, Image, YuvMatrix, image_from_memory
-from plugins.frames import OBJECTS_CAPS, Detections, read_objects, write_objects
-from plugins.properties import AttributeProperties
+from dcuscope.core.gst import GLib, GObject, Gst, GstBase, GstVideo
+from dcuscope.plugins.colorspace import BT601, FORMATS, YUV420, Converter, Image, YuvMatrix, image_from_memory
+from dcuscope.plugins.frames import OBJECTS_CAPS, Detections, read_objects, write_objects
+from dcuscope.plugins.properties import AttributeProperties
 
 DEFAULT_FORMAT = "RGBA"
 DEFAULT_WIDTH = 0  # keep the input's

@@ -26,7 +26,7 @@ from typing import Iterator, Sequence
 
 import numpy as np
 
-from core.gst import Gst, GstVideo
+from dcuscope.core.gst import Gst, GstVideo
 
 BATCH_MEDIA_TYPE = "video/x-dcuscope-batch"
 FRAMES_MEDIA_TYPE = "timestamp/x-dcuscope-frames"

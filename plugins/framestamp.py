@@ -9,9 +9,9 @@ puts one at the end of every source; users rarely place it by hand.
 
 import time
 
-from core.gst import GObject, Gst, GstBase
-from plugins.frames import FrameId, write_frames
-from plugins.properties import AttributeProperties
+from dcuscope.core.gst import GObject, Gst, GstBase
+from dcuscope.plugins.frames import FrameId, write_frames
+from dcuscope.plugins.properties import AttributeProperties
 
 DEFAULT_SOURCE_ID = 0
 DEFAULT_CLOCK_ID = 0  # CLOCK_REALTIME, the clock phc2sys disciplines

@@ -1,7 +1,7 @@
 """infer: runs an ONNX detector over every frame of a batch (DeepStream's nvinfer).
 
 In place: the batch passes through untouched and gains one objects meta (see
-:mod:`plugins.frames`) holding the detections of all its frames, boxes in pixels of the
+:mod:`dcuscope.plugins.frames`) holding the detections of all its frames, boxes in pixels of the
 batch frame, ``slot`` = index of the frame in the batch. ``interval`` skips batches like
 nvinfer's; a skipped batch carries no objects meta. The model is recognised by its inputs and
 outputs (CenterNet, TF SSD, Ultralytics YOLOv8/v11) unless ``decoder`` names one.
@@ -13,16 +13,18 @@ outputs (CenterNet, TF SSD, Ultralytics YOLOv8/v11) unless ``decoder`` names one
         videotestsrc num-buffers=20 ! video/x-raw,format=RGB,width=768,height=576 ! framestamp source-id=1 ! m.sink_1
 """
 
+from collections import Counter
+
 import numpy as np
 
-from core.gst import GLib, GObject, Gst, GstBase
-from plugins.detection import Objects
-from plugins.frames import BATCH_TEMPLATE_CAPS, BatchLayout, Detections, mapped_batch, write_objects
-from plugins.models import (
+from dcuscope.core.gst import GLib, GObject, Gst, GstBase
+from dcuscope.plugins.detection import Objects
+from dcuscope.plugins.frames import BATCH_TEMPLATE_CAPS, BatchLayout, Detections, mapped_batch, write_objects
+from dcuscope.plugins.models import (
     DECODERS, DEFAULT_MODEL, Detector, ModelError, default_labels, inspect_model, load_labels, open_session,
     select_providers,
 )
-from plugins.properties import AttributeProperties
+from dcuscope.plugins.properties import AttributeProperties
 
 DEFAULT_DECODER = "auto"
 DEFAULT_THRESHOLD = 0.3
@@ -75,6 +77,9 @@ class Infer(AttributeProperties, GstBase.BaseTransform):
         self.names: list[str] = []
         self.layout: BatchLayout | None = None
         self.batches = 0
+        self.found: Counter[str] = Counter()
+        """Objects found since the start, per label (``dcuscope run`` says them at the end)."""
+        self.inferred_frames = 0
         self.set_in_place(True)
 
     def _post_error(self, prop: str, text: str, code: Gst.ResourceError, debug: str) -> None:
@@ -110,6 +115,8 @@ class Infer(AttributeProperties, GstBase.BaseTransform):
             return False
         self.detector = Detector(session, layout)
         self.batches = 0
+        self.found.clear()
+        self.inferred_frames = 0
         return True
 
     def do_stop(self):
@@ -132,7 +139,10 @@ class Infer(AttributeProperties, GstBase.BaseTransform):
             self._post_error("model", f"inference with {self.model} failed: {exc}", Gst.ResourceError.FAILED,
                              repr(exc))
             return Gst.FlowReturn.ERROR
-        write_objects(buf, self._detections(found))
+        detections = self._detections(found)
+        write_objects(buf, detections)
+        self.found.update(detections.labels)
+        self.inferred_frames += len(found)
         return Gst.FlowReturn.OK
 
     def _detections(self, found: list[Objects]) -> Detections:

@@ -1,7 +1,7 @@
 """ONNX Runtime side of the infer element: sessions, providers, model layouts, the detector.
 
 A model is recognised by its inputs and outputs (:func:`inspect_model`), which gives one of
-three decoders of :mod:`plugins.detection`. :class:`Detector` owns the session and the
+three decoders of :mod:`dcuscope.plugins.detection`. :class:`Detector` owns the session and the
 preallocated input tensors and turns a list of RGB frames into :class:`Objects` per frame.
 Errors a user can cause (missing file, not an ONNX model, unknown layout, bad labels file)
 raise :class:`ModelError` with a message that names the file.
@@ -9,15 +9,21 @@ raise :class:`ModelError` with a message that names the file.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-import onnxruntime as ort
 
-from core.errors import DcuscopeError
-from plugins.detection import (
+# ONNX Runtime 1.30 and later send telemetry to Microsoft from Linux too, and keep a device id in
+# ~/.cache, unless this is set before they load (the user may set it to 0). A measurement tool on
+# vehicles and robots sends nothing anywhere by itself.
+os.environ.setdefault("ORT_DISABLE_TELEMETRY", "1")
+import onnxruntime as ort  # noqa: E402 - after the setting above
+
+from dcuscope.core.errors import DcuscopeError
+from dcuscope.plugins.detection import (
     LETTERBOX_GREY, Letterbox, Objects, decode_centernet, decode_ssd, decode_yolo, hwc_to_chw_unit,
     letterbox_into, resize_into,
 )

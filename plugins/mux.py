@@ -27,10 +27,10 @@ from typing import Iterator
 import cv2
 import numpy as np
 
-from core.gst import GObject, Gst, GstBase, GstVideo
-from plugins.frames import (BATCH_TEMPLATE_CAPS, FrameId, batch_caps, drop_structure, mapped_video, read_frames,
+from dcuscope.core.gst import GObject, Gst, GstBase, GstVideo
+from dcuscope.plugins.frames import (BATCH_TEMPLATE_CAPS, FrameId, batch_caps, drop_structure, mapped_video, read_frames,
                             write_frames)
-from plugins.properties import AttributeProperties
+from dcuscope.plugins.properties import AttributeProperties
 
 DEFAULT_BATCH_SIZE = 0  # 0: as many as there are sink pads
 MIN_PTS_STEP_NS = 1_000_000

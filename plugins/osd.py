@@ -10,10 +10,10 @@ colour.
 
 import time
 
-from core.gst import GObject, Gst, GstBase, GstVideo
-from plugins.drawing import FORMATS, clock_text, draw_clock, draw_detections
-from plugins.frames import mapped_video, read_objects
-from plugins.properties import AttributeProperties
+from dcuscope.core.gst import GObject, Gst, GstBase, GstVideo
+from dcuscope.plugins.drawing import FORMATS, clock_text, draw_clock, draw_detections
+from dcuscope.plugins.frames import mapped_video, read_objects
+from dcuscope.plugins.properties import AttributeProperties
 
 DEFAULT_DISPLAY_TEXT = True
 DEFAULT_LINE_WIDTH = 2

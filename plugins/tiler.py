@@ -11,13 +11,13 @@ are black. Detections follow their frame into collage pixels; frame identities a
 
 import numpy as np
 
-from core.gst import GLib, GObject, Gst, GstBase, GstVideo
-from plugins.frames import (
+from dcuscope.core.gst import GLib, GObject, Gst, GstBase, GstVideo
+from dcuscope.plugins.frames import (
     BATCH_TEMPLATE_CAPS, OBJECTS_CAPS, BatchLayout, Detections, mapped_batch, mapped_video,
     read_frames, read_objects, write_objects,
 )
-from plugins.properties import AttributeProperties
-from plugins.tiling import compose, grid_shape, map_boxes, tile_rects, tiles_for_slots
+from dcuscope.plugins.properties import AttributeProperties
+from dcuscope.plugins.tiling import compose, grid_shape, map_boxes, tile_rects, tiles_for_slots
 
 DEFAULT_ROWS = 0
 DEFAULT_COLUMNS = 0

@@ -13,7 +13,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from plugins.colorspace import interpolation_for
+from dcuscope.plugins.colorspace import interpolation_for
 
 
 def grid_shape(n: int, rows: int = 0, columns: int = 0) -> tuple[int, int]:

@@ -12,6 +12,6 @@ Four sub-packages, bottom-up; each imports only those before it (``tests/test_la
     ship      the wire and the node's side of the relay protocol: batches,     trace, clocks, core
               envelope, link, the relay exporter, shipping a trace file
 
-:mod:`probes.instrument` composes them for ``dcuscope run``: a pipeline's tracepoints wired to
+:mod:`dcuscope.probes.instrument` composes them for ``dcuscope run``: a pipeline's tracepoints wired to
 its trace file and relays. The relay imports ``trace``, ``clocks`` and ``ship`` only.
 """

@@ -10,23 +10,24 @@ from typing import TextIO
 
 import numpy as np
 
-from core.clocks import CLOCKS, PretendClock
-from core.errors import UsageError
-from pipeline.build import BuiltPipeline
-from pipeline.config import PipelineConfig
-from probes.capture.processtracer import ProcessTracer
-from probes.capture.shipper import Shipper
-from probes.capture.sourcewatch import SourceWatch
-from probes.capture.tracer import Tracer, attach
-from probes.clocks.sysclock import DEFAULT_UDS
-from probes.ship.errors import ExportError
-from probes.ship.nodetls import RelayTls
-from probes.ship.relayexport import RelayExporter
-from probes.ship.relaylink import check_token
-from probes.ship.tailship import TailShipper
-from probes.trace.errors import TraceError
-from probes.trace.events import CAPTURE, EXPORTER_CLOSE_S, Exporter, TraceHeader
-from probes.trace.tracefile import TraceFileWriter
+from dcuscope.core.clocks import CLOCKS, PretendClock
+from dcuscope.core.errors import UsageError
+from dcuscope.pipeline.build import BuiltPipeline
+from dcuscope.pipeline.config import PipelineConfig
+from dcuscope.probes.capture.native import unavailable_reason
+from dcuscope.probes.capture.processtracer import ProcessTracer
+from dcuscope.probes.capture.shipper import Shipper
+from dcuscope.probes.capture.sourcewatch import SourceWatch
+from dcuscope.probes.capture.tracer import Tracer, attach
+from dcuscope.probes.clocks.sysclock import DEFAULT_UDS
+from dcuscope.probes.ship.errors import ExportError
+from dcuscope.probes.ship.nodetls import RelayTls
+from dcuscope.probes.ship.relayexport import RelayExporter
+from dcuscope.probes.ship.relaylink import check_token
+from dcuscope.probes.ship.tailship import TailShipper
+from dcuscope.probes.trace.errors import TraceError
+from dcuscope.probes.trace.events import CAPTURE, EXPORTER_CLOSE_S, Exporter, TraceHeader
+from dcuscope.probes.trace.tracefile import TraceFileWriter
 
 
 class _Shifted:
@@ -117,11 +118,11 @@ def _start_tracer(config: PipelineConfig, relay: str | None, token: str | None, 
     trace = config.probes.trace or default_trace_path(config.node)
     probes = LaunchProbes(ProcessTracer(config.node, trace, config.probes.clock), Path(trace), progress, close_timeout_s)
     if relay is not None:
-        probes.capture.shipper = TailShipper(Path(trace), relay, token, config.node,
+        probes.shipper = TailShipper(Path(trace), relay, token, config.node,
                                      say=lambda line: progress.write(line + "\n") if progress else None,
                                      close_timeout_s=close_timeout_s, tls=tls)
         # No stop event: it ends with the trace's end line, which stop() has the tracer write.
-        probes.thread = threading.Thread(target=probes.capture.shipper.run, args=(threading.Event(), 1.0, 1e9),
+        probes.thread = threading.Thread(target=probes.shipper.run, args=(threading.Event(), 1.0, 1e9),
                                          name="dcuscope-tailship", daemon=True)
         probes.thread.start()
     return probes
@@ -132,7 +133,7 @@ def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None
                  ptp_socket: str = DEFAULT_UDS, close_timeout_s: float = EXPORTER_CLOSE_S,
                  tls: RelayTls | None = None) -> RunProbes | LaunchProbes:
     """Attach tracepoints to every element of ``built`` (not yet playing) and start shipping.
-    ``clock_offset_ns`` and ``clock_drift_ppm``: testing aids (:class:`core.clocks.PretendClock`).
+    ``clock_offset_ns`` and ``clock_drift_ppm``: testing aids (:class:`dcuscope.core.clocks.PretendClock`).
     A ``launch:`` pipeline is traced by the dcuscope GStreamer tracer (:class:`LaunchProbes`)."""
     if relay is not None:
         check_token(relay, token, tls=tls)  # a wrong token ends the run before it starts, not after
@@ -143,6 +144,9 @@ def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None
     sources = {s.index: s.config.description for s in built.sources}
     tracer = attach(built.pipeline, config.node, clock=config.probes.clock, sources=sources,
                     trigger=config.probes.trigger)
+    if tracer.backend == "python" and progress is not None:  # said, not silent: a few times the cost per event
+        progress.write(f"probes: Python probes (no service/wait split), as the native library is unavailable: "
+                       f"{unavailable_reason()}\n")
     trace = config.probes.trace
     if trace is None and relay is None:
         trace = default_trace_path(config.node)

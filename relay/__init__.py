@@ -1,5 +1,5 @@
 """The monitoring host: ingest of probe events from nodes, clock offsets, live delays, storage, API.
 
-Run it with ``dcuscope relay`` (or ``python -m relay``); nodes ship to it with
-:class:`probes.ship.relayexport.RelayExporter`.
+Run it with ``dcuscope relay`` (or ``python -m dcuscope.relay``); nodes ship to it with
+:class:`dcuscope.probes.ship.relayexport.RelayExporter`.
 """

@@ -1,16 +1,16 @@
-"""``python -m relay [--host H] [--port P] [--db PATH] [--token T] [--clock MODE]``: the relay alone."""
+"""``python -m dcuscope.relay [--host H] [--port P] [--db PATH] [--token T] [--clock MODE]``: the relay alone."""
 
 import argparse
 import sys
 
-from core import signals
-from core.errors import DcuscopeError
-from relay.commands import add_relay_arguments, run_relay
-from relay.guard.limits import limits_help
+from dcuscope.core import signals
+from dcuscope.core.errors import DcuscopeError
+from dcuscope.relay.commands import add_relay_arguments, run_relay
+from dcuscope.relay.guard.limits import limits_help
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m relay", description="dcuscope relay", epilog=limits_help(),
+    parser = argparse.ArgumentParser(prog="python -m dcuscope.relay", description="dcuscope relay", epilog=limits_help(),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     add_relay_arguments(parser)
     args = parser.parse_args(argv)

@@ -7,19 +7,19 @@ import logging
 import os
 import sys
 
-from core.ports import check_port_free
-from relay.clock.correction import CLOCK_MODES
-from probes.ship.nodetls import TOKEN_ENV
-from relay.errors import RelayError
-from relay.live.framelimits import FrameLimits
-from relay.export.otlpconfig import DEFAULT_EVERY, DEFAULT_QUEUE, DEFAULT_TIMEOUT_S, OtlpConfig, otlp_config
-from relay.guard.auth import load_tokens
-from relay.guard.limits import Limits, limits_help
-from relay.guard.proxy import TrustedProxies
-from relay.store.compaction import COMPACT_AFTER_S
-from relay.store.engines import is_url
-from relay.store.retention import parse_retention
-from relay.workers import run_workers
+from dcuscope.core.ports import check_port_free
+from dcuscope.relay.clock.correction import CLOCK_MODES
+from dcuscope.probes.ship.nodetls import TOKEN_ENV
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.live.framelimits import FrameLimits
+from dcuscope.relay.export.otlpconfig import DEFAULT_EVERY, DEFAULT_QUEUE, DEFAULT_TIMEOUT_S, OtlpConfig, otlp_config
+from dcuscope.relay.guard.auth import load_tokens
+from dcuscope.relay.guard.limits import Limits, limits_help
+from dcuscope.relay.guard.proxy import TrustedProxies
+from dcuscope.relay.store.compaction import COMPACT_AFTER_S
+from dcuscope.relay.store.engines import is_url
+from dcuscope.relay.store.retention import parse_retention
+from dcuscope.relay.workers import run_workers
 
 MAX_COMPACT_AFTER_S = 7 * 86_400.0
 
@@ -140,7 +140,7 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run_relay(args: argparse.Namespace) -> int:
-    from relay.server import serve  # aiohttp and socketio load only for this command
+    from dcuscope.relay.server import serve  # aiohttp and socketio load only for this command
 
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     if not 0 <= args.port <= 65535:
@@ -161,7 +161,7 @@ def run_relay(args: argparse.Namespace) -> int:
     otlp = _otlp(args, frame_limits)
     options = {}
     if args.redis is not None:
-        from relay.api.fanout import check_url
+        from dcuscope.relay.api.fanout import check_url
 
         options["redis"] = check_url(args.redis, args.redis_ca)
     elif args.redis_ca is not None:
@@ -178,7 +178,7 @@ def run_relay(args: argparse.Namespace) -> int:
     if args.tls_cert or args.tls_key or args.tls_client_ca:
         if not (args.tls_cert and args.tls_key):
             raise RelayError("--tls-cert and --tls-key go together (--tls-client-ca needs both)")
-        from relay.guard.tls import ServerTls
+        from dcuscope.relay.guard.tls import ServerTls
 
         options["tls"] = ServerTls(args.tls_cert, args.tls_key, args.tls_client_ca)
     if not 0 <= args.compact_after <= MAX_COMPACT_AFTER_S:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from typing import TYPE_CHECKING
 
-from core.errors import DcuscopeError
+from dcuscope.core.errors import DcuscopeError
 
 if TYPE_CHECKING:  # aiohttp is not imported by the command line's start (relay.commands imports this)
     from aiohttp import web

@@ -43,7 +43,7 @@ import logging
 import time
 from collections.abc import Callable
 
-from core.clocks import NEVER
+from dcuscope.core.clocks import NEVER
 
 CHECK_S = 1.0
 """How often the reclaimer looks whether runs left memory."""

@@ -3,8 +3,8 @@ Socket.IO server (``/ui``), the HTTP API and storage.
 
 ``serve(host, port, db, token, clock)`` runs it until SIGINT/SIGTERM; ``start_relay`` starts it
 on a running loop (tests, benchmarks). The page of ``ui/static/`` is served at ``/``, the
-Prometheus metrics at ``/metrics`` (:mod:`relay.export.metrics`). Beside it,
-the UDP clock exchange (:mod:`relay.clock.udp`) listens on ``clock_port``: by default the HTTP
+Prometheus metrics at ``/metrics`` (:mod:`dcuscope.relay.export.metrics`). Beside it,
+the UDP clock exchange (:mod:`dcuscope.relay.clock.udp`) listens on ``clock_port``: by default the HTTP
 port's number, 0 turns it off.
 """
 
@@ -24,40 +24,40 @@ from pathlib import Path
 import socketio
 from aiohttp import web
 
-from core import signals
-from probes.ship.wire import INGEST_PATH, MAX_MESSAGE_BYTES
-from relay.api.fanout import FanoutHealth, FleetManager, create_manager
-from relay.api.fleet import Fleet
-from relay.api.interest import Interest
-from relay.api.routes import add_routes
-from relay.api.compare import add_compare_routes
-from relay.api.history import add_history_routes
-from relay.api.sessions import add_session_routes
-from relay.api.sio import SIO_PATH, create_sio, sio_errors
-from relay.api.ui import DEFAULT_PUSH_HZ, Ticker, UiNamespace
-from relay.clock.correction import CLOCK_MODES
-from relay.clock.udp import ClockUdp
-from relay.errors import RelayError
-from relay.live.framelimits import FrameLimits
-from relay.export.metrics import RelayCollector, add_metrics_route
-from relay.export.otlp import OtlpExporter
-from relay.export.otlpconfig import OtlpConfig
-from relay.guard import lograte
-from relay.guard.connections import ConnGuard, GuardedSite, fit_descriptors
-from relay.guard.hostcheck import HostCheck
-from relay.guard.limits import Limits
-from relay.guard.policy import Action, Policy, declare
-from relay.guard.signin import add_signin_routes, from_address
-from relay.heap import Reclaimer
-from relay.guard.proxy import TrustedProxies
-from relay.guard.tls import ServerTls
-from relay.ingest.endpoint import SYNCS_KEPT, Ingest
-from relay.live.run import LiveConfig
-from relay.live.state import RelayState
-from relay.store.compaction import COMPACT_AFTER_S
-from relay.store.compactor import Compactor
-from relay.store.retention import Retention, retain
-from relay.store.writer import Storage
+from dcuscope.core import signals
+from dcuscope.probes.ship.wire import INGEST_PATH, MAX_MESSAGE_BYTES
+from dcuscope.relay.api.fanout import FanoutHealth, FleetManager, create_manager
+from dcuscope.relay.api.fleet import Fleet
+from dcuscope.relay.api.interest import Interest
+from dcuscope.relay.api.routes import add_routes
+from dcuscope.relay.api.compare import add_compare_routes
+from dcuscope.relay.api.history import add_history_routes
+from dcuscope.relay.api.sessions import add_session_routes
+from dcuscope.relay.api.sio import SIO_PATH, create_sio, sio_errors
+from dcuscope.relay.api.ui import DEFAULT_PUSH_HZ, Ticker, UiNamespace
+from dcuscope.relay.clock.correction import CLOCK_MODES
+from dcuscope.relay.clock.udp import ClockUdp
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.live.framelimits import FrameLimits
+from dcuscope.relay.export.metrics import RelayCollector, add_metrics_route
+from dcuscope.relay.export.otlp import OtlpExporter
+from dcuscope.relay.export.otlpconfig import OtlpConfig
+from dcuscope.relay.guard import lograte
+from dcuscope.relay.guard.connections import ConnGuard, GuardedSite, fit_descriptors
+from dcuscope.relay.guard.hostcheck import HostCheck
+from dcuscope.relay.guard.limits import Limits
+from dcuscope.relay.guard.policy import Action, Policy, declare
+from dcuscope.relay.guard.signin import add_signin_routes, from_address
+from dcuscope.relay.heap import Reclaimer
+from dcuscope.relay.guard.proxy import TrustedProxies
+from dcuscope.relay.guard.tls import ServerTls
+from dcuscope.relay.ingest.endpoint import SYNCS_KEPT, Ingest
+from dcuscope.relay.live.run import LiveConfig
+from dcuscope.relay.live.state import RelayState
+from dcuscope.relay.store.compaction import COMPACT_AFTER_S
+from dcuscope.relay.store.compactor import Compactor
+from dcuscope.relay.store.retention import Retention, retain
+from dcuscope.relay.store.writer import Storage
 
 UI_DIR = Path(__file__).resolve().parents[1] / "ui" / "static"
 LOOPBACK = ("127.0.0.1", "::1", "localhost")
@@ -98,9 +98,9 @@ class Relay:
     otlp: OtlpExporter | None = None
     """The OTLP trace exporter (``--otlp``), if any."""
     reclaimer: Reclaimer | None = None
-    """Gives back the memory of runs that left it (:mod:`relay.heap`)."""
+    """Gives back the memory of runs that left it (:mod:`dcuscope.relay.heap`)."""
     compactor: Compactor | None = None
-    """Moves old batches into segments (:mod:`relay.store.compaction`; None: ``--compact-after 0``)."""
+    """Moves old batches into segments (:mod:`dcuscope.relay.store.compaction`; None: ``--compact-after 0``)."""
     _task: asyncio.Task | None = None
     _retention: asyncio.Task | None = None
     _reclaim: asyncio.Task | None = None
@@ -151,15 +151,15 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
                trusted_proxies: TrustedProxies = TrustedProxies(), redis: str | None = None,
                name: str | None = None, compact_after_s: float = COMPACT_AFTER_S,
                tls: ServerTls | None = None) -> tuple[web.Application, Relay]:
-    """The relay's app; who may do what is :mod:`relay.guard.policy`'s (``token``: the admin's, ``viewer_tokens``
+    """The relay's app; who may do what is :mod:`dcuscope.relay.guard.policy`'s (``token``: the admin's, ``viewer_tokens``
     and ``node_tokens``: NAME -> token); while anyone may read, requests must name an IP, localhost or one of ``allow_hosts``
-    (:mod:`relay.guard.hostcheck`). ``otlp``: export sampled frames as traces (:mod:`relay.export.otlp`; its
+    (:mod:`dcuscope.relay.guard.hostcheck`). ``otlp``: export sampled frames as traces (:mod:`dcuscope.relay.export.otlp`; its
     thread starts with :func:`start_relay`). ``trusted_proxies``: peers whose connections start with a PROXY
-    header naming the client (:mod:`relay.guard.proxy`). ``redis``: the URL of the Redis that carries every
-    relay's pushes to every relay's browsers (:mod:`relay.api.fanout`). ``name``: how pages and other relays
+    header naming the client (:mod:`dcuscope.relay.guard.proxy`). ``redis``: the URL of the Redis that carries every
+    relay's pushes to every relay's browsers (:mod:`dcuscope.relay.api.fanout`). ``name``: how pages and other relays
     name this one (default: HOST:PORT once listening). ``compact_after_s``: batches stored that long are
-    compacted (:mod:`relay.store.compaction`; 0: never). ``tls``: the port speaks HTTPS only
-    (:mod:`relay.guard.tls`; with its client CA, ``/ingest`` takes only nodes with a certificate it signed)."""
+    compacted (:mod:`dcuscope.relay.store.compaction`; 0: never). ``tls``: the port speaks HTTPS only
+    (:mod:`dcuscope.relay.guard.tls`; with its client CA, ``/ingest`` takes only nodes with a certificate it signed)."""
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     refused: Counter = Counter()
@@ -262,7 +262,7 @@ async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path 
     """Start a relay on the running loop; ``port=0`` picks a free port (see ``Relay.port``).
     ``clock_port``: UDP port of the clock exchange (None: the HTTP port's number; 0: none).
     ``reuse_port``: share the port with the host's other relay processes (``--workers``).
-    ``retention``: delete sessions and rollups older than it says (:mod:`relay.store.retention`; None: keep all)."""
+    ``retention``: delete sessions and rollups older than it says (:mod:`dcuscope.relay.store.retention`; None: keep all)."""
     app, relay = create_app(db, token, clock, **options)
     relay.storage.start(asyncio.get_running_loop())
     runner = web.AppRunner(app, access_log=None, handle_signals=False,

@@ -2,7 +2,7 @@
 
 Each worker is a whole relay (``dcuscope relay`` again, with ``--reuse-port``): the kernel spreads
 new connections over them (SO_REUSEPORT), and since any relay may take any node of a shared store
-(:mod:`relay.store.postgres`), nothing else is shared between them. Each answers UDP clock
+(:mod:`dcuscope.relay.store.postgres`), nothing else is shared between them. Each answers UDP clock
 exchanges on a port of its own (the clock port + its index), which it hands its nodes at hello.
 This process only starts them, passes SIGINT/SIGTERM on (and SIGHUP: reread the TLS certificate),
 and restarts none: a worker that dies leaves its nodes to reconnect to the others.
@@ -18,8 +18,8 @@ STOP_TIMEOUT_S = 20
 
 
 def worker_argv(argv: list[str], index: int, clock_port: int) -> list[str]:
-    """A worker's command line: ``python -m relay`` with the relay's own options (``argv``, of
-    ``dcuscope relay`` or of ``python -m relay``), without ``--workers``, with its clock port."""
+    """A worker's command line: ``python -m dcuscope.relay`` with the relay's own options (``argv``, of
+    ``dcuscope relay`` or of ``python -m dcuscope.relay``), without ``--workers``, with its clock port."""
     out, skip = [], False
     for arg in argv[1:] if argv[:1] == ["relay"] else argv:
         if skip:
@@ -30,7 +30,7 @@ def worker_argv(argv: list[str], index: int, clock_port: int) -> list[str]:
             skip = "=" not in arg
             continue
         out.append(arg)
-    return [sys.executable, "-m", "relay", *out, "--reuse-port",
+    return [sys.executable, "-m", "dcuscope.relay", *out, "--reuse-port",
             "--clock-port", str(clock_port + index if clock_port else 0)]
 
 

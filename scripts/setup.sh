@@ -39,7 +39,7 @@ if [ ! -x "$VENV/bin/python" ]; then
 fi
 mkdir -p "$STAMPS"
 
-deps_hash=$(cat pyproject.toml constraints.txt | sha256sum | cut -c1-16)
+deps_hash=$(cat pyproject.toml setup.py constraints.txt | sha256sum | cut -c1-16)
 if [ ! -f "$STAMPS/pip-$deps_hash" ]; then
   say "installing dcuscope and its Python dependencies into $VENV"
   log=$STAMPS/pip.log
@@ -53,14 +53,14 @@ if [ ! -f "$STAMPS/pip-$deps_hash" ]; then
   touch "$STAMPS/pip-$deps_hash"
 fi
 
-"$VENV/bin/python" -m probes.capture.native build >/dev/null || say "warning: native probes not built; Python probes will be used (slower)"
+"$VENV/bin/python" -m dcuscope.probes.capture.native build >/dev/null || say "warning: native probes not built; Python probes will be used (slower)"
 
 if [ -f ui/package-lock.json ]; then
   ui_hash=$(sha256sum ui/package-lock.json | cut -c1-16)
   if [ ! -f "$STAMPS/ui-$ui_hash" ] || [ ! -d ui/static/vendor ]; then
     say "installing the UI's pinned front-end packages (npm ci)"
     npm ci --prefix ui --silent --no-audit --no-fund
-    "$VENV/bin/python" -m ui.vendor
+    "$VENV/bin/python" -m dcuscope.ui.vendor
     rm -f "$STAMPS"/ui-*
     touch "$STAMPS/ui-$ui_hash"
   fi

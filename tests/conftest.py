@@ -73,7 +73,7 @@ def run_cli(*args: str, cwd: Path | None = None, timeout: float = 240,
 
 @pytest.fixture(scope="session")
 def gst_registered():
-    import plugins
+    from dcuscope import plugins
 
     plugins.register()
 

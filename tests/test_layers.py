@@ -10,7 +10,9 @@
     dcuscope  the CLI and the demo: composition root     everything
 
 Every ``import`` counts, those inside functions too: an import moved into a function to dodge a
-cycle is still an edge of the graph.
+cycle is still an edge of the graph. Installed, the packages are ``dcuscope.core`` … ``dcuscope.ui``
+(one import name, ``dcuscope/__init__.py``): the code imports them so, and this file names them by
+their folders.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
+SUBPACKAGES = ("core", "plugins", "pipeline", "probes", "relay", "ui")
 LAYERS = {
     "core": set(),
     "plugins": {"core"},
@@ -46,6 +49,23 @@ def modules() -> dict[str, Path]:
 MODULES = modules()
 
 
+def absolute_imports(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of every absolute import in ``path``: ``from A import b`` gives A and A.b."""
+    out = []
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+            out += [(node.lineno, node.module)] + [(node.lineno, f"{node.module}.{a.name}") for a in node.names]
+    return out
+
+
+def folder_name(target: str) -> str:
+    """``dcuscope.relay.api`` as this file names it (``relay.api``); other names as they are."""
+    head, _, rest = target.partition(".")
+    return rest if head == "dcuscope" and rest.split(".")[0] in SUBPACKAGES else target
+
+
 def imported(name: str, path: Path) -> set[str]:
     """Our modules that ``name`` imports, anywhere in its body (resolved to existing modules)."""
     out = set()
@@ -58,10 +78,12 @@ def imported(name: str, path: Path) -> set[str]:
             if node.level:
                 anchor = name.split(".")[: len(name.split(".")) - node.level + is_package]
                 base = ".".join(anchor + ([base] if base else []))
-            targets = [f"{base}.{alias.name}" for alias in node.names] + [base]
+            targets = [f"{base}.{alias.name}" for alias in node.names]
+            if not (base == "dcuscope" and all(alias.name in SUBPACKAGES for alias in node.names)):
+                targets.append(base)  # ``from dcuscope import relay`` imports relay, not the composition root
         else:
             continue
-        for target in targets:
+        for target in map(folder_name, targets):
             while target and target not in MODULES:
                 target = target.rpartition(".")[0]
             if target and target != name:
@@ -75,6 +97,17 @@ GRAPH = {name: imported(name, path) for name, path in MODULES.items()}
 def test_every_package_is_assigned_a_layer():
     packages = {p.parent.name for p in REPO.glob("*/__init__.py")} - {"tests", "benchmarks"}
     assert packages == set(LAYERS), "a new top-level package needs a place in LAYERS"
+    from dcuscope import SUBPACKAGES as mapped  # what the build and a checkout put under dcuscope
+    assert set(mapped) == set(SUBPACKAGES) == set(LAYERS) - {"dcuscope"}
+
+
+def test_our_packages_are_imported_by_the_one_name():
+    """``import relay`` would load a second copy of a module beside ``dcuscope.relay``'s, and fails
+    where dcuscope is installed."""
+    ours = sorted(p for folder in (*LAYERS, "tests", "benchmarks") for p in (REPO / folder).rglob("*.py"))
+    old = [f"{path.relative_to(REPO)}:{line}: {module}" for path in ours
+           for line, module in absolute_imports(path) if module.split(".")[0] in SUBPACKAGES]
+    assert not old, f"imported by the folder's name, not dcuscope.*: {old}"
 
 
 @pytest.mark.parametrize("name", sorted(MODULES))
@@ -178,12 +211,12 @@ C_DIR = REPO / "probes" / "capture" / "c"
 
 
 def c_modules() -> list[str]:
-    """The native library's modules, bottom-up, as probes.capture.native compiles them."""
-    tree = ast.parse((REPO / "probes" / "capture" / "native.py").read_text())
+    """The native library's modules, bottom-up, as probes.capture.cbuild compiles them."""
+    tree = ast.parse((REPO / "probes" / "capture" / "cbuild.py").read_text())
     for node in tree.body:
         if isinstance(node, ast.Assign) and [getattr(t, "id", "") for t in node.targets] == ["MODULES"]:
             return list(ast.literal_eval(node.value))
-    raise AssertionError("probes/capture/native.py defines no MODULES")
+    raise AssertionError("probes/capture/cbuild.py defines no MODULES")
 
 
 C_MODULES = c_modules()

@@ -24,16 +24,16 @@ from contextlib import contextmanager
 import pytest
 import socketio
 
-from pipeline.build import build_pipeline
-from pipeline.config import load_config
-from pipeline.run import Runner
-from probes.ship.relayexport import RelayExporter
-from probes.ship.simnode import header_for, synth_events
-from probes.ship.wire import encode_batch
-from relay import heap
-from relay.api.ui import Ticker
-from relay.live.mirror import Mirrors
-from relay.server import start_relay
+from dcuscope.pipeline.build import build_pipeline
+from dcuscope.pipeline.config import load_config
+from dcuscope.pipeline.run import Runner
+from dcuscope.probes.ship.relayexport import RelayExporter
+from dcuscope.probes.ship.simnode import header_for, synth_events
+from dcuscope.probes.ship.wire import encode_batch
+from dcuscope.relay import heap
+from dcuscope.relay.api.ui import Ticker
+from dcuscope.relay.live.mirror import Mirrors
+from dcuscope.relay.server import start_relay
 from tests.pipeline.test_run import LIVE_BALL
 from tests.relay.helpers import HandNode, RelayProcess, wait_for
 

@@ -1,7 +1,7 @@
 """Copy the page's front-end packages from ``ui/node_modules`` into ``ui/static/vendor/``.
 
     npm ci --prefix ui                      # installs the versions pinned in ui/package-lock.json
-    python -m ui.vendor                     # copies what the page loads (add --npm to run npm ci first)
+    python -m dcuscope.ui.vendor                     # copies what the page loads (add --npm to run npm ci first)
 
 The page works without them (it then polls the HTTP API instead of using Socket.IO), so a
 missing vendor folder degrades the page, it does not break it. Everything is served by the
@@ -38,7 +38,7 @@ def copy_vendor(node_modules: Path = UI / "node_modules", target: Path = VENDOR)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m ui.vendor", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(prog="python -m dcuscope.ui.vendor", description=__doc__.splitlines()[0])
     parser.add_argument("--npm", action="store_true", help="run `npm ci --prefix ui` first")
     args = parser.parse_args(argv)
     if args.npm:

@@ -7,6 +7,6 @@ drains them into exporters.
   :mod:`.processtracer` runs the GStreamer tracer for a whole process; :mod:`.sourcewatch` adds
   drops and source facts; :mod:`.shipper` drains the ring into exporters.
 
-Imports :mod:`probes.trace` (the event record, trace files), ``core``, ``plugins``, ``pipeline``;
-never :mod:`probes.ship` (exporters arrive through the ``Exporter`` protocol).
+Imports :mod:`dcuscope.probes.trace` (the event record, trace files), ``core``, ``plugins``, ``pipeline``;
+never :mod:`dcuscope.probes.ship` (exporters arrive through the ``Exporter`` protocol).
 """

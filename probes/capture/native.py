@@ -1,43 +1,38 @@
 """Build and load the native library (the probes' ring and tracepoints, and the GStreamer tracer).
 
-The library (its C modules in ``c/``, in the order of :data:`MODULES`) is compiled on demand into
-``probes/capture/_build/libgstdcuscope.so`` (git-ignored); the
-project setup runs ``python -m probes.capture.native build`` once. Where there is no compiler or no
-GStreamer headers, :func:`load` returns None and says why in :func:`unavailable_reason`, and
-the tracer falls back to Python probes (``probes.capture.ring``).
+The library (its C modules in ``c/``, compiled by :mod:`dcuscope.probes.capture.cbuild`) is
+``_build/libgstdcuscope.so`` beside this file. In a checkout it is compiled on demand (git-ignored;
+the project setup runs ``python -m dcuscope.probes.capture.native build`` once). Installed, the
+package's build compiled it, or wrote why not (``_build/BUILD-STATE``): nothing is compiled into
+site-packages then. Where there is no library, :func:`load` returns None and says why in
+:func:`unavailable_reason`, and the tracer falls back to Python probes (``probes.capture.ring``).
 
-    python -m probes.capture.native build     # compile (again), print the path
-    python -m probes.capture.native check     # load it and print the ABI, or why it cannot be loaded
+    python -m dcuscope.probes.capture.native build     # compile (again), print the path
+    python -m dcuscope.probes.capture.native check     # load it and print the ABI, or why it cannot be loaded
 """
 
 from __future__ import annotations
 
 import ctypes
-import os
-import shlex
-import shutil
-import subprocess
 import sys
-import tempfile
 import threading
 from pathlib import Path
 
 import numpy as np
 
-from core.errors import DcuscopeError
-from core.gst import Gst
-from probes.capture.ring import RingStats
-from probes.trace.events import EVENT_DTYPE
+from dcuscope.core.errors import DcuscopeError
+from dcuscope.core.gst import Gst
+from dcuscope.probes.capture import cbuild
+from dcuscope.probes.capture.ring import RingStats
+from dcuscope.probes.trace.events import EVENT_DTYPE
 
 HERE = Path(__file__).resolve().parent
 C_DIR = HERE / "c"
-MODULES = ("frames", "ring", "graph", "deepstream", "writer", "tracer", "padprobe", "plugin")
-"""The C modules, bottom-up: each calls only those before it, through their headers
-(docs/development.md, "Layout"; ``tests/test_layers.py`` checks it)."""
-SOURCES = [C_DIR / f"{name}.c" for name in MODULES]
+SOURCES = cbuild.sources(C_DIR)
 HEADERS = sorted(C_DIR.glob("*.h"))
 BUILD_DIR = HERE / "_build"
-LIBRARY = BUILD_DIR / "libgstdcuscope.so"
+LIBRARY = BUILD_DIR / cbuild.LIBRARY_NAME
+INSTALL_STATE = BUILD_DIR / cbuild.STATE
 ABI_VERSION = 2
 
 _lock = threading.Lock()
@@ -49,43 +44,30 @@ class BuildError(DcuscopeError):
     """The native library could not be compiled; the message says what was missing."""
 
 
-def _compiler() -> str:
-    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
-    if not cc:
-        raise BuildError("no C compiler (cc/gcc) on PATH")
-    return cc
-
-
-def _gst_flags() -> list[str]:
-    if not shutil.which("pkg-config"):
-        raise BuildError("pkg-config not found")
-    res = subprocess.run(["pkg-config", "--cflags", "--libs", "gstreamer-1.0"], capture_output=True, text=True)
-    if res.returncode != 0:
-        raise BuildError(f"GStreamer development files not found: {res.stderr.strip()}")
-    return shlex.split(res.stdout)
+def installed_state() -> str | None:
+    """``built``, or why the install built no library; None in a checkout (compiled on demand)."""
+    try:
+        return INSTALL_STATE.read_text().strip() or "unknown"
+    except FileNotFoundError:
+        return None
 
 
 def build(force: bool = False) -> Path:
-    """Compile the library unless an up-to-date one is there; returns its path."""
+    """Compile the library unless an up-to-date one is there; returns its path. Installed, only
+    says whether the install built it."""
+    state = installed_state()
+    if state is not None:
+        if state == "built" and LIBRARY.exists():
+            return LIBRARY
+        raise BuildError(f"dcuscope was installed without its native library ({state}); "
+                         f"install {cbuild.PACKAGES} (Debian/Ubuntu names) and reinstall dcuscope")
     newest = max(p.stat().st_mtime for p in SOURCES + HEADERS)
     if not force and LIBRARY.exists() and LIBRARY.stat().st_mtime >= newest:
         return LIBRARY
-    BUILD_DIR.mkdir(exist_ok=True)
-    # Compile to a private name and rename: two processes building at once never load a
-    # half-written library (nor GStreamer's plugin scanner, which looks at every *.so there).
-    fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=BUILD_DIR)
-    os.close(fd)
-    cmd = [_compiler(), "-O2", "-std=gnu11", "-Wall", "-Werror=implicit-function-declaration", "-shared", "-fPIC", "-o", tmp, *map(str, SOURCES), *_gst_flags()]
     try:
-        res = subprocess.run(cmd, capture_output=True, text=True)
-    except OSError as exc:
-        os.unlink(tmp)
-        raise BuildError(f"cannot run the C compiler {cmd[0]}: {exc.strerror}") from exc
-    if res.returncode != 0:
-        os.unlink(tmp)
-        raise BuildError(f"compiling the native probes failed:\n{res.stderr.strip()}")
-    os.replace(tmp, LIBRARY)
-    return LIBRARY
+        return cbuild.compile_library(C_DIR, LIBRARY)
+    except cbuild.CBuildError as exc:
+        raise BuildError(str(exc)) from exc
 
 
 def _bind(lib: ctypes.CDLL) -> None:
@@ -160,7 +142,7 @@ DEFAULT_TRIGGER = "hooks"
 
 
 class NativeRing:
-    """The C ring and its tracepoints; the same interface as :class:`probes.capture.ring.PythonRing`."""
+    """The C ring and its tracepoints; the same interface as :class:`dcuscope.probes.capture.ring.PythonRing`."""
 
     backend = "native"
 
@@ -240,7 +222,7 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         print(f"{LIBRARY} ABI {lib.dcu_abi_version()}")
         return 0
-    print("usage: python -m probes.capture.native [build|check]", file=sys.stderr)
+    print("usage: python -m dcuscope.probes.capture.native [build|check]", file=sys.stderr)
     return 2
 
 

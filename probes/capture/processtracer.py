@@ -2,7 +2,7 @@
 every element of every pipeline that runs from now on traced from hooks alone, frames given
 their identity where video starts, the trace file written by the tracer's own C thread
 (probes/capture/c/tracer.c). ``dcuscope run`` uses it for ``launch:`` configs, whose elements carry no
-framestamp; followed by :class:`probes.ship.tailship.TailShipper` for a relay.
+framestamp; followed by :class:`dcuscope.probes.ship.tailship.TailShipper` for a relay.
 
     tracer = ProcessTracer(node="DCU-1", trace=Path("dcu1.trace.jsonl"), clock="realtime")
     ... run the pipeline ...
@@ -16,9 +16,9 @@ import json
 import os
 from pathlib import Path
 
-from probes.capture.native import BuildError, load, unavailable_reason
-from probes.trace.errors import TraceError
-from probes.trace.tracefile import _parse_header
+from dcuscope.probes.capture.native import BuildError, load, unavailable_reason
+from dcuscope.probes.trace.errors import TraceError
+from dcuscope.probes.trace.tracefile import _parse_header
 
 
 def tracer_params(node: str, trace: Path, clock: str = "realtime", capacity: int | None = None) -> str:

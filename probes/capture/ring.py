@@ -1,6 +1,6 @@
 """The pure-Python event ring and its pad probes: the fallback when the native library is missing.
 
-Same interface as :class:`probes.capture.native.NativeRing` (``attach``, ``detach``, ``drain``,
+Same interface as :class:`dcuscope.probes.capture.native.NativeRing` (``attach``, ``detach``, ``drain``,
 ``stats``, ``now``, ``close``, ``capacity``, ``backend``). A Python pad probe costs 15-60 µs
 (PyGObject marshalling, GIL), so this is the slow path; it does the least it can per buffer:
 one clock read, one meta lookup, one ``deque.append`` of a tuple. ``deque.append`` and
@@ -22,9 +22,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.gst import Gst
-from plugins.frames import FRAMES_CAPS
-from probes.trace.events import EVENT_DTYPE
+from dcuscope.core.gst import Gst
+from dcuscope.plugins.frames import FRAMES_CAPS
+from dcuscope.probes.trace.events import EVENT_DTYPE
 
 DEFAULT_CAPACITY = 1 << 16
 

@@ -6,7 +6,7 @@
 
 Probes only timestamp and enqueue; this thread does everything else, so a slow exporter costs
 ring space (and, when the ring fills, counted drops), never streaming-thread time. Every
-exporter call happens on this thread (see :class:`probes.trace.events.Exporter`). An exporter that
+exporter call happens on this thread (see :class:`dcuscope.probes.trace.events.Exporter`). An exporter that
 raises is reported once, through the ``dcuscope.probes`` logger and :attr:`Shipper.errors`,
 and disabled; the others, and the pipeline, carry on.
 """
@@ -18,8 +18,8 @@ import threading
 import time
 from typing import Callable, Sequence
 
-from probes.capture.tracer import Tracer
-from probes.trace.events import EXPORTER_CLOSE_S, Exporter
+from dcuscope.probes.capture.tracer import Tracer
+from dcuscope.probes.trace.events import EXPORTER_CLOSE_S, Exporter
 
 log = logging.getLogger("dcuscope.probes")
 

@@ -4,7 +4,7 @@
   message ``dcuscope-drop`` (``source``, ``frame``, ``reason``) on the bus; it becomes a
   ``drop`` event at the posting element's stage. Taken as a sync message, in the posting
   thread, so no main loop is needed and none is held up.
-- Facts, read once a second on the shipping thread from :mod:`pipeline.sourcestats`: each
+- Facts, read once a second on the shipping thread from :mod:`dcuscope.pipeline.sourcestats`: each
   source's nominal frame rate (the caps framerate at its framestamp), RTP packets its jitter
   buffer lost, frames its decoder dropped; a fact is written when its value changes.
 """
@@ -15,12 +15,12 @@ import time
 
 import numpy as np
 
-from core.gst import Gst
-from pipeline.sourcestats import SourceStats, source_counters
-from plugins.frames import DROP_MESSAGE
-from probes.trace.events import (DROP, DROP_REASONS, EVENT_DTYPE, FACT, FACT_DECODER_DROPPED, FACT_LOST_UPSTREAM,
+from dcuscope.core.gst import Gst
+from dcuscope.pipeline.sourcestats import SourceStats, source_counters
+from dcuscope.plugins.frames import DROP_MESSAGE
+from dcuscope.probes.trace.events import (DROP, DROP_REASONS, EVENT_DTYPE, FACT, FACT_DECODER_DROPPED, FACT_LOST_UPSTREAM,
                            FACT_NOMINAL_MHZ)
-from probes.capture.tracer import Tracer
+from dcuscope.probes.capture.tracer import Tracer
 
 POLL_S = 1.0
 _REASON_CODES = {name: code for code, name in DROP_REASONS.items()}

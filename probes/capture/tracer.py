@@ -21,12 +21,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from core.clocks import CLOCKS
-from core.errors import PipelineError
-from core.gst import Gst
-from probes.capture.native import DEFAULT_TRIGGER, BuildError, NativeRing, load, unavailable_reason
-from probes.capture.ring import DEFAULT_CAPACITY, PythonRing, RingStats
-from probes.trace.events import ENTER, EXIT, ORIGIN, TraceHeader
+from dcuscope.core.clocks import CLOCKS
+from dcuscope.core.errors import PipelineError
+from dcuscope.core.gst import Gst
+from dcuscope.probes.capture.native import DEFAULT_TRIGGER, BuildError, NativeRing, load, unavailable_reason
+from dcuscope.probes.capture.ring import DEFAULT_CAPACITY, PythonRing, RingStats
+from dcuscope.probes.trace.events import ENTER, EXIT, ORIGIN, TraceHeader
 
 BACKENDS = ("auto", "native", "python")
 FRAMESTAMP = "framestamp"

@@ -3,7 +3,7 @@
 ptp4l disciplines the NIC's hardware clock; what the probes read is CLOCK_REALTIME, which
 follows PTP only through phc2sys (or chrony with a PHC refclock, or a ptp4l with software
 timestamping that is not ``free_running``). So the report holds both: ptp4l's view (pmc's
-TIME_STATUS_NP, PORT_DATA_SET, PORT_PROPERTIES_NP) and the system clock's (:mod:`probes.clocks.sysclock`);
+TIME_STATUS_NP, PORT_DATA_SET, PORT_PROPERTIES_NP) and the system clock's (:mod:`dcuscope.probes.clocks.sysclock`);
 :func:`ptp_trusted` decides from both whether the relay may leave the node's timestamps alone.
 
 The report (sent in the node's hello and every clock message)::
@@ -22,7 +22,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
-from probes.clocks.sysclock import DEFAULT_UDS, observe, system_clock
+from dcuscope.probes.clocks.sysclock import DEFAULT_UDS, observe, system_clock
 
 PTP_LOCK_NS = 100_000
 """|master_offset| under which a slave port with a grandmaster counts as locked. Locked

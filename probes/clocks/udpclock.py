@@ -26,7 +26,7 @@ t1 node send, t2 relay kernel receive, t3 relay send, t4 node kernel receive. Th
 over t3 is made after t3 is read, before ``sendto`` (under a microsecond, with the HMAC keyed
 once per connection). The node's two times are moved to the probes' clock (tai, monotonic: the
 difference to CLOCK_REALTIME read at each receipt) and through its
-:class:`~core.clocks.PretendClock`, as its events are.
+:class:`~dcuscope.core.clocks.PretendClock`, as its events are.
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ import struct
 import time
 from typing import NamedTuple
 
-from core.clocks import CLOCKS, PretendClock
+from dcuscope.core.clocks import CLOCKS, PretendClock
 
 SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
 """Linux's value (SO_TIMESTAMPNS_OLD, also SCM_TIMESTAMPNS); Python's socket module lacks it."""

@@ -7,5 +7,5 @@
   reports), :mod:`.relayexport` (the exporter that composes them).
 - :mod:`.tailship` (a trace file being written, to a relay) and :mod:`.simnode` (a simulated node).
 
-Imports :mod:`probes.trace` and :mod:`probes.clocks`; never :mod:`probes.capture`.
+Imports :mod:`dcuscope.probes.trace` and :mod:`dcuscope.probes.clocks`; never :mod:`dcuscope.probes.capture`.
 """

@@ -3,11 +3,11 @@
 
 On each connection the node measures the clock offset to the relay and reports the samples with
 the node's linuxptp state (``clock``); the relay estimates. The exchanges go over UDP beside the
-WebSocket when the relay offers it (:mod:`probes.clocks.udpclock`: kernel timestamps, bursts of
+WebSocket when the relay offers it (:mod:`dcuscope.probes.clocks.udpclock`: kernel timestamps, bursts of
 16), else, or when UDP gets no answer, over the WebSocket (``sync``): said once. Over a tagged
 exchange (the relay gave a secret) an answer with a wrong tag is refused and counted (``forged``),
 and said at most once a minute, naming the relay. A report also tells what the outbox lost and asks
-about its doubtful batches (:meth:`probes.ship.outbox.Outbox.report`).
+about its doubtful batches (:meth:`dcuscope.probes.ship.outbox.Outbox.report`).
 """
 
 from __future__ import annotations
@@ -18,12 +18,12 @@ import time
 
 from yarl import URL
 
-from core.clocks import PretendClock
-from probes.clocks.ptp import PtpWatch
-from probes.clocks.udpclock import Offer, UdpClock
-from probes.ship.aio import describe
-from probes.ship.outbox import Outbox
-from probes.ship.relaylink import Link
+from dcuscope.core.clocks import PretendClock
+from dcuscope.probes.clocks.ptp import PtpWatch
+from dcuscope.probes.clocks.udpclock import Offer, UdpClock
+from dcuscope.probes.ship.aio import describe
+from dcuscope.probes.ship.outbox import Outbox
+from dcuscope.probes.ship.relaylink import Link
 
 SYNC_BURST_FIRST, SYNC_BURST = 8, 4
 SYNC_TIMEOUT_S = 10.0

@@ -1,6 +1,6 @@
 """The envelope of the ingest WebSocket (``GET /ingest``): one message per frame.
 
-Binary frames, node to relay only, each hold one batch (:func:`probes.ship.wire.encode_batch`):
+Binary frames, node to relay only, each hold one batch (:func:`dcuscope.probes.ship.wire.encode_batch`):
 the batch header already names its run and sequence number, which the acknowledgement echoes.
 Text frames hold one JSON object each::
 
@@ -11,7 +11,7 @@ Text frames hold one JSON object each::
                                                      not stored: hold every batch that long, then send again
                    {"v": 2, "type": "error", "error": "..."}                 then the relay closes
 
-``v`` is :data:`probes.ship.wire.PROTOCOL_VERSION`; a message of another version, of an unknown
+``v`` is :data:`dcuscope.probes.ship.wire.PROTOCOL_VERSION`; a message of another version, of an unknown
 type or of another shape is a protocol error, answered with ``error`` and a closed connection.
 ``id`` is optional (``clock`` needs no answer), a non-negative integer chosen by the node.
 """
@@ -21,8 +21,8 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 
-from probes.ship.errors import ProtocolError
-from probes.ship.wire import INT64_MAX, PROTOCOL_VERSION
+from dcuscope.probes.ship.errors import ProtocolError
+from dcuscope.probes.ship.wire import INT64_MAX, PROTOCOL_VERSION
 
 REQUESTS = frozenset({"hello", "sync", "clock", "end"})
 """Message types a node may send as text."""

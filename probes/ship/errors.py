@@ -1,6 +1,6 @@
 """Errors of shipping events to a relay: each names the exporter or the payload at fault."""
 
-from core.errors import DcuscopeError
+from dcuscope.core.errors import DcuscopeError
 
 
 class ExportError(DcuscopeError):
@@ -10,7 +10,7 @@ class ExportError(DcuscopeError):
 
 class ProtocolError(DcuscopeError):
     """A payload of the node <-> relay protocol is malformed, truncated, oversize or of another
-    version (:mod:`probes.ship.wire`, :mod:`probes.ship.envelope`)."""
+    version (:mod:`dcuscope.probes.ship.wire`, :mod:`dcuscope.probes.ship.envelope`)."""
 
 
 class LimitExceeded(ProtocolError):

@@ -27,10 +27,10 @@ from typing import Awaitable, Callable, NamedTuple, Sequence
 
 import aiohttp
 
-from probes.ship.aio import describe, seconds, wait_event
-from probes.ship.errors import ExportError
-from probes.ship.nodetls import RelayTls
-from probes.ship.relaylink import ELSEWHERE, Link, Refused, asked_retry_ms, parse_relays
+from dcuscope.probes.ship.aio import describe, seconds, wait_event
+from dcuscope.probes.ship.errors import ExportError
+from dcuscope.probes.ship.nodetls import RelayTls
+from dcuscope.probes.ship.relaylink import ELSEWHERE, Link, Refused, asked_retry_ms, parse_relays
 
 CONNECT_TIMEOUT_S = 2.0
 """A relay whose TCP connect takes longer counts as unreachable: a relay host that is down (its
@@ -60,7 +60,7 @@ class Miss(NamedTuple):
 
 
 class Failover:
-    """The relays of ``urls`` (see :func:`probes.ship.relaylink.parse_relays`) for node ``node``:
+    """The relays of ``urls`` (see :func:`dcuscope.probes.ship.relaylink.parse_relays`) for node ``node``:
     which one is in use, when to try the next, and what is said meanwhile."""
 
     def __init__(self, urls: str | Sequence[str], node: str, token: str | None,

@@ -6,7 +6,7 @@ A relay named ``https://HOST:PORT`` must show a certificate for HOST that the sy
 that asks for one (``dcuscope relay --tls-client-ca``). ``http://`` relays are spoken to in the clear,
 as ever. A relay that fails verification, or refuses the node's certificate, is one the node cannot
 use: :func:`tls_failure` says why in a few words, and the node moves on to its next relay, keeping its
-events (:mod:`probes.ship.failover`).
+events (:mod:`dcuscope.probes.ship.failover`).
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import argparse
 import ssl
 from dataclasses import dataclass
 
-from probes.ship.errors import ExportError
+from dcuscope.probes.ship.errors import ExportError
 
 TOKEN_ENV = "DCUSCOPE_TOKEN"
 """The environment variable a node's ``--token`` (and the relay's) defaults to: a secret given on a

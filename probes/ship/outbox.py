@@ -1,5 +1,5 @@
 """The batches of one run on their way to a relay (:class:`Outbox`): events the caller writes, cut
-into numbered batches (:mod:`probes.ship.wire`), each kept until a relay acknowledges it (after
+into numbered batches (:mod:`dcuscope.probes.ship.wire`), each kept until a relay acknowledges it (after
 its database committed it).
 
 Batching (adaptive, as Nagle's algorithm): while the link is idle (connected, no batch waiting
@@ -36,11 +36,11 @@ from typing import Callable
 
 import numpy as np
 
-from core.clocks import NEVER
-from probes.ship.aio import seconds, wait_event
-from probes.ship.relaylink import asked_retry_ms
-from probes.ship.wire import MAX_BATCH_EVENTS, MAX_DOUBT, encode_batch
-from probes.trace.events import EVENT_DTYPE
+from dcuscope.core.clocks import NEVER
+from dcuscope.probes.ship.aio import seconds, wait_event
+from dcuscope.probes.ship.relaylink import asked_retry_ms
+from dcuscope.probes.ship.wire import MAX_BATCH_EVENTS, MAX_DOUBT, encode_batch
+from dcuscope.probes.trace.events import EVENT_DTYPE
 
 DEFAULT_BATCH_EVENTS = 8192
 DEFAULT_FLUSH_INTERVAL_S = 0.05

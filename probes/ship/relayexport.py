@@ -2,16 +2,16 @@
 
 It implements the ``probes.trace.events.Exporter`` protocol. ``write`` only copies the events into
 the outbox under a short lock and returns: it never waits for the network. A thread of its own
-runs an asyncio loop with an aiohttp WebSocket to the relay's ``/ingest`` (:mod:`probes.ship.relaylink`)
+runs an asyncio loop with an aiohttp WebSocket to the relay's ``/ingest`` (:mod:`dcuscope.probes.ship.relaylink`)
 and composes the parts of the node's side:
 
-- :mod:`probes.ship.outbox`: pending events cut into numbered batches (adaptive batching), kept
+- :mod:`dcuscope.probes.ship.outbox`: pending events cut into numbered batches (adaptive batching), kept
   until acknowledged, bounded, doubtful batches settled; sending held while the relay cannot
   store;
-- :mod:`probes.ship.failover`: which relay of ``--relay URL1,URL2`` is used, when the node moves
+- :mod:`dcuscope.probes.ship.failover`: which relay of ``--relay URL1,URL2`` is used, when the node moves
   on, backoff between rounds; a refused token ends the tries (:attr:`RelayExporter.refused`);
-- :mod:`probes.ship.sending`: batches sent within the window on one link; a silent relay left;
-- :mod:`probes.ship.clockreport`: clock samples (UDP or WebSocket) and PTP state, reported on
+- :mod:`dcuscope.probes.ship.sending`: batches sent within the window on one link; a silent relay left;
+- :mod:`dcuscope.probes.ship.clockreport`: clock samples (UDP or WebSocket) and PTP state, reported on
   every connection.
 
 Here: the thread, the run's resumption on every connection (its secret, its unacknowledged
@@ -31,21 +31,21 @@ from typing import Sequence
 import aiohttp
 import numpy as np
 
-from core.clocks import CLOCKS, PretendClock
-from probes.clocks.ptp import POLL_INTERVAL_S
-from probes.clocks.sysclock import DEFAULT_UDS
-from probes.clocks.udpclock import parse_offer
-from probes.ship.aio import describe, wait_event
-from probes.ship.clockreport import ClockReporter
-from probes.ship.errors import ExportError
-from probes.ship.failover import Failover
-from probes.ship.nodetls import RelayTls
-from probes.ship.outbox import (DEFAULT_BATCH_EVENTS, DEFAULT_FLUSH_INTERVAL_S, DEFAULT_MAX_BUFFER_EVENTS,
+from dcuscope.core.clocks import CLOCKS, PretendClock
+from dcuscope.probes.clocks.ptp import POLL_INTERVAL_S
+from dcuscope.probes.clocks.sysclock import DEFAULT_UDS
+from dcuscope.probes.clocks.udpclock import parse_offer
+from dcuscope.probes.ship.aio import describe, wait_event
+from dcuscope.probes.ship.clockreport import ClockReporter
+from dcuscope.probes.ship.errors import ExportError
+from dcuscope.probes.ship.failover import Failover
+from dcuscope.probes.ship.nodetls import RelayTls
+from dcuscope.probes.ship.outbox import (DEFAULT_BATCH_EVENTS, DEFAULT_FLUSH_INTERVAL_S, DEFAULT_MAX_BUFFER_EVENTS,
                                 DEFAULT_MIN_FLUSH_S, DEFAULT_WINDOW, Outbox)
-from probes.ship.relaylink import Link
-from probes.ship.sending import send
-from probes.ship.wire import PROTOCOL_VERSION
-from probes.trace.events import EXPORTER_CLOSE_S, TraceHeader
+from dcuscope.probes.ship.relaylink import Link
+from dcuscope.probes.ship.sending import send
+from dcuscope.probes.ship.wire import PROTOCOL_VERSION
+from dcuscope.probes.trace.events import EXPORTER_CLOSE_S, TraceHeader
 
 CLOSE_SAY_S = 5.0
 """While ``close`` waits for a relay, what it waits for is said this often."""
@@ -59,7 +59,7 @@ log = logging.getLogger(__name__)
 
 class RelayExporter:
     """Ships events to ``url`` (``http://HOST:PORT``) as node ``node``; ``url`` may name several
-    relays (``"URL1,URL2"`` or a list, see :func:`probes.ship.relaylink.parse_relays`), tried in turn.
+    relays (``"URL1,URL2"`` or a list, see :func:`dcuscope.probes.ship.relaylink.parse_relays`), tried in turn.
 
     ``clock`` names the clock the probes read (``probes.trace.events.CLOCKS``): the NTP exchanges
     must read the same one. ``pretend`` is a testing aid: every clock reading of this client
@@ -67,8 +67,8 @@ class RelayExporter:
     ``close_timeout_s`` bounds ``close`` as a whole (waiting for acknowledgements included).
     ``ptp_socket``: the UDS of the local ptp4l, read every ``ptp_interval_s`` with pmc.
     ``adaptive``, ``min_flush_s``, ``flush_interval_s``, ``batch_events``: how pending events are
-    cut into batches (:mod:`probes.ship.outbox`). ``tls``: how ``https://`` relays are verified and
-    this node's certificate (:mod:`probes.ship.nodetls`; None: the system's CAs, no certificate).
+    cut into batches (:mod:`dcuscope.probes.ship.outbox`). ``tls``: how ``https://`` relays are verified and
+    this node's certificate (:mod:`dcuscope.probes.ship.nodetls`; None: the system's CAs, no certificate).
     """
 
     def __init__(self, url: str | Sequence[str], node: str, token: str | None = None, clock: str = "realtime",

@@ -1,5 +1,5 @@
 """A node's end of one ingest WebSocket (``GET /ingest``): requests with replies, batches with
-acknowledgements, in the envelope of :mod:`probes.ship.envelope`.
+acknowledgements, in the envelope of :mod:`dcuscope.probes.ship.envelope`.
 
     link = await Link.open(session, "http://127.0.0.1:3000", token, on_ack)
     reply = await link.call("hello", {...}, timeout=10)
@@ -7,7 +7,7 @@ acknowledgements, in the envelope of :mod:`probes.ship.envelope`.
     await link.closed()                            # the connection ended (link.error says why)
 
 ``--relay`` names one relay or several (:func:`parse_relays`); the node ships to one at a time
-(:class:`probes.ship.relayexport.RelayExporter` moves on when one cannot serve it).
+(:class:`dcuscope.probes.ship.relayexport.RelayExporter` moves on when one cannot serve it).
 """
 
 from __future__ import annotations
@@ -24,10 +24,10 @@ from typing import Callable, Sequence
 import aiohttp
 from aiohttp import WSMsgType
 
-from probes.ship import envelope
-from probes.ship.errors import ExportError, ProtocolError
-from probes.ship.nodetls import RelayTls, tls_failure
-from probes.ship.wire import INGEST_PATH, MAX_MESSAGE_BYTES
+from dcuscope.probes.ship import envelope
+from dcuscope.probes.ship.errors import ExportError, ProtocolError
+from dcuscope.probes.ship.nodetls import RelayTls, tls_failure
+from dcuscope.probes.ship.wire import INGEST_PATH, MAX_MESSAGE_BYTES
 
 HANDSHAKE_TIMEOUT_S = 5.0
 """A relay that has not completed the WebSocket handshake within this is unreachable (a frozen

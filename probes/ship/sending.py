@@ -12,11 +12,11 @@ from __future__ import annotations
 import asyncio
 import time
 
-from probes.ship.aio import wait_event
-from probes.ship.errors import ExportError
-from probes.ship.outbox import Outbox
-from probes.ship.relaylink import Link
-from probes.ship.wire import HEARTBEAT_S, SILENCE_S
+from dcuscope.probes.ship.aio import wait_event
+from dcuscope.probes.ship.errors import ExportError
+from dcuscope.probes.ship.outbox import Outbox
+from dcuscope.probes.ship.relaylink import Link
+from dcuscope.probes.ship.wire import HEARTBEAT_S, SILENCE_S
 
 ACK_TIMEOUT_S = 30.0
 SILENCE_CHECK_S = 0.25

@@ -5,10 +5,10 @@ stand-in a real ``dcuscope run --probes --relay`` process replaces at integratio
 follow the shape the tracer produces: one origin per frame at the source's framestamp stage,
 enter/exit at mux, infer, tiler, convert, osd, enter at the sink; a fraction of frames is
 dropped midway (incomplete). Timestamps are true times moved by ``--clock-offset-ns`` and
-``--clock-drift-ppm`` (:class:`core.clocks.PretendClock`), as on a node whose clock is off by that
+``--clock-drift-ppm`` (:class:`dcuscope.core.clocks.PretendClock`), as on a node whose clock is off by that
 much and runs that much fast; its clock exchanges with the relay read the same pretend clock.
 
-``python -m probes.ship.simnode --relay URL --node NAME [--paced] ...`` writes the events it shipped
+``python -m dcuscope.probes.ship.simnode --relay URL --node NAME [--paced] ...`` writes the events it shipped
 to ``--out`` (.npz with the header) so a test can compute ``node_stats`` over exactly them.
 """
 
@@ -22,11 +22,11 @@ import time
 
 import numpy as np
 
-from core.clocks import PretendClock
-from probes.clocks.sysclock import DEFAULT_UDS
-from probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
-from probes.ship.relayexport import RelayExporter
-from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
+from dcuscope.core.clocks import PretendClock
+from dcuscope.probes.clocks.sysclock import DEFAULT_UDS
+from dcuscope.probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
+from dcuscope.probes.ship.relayexport import RelayExporter
+from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
 
 STAGES = ("mux", "infer", "tiler", "convert", "osd")
 STAGE_MEAN_NS = (2_000_000, 30_000_000, 3_000_000, 1_000_000, 4_000_000)
@@ -99,7 +99,7 @@ def feed(exporter: RelayExporter, events: np.ndarray, *, paced: bool, clock: Pre
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m probes.ship.simnode", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m dcuscope.probes.ship.simnode", description=__doc__.splitlines()[0])
     p.add_argument("--relay", required=True)
     p.add_argument("--node", required=True)
     p.add_argument("--token", default=os.environ.get(TOKEN_ENV))

@@ -2,7 +2,7 @@
 ``dcuscope run``) to a relay, live, with the relay exporter of ``dcuscope run --relay``
 (acknowledged, resumable, with the clock exchange of this host).
 
-It reads the file as it grows (:mod:`probes.trace.follow`). It connects once the file's stages have
+It reads the file as it grows (:mod:`dcuscope.probes.trace.follow`). It connects once the file's stages have
 stayed the same for ``settle_s`` (a pipeline that builds itself while it starts, decodebin's,
 names its stages then), and ends when the trace's end line arrives or ``stop`` is set. Should
 stages still appear later, the node starts a new run on the relay with the larger graph (said
@@ -19,11 +19,11 @@ from typing import Callable
 
 import numpy as np
 
-from probes.ship.errors import ExportError
-from probes.ship.nodetls import RelayTls
-from probes.ship.relayexport import RelayExporter
-from probes.trace.events import EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
-from probes.trace.follow import TraceFollower
+from dcuscope.probes.ship.errors import ExportError
+from dcuscope.probes.ship.nodetls import RelayTls
+from dcuscope.probes.ship.relayexport import RelayExporter
+from dcuscope.probes.trace.events import EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
+from dcuscope.probes.trace.follow import TraceFollower
 
 POLL_S = 0.1
 

@@ -1,7 +1,7 @@
 """What nodes and the relay say to each other over the ingest WebSocket (``GET /ingest``).
 
 Each batch travels as one binary WebSocket frame, each other message as one JSON text frame
-(the envelope of :mod:`probes.ship.envelope`).
+(the envelope of :mod:`dcuscope.probes.ship.envelope`).
 
 Events travel in binary batches: a 40-byte header, then the events as the raw bytes of an
 ``EVENT_DTYPE`` array (24 bytes each, little-endian), optionally zlib-compressed::
@@ -31,8 +31,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from probes.ship.errors import LimitExceeded, ProtocolError
-from probes.trace.events import EVENT_DTYPE, POINT_NAMES, TraceHeader, codes_valid
+from dcuscope.probes.ship.errors import LimitExceeded, ProtocolError
+from dcuscope.probes.trace.events import EVENT_DTYPE, POINT_NAMES, TraceHeader, codes_valid
 
 MAGIC = b"DCUB"
 BATCH_VERSION = 1

@@ -2,9 +2,9 @@
 
 The document ``dcuscope compare`` prints (table, ``--json``, ``--markdown``), its gate reads and the
 page's compare view draws. For each stage (matched by name) and kind (delay, service, wait; end to
-end: the frame delay of :mod:`probes.trace.delays`) and each input: frames, mean, p50, p90, p99 in
+end: the frame delay of :mod:`dcuscope.probes.trace.delays`) and each input: frames, mean, p50, p90, p99 in
 ms; for each input after the first, the change against the first with its 95 % interval from the
-circular block bootstrap (:mod:`probes.trace.bootstrap`), over the input's complete frames in the
+circular block bootstrap (:mod:`dcuscope.probes.trace.bootstrap`), over the input's complete frames in the
 order of their origin.
 
 Verdicts. A figure is *slower* (*faster*) when its whole interval lies above (below) zero and the
@@ -23,8 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from probes.trace.bootstrap import FIGURES, RESAMPLES, Resampled, change, holm, resample
-from probes.trace.delays import NS_PER_MS, FrameDelays
+from dcuscope.probes.trace.bootstrap import FIGURES, RESAMPLES, Resampled, change, holm, resample
+from dcuscope.probes.trace.delays import NS_PER_MS, FrameDelays
 
 E2E = "e2e"
 """The row name of the end-to-end frame delay (as gates name it)."""
@@ -49,7 +49,7 @@ class Input:
 
     label: str
     """Short name for column heads, unique among the inputs: the trace's file name, or a stored run's
-    :func:`relay.store.runs.run_label` (``session 4 · DCU-1``)."""
+    :func:`dcuscope.relay.store.runs.run_label` (``session 4 · DCU-1``)."""
     origin: str
     """Where it came from, in full."""
     node: str

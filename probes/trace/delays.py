@@ -44,9 +44,9 @@ from typing import Callable, Iterable
 
 import numpy as np
 
-from probes.trace.events import TraceHeader
-from probes.trace.facts import Accounting
-from probes.trace.frametable import MISSING, FrameTable, frame_table
+from dcuscope.probes.trace.events import TraceHeader
+from dcuscope.probes.trace.facts import Accounting
+from dcuscope.probes.trace.frametable import MISSING, FrameTable, frame_table
 
 PERCENTILES = (50, 95, 99)
 NS_PER_MS = 1e6

@@ -1,6 +1,6 @@
 """The error of trace files: it names the file (and line) at fault."""
 
-from core.errors import DcuscopeError
+from dcuscope.core.errors import DcuscopeError
 
 
 class TraceError(DcuscopeError):

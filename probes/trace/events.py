@@ -12,7 +12,7 @@ Points (format 2; format 1 had only the first three):
 - ``ready``: when the stage could start working on the output buffer that carries the frame:
   the later of "the thread that pushes it returned from its previous push on that pad" and
   "the last frame of that buffer entered the stage". Service = exit - ready, wait = ready -
-  enter (:mod:`probes.trace.delays`). ``code`` = how many frames the output buffer holds (at most
+  enter (:mod:`dcuscope.probes.trace.delays`). ``code`` = how many frames the output buffer holds (at most
   127) on its first frame, minus that on the others, so that a batch's work is counted once
   in a stage's busy time;
 - ``capture``: the frame's capture time as its source knows it (an RTSP camera's RTCP sender
@@ -47,7 +47,7 @@ FRAME_CELLS = 6
 DROP_REASONS = {0: "unknown", 1: "late", 2: "qos", 3: "queue full", 4: "error", 5: "stopped"}
 """``code`` of a ``drop`` event -> why the frame was dropped: ``late``, older than the mux's
 ``max-latency``; ``stopped``, still queued when a live run stopped (not drained, see
-:mod:`pipeline.livestop`)."""
+:mod:`dcuscope.pipeline.livestop`)."""
 LATE = 1
 STOPPED = 5
 

@@ -1,7 +1,7 @@
 """Exports of probe events: Chrome Trace Event JSON (ui.perfetto.dev, chrome://tracing) and CSV.
 
 Both take ``(header, events)`` pairs, one per node, so that the trace files and the relay's
-store can feed them alike. Every figure comes from :mod:`probes.trace.delays`; nothing is derived
+store can feed them alike. Every figure comes from :mod:`dcuscope.probes.trace.delays`; nothing is derived
 here.
 
 Perfetto/Chrome JSON layout: one process per node, one thread (track) per stage and source
@@ -39,10 +39,10 @@ from typing import IO, Iterable, Iterator, Protocol, Sequence
 
 import numpy as np
 
-from probes.trace.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays, busy_timeline, fill_levels, frame_delays
-from probes.trace.events import TraceHeader
-from probes.trace.frametable import MISSING, frame_table
-from probes.trace.stats import unique_name
+from dcuscope.probes.trace.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays, busy_timeline, fill_levels, frame_delays
+from dcuscope.probes.trace.events import TraceHeader
+from dcuscope.probes.trace.frametable import MISSING, frame_table
+from dcuscope.probes.trace.stats import unique_name
 
 FLOW_CATEGORY = "frame"
 BUCKET_NS = 100_000_000
@@ -246,8 +246,8 @@ def _capture_events(fd: FrameDelays, tracks: _Tracks, t0_ns: int) -> list[dict]:
 
 def _counter_events(fd: FrameDelays, pid: int, t0_ns: int, bucket_ns: int) -> list[dict]:
     """Counter tracks: "utilization <stage>" (busy fraction per bucket, from
-    :func:`probes.trace.delays.busy_timeline`; back to 0 at the end of the span) and "frames in
-    <stage>" (:func:`probes.trace.delays.fill_levels`)."""
+    :func:`dcuscope.probes.trace.delays.busy_timeline`; back to 0 at the end of the span) and "frames in
+    <stage>" (:func:`dcuscope.probes.trace.delays.fill_levels`)."""
     out = []
     timeline = busy_timeline(fd, bucket_ns)
     if timeline.busy:

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from probes.trace.events import (DROP, DROP_REASONS, FACT, FACT_DECODER_DROPPED, FACT_LOST_UPSTREAM, FACT_NOMINAL_MHZ,
+from dcuscope.probes.trace.events import (DROP, DROP_REASONS, FACT, FACT_DECODER_DROPPED, FACT_LOST_UPSTREAM, FACT_NOMINAL_MHZ,
                            FACT_THREAD, ORIGIN)
 
 SMALL_IDS = 4096

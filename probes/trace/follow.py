@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from probes.trace.errors import TraceError
-from probes.trace.events import EVENT_DTYPE, TraceHeader
-from probes.trace.tracefile import MAGIC, _parse_end, _parse_header, _parse_rows, rows_to_events
+from dcuscope.probes.trace.errors import TraceError
+from dcuscope.probes.trace.events import EVENT_DTYPE, TraceHeader
+from dcuscope.probes.trace.tracefile import MAGIC, _parse_end, _parse_header, _parse_rows, rows_to_events
 
 
 @dataclass

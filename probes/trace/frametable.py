@@ -1,6 +1,6 @@
 """Probe events paired by frame identity: one row per (source, frame), one cell per tracepoint.
 
-The input of the delay model (:mod:`probes.trace.delays`). Trace files and stored sessions pair all
+The input of the delay model (:mod:`dcuscope.probes.trace.delays`). Trace files and stored sessions pair all
 their events at once (:func:`frame_table`); the relay pairs incrementally into cells and
 builds its tables with :func:`frame_table_from_cells`. Where a tracepoint saw a frame twice,
 the earliest timestamp is kept.
@@ -12,8 +12,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from probes.trace.errors import TraceError
-from probes.trace.events import CAPTURE, ENTER, EXIT, FRAME_CELLS, FRAME_POINTS, GROUP, ORIGIN, READY, TraceHeader
+from dcuscope.probes.trace.errors import TraceError
+from dcuscope.probes.trace.events import CAPTURE, ENTER, EXIT, FRAME_CELLS, FRAME_POINTS, GROUP, ORIGIN, READY, TraceHeader
 
 MISSING = -1
 """Timestamp of a tracepoint a frame never hit. Real timestamps (ns) are never negative."""

@@ -1,10 +1,10 @@
-"""The statistics document of several nodes (``dcuscope stats --json``), over :mod:`probes.trace.delays`."""
+"""The statistics document of several nodes (``dcuscope stats --json``), over :mod:`dcuscope.probes.trace.delays`."""
 
 from __future__ import annotations
 
 from typing import Iterable
 
-from probes.trace.delays import node_stats
+from dcuscope.probes.trace.delays import node_stats
 
 
 def stats_document(traces: Iterable) -> dict:

@@ -6,7 +6,7 @@
     {"end": {"events": TOTAL, "dropped": DROPPED}}               absent if the run crashed
 
 Format 1 files (points origin, enter and exit only; events of five columns, no code) still
-read: their frames have no service/wait split (:mod:`probes.trace.events`).
+read: their frames have no service/wait split (:mod:`dcuscope.probes.trace.events`).
 
 Every line is flushed as it is written, so a run that dies leaves a readable file: the reader
 accepts a missing end line and a truncated last line, and says so in ``Trace.complete``.
@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from probes.trace.errors import TraceError
-from probes.trace.events import EVENT_DTYPE, FORMAT_VERSION, POINT_NAMES, READABLE_FORMATS, TraceHeader, codes_valid
+from dcuscope.probes.trace.errors import TraceError
+from dcuscope.probes.trace.events import EVENT_DTYPE, FORMAT_VERSION, POINT_NAMES, READABLE_FORMATS, TraceHeader, codes_valid
 
 MAGIC = "dcuscope_trace"
 
@@ -58,7 +58,7 @@ def rows_to_events(rows: np.ndarray) -> np.ndarray:
 
 
 class TraceFileWriter:
-    """Writes a trace file; an :class:`probes.trace.events.Exporter` for the probe shipping thread."""
+    """Writes a trace file; an :class:`dcuscope.probes.trace.events.Exporter` for the probe shipping thread."""
 
     def __init__(self, path: str | Path) -> None:
         self.path = Path(path)

@@ -1,17 +1,17 @@
 """Two stored runs compared, for the page's Compare tab: ``dcuscope compare``'s document over HTTP.
 
-- ``GET /api/compare?base=RUN&new=RUN[&noise=PCT]``: the document of :func:`probes.trace.compare.compare`
+- ``GET /api/compare?base=RUN&new=RUN[&noise=PCT]``: the document of :func:`dcuscope.probes.trace.compare.compare`
   (per stage and end to end, each figure of NEW against BASE with its 95 % block-bootstrap interval and
   verdict). RUN is a stored run's id or a prefix of it of 6 or more hex digits that names one run, as
   ``dcuscope compare run:ID`` takes it. Either side may instead be ``base=SESSION&base_node=NAME``
   (``new=SESSION&new_node=NAME``): the run of node NAME in that session, where it has exactly one.
-  Each input's ``label`` is :func:`relay.store.runs.run_label`'s, as the CLI names the same run.
+  Each input's ``label`` is :func:`dcuscope.relay.store.runs.run_label`'s, as the CLI names the same run.
   Errors: 400 for a malformed id or noise, a prefix of several runs, a session with several runs of
   the node; 404 for no such run, session or node, or a run without a complete frame.
 
-The runs come paired from the stored sessions' cache (:mod:`relay.api.sessions`), a run's session
+The runs come paired from the stored sessions' cache (:mod:`dcuscope.relay.api.sessions`), a run's session
 looked up by its id; the resampling runs in a worker thread, and a comparison of ended runs is kept
-for the next request. The token middleware of :mod:`relay.api.routes` guards the route like every
+for the next request. The token middleware of :mod:`dcuscope.relay.api.routes` guards the route like every
 ``/api`` route.
 """
 
@@ -22,11 +22,11 @@ from collections import OrderedDict
 
 from aiohttp import web
 
-from probes.trace.compare import NOISE_PCT, Input, compare, distinct_labels
-from relay.api.sessions import MAX_SESSION_DIGITS, SessionCache, StoredNode
-from relay.errors import RelayError, http_error
-from relay.guard.policy import add_read
-from relay.store.runs import find_runs, run_label
+from dcuscope.probes.trace.compare import NOISE_PCT, Input, compare, distinct_labels
+from dcuscope.relay.api.sessions import MAX_SESSION_DIGITS, SessionCache, StoredNode
+from dcuscope.relay.errors import RelayError, http_error
+from dcuscope.relay.guard.policy import add_read
+from dcuscope.relay.store.runs import find_runs, run_label
 
 CACHED = 8
 MAX_NAME = 200

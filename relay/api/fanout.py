@@ -47,9 +47,9 @@ from urllib.parse import urlencode, urlsplit, urlunsplit
 import socketio
 from socketio.packet import Packet
 
-from core.clocks import NEVER
-from relay.errors import RelayError
-from relay.urls import redact
+from dcuscope.core.clocks import NEVER
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.urls import redact
 
 CHANNEL = "dcuscope"
 """The Redis channel the relays' Socket.IO servers share (python-socketio's ``channel``)."""
@@ -70,7 +70,7 @@ def check_url(url: str, ca: str | None = None) -> str:
     """``url`` if it names a Redis server python-socketio can use; RelayError saying why not otherwise.
     ``ca`` (``--redis-ca``): the file of the CAs that a ``rediss://`` server's certificate must come
     from, put in the URL as redis-py's ``ssl_ca_certs`` parameter, so that every connection made from
-    the URL (python-socketio's manager, :mod:`relay.api.interest`) checks it; without it, the URL's own
+    the URL (python-socketio's manager, :mod:`dcuscope.relay.api.interest`) checks it; without it, the URL's own
     ``ssl_ca_certs``, else the system's CAs."""
     parts = urlsplit(url)
     scheme = parts.scheme.lower()
@@ -279,7 +279,7 @@ class _Quiet(logging.Filter):
 
 
 def _quiet_logger() -> logging.Logger:
-    logger = logging.getLogger("relay.fanout.redis")
+    logger = logging.getLogger("dcuscope.relay.fanout.redis")
     if not any(isinstance(f, _Quiet) for f in logger.filters):
         logger.addFilter(_Quiet())
     return logger

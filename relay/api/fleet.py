@@ -1,10 +1,10 @@
 """The whole fleet as one relay answers for it: its own DCUs live, the others' from the shared store.
 
-Once a second (:meth:`Fleet.refresh`) the relay builds the overview row (:mod:`relay.live.overview`)
+Once a second (:meth:`Fleet.refresh`) the relay builds the overview row (:mod:`dcuscope.relay.live.overview`)
 and node view of every DCU it holds, and, on a shared store, upserts them into the store's
 ``fleet`` table and reads back the rows of the other relays' DCUs. ``/api/nodes`` and
 ``/api/overview`` then list the fleet; ``/api/stats``, ``/api/frames`` and ``/api/moments`` read a
-DCU another relay holds from a mirror of its stored batches (:mod:`relay.live.mirror`).
+DCU another relay holds from a mirror of its stored batches (:mod:`dcuscope.relay.live.mirror`).
 
 Every row and node view carries a ``state``: "connected", "disconnected" (its run not ended),
 "ended", or "relay silent". A row of a live run that its relay stopped refreshing for ``STALE_S`` is
@@ -23,11 +23,11 @@ import logging
 import time
 from dataclasses import dataclass
 
-from relay.errors import RelayError
-from relay.live.mirror import Mirrors
-from relay.live.overview import CountHistory, connection_state, overview_row
-from relay.live.runview import RunView
-from relay.live.state import RelayState, RunState
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.live.mirror import Mirrors
+from dcuscope.relay.live.overview import CountHistory, connection_state, overview_row
+from dcuscope.relay.live.runview import RunView
+from dcuscope.relay.live.state import RelayState, RunState
 
 STALE_S = 3.0
 RELAY_SILENT = "relay silent"

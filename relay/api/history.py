@@ -1,4 +1,4 @@
-"""A DCU's long history, from the store's rollups (:mod:`relay.store.history`): HTTP routes.
+"""A DCU's long history, from the store's rollups (:mod:`dcuscope.relay.store.history`): HTTP routes.
 
 - ``GET /api/history/nodes``: [{node, first_ns, last_ns}], every DCU with rollups (hours);
 - ``GET /api/history?node=NAME&since=30d[&until_ns=NS]``: ``{summary, history}``: the node's statistics
@@ -7,7 +7,7 @@
   without frames having none (a gap). ``since`` is a duration back from ``until_ns`` (default now).
 
 Each request reads in a worker thread on a connection of its own (ingest goes on meanwhile).
-The token middleware of :mod:`relay.api.routes` guards them like every ``/api`` route.
+The token middleware of :mod:`dcuscope.relay.api.routes` guards them like every ``/api`` route.
 """
 
 from __future__ import annotations
@@ -17,10 +17,10 @@ import time
 
 from aiohttp import web
 
-from relay.errors import RelayError, http_error
-from relay.guard.policy import add_read
-from relay.live.state import RelayState
-from relay.store.history import history, nodes, parse_duration_ns, summary
+from dcuscope.relay.errors import RelayError, http_error
+from dcuscope.relay.guard.policy import add_read
+from dcuscope.relay.live.state import RelayState
+from dcuscope.relay.store.history import history, nodes, parse_duration_ns, summary
 
 MAX_NAME = 200
 MAX_NS = 1 << 62

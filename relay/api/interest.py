@@ -1,6 +1,6 @@
 """Which DCUs some browser of the fleet shows: the relay builds and sends only their pushes.
 
-A browser subscribes to the DCUs it shows (``subscribe``, :mod:`relay.api.ui`). Its own relay knows
+A browser subscribes to the DCUs it shows (``subscribe``, :mod:`dcuscope.relay.api.ui`). Its own relay knows
 that; the relay holding a DCU may be another one. With ``--redis`` each relay therefore keeps its
 browsers' wishes in one Redis hash (``KEY``: a field per relay, holding the DCUs its browsers show,
 the frames per push they ask for, and until when the entry holds) and reads everyone's every
@@ -17,7 +17,7 @@ import logging
 import time
 from dataclasses import dataclass
 
-from relay.api.fanout import TIMEOUT_S, FanoutHealth
+from dcuscope.relay.api.fanout import TIMEOUT_S, FanoutHealth
 
 KEY = "dcuscope:watching"
 PERIOD_S = 0.5

@@ -2,10 +2,10 @@
 
 When two DCUs consume the same RTSP stream (the paper's high-availability pair), each frame
 reaches both with the same capture time: the camera's RTCP sender reports map its RTP
-timestamp to the camera's clock (``timestamp/x-ntp``, :mod:`probes.trace.events` point ``capture``),
+timestamp to the camera's clock (``timestamp/x-ntp``, :mod:`dcuscope.probes.trace.events` point ``capture``),
 and both receivers get the same timestamps and the same reports. Matching the two nodes'
 complete frames by that time pairs the frames that show one moment; comparing their ends,
-each moved to the relay's clock by its run's :class:`relay.clock.correction.Correction`, says which DCU
+each moved to the relay's clock by its run's :class:`dcuscope.relay.clock.correction.Correction`, says which DCU
 finished that moment first and by how much. The error bar of a difference is the sum of both
 nodes' clock uncertainties at the two end timestamps: each correction is true within its bound.
 
@@ -19,10 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from probes.trace.delays import FrameDelays
-from probes.trace.frametable import MISSING
-from relay.clock.correction import Correction
-from relay.errors import RelayError
+from dcuscope.probes.trace.delays import FrameDelays
+from dcuscope.probes.trace.frametable import MISSING
+from dcuscope.relay.clock.correction import Correction
+from dcuscope.relay.errors import RelayError
 
 MATCH_TOLERANCE_NS = 1_000_000
 """Two capture times within 1 ms are one moment. Both receivers map the same RTP timestamp

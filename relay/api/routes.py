@@ -1,39 +1,39 @@
-"""HTTP JSON API of the relay (aiohttp routes); each is READ in :mod:`relay.guard.policy`.
+"""HTTP JSON API of the relay (aiohttp routes); each is READ in :mod:`dcuscope.relay.guard.policy`.
 
 - ``GET /api/health``: {ok, uptime_s, runs, rejected, clock_rejected, paused, storage {ok[, leases, error, since,
   failed_writes]}, limits, memory {live_bytes, live_budget_bytes, run_budget_bytes, runs_with_live_state},
   heap {available, arena, in_use, free, mmapped, reclaims, collected, last_reclaim_ms, last_trim_ms}: what
-  malloc holds, and the passes that gave memory back after runs left it (:mod:`relay.heap`),
+  malloc holds, and the passes that gave memory back after runs left it (:mod:`dcuscope.relay.heap`),
   refused {LIMIT or reason: what it refused}, proxy {trusted, proxied, proxied_open} (null without
   ``--trusted-proxy``), ...}; ok is false while storage fails
 - ``GET /api/nodes``: [{node, run, session, connected, state, relay, clock {offset_us, uncertainty_us, ...},
   ptp, events, dropped, lost, drops, ...}], one per node (its newest run) of the whole fleet: on a shared
   store the DCUs other relays hold too, as they wrote them to the store at most a second ago (``stale``,
-  not connected, state "relay silent" when their relay stopped refreshing them, :mod:`relay.api.fleet`)
+  not connected, state "relay silent" when their relay stopped refreshing them, :mod:`dcuscope.relay.api.fleet`)
 - ``GET /api/overview``: {t_ns, relay, rows: [ROW, ...]}: one row per DCU of the fleet
-  (:mod:`relay.live.overview`; as the ``overview`` pushes of :mod:`relay.api.ui`)
+  (:mod:`dcuscope.relay.live.overview`; as the ``overview`` pushes of :mod:`dcuscope.relay.api.ui`)
 - ``GET /api/stats?node=NAME``, ``/api/frames``, ``/api/moments`` answer for any DCU of the fleet: one
-  another relay holds is read from a mirror of its stored batches (:mod:`relay.live.mirror`)
+  another relay holds is read from a mirror of its stored batches (:mod:`dcuscope.relay.live.mirror`)
 - ``GET /api/stats?node=NAME``: ``probes.trace.delays.node_stats`` of the node's newest run (stage
   shares and bottleneck included), plus the same figures over the rolling ``window``, and
   ``clock`` {applied, why, correction_ns, uncertainty_ns, at_ns}: the correction applied to its
-  timestamps and its bound (:mod:`relay.clock.entry`)
+  timestamps and its bound (:mod:`dcuscope.relay.clock.entry`)
 - ``GET /api/frames?node=NAME&since=CURSOR&limit=N``: complete frames after the cursor, each
   with every figure the page draws, its clock offset ``clock_ns`` and bound
-  ``clock_uncertainty_ns`` included (:mod:`relay.live.framejson`)
+  ``clock_uncertainty_ns`` included (:mod:`dcuscope.relay.live.framejson`)
 - ``GET /api/moments?a=NODE&b=NODE[&source=URI | &source_a=ID&source_b=ID][&limit=N]``: the same
   moments of one camera on two nodes (their complete frames matched by capture time, within
   ``relay.api.moments.MATCH_TOLERANCE_NS``, 1 ms): per moment the capture time, each node's corrected origin
   and end, ``diff_ms`` (end of b - end of a: > 0 when a finished first), ``first``, ``error_ms``
   (both clock bounds summed); ``summary``: matched, unmatched and frames per node, mean/p50/p95 of
   the difference, the share each node finished first, and whether the mean exceeds the error bar
-  (:mod:`relay.api.moments`). Sources are those both run headers name by URI unless given; the newest
+  (:mod:`dcuscope.relay.api.moments`). Sources are those both run headers name by URI unless given; the newest
   ``limit`` (200, at most 2000) moments are listed, the summary covers every kept frame
 - ``GET /api/sessions``: stored sessions and their runs (node, times, counts, clock, stages), newest first
 - ``GET /api/sessions/ID/{nodes,stats,frames}``: a stored session browsed like a live one
-  (:mod:`relay.api.sessions`)
+  (:mod:`dcuscope.relay.api.sessions`)
 
-Beside them, ``GET /metrics`` (Prometheus, :mod:`relay.export.metrics`), READ too.
+Beside them, ``GET /metrics`` (Prometheus, :mod:`dcuscope.relay.export.metrics`), READ too.
 """
 
 from __future__ import annotations
@@ -42,12 +42,12 @@ import time
 
 from aiohttp import web
 
-from relay.api import moments as mo
-from relay.api.fleet import Fleet
-from relay.errors import RelayError, http_error
-from relay.guard.policy import add_read
-from relay.live.runview import RunView, frames_block
-from relay.live.state import RelayState
+from dcuscope.relay.api import moments as mo
+from dcuscope.relay.api.fleet import Fleet
+from dcuscope.relay.errors import RelayError, http_error
+from dcuscope.relay.guard.policy import add_read
+from dcuscope.relay.live.runview import RunView, frames_block
+from dcuscope.relay.live.state import RelayState
 
 MAX_FRAMES_PER_REQUEST = 2000
 

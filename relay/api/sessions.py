@@ -6,10 +6,10 @@
   frames in the order their chains ended, shaped as ``GET /api/frames`` (cursor = position, from 1)
 - ``GET /api/sessions/{session}/stats?node=NAME``: ``probes.trace.delays.node_stats`` over the node's
   stored events (stage shares and bottleneck included), and the ``clock`` entry of
-  :mod:`relay.clock.entry` (the correction applied, at the run's last event, and its bound)
+  :mod:`dcuscope.relay.clock.entry` (the correction applied, at the run's last event, and its bound)
 
 Timestamps are moved to the relay's clock as ``dcuscope export`` moves them: each by the estimate
-in force at its time, from the run's stored clock history (:func:`relay.store.runs.load_runs`); as
+in force at its time, from the run's stored clock history (:func:`dcuscope.relay.store.runs.load_runs`); as
 live, runs are paired on their node's own clock and only the frames' times are moved, each frame
 with the offset subtracted at its origin (``clock_ns``) and its bound (``clock_uncertainty_ns``), a
 frames block the correction and bound at its last frame (``correction_ns``, ``uncertainty_ns``). A session is paired once, in a
@@ -17,7 +17,7 @@ worker thread with its own read connection (WAL: ingest keeps writing meanwhile)
 for the next requests; a session still being recorded is re-read after ``LIVE_TTL_S``.
 
 Register with ``add_session_routes(app, state)`` before the app starts; the token middleware of
-:mod:`relay.api.routes` guards these routes like every ``/api`` route.
+:mod:`dcuscope.relay.api.routes` guards these routes like every ``/api`` route.
 """
 
 from __future__ import annotations
@@ -30,19 +30,19 @@ from dataclasses import dataclass
 import numpy as np
 from aiohttp import web
 
-from probes.trace.delays import FrameDelays, delay_stats, frame_delays
-from probes.trace.events import TraceHeader
-from probes.trace.facts import Accounting
-from probes.trace.frametable import frame_table
-from probes.trace.stats import unique_name
-from relay.api.routes import int_arg
-from relay.clock.correction import Correction
-from relay.clock.entry import clock_entry
-from relay.errors import RelayError, http_error
-from relay.guard.policy import add_read
-from relay.live.framejson import block, frame_dicts
-from relay.live.state import RelayState
-from relay.store.runs import StoredRun, load_runs
+from dcuscope.probes.trace.delays import FrameDelays, delay_stats, frame_delays
+from dcuscope.probes.trace.events import TraceHeader
+from dcuscope.probes.trace.facts import Accounting
+from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.probes.trace.stats import unique_name
+from dcuscope.relay.api.routes import int_arg
+from dcuscope.relay.clock.correction import Correction
+from dcuscope.relay.clock.entry import clock_entry
+from dcuscope.relay.errors import RelayError, http_error
+from dcuscope.relay.guard.policy import add_read
+from dcuscope.relay.live.framejson import block, frame_dicts
+from dcuscope.relay.live.state import RelayState
+from dcuscope.relay.store.runs import StoredRun, load_runs
 
 CACHED_SESSIONS = 3
 LIVE_TTL_S = 2.0
@@ -72,7 +72,7 @@ class StoredNode:
     """Rows of ``fd`` of the complete frames, by chain end: position k is cursor k + 1."""
     stats: dict
     correction: Correction
-    """The run's stored clock correction (:attr:`relay.store.runs.StoredRun.correction`), applied to the
+    """The run's stored clock correction (:attr:`dcuscope.relay.store.runs.StoredRun.correction`), applied to the
     frames' times shown: pairing is on the node's clock, as live."""
 
     def summary(self) -> dict:
@@ -97,7 +97,7 @@ class StoredNode:
 
 
 def pair_run(run: StoredRun, name: str) -> StoredNode:
-    """Pair a stored run's events into frames and their delays (:mod:`probes.trace.delays`)."""
+    """Pair a stored run's events into frames and their delays (:mod:`dcuscope.probes.trace.delays`)."""
     fd = frame_delays(frame_table(run.header, run.events))
     accounting = Accounting(run.header.stages)
     accounting.add(run.events)

@@ -1,6 +1,6 @@
 """The browsers' Socket.IO server (namespace ``/ui``), made with public python-socketio options.
 
-Only browsers speak Socket.IO here (nodes use the plain WebSocket of :mod:`relay.ingest.endpoint`), and
+Only browsers speak Socket.IO here (nodes use the plain WebSocket of :mod:`dcuscope.relay.ingest.endpoint`), and
 they only listen and ``subscribe``. What a client that sends garbage could still cause is
 logged tracebacks: python-socketio and python-engineio log an exception for a packet they
 cannot parse, and aiohttp one for a request handler that raises. The loggers handed to the
@@ -25,7 +25,7 @@ log = logging.getLogger(__name__)
 
 class JsonPacket(sio_packet.Packet):
     """Socket.IO packets of the relay, which sends binary only as values of objects (the packed
-    frames of a push, :mod:`relay.live.framepack`).
+    frames of a push, :mod:`dcuscope.relay.live.framepack`).
 
     The stock packet walks every list and dict of an outgoing message looking for bytes to send as
     attachments; through the lists of a big message (statistics, a fleet's rows) that walk costs
@@ -71,7 +71,7 @@ def _quiet_logger(name: str) -> logging.Logger:
 
 def create_sio(manager: socketio.AsyncManager | None = None) -> socketio.AsyncServer:
     """The relay's Socket.IO server for browsers (attach it to the aiohttp app); ``manager``: its
-    client manager (:mod:`relay.api.fanout`; None: python-socketio's in-process one)."""
+    client manager (:mod:`dcuscope.relay.api.fanout`; None: python-socketio's in-process one)."""
     return socketio.AsyncServer(async_mode="aiohttp", serializer=JsonPacket, client_manager=manager,
                                 max_http_buffer_size=MAX_UI_MESSAGE_BYTES, cors_allowed_origins=same_origin,
                                 logger=_quiet_logger("relay.sio"), engineio_logger=_quiet_logger("relay.eio"),

@@ -1,20 +1,20 @@
 """Socket.IO namespace ``/ui``: the fleet overview and the live views of the DCUs a browser shows.
 
-A browser connects with its session cookie (:mod:`relay.guard.signin`), a script with ``Authorization:
-Bearer T`` on the engine.io requests: :mod:`relay.guard.policy` must let it READ. With ``--redis``
-every relay's emits reach every relay's browsers (:mod:`relay.api.fanout`), so a page on any relay
+A browser connects with its session cookie (:mod:`dcuscope.relay.guard.signin`), a script with ``Authorization:
+Bearer T`` on the engine.io requests: :mod:`dcuscope.relay.guard.policy` must let it READ. With ``--redis``
+every relay's emits reach every relay's browsers (:mod:`dcuscope.relay.api.fanout`), so a page on any relay
 gets every DCU of the fleet; each relay sends only what it holds:
 
 - ``overview`` {"t_ns", "relay": NAME, "rows": [ROW, ...], "gone": [NODE, ...]} once a second: one row
-  per DCU this relay holds (:mod:`relay.live.overview`); ``gone``: DCUs it listed a second ago and
+  per DCU this relay holds (:mod:`dcuscope.relay.live.overview`); ``gone``: DCUs it listed a second ago and
   no longer holds. A page merges the rows of every relay by node. Sent on connect too, for the whole
-  fleet (the other relays' rows from the store, :mod:`relay.api.fleet`).
+  fleet (the other relays' rows from the store, :mod:`dcuscope.relay.api.fleet`).
 - ``nodes`` [node, ...] (as ``GET /api/nodes`` items) of the DCUs the browser subscribed to, once a
   second and on connect or subscribe; a list never says a DCU is gone (the overview does).
 - ``frames`` {"t_ns": relay time of the push, "nodes": {NODE: block}} as soon as a subscribed DCU
   has frames completed since its previous push, at most ``push_hz`` (30) times a second; each block
   is shaped as ``GET /api/frames`` and holds the newest of those frames, at most ``max_frames``, packed
-  (``packed`` instead of ``frames``: binary columns, :mod:`relay.live.framepack`; ``cursor`` tells how
+  (``packed`` instead of ``frames``: binary columns, :mod:`dcuscope.relay.live.framepack`; ``cursor`` tells how
   many completed in all, so a gap is visible and backfilled with ``GET /api/frames``);
 - ``stats`` {"nodes": {NODE: stats}} once a second for subscribed DCUs whose events changed or whose
   rolling window still holds frames (it ends at the present: a silent DCU's empties), each as
@@ -25,7 +25,7 @@ A browser sends ``subscribe`` {"nodes": [NAME, ...] or null for all, "max_frames
 "overview": bool} to choose what it gets (answered {"ok": true} or {"ok": false, "error"}), or gives
 it as it connects (``auth={"subscribe": {...}}``, so that nothing else reaches it meanwhile); by
 default every DCU, 25 frames a push, and the overview. The relay builds a DCU's frames and statistics only while some browser of the
-fleet shows it (:mod:`relay.api.interest`), so a page's cost, and the relays', follows what is on
+fleet shows it (:mod:`dcuscope.relay.api.interest`), so a page's cost, and the relays', follows what is on
 screen, not the fleet's size.
 
 Timestamps are ns since the epoch on the relay's clock (the node's correction applied); as
@@ -41,14 +41,14 @@ import time
 import socketio
 from socketio.exceptions import ConnectionRefusedError as Refused
 
-from core.clocks import NEVER
-from probes.ship.wire import MAX_NAME
-from relay.api.fleet import Fleet
-from relay.api.interest import ALL, MAX_FRAMES, Interest, Wish
-from relay.guard.policy import Action, Policy, Refusal
-from relay.live import framepack
-from relay.live.run import maintain_all
-from relay.live.state import RelayState
+from dcuscope.core.clocks import NEVER
+from dcuscope.probes.ship.wire import MAX_NAME
+from dcuscope.relay.api.fleet import Fleet
+from dcuscope.relay.api.interest import ALL, MAX_FRAMES, Interest, Wish
+from dcuscope.relay.guard.policy import Action, Policy, Refusal
+from dcuscope.relay.live import framepack
+from dcuscope.relay.live.run import maintain_all
+from dcuscope.relay.live.state import RelayState
 
 NAMESPACE = "/ui"
 OVERVIEW = "overview"
@@ -88,7 +88,7 @@ class UiNamespace(socketio.AsyncNamespace):
         self.state, self.fleet = state, fleet
         self._policy = policy
         self.wishes: dict[str, Wish] = {}
-        """sid -> what that browser shows (:class:`relay.api.interest.Wish`)."""
+        """sid -> what that browser shows (:class:`dcuscope.relay.api.interest.Wish`)."""
         self._rooms: dict[str, set[str]] = {}
 
     async def trigger_event(self, event: str, *args):
@@ -327,7 +327,7 @@ class Ticker:
 
 
 class _Cuts:
-    """A run's pushed block, its frames packed (:mod:`relay.live.framepack`) once per size asked."""
+    """A run's pushed block, its frames packed (:mod:`dcuscope.relay.live.framepack`) once per size asked."""
 
     def __init__(self, head: dict, cols: tuple, stages: int) -> None:
         self.head = {key: value for key, value in head.items() if key != "frames"}

@@ -1,13 +1,13 @@
 """Clock offset of a node to the relay: NTP-style estimate, and which correction to apply.
 
-The node reads its own PTP state (:mod:`probes.clocks.ptp`) and reports it with its clock samples.
+The node reads its own PTP state (:mod:`dcuscope.probes.clocks.ptp`) and reports it with its clock samples.
 
 Sign convention: ``offset_ns`` is the node's clock minus the relay's clock (a node whose clock
 runs 37 ms ahead has offset +37 ms), so a node timestamp is brought to the relay's clock by
 subtracting it. From the four NTP timestamps (t1 node send, t2 relay receive, t3 relay send,
 t4 node receive) NTP's theta = ((t2 - t1) + (t3 - t4)) / 2 is relay minus node: offset = -theta.
 The true offset lies within +-RTT/2 of any sample's estimate (RTT = (t4 - t1) - (t3 - t2)),
-whatever the asymmetry of the two paths. :mod:`relay.clock.model` fits offset and drift over
+whatever the asymmetry of the two paths. :mod:`dcuscope.relay.clock.model` fits offset and drift over
 many samples, with a bound that holds at every timestamp, and keeps the history of its estimates.
 """
 
@@ -18,8 +18,8 @@ from functools import cached_property
 
 import numpy as np
 
-from probes.clocks.ptp import ptp_trusted, ptp_uncertainty_ns
-from probes.trace.frametable import MISSING
+from dcuscope.probes.clocks.ptp import ptp_trusted, ptp_uncertainty_ns
+from dcuscope.probes.trace.frametable import MISSING
 
 CLOCK_MODES = ("ptp", "estimate", "auto")
 MAX_CORRECTION_NS = 10**17
@@ -44,7 +44,7 @@ class ClockSample:
 class ClockEstimate:
     """A node's offset (node - relay) at node time ``at_ns``, true within ``uncertainty_ns`` there
     and within uncertainty_ns + growth_ppb * |ts - at_ns| / 1e9 at any node time ts, drifting by
-    ``drift_ppb`` (:mod:`relay.clock.model`)."""
+    ``drift_ppb`` (:mod:`dcuscope.relay.clock.model`)."""
     offset_ns: int
     uncertainty_ns: int
     rtt_ns: int
@@ -99,7 +99,7 @@ def correction_ns(mode: str, estimate: ClockEstimate | None, ptp: dict) -> tuple
     """What to subtract from the node's timestamps under ``--clock mode``, and why.
 
     ptp: never correct (PTP is trusted); estimate: always subtract the estimated offset;
-    auto: trust PTP where :func:`probes.clocks.ptp.ptp_trusted` does (a locked slave port *and*
+    auto: trust PTP where :func:`dcuscope.probes.clocks.ptp.ptp_trusted` does (a locked slave port *and*
     CLOCK_REALTIME following it), else subtract the estimate.
     """
     if mode not in CLOCK_MODES:

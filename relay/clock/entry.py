@@ -5,14 +5,14 @@ timestamps, why, and how far the result may be off.
      "correction_ns": offset subtracted at ``at_ns``, "uncertainty_ns": its bound there,
      "at_ns": the node timestamp it is evaluated at}
 
-Live runs take it from :meth:`relay.live.state.RelayState.correction`; stored runs from the clock view
-stored with the run (:func:`stored_run_correction`), the one :func:`relay.store.runs.load_runs` moved
+Live runs take it from :meth:`dcuscope.relay.live.state.RelayState.correction`; stored runs from the clock view
+stored with the run (:func:`stored_run_correction`), the one :func:`dcuscope.relay.store.runs.load_runs` moved
 their timestamps by.
 """
 
 from __future__ import annotations
 
-from relay.clock.correction import Correction, Segment, stored_correction
+from dcuscope.relay.clock.correction import Correction, Segment, stored_correction
 
 
 def clock_entry(corr: Correction, at_ns: int) -> dict:
@@ -22,7 +22,7 @@ def clock_entry(corr: Correction, at_ns: int) -> dict:
 
 
 def stored_run_correction(clock: object) -> Correction:
-    """The correction a stored run's clock view says was applied (as :func:`relay.store.runs.load_runs`
+    """The correction a stored run's clock view says was applied (as :func:`dcuscope.relay.store.runs.load_runs`
     applies it), with its bound: ``correction_uncertainty_ns``, or for views stored before it
     existed the estimate's ``uncertainty_ns`` where the estimate was applied."""
     if not isinstance(clock, dict):

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from relay.clock.correction import MAX_CORRECTION_NS, ClockEstimate, ClockSample, Segment, ntp_sample
+from dcuscope.relay.clock.correction import MAX_CORRECTION_NS, ClockEstimate, ClockSample, Segment, ntp_sample
 
 POINT_SPAN_NS = 1_000_000_000
 WINDOW_NS = 600_000_000_000

@@ -1,4 +1,4 @@
-"""The relay's end of the UDP clock exchange (datagrams: :mod:`probes.clocks.udpclock`).
+"""The relay's end of the UDP clock exchange (datagrams: :mod:`dcuscope.probes.clocks.udpclock`).
 
 Each ingest connection that said hello gets a random key (``register``), and over TLS a secret
 too; a request carrying a key the relay handed out is answered with (t2, t3): t2 the kernel's
@@ -22,9 +22,9 @@ import socket
 import time
 from collections import Counter
 
-from probes.clocks.udpclock import (Tagger, decode_request, enable_rx_timestamps, encode_answer, new_key,
+from dcuscope.probes.clocks.udpclock import (Tagger, decode_request, enable_rx_timestamps, encode_answer, new_key,
                                     recv_stamped)
-from relay.guard.limits import Limits
+from dcuscope.relay.guard.limits import Limits
 
 READS_PER_WAKE = 256
 """Datagrams read per readiness callback: a flood cannot hold the event loop for longer; the

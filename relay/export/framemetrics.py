@@ -2,7 +2,7 @@
 
 :class:`FrameMetrics` is one of ``RelayState.observers``: told of each run's finalised frames
 (``LiveRun.on_finalise``, complete frames, each once), it counts their delay-model figures into
-per-node histograms (:class:`relay.export.buckets.Histograms`), so it derives nothing again. Only a
+per-node histograms (:class:`dcuscope.relay.export.buckets.Histograms`), so it derives nothing again. Only a
 node's newest run is counted: its histograms start empty when the node's newest run changes
 (Prometheus reads that as a counter reset) and go when the node leaves ``state.nodes``
 (bounded by ``--limit runs_held``). Only the runs the relay holds (``RelayState.holds``) are counted
@@ -20,10 +20,10 @@ import numpy as np
 from prometheus_client.core import CounterMetricFamily, Metric
 from prometheus_client.utils import floatToGoString
 
-from probes.trace.delays import FrameDelays, Series
-from relay.export.buckets import Histograms
-from relay.export.exposition import BulkHistogram
-from relay.live.state import RelayState, RunState
+from dcuscope.probes.trace.delays import FrameDelays, Series
+from dcuscope.relay.export.buckets import Histograms
+from dcuscope.relay.export.exposition import BulkHistogram
+from dcuscope.relay.live.state import RelayState, RunState
 
 MAX_GAPS = 128
 """Gap pairs per node with series of their own (a pipeline of S stages shows about S)."""

@@ -2,11 +2,11 @@
 
 :class:`RelayCollector` builds every family at scrape time from the relay's state, in its own
 ``CollectorRegistry`` per relay (never the process-wide one): the per-frame histograms
-(:mod:`relay.export.framemetrics`), the per-node gauges and counters (:mod:`relay.export.nodemetrics`) and the
+(:mod:`dcuscope.relay.export.framemetrics`), the per-node gauges and counters (:mod:`dcuscope.relay.export.nodemetrics`) and the
 relay's own figures (events and batches ingested, queue depths, connections, live bytes).
 Exporters add theirs through :attr:`RelayCollector.extra`. The text is what
 ``generate_latest(collector.registry)`` writes, its histograms written in bulk
-(:mod:`relay.export.exposition`). The route is READ in :mod:`relay.guard.policy`, as ``/api`` is
+(:mod:`dcuscope.relay.export.exposition`). The route is READ in :mod:`dcuscope.relay.guard.policy`, as ``/api`` is
 (``Authorization: Bearer TOKEN``: the admin's or a viewer's).
 
 Every per-node series is labelled ``node`` (its newest run only); no label holds a frame
@@ -38,13 +38,13 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from prometheus_client.registry import Collector
 
-from relay.export.exposition import exposition
-from relay.export.framemetrics import FrameMetrics
-from relay.export.nodemetrics import NodeMetrics
-from relay.guard.policy import add_read
-from relay.guard.connections import ConnGuard
-from relay.ingest.endpoint import Ingest
-from relay.live.state import RelayState
+from dcuscope.relay.export.exposition import exposition
+from dcuscope.relay.export.framemetrics import FrameMetrics
+from dcuscope.relay.export.nodemetrics import NodeMetrics
+from dcuscope.relay.guard.policy import add_read
+from dcuscope.relay.guard.connections import ConnGuard
+from dcuscope.relay.ingest.endpoint import Ingest
+from dcuscope.relay.live.state import RelayState
 
 BUCKETS_S = tuple(float(f"{m}e{e}") for e in range(-4, 1) for m in (1, 1.5, 2, 3, 5, 7)) + (10.0,)
 """Upper bounds of every histogram's buckets, s: 1-1.5-2-3-5-7 per decade, 0.1 ms to 10 s (then +Inf)."""

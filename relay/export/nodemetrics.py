@@ -26,9 +26,9 @@ from collections.abc import Iterator
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
-from probes.ship.wire import PTP_STATES
-from probes.trace.events import DROP_REASONS
-from relay.live.state import RelayState, RunState
+from dcuscope.probes.ship.wire import PTP_STATES
+from dcuscope.probes.trace.events import DROP_REASONS
+from dcuscope.relay.live.state import RelayState, RunState
 
 MAX_URI_CHARS = 200
 NS_PER_S = 1e9

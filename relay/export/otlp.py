@@ -1,8 +1,8 @@
 """``dcuscope relay --otlp URL``: sampled frames go to an OpenTelemetry backend as traces (OTLP/HTTP, protobuf).
 
-The :class:`~relay.export.otlpsample.Sampler` (an observer of finalised frames, on the event loop)
-copies the chosen frames onto a bounded :class:`~relay.export.otlpqueue.FrameQueue`; this exporter's
-own thread takes them in batches, builds the spans (:mod:`relay.export.otlpspans`) and posts them with
+The :class:`~dcuscope.relay.export.otlpsample.Sampler` (an observer of finalised frames, on the event loop)
+copies the chosen frames onto a bounded :class:`~dcuscope.relay.export.otlpqueue.FrameQueue`; this exporter's
+own thread takes them in batches, builds the spans (:mod:`dcuscope.relay.export.otlpspans`) and posts them with
 the SDK's ``OTLPSpanExporter``, each request bounded by ``--otlp-timeout``. The ingest never
 waits for it: a full queue drops frames, a failed export drops its frames, both counted
 (``dcuscope_otlp_frames_dropped_total{reason}`` in ``/metrics``, ``otlp`` in ``/api/health``).
@@ -28,13 +28,13 @@ from opentelemetry.sdk.resources import Resource
 from opentelemetry.sdk.trace.export import SpanExportResult
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 
-from relay.export.metrics import RelayCollector
-from relay.export.otlpconfig import OtlpConfig
-from relay.export.otlpframes import FrameBatch
-from relay.export.otlpqueue import FrameQueue, OtlpCounters
-from relay.export.otlpsample import Sampler
-from relay.export.otlpspans import node_resource, spans_of
-from relay.live.state import RelayState
+from dcuscope.relay.export.metrics import RelayCollector
+from dcuscope.relay.export.otlpconfig import OtlpConfig
+from dcuscope.relay.export.otlpframes import FrameBatch
+from dcuscope.relay.export.otlpqueue import FrameQueue, OtlpCounters
+from dcuscope.relay.export.otlpsample import Sampler
+from dcuscope.relay.export.otlpspans import node_resource, spans_of
+from dcuscope.relay.live.state import RelayState
 
 EXPORT_FRAMES = 128
 """Frames per export request at most (~20 spans each with 5 stages: ~0.5 MB of protobuf)."""

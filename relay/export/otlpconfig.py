@@ -1,6 +1,6 @@
 """What ``dcuscope relay --otlp URL [--otlp-every N] [--otlp-queue N] [--otlp-timeout S] [--otlp-ca FILE]`` asks for.
 
-Kept apart from the exporter (:mod:`relay.export.otlp`) so that the command line checks its values
+Kept apart from the exporter (:mod:`dcuscope.relay.export.otlp`) so that the command line checks its values
 without loading the OpenTelemetry SDK.
 """
 
@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass
 from urllib.parse import urlsplit
 
-from relay.errors import RelayError
+from dcuscope.relay.errors import RelayError
 
 TRACES_PATH = "/v1/traces"
 """OTLP/HTTP's path for traces, added to a URL that names none (``http://collector:4318``)."""

@@ -1,6 +1,6 @@
 """The figures of the frames chosen for OpenTelemetry export, copied out of a finalised batch.
 
-Only the numbers a trace needs, clock-corrected exactly as :mod:`relay.live.framejson` corrects
+Only the numbers a trace needs, clock-corrected exactly as :mod:`dcuscope.relay.live.framejson` corrects
 frames for the UI (every timestamp of a frame by the estimate in force at its origin), so that
 a span's times are the ones ``/api/frames`` shows and its length the delay the relay derived.
 Copies, not views: the exporter's thread reads them while the event loop goes on.
@@ -12,9 +12,9 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from probes.trace.delays import FrameDelays
-from probes.trace.frametable import MISSING
-from relay.clock.correction import Correction
+from dcuscope.probes.trace.delays import FrameDelays
+from dcuscope.probes.trace.frametable import MISSING
+from dcuscope.relay.clock.correction import Correction
 
 
 @dataclass(frozen=True)

@@ -12,7 +12,7 @@ import time
 from collections import deque
 from dataclasses import dataclass, field
 
-from relay.export.otlpframes import FrameBatch
+from dcuscope.relay.export.otlpframes import FrameBatch
 
 WHY = ("sampled", "over_limit")
 DROP_REASONS = ("queue_full", "export_failed")

@@ -1,9 +1,9 @@
 """Which finalised frames go out as OpenTelemetry traces: tail-based, decided where the whole frame is known.
 
-A :data:`relay.live.state.FrameObserver`: told of every finalised batch of a run's frames, it picks
+A :data:`dcuscope.relay.live.state.FrameObserver`: told of every finalised batch of a run's frames, it picks
 every ``every``-th complete frame of the run (a counter, so the choice is deterministic: the
 1st, the N+1-th, ...) and every frame whose delay exceeds its node's ``--frame-limit``, copies
-their figures (:mod:`relay.export.otlpframes`) and puts them on the exporter's bounded queue. It runs
+their figures (:mod:`dcuscope.relay.export.otlpframes`) and puts them on the exporter's bounded queue. It runs
 on the event loop inside the ingest: numpy over the batch, no Python per frame, never waits.
 When the queue lacks room, frames over the limit go first, and what does not fit is counted
 as dropped (``queue_full``).
@@ -13,10 +13,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from probes.trace.delays import FrameDelays, Series
-from relay.export.otlpframes import copy_frames
-from relay.export.otlpqueue import FrameQueue, OtlpCounters
-from relay.live.state import RelayState, RunState
+from dcuscope.probes.trace.delays import FrameDelays, Series
+from dcuscope.relay.export.otlpframes import copy_frames
+from dcuscope.relay.export.otlpqueue import FrameQueue, OtlpCounters
+from dcuscope.relay.live.state import RelayState, RunState
 
 COUNTS_SLACK = 64
 """Counters of runs no longer held are forgotten once this many more than the held runs pile up."""

@@ -24,8 +24,8 @@ from opentelemetry.sdk.trace import ReadableSpan
 from opentelemetry.sdk.util.instrumentation import InstrumentationScope
 from opentelemetry.trace import SpanContext, TraceFlags
 
-from probes.trace.frametable import MISSING
-from relay.export.otlpframes import FrameBatch
+from dcuscope.probes.trace.frametable import MISSING
+from dcuscope.relay.export.otlpframes import FrameBatch
 
 SERVICE_NAME = "dcuscope-relay"
 SCOPE = InstrumentationScope("dcuscope.relay")

@@ -1,13 +1,13 @@
 """Token files of the relay: ``--node-tokens`` and ``--viewer-tokens`` (``NAME TOKEN`` per line).
 
-What each credential may do is :mod:`relay.guard.policy`'s to say.
+What each credential may do is :mod:`dcuscope.relay.guard.policy`'s to say.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from relay.errors import RelayError
+from dcuscope.relay.errors import RelayError
 
 MIN_TOKEN_CHARS = 16
 

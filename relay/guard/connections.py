@@ -15,14 +15,14 @@ server) and hands each admitted socket to :class:`ConnGuard`, which
   of connecting or of the first byte of its next request (slowloris); a request has "arrived"
   once :meth:`ConnGuard.middleware` sees it, and keep-alive idle time is aiohttp's
   ``keepalive_timeout`` (``keepalive_s``);
-- behind a load balancer (``--trusted-proxy``, :mod:`relay.guard.proxy`), reads the PROXY header
+- behind a load balancer (``--trusted-proxy``, :mod:`dcuscope.relay.guard.proxy`), reads the PROXY header
   a trusted proxy's connection starts with before aiohttp sees it: the connection then counts
   against the cap of its client's address, not the proxy's, and aiohttp's ``request.remote``
   (the transport's ``peername``) is the client's. It takes a place in the total cap while the
   header comes, as any connection that has not sent its request head (so it may make room, and
   ``header_timeout_s`` covers header and request head together); one whose header is malformed,
   or does not come in time, is closed and counted (``proxy_header``);
-- with TLS (``--tls-cert``, :mod:`relay.guard.tls`), peeks at a connection's first byte (after the
+- with TLS (``--tls-cert``, :mod:`dcuscope.relay.guard.tls`), peeks at a connection's first byte (after the
   PROXY header, if any): a TLS handshake's (0x16) goes to asyncio's TLS transport, anything else is
   answered one short HTTP 400 and closed (``plaintext``). The connection holds its place and may
   make room while it handshakes, as one waiting for its request head; header, peek and handshake
@@ -49,10 +49,10 @@ from dataclasses import replace
 
 from aiohttp import web
 
-from relay.guard.limits import Limits
-from relay.guard.proxy import (V2_FIXED_BYTES, V2_SIGNATURE, ProxyHeader, ProxyHeaderError, TrustedProxies,
+from dcuscope.relay.guard.limits import Limits
+from dcuscope.relay.guard.proxy import (V2_FIXED_BYTES, V2_SIGNATURE, ProxyHeader, ProxyHeaderError, TrustedProxies,
                                parse_header)
-from relay.guard.tls import ServerTls
+from dcuscope.relay.guard.tls import ServerTls
 
 RESERVED_FDS = 128
 """Descriptors kept for all but client connections: SQLite (the writer and the session readers'

@@ -9,7 +9,7 @@ Host an IP address, ``localhost`` or a name given with ``--allow-host``, and a b
 name. One exception: an ``/ingest`` upgrade without ``Origin`` comes from a node, not a page
 (browsers send ``Origin`` with every WebSocket handshake), so nodes may name the relay by any
 host name. Once reading takes a credential (``--token``, ``--viewer-tokens``), the credential is
-the guard (:mod:`relay.guard.policy`) and these checks are off.
+the guard (:mod:`dcuscope.relay.guard.policy`) and these checks are off.
 """
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ from collections.abc import Iterable
 
 from aiohttp import web
 
-from probes.ship.wire import INGEST_PATH
-from relay.errors import http_error
+from dcuscope.probes.ship.wire import INGEST_PATH
+from dcuscope.relay.errors import http_error
 
 
 def host_name(netloc: str) -> str:

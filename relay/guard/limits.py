@@ -4,7 +4,7 @@
 events/s, about 100 KB/s decompressed) with wide headroom; ``dcuscope relay --limit NAME=VALUE``
 sets any of them, ``relay --help`` lists them (:func:`limits_help`) and ``/api/health`` shows
 them with the counts of what they refused. The largest WebSocket message is
-:data:`probes.ship.wire.MAX_MESSAGE_BYTES`; the message rate of one connection is :class:`TokenBucket`'s, its
+:data:`dcuscope.probes.ship.wire.MAX_MESSAGE_BYTES`; the message rate of one connection is :class:`TokenBucket`'s, its
 decompressed byte rate (and that of all together) :class:`ByteBucket`'s.
 """
 

@@ -17,9 +17,9 @@ whose ``/ui`` namespace asks :meth:`Policy.check` for READ as a browser connects
 
 Refusals: 401 without a valid credential (and at ``/ingest`` for any credential that may not stream,
 which ends a node's tries), 403 for a valid one of the wrong role; each counted in ``refused`` by
-reason and logged as one line (bounded by :mod:`relay.guard.lograte`), never with the credential.
+reason and logged as one line (bounded by :mod:`dcuscope.relay.guard.lograte`), never with the credential.
 
-The page signs in once (:mod:`relay.guard.signin`) and holds a cookie, not the token: NAME, ROLE
+The page signs in once (:mod:`dcuscope.relay.guard.signin`) and holds a cookie, not the token: NAME, ROLE
 and EXPIRY signed with HMAC-SHA256 keyed by the credential itself, so relays sharing the same token
 files accept each other's cookies, and a credential taken off a file invalidates its cookies.
 """
@@ -38,7 +38,7 @@ from dataclasses import dataclass
 
 from aiohttp import web
 
-from relay.errors import RelayError, http_error
+from dcuscope.relay.errors import RelayError, http_error
 
 COOKIE = "dcuscope_session"
 COOKIE_LIFETIME_S = 12 * 3600
@@ -144,7 +144,7 @@ class Policy:
         for name, secret in (node_tokens or {}).items():
             self._add(secret, Principal(Role.NODE, name))
         self.reads_open = token is None and not viewer_tokens
-        """Anyone may read (the loopback demo; :mod:`relay.guard.hostcheck` guards it then)."""
+        """Anyone may read (the loopback demo; :mod:`dcuscope.relay.guard.hostcheck` guards it then)."""
         self.ingest_open = self.reads_open and not node_tokens
         self.refused = refused if refused is not None else Counter()
         self.certified = certified

@@ -11,7 +11,7 @@ otherwise claim any address, and a trusted proxy's connection without a header i
 misconfiguration the operator must hear of, not a client to serve under the proxy's address.
 
 :func:`parse_header` reads a header from the first bytes of a connection, incrementally (None
-until it is complete); :class:`~relay.guard.connections.ConnGuard` feeds it, within the
+until it is complete); :class:`~dcuscope.relay.guard.connections.ConnGuard` feeds it, within the
 connection's ``header_timeout_s``, before aiohttp sees a byte. What it returns says how many bytes
 the header took (the rest is the client's) and the client's address, or None where the header
 names none: "PROXY UNKNOWN", a v2 LOCAL command (the proxy's own health checks), a v2 UNSPEC or

@@ -3,7 +3,7 @@
 - ``GET /signin``: {required, principal: {role, name} or null}: whether the page must sign in to read,
   and as whom it is signed in (its bearer token or cookie);
 - ``POST /signin`` with the form field ``token`` (a viewer's or the admin's): 204 and the cookie
-  (HttpOnly, SameSite=Strict, Secure over TLS, :data:`relay.guard.policy.COOKIE_LIFETIME_S`), or 401/403 saying why;
+  (HttpOnly, SameSite=Strict, Secure over TLS, :data:`dcuscope.relay.guard.policy.COOKIE_LIFETIME_S`), or 401/403 saying why;
 - ``POST /signout``: 204, the cookie cleared;
 - ``GET /?token=T`` (the old way in, bookmarks): the same cookie for a valid T, and in any case a
   303 to the same address without the token, so that it leaves the address bar and the history.
@@ -18,9 +18,9 @@ from urllib.parse import urlencode
 
 from aiohttp import web
 
-from relay.errors import http_error
-from relay.guard.hostcheck import origin_netloc
-from relay.guard.policy import COOKIE, COOKIE_LIFETIME_S, Action, Policy, Principal, Refusal, Role, declare
+from dcuscope.relay.errors import http_error
+from dcuscope.relay.guard.hostcheck import origin_netloc
+from dcuscope.relay.guard.policy import COOKIE, COOKIE_LIFETIME_S, Action, Policy, Principal, Refusal, Role, declare
 
 
 def add_signin_routes(app: web.Application, policy: Policy) -> None:

@@ -3,13 +3,13 @@
 :class:`ServerTls` holds the server's context; :meth:`ServerTls.reload` (SIGHUP) rereads the files,
 so a renewed certificate needs no restart: connections accepted after it get the new one, and a
 new file that cannot be loaded leaves the old context in place, said in one log line.
-:class:`~relay.guard.connections.ConnGuard` hands it each connection whose first byte is a TLS
+:class:`~dcuscope.relay.guard.connections.ConnGuard` hands it each connection whose first byte is a TLS
 handshake's; anything else on that port is refused (``refused["plaintext"]``).
 
 With ``--tls-client-ca`` the context asks every client for a certificate (CERT_OPTIONAL: a browser
 that has none still gets the page and the API) and fails the handshake of one that CA did not sign;
 ``/ingest`` then takes only connections that presented a verified one, and the node streams under
-the name it gives (:func:`relay.guard.policy.certificate_principal`: its first DNS subjectAltName, else its CN) only.
+the name it gives (:func:`dcuscope.relay.guard.policy.certificate_principal`: its first DNS subjectAltName, else its CN) only.
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ import logging
 import ssl
 from pathlib import Path
 
-from relay.errors import RelayError
+from dcuscope.relay.errors import RelayError
 
 log = logging.getLogger(__name__)
 

@@ -1,19 +1,19 @@
 """The ingest WebSocket ``GET /ingest``: where nodes connect, say hello, ship batches, sync clocks.
 
 A node opens ``ws://HOST:PORT/ingest`` with ``Authorization: Bearer TOKEN`` (or ``?token=``)
-when the relay takes credentials: :mod:`relay.guard.policy` refuses one that may not stream with HTTP
+when the relay takes credentials: :mod:`dcuscope.relay.guard.policy` refuses one that may not stream with HTTP
 401 and its reason before the upgrade (a viewer's included), and binds a node's own to its name (with
 ``--tls-client-ca``, the name its client certificate gives: 403 without one); a connection beyond the
-cap is refused too (503). Then, in the envelope of :mod:`probes.ship.envelope`:
+cap is refused too (503). Then, in the envelope of :mod:`dcuscope.probes.ship.envelope`:
 
 - ``hello`` {proto, run, header, lost, floor, ptp[, doubt]} -> reply {ok, run, session[, stored, clock_port,
   clock_key, clock_secret]}; ``stored``: which batches of ``doubt`` (sent, then evicted unacknowledged by the node) this
   run's storage holds;
   first, once; ``clock_key`` (hex) lets this connection use the UDP clock exchange on ``clock_port``
-  (:mod:`relay.clock.udp`), whose answered (t2, t3) pairs join the connection's sync replies;
+  (:mod:`dcuscope.relay.clock.udp`), whose answered (t2, t3) pairs join the connection's sync replies;
   ``clock_secret`` (hex, only on a private connection: :attr:`Ingest.private_channel`) makes that
   exchange tagged, so that nobody who sees its datagrams can answer them;
-- a binary batch (:mod:`probes.ship.wire`) -> ``ack`` {seq, ok[, dup]} once the batch is committed
+- a binary batch (:mod:`dcuscope.probes.ship.wire`) -> ``ack`` {seq, ok[, dup]} once the batch is committed
   (or was stored before), then its events reach the live state; ``ok: false`` if storage failed
   (the node sends it again);
 - ``sync`` -> reply {t2, t3}: relay receive and send times (ns, CLOCK_REALTIME);
@@ -50,18 +50,18 @@ from dataclasses import dataclass, field
 
 from aiohttp import WSCloseCode, WSMsgType, web
 
-from probes.ship import envelope
-from probes.ship.errors import LimitExceeded, ProtocolError
-from probes.ship.wire import (MAX_MESSAGE_BYTES, RELAY_HEARTBEAT_S, Batch, decode_batch, decode_clock, decode_end, decode_hello,
+from dcuscope.probes.ship import envelope
+from dcuscope.probes.ship.errors import LimitExceeded, ProtocolError
+from dcuscope.probes.ship.wire import (MAX_MESSAGE_BYTES, RELAY_HEARTBEAT_S, Batch, decode_batch, decode_clock, decode_end, decode_hello,
                          declared_bytes)
-from relay.clock.correction import ClockSample, ntp_sample, sample_fault
-from probes.clocks.udpclock import new_secret
-from relay.clock.udp import ClockUdp
-from relay.errors import RelayError
-from relay.guard.policy import PRINCIPAL
-from relay.guard.limits import ByteBucket, Limits, TokenBucket
-from relay.live.state import OWNED_RETRY_MS, RelayState, RunState, TryLater
-from relay.store.base import NotOwner, StoreUnavailable
+from dcuscope.relay.clock.correction import ClockSample, ntp_sample, sample_fault
+from dcuscope.probes.clocks.udpclock import new_secret
+from dcuscope.relay.clock.udp import ClockUdp
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.guard.policy import PRINCIPAL
+from dcuscope.relay.guard.limits import ByteBucket, Limits, TokenBucket
+from dcuscope.relay.live.state import OWNED_RETRY_MS, RelayState, RunState, TryLater
+from dcuscope.relay.store.base import NotOwner, StoreUnavailable
 
 MAX_STORING = 256
 """Batches of one connection being stored at once (a node keeps 64 in flight)."""

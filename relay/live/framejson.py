@@ -11,7 +11,7 @@ Per frame::
 
 one ``stage_<column>_ms`` list per column of the delay model (``probes.trace.delays.STAGE_COLUMNS``),
 every figure taken from it, so that the page only draws. Timestamps are moved to the relay's
-clock by the run's correction (:class:`relay.clock.correction.Correction`, per timestamp, by the estimate in
+clock by the run's correction (:class:`dcuscope.relay.clock.correction.Correction`, per timestamp, by the estimate in
 force at the frame's origin). A block adds the node, run, stages, their kinds, ``has_exit``
 (per stage: it has an exit point, so its frames have bars), the clock and the paging cursor.
 """
@@ -20,9 +20,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from probes.trace.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays
-from probes.trace.frametable import MISSING
-from relay.clock.correction import Correction
+from dcuscope.probes.trace.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays
+from dcuscope.probes.trace.frametable import MISSING
+from dcuscope.relay.clock.correction import Correction
 
 
 def frame_dicts(n: np.ndarray, fd: FrameDelays, corr: Correction, rows: np.ndarray | None = None) -> list[dict]:

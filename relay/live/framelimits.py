@@ -13,7 +13,7 @@ import math
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
-from relay.errors import RelayError
+from dcuscope.relay.errors import RelayError
 
 NS_PER_MS = 1_000_000
 MAX_LIMIT_MS = 3_600_000.0

@@ -6,12 +6,12 @@ one Python dict per frame and JSON-encoded, they cost the relay more than pairin
 push's frames are two arrays built with a few numpy calls, sent as Socket.IO binary attachments:
 
 - ``ints``: int64, one row of ``count`` values per field of :data:`INT_FIELDS` (per-stage fields
-  one row per stage), row after row; :data:`probes.trace.frametable.MISSING` in ``enter``, ``exit`` and
+  one row per stage), row after row; :data:`dcuscope.probes.trace.frametable.MISSING` in ``enter``, ``exit`` and
   ``capture`` is a missing time (null);
 - ``floats``: float64, the same for :data:`FLOAT_FIELDS`; NaN is a missing figure (null).
 
 Unpacked (:func:`unpack`, and the page's ``unpackFrames`` in ``ui/static/feed.js``), the frames are
-exactly those of :func:`relay.live.framejson.frame_dicts`, as ``GET /api/frames`` gives them. The
+exactly those of :func:`dcuscope.relay.live.framejson.frame_dicts`, as ``GET /api/frames`` gives them. The
 block says its layout (``int_fields``, ``float_fields``: [name, rows]), so a client needs no table
 of its own.
 """
@@ -22,9 +22,9 @@ from functools import lru_cache
 
 import numpy as np
 
-from probes.trace.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays
-from probes.trace.frametable import MISSING
-from relay.clock.correction import Correction
+from dcuscope.probes.trace.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays
+from dcuscope.probes.trace.frametable import MISSING
+from dcuscope.relay.clock.correction import Correction
 
 PER_STAGE = "stage"
 INT_FIELDS = (("n", 1), ("source", 1), ("frame", 1), ("origin", 1), ("end", 1), ("complete", 1), ("enter", PER_STAGE),
@@ -39,7 +39,7 @@ PER_STAGE_NAMES = {name for name, rows in INT_FIELDS + FLOAT_FIELDS if rows == P
 def columns(n: np.ndarray, fd: FrameDelays, corr: Correction) -> tuple[np.ndarray, np.ndarray]:
     """The frames of ``fd`` (``n`` the cursor of each) as (ints, floats), fields in the order of
     :data:`INT_FIELDS` and :data:`FLOAT_FIELDS`, each of shape (rows, frames); the same values as
-    :func:`relay.live.framejson.frame_dicts` (every node time moved by ``corr`` at the frame's origin)."""
+    :func:`dcuscope.relay.live.framejson.frame_dicts` (every node time moved by ``corr`` at the frame's origin)."""
     return corrected(*node_columns(n, fd), corr, fd.table.enter.shape[1])
 
 

@@ -3,7 +3,7 @@
 On a shared store a page on relay B asks B for the frames, statistics or moments of a DCU relay
 A holds (a page opened on a DCU, a backfill after missed pushes). B pairs that run's stored
 batches into a live state of its own, as a relay taking the run over would (the same
-:class:`relay.live.run.LiveRun`, fed batch by batch in their order), and keeps it: each later
+:class:`dcuscope.relay.live.run.LiveRun`, fed batch by batch in their order), and keeps it: each later
 request first reads only the batches stored since (at most every ``REFRESH_S``). The store has
 a batch once its owner committed it, which is also when the owner's own live state gets it.
 
@@ -26,16 +26,16 @@ from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from core.clocks import NEVER
-from probes.trace.events import TraceHeader
-from relay.clock.correction import Correction
-from relay.clock.entry import clock_entry
-from relay.errors import RelayError
-from relay.live.run import LiveConfig, LiveRun
-from relay.live.runview import RunView, window_end_ns
-from relay.store.base import Database, RunRow, StoreUnavailable
-from relay.store.engines import open_database
-from relay.store.runs import run_clock
+from dcuscope.core.clocks import NEVER
+from dcuscope.probes.trace.events import TraceHeader
+from dcuscope.relay.clock.correction import Correction
+from dcuscope.relay.clock.entry import clock_entry
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.live.run import LiveConfig, LiveRun
+from dcuscope.relay.live.runview import RunView, window_end_ns
+from dcuscope.relay.store.base import Database, RunRow, StoreUnavailable
+from dcuscope.relay.store.engines import open_database
+from dcuscope.relay.store.runs import run_clock
 
 REFRESH_S = 0.5
 IDLE_S = 60.0

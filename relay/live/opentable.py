@@ -2,7 +2,7 @@
 
 A paced node opens a few frames per batch while hundreds wait to settle. Kept sorted by key, the
 table was copied whole and sorted again on every batch that opened one; here opening appends rows
-(amortised, as :class:`relay.live.run.Grow`) and re-sorts only the index of keys, and only
+(amortised, as :class:`dcuscope.relay.live.run.Grow`) and re-sorts only the index of keys, and only
 :meth:`OpenTable.keep` (finalisation and eviction, a few times a second) moves rows.
 
 Rows are in opening order, not key order: what reads the table takes frames as a set.
@@ -12,8 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from probes.trace.events import FRAME_CELLS
-from probes.trace.frametable import MISSING
+from dcuscope.probes.trace.events import FRAME_CELLS
+from dcuscope.probes.trace.frametable import MISSING
 
 MIN_ROWS = 64
 

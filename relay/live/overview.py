@@ -3,7 +3,7 @@
 A row holds what tells which DCU needs a look: its state (:func:`connection_state`) and, from the
 run's rolling window (the figures the stage view's "window" shows), frames per second over all
 sources (None once the run ended: it has no rate, and says "ended"; a run gone silent reads 0
-within the window's 10 s, :meth:`relay.live.run.LiveRun.present_ns`), the frame delay p99, the
+within the window's 10 s, :meth:`dcuscope.relay.live.run.LiveRun.present_ns`), the frame delay p99, the
 bottleneck and its utilization, the clock's state, drops, and alerts: short texts for what the shipped Prometheus alert rules (configs/prometheus/dcuscope-rules.yml)
 would fire on, judged here from the relay's own figures so that a page without Prometheus shows
 them too.
@@ -24,7 +24,7 @@ CONFLICT_WINDOW_S = 60.0
 
 def connection_state(connected: bool, ended: bool) -> str:
     """A DCU's state in a word, as rows and node views carry it beside ``connected`` and ``ended``, so
-    that a client need not derive it (and a fleet can say "relay silent", :mod:`relay.api.fleet`)."""
+    that a client need not derive it (and a fleet can say "relay silent", :mod:`dcuscope.relay.api.fleet`)."""
     return "connected" if connected else "ended" if ended else "disconnected"
 
 

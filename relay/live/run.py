@@ -1,6 +1,6 @@
 """Live per-run delay engine: pairs a node's events by frame as batches arrive (numpy per batch).
 
-Every figure comes from the delay model, :mod:`probes.trace.delays` (``frame_delays``, ``series``,
+Every figure comes from the delay model, :mod:`dcuscope.probes.trace.delays` (``frame_delays``, ``series``,
 ``delay_summary``), so that the relay's statistics over a run equal ``node_stats`` over the
 same events, and its window's are those of the frames in it.
 
@@ -40,13 +40,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from probes.trace.delays import NS_PER_MS, Chains, FrameDelays, Series, chains, delay_summary, frame_delays, series
-from probes.trace.events import EXIT, FRAME_CELLS, GROUP, READY, TraceHeader
-from probes.trace.facts import Accounting
-from probes.trace.frametable import MISSING, FrameTable, frame_events, frame_table_from_cells
-from relay.live import framepack
-from relay.live.opentable import OpenTable
-from relay.live.values import RELATIVE_ERROR, OriginSpans, RunValues
+from dcuscope.probes.trace.delays import NS_PER_MS, Chains, FrameDelays, Series, chains, delay_summary, frame_delays, series
+from dcuscope.probes.trace.events import EXIT, FRAME_CELLS, GROUP, READY, TraceHeader
+from dcuscope.probes.trace.facts import Accounting
+from dcuscope.probes.trace.frametable import MISSING, FrameTable, frame_events, frame_table_from_cells
+from dcuscope.relay.live import framepack
+from dcuscope.relay.live.opentable import OpenTable
+from dcuscope.relay.live.values import RELATIVE_ERROR, OriginSpans, RunValues
 
 NEVER = np.iinfo(np.int64).max
 KEY_SHIFT = 44  # key = source << 44 | frame; probes.ship.wire bounds both to fit
@@ -155,7 +155,7 @@ class _Tick:
     complete: np.ndarray | None = None
     end: np.ndarray | None = None
     ints: np.ndarray | None = None
-    """Their :func:`relay.live.framepack.node_columns` (cursors not set)."""
+    """Their :func:`dcuscope.relay.live.framepack.node_columns` (cursors not set)."""
     floats: np.ndarray | None = None
 
 
@@ -234,7 +234,7 @@ class LiveRun:
         pushed = min(PUSHED_FRAMES, recent)
         self._pushed = {"ints": Grow(np.int64, (framepack.int_rows(s),), pushed),
                         "floats": Grow(np.float64, (framepack.float_rows(s),), pushed)}
-        """The newest complete frames' pushed columns (:func:`relay.live.framepack.node_columns`, a
+        """The newest complete frames' pushed columns (:func:`dcuscope.relay.live.framepack.node_columns`, a
         row per frame, the cursor first; for :meth:`recent_columns`)."""
         self.finalised = 0
         self.evicted = 0
@@ -691,7 +691,7 @@ class LiveRun:
 
     def recent_columns(self, since: int = 0, limit: int = 200) -> tuple[np.ndarray, np.ndarray]:
         """The last ``limit`` complete frames with cursor > ``since``, as they were judged when shown:
-        :func:`relay.live.framepack.node_columns` (ints, floats), each (rows, frames). What the
+        :func:`dcuscope.relay.live.framepack.node_columns` (ints, floats), each (rows, frames). What the
         pushes send, with no pairing or delay figure derived again."""
         self.maintain()
         ints, floats = self._pushed["ints"].view, self._pushed["floats"].view

@@ -1,7 +1,7 @@
 """What the HTTP API reads of a run, whether this relay holds it or mirrors it from a shared store.
 
-A run this relay holds is read from its live state (:class:`relay.live.state.RunState`); a run
-another relay holds, from a mirror of its stored batches (:mod:`relay.live.mirror`). Both give a
+A run this relay holds is read from its live state (:class:`dcuscope.relay.live.state.RunState`); a run
+another relay holds, from a mirror of its stored batches (:mod:`dcuscope.relay.live.mirror`). Both give a
 :class:`RunView`, and the frames and statistics answered are shaped alike.
 """
 
@@ -11,11 +11,11 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from probes.trace.events import TraceHeader
-from relay.clock.correction import Correction
-from relay.live import framepack
-from relay.live.framejson import block, frame_dicts
-from relay.live.run import LiveRun
+from dcuscope.probes.trace.events import TraceHeader
+from dcuscope.relay.clock.correction import Correction
+from dcuscope.relay.live import framepack
+from dcuscope.relay.live.framejson import block, frame_dicts
+from dcuscope.relay.live.run import LiveRun
 
 
 @dataclass
@@ -59,8 +59,8 @@ def frames_block(view: RunView, since: int = 0, limit: int = 200, newest: bool =
 def columns_block(view: RunView, since: int = 0, limit: int = 200) -> tuple[dict, tuple]:
     """The last ``limit`` complete frames after cursor ``since``, as the pushes carry them: the block
     without its frames, and their columns as the run kept them when it showed them, moved to the
-    relay's clock (:func:`relay.live.framepack.corrected`; the pusher packs them once per size
-    asked, :func:`relay.live.framepack.packed`)."""
+    relay's clock (:func:`dcuscope.relay.live.framepack.corrected`; the pusher packs them once per size
+    asked, :func:`dcuscope.relay.live.framepack.packed`)."""
     ints, floats = view.live.recent_columns(since, limit)
     stages = len(view.header.stages)
     end = int(ints[4, -1]) if ints.shape[1] else None  # INT_FIELDS: n, source, frame, origin, end

@@ -12,23 +12,23 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from core.clocks import NEVER
-from probes.ship.errors import ProtocolError
-from probes.ship.wire import Hello
-from probes.trace.delays import FrameDelays, Series
-from probes.trace.events import TraceHeader
-from relay.clock.correction import Correction, correction_of
-from relay.clock.entry import clock_entry
-from relay.clock.model import ClockEstimator, segment_fault
-from relay.errors import RelayError
-from relay.live.framelimits import FrameLimits
-from relay.guard.limits import MIB, Limits
-from relay.live.run import LiveConfig, LiveRun
-from relay.live.runview import RunView, columns_block, frames_block, window_end_ns
-from relay.live.seqset import SeqSet
-from relay.store import base as db
-from relay.store.runs import run_events
-from relay.store.writer import Storage
+from dcuscope.core.clocks import NEVER
+from dcuscope.probes.ship.errors import ProtocolError
+from dcuscope.probes.ship.wire import Hello
+from dcuscope.probes.trace.delays import FrameDelays, Series
+from dcuscope.probes.trace.events import TraceHeader
+from dcuscope.relay.clock.correction import Correction, correction_of
+from dcuscope.relay.clock.entry import clock_entry
+from dcuscope.relay.clock.model import ClockEstimator, segment_fault
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.live.framelimits import FrameLimits
+from dcuscope.relay.guard.limits import MIB, Limits
+from dcuscope.relay.live.run import LiveConfig, LiveRun
+from dcuscope.relay.live.runview import RunView, columns_block, frames_block, window_end_ns
+from dcuscope.relay.live.seqset import SeqSet
+from dcuscope.relay.store import base as db
+from dcuscope.relay.store.runs import run_events
+from dcuscope.relay.store.writer import Storage
 
 RELOAD_SLICE = 262_144
 STATS_MAX_AGE_S = 0.5
@@ -78,7 +78,7 @@ class WholeRunStats:
 class WindowStats:
     """A run's rolling-window statistics, shared by the UI's pushes, the overview's rows and ``/metrics``.
 
-    The window ends at the present on the node's clock (:func:`relay.live.runview.window_end_ns`),
+    The window ends at the present on the node's clock (:func:`dcuscope.relay.live.runview.window_end_ns`),
     so it changes as new events come and as its frames age out. Once it holds nothing (a run that
     ended or went silent ``window_s`` ago) it stays as it is until new events come; it is
     recomputed at once when it comes to hold nothing. Otherwise it is recomputed, unless asked
@@ -455,7 +455,7 @@ class RelayState:
 
     def stats(self, rs: RunState, fresh: bool = True) -> dict:
         """node_stats of the run (bottleneck included) + the rolling ``window`` + the ``clock`` entry
-        (:mod:`relay.clock.entry`: the correction applied to its timestamps now, and its bound).
+        (:mod:`dcuscope.relay.clock.entry`: the correction applied to its timestamps now, and its bound).
 
         Whole-run statistics take percentiles over every frame of the run, a cost that grows
         with it; unless ``fresh`` (the HTTP API), they are recomputed as :class:`WholeRunStats`
@@ -471,16 +471,16 @@ class RelayState:
         return rs.window.get(rs.live, self.correction(rs), fresh, len(self.runs))
 
     def view(self, rs: RunState) -> RunView:
-        """What the HTTP API and the pushes read of ``rs`` (:mod:`relay.live.runview`)."""
+        """What the HTTP API and the pushes read of ``rs`` (:mod:`dcuscope.relay.live.runview`)."""
         return RunView(rs.node, rs.run, rs.session, rs.header, rs.live, self.correction(rs),
                        lambda fresh: self.stats(rs, fresh), self.relay_name)
 
     def frames_view(self, rs: RunState, since: int = 0, limit: int = 200, newest: bool = False) -> dict:
-        """Complete frames after cursor ``since`` (:func:`relay.live.runview.frames_block`)."""
+        """Complete frames after cursor ``since`` (:func:`dcuscope.relay.live.runview.frames_block`)."""
         return frames_block(self.view(rs), since, limit, newest)
 
     def frames_columns(self, rs: RunState, since: int, limit: int) -> tuple[dict, tuple]:
-        """The newest ``limit`` complete frames after ``since`` as pushed (:func:`relay.live.runview.columns_block`)."""
+        """The newest ``limit`` complete frames after ``since`` as pushed (:func:`dcuscope.relay.live.runview.columns_block`)."""
         return columns_block(self.view(rs), since, limit)
 
 

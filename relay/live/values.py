@@ -22,12 +22,12 @@ import math
 
 import numpy as np
 
-from probes.trace.delays import NS_PER_MS, PERCENTILES, summarize
-from relay.rollup.sketch import ALPHA, GAMMA, LOG_GAMMA
+from dcuscope.probes.trace.delays import NS_PER_MS, PERCENTILES, summarize
+from dcuscope.relay.rollup.sketch import ALPHA, GAMMA, LOG_GAMMA
 
 RELATIVE_ERROR = ALPHA
 """Largest relative error of a percentile once a series is past its exact limit: the rollups' (the
-same buckets' width, :mod:`relay.rollup.sketch`)."""
+same buckets' width, :mod:`dcuscope.relay.rollup.sketch`)."""
 _SMALLEST = 1e-6  # ms: |values| below this count as zero
 _LARGEST = 1e8  # ms: a bigger value lands in the last bucket (its max is still exact)
 _BUCKETS = math.ceil(math.log(_LARGEST / _SMALLEST) / LOG_GAMMA) + 1

@@ -1,10 +1,10 @@
 """Rollups: per DCU, stage and minute (and hour), what its frames' delays were, kept long after the events.
 
 A rollup row holds, for the frames of one run whose origin falls in its minute (or hour) of the
-node's clock: per stage the sketches (:mod:`relay.rollup.sketch`) of their delay, service and wait,
+node's clock: per stage the sketches (:mod:`dcuscope.relay.rollup.sketch`) of their delay, service and wait,
 and the drops at the stage in that time; per frame (the row of stage :data:`FRAME_ROW`) the
 end-to-end delays of complete frames, the incomplete ones, and the events the node lost. Rows are
-written by compaction (:mod:`relay.store.compaction`), in the transaction that moves a range of
+written by compaction (:mod:`dcuscope.relay.store.compaction`), in the transaction that moves a range of
 batches into a segment, so that each frame is counted once however often the relay is killed:
 
 - a range's rollups count the frames whose origin event is in the range, paired with the events
@@ -22,10 +22,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from probes.trace.delays import frame_delays
-from probes.trace.events import DROP, ORIGIN, TraceHeader
-from probes.trace.frametable import frame_table
-from relay.rollup.sketch import Sketch
+from dcuscope.probes.trace.delays import frame_delays
+from dcuscope.probes.trace.events import DROP, ORIGIN, TraceHeader
+from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.relay.rollup.sketch import Sketch
 
 FRAME_ROW = ""
 """The stage name of a rollup's per-frame row (end to end); no element is named so."""

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from relay.errors import RelayError
+from dcuscope.relay.errors import RelayError
 
 ALPHA = 0.01
 """The relative error of a quantile: within this fraction of the order statistic's value."""

@@ -8,22 +8,22 @@ restart, or on another relay, keeps its session. Sessions are numbered 1, 2, ...
 
 Events are stored as they arrived, one row per batch (the payload blob, compressed or not),
 keyed by (run, seq): a resent batch is stored once. Once a batch is old enough, compaction
-(:mod:`relay.store.compaction`) moves it with its neighbours into a *segment* (:mod:`relay.store.segment`:
+(:mod:`dcuscope.relay.store.compaction`) moves it with its neighbours into a *segment* (:mod:`dcuscope.relay.store.segment`:
 by column, about 3.5 bytes an event where a batch takes 24), one row for a contiguous range of seqs.
 Readers read both: :meth:`Database.event_parts` and :meth:`Database.batches_after` give a run's
 events by seq whichever row holds them. Timestamps are stored raw (node clock); each
 run keeps its last clock view and the history of its clock estimates (``clock_history``), which
-:func:`relay.store.runs.load_runs` applies per timestamp.
+:func:`dcuscope.relay.store.runs.load_runs` applies per timestamp.
 
 :class:`Database` is one connection to a store. The engines:
 
-- :mod:`relay.store.sqlite`: a file (``--db FILE``), the embedded default, one relay per file;
-- :mod:`relay.store.postgres`: PostgreSQL (``--db postgresql://...``), shared by any number of
+- :mod:`dcuscope.relay.store.sqlite`: a file (``--db FILE``), the embedded default, one relay per file;
+- :mod:`dcuscope.relay.store.postgres`: PostgreSQL (``--db postgresql://...``), shared by any number of
   relays. A run is written by the one relay that owns it: ownership is a lease that expires unless
   its owner renews it, and every write carries the generation its owner took (a fencing token), so
   a relay that froze or lost its store can write nothing more once another relay took its runs.
 
-:func:`relay.store.engines.open_database` picks the engine from the ``--db`` value.
+:func:`dcuscope.relay.store.engines.open_database` picks the engine from the ``--db`` value.
 """
 
 from __future__ import annotations
@@ -39,19 +39,19 @@ from typing import Any
 
 import numpy as np
 
-from probes.ship.wire import decode_payload
-from relay.clock.correction import Segment
-from relay.errors import RelayError
-from relay.rollup.compute import FRAME_ROW, HOUR_NS, WIDTHS_NS, Key, Rollup
-from relay.rollup.sketch import Sketch
-from relay.store.segment import decode as decode_segment
-from relay.store.segment import split_batches
+from dcuscope.probes.ship.wire import decode_payload
+from dcuscope.relay.clock.correction import Segment
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.rollup.compute import FRAME_ROW, HOUR_NS, WIDTHS_NS, Key, Rollup
+from dcuscope.relay.rollup.sketch import Sketch
+from dcuscope.relay.store.segment import decode as decode_segment
+from dcuscope.relay.store.segment import split_batches
 
 SCHEMA_VERSION = 5
 """2 added runs.secret (hash of the run's resume secret) and runs.rejected (why the relay refused it);
 3 added clock_history (each run's clock estimates, each in force from a node time); 4 added
 PostgreSQL's leases (each run's owner, with an expiry and a fencing generation); 5 added segments
-(batches compacted, :mod:`relay.store.compaction`), rollups (:mod:`relay.rollup.compute`) and
+(batches compacted, :mod:`dcuscope.relay.store.compaction`), rollups (:mod:`dcuscope.relay.rollup.compute`) and
 runs.rolled_lost."""
 READS_SCHEMAS = ("1", "2", "3", "4")
 """Schemas a store is brought to SCHEMA_VERSION from when a relay opens it (the tables and columns
@@ -169,7 +169,7 @@ class Database(ABC):
 
     def renew(self) -> set[str]:
         """Keep owning the runs owned here (a shared store's owners renew, see
-        :mod:`relay.store.postgres`); returns those another relay took meanwhile."""
+        :mod:`dcuscope.relay.store.postgres`); returns those another relay took meanwhile."""
         return set()
 
     def _fence(self, executor: Any, runs: set[str]) -> None:
@@ -186,7 +186,7 @@ class Database(ABC):
 
     def update_run(self, run: str, **fields: Any) -> None:
         """Set ``ended_ns``, ``written``, ``dropped``, ``lost``, ``clock`` (a dict) or ``history`` (the
-        run's whole clock history: a list of :meth:`relay.clock.correction.Segment.to_dict`); the
+        run's whole clock history: a list of :meth:`dcuscope.relay.clock.correction.Segment.to_dict`); the
         stored history becomes exactly it, only changed rows written."""
         if not fields.keys() <= RUN_FIELDS:
             raise ValueError(f"unknown run fields {sorted(fields.keys() - RUN_FIELDS)}")
@@ -205,7 +205,7 @@ class Database(ABC):
 
     def run_history(self, run: str) -> list[Segment]:
         """A run's stored clock history, oldest first (not checked: see
-        :func:`relay.clock.model.segment_fault`)."""
+        :func:`dcuscope.relay.clock.model.segment_fault`)."""
         return [Segment(*r) for r in self._rows(f"SELECT {', '.join(HISTORY_COLUMNS)} FROM clock_history "
                                                  "WHERE run = %s ORDER BY from_ns", (run,))]
 

@@ -1,4 +1,4 @@
-"""Compaction: a run's old batches moved into segments (:mod:`relay.store.segment`), from 24 bytes an
+"""Compaction: a run's old batches moved into segments (:mod:`dcuscope.relay.store.segment`), from 24 bytes an
 event (zlib barely helps a paced batch of a few hundred) to about 3.5.
 
 **Which batches.** Those stored more than ``after_s`` ago (``--compact-after``, default
@@ -23,10 +23,10 @@ after its range was compacted is recognised as stored (``stored_seqs``, and the 
 looks for a segment holding its seq).
 
 **Rollups.** The same transaction merges the rollups of the frames whose origin is in the range
-(:mod:`relay.rollup.compute`): each frame is counted once, whatever is killed when.
+(:mod:`dcuscope.relay.rollup.compute`): each frame is counted once, whatever is killed when.
 
 **Who.** The relay compacts in a thread with its own store connection
-(:class:`relay.store.compactor.Compactor`), so that reading and encoding never hold up the writer
+(:class:`dcuscope.relay.store.compactor.Compactor`), so that reading and encoding never hold up the writer
 thread's commits; ``dcuscope db compact`` compacts a store no relay is compacting (one written
 with ``--compact-after 0``, or by a relay before schema 5). On a shared store any relay may compact
 any run, one at a time (an advisory lock per run: two relays never encode the same range), and a
@@ -42,12 +42,12 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-from probes.ship.errors import ProtocolError
-from probes.ship.wire import decode_payload
-from probes.trace.events import EVENT_DTYPE, TraceHeader
-from relay.rollup.compute import LOOKAHEAD_NS, rollups_of
-from relay.store.base import Database
-from relay.store.segment import encode
+from dcuscope.probes.ship.errors import ProtocolError
+from dcuscope.probes.ship.wire import decode_payload
+from dcuscope.probes.trace.events import EVENT_DTYPE, TraceHeader
+from dcuscope.relay.rollup.compute import LOOKAHEAD_NS, rollups_of
+from dcuscope.relay.store.base import Database
+from dcuscope.relay.store.segment import encode
 
 COMPACT_AFTER_S = 60.0
 """Batches are compacted once stored this long (a node keeps at most 64 unacknowledged batches,

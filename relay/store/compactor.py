@@ -1,4 +1,4 @@
-"""The relay's compaction (``--compact-after SECONDS``, 0: none): what :mod:`relay.store.compaction`
+"""The relay's compaction (``--compact-after SECONDS``, 0: none): what :mod:`dcuscope.relay.store.compaction`
 says, every COMPACT_EVERY_S, in a process of its own beside the relay. A run's rollups come with
 it: the first within :func:`rollups_within_s` of its start (90 s by default), then at every pass.
 
@@ -8,7 +8,7 @@ its event loop for Python's one lock. Beside it, the relay's own CPU per event i
 compaction runs on another core. The relay's commits never wait for it but for the short
 transaction that swaps a range of batches for its segment.
 
-:class:`Compactor` (in the relay) starts ``python -m relay.store.compactor``, hands it its settings
+:class:`Compactor` (in the relay) starts ``python -m dcuscope.relay.store.compactor``, hands it its settings
 on stdin (the store's URL may hold a password: not on a command line) and keeps stdin open: the
 child stops when it closes, so a relay killed outright takes its compactor with it. The child
 prints one JSON line of its totals after each pass, which :meth:`Compactor.view` shows in
@@ -30,10 +30,10 @@ import threading
 import time
 from pathlib import Path
 
-from relay.errors import RelayError
-from relay.store.base import Database
-from relay.store.compaction import LIVE_WAIT_S, Compacted, compact
-from relay.store.engines import open_database
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.store.base import Database
+from dcuscope.relay.store.compaction import LIVE_WAIT_S, Compacted, compact
+from dcuscope.relay.store.engines import open_database
 
 COMPACT_EVERY_S = 30.0
 """How often the due batches are looked for (more often with a short ``--compact-after``); also
@@ -91,7 +91,7 @@ class Compactor:
         with self._lock:
             if self._stopped:
                 return
-            self.proc = subprocess.Popen([sys.executable, "-m", "relay.store.compactor"], stdin=subprocess.PIPE,
+            self.proc = subprocess.Popen([sys.executable, "-m", "dcuscope.relay.store.compactor"], stdin=subprocess.PIPE,
                                          stdout=subprocess.PIPE, text=True)
         self.proc.stdin.write(json.dumps({"db": str(self.db), "after_s": self.after_s, "every_s": self.every_s,
                                           "live_wait_s": self.live_wait_s, "name": self.name}) + "\n")
@@ -194,7 +194,7 @@ def main() -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     settings = json.loads(sys.stdin.readline() or "{}")
     if not settings.get("db"):
-        print("relay.store.compactor: started by the relay (its settings come on stdin)", file=sys.stderr)
+        print("dcuscope.relay.store.compactor: started by the relay (its settings come on stdin)", file=sys.stderr)
         return 2
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from relay.store.base import Database
+from dcuscope.relay.store.base import Database
 
 
 def is_url(db: str | Path) -> bool:
@@ -15,12 +15,12 @@ def open_database(db: str | Path, create: bool = True, name: str = "", owner: st
     """A connection to the store ``db`` names: a ``postgresql://`` URL, else an SQLite file
     (``create``: made if missing, else :class:`RelayError`). ``name``: the relay's, shown to the
     other relays of a shared store; ``owner``: who holds the runs this connection takes (see
-    :class:`relay.store.postgres.PostgresDatabase`)."""
+    :class:`dcuscope.relay.store.postgres.PostgresDatabase`)."""
     if is_url(db):
-        from relay.store.postgres import PostgresDatabase  # psycopg loads only for PostgreSQL
+        from dcuscope.relay.store.postgres import PostgresDatabase  # psycopg loads only for PostgreSQL
 
         return PostgresDatabase(str(db), name, owner)
-    from relay.store.sqlite import SqliteDatabase
+    from dcuscope.relay.store.sqlite import SqliteDatabase
 
     return SqliteDatabase(db, create)
 

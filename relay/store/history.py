@@ -4,7 +4,7 @@
 minutes at either end from the minute rows (so a month reads about 720 rows a stage, not 43,200),
 all its runs together. Counts, means, minimum, maximum, drops, incomplete frames and lost events are
 exact (sums of the rows'); percentiles come from the sketch, within ``ALPHA`` of the value
-(:mod:`relay.rollup.sketch`). :func:`history` gives per stage a point per minute or hour (p50, p99,
+(:mod:`dcuscope.relay.rollup.sketch`). :func:`history` gives per stage a point per minute or hour (p50, p99,
 frames), a time without frames having no point: a gap.
 """
 
@@ -13,11 +13,11 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from relay.errors import RelayError
-from relay.rollup.compute import FRAME_ROW, HOUR_NS, MINUTE_NS, Rollup
-from relay.rollup.sketch import ALPHA, Sketch
-from relay.store.base import Database, stored_rollup
-from relay.store.engines import open_database
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.rollup.compute import FRAME_ROW, HOUR_NS, MINUTE_NS, Rollup
+from dcuscope.relay.rollup.sketch import ALPHA, Sketch
+from dcuscope.relay.store.base import Database, stored_rollup
+from dcuscope.relay.store.engines import open_database
 
 QUANTILES = (("p50_ms", 0.50), ("p90_ms", 0.90), ("p99_ms", 0.99))
 EXACT = ("count", "mean_ms", "min_ms", "max_ms", "drops", "incomplete", "lost")

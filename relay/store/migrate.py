@@ -14,10 +14,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
-from relay.errors import RelayError
-from relay.store.base import HISTORY_COLUMNS
-from relay.store.postgres import PostgresDatabase, lock_key
-from relay.store.sqlite import connect
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.store.base import HISTORY_COLUMNS
+from dcuscope.relay.store.postgres import PostgresDatabase, lock_key
+from dcuscope.relay.store.sqlite import connect
 
 COPIED_RUN_COLUMNS = ("id", "node", "header", "first_seen_ns", "last_seen_ns", "ended_ns", "events", "written", "dropped",
                "lost", "clock", "secret", "rejected", "rolled_lost")

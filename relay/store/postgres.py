@@ -1,6 +1,6 @@
 """The PostgreSQL engine (``--db postgresql://USER@HOST/DB``): one store for any number of relays.
 
-Same tables and meaning as :mod:`relay.store.sqlite`. What a shared store adds:
+Same tables and meaning as :mod:`dcuscope.relay.store.sqlite`. What a shared store adds:
 
 - **Owners: leases with fencing.** A run is written only by the relay that owns it. Owning is
   holding the run's row in ``leases``: an owner (the relay process), a generation and an expiry
@@ -28,7 +28,7 @@ Same tables and meaning as :mod:`relay.store.sqlite`. What a shared store adds:
 - **Peers.** Every relay's connections carry ``application_name = dcuscope-relay NAME``;
   ``pg_stat_activity`` lists the relays sharing the store (``/api/health``).
 - **The fleet's rows.** Table ``fleet``: each relay upserts, once a second, one row per DCU it holds
-  (its node view and overview row, :mod:`relay.live.overview`), so that any relay answers
+  (its node view and overview row, :mod:`dcuscope.relay.live.overview`), so that any relay answers
   ``/api/nodes`` and ``/api/overview`` for the whole fleet; a row nobody refreshed for
   ``relay.api.fleet.ROW_TTL_S`` is deleted.
 
@@ -52,9 +52,9 @@ from typing import Any
 
 import psycopg
 
-from relay.errors import RelayError
-from relay.urls import redact
-from relay.store.base import (HISTORY_COLUMNS, LEASE_S, SCHEMA_VERSION, BatchRow, Database, NotOwner,
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.urls import redact
+from dcuscope.relay.store.base import (HISTORY_COLUMNS, LEASE_S, SCHEMA_VERSION, BatchRow, Database, NotOwner,
                               StoreUnavailable, check_resume, secret_hash)
 
 SCHEMA = """

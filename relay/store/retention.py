@@ -1,7 +1,7 @@
 """``dcuscope relay --retain raw=7d,rollups=400d`` (or ``--retain DAYS``, raw only): what leaves the store.
 
 Raw: a whole session goes once every run of it was last heard from more than that long ago and
-none is live (on a shared store: owned by a relay). Rollups (:mod:`relay.rollup.compute`) go by
+none is live (on a shared store: owned by a relay). Rollups (:mod:`dcuscope.relay.rollup.compute`) go by
 row, once their minute or hour began more than their own time ago: kept longer, they answer
 questions over months without the events. It is deleted in parts (PART_ROWS batches per short
 transaction, through the writer thread between the ingest's own commits), so that deleting
@@ -16,9 +16,9 @@ import logging
 import time
 from dataclasses import dataclass
 
-from relay.errors import RelayError
-from relay.store.history import parse_duration_ns
-from relay.store.writer import Storage
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.store.history import parse_duration_ns
+from dcuscope.relay.store.writer import Storage
 
 PART_ROWS = 2000
 CHECK_S = 60.0

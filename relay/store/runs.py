@@ -13,13 +13,13 @@ from pathlib import Path
 
 import numpy as np
 
-from probes.trace.events import CAPTURE, EVENT_DTYPE, TraceHeader
-from relay.clock.correction import NO_CORRECTION, Correction, Segment, stored_correction
-from relay.clock.entry import stored_run_correction
-from relay.clock.model import segment_fault
-from relay.errors import RelayError
-from relay.store.base import Database, StoreUnavailable
-from relay.store.engines import open_database
+from dcuscope.probes.trace.events import CAPTURE, EVENT_DTYPE, TraceHeader
+from dcuscope.relay.clock.correction import NO_CORRECTION, Correction, Segment, stored_correction
+from dcuscope.relay.clock.entry import stored_run_correction
+from dcuscope.relay.clock.model import segment_fault
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.store.base import Database, StoreUnavailable
+from dcuscope.relay.store.engines import open_database
 
 MAX_SESSION_DIGITS = 18
 RUN_DIGITS_SHOWN = 8
@@ -56,7 +56,7 @@ def load_runs(db: str | Path, session_id: int | str, corrected: bool = True) -> 
 
     With ``corrected`` each run's timestamps are moved to the relay's clock, each by the estimate
     in force at its time (the run's stored clock history), or, for a run stored without one, by
-    the correction its last clock estimate called for (see :func:`relay.clock.correction.correction_ns`).
+    the correction its last clock estimate called for (see :func:`dcuscope.relay.clock.correction.correction_ns`).
     """
     key = str(session_id).strip()
     is_run = len(key) >= 6 and all(c in "0123456789abcdef" for c in key.lower())

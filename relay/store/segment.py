@@ -41,8 +41,8 @@ import zlib
 
 import numpy as np
 
-from probes.trace.events import EVENT_DTYPE
-from relay.errors import RelayError
+from dcuscope.probes.trace.events import EVENT_DTYPE
+from dcuscope.relay.errors import RelayError
 
 MAGIC = b"DCUS"
 SEGMENT_VERSION = 1

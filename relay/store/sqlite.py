@@ -1,6 +1,6 @@
 """The SQLite engine: one file in WAL mode, the relay's embedded default (``--db FILE``).
 
-One relay writes a file at a time (its writer thread, :mod:`relay.store.writer`); readers
+One relay writes a file at a time (its writer thread, :mod:`dcuscope.relay.store.writer`); readers
 (``dcuscope stats``/``export``, the stored sessions' API) open connections of their own and read
 while it writes (WAL). A store of one relay needs no owners: :meth:`SqliteDatabase.own_run` always
 succeeds, and the live session is the one the relay says (it holds every live run).
@@ -15,8 +15,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from relay.errors import RelayError
-from relay.store.base import (HISTORY_COLUMNS, READS_SCHEMAS, SCHEMA_VERSION, BatchRow, Database, StoreUnavailable, check_resume,
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.store.base import (HISTORY_COLUMNS, READS_SCHEMAS, SCHEMA_VERSION, BatchRow, Database, StoreUnavailable, check_resume,
                               secret_hash)
 
 SCHEMA = """

@@ -2,15 +2,15 @@
 
 Batches queued together are committed in one transaction (at most GROUP_LIMIT): a batch is
 acknowledged to its node only after the transaction holding it committed. Other operations
-(:meth:`Storage.call`: a method of :class:`relay.store.base.Database`) run in the same thread,
+(:meth:`Storage.call`: a method of :class:`dcuscope.relay.store.base.Database`) run in the same thread,
 in the order they were queued.
 
 While the store fails (a full disk, PostgreSQL down or restarting) every write is refused with
-:class:`relay.errors.RelayError`: nodes hold their batches for :meth:`Storage.retry_ms` and send
+:class:`dcuscope.relay.errors.RelayError`: nodes hold their batches for :meth:`Storage.retry_ms` and send
 them again. One line is logged when writes start failing and one when they work again.
 
 On a shared store the thread also renews this relay's leases every ``RENEW_S``
-(:meth:`relay.store.base.Database.renew`). Runs whose lease another relay took (this relay froze,
+(:meth:`dcuscope.relay.store.base.Database.renew`). Runs whose lease another relay took (this relay froze,
 or could not renew in time), and runs a write was refused for (fenced), are handed to
 ``on_runs_lost``; a lost connection hands them all (``on_owners_lost``) at once, since this relay
 can renew nothing until it reconnects. The relay lets their nodes go: they come back, to this relay
@@ -32,10 +32,10 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
-from core.clocks import NEVER
-from relay.errors import RelayError
-from relay.store.base import LEASE_S, RENEW_S, BatchRow, Database, NotOwner, StoreUnavailable
-from relay.store.engines import open_database
+from dcuscope.core.clocks import NEVER
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.store.base import LEASE_S, RENEW_S, BatchRow, Database, NotOwner, StoreUnavailable
+from dcuscope.relay.store.engines import open_database
 
 GROUP_LIMIT = 2000
 """Batches committed in one transaction at most."""

@@ -8,7 +8,7 @@ import re
 from benchmarks.bench_pipeline import table
 from benchmarks.bench_probes import report
 from benchmarks.figures import NA
-from probes.capture import native
+from dcuscope.probes.capture import native
 from tests.benchmarks.smoke import (
     assert_cannot_run, assert_every_na_has_a_reason, assert_ran, json_lines, run_benchmark,
 )

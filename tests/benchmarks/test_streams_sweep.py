@@ -16,9 +16,9 @@ from benchmarks.streams_sweep import (
     STAGES, ClipSpec, Result, after_warmup, combine, combine_bottleneck, config_text, grid, make_clip, markdown, measure, saturated,
     series,
 )
-from pipeline.config import load_config
-from probes.trace.events import DROP, EXIT, FACT, LATE
-from probes.trace.tracefile import Trace
+from dcuscope.pipeline.config import load_config
+from dcuscope.probes.trace.events import DROP, EXIT, FACT, LATE
+from dcuscope.probes.trace.tracefile import Trace
 from tests.benchmarks.smoke import assert_cannot_run, assert_every_na_has_a_reason, run_benchmark
 from tests.conftest import REPO, VTEST, cli_env
 from tests.probes.synth import pipeline_run

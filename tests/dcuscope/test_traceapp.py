@@ -14,8 +14,8 @@ import time
 
 import pytest
 
-from probes.trace.tracefile import read_trace
-from relay.store.runs import list_sessions
+from dcuscope.probes.trace.tracefile import read_trace
+from dcuscope.relay.store.runs import list_sessions
 from tests.conftest import REPO, cli_env, run_cli
 from tests.ui.helpers import RelayThread
 
@@ -39,7 +39,7 @@ def wait_for_frames(trace, proc: subprocess.Popen, frames: int = 20, timeout: fl
 
 
 def stage_p50_ms(trace, stage: str) -> float:
-    from probes.trace.stats import stats_document
+    from dcuscope.probes.trace.stats import stats_document
 
     return stats_document([read_trace(trace)])["nodes"][read_trace(trace).header.node]["stages"][stage]["p50_ms"]
 

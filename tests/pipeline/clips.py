@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.gst import Gst, GstVideo
-from plugins.frames import mapped_video
+from dcuscope.core.gst import Gst, GstVideo
+from dcuscope.plugins.frames import mapped_video
 
 H264_MP4 = "x264enc speed-preset=ultrafast ! mp4mux"
 MJPEG_MULTIPART = "jpegenc ! multipartmux"

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from probes.trace.delays import chains
-from probes.trace.events import DROP, ORIGIN
-from probes.trace.frametable import frame_table
-from probes.trace.tracefile import read_trace
+from dcuscope.probes.trace.delays import chains
+from dcuscope.probes.trace.events import DROP, ORIGIN
+from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.probes.trace.tracefile import read_trace
 from tests.conftest import REPO, cli_env
 
 

@@ -3,7 +3,7 @@
     python -m tests.pipeline.rtsp_receiver CONFIG SECONDS
 
 Run in another network namespace by the lossy-link test: prints one JSON line with the first
-source's counters (:func:`pipeline.sourcestats.source_counters`) and its frames' origins.
+source's counters (:func:`dcuscope.pipeline.sourcestats.source_counters`) and its frames' origins.
 """
 
 from __future__ import annotations
@@ -13,12 +13,12 @@ import sys
 import time
 from dataclasses import asdict
 
-from core.gst import Gst
-from pipeline.build import build_pipeline
-from pipeline.config import load_config
-from pipeline.sourcestats import SourceStats
-from plugins.frames import read_frames
-import plugins
+from dcuscope.core.gst import Gst
+from dcuscope.pipeline.build import build_pipeline
+from dcuscope.pipeline.config import load_config
+from dcuscope.pipeline.sourcestats import SourceStats
+from dcuscope.plugins.frames import read_frames
+from dcuscope import plugins
 
 
 def receive(config: str, seconds: float) -> dict:

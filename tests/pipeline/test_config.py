@@ -8,11 +8,11 @@ from pathlib import Path
 
 import pytest
 
-from core.errors import ConfigError
+from dcuscope.core.errors import ConfigError
 from dcuscope.cli import build_parser
 from dcuscope.runcommand import apply_overrides
-from pipeline.build import build_pipeline
-from pipeline.config import load_config
+from dcuscope.pipeline.build import build_pipeline
+from dcuscope.pipeline.config import load_config
 from tests.conftest import VTEST, run_cli
 
 GOOD = f"""\

@@ -13,12 +13,13 @@ from pathlib import Path
 
 import pytest
 
-from core.errors import ConfigError
-from pipeline.config import load_config
-from probes.trace.events import ENTER, EXIT, ORIGIN
-from probes.trace.tracefile import read_trace
+from dcuscope.core.errors import ConfigError
+from dcuscope.pipeline.config import load_config
+from dcuscope.probes.trace.events import ENTER, EXIT, ORIGIN
+from dcuscope.probes.trace.tracefile import read_trace
 from tests.conftest import REPO, run_cli
 from tests.pipeline.clips import decode_video
+from tests.relay.helpers import RelayProcess, get_json, wait_for
 from tests.ports import free_port
 
 
@@ -97,7 +98,8 @@ def test_a_file_and_an_rtsp_server_at_once_every_frame_on_both_branches(tmp_path
 
 def test_a_launch_config_with_a_compositor_is_traced_like_any_app(tmp_path):
     """A compositor of a 30 and a 10 frames/s source in a launch: line: each output buffer lists,
-    per source, the frame whose time covers it (videotestsrc's frame k starts at k / rate)."""
+    per source, the frame whose time covers it (videotestsrc's frame k starts at k / rate); the
+    trace goes to a relay live too."""
     config = write(tmp_path, """\
         node: MIX
         launch: >
@@ -105,9 +107,17 @@ def test_a_launch_config_with_a_compositor_is_traced_like_any_app(tmp_path):
           videotestsrc name=a num-buffers=60 ! video/x-raw,width=320,height=240,framerate=30/1 ! mix.sink_0
           videotestsrc name=b num-buffers=20 pattern=ball ! video/x-raw,width=160,height=120,framerate=10/1 ! mix.sink_1
         """)
-    result = run_cli("run", config, "--probes", "--trace", tmp_path / "m.jsonl", cwd=tmp_path)
-    assert result.returncode == 0, result.stderr
-    assert "(the dcuscope tracer, every element)" in result.stderr
+    relay = RelayProcess(tmp_path / "relay.db")
+    try:
+        result = run_cli("run", config, "--probes", "--trace", tmp_path / "m.jsonl", "--relay", relay.url, cwd=tmp_path)
+        assert result.returncode == 0, result.stderr
+        assert "(the dcuscope tracer, every element)" in result.stderr
+        # Shipped live as the tracer writes it: the relay holds the same frames.
+        live = wait_for(lambda: (s := get_json(f"{relay.url}/api/stats?node=MIX"))["frames"]["complete"] == 80 and s,
+                        30, 0.2, "the relay's 80 frames of MIX")
+        assert live["frames"]["incomplete"] == 0
+    finally:
+        relay.stop()
     trace = read_trace(tmp_path / "m.jsonl")
     source = {name: int(i) for i, name in trace.header.sources.items()}
     assert set(source) == {"a", "b"}

@@ -10,10 +10,10 @@ import time
 
 import numpy as np
 
-from probes.trace.delays import chains
-from probes.trace.events import ORIGIN
-from probes.trace.frametable import frame_table
-from probes.trace.tracefile import TraceError, read_trace
+from dcuscope.probes.trace.delays import chains
+from dcuscope.probes.trace.events import ORIGIN
+from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.probes.trace.tracefile import TraceError, read_trace
 from tests.conftest import BIKES, VTEST, cli_env, run_cli
 from tests.pipeline.clips import MJPEG_MULTIPART, write_clip
 from tests.pipeline.livecheck import check_every_frame_accounted, run_timed
@@ -188,9 +188,9 @@ def test_a_stalled_stream_is_reported_while_the_others_go_on_and_its_return_too(
 
 
 def test_rtsp_latency_from_the_config_reaches_rtspsrc(tmp_path, gst_registered):
-    from core.gst import Gst
-    from pipeline.build import build_pipeline
-    from pipeline.config import load_config
+    from dcuscope.core.gst import Gst
+    from dcuscope.pipeline.build import build_pipeline
+    from dcuscope.pipeline.config import load_config
 
     port = free_port()
     server = serve(VTEST, port=port)
@@ -220,7 +220,7 @@ def test_serve_rtsp_refuses_what_is_not_a_video(tmp_path):
 
 
 def test_serve_rtsp_puts_a_key_frame_every_second_of_the_clip():
-    from pipeline.rtsp import keyframe_interval
+    from dcuscope.pipeline.rtsp import keyframe_interval
 
     assert keyframe_interval(BIKES) == 25 and keyframe_interval(VTEST) == 10
 
@@ -296,10 +296,10 @@ def test_a_wrong_rtsp_path_is_named_while_the_others_go_on(tmp_path):
 def test_an_rtsp_frame_carries_its_capture_time_to_its_framestamp(tmp_path, gst_registered):
     """The sender's capture time (RTCP sender reports -> the jitter buffer's timestamp/x-ntp meta)
     survives depayloading, decoding and conversion: a realtime value just before the origin."""
-    from core.gst import Gst
-    from pipeline.build import build_pipeline
-    from pipeline.config import load_config
-    from plugins.frames import capture_ns, read_frames
+    from dcuscope.core.gst import Gst
+    from dcuscope.pipeline.build import build_pipeline
+    from dcuscope.pipeline.config import load_config
+    from dcuscope.plugins.frames import capture_ns, read_frames
 
     port = free_port()
     started = time.clock_gettime_ns(time.CLOCK_REALTIME)

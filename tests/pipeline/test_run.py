@@ -15,12 +15,12 @@ import cv2
 import numpy as np
 import pytest
 
-from core.gst import Gst, GstVideo
-from pipeline.build import build_pipeline
-from pipeline.config import SinkConfig, load_config
-from pipeline import run as run_module
-from pipeline.run import Runner
-from plugins.frames import mapped_video, read_frames, read_objects
+from dcuscope.core.gst import Gst, GstVideo
+from dcuscope.pipeline.build import build_pipeline
+from dcuscope.pipeline.config import SinkConfig, load_config
+from dcuscope.pipeline import run as run_module
+from dcuscope.pipeline.run import Runner
+from dcuscope.plugins.frames import mapped_video, read_frames, read_objects
 from tests.conftest import REPO, cli_env, run_cli, wait_until_mapped
 from tests.pipeline.clips import decode_video
 

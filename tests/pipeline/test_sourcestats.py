@@ -9,8 +9,8 @@ import sys
 import time
 
 
-from core.gst import Gst
-from pipeline.sourcestats import SourceCounters, SourceStats, source_counters
+from dcuscope.core.gst import Gst
+from dcuscope.pipeline.sourcestats import SourceCounters, SourceStats, source_counters
 from tests.conftest import BIKES, REPO, VTEST, cli_env
 from tests.pipeline.lossylink import SERVER
 
@@ -64,8 +64,8 @@ def test_a_decoder_that_drops_late_frames_is_counted_for_its_source_only(gst_reg
 
 
 def test_counters_of_a_built_pipeline_without_rtsp(tmp_path, gst_registered):
-    from pipeline.build import build_pipeline
-    from pipeline.config import load_config
+    from dcuscope.pipeline.build import build_pipeline
+    from dcuscope.pipeline.config import load_config
 
     config = tmp_path / "plain.yaml"
     config.write_text("sources:\n  - {test: ball, live: true, rate: 10}\n  - {test: snow, live: true}\n"

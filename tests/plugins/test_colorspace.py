@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from plugins.colorspace import (
+from dcuscope.plugins.colorspace import (
     BT601, BT709, FORMATS, PACKED, Converter, YuvMatrix, convert, image_from_memory, new_image,
     yuv_to_rgb_matrix,
 )

@@ -5,10 +5,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from core.gst import Gst, GstVideo
-from plugins import convert, frames
-from plugins.colorspace import image_from_memory
-from plugins.frames import Detections, FrameId
+from dcuscope.core.gst import Gst, GstVideo
+from dcuscope.plugins import convert, frames
+from dcuscope.plugins.colorspace import image_from_memory
+from dcuscope.plugins.frames import Detections, FrameId
 
 CLIP = Path(__file__).resolve().parents[2] / "assets" / "media" / "vtest.avi"  # 768x576: SD, BT.601
 RGB_CLIP = f"filesrc location={CLIP} ! decodebin ! videoconvert ! video/x-raw,format=RGB"

@@ -6,11 +6,11 @@ import cv2
 import numpy as np
 import pytest
 
-from plugins.detection import (
+from dcuscope.plugins.detection import (
     LETTERBOX_GREY, Letterbox, decode_centernet, decode_ssd, decode_yolo, hwc_to_chw_unit, letterbox_into, nms,
     resize_into,
 )
-from plugins.models import (
+from dcuscope.plugins.models import (
     COCO80_NAMES, DEFAULT_MODEL, MODELS_DIR, Detector, ModelError, default_labels, inspect_model, load_labels,
     open_session, select_providers,
 )

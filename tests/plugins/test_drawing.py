@@ -6,7 +6,7 @@ import time
 import numpy as np
 import pytest
 
-from plugins.drawing import PALETTE, class_color, clock_text, draw_clock, draw_detections, to_format
+from dcuscope.plugins.drawing import PALETTE, class_color, clock_text, draw_clock, draw_detections, to_format
 
 
 def test_same_class_same_colour_and_neighbours_differ():

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from plugins.loading import same_sys_path
-from probes.capture.native import build
-from probes.trace.events import ENTER, EXIT
-from probes.trace.tracefile import read_trace
+from dcuscope.plugins.loading import same_sys_path
+from dcuscope.probes.capture.native import build
+from dcuscope.probes.trace.events import ENTER, EXIT
+from dcuscope.probes.trace.tracefile import read_trace
 from tests.conftest import REPO
 from tests.probes.capture.test_gsttracer import frames_of, loader_env, stage_points
 
@@ -35,7 +35,7 @@ CHAIN = ("mux name=m batch-size=2 width=640 height=360 ! "
          "framestamp source-id=1 ! m.sink_1")
 
 PROBE_MODULE = '''
-from core.gst import GObject, Gst, GstBase
+from dcuscope.core.gst import GObject, Gst, GstBase
 
 
 class Probe(GstBase.BaseTransform):

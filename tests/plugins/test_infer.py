@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from core.gst import Gst
-from plugins.frames import OBJECTS_CAPS, FrameId, batch_caps, read_frames, read_objects, write_frames
-from plugins.infer import Infer
-from plugins.models import MODELS_DIR
+from dcuscope.core.gst import Gst
+from dcuscope.plugins.frames import OBJECTS_CAPS, FrameId, batch_caps, read_frames, read_objects, write_frames
+from dcuscope.plugins.infer import Infer
+from dcuscope.plugins.models import MODELS_DIR
 
 VTEST = Path(__file__).resolve().parents[2] / "assets" / "media" / "vtest.avi"
 SSD_MODEL = MODELS_DIR / "ssdlite_mobilenetv2_person.onnx"

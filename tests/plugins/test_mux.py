@@ -7,9 +7,9 @@ import time
 import numpy as np
 import pytest
 
-from core.gst import Gst, GstVideo
-from plugins.frames import BatchLayout, mapped_batch, read_frames
-from plugins.mux import due_pads
+from dcuscope.core.gst import Gst, GstVideo
+from dcuscope.plugins.frames import BatchLayout, mapped_batch, read_frames
+from dcuscope.plugins.mux import due_pads
 from tests.pipeline.clips import decode_video
 
 
@@ -23,7 +23,7 @@ def test_due_pads_takes_frames_within_one_period_of_the_earliest():
 
 
 def run(launch: str) -> list[tuple[int, list[tuple[int, int]], list[float], tuple[int, int]]]:
-    import plugins
+    from dcuscope import plugins
 
     plugins.register()
     pipeline = Gst.parse_launch(launch)
@@ -74,7 +74,7 @@ def test_frames_without_identity_get_one_from_the_pad():
 
 def test_a_frame_that_cannot_be_scaled_into_its_batch_slot_is_left_unmapped():
     """The input frame was mapped, then the batch slot failed to map: the input stayed mapped for ever."""
-    from plugins.mux import scale_into
+    from dcuscope.plugins.mux import scale_into
 
     info = GstVideo.VideoInfo.new()
     info.set_format(GstVideo.VideoFormat.RGB, 64, 48)
@@ -88,7 +88,7 @@ def test_a_frame_that_cannot_be_scaled_into_its_batch_slot_is_left_unmapped():
 
 
 def test_a_frame_is_scaled_into_its_batch_slot():
-    from plugins.mux import scale_into
+    from dcuscope.plugins.mux import scale_into
 
     info = GstVideo.VideoInfo.new()
     info.set_format(GstVideo.VideoFormat.RGB, 64, 48)
@@ -120,7 +120,7 @@ def test_a_late_frame_never_stamps_a_batch_at_or_before_the_last_one():
 def test_every_batch_of_a_late_camera_keeps_its_own_frame_in_an_mp4(tmp_path):
     """A late camera's lone batches, stamped just after the batch they missed, were merged with it
     by the container (1 ns apart): 34 of 40 collages decoded. Every batch must reach the file."""
-    import plugins
+    from dcuscope import plugins
 
     plugins.register()
     path = tmp_path / "late.mp4"
@@ -148,7 +148,7 @@ def run_behind(max_latency: int) -> tuple[list[tuple[int, list]], list[Gst.Struc
     """Two live 50 fps cameras, each queued without bound after its framestamp, into a mux whose
     batches a 40 ms stage takes: the pipeline cannot keep up. Returns the batches as the sink got
     them (realtime ns on arrival, frame ids), the drop messages, and how many frames were stamped."""
-    import plugins
+    from dcuscope import plugins
 
     plugins.register()
     camera = ("videotestsrc is-live=true num-buffers={n} ! video/x-raw,format=RGB,width=64,height=48,framerate=50/1 "

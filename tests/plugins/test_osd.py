@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from core.gst import Gst
-from plugins import convert, frames, osd
-from plugins.drawing import class_color
-from plugins.frames import Detections, FrameId
+from dcuscope.core.gst import Gst
+from dcuscope.plugins import convert, frames, osd
+from dcuscope.plugins.drawing import class_color
+from dcuscope.plugins.frames import Detections, FrameId
 
 W, H = 160, 120
 

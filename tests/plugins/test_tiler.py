@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from core.gst import Gst
-from plugins import frames, tiler
-from plugins.frames import Detections, FrameId
+from dcuscope.core.gst import Gst
+from dcuscope.plugins import frames, tiler
+from dcuscope.plugins.frames import Detections, FrameId
 
 FW, FH = 64, 48  # frame size in the batch
 

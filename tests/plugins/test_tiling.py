@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from plugins.tiling import compose, grid_shape, map_boxes, tile_rects, tiles_for_slots
+from dcuscope.plugins.tiling import compose, grid_shape, map_boxes, tile_rects, tiles_for_slots
 
 
 @pytest.mark.parametrize("n, expected", [

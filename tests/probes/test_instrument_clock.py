@@ -7,9 +7,9 @@ import time
 
 import numpy as np
 
-from core.clocks import CLOCKS, PretendClock
-from probes.instrument import _Shifted
-from probes.trace.events import CAPTURE, ORIGIN
+from dcuscope.core.clocks import CLOCKS, PretendClock
+from dcuscope.probes.instrument import _Shifted
+from dcuscope.probes.trace.events import CAPTURE, ORIGIN
 from tests.probes.synth import T0, _events
 
 

@@ -1,7 +1,7 @@
 """Test helpers: a relay process, simulated node processes, JSON over HTTP, stats comparison.
 
 Everything runs on 127.0.0.1 with free ports and bounded waits. A node here is a separate
-process (``python -m probes.ship.simnode``) writing the events it shipped to an .npz; a real
+process (``python -m dcuscope.probes.ship.simnode``) writing the events it shipped to an .npz; a real
 ``dcuscope run --probes --relay ... --trace FILE`` process can take its place, the test then
 reading its trace file instead.
 """
@@ -23,9 +23,9 @@ from pathlib import Path
 import aiohttp
 import numpy as np
 
-from probes.ship.relaylink import Link
-from probes.ship.simnode import header_for
-from probes.trace.events import TraceHeader
+from dcuscope.probes.ship.relaylink import Link
+from dcuscope.probes.ship.simnode import header_for
+from dcuscope.probes.trace.events import TraceHeader
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -37,13 +37,13 @@ def env() -> dict:
 
 
 class RelayProcess:
-    """``python -m relay`` in a subprocess; ``url`` once it listens (at the address it says it listens
+    """``python -m dcuscope.relay`` in a subprocess; ``url`` once it listens (at the address it says it listens
     on: 127.0.0.1 unless ``args`` give ``--host``)."""
 
     def __init__(self, db: Path, port: int = 0, token: str | None = None, clock: str = "auto",
                  log: Path | None = None, args: list[str] | None = None, prefix: list[str] | None = None) -> None:
         """``prefix``: a command that execs the relay's command line it is given (``unshare ...``)."""
-        cmd = [*(prefix or []), sys.executable, "-m", "relay", "--port", str(port), "--db", str(db), "--clock", clock,
+        cmd = [*(prefix or []), sys.executable, "-m", "dcuscope.relay", "--port", str(port), "--db", str(db), "--clock", clock,
                *(args or [])]
         if token:
             cmd += ["--token", token]
@@ -104,7 +104,7 @@ def start_node(url: str, node: str, out: Path, *, frames: int = 100, sources: in
     """A ``probes.ship.simnode`` process; with ``linger`` its run stays open after the last event until
     its stdin closes (``finish_node`` closes it). ``prefix``: a command that execs the node's command
     line it is given (``ip netns exec NS``)."""
-    cmd = [*(prefix or []), sys.executable, "-m", "probes.ship.simnode", "--relay", url, "--node", node, "--out", str(out),
+    cmd = [*(prefix or []), sys.executable, "-m", "dcuscope.probes.ship.simnode", "--relay", url, "--node", node, "--out", str(out),
            "--frames", str(frames), "--sources", str(sources), "--fps", str(fps), "--seed", str(seed),
            "--clock-offset-ns", str(offset_ns), "--drop-rate", str(drop_rate)]
     if paced:
@@ -208,7 +208,7 @@ def sort_events(events: np.ndarray) -> np.ndarray:
 
 
 class HandNode:
-    """A node driven by hand on one ingest WebSocket (:class:`probes.ship.relaylink.Link`), for in-process
+    """A node driven by hand on one ingest WebSocket (:class:`dcuscope.probes.ship.relaylink.Link`), for in-process
     tests that send exactly the messages they mean to."""
 
     def __init__(self, session, link, acks, secret: str | None, reply: dict | None = None) -> None:

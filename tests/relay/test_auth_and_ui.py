@@ -8,8 +8,8 @@ import time
 import pytest
 import socketio
 
-from relay.api.ui import DEFAULT_PUSH_HZ
-from relay.live.framepack import unpack_push
+from dcuscope.relay.api.ui import DEFAULT_PUSH_HZ
+from dcuscope.relay.live.framepack import unpack_push
 from tests.conftest import run_cli
 from tests.relay.helpers import (RelayProcess, finish_node, get_json, http_status, load_node, start_node)
 

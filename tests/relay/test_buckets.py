@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from relay.export.buckets import Histograms
-from relay.export.framemetrics import NS_PER_S
-from relay.export.metrics import BUCKETS_S
+from dcuscope.relay.export.buckets import Histograms
+from dcuscope.relay.export.framemetrics import NS_PER_S
+from dcuscope.relay.export.metrics import BUCKETS_S
 
 BOUNDS_NS = np.array([round(b * NS_PER_S) for b in BUCKETS_S], dtype=np.float64)
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from relay.clock.correction import ClockEstimate, correction_ns, correction_of, ntp_sample
-from relay.clock.model import WINDOW_NS, ClockEstimator, half_width
+from dcuscope.relay.clock.correction import ClockEstimate, correction_ns, correction_of, ntp_sample
+from dcuscope.relay.clock.model import WINDOW_NS, ClockEstimator, half_width
 
 
 def exchange(offset: int, t1_true: int, up: int, down: int, hold: int) -> tuple[int, int, int, int]:

@@ -13,11 +13,11 @@ import uuid
 
 import numpy as np
 
-from probes.ship.simnode import synth_events
-from probes.ship.wire import encode_batch
-from probes.trace.events import ORIGIN
-from relay.store.base import SCHEMA_VERSION
-from relay.store.runs import frame_starts, load_runs
+from dcuscope.probes.ship.simnode import synth_events
+from dcuscope.probes.ship.wire import encode_batch
+from dcuscope.probes.trace.events import ORIGIN
+from dcuscope.relay.store.base import SCHEMA_VERSION
+from dcuscope.relay.store.runs import frame_starts, load_runs
 from tests.relay.helpers import HandNode, RelayProcess, get_json
 
 OFFSETS = (5_000_000, 45_000_000)

@@ -16,16 +16,16 @@ import uuid
 
 import pytest
 
-from probes.ship.relayexport import RelayExporter
-from probes.ship.simnode import header_for, synth_events
-from probes.trace.events import ORIGIN
-from core.clocks import CLOCKS, PretendClock
-from probes.clocks.udpclock import (BURST, DATAGRAM_BYTES, VERSION, Tagger, UdpClock, decode_answer,
+from dcuscope.probes.ship.relayexport import RelayExporter
+from dcuscope.probes.ship.simnode import header_for, synth_events
+from dcuscope.probes.trace.events import ORIGIN
+from dcuscope.core.clocks import CLOCKS, PretendClock
+from dcuscope.probes.clocks.udpclock import (BURST, DATAGRAM_BYTES, VERSION, Tagger, UdpClock, decode_answer,
                                     enable_rx_timestamps, encode_request, new_secret, parse_offer, recv_stamped)
-from relay.clock.correction import ClockSample, ntp_sample
-from relay.clock.udp import ClockUdp
-from relay.guard.limits import Limits
-from relay.server import start_relay
+from dcuscope.relay.clock.correction import ClockSample, ntp_sample
+from dcuscope.relay.clock.udp import ClockUdp
+from dcuscope.relay.guard.limits import Limits
+from dcuscope.relay.server import start_relay
 from tests.relay.helpers import (ROOT, HandNode, RelayProcess, env, finish_node, get_json, start_node, wait_for)
 
 FRAMES, SOURCES, FPS, SEED = 250, 2, 50.0, 5
@@ -209,7 +209,7 @@ def test_a_clock_port_the_relay_cannot_have_is_a_one_line_error(tmp_path):
         taken.bind(("127.0.0.1", 0))
         port = taken.getsockname()[1]
         for value, said in ((str(port), "cannot listen on UDP"), ("70000", "--clock-port must be 0..65535")):
-            done = subprocess.run([sys.executable, "-m", "relay", "--port", "0", "--db", str(tmp_path / "r.db"),
+            done = subprocess.run([sys.executable, "-m", "dcuscope.relay", "--port", "0", "--db", str(tmp_path / "r.db"),
                                    "--clock-port", value], cwd=ROOT, env=env(), capture_output=True, text=True,
                                   timeout=30)
             assert done.returncode == 2 and said in done.stderr, done.stderr

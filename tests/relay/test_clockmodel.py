@@ -10,8 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from relay.clock.correction import Correction, ClockEstimate, Segment, correction_of, ntp_sample
-from relay.clock.model import (HISTORY_MIN_NS, MAX_HISTORY, TIMESTAMP_FLOOR_NS, ClockEstimator, half_width,
+from dcuscope.relay.clock.correction import Correction, ClockEstimate, Segment, correction_of, ntp_sample
+from dcuscope.relay.clock.model import (HISTORY_MIN_NS, MAX_HISTORY, TIMESTAMP_FLOOR_NS, ClockEstimator, half_width,
                               segment_fault)
 
 T0 = 1_790_000_000_000_000_000

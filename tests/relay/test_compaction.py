@@ -13,11 +13,11 @@ import uuid
 import numpy as np
 import pytest
 
-from probes.ship.simnode import header_for, synth_events
-from relay.store.base import BatchRow
-from relay.store.compaction import compact, ranges
-from relay.store.engines import open_database
-from relay.store.runs import list_sessions, load_runs
+from dcuscope.probes.ship.simnode import header_for, synth_events
+from dcuscope.relay.store.base import BatchRow
+from dcuscope.relay.store.compaction import compact, ranges
+from dcuscope.relay.store.engines import open_database
+from dcuscope.relay.store.runs import list_sessions, load_runs
 from tests.conftest import run_cli
 from tests.relay.helpers import RelayProcess, finish_node, get_json, http_status, start_node, wait_for
 from tests.relay.test_store_engines import T0, execute, payload, store  # noqa: F401 - store: the engines' fixture
@@ -199,8 +199,8 @@ def test_a_relay_killed_mid_compaction_loses_nothing_and_stores_nothing_twice(st
     for run, events in written.items():
         assert np.array_equal(load_runs(store, run, corrected=False)[0].events, events)
     # Each frame in the rollups once, whatever was killed when.
-    from probes.trace.delays import node_stats
-    from relay.store.history import summary
+    from dcuscope.probes.trace.delays import node_stats
+    from dcuscope.relay.store.history import summary
 
     complete = sum(node_stats(header_for("a", 2), events)["frames"]["complete"] for events in written.values())
     assert summary(store, "a", 0, time.time_ns())["frame"]["count"] == complete
@@ -208,7 +208,7 @@ def test_a_relay_killed_mid_compaction_loses_nothing_and_stores_nothing_twice(st
 
 @pytest.mark.long
 def test_a_relay_compacts_as_it_goes_the_stored_stats_are_the_nodes_and_its_history_answers(tmp_path):
-    from probes.trace.delays import node_stats
+    from dcuscope.probes.trace.delays import node_stats
     from tests.relay.helpers import assert_stats_equal, load_node, sort_events
 
     db = tmp_path / "r.db"

@@ -7,7 +7,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Histo
 from prometheus_client.exposition import generate_latest
 from prometheus_client.utils import floatToGoString
 
-from relay.export.exposition import BulkHistogram, exposition
+from dcuscope.relay.export.exposition import BulkHistogram, exposition
 
 LE = [floatToGoString(b) for b in (0.0001, 0.00015, 0.5, 7.0, 10.0)] + ["+Inf"]
 

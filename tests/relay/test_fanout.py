@@ -10,7 +10,7 @@ import time
 import pytest
 import socketio
 
-from relay.live.framepack import unpack_push
+from dcuscope.relay.live.framepack import unpack_push
 from tests.relay.helpers import RelayProcess, finish_node, get_json, load_node, start_node, wait_for
 from tests.relay.test_fleet import stored_equals_sent
 

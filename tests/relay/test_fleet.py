@@ -14,10 +14,10 @@ import aiohttp
 import numpy as np
 import pytest
 
-from probes.ship.relaylink import Link
-from probes.ship.simnode import header_for
-from probes.trace.tracefile import read_trace
-from relay.store.runs import list_sessions, load_runs
+from dcuscope.probes.ship.relaylink import Link
+from dcuscope.probes.ship.simnode import header_for
+from dcuscope.probes.trace.tracefile import read_trace
+from dcuscope.relay.store.runs import list_sessions, load_runs
 from tests.conftest import cli_env
 from tests.pgserver import PostgresServer
 from tests.relay.helpers import (RelayProcess, finish_node, get_json, kill_all, load_node, sort_events, start_node,

@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from probes.ship.simnode import header_for, synth_events
-from relay.clock.correction import Correction, Segment
-from relay.live import framepack
-from relay.live.framejson import frame_dicts
-from relay.live.run import LiveRun
+from dcuscope.probes.ship.simnode import header_for, synth_events
+from dcuscope.relay.clock.correction import Correction, Segment
+from dcuscope.relay.live import framepack
+from dcuscope.relay.live.framejson import frame_dicts
+from dcuscope.relay.live.run import LiveRun
 from tests.probes.synth import T0
 from tests.relay.test_moments import node_run
 

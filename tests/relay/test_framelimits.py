@@ -7,8 +7,8 @@ import sys
 
 import pytest
 
-from relay.errors import RelayError
-from relay.live.framelimits import FrameLimits
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.live.framelimits import FrameLimits
 
 
 def test_a_node_limit_wins_over_the_default():

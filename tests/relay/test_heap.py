@@ -11,10 +11,10 @@ import weakref
 import numpy as np
 import pytest
 
-from probes.ship.simnode import synth_events
-from probes.ship.wire import encode_batch
-from relay import heap
-from relay.server import start_relay
+from dcuscope.probes.ship.simnode import synth_events
+from dcuscope.probes.ship.wire import encode_batch
+from dcuscope.relay import heap
+from dcuscope.relay.server import start_relay
 from tests.relay.helpers import HandNode
 
 T0 = 1_700_000_000_000_000_000
@@ -98,8 +98,8 @@ def test_a_released_run_leaves_memory_at_once_without_a_garbage_collection(tmp_p
 
 def test_the_ui_ticker_keeps_no_pushed_version_per_run_that_left_memory():
     """Keyed by run, one was added per restart of a node while a page was open, for ever."""
-    from relay.api.interest import ALL, Interest
-    from relay.api.ui import VERSIONS_SLACK, Ticker
+    from dcuscope.relay.api.interest import ALL, Interest
+    from dcuscope.relay.api.ui import VERSIONS_SLACK, Ticker
 
     class State:
         runs = {"kept": object()}

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from probes.trace.delays import node_stats
+from dcuscope.probes.trace.delays import node_stats
 from tests.relay.helpers import (RelayProcess, assert_stats_equal, finish_node, get_json, load_node, read_http_answer,
                                  start_node, wait_for)
 

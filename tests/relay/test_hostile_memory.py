@@ -16,9 +16,9 @@ import uuid
 
 import numpy as np
 
-from probes.ship.wire import SOURCE_LIMIT, encode_batch
-from probes.trace.delays import node_stats
-from probes.trace.events import ENTER, EVENT_DTYPE, TraceHeader
+from dcuscope.probes.ship.wire import SOURCE_LIMIT, encode_batch
+from dcuscope.probes.trace.delays import node_stats
+from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, TraceHeader
 from tests.relay.helpers import (HandNode, RelayProcess, assert_stats_equal, finish_node, get_json, load_node,
                                  start_node, wait_for)
 

@@ -7,11 +7,11 @@ import time
 import numpy as np
 import pytest
 
-from probes.ship.simnode import header_for, synth_events
-from probes.ship.wire import SOURCE_LIMIT
-from probes.trace.delays import node_stats
-from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, TraceHeader
-from relay.live.run import LiveConfig, LiveRun
+from dcuscope.probes.ship.simnode import header_for, synth_events
+from dcuscope.probes.ship.wire import SOURCE_LIMIT
+from dcuscope.probes.trace.delays import node_stats
+from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT, TraceHeader
+from dcuscope.relay.live.run import LiveConfig, LiveRun
 from tests.probes.synth import pipeline_run
 from tests.relay.helpers import assert_stats_equal
 
@@ -242,10 +242,10 @@ def test_pushed_columns_are_the_frames_recent_gives(batch, maintain_every):
     """The pushes take each complete frame's columns as they were judged when it was shown
     (``recent_columns``), not derived again: they equal those of the same frames from ``recent``,
     clock correction and all, with drops, disorder and a partial last page."""
-    from relay.api.interest import MAX_FRAMES
-    from relay.clock.correction import Correction, Segment
-    from relay.live import framepack
-    from relay.live.run import PUSHED_FRAMES
+    from dcuscope.relay.api.interest import MAX_FRAMES
+    from dcuscope.relay.clock.correction import Correction, Segment
+    from dcuscope.relay.live import framepack
+    from dcuscope.relay.live.run import PUSHED_FRAMES
 
     header, events, _ = pipeline_run(300, 3, jitter_ns=5_000_000, batched_mux=True, seed=8)
     events = events[np.argsort(events["ts"], kind="stable")]
@@ -269,7 +269,7 @@ def test_whole_run_statistics_of_many_runs_share_one_share_of_the_relays_time():
     """Unless asked fresh, a run's whole-run statistics wait until their last cost, times the
     runs kept this way, is within STATS_SHARE of the time since: 32 runs of a long day cost what
     one does, not 32 times more; the HTTP API's fresh ones are always computed."""
-    from relay.live.state import STATS_SHARE, WholeRunStats
+    from dcuscope.relay.live.state import STATS_SHARE, WholeRunStats
 
     events = synth_events(200, 2, 30.0, T0, seed=2)
     run = LiveRun(header_for("n", 2))
@@ -289,8 +289,8 @@ def test_whole_run_statistics_of_many_runs_share_one_share_of_the_relays_time():
 def test_a_silent_runs_window_empties_however_long_its_last_one_took():
     """A window waits its turn (its last cost, times the runs, within WINDOW_SHARE), except once every
     event of its run is older than it: then it is empty, said at once, and kept until new events come."""
-    from relay.clock.correction import NO_CORRECTION
-    from relay.live.state import WindowStats
+    from dcuscope.relay.clock.correction import NO_CORRECTION
+    from dcuscope.relay.live.state import WindowStats
 
     run = LiveRun(header_for("n", 1), LiveConfig(window_s=0.05))
     run.add(synth_events(20, 1, 1000.0, T0, seed=3))  # 20 ms of frames
@@ -308,7 +308,7 @@ def test_runs_maintained_together_show_and_state_exactly_what_each_alone_does():
     """The pusher judges the frames of every run of one graph in one pass (maintain_all): runs of
     the same graph, and one of another, fed alike batch by batch, show the same frames with the same
     columns, and end with the same statistics as twins maintained one by one."""
-    from relay.live.run import maintain_all
+    from dcuscope.relay.live.run import maintain_all
 
     feeds = [(header_for(f"n{k}", 2), synth_events(300, 2, 30.0, T0 + k * 7_000_000, drop_rate=0.05 * k, seed=k))
              for k in range(3)]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import io
 import logging
 
-from relay.guard.lograte import RateFilter
+from dcuscope.relay.guard.lograte import RateFilter
 
 
 def test_repeats_beyond_the_rate_are_counted_and_summarised():
@@ -13,7 +13,7 @@ def test_repeats_beyond_the_rate_are_counted_and_summarised():
     handler = logging.StreamHandler(out)
     rate = RateFilter(per_min=10)
     handler.addFilter(rate)
-    logger = logging.getLogger("relay.test_lograte")
+    logger = logging.getLogger("dcuscope.relay.test_lograte")
     logger.addHandler(handler)
     logger.propagate = False
     try:

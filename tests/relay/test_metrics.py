@@ -17,16 +17,16 @@ from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from prometheus_client.parser import text_string_to_metric_families
 
-from probes.ship.simnode import header_for, synth_events
-from probes.ship.wire import PTP_STATES, encode_batch
-from probes.trace.delays import frame_delays, series
-from probes.trace.events import DROP, DROP_REASONS, ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
-from probes.trace.frametable import frame_table
-from relay.export.framemetrics import MAX_GAPS, NS_PER_S, gap_stages
-from relay.export.metrics import BUCKETS_S
-from relay.guard.limits import Limits
-from relay.live.run import LiveConfig
-from relay.server import start_relay
+from dcuscope.probes.ship.simnode import header_for, synth_events
+from dcuscope.probes.ship.wire import PTP_STATES, encode_batch
+from dcuscope.probes.trace.delays import frame_delays, series
+from dcuscope.probes.trace.events import DROP, DROP_REASONS, ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
+from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.relay.export.framemetrics import MAX_GAPS, NS_PER_S, gap_stages
+from dcuscope.relay.export.metrics import BUCKETS_S
+from dcuscope.relay.guard.limits import Limits
+from dcuscope.relay.live.run import LiveConfig
+from dcuscope.relay.server import start_relay
 from tests.probes.synth import pipeline_run
 from tests.relay.helpers import HandNode, RelayProcess, finish_node, start_node, wait_for
 

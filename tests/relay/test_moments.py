@@ -7,13 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from core.clocks import PretendClock
-from probes.instrument import _Shifted
-from probes.trace.delays import frame_delays
-from probes.trace.events import CAPTURE, ENTER, EXIT, ORIGIN, TraceHeader
-from probes.trace.frametable import frame_table
-from relay.api.moments import MATCH_TOLERANCE_NS, MomentsError, Side, compare, match, pairs_of
-from relay.clock.correction import Correction, Segment
+from dcuscope.core.clocks import PretendClock
+from dcuscope.probes.instrument import _Shifted
+from dcuscope.probes.trace.delays import frame_delays
+from dcuscope.probes.trace.events import CAPTURE, ENTER, EXIT, ORIGIN, TraceHeader
+from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.relay.api.moments import MATCH_TOLERANCE_NS, MomentsError, Side, compare, match, pairs_of
+from dcuscope.relay.clock.correction import Correction, Segment
 from tests.probes.synth import T0, _events
 
 URI = "uri:rtsp://127.0.0.1:8554/cam0"

@@ -16,9 +16,9 @@ import urllib.request
 
 import pytest
 
-from probes.trace.delays import chains
-from probes.trace.frametable import frame_table
-from probes.trace.tracefile import read_trace
+from dcuscope.probes.trace.delays import chains
+from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.probes.trace.tracefile import read_trace
 from tests.conftest import VTEST, cli_env
 from tests.ports import free_port
 from tests.relay.helpers import RelayProcess, get_json, wait_for

@@ -7,8 +7,8 @@ import time
 import numpy as np
 import pytest
 
-from probes.trace.delays import node_stats
-from relay.store.runs import load_runs
+from dcuscope.probes.trace.delays import node_stats
+from dcuscope.relay.store.runs import load_runs
 from tests.relay.helpers import (RelayProcess, assert_stats_equal, finish_node, get_json, load_node, sort_events,
                                  start_node, wait_for)
 from tests.relay.netcut import CutProxy

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from probes.trace.events import FRAME_CELLS
-from probes.trace.frametable import MISSING
-from relay.live.opentable import OpenTable
+from dcuscope.probes.trace.events import FRAME_CELLS
+from dcuscope.probes.trace.frametable import MISSING
+from dcuscope.relay.live.opentable import OpenTable
 
 
 def test_rows_are_found_by_key_through_opens_and_closes_and_keep_their_cells():

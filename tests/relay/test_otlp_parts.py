@@ -11,19 +11,19 @@ from collections import Counter
 import numpy as np
 import pytest
 
-from probes.ship.simnode import STAGES, header_for, synth_events
-from probes.trace.delays import frame_delays, series
-from probes.trace.frametable import frame_table
-from relay.live.framelimits import FrameLimits
-from relay.export.otlp import MAX_BUSY, OtlpExporter
-from relay.export.otlpconfig import OtlpConfig
-from relay.export.otlpqueue import FrameQueue, OtlpCounters
-from relay.export.otlpsample import Sampler
-from relay.export.otlpspans import node_resource, spans_of, trace_id
-from relay.live.run import LiveRun
-from relay.live.seqset import SeqSet
-from relay.live.state import RelayState, RunState
-from relay.store.writer import Storage
+from dcuscope.probes.ship.simnode import STAGES, header_for, synth_events
+from dcuscope.probes.trace.delays import frame_delays, series
+from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.relay.live.framelimits import FrameLimits
+from dcuscope.relay.export.otlp import MAX_BUSY, OtlpExporter
+from dcuscope.relay.export.otlpconfig import OtlpConfig
+from dcuscope.relay.export.otlpqueue import FrameQueue, OtlpCounters
+from dcuscope.relay.export.otlpsample import Sampler
+from dcuscope.relay.export.otlpspans import node_resource, spans_of, trace_id
+from dcuscope.relay.live.run import LiveRun
+from dcuscope.relay.live.seqset import SeqSet
+from dcuscope.relay.live.state import RelayState, RunState
+from dcuscope.relay.store.writer import Storage
 from tests.relay.helpers import wait_for
 from tests.relay.otlpreceiver import OtlpReceiver
 

@@ -10,9 +10,9 @@ import aiohttp
 import pytest
 import socketio
 
-from relay.api.ui import UiNamespace
-from relay.guard.policy import COOKIE, COOKIE_LIFETIME_S, Action, Policy, Principal, Role, actions, certificate_principal
-from relay.server import start_relay
+from dcuscope.relay.api.ui import UiNamespace
+from dcuscope.relay.guard.policy import COOKIE, COOKIE_LIFETIME_S, Action, Policy, Principal, Role, actions, certificate_principal
+from dcuscope.relay.server import start_relay
 
 ADMIN = "admin-token-0123456789"
 VIEWER = "viewer-token-0123456789"

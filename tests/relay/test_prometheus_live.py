@@ -23,8 +23,8 @@ from pathlib import Path
 
 import pytest
 
-from core.clocks import NEVER
-from relay.live.state import WINDOW_MAX_AGE_S
+from dcuscope.core.clocks import NEVER
+from dcuscope.relay.live.state import WINDOW_MAX_AGE_S
 from tests.conftest import cli_env
 from tests.relay.helpers import RelayProcess, get_json, kill_all, wait_for
 from tests.relay.promserver import JOB, PromServer, wait_scrape

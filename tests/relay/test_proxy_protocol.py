@@ -25,9 +25,9 @@ from collections.abc import Callable
 import pytest
 from aiohttp import web
 
-from relay.guard.connections import ConnGuard, GuardedSite
-from relay.guard.limits import Limits
-from relay.guard.proxy import (V1_MAX_BYTES, V2_SIGNATURE, ProxyHeader, ProxyHeaderError, TrustedProxies,
+from dcuscope.relay.guard.connections import ConnGuard, GuardedSite
+from dcuscope.relay.guard.limits import Limits
+from dcuscope.relay.guard.proxy import (V1_MAX_BYTES, V2_SIGNATURE, ProxyHeader, ProxyHeaderError, TrustedProxies,
                                parse_header)
 from tests.ports import free_port
 from tests.relay.helpers import RelayProcess, finish_node, get_json, read_http_answer, start_node, wait_for

@@ -20,7 +20,7 @@ import time
 
 import pytest
 
-from relay.store.runs import list_sessions
+from dcuscope.relay.store.runs import list_sessions
 from tests.pgserver import PostgresServer
 from tests.relay.helpers import RelayProcess, finish_node, get_json, kill_all, load_node, start_node, wait_for
 from tests.relay.nsnet import Namespace, netns_permitted

@@ -13,15 +13,15 @@ import time
 import numpy as np
 import pytest
 
-from probes.ship.simnode import header_for, synth_events
-from probes.trace.delays import frame_delays, node_stats, series
-from probes.trace.frametable import frame_table
-from relay.rollup.compute import HOUR_NS, MINUTE_NS
-from relay.store.history import history, summary
-from relay.rollup.sketch import ALPHA, Sketch, SketchError
-from relay.store.compaction import compact
-from relay.store.engines import open_database
-from relay.store.writer import Storage
+from dcuscope.probes.ship.simnode import header_for, synth_events
+from dcuscope.probes.trace.delays import frame_delays, node_stats, series
+from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.relay.rollup.compute import HOUR_NS, MINUTE_NS
+from dcuscope.relay.store.history import history, summary
+from dcuscope.relay.rollup.sketch import ALPHA, Sketch, SketchError
+from dcuscope.relay.store.compaction import compact
+from dcuscope.relay.store.engines import open_database
+from dcuscope.relay.store.writer import Storage
 from tests.conftest import run_cli
 from tests.relay.test_compaction import table_rows, write_run
 from tests.relay.test_store_engines import store  # noqa: F401 - the engines' fixture
@@ -134,7 +134,7 @@ def test_stats_cli_answers_from_rollups_and_says_what_is_exact(tmp_path):
 
 
 def test_retention_deletes_old_rollups_apart_from_raw_events(store):
-    from relay.store.retention import expire_rollups
+    from dcuscope.relay.store.retention import expire_rollups
 
     events = synth_events(500, 2, 50.0, time.time_ns() - 3 * 86_400 * 10**9, seed=4)
     new = synth_events(500, 2, 50.0, time.time_ns() - HOUR_NS, seed=5)

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from probes.ship.simnode import header_for, synth_events
-from probes.trace.delays import node_stats, summarize
-from relay.live.run import LiveConfig, LiveRun
-from relay.live.values import RELATIVE_ERROR, RunValues
+from dcuscope.probes.ship.simnode import header_for, synth_events
+from dcuscope.probes.trace.delays import node_stats, summarize
+from dcuscope.relay.live.run import LiveConfig, LiveRun
+from dcuscope.relay.live.values import RELATIVE_ERROR, RunValues
 from tests.relay.helpers import assert_stats_equal
 
 T0 = 1_700_000_000_000_000_000

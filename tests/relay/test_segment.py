@@ -8,9 +8,9 @@ import zlib
 import numpy as np
 import pytest
 
-from probes.ship.simnode import synth_events
-from probes.trace.events import EVENT_DTYPE
-from relay.store.segment import HEAD, SegmentError, decode, encode, split_batches
+from dcuscope.probes.ship.simnode import synth_events
+from dcuscope.probes.trace.events import EVENT_DTYPE
+from dcuscope.relay.store.segment import HEAD, SegmentError, decode, encode, split_batches
 
 T0 = 1_700_000_000_000_000_000
 PAPER_RATE = 4300

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from relay.live.seqset import SeqSet
+from dcuscope.relay.live.seqset import SeqSet
 
 
 def test_behaves_as_a_set_under_resends_gaps_and_floors():

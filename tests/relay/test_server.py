@@ -14,12 +14,12 @@ import uuid
 import aiohttp
 import pytest
 
-from probes.ship.errors import ExportError
-from probes.ship.simnode import synth_events
-from probes.ship.wire import INGEST_PATH, encode_batch
-from relay.commands import add_relay_parser
-from relay.guard.limits import Limits
-from relay.server import start_relay
+from dcuscope.probes.ship.errors import ExportError
+from dcuscope.probes.ship.simnode import synth_events
+from dcuscope.probes.ship.wire import INGEST_PATH, encode_batch
+from dcuscope.relay.commands import add_relay_parser
+from dcuscope.relay.guard.limits import Limits
+from dcuscope.relay.server import start_relay
 from tests.conftest import wait_until_mapped
 from tests.relay.helpers import ROOT, HandNode, RelayProcess, env, get_json
 
@@ -148,7 +148,7 @@ def test_cli_wiring_and_port_in_use(tmp_path):
         busy.bind(("127.0.0.1", 0))
         busy.listen()
         port = busy.getsockname()[1]
-        p = subprocess.run([sys.executable, "-m", "relay", "--port", str(port), "--db", str(tmp_path / "r.db")],
+        p = subprocess.run([sys.executable, "-m", "dcuscope.relay", "--port", str(port), "--db", str(tmp_path / "r.db")],
                            cwd=ROOT, env=env(), capture_output=True, text=True, timeout=30)
     assert p.returncode == 2 and p.stderr.strip().count("\n") == 0
     assert f"cannot listen on 127.0.0.1:{port}" in p.stderr

@@ -11,11 +11,11 @@ import uuid
 import numpy as np
 import pytest
 
-from probes.ship.simnode import header_for, synth_events
-from probes.ship.wire import encode_batch
-from relay.errors import RelayError
-from relay.store import sqlite as db
-from relay.store.runs import load_runs, load_session
+from dcuscope.probes.ship.simnode import header_for, synth_events
+from dcuscope.probes.ship.wire import encode_batch
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.store import sqlite as db
+from dcuscope.relay.store.runs import load_runs, load_session
 
 T0 = 1_700_000_000_000_000_000
 

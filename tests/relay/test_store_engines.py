@@ -14,16 +14,16 @@ import numpy as np
 import psycopg
 import pytest
 
-from probes.ship.simnode import header_for, synth_events
-from probes.ship.wire import encode_batch
-from probes.trace.events import CAPTURE, ORIGIN
-from relay.clock.correction import Segment
-from relay.errors import RelayError
-from relay.store.base import BatchRow, NotOwner
-from relay.store.engines import open_database
-from relay.store.postgres import PostgresDatabase
-from relay.store.runs import frame_starts, list_sessions, load_runs, load_session
-from relay.store.writer import Storage
+from dcuscope.probes.ship.simnode import header_for, synth_events
+from dcuscope.probes.ship.wire import encode_batch
+from dcuscope.probes.trace.events import CAPTURE, ORIGIN
+from dcuscope.relay.clock.correction import Segment
+from dcuscope.relay.errors import RelayError
+from dcuscope.relay.store.base import BatchRow, NotOwner
+from dcuscope.relay.store.engines import open_database
+from dcuscope.relay.store.postgres import PostgresDatabase
+from dcuscope.relay.store.runs import frame_starts, list_sessions, load_runs, load_session
+from dcuscope.relay.store.writer import Storage
 from tests.relay.helpers import wait_for
 
 T0 = 1_700_000_000_000_000_000
@@ -277,7 +277,7 @@ def test_an_sqlite_file_is_migrated_into_postgresql_whole_and_once(tmp_path, pg_
 
 
 def test_retention_deletes_the_sessions_older_than_its_days_through_the_writer(store):
-    from relay.store.retention import expire
+    from dcuscope.relay.store.retention import expire
 
     events = synth_events(5, 1, 25.0, T0)
     old, new = stored_run(store, events, {}), stored_run(store, events, {})

@@ -69,7 +69,7 @@ def test_a_relay_stores_over_verify_full_and_refuses_a_server_it_cannot_verify(t
     assert compacted.returncode == 0 and "compacted" in compacted.stdout, compacted.stderr
     assert not any(s in compacted.stderr + compacted.stdout for s in SECRETS)
 
-    wrong_ca = subprocess.run([sys.executable, "-m", "relay", "--port", "0", "--db",
+    wrong_ca = subprocess.run([sys.executable, "-m", "dcuscope.relay", "--port", "0", "--db",
                                tls_postgres.user_url(database, other.cert)],
                               capture_output=True, text=True, timeout=60, env=cli_env())
     one_line_error(wrong_ca, "SSL error: certificate verify failed")

@@ -1,5 +1,5 @@
 """``relay --workers N``: N relay processes of one host on one port and one PostgreSQL store. Real
-relays (``python -m relay``, as bench_relay.py starts them, and ``dcuscope relay``), PostgreSQL 15
+relays (``python -m dcuscope.relay``, as bench_relay.py starts them, and ``dcuscope relay``), PostgreSQL 15
 (tests/pgserver.py), simulated nodes."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from relay.workers import worker_argv
+from dcuscope.relay.workers import worker_argv
 from tests.ports import free_port
 from tests.relay.helpers import ROOT, _readline, env, finish_node, get_json, load_node, start_node
 from tests.relay.test_fleet import stored_equals_sent
@@ -21,15 +21,15 @@ from tests.relay.test_fleet import stored_equals_sent
 @pytest.mark.parametrize("argv", [["relay", "--port", "3000", "--workers", "4", "--db", "postgresql://h/db"],
                                   ["--port", "3000", "--workers=4", "--db", "postgresql://h/db"]])
 def test_a_worker_runs_the_relay_itself_with_the_options_given_but_workers(argv):
-    # From `dcuscope relay ...` and from `python -m relay ...` alike: before, the second made
+    # From `dcuscope relay ...` and from `python -m dcuscope.relay ...` alike: before, the second made
     # `python -m dcuscope.cli --port ...`, which no worker could run.
-    assert worker_argv(argv, 2, 3000) == [sys.executable, "-m", "relay", "--port", "3000", "--db", "postgresql://h/db",
+    assert worker_argv(argv, 2, 3000) == [sys.executable, "-m", "dcuscope.relay", "--port", "3000", "--db", "postgresql://h/db",
                                           "--reuse-port", "--clock-port", "3002"]
 
 
 def test_workers_share_one_port_store_what_their_nodes_send_and_stop_together(tmp_path, pg_url):
     port = free_port()
-    cmd = [sys.executable, "-m", "relay", "--port", str(port), "--db", pg_url, "--workers", "2"]
+    cmd = [sys.executable, "-m", "dcuscope.relay", "--port", str(port), "--db", pg_url, "--workers", "2"]
     log = open(tmp_path / "relay.log", "wb")
     proc = subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=log)
     try:

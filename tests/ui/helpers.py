@@ -18,8 +18,8 @@ import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from relay.guard.limits import Limits
-from relay.server import start_relay
+from dcuscope.relay.guard.limits import Limits
+from dcuscope.relay.server import start_relay
 from tests.relay.helpers import get_json, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -131,14 +131,14 @@ class Feeder:
 def sim_nodes(url: str, tmp: Path, nodes: list[str], *, frames: int, sources: int, fps: float, paced: bool,
               token: str | None = None, offsets_ns: list[int] | None = None, seed: int = 0,
               ptp_socket: Path | None = None, t0_ns: int | None = None, extra: list[str] = ()) -> Feeder:
-    """``python -m probes.ship.simnode`` per node, each writing the events it shipped to ``tmp/NODE.npz``;
+    """``python -m dcuscope.probes.ship.simnode`` per node, each writing the events it shipped to ``tmp/NODE.npz``;
     ``ptp_socket``: the ptp4l socket the nodes read (a path where none is: no PTP, whatever the host runs);
     ``t0_ns``: the true time of every node's frame 0 (default: each node's start + 0.2 s); ``extra``: more
     options of every node (``--relay-ca FILE``)."""
     feeder = Feeder("sim", nodes)
     for k, node in enumerate(nodes):
         out = tmp / f"{node}.npz"
-        cmd = [sys.executable, "-m", "probes.ship.simnode", "--relay", url, "--node", node, "--out", str(out),
+        cmd = [sys.executable, "-m", "dcuscope.probes.ship.simnode", "--relay", url, "--node", node, "--out", str(out),
                "--frames", str(frames), "--sources", str(sources), "--fps", str(fps), "--seed", str(seed + k),
                "--clock-offset-ns", str((offsets_ns or [0] * len(nodes))[k])]
         if paced:

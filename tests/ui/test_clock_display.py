@@ -4,7 +4,7 @@ show raw node timestamps and draws each node's clock bound as a band.
 A real relay (``--clock auto``: no PTP, so the relay's estimate is applied) fed by two simulated
 nodes, DCU-2 with its clock 3 ms ahead. Once both ended: ``/api/stats``, the stored session's
 statistics, ``dcuscope stats --db`` and ``dcuscope export --db`` carry the correction and its
-bound, equal to the relay's own (:meth:`relay.live.state.RelayState.correction`) and to the stored one;
+bound, equal to the relay's own (:meth:`dcuscope.relay.live.state.RelayState.correction`) and to the stored one;
 then the page, on the stored session, moves DCU-2's bars by its offset when switched to raw
 timestamps and draws a band as wide as its uncertainty at the zoom in force.
 """
@@ -18,9 +18,9 @@ import json
 import numpy as np
 import pytest
 
-from relay.clock.correction import Correction
-from relay.clock.entry import clock_entry
-from relay.store.runs import load_runs
+from dcuscope.relay.clock.correction import Correction
+from dcuscope.relay.clock.entry import clock_entry
+from dcuscope.relay.store.runs import load_runs
 from tests.probes.synth import run_commands
 from tests.relay.helpers import get_json, wait_for
 from tests.ui.helpers import RelayThread, sim_nodes

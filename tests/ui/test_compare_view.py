@@ -13,7 +13,7 @@ import urllib.request
 
 import pytest
 
-from relay.store.runs import list_sessions
+from dcuscope.relay.store.runs import list_sessions
 from tests.conftest import run_cli
 from tests.relay.helpers import finish_node, get_json, start_node, wait_for
 from tests.ui.helpers import RelayThread

@@ -4,7 +4,7 @@ that never connected to B included; relay A killed with SIGKILL, its nodes move 
 keeps all four, live, without a reload.
 
 Real servers: PostgreSQL 15 and redis-server from Debian (tests/pgserver.py, tests/redisserver.py),
-relays as processes (``python -m relay``), nodes as ``dcuscope run --probes --relay A,B``.
+relays as processes (``python -m dcuscope.relay``), nodes as ``dcuscope run --probes --relay A,B``.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ import sys
 import pytest
 from playwright.sync_api import TimeoutError as PlaywrightTimeout
 
-from probes.capture.native import build
+from dcuscope.probes.capture.native import build
 from tests.conftest import run_cli
 from tests.relay.helpers import get_json, kill_all, wait_for
 from tests.ui.helpers import ROOT, RelayThread, env, pipeline_nodes

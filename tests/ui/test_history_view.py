@@ -13,12 +13,12 @@ import time
 
 import pytest
 
-from probes.ship.simnode import synth_events
-from relay.rollup.compute import HOUR_NS, MINUTE_NS
-from relay.store.history import summary
-from relay.store.compaction import COMPACT_AFTER_S, compact
-from relay.store.compactor import TEST_LIVE_WAIT_ENV, rollups_within_s
-from relay.store.engines import open_database
+from dcuscope.probes.ship.simnode import synth_events
+from dcuscope.relay.rollup.compute import HOUR_NS, MINUTE_NS
+from dcuscope.relay.store.history import summary
+from dcuscope.relay.store.compaction import COMPACT_AFTER_S, compact
+from dcuscope.relay.store.compactor import TEST_LIVE_WAIT_ENV, rollups_within_s
+from dcuscope.relay.store.engines import open_database
 from tests.conftest import run_cli
 from tests.relay.helpers import RelayProcess, get_json, start_node
 from tests.relay.test_compaction import write_run

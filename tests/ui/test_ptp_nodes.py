@@ -34,7 +34,7 @@ def setup(tmp_path_factory):
                               str(RELAY_PORT), "--db", str(tmp / "relay.db")], "relay", env=env())
         url = f"http://{net.relay_addr}:{RELAY_PORT}"
         _wait(lambda: _get(url, "/api/nodes") is not None, 30, "relay did not answer", net, "relay")
-        net.spawn(net.client_ns, [sys.executable, "-m", "probes.ship.simnode", "--relay", f"http://{GM_ADDR}:{RELAY_PORT}",
+        net.spawn(net.client_ns, [sys.executable, "-m", "dcuscope.probes.ship.simnode", "--relay", f"http://{GM_ADDR}:{RELAY_PORT}",
                                   "--node", "DCU-PTP", "--ptp-socket", str(net.client_uds), "--paced",
                                   "--frames", "3000", "--fps", "25", "--sources", "1"], "node", env=env())
         yield net, url

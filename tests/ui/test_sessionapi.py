@@ -8,10 +8,10 @@ import time
 import numpy as np
 import pytest
 
-from probes.ship import simnode
-from probes.trace.delays import chains, node_stats
-from probes.trace.events import TraceHeader
-from probes.trace.frametable import frame_table
+from dcuscope.probes.ship import simnode
+from dcuscope.probes.trace.delays import chains, node_stats
+from dcuscope.probes.trace.events import TraceHeader
+from dcuscope.probes.trace.frametable import frame_table
 from tests.relay.helpers import get_json, http_status, wait_for
 from tests.ui.helpers import RelayThread, sim_nodes
 

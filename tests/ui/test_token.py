@@ -5,7 +5,7 @@ page's address drawn above, go to build/screenshots (docs/signin.png and docs/si
 
 from __future__ import annotations
 
-from relay.guard.tls import ServerTls
+from dcuscope.relay.guard.tls import ServerTls
 from tests.relay.helpers import wait_for
 from tests.tlscerts import TestCA
 from tests.ui.helpers import ROOT, RelayThread, screenshot_with_address, sim_nodes

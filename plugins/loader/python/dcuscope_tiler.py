@@ -1,5 +1,5 @@
 """Plugin-loader entry for the tiler element: gst-launch-1.0 finds it here."""
-from plugins.loading import same_sys_path
+from dcuscope.plugins.loading import same_sys_path
 
 with same_sys_path():  # the loader keeps a pointer to sys.path, which cv2 replaces: see plugins.loading
-    from plugins.tiler import __gstelementfactory__  # noqa: F401
+    from dcuscope.plugins.tiler import __gstelementfactory__  # noqa: F401

@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import time
 
-from core.gst import GObject, Gst, GstBase
-from plugins.frames import read_frames
+from dcuscope.core.gst import GObject, Gst, GstBase
+from dcuscope.plugins.frames import read_frames
 
 CAPS = Gst.Caps.new_any()
 

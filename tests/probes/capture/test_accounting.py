@@ -10,13 +10,13 @@ import sys
 
 import pytest
 
-from core.gst import Gst
-from probes.capture.sourcewatch import SourceWatch
-from probes.capture.tracer import attach
-from probes.trace.delays import node_stats
-from probes.trace.events import DROP, LATE
-from probes.trace.frametable import MISSING, frame_table
-from probes.trace.tracefile import read_trace
+from dcuscope.core.gst import Gst
+from dcuscope.probes.capture.sourcewatch import SourceWatch
+from dcuscope.probes.capture.tracer import attach
+from dcuscope.probes.trace.delays import node_stats
+from dcuscope.probes.trace.events import DROP, LATE
+from dcuscope.probes.trace.frametable import MISSING, frame_table
+from dcuscope.probes.trace.tracefile import read_trace
 from tests.conftest import REPO, VTEST, cli_env
 from tests.pipeline.lossylink import SERVER
 
@@ -24,7 +24,7 @@ FRAMES = 60
 
 
 def test_frames_the_mux_drops_as_late_are_drop_events_counted_by_reason_in_the_stats():
-    import plugins
+    from dcuscope import plugins
 
     plugins.register()
     camera = ("videotestsrc is-live=true num-buffers={n} ! video/x-raw,format=RGB,width=64,height=48,framerate=50/1 "

@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probes.trace.delays import SATURATED, frame_delays, node_stats
-from probes.trace.frametable import MISSING, frame_table
-from probes.trace.tracefile import Trace, read_trace
+from dcuscope.probes.trace.delays import SATURATED, frame_delays, node_stats
+from dcuscope.probes.trace.frametable import MISSING, frame_table
+from dcuscope.probes.trace.tracefile import Trace, read_trace
 from tests.conftest import BIKES, VTEST, run_cli
 
 # Three runs of the real model, ~25 s in all. Alone: what saturates depends on the machine's

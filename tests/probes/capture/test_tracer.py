@@ -6,15 +6,15 @@ import time
 import numpy as np
 import pytest
 
-from core.clocks import CLOCKS
-from core.errors import PipelineError
-from core.gst import Gst
-from plugins.frames import FrameId, write_frames
-from probes.capture import native, tracer as tracer_mod
-from probes.capture.ring import PythonRing
-from probes.capture.shipper import Shipper
-from probes.capture.tracer import attach
-from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, FACT, FACT_THREAD, ORIGIN, READY, TraceHeader
+from dcuscope.core.clocks import CLOCKS
+from dcuscope.core.errors import PipelineError
+from dcuscope.core.gst import Gst
+from dcuscope.plugins.frames import FrameId, write_frames
+from dcuscope.probes.capture import native, tracer as tracer_mod
+from dcuscope.probes.capture.ring import PythonRing
+from dcuscope.probes.capture.shipper import Shipper
+from dcuscope.probes.capture.tracer import attach
+from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT, FACT, FACT_THREAD, ORIGIN, READY, TraceHeader
 from tests.probes.capture import sleeper
 
 BACKENDS = ["native", "python"]
@@ -27,7 +27,7 @@ MAIN_PATH = [(0, ORIGIN), (1, ENTER), (1, EXIT), (2, ENTER), (2, EXIT), (3, ENTE
 
 @pytest.fixture(scope="module", autouse=True)
 def framestamp_registered():
-    from plugins import framestamp
+    from dcuscope.plugins import framestamp
 
     name, rank, cls = framestamp.__gstelementfactory__
     if Gst.ElementFactory.find(name) is None:
@@ -359,6 +359,6 @@ def test_a_config_can_ask_for_pad_probes(tmp_path):
     result = run_cli("run", config, "--probes", "--trace", tmp_path / "t.jsonl", "--num-frames", "20")
     assert result.returncode == 0, result.stderr
     assert "(native, probes)" in result.stderr
-    from probes.trace.tracefile import read_trace
+    from dcuscope.probes.trace.tracefile import read_trace
 
     assert read_trace(tmp_path / "t.jsonl").header.versions["trigger"] == "probes"

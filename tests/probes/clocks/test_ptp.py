@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from probes.clocks.ptp import PTP_LOCK_NS, PtpWatch, parse_pmc, parse_time_status, ptp_trusted, ptp_uncertainty_ns, read_ptp_state
-from probes.clocks.sysclock import (STA_UNSYNC, KernelClock, Proc, Witnesses, parse_chrony_tracking, phc2sys_source, ptp4l_setup,
+from dcuscope.probes.clocks.ptp import PTP_LOCK_NS, PtpWatch, parse_pmc, parse_time_status, ptp_trusted, ptp_uncertainty_ns, read_ptp_state
+from dcuscope.probes.clocks.sysclock import (STA_UNSYNC, KernelClock, Proc, Witnesses, parse_chrony_tracking, phc2sys_source, ptp4l_setup,
                              read_adjtimex, system_clock)
 
 DATA = Path(__file__).parent / "data"

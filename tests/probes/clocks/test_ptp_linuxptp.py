@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from probes.clocks.ptp import ptp_trusted, read_ptp_state
+from dcuscope.probes.clocks.ptp import ptp_trusted, read_ptp_state
 from tests.ptpnet import CONFIGS, PtpNet, require_linuxptp
 
 

@@ -23,13 +23,13 @@ import numpy as np
 import pytest
 from aiohttp import WSCloseCode, WSMsgType, web
 
-from core.clocks import PretendClock
-from probes.ship import envelope, failover
-from probes.ship.errors import ExportError
-from probes.ship.relayexport import RelayExporter
-from probes.ship.simnode import feed, header_for, synth_events
-from relay.server import start_relay
-from relay.store.runs import load_runs
+from dcuscope.core.clocks import PretendClock
+from dcuscope.probes.ship import envelope, failover
+from dcuscope.probes.ship.errors import ExportError
+from dcuscope.probes.ship.relayexport import RelayExporter
+from dcuscope.probes.ship.simnode import feed, header_for, synth_events
+from dcuscope.relay.server import start_relay
+from dcuscope.relay.store.runs import load_runs
 from tests.conftest import run_cli
 from tests.ports import free_port
 from tests.relay.helpers import RelayProcess, get_json, sort_events, wait_for
@@ -50,7 +50,7 @@ def test_a_node_whose_relay_dies_goes_on_at_the_next_relay_of_its_list(tmp_path,
                               daemon=True)
     try:
         try:
-            with caplog.at_level(logging.WARNING, logger="probes.ship"):
+            with caplog.at_level(logging.WARNING, logger="dcuscope.probes.ship"):
                 exporter.start(header_for("DCU-1", 2, t0))
                 writer.start()
                 wait_for(lambda: exporter.counters()["acked"] > 2000, 20, what="events stored by relay A")

@@ -16,8 +16,8 @@ import time
 
 import numpy as np
 
-from probes.ship.relayexport import RelayExporter
-from probes.ship.simnode import feed, header_for, synth_events
+from dcuscope.probes.ship.relayexport import RelayExporter
+from dcuscope.probes.ship.simnode import feed, header_for, synth_events
 from tests.relay.helpers import RelayProcess, wait_for
 
 T0 = 1_700_000_000_000_000_000

@@ -11,14 +11,14 @@ import time
 import numpy as np
 import pytest
 
-from core.gst import Gst
-from plugins import framestamp
-from probes.capture.shipper import Shipper
-from probes.capture.tracer import attach
-from probes.ship.errors import ExportError
-from probes.ship.relayexport import RelayExporter
-from probes.ship.simnode import header_for, synth_events
-from relay.server import start_relay
+from dcuscope.core.gst import Gst
+from dcuscope.plugins import framestamp
+from dcuscope.probes.capture.shipper import Shipper
+from dcuscope.probes.capture.tracer import attach
+from dcuscope.probes.ship.errors import ExportError
+from dcuscope.probes.ship.relayexport import RelayExporter
+from dcuscope.probes.ship.simnode import header_for, synth_events
+from dcuscope.relay.server import start_relay
 from tests.ports import free_port
 from tests.relay.helpers import RelayProcess, wait_for
 from tests.relay.netcut import CutProxy
@@ -251,7 +251,7 @@ def test_close_keeps_trying_for_its_timeout_and_says_what_it_waits_for(tmp_path,
         finally:
             await relay.stop()
 
-    with caplog.at_level("WARNING", logger="probes.ship"):
+    with caplog.at_level("WARNING", logger="dcuscope.probes.ship"):
         asyncio.run(scenario())
     c = exporter.counters()
     assert c["acked"] == len(events) and c["lost"] == 0, c

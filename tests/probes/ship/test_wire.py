@@ -9,12 +9,12 @@ import zlib
 import numpy as np
 import pytest
 
-from probes.ship.errors import LimitExceeded, ProtocolError
-from probes.trace.events import (DROP, DROP_REASONS, EVENT_DTYPE, FACT, FACT_KINDS, POINT_NAMES, READY, STOPPED,
+from dcuscope.probes.ship.errors import LimitExceeded, ProtocolError
+from dcuscope.probes.trace.events import (DROP, DROP_REASONS, EVENT_DTYPE, FACT, FACT_KINDS, POINT_NAMES, READY, STOPPED,
                            codes_valid)
-from probes.ship.wire import (HEADER, HEADER_SIZE, MAX_BATCH_EVENTS, decode_batch, decode_clock, decode_end,
+from dcuscope.probes.ship.wire import (HEADER, HEADER_SIZE, MAX_BATCH_EVENTS, decode_batch, decode_clock, decode_end,
                             decode_hello, decode_payload, encode_batch, sanitize_ptp)
-from probes.ship.simnode import header_for, synth_events
+from dcuscope.probes.ship.simnode import header_for, synth_events
 
 RUN = "4e70076ed9fd4f4a8510a89aee6824d1"  # fixed: parallel workers must collect the same test ids
 N_STAGES = 8

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from probes.trace.bootstrap import FIGURES, block_length, change, holm, resample
+from dcuscope.probes.trace.bootstrap import FIGURES, block_length, change, holm, resample
 
 PHI = 0.7
 """Each frame keeps 70 % of the previous one's excess delay: the correlation of a queue."""

@@ -5,7 +5,7 @@ lost single events, duplicates, reordering, late copies) go through
 
 - trace files -> ``dcuscope stats --json``, ``dcuscope export`` (csv, perfetto);
 - the live engine in this process (``LiveRun``: whole run and window), fed in arrival order;
-- a real relay (``python -m relay --clock ptp``: no clock correction, so timestamps stay as
+- a real relay (``python -m dcuscope.relay --clock ptp``: no clock correction, so timestamps stay as
   shipped) fed by real ``RelayExporter`` clients: ``/api/stats`` (run and window),
   ``/api/frames``, the stored-session API, and ``dcuscope stats --db --session`` and
   ``dcuscope export --db`` over its database.
@@ -25,12 +25,12 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from probes.ship.relayexport import RelayExporter
-from probes.trace.delays import frame_delays, node_stats
-from probes.trace.events import FACT
-from probes.trace.frametable import frame_events, frame_table
-from probes.trace.tracefile import write_trace
-from relay.live.run import LiveRun
+from dcuscope.probes.ship.relayexport import RelayExporter
+from dcuscope.probes.trace.delays import frame_delays, node_stats
+from dcuscope.probes.trace.events import FACT
+from dcuscope.probes.trace.frametable import frame_events, frame_table
+from dcuscope.probes.trace.tracefile import write_trace
+from dcuscope.relay.live.run import LiveRun
 from tests.probes.synth import run_commands, troubled_run
 from tests.relay.helpers import RelayProcess, get_json, wait_for
 

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from probes.trace.delays import busy_timeline, fill_levels, frame_delays, series
-from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, READY, TraceHeader
-from probes.trace.frametable import frame_table
+from dcuscope.probes.trace.delays import busy_timeline, fill_levels, frame_delays, series
+from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, READY, TraceHeader
+from dcuscope.probes.trace.frametable import frame_table
 
 T0 = 1_700_000_000_000_000_000
 MS = 1_000_000

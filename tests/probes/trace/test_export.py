@@ -12,12 +12,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probes.trace.delays import delay_summary, frame_delays, series
-from probes.trace.events import CAPTURE, ENTER, EXIT, ORIGIN, READY
-from probes.trace.export import CSV_COLUMNS, assign_lanes, perfetto_document, write_csv
-from probes.trace.frametable import frame_table
-from probes.trace.tracefile import read_trace, write_trace
-from relay.clock.correction import Correction, Segment
+from dcuscope.probes.trace.delays import delay_summary, frame_delays, series
+from dcuscope.probes.trace.events import CAPTURE, ENTER, EXIT, ORIGIN, READY
+from dcuscope.probes.trace.export import CSV_COLUMNS, assign_lanes, perfetto_document, write_csv
+from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.probes.trace.tracefile import read_trace, write_trace
+from dcuscope.relay.clock.correction import Correction, Segment
 from tests.conftest import run_cli
 from tests.probes.synth import run_commands as _cli
 from tests.probes.synth import STAGES, pipeline_run

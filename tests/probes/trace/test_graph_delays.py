@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from probes.trace.delays import frame_delays
-from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
-from probes.trace.frametable import frame_table
+from dcuscope.probes.trace.delays import frame_delays
+from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
+from dcuscope.probes.trace.frametable import frame_table
 
 MS = 1_000_000
 

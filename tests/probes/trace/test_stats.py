@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from probes.trace.delays import bottleneck, frame_delays, node_stats, series, summarize
-from probes.trace.errors import TraceError
-from probes.trace.events import ENTER, EVENT_DTYPE, EXIT, FACT
-from probes.trace.frametable import MISSING, frame_table
-from probes.trace.stats import stats_document
-from probes.trace.tracefile import read_trace, write_trace
+from dcuscope.probes.trace.delays import bottleneck, frame_delays, node_stats, series, summarize
+from dcuscope.probes.trace.errors import TraceError
+from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT, FACT
+from dcuscope.probes.trace.frametable import MISSING, frame_table
+from dcuscope.probes.trace.stats import stats_document
+from dcuscope.probes.trace.tracefile import read_trace, write_trace
 from tests.probes.synth import run_commands as _cli
 from tests.probes.synth import STAGES, pipeline_run
 

@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from probes.trace.errors import TraceError
-from probes.trace.events import EVENT_DTYPE, TraceHeader
-from probes.trace.tracefile import TraceFileWriter, read_trace, write_trace
+from dcuscope.probes.trace.errors import TraceError
+from dcuscope.probes.trace.events import EVENT_DTYPE, TraceHeader
+from dcuscope.probes.trace.tracefile import TraceFileWriter, read_trace, write_trace
 from tests.probes.synth import pipeline_run
 
 

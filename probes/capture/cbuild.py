@@ -1,0 +1,84 @@
+"""Compile the native library (its C modules in ``c/``) with the system's compiler and GStreamer.
+
+Standard library only: ``setup.py`` loads this file by its path while a wheel is built (nothing of
+dcuscope nor numpy is importable then), and :mod:`dcuscope.probes.capture.native` calls it in a
+checkout. Where the build puts the library it also writes :data:`STATE`: one line, ``built`` or why
+not; an installed dcuscope reads it instead of compiling (site-packages is not ours to write).
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+MODULES = ("frames", "ring", "graph", "deepstream", "writer", "tracer", "padprobe", "plugin")
+"""The C modules, bottom-up: each calls only those before it, through their headers
+(docs/development.md, "Layout"; ``tests/test_layers.py`` checks it)."""
+LIBRARY_NAME = "libgstdcuscope.so"
+STATE = "BUILD-STATE"
+"""Beside the library in an installed dcuscope: ``built``, or why the install built nothing."""
+PACKAGES = "gcc pkg-config libgstreamer1.0-dev"
+"""What the build needs, as Debian and Ubuntu name it."""
+
+
+class CBuildError(Exception):
+    """The library could not be compiled; the message says what was missing."""
+
+
+def sources(c_dir: Path) -> list[Path]:
+    return [c_dir / f"{name}.c" for name in MODULES]
+
+
+def _compiler() -> str:
+    cc = os.environ.get("CC") or shutil.which("cc") or shutil.which("gcc")
+    if not cc:
+        raise CBuildError("no C compiler (cc/gcc) on PATH")
+    return cc
+
+
+def _gst_flags() -> list[str]:
+    if not shutil.which("pkg-config"):
+        raise CBuildError("pkg-config not found")
+    res = subprocess.run(["pkg-config", "--cflags", "--libs", "gstreamer-1.0"], capture_output=True, text=True)
+    if res.returncode != 0:
+        raise CBuildError(f"GStreamer development files not found: {res.stderr.strip()}")
+    return shlex.split(res.stdout)
+
+
+def compile_library(c_dir: Path, library: Path) -> Path:
+    """Compile the C modules of ``c_dir`` into ``library``; raises :class:`CBuildError`."""
+    library.parent.mkdir(parents=True, exist_ok=True)
+    # Compile to a private name and rename: two processes building at once never load a
+    # half-written library (nor GStreamer's plugin scanner, which looks at every *.so there).
+    fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=library.parent)
+    os.close(fd)
+    cmd = [_compiler(), "-O2", "-std=gnu11", "-Wall", "-Werror=implicit-function-declaration", "-shared", "-fPIC",
+           "-o", tmp, *map(str, sources(c_dir)), *_gst_flags()]
+    try:
+        res = subprocess.run(cmd, capture_output=True, text=True)
+    except OSError as exc:
+        os.unlink(tmp)
+        raise CBuildError(f"cannot run the C compiler {cmd[0]}: {exc.strerror}") from exc
+    if res.returncode != 0:
+        os.unlink(tmp)
+        raise CBuildError(f"compiling the native probes failed:\n{res.stderr.strip()}")
+    os.replace(tmp, library)
+    return library
+
+
+def build_for_install(c_dir: Path, folder: Path) -> str | None:
+    """Compile into ``folder`` as a package build does: writes :data:`STATE`; returns why it
+    built nothing (the package then uses Python probes and has no tracer), or None."""
+    (folder / LIBRARY_NAME).unlink(missing_ok=True)  # an earlier build's, in a build folder used again
+    try:
+        compile_library(c_dir, folder / LIBRARY_NAME)
+    except CBuildError as exc:
+        reason = str(exc).splitlines()[0]
+        (folder / STATE).write_text(reason + "\n")
+        return reason
+    (folder / STATE).write_text("built\n")
+    return None

@@ -1,0 +1,140 @@
+"""``pip install`` gives a working tool: the wheel built from the checkout, installed into a fresh
+venv (Debian's PyGObject beside it, as the README says), used from a folder outside the checkout:
+its tracer, a traced gst-launch-1.0, a pipeline whose default model detects, one import name."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+
+from tests.conftest import REPO
+
+pytestmark = pytest.mark.long
+
+SYSTEM_PYTHON = "/usr/bin/python3"  # Debian's: its python3-gi is the PyGObject dcuscope runs with
+GST_LAUNCH = ["gst-launch-1.0", "-q", "videotestsrc", "num-buffers=40", "!", "video/x-raw,width=320,height=240", "!",
+              "queue", "!", "videoconvert", "!", "fakesink"]
+
+
+def pip_cache() -> str:
+    """The user's pip cache (the checkout's setup filled it): the install reads it, HOME is elsewhere."""
+    out = subprocess.run([sys.executable, "-m", "pip", "cache", "dir"], capture_output=True, text=True)
+    return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else str(Path.home() / ".cache" / "pip")
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory):
+    """(venv, a clean environment for it, its HOME, the wheel): built and installed once."""
+    tmp = tmp_path_factory.mktemp("wheel")
+    home = tmp / "home"
+    home.mkdir()
+    env = {k: v for k, v in os.environ.items()
+           if not k.startswith(("GST_", "PYTHON", "VIRTUAL_ENV", "PIP_", "XDG_"))}
+    env.update(HOME=str(home), PIP_CACHE_DIR=pip_cache(), PIP_DISABLE_PIP_VERSION_CHECK="1")
+    built = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-q", "-w", str(tmp / "dist"), str(REPO)],
+                           env=env, capture_output=True, text=True, timeout=300)
+    assert built.returncode == 0, built.stderr
+    (wheel,) = (tmp / "dist").glob("dcuscope-*.whl")
+    venv = tmp / "venv"
+    made = subprocess.run([SYSTEM_PYTHON, "-m", "venv", "--system-site-packages", str(venv)], env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert made.returncode == 0, made.stderr
+    done = subprocess.run([str(venv / "bin" / "pip"), "install", "-q", "-c", str(REPO / "constraints.txt"), str(wheel)],
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    env["PATH"] = f"{venv / 'bin'}{os.pathsep}{env['PATH']}"
+    outside = tmp / "work"
+    outside.mkdir()
+    return venv, env, home, wheel, outside
+
+
+def dcuscope(installed, *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
+    venv, env, _, _, outside = installed
+    return subprocess.run([str(venv / "bin" / "dcuscope"), *args], cwd=outside, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def test_the_wheel_holds_one_package_with_its_native_sources_models_and_configs(installed):
+    _, _, _, wheel, _ = installed
+    names = zipfile.ZipFile(wheel).namelist()
+    tops = {n.split("/")[0] for n in names if not n.split("/")[0].endswith(".dist-info")}
+    assert tops == {"dcuscope"}, tops
+    assert wheel.name.endswith("-py3-none-linux_x86_64.whl")  # a shared library inside: one per platform
+    for part in ("probes/capture/c/tracer.c", "probes/capture/_build/libgstdcuscope.so",
+                 "assets/models/centernet_mobilenetv3_coco80.onnx", "assets/models/README.md",
+                 "assets/models/ssdlite_mobilenetv2_person.onnx", "configs/vtest.yaml", "ui/static/index.html",
+                 "ui/static/vendor/socket.io.min.js", "plugins/loader/python/dcuscope_infer.py"):
+        assert f"dcuscope/{part}" in names, part
+    assert not [n for n in names if "__pycache__" in n or "/tests/" in n]
+
+
+def test_the_installed_tool_traces_an_unchanged_app_and_its_default_model_detects(installed):
+    venv, env, home, _, outside = installed
+    # One import name: dcuscope, and none of the folders' names.
+    probe = subprocess.run([str(venv / "bin" / "python"), "-c", "import importlib.util as u, dcuscope, json; print(json.dumps("
+                            "[dcuscope.__file__, [n for n in ('core', 'plugins', 'pipeline', 'probes', 'relay', 'ui') "
+                            "if u.find_spec(n)]]))"], cwd=outside, env=env, capture_output=True, text=True, timeout=60)
+    assert probe.returncode == 0, probe.stderr
+    where, stray = json.loads(probe.stdout)
+    assert Path(where).is_relative_to(venv) and stray == []
+
+    found = dcuscope(installed, "plugin-path")
+    assert found.returncode == 0, found.stderr
+    assert Path(found.stdout.strip()).is_relative_to(venv) and (Path(found.stdout.strip()) / "libgstdcuscope.so").is_file()
+
+    traced = dcuscope(installed, "trace", "--node", "CAM-1", "-o", "cam.trace.jsonl", "--quiet", "--", *GST_LAUNCH)
+    assert traced.returncode == 0, traced.stderr
+    stats = dcuscope(installed, "stats", "cam.trace.jsonl", "--json")
+    assert stats.returncode == 0, stats.stderr
+    node = json.loads(stats.stdout)["nodes"]["CAM-1"]
+    assert node["frames"] == {"complete": 40, "incomplete": 0} and {"queue0", "videoconvert0"} <= set(node["stages"])
+
+    ran = dcuscope(installed, "run", "vtest", "--num-frames", "10", timeout=240)  # a shipped config, by name
+    assert ran.returncode == 0, ran.stderr
+    (line,) = [x for x in ran.stderr.splitlines() if x.startswith("infer: ")]
+    objects, frames = int(line.split()[1]), int(line.split()[4])
+    assert objects > 0 and frames >= 10 and "person" in line, line
+
+    # Nothing written outside the venv but GStreamer's own registry (any GStreamer application writes it);
+    # ONNX Runtime's telemetry (a device id in ~/.cache) is off. Of the install, only pip's own: it runs
+    # `rustc --version` for its user agent, and rustup writes its settings.
+    written = sorted(str(p.relative_to(home)) for p in home.rglob("*") if p.is_file())
+    assert all(w.startswith((".cache/gstreamer-1.0/registry.", ".rustup/")) for w in written), written
+    assert sorted(p.name for p in outside.iterdir()) == ["cam.trace.jsonl"]
+
+
+def test_without_gstreamer_headers_the_install_says_so_and_the_tool_says_what_to_install(installed, tmp_path):
+    """Built where pkg-config finds no GStreamer (as without libgstreamer1.0-dev): the package builds,
+    says why in one line, and the installed tool names the packages instead of compiling anything."""
+    venv, env, _, _, _ = installed
+    bare = dict(env, PKG_CONFIG_LIBDIR=str(tmp_path / "no-pc"))
+    built = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "-v", "-w", str(tmp_path), str(REPO)],
+                           env=bare, capture_output=True, text=True, timeout=300)
+    assert built.returncode == 0, built.stderr
+    said = [line.strip() for line in (built.stdout + built.stderr).splitlines() if "dcuscope: native probes not built" in line]
+    assert said and "GStreamer development files not found" in said[0] and "libgstreamer1.0-dev" in said[0], said
+    (wheel,) = tmp_path.glob("dcuscope-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    assert "dcuscope/probes/capture/_build/libgstdcuscope.so" not in names
+    state = zipfile.ZipFile(wheel).read("dcuscope/probes/capture/_build/BUILD-STATE").decode()
+    assert state.startswith("GStreamer development files not found")
+
+    again = subprocess.run([str(venv / "bin" / "pip"), "install", "-q", "--no-deps", "--force-reinstall", str(wheel)],
+                           env=env, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr
+    found = dcuscope(installed, "plugin-path")
+    assert found.returncode == 1 and len(found.stderr.splitlines()) == 1, found.stderr
+    assert "installed without its native library (GStreamer development files not found" in found.stderr
+    assert "install gcc pkg-config libgstreamer1.0-dev (Debian/Ubuntu names) and reinstall dcuscope" in found.stderr
+    ran = dcuscope(installed, "run", "vtest", "--num-frames", "3", "--probes", "--trace", str(tmp_path / "t.jsonl"),
+                   timeout=240)
+    assert ran.returncode == 0, ran.stderr
+    assert "probes: Python probes (no service/wait split), as the native library is unavailable: dcuscope was " \
+           "installed without its native library" in ran.stderr
+    assert not list((venv / "lib").rglob("libgstdcuscope.so"))  # nothing compiled into site-packages
