@@ -71,9 +71,10 @@ def test_probes_quick_mode_reports_every_mode():
     assert summary == ["hooks / probes", "hooks / latency", "python / hooks"]
 
 
-def test_probes_against_a_folder_that_is_no_checkout_is_refused_before_any_run(tmp_path):
+def test_probes_against_a_folder_that_is_no_checkout_nor_venv_is_refused_before_any_run(tmp_path):
     done = run_benchmark("bench_probes.py", "--quick", "--against", str(tmp_path))
-    assert done.returncode == 2 and "not a dcuscope checkout" in done.stderr and not done.stdout
+    assert done.returncode == 2 and "neither a dcuscope checkout" in done.stderr and not done.stdout
+    assert "nor a venv with dcuscope installed" in done.stderr
 
 
 def test_probes_report_without_tracepoints_is_n_a_with_the_reason(capsys):

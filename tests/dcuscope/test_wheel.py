@@ -6,14 +6,17 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
+import urllib.request
 import zipfile
 from pathlib import Path
 
 import pytest
 
 from tests.conftest import REPO
+from tests.ports import free_port
 
 pytestmark = pytest.mark.long
 
@@ -107,6 +110,33 @@ def test_the_installed_tool_traces_an_unchanged_app_and_its_default_model_detect
     written = sorted(str(p.relative_to(home)) for p in home.rglob("*") if p.is_file())
     assert all(w.startswith((".cache/gstreamer-1.0/registry.", ".rustup/")) for w in written), written
     assert sorted(p.name for p in outside.iterdir()) == ["cam.trace.jsonl"]
+
+
+def test_the_installed_demo_serves_the_page_with_its_front_end_and_both_dcus_run(installed):
+    venv, env, _, _, outside = installed
+    port = free_port()
+    demo = subprocess.Popen([str(venv / "bin" / "dcuscope"), "demo", "--port", str(port), "--duration", "30",
+                             "--db", "demo.db"], cwd=outside, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    said = []
+    try:
+        for line in demo.stdout:
+            said.append(line.rstrip())
+            if "open http://" in line:
+                url = line.split()[1].rstrip("/")
+                page = urllib.request.urlopen(url + "/", timeout=10).read().decode()
+                assert '<script src="vendor/socket.io.min.js">' in page
+                vendored = urllib.request.urlopen(url + "/vendor/socket.io.min.js", timeout=10)
+                assert vendored.status == 200 and len(vendored.read()) > 10_000
+            if {"DCU-1", "DCU-2"} <= {x.split()[1].rstrip(":") for x in said if x.startswith("demo: DCU-")}:
+                break  # a status line of each: both pipelines run, their probes reach the relay
+        demo.send_signal(signal.SIGINT)
+        rest, _ = demo.communicate(timeout=60)
+    finally:
+        if demo.poll() is None:
+            demo.kill()
+    assert demo.returncode == 128 + signal.SIGINT, "\n".join(said) + rest
+    assert [x for x in said if x.startswith("demo: DCU-2:")][0].split()[2] != "0.0", said
 
 
 def test_without_gstreamer_headers_the_install_says_so_and_the_tool_says_what_to_install(installed, tmp_path):
