@@ -1,4 +1,6 @@
-"""make demo's main command, checked as a user would: through the relay's HTTP API."""
+"""make demo's main command, checked as a user would: how it stops, from a checkout. Its two DCUs
+reporting every stage through the relay's API is checked from an installed dcuscope
+(tests/dcuscope/test_wheel.py), with the same helpers."""
 
 from __future__ import annotations
 
@@ -9,7 +11,6 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -51,50 +52,6 @@ STATUS = re.compile(r"^demo: (DCU-[12]): +[\d.]+ fps, frame delay +[\d.]+ ms, "
                     r"(bottleneck \w+ \(\d+ % busy\)|no stage saturated \(busiest \w+ \d+ % busy\))$", re.MULTILINE)
 """The status says which stage limits each DCU and how busy it is (or that none is saturated), one
 line per DCU: both on one line would run past a terminal's width."""
-
-
-def test_demo_runs_two_dcus_that_report_all_five_stages(tmp_path):
-    """Both DCUs report every stage through the relay's API and the status gives each one's
-    verdict; then Ctrl-C stops the demo (``--duration`` is checked below, with the other stops)."""
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
-    demo = start_demo(tmp_path, port, "--duration", "150")  # a bound only: Ctrl-C ends it
-    lines: list[str] = []
-    reader = threading.Thread(target=lambda: [lines.append(line) for line in demo.stdout], daemon=True)
-    reader.start()
-    try:
-        seen: dict[str, dict] = {}
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and not (len(seen) == 2 and statuses("".join(lines)) >= {"DCU-1", "DCU-2"}):
-            time.sleep(2)
-            try:
-                nodes = get(f"{url}/api/nodes") if len(seen) < 2 else []
-            except OSError:
-                continue
-            for node in nodes:
-                stats = get(f"{url}/api/stats?node={node['node']}")
-                if all((stats["stages"].get(stage) or {}).get("count", 0) > 0 for stage in FIVE):
-                    seen[node["node"]] = stats
-        assert set(seen) == {"DCU-1", "DCU-2"}, seen.keys()
-        for stats in seen.values():
-            assert stats["frame"]["count"] > 0 and stats["frame"]["mean_ms"] > 0
-            # Native probes: every stage's delay splits into service and wait; the verdict is by utilization.
-            infer = stats["stages"]["infer"]
-            assert infer["service"]["count"] > 0 and infer["utilization"] is not None
-            assert stats["bottleneck"]["reason"] and stats["bottleneck"]["utilization"] is not None
-        demo.send_signal(signal.SIGINT)
-        try:
-            demo.wait(90)
-        except subprocess.TimeoutExpired:
-            raise AssertionError("the demo did not stop within 90 s of Ctrl-C:\n" + "".join(lines)) from None
-        reader.join(10)
-    finally:
-        if demo.poll() is None:
-            demo.kill()
-    output = "".join(lines)
-    assert demo.returncode == 128 + signal.SIGINT, output
-    assert f"open {url}/" in output and "demo: stopped" in output and "Traceback" not in output
-    assert statuses(output) >= {"DCU-1", "DCU-2"}, output
 
 
 def statuses(output: str) -> set[str]:
