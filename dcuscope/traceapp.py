@@ -87,7 +87,7 @@ def run_trace(args: argparse.Namespace) -> int:
     try:
         plugin_dir = build().parent
     except BuildError as exc:
-        raise DcuscopeError(f"trace: cannot build dcuscope's GStreamer plugin: {exc}") from exc
+        raise DcuscopeError(f"trace: no dcuscope GStreamer plugin: {exc}") from exc
     node = args.node or socket.gethostname()
     trace = (args.output or Path(f"{node}.trace.jsonl")).absolute()
     try:

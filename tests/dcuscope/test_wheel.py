@@ -191,6 +191,9 @@ def test_without_gstreamer_headers_the_install_says_so_and_the_tool_says_what_to
     assert found.returncode == 1 and len(found.stderr.splitlines()) == 1, found.stderr
     assert "installed without its native library (GStreamer development files not found" in found.stderr
     assert "install gcc pkg-config libgstreamer1.0-dev (Debian/Ubuntu names) and reinstall dcuscope" in found.stderr
+    traced = dcuscope(installed, "trace", "-o", str(tmp_path / "app.jsonl"), "--", *GST_LAUNCH)
+    assert traced.returncode != 0 and len(traced.stderr.splitlines()) == 1, traced.stderr
+    assert "trace: no dcuscope GStreamer plugin: dcuscope was installed without its native library" in traced.stderr
     ran = dcuscope(installed, "run", "vtest", "--num-frames", "3", "--probes", "--trace", str(tmp_path / "t.jsonl"),
                    timeout=240)
     assert ran.returncode == 0, ran.stderr
