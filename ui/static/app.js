@@ -24,6 +24,7 @@ const MIN_WIDTH_MS = 1;
 const MAX_WIDTH_MS = 3 * 3600 * 1000;
 const PANEL_REFRESH_MS = 500;
 const OVERVIEW_REFRESH_MS = 1000;
+const EMPTY_REDRAW_MS = 500; // a live view with no frames to draw: only its axis moves, twice a second is plenty
 const TIP_MARGIN = 4; // px between the tooltip and the viewport's edges
 const STAGE_NAMES = { mux: "frame collection", infer: "neural network", tiler: "collage", convert: "post-processing", osd: "on-screen display" };
 
@@ -633,6 +634,8 @@ const perf = {
 
 let lastTs = null;
 let panelsAt = -Infinity; // not 0: requestAnimationFrame's clock starts at 0 as the page loads
+let drawnAt = -Infinity;
+let draws = 0; // the views drawn (debug: an idle page draws twice a second, not every animation frame)
 
 function updateLegend() {
   const entries = colours.entries();
@@ -676,7 +679,12 @@ function frame(ts) {
     }
   }
   const t0 = performance.now();
-  if (view.dirty || view.follow || mouse?.fresh) {
+  // Following the live edge redraws every animation frame while there are frames to scroll; with
+  // none (no DCU opened, or none has sent any), a redraw a frame cost an idle page a quarter of a core.
+  const empty = current === live && live.stores.size === 0;
+  if (view.dirty || mouse?.fresh || (view.follow && (!empty || ts - drawnAt >= EMPTY_REDRAW_MS))) {
+    drawnAt = ts;
+    draws += 1;
     view.dirty = false;
     if (view.tab === "stage") stageView.draw(view.end - view.width, view.end);
     else if (view.tab === "frame") frameView.draw(view.end, view.frameCount);
@@ -795,7 +803,7 @@ window.dcuscope = {
       stats: Object.fromEntries(current.stats), nodes: [...current.nodes.values()],
       overview: { ...overviewTable.last, count: $("#overview-count").textContent, filter: overviewTable.filter },
       opened: choice === OPEN_ALL ? OPEN_ALL : [...opened].sort(), chosen: choice !== null,
-      subscription: feed.subscribed, liveStores: [...live.stores.keys()].sort(),
+      subscription: feed.subscribed, liveStores: [...live.stores.keys()].sort(), draws,
     };
   },
   perf: (lastMs) => perf.summary(lastMs),
