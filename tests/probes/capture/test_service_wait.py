@@ -68,7 +68,7 @@ stages:
   - tiler: {rows: 2, columns: 2, width: 1280, height: 720}
   - convert: {format: RGBA}
   - osd: {line-width: 2, display-clock: true}
-""", "--duration", "8")
+""", "--duration", "5")
     result = run_cli("stats", directory / "t.jsonl", "--json", cwd=directory)
     assert result.returncode == 0, result.stderr
     return trace, json.loads(result.stdout)["nodes"]["DCU-1"]
@@ -107,7 +107,7 @@ stages:
   - tiler: {rows: 2, columns: 2, width: 1280, height: 720}
   - convert: {format: RGBA}
   - osd: {}
-""", "--duration", "6")
+""", "--duration", "4")
     return stats(trace)
 
 
