@@ -97,8 +97,10 @@ GRAPH = {name: imported(name, path) for name, path in MODULES.items()}
 def test_every_package_is_assigned_a_layer():
     packages = {p.parent.name for p in REPO.glob("*/__init__.py")} - {"tests", "benchmarks"}
     assert packages == set(LAYERS), "a new top-level package needs a place in LAYERS"
-    from dcuscope import SUBPACKAGES as mapped  # what the build and a checkout put under dcuscope
-    assert set(mapped) == set(SUBPACKAGES) == set(LAYERS) - {"dcuscope"}
+    from dcuscope import SUBPACKAGES as mapped  # what a checkout puts under dcuscope
+    built = next(ast.literal_eval(node.value) for node in ast.parse((REPO / "setup.py").read_text()).body
+                 if isinstance(node, ast.Assign) and [getattr(t, "id", "") for t in node.targets] == ["SUBPACKAGES"])
+    assert set(mapped) == set(built) == set(SUBPACKAGES) == set(LAYERS) - {"dcuscope"}  # and the build
 
 
 def test_our_packages_are_imported_by_the_one_name():
