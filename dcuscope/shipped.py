@@ -57,7 +57,7 @@ def configs_command(args: argparse.Namespace) -> int:
     if args.copy.exists() and not args.copy.is_dir():
         raise UsageError(f"--copy {args.copy}: not a folder")
     args.copy.mkdir(parents=True, exist_ok=True)
-    for name, path in configs.items():
+    for path in configs.values():
         out = args.copy / path.name
         if out.exists():
             print(f"{out}: exists, kept")
