@@ -185,6 +185,8 @@ class Runner:
         return True
 
     def _stop_for(self, why: str) -> None:
+        if self._started is not None:  # frames that came since the last tick (a stream's catch-up burst) are said
+            self._stalls.update(self._live_sources(), time.monotonic())
         self._stopped_by = why
         if why in ("Ctrl-C", "SIGTERM"):
             self.result.interrupted = True
