@@ -40,6 +40,8 @@ def _folders(top: str) -> dict[str, str]:
 
 
 PACKAGE_DIR = {"dcuscope": "dcuscope"}
+PACKAGE_DIR.update({f"dcuscope.{p.name}": f"dcuscope/{p.name}" for p in sorted((ROOT / "dcuscope").iterdir())
+                    if (p / "__init__.py").is_file()})  # the composition root's own subpackages (capacity)
 for _top in (*SUBPACKAGES, *DATA):
     PACKAGE_DIR.update(_folders(_top))
 PACKAGE_DATA = {name: ["*"] for name, folder in PACKAGE_DIR.items() if not (ROOT / folder / "__init__.py").is_file()}

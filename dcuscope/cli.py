@@ -11,6 +11,7 @@ from pathlib import Path
 
 from dcuscope.core import signals
 from dcuscope.core.errors import DcuscopeError, PipelineError
+from dcuscope.capacity.command import add_capacity_parser
 from dcuscope.comparecommand import add_compare_parser
 from dcuscope.dbcommand import add_db_parser
 from dcuscope.shipcommand import add_ship_parser
@@ -151,6 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_stats_parser(sub)
     add_export_parser(sub)
     add_compare_parser(sub)
+    add_capacity_parser(sub)
     add_trace_parser(sub)
     add_relay_parser(sub)
     add_db_parser(sub)

@@ -43,12 +43,12 @@ deps_hash=$(cat pyproject.toml setup.py constraints.txt | sha256sum | cut -c1-16
 if [ ! -f "$STAMPS/pip-$deps_hash" ]; then
   say "installing dcuscope and its Python dependencies into $VENV"
   log=$STAMPS/pip.log
-  if ! { "$VENV/bin/python" -m pip install -q --upgrade pip && "$VENV/bin/python" -m pip install -q -c constraints.txt -e '.[dev]'; } >"$log" 2>&1; then
+  if ! { "$VENV/bin/python" -m pip install -q --upgrade pip && "$VENV/bin/python" -m pip install -q -c constraints.txt -e '.[dev,plot]'; } >"$log" 2>&1; then
     cat "$log" >&2
     say "pip install failed (log above)"
     exit 1
   fi
-  "$VENV/bin/python" -c "import gi, numpy, cv2, onnxruntime, socketio, yaml, prometheus_client, opentelemetry.sdk, psycopg; gi.require_version('Gst', '1.0')"
+  "$VENV/bin/python" -c "import gi, numpy, cv2, onnxruntime, socketio, yaml, prometheus_client, opentelemetry.sdk, psycopg, matplotlib; gi.require_version('Gst', '1.0')"
   rm -f "$STAMPS"/pip-*
   touch "$STAMPS/pip-$deps_hash"
 fi

@@ -80,13 +80,14 @@ class Resampled:
     """Figure -> (resamples,) its values on the resampled series."""
 
 
-def figures(x: np.ndarray, axis: int = -1) -> dict[str, np.ndarray]:
+def figures(x: np.ndarray, axis: int = -1, quantiles=QUANTILES) -> dict[str, np.ndarray]:
     """The mean and percentiles of ``x`` along ``axis``."""
-    q = np.percentile(x, QUANTILES, axis=axis, method="linear")
-    return {"mean": x.mean(axis=axis), **{f"p{p}": q[i] for i, p in enumerate(QUANTILES)}}
+    q = np.percentile(x, quantiles, axis=axis, method="linear")
+    return {"mean": x.mean(axis=axis), **{f"p{p}": q[i] for i, p in enumerate(quantiles)}}
 
 
-def resample(x: np.ndarray, rng: np.random.Generator, resamples: int = RESAMPLES, block: int | None = None) -> Resampled:
+def resample(x: np.ndarray, rng: np.random.Generator, resamples: int = RESAMPLES, block: int | None = None,
+             quantiles=QUANTILES) -> Resampled:
     """Circular block bootstrap of ``x`` (in time order): its figures and their replicates.
 
     Each resample joins ceil(n / b) blocks of b consecutive values, starting anywhere (wrapping
@@ -97,20 +98,28 @@ def resample(x: np.ndarray, rng: np.random.Generator, resamples: int = RESAMPLES
     if n == 0:
         raise ValueError("no values to resample")
     if x.min() == x.max():  # a stage that never waits: every resample is the series itself
-        return Resampled(block=1, estimate={f: float(x[0]) for f in FIGURES},
-                         replicates={f: np.full(resamples, x[0]) for f in FIGURES})
+        names = ["mean"] + [f"p{q}" for q in quantiles]
+        return Resampled(block=1, estimate={f: float(x[0]) for f in names},
+                         replicates={f: np.full(resamples, x[0]) for f in names})
     b = block_length(x) if block is None else max(1, min(int(block), n))
     n_blocks = -(-n // b)
     offsets = np.arange(b)
-    out = {f: np.empty(resamples) for f in FIGURES}
+    out = {f: np.empty(resamples) for f in ["mean"] + [f"p{q}" for q in quantiles]}
     per_chunk = max(1, CHUNK_VALUES // n)
     for lo in range(0, resamples, per_chunk):
         hi = min(resamples, lo + per_chunk)
         starts = rng.integers(0, n, size=(hi - lo, n_blocks))
         idx = ((starts[:, :, None] + offsets) % n).reshape(hi - lo, n_blocks * b)[:, :n]
-        for f, v in figures(x[idx], axis=1).items():
+        for f, v in figures(x[idx], axis=1, quantiles=quantiles).items():
             out[f][lo:hi] = v
-    return Resampled(block=b, estimate={f: float(v) for f, v in figures(x).items()}, replicates=out)
+    return Resampled(block=b, estimate={f: float(v) for f, v in figures(x, quantiles=quantiles).items()}, replicates=out)
+
+
+def interval(r: Resampled, figure: str, level: float = 0.95) -> tuple[float, float]:
+    """PLACEHOLDER percentile interval of one run's figure."""
+    tail = (1.0 - level) / 2 * 100
+    low, high = np.percentile(r.replicates[figure], (tail, 100 - tail))
+    return float(low), float(high)
 
 
 @dataclass

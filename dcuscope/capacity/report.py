@@ -1,0 +1,151 @@
+"""The capacity report: a terminal table in the shape of the paper's Tables 4-6 (the delay per
+stream count) with Figure 12's per-stage data, the prediction beside the measurement, and the
+answer in one line; the same as Markdown, and the whole document as JSON."""
+
+from __future__ import annotations
+
+from dcuscope.capacity.predict import describe
+
+E2E_FIGURES = ("mean", "p50", "p95", "p99")
+
+
+def _est(e: dict | None, digits: int = 1) -> str:
+    if not e:
+        return "n/a"
+    return f"{e['value']:.{digits}f} ({e['low']:.{digits}f}–{e['high']:.{digits}f})"
+
+
+def _pct(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.0%}"
+
+
+def _ms(x: float | None) -> str:
+    return "n/a" if x is None else f"{x:.1f}"
+
+
+def _limiting(neck: dict | None) -> str:
+    if not neck:
+        return "n/a"
+    if neck.get("utilization") is None:
+        return f"{neck['stage']} (no service times)"
+    thread = neck.get("thread_utilization")
+    shared = f", thread {thread:.0%}" if thread is not None and thread >= neck["utilization"] + 0.005 else ""
+    return f"{neck['stage']} {neck['utilization']:.0%}{shared}{' sat.' if neck.get('saturated') else ''}"
+
+
+def _dropped(figs: dict) -> str:
+    total = sum(figs["dropped"].values())
+    if not total:
+        return "0"
+    return f"{total} (" + ", ".join(f"{k} {v}" for k, v in figs["dropped"].items()) + ")"
+
+
+def count_rows(doc: dict) -> list[list[str]]:
+    """Per count: streams, fps/stream, A, p50, p95, p99, limiting stage, dropped, outcome."""
+    rows = []
+    for c in doc["counts"]:
+        f = c.get("figures")
+        if not f:
+            rows.append([str(c["streams"]), "n/a", "n/a", "n/a", "n/a", "n/a", "n/a", "n/a", f"failed: {c['error']}"])
+            continue
+        fps = f"{f['fps']['value']:.1f} ({f['fps']['low']:.1f}–{f['fps']['high']:.1f})" if f["fps"] else "n/a"
+        if f["fps"] and abs(f["fps_mean"] - f["fps"]["value"]) >= 0.05:
+            fps += f", mean {f['fps_mean']:.1f}"
+        rows.append([str(c["streams"]), fps] + [_est(f["e2e"].get(k)) for k in E2E_FIGURES]
+                    + [_limiting(c["limiting"]), _dropped(f), c["outcome"] + (f": {c['error']}" if c["error"] else "")])
+    return rows
+
+
+COUNT_HEAD = ["streams", "fps/stream (slowest)", "A = S/n, mean ms", "p50 ms", "p95 ms", "p99 ms", "limiting stage",
+              "dropped", "bounds"]
+
+
+def stage_rows(doc: dict) -> tuple[list[str], list[list[str]]]:
+    """Figure 12's data: per count, each stage's delay = service + wait (ms) and utilization."""
+    stages = list(dict.fromkeys(s for c in doc["counts"] if c.get("figures") for s in c["figures"]["stages"]))
+    rows = []
+    for c in doc["counts"]:
+        f = c.get("figures")
+        if not f:
+            continue
+        cells = []
+        for s in stages:
+            st = f["stages"].get(s)
+            if st is None:
+                cells.append("–")
+                continue
+            split = f" = {_ms(st['service'])} + {_ms(st['wait'])}" if st["service"] is not None else ""
+            cells.append(f"{_ms(st['delay'])}{split} · {_pct(st['utilization'])}")
+        cells.append(_ms(f["between_ms"]))
+        cpu = "n/a" if c.get("cpu_cores") is None else f"{c['cpu_cores']:.2f}"
+        if c.get("server_cores") is not None:
+            cpu += f" + serve-rtsp {c['server_cores']:.2f}"
+        rows.append([str(c["streams"])] + cells + [cpu])
+    return ["streams"] + stages + ["between", "CPU cores"], rows
+
+
+def prediction_rows(doc: dict) -> list[list[str]]:
+    """Per count: measured and predicted A and fps/stream, and the busiest thread's predicted utilization."""
+    p = doc.get("prediction")
+    if not p:
+        return []
+    measured = {c["streams"]: c for c in doc["counts"] if c.get("figures")}
+    top = max([*measured, *map(int, p["a_ms"]), p["saturates_at"] or 0])
+    rows = []
+    for n in range(1, top + 1):
+        c = measured.get(n)
+        a = c["figures"]["e2e"].get("mean") if c else None
+        fps = c["figures"]["fps"] if c else None
+        busiest = max((u.get(n, u.get(str(n))) or 0.0 for u in p["threads"].values()), default=None)
+        pa, pf = p["a_ms"].get(n, p["a_ms"].get(str(n))), p["fps_per_stream"].get(n, p["fps_per_stream"].get(str(n)))
+        rows.append([str(n), "–" if a is None else f"{a['value']:.1f}", "–" if pa is None else f"{pa:.1f}",
+                     "–" if fps is None else f"{fps['value']:.1f}", "–" if pf is None else f"{pf:.1f}",
+                     "–" if c is None or not c["limiting"] else _pct(c["limiting"].get("thread_utilization")),
+                     "–" if busiest is None else _pct(busiest)])
+    return rows
+
+
+PREDICTION_HEAD = ["streams", "A measured", "A predicted", "fps measured", "fps predicted", "busiest thread measured",
+                   "busiest thread predicted"]
+
+
+def _table(head: list[str], rows: list[list[str]]) -> list[str]:
+    widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
+    fmt = lambda r: "  ".join(x.ljust(w) if i in (0,) or not x[:1].isdigit() else x.rjust(w)  # noqa: E731
+                              for i, (x, w) in enumerate(zip(r, widths))).rstrip()
+    return [fmt(head)] + [fmt(r) for r in rows]
+
+
+def _markdown(head: list[str], rows: list[list[str]]) -> list[str]:
+    return ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + ["| " + " | ".join(r) + " |" for r in rows]
+
+
+def render(doc: dict, markdown: bool = False) -> str:
+    table = _markdown if markdown else _table
+    out = []
+    h = doc["plan"]
+    title = (f"dcuscope capacity {h['config']}: {h['duration_s']:g} s per count, first {h['warmup_s']:g} s left out; "
+             f"bounds: {', '.join(doc['bounds'])}")
+    out += [f"### {title}" if markdown else title, ""]
+    if doc["counts"]:
+        out += ["Frame delay per stream count (95 % intervals in brackets):" if not markdown else
+                "#### Frame delay per stream count (the paper's Tables 4–6), 95 % intervals in brackets", ""]
+        out += table(COUNT_HEAD, count_rows(doc)) + [""]
+        head, rows = stage_rows(doc)
+        out += ["Per stage, ms: delay = service + wait · utilization (Figure 12's data):" if not markdown else
+                "#### Per stage, ms: delay = service + wait · utilization (Figure 12's data)", ""]
+        out += table(head, rows) + [""]
+    p = doc.get("prediction")
+    if p:
+        out += ["Prediction from 1 and 2 streams beside the measurement:" if not markdown else
+                "#### Prediction from 1 and 2 streams beside the measurement", ""]
+        out += table(PREDICTION_HEAD, prediction_rows(doc)) + ["", describe(p)]
+        if p["unpredicted"]:
+            out.append(f"not predicted (the model extrapolates e2e figures and stage means only): {', '.join(p['unpredicted'])}")
+        out.append("")
+    for note in doc.get("notes", []):
+        out.append(f"note: {note}")
+    answer = doc.get("answer")
+    if answer:
+        out += ["", f"**{answer}**" if markdown else answer]
+    return "\n".join(out).rstrip() + "\n"

@@ -1,0 +1,137 @@
+"""The step-up search: 1, 2, 3, ... streams, each in its own process, until a count does not pass.
+
+Step-up rather than bisection: every count below the capacity is run once, and the report wants
+each of them (the paper's tables give the delay at every count); a bisection would spend its runs
+above the capacity, where a saturated pipeline runs slowest and tells least. A count that is
+undecided ends the search too: the counts above it would rest on it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from dcuscope.capacity.measure import measure
+from dcuscope.capacity.plan import check_replicable, source_rate
+from dcuscope.capacity.verdict import FAILS, HOLDS, Slo, check_fps, check_slo, outcome
+from dcuscope.core.errors import UsageError
+from dcuscope.pipeline.config import PipelineConfig
+
+START_ALLOWANCE_S = 90.0
+"""Time a count may take beyond its --duration (start-up, model load) before it is killed."""
+
+
+@dataclass
+class Plan:
+    config_file: Path
+    config: PipelineConfig
+    max_streams: int
+    slos: list[Slo]
+    fps_floor: float
+    """Fraction of the source's rate the slowest stream must keep."""
+    duration: float
+    warmup: float
+    keep_batch: bool = False
+    rtsp: bool = False
+    workdir: Path = Path(".")
+    counts: list[int] = field(default_factory=list)
+    """The counts to run in order (default 1..max_streams)."""
+
+
+def run_count(plan: Plan, streams: int, say: Callable[[str], None]) -> dict:
+    """One count: its process, its trace measured, its bounds checked; the count's document."""
+    trace = plan.workdir / f"streams-{streams}.trace.jsonl"
+    spec = {"config": str(plan.config_file), "streams": streams, "keep_batch": plan.keep_batch,
+            "trace": str(trace), "duration": plan.duration}
+    doc: dict = {"streams": streams, "error": None, "cpu_cores": None, "server_cores": None}
+    server = None
+    if plan.rtsp:
+        from dcuscope.capacity.rtspserve import RtspServer
+
+        clips = [Path(plan.config.sources[i % len(plan.config.sources)].location.removeprefix("file://"))
+                 for i in range(streams)]
+        server = RtspServer(clips).__enter__()
+        rate = source_rate(plan.config)
+        spec["rtsp_uris"] = server.uris
+        spec["mux_timeout_us"] = int(1e6 / float(rate)) if rate else 33_333
+    started = time.monotonic()
+    try:
+        result = _child(spec, plan.workdir / f"streams-{streams}.json", plan.duration)
+    finally:
+        if server is not None:
+            server.__exit__()
+            doc["server_cores"] = server.cores
+    doc["wall_s"] = time.monotonic() - started
+    if result.get("bad_input"):
+        raise UsageError(result["error"])
+    if "error" in result:
+        return {**doc, "outcome": FAILS, "error": result["error"], "checks": [], "figures": None, "limiting": None}
+    doc["cpu_cores"] = result["cpu_s"] / result["wall_s"] if result["wall_s"] > 0 else None
+    if result["lost"]:
+        doc["error"] = "; ".join(f"source {i} lost: {why}" for i, why in result["lost"].items())
+    from dcuscope.probes.trace.tracefile import read_trace
+
+    figures = measure(read_trace(trace), streams, plan.warmup)
+    rate = figures.nominal_fps or (float(source_rate(plan.config)) if source_rate(plan.config) else None)
+    checks = [check_fps(figures, plan.fps_floor, rate)] + [check_slo(s, figures) for s in plan.slos]
+    if figures.frames < 2:
+        doc["error"] = doc["error"] or "no frame went through the whole pipeline after the warm-up"
+    doc.update(outcome=FAILS if doc["error"] else outcome(checks), checks=[asdict(c) for c in checks],
+               figures=figures.to_json(), limiting=figures.limiting, rate_fps=rate)
+    return doc
+
+
+def _child(spec: dict, spec_file: Path, duration: float) -> dict:
+    spec_file.write_text(json.dumps(spec))
+    # A session of its own: Ctrl-C reaches this process only, which stops the child itself.
+    proc = subprocess.Popen([sys.executable, "-m", "dcuscope.capacity.count", str(spec_file)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            env={**os.environ, "GST_DEBUG": os.environ.get("GST_DEBUG", "0")})
+    try:
+        out, err = proc.communicate(timeout=duration + START_ALLOWANCE_S)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.communicate()
+        return {"error": f"the run did not end within {duration + START_ALLOWANCE_S:.0f} s (killed)"}
+    except BaseException:  # Ctrl-C: stop the count, leave no pipeline behind
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        raise
+    lines = out.strip().splitlines()
+    try:
+        result = json.loads(lines[-1])
+    except (IndexError, ValueError):
+        tail = " ".join(err.strip().splitlines()[-3:])
+        return {"error": f"the run ended with status {proc.returncode}: {tail or 'no output'}"}
+    if result.get("aborted"):
+        result = {"error": result["aborted"]}
+    return result
+
+
+def search(plan: Plan, say: Callable[[str], None], on_count: Callable[[dict], None] = lambda _: None) -> tuple[list[dict], str | None]:
+    """Run the plan's counts until one does not pass; (the counts' documents, why it stopped early)."""
+    check_replicable(plan.config, plan.rtsp)
+    counts: list[dict] = []
+    todo = plan.counts or list(range(1, plan.max_streams + 1))
+    for streams in todo:
+        say(f"{streams} stream{'s' if streams > 1 else ''}: running {plan.duration:g} s "
+            f"({plan.warmup:g} s warm-up left out)")
+        try:
+            doc = run_count(plan, streams, say)
+        except KeyboardInterrupt:
+            return counts, f"stopped by Ctrl-C during {streams} streams"
+        counts.append(doc)
+        on_count(doc)
+        if doc["outcome"] != HOLDS and not plan.counts:
+            break
+    return counts, None
