@@ -67,7 +67,7 @@ def add_capacity_parser(sub) -> None:
                                                                "name: dcuscope configs)")
     p.add_argument("--max-streams", type=int, default=DEFAULT_MAX_STREAMS, metavar="N",
                    help="the highest count tried (default %(default)d)")
-    p.add_argument("--slo", action="append", default=[], metavar="BOUND",
+    p.add_argument("--slo", action="append", metavar="BOUND",
                    help="a bound every count must keep, e.g. \"e2e.p99 <= 200ms\" (repeatable; see below)")
     p.add_argument("--fps-floor", type=float, default=DEFAULT_FLOOR_PCT, metavar="PCT",
                    help="the %% of its source's frame rate the slowest stream must keep (default %(default)g)")
@@ -102,7 +102,7 @@ def _checked(args: argparse.Namespace):
     from dcuscope.pipeline.config import load_config
     from dcuscope.shipped import resolve
 
-    slos = [parse_slo(text) for text in args.slo]
+    slos = [parse_slo(text) for text in args.slo or ()]
     if args.max_streams < 1:
         raise UsageError("--max-streams must be at least 1")
     if not 0 < args.fps_floor <= 100:
@@ -191,16 +191,16 @@ def _notes(plan) -> list[str]:
 
 
 def _count_line(c: dict) -> str:
+    streams = f"{c['streams']} stream{'s' if c['streams'] != 1 else ''}"
     if not c.get("figures"):
-        return f"{c['streams']} streams: {c['outcome']}: {c['error']}"
+        return f"{streams}: {c['outcome']}: {c['error']}"
     f = c["figures"]
     a = f["e2e"].get("mean")
     checks = "; ".join(f"{ch['what']}: {ch['outcome']} ({ch['detail']})" for ch in c["checks"])
     neck = c["limiting"]
     limit = f", limiting {neck['stage']}" + (f" {neck['utilization']:.0%}" if neck and neck["utilization"] is not None
                                                else "") if neck else ""
-    return (f"{c['streams']} streams: {c['outcome'].upper()}: A {a['value']:.1f} ms" if a else
-            f"{c['streams']} streams: {c['outcome'].upper()}") + f"{limit}; {checks}" + (
+    return (f"{streams}: {c['outcome'].upper()}: A {a['value']:.1f} ms" if a else f"{streams}: {c['outcome'].upper()}") + f"{limit}; {checks}" + (
             f"; {c['error']}" if c["error"] else "")
 
 

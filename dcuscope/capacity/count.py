@@ -2,14 +2,15 @@
 
 SPEC says the config, the stream count, how its sources are given (:func:`.plan.for_streams`), the
 trace file and the run's length. The run is ``dcuscope run``'s: the same build, probes and runner.
-The last line on stdout is one JSON object: the CPU the run used (after start-up), its wall time,
-and what the runner says went wrong (a source lost, an abort).
+The last line on stdout is one JSON object: the process's CPU time sampled through the run, and
+what the runner says went wrong (a source lost, an abort).
 """
 
 from __future__ import annotations
 
 import json
 import sys
+import threading
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -32,16 +33,41 @@ def run_count(spec: dict) -> dict:
     try:
         runner = Runner(built, duration=spec["duration"], progress=None)
         probing = start_probes(built, config, progress=None)
-        cpu0, wall0 = time.process_time(), time.monotonic()
+        samples = CpuSamples()
         try:
             result = runner.run()
         finally:
-            cpu_s, wall_s = time.process_time() - cpu0, time.monotonic() - wall0
+            samples.stop()
             probing.stop()
     finally:
         built.close()
     lost = {str(i): reason for i, reason in result.dead_sources.items()}
-    return {"cpu_s": cpu_s, "wall_s": wall_s, "lost": lost, "aborted": result.aborted}
+    return {"cpu": samples.taken, "lost": lost, "aborted": result.aborted}
+
+
+class CpuSamples:
+    """(wall clock s, this process's CPU s) twice a second while the pipeline runs: the parent takes
+    the CPU rate over the frames it measures (after the warm-up: the model's load and the first
+    batches cost CPU that a running pipeline does not)."""
+
+    PERIOD_S = 0.5
+
+    def __init__(self):
+        self.taken: list[tuple[float, float]] = []
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="cpu-samples", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            self.taken.append((time.time(), time.process_time()))
+            if self._done.wait(self.PERIOD_S):
+                self.taken.append((time.time(), time.process_time()))
+                return
+
+    def stop(self) -> None:
+        self._done.set()
+        self._thread.join()
 
 
 def main(argv: list[str] | None = None) -> int:

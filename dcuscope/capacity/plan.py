@@ -32,7 +32,7 @@ class Adjusted:
 def check_replicable(config: PipelineConfig, rtsp: bool) -> None:
     """UsageError (one line) when ``config`` cannot be run at other stream counts."""
     if config.launch is not None:
-        raise UsageError(f"{config.file}: a launch: pipeline has no sources: to replicate: capacity needs sources: "
+        raise UsageError(f"{config.file}: a launch: pipeline has no sources to replicate: capacity needs sources: "
                          "and stages: (the structured form)")
     if not config.stages or config.stages[0].factory != "mux":
         raise UsageError(f"{config.file}: the first stage is not a mux: streams cannot be batched (add '- mux: {{}}' "
@@ -69,7 +69,8 @@ def for_streams(config: PipelineConfig, streams: int, keep_batch: bool = False,
         base = config.sources[i % len(config.sources)]
         if rtsp_uris is not None:
             sources.append(SourceConfig(kind="uri", location=rtsp_uris[i], stall_timeout=base.stall_timeout,
-                                        latency_ms=RTSP_LATENCY_MS, width=base.width, height=base.height))
+                                        latency_ms=RTSP_LATENCY_MS, rate=base.rate, width=base.width,
+                                        height=base.height))
         elif base.location.startswith("file://") or base.kind == "test":
             sources.append(replace(base, live=True, loop=base.kind == "uri" or base.loop))
         else:

@@ -91,23 +91,20 @@ def predict(one: dict, two: dict, slos: list[Slo], n_cores: int | None = None) -
     capacity, limit = top, saturates
     a_ms, fps = {}, {}
     rate = one.get("rate_fps")
-    for n in range(1, top + 1):
-        if f1["e2e"] and f2["e2e"]:
+    horizon = range(1, (saturates_at or PREDICT_UP_TO) + 1)
+    for n in horizon:
+        if f1["e2e"] and f2["e2e"] and n <= top:
             a_ms[n] = _line(f1["e2e"]["mean"]["value"], f2["e2e"]["mean"]["value"], n)
-        if rate:
-            fps[n] = rate
+        if rate:  # a thread asked for more than its time delivers that much less
+            fps[n] = rate / max([_line(*u, n) for u in threads.values()] + [1.0])
         broken = [s for s in slos if s.text not in unpredicted and not _holds(s, _line(_figure(f1, s), _figure(f2, s), n))]
-        if broken:
+        if broken and capacity == top and n <= top:
             capacity, limit = n - 1, {"what": broken[0].short(), "kind": "bound",
                                       "value_ms": _line(_figure(f1, broken[0]), _figure(f2, broken[0]), n), "at": n}
-            break
-    if saturates_at and rate:
-        worst = max([_line(*u, saturates_at) for u in threads.values()] + [0.0])
-        fps[saturates_at] = rate / max(worst, 1.0)
     return {"capacity": capacity, "saturates_at": saturates_at, "saturates": saturates, "limit": limit,
             "a_ms": a_ms, "fps_per_stream": fps,
-            "threads": {t: {n: _line(*u, n) for n in range(1, (saturates_at or 6) + 1)} for t, u in threads.items()},
-            "cpu_cores": {n: _line(*cpu, n) for n in range(1, (saturates_at or 6) + 1)} if cpu else {},
+            "threads": {t: {n: _line(*u, n) for n in horizon} for t, u in threads.items()},
+            "cpu_cores": {n: _line(*cpu, n) for n in horizon} if cpu else {},
             "n_cores": n_cores, "unpredicted": unpredicted}
 
 

@@ -90,7 +90,8 @@ def prediction_rows(doc: dict) -> list[list[str]]:
     if not p:
         return []
     measured = {c["streams"]: c for c in doc["counts"] if c.get("figures")}
-    top = max([*measured, *map(int, p["a_ms"]), p["saturates_at"] or 0])
+    shown = max(doc["plan"].get("max_streams", 0), *measured) * 2  # the rows a reader compares, not 64
+    top = max([*measured, min(p["saturates_at"] or p["capacity"] + 1, shown)])
     rows = []
     for n in range(1, top + 1):
         c = measured.get(n)

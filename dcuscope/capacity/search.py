@@ -23,6 +23,7 @@ from dcuscope.capacity.plan import check_replicable, source_rate
 from dcuscope.capacity.verdict import FAILS, HOLDS, Slo, check_fps, check_slo, outcome
 from dcuscope.core.errors import UsageError
 from dcuscope.pipeline.config import PipelineConfig
+from dcuscope.probes.trace.events import ORIGIN
 
 START_ALLOWANCE_S = 90.0
 """Time a count may take beyond its --duration (start-up, model load) before it is killed."""
@@ -73,12 +74,13 @@ def run_count(plan: Plan, streams: int, say: Callable[[str], None]) -> dict:
         raise UsageError(result["error"])
     if "error" in result:
         return {**doc, "outcome": FAILS, "error": result["error"], "checks": [], "figures": None, "limiting": None}
-    doc["cpu_cores"] = result["cpu_s"] / result["wall_s"] if result["wall_s"] > 0 else None
     if result["lost"]:
         doc["error"] = "; ".join(f"source {i} lost: {why}" for i, why in result["lost"].items())
     from dcuscope.probes.trace.tracefile import read_trace
 
-    figures = measure(read_trace(trace), streams, plan.warmup)
+    run = read_trace(trace)
+    figures = measure(run, streams, plan.warmup)
+    doc["cpu_cores"] = cpu_cores(result["cpu"], run, plan.warmup)
     rate = figures.nominal_fps or (float(source_rate(plan.config)) if source_rate(plan.config) else None)
     checks = [check_fps(figures, plan.fps_floor, rate)] + [check_slo(s, figures) for s in plan.slos]
     if figures.frames < 2:
@@ -86,6 +88,21 @@ def run_count(plan: Plan, streams: int, say: Callable[[str], None]) -> dict:
     doc.update(outcome=FAILS if doc["error"] else outcome(checks), checks=[asdict(c) for c in checks],
                figures=figures.to_json(), limiting=figures.limiting, rate_fps=rate)
     return doc
+
+
+def cpu_cores(samples: list, trace, warmup_s: float) -> float | None:
+    """CPU cores the count's process used from the end of the warm-up (the first frame's origin +
+    ``warmup_s``, on the trace's realtime clock) to its end; over the whole run when the trace's
+    clock is another or the measured part is under a second."""
+    if len(samples) < 2:
+        return None
+    origins = trace.events["ts"][trace.events["point"] == ORIGIN]
+    start = origins.min() / 1e9 + warmup_s if trace.header.clock == "realtime" and len(origins) else samples[0][0]
+    kept = [s for s in samples if s[0] >= start]
+    if len(kept) < 2 or kept[-1][0] - kept[0][0] < 1.0:
+        kept = samples
+    (w0, c0), (w1, c1) = kept[0], kept[-1]
+    return (c1 - c0) / (w1 - w0) if w1 > w0 else None
 
 
 def _child(spec: dict, spec_file: Path, duration: float) -> dict:
@@ -124,12 +141,12 @@ def search(plan: Plan, say: Callable[[str], None], on_count: Callable[[dict], No
     counts: list[dict] = []
     todo = plan.counts or list(range(1, plan.max_streams + 1))
     for streams in todo:
-        say(f"{streams} stream{'s' if streams > 1 else ''}: running {plan.duration:g} s "
+        say(f"{streams} stream{'s' if streams != 1 else ''}: running {plan.duration:g} s "
             f"({plan.warmup:g} s warm-up left out)")
         try:
             doc = run_count(plan, streams, say)
         except KeyboardInterrupt:
-            return counts, f"stopped by Ctrl-C during {streams} streams"
+            return counts, f"stopped by Ctrl-C during {streams} stream{'s' if streams != 1 else ''}"
         counts.append(doc)
         on_count(doc)
         if doc["outcome"] != HOLDS and not plan.counts:

@@ -1,0 +1,103 @@
+"""dcuscope capacity end to end: real pipelines (a file played in real time, the SSD detector, a
+stage that sleeps a known 20 ms per batch) at 1, 2, ... streams, each in its own process.
+
+The sleeping stage is the ground truth: its service is at least 20 ms at every count, so a bound
+below that must fail and one at it must hold, whatever the machine's load."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import time
+
+import cv2
+import pytest
+
+from tests.conftest import REPO, VTEST, cli_env
+
+SSD = REPO / "assets" / "models" / "ssdlite_mobilenetv2_person.onnx"
+
+
+def config(tmp_path):
+    path = tmp_path / "cap.yaml"
+    path.write_text(f"""\
+node: cap
+sources:
+  - {{uri: '{VTEST}', rate: 5}}
+stages:
+  - mux: {{batch-size: 1, width: 320, height: 180}}
+  - infer: {{model: '{SSD}', threshold: 0.4}}
+  - factory: identity
+    name: slow
+    properties: {{sleep-time: 20000}}
+  - tiler: {{rows: 1, columns: 1, width: 320, height: 180}}
+sink: {{type: fake}}
+""")
+    return path
+
+
+def capacity(*args, **kw) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "dcuscope.cli", "capacity", *map(str, args)], cwd=REPO,
+                            env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+
+
+@pytest.mark.long
+def test_a_search_reports_each_count_predicts_and_on_ctrl_c_prints_what_it_measured(tmp_path):
+    traces = tmp_path / "traces"
+    proc = capacity(config(tmp_path), "--max-streams", 3, "--duration", 5, "--warmup", 1.5,
+                    "--slo", "slow.service.mean >= 20ms", "--slo", "e2e.p99 <= 10s", "--json",
+                    "-o", tmp_path / "report.md", "--plot", tmp_path / "plot.png", "--keep-traces", traces)
+    err = ""
+    deadline = time.monotonic() + 120
+    while "3 streams: running" not in err and proc.poll() is None and time.monotonic() < deadline:
+        err += proc.stderr.readline()
+    assert "3 streams: running" in err, err
+    time.sleep(1.0)
+    proc.send_signal(signal.SIGINT)
+    out, rest = proc.communicate(timeout=60)
+    err += rest
+    assert proc.returncode == 130, err
+    doc = json.loads(out)
+    counts = doc["counts"]
+    assert [c["streams"] for c in counts][:1] == [1], err
+    one = counts[0]
+    # the ground truth: the identity element sleeps 20 ms per batch, at every count
+    for c in counts:
+        slow = c["figures"]["stages"]["slow"]
+        assert 20.0 <= slow["service"] < 200.0, slow
+        check = next(ch for ch in c["checks"] if ch["what"].startswith("slow.service.mean"))
+        assert check["outcome"] == "holds", check
+        assert c["figures"]["frames"] > 0 and c["figures"]["e2e"]["mean"]["value"] >= 20.0
+    assert one["outcome"] == "holds", one["checks"]  # 5 frames/s with ~30 ms of work: kept even on a busy machine
+    assert 4.0 <= one["figures"]["fps"]["value"] <= 6.0 and one["rate_fps"] == 5.0
+    leading = 0
+    for c in counts:
+        if c["outcome"] != "holds":
+            break
+        leading = c["streams"]
+    assert doc["capacity"] == leading and doc["answer"].startswith(f"capacity {leading} stream")
+    if len(counts) == 2 and leading == 2:
+        assert doc["answer"].endswith("; stopped by Ctrl-C during 3 streams"), doc["answer"]
+    if len(counts) == 2:
+        assert doc["prediction"] and doc["prediction"]["a_ms"]["1"] == pytest.approx(one["figures"]["e2e"]["mean"]["value"])
+        assert "predicted capacity" in err
+    assert (traces / "streams-1.trace.jsonl").stat().st_size > 0
+    report = (tmp_path / "report.md").read_text()
+    assert "#### Frame delay per stream count" in report and f"**{doc['answer']}**" in report
+    image = cv2.imread(str(tmp_path / "plot.png"))
+    assert image is not None and image.shape[0] > 300 and image.shape[1] > 500
+    leftover = subprocess.run(["pgrep", "-f", str(tmp_path)], capture_output=True, text=True).stdout.split()
+    assert not leftover, "a count's process outlived the search"
+
+
+def test_a_bound_below_the_ground_truth_fails_at_one_stream_and_the_answer_says_so(tmp_path):
+    proc = capacity(config(tmp_path), "--max-streams", 3, "--duration", 4, "--warmup", 1,
+                    "--slo", "slow.service.mean <= 10ms")
+    out, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err
+    answer = out.rstrip().splitlines()[-1]
+    assert answer.startswith("capacity 0 streams; at 1 slow.service.mean ≤ 10 ms fails (slow.service.mean 2"), out
+    assert "1 stream: FAILS" in err and "2 streams: running" not in err  # the search stops at the first failure
+    assert "Per stage, ms: delay = service + wait" in out and "slow" in out
