@@ -46,7 +46,8 @@ def capacity(*args, **kw) -> subprocess.Popen:
 @pytest.mark.long
 def test_a_search_reports_each_count_predicts_and_on_ctrl_c_prints_what_it_measured(tmp_path):
     traces = tmp_path / "traces"
-    proc = capacity(config(tmp_path), "--max-streams", 3, "--duration", 5, "--warmup", 1.5,
+    # bounds that hold on a busy machine too (the floor at half the rate): the search reaches 3
+    proc = capacity(config(tmp_path), "--max-streams", 3, "--duration", 4, "--warmup", 1, "--fps-floor", 50,
                     "--slo", "slow.service.mean >= 20ms", "--slo", "e2e.p99 <= 10s", "--json",
                     "-o", tmp_path / "report.md", "--plot", tmp_path / "plot.png", "--keep-traces", traces)
     err = ""
@@ -60,29 +61,21 @@ def test_a_search_reports_each_count_predicts_and_on_ctrl_c_prints_what_it_measu
     err += rest
     assert proc.returncode == 130, err
     doc = json.loads(out)
-    counts = doc["counts"]
-    assert [c["streams"] for c in counts][:1] == [1], err
-    one = counts[0]
-    # the ground truth: the identity element sleeps 20 ms per batch, at every count
-    for c in counts:
+    one, two = doc["counts"]
+    assert (one["streams"], two["streams"], one["outcome"], two["outcome"]) == (1, 2, "holds", "holds"), err
+    assert doc["capacity"] == 2 and doc["answer"].startswith("capacity 2 streams: fps ≥ 2.5 (50 % of 5) and "
+                                                             "slow.service.mean ≥ 20 ms and e2e.p99 ≤ 10000 ms hold at 2")
+    assert doc["answer"].endswith("; stopped by Ctrl-C during 3 streams"), doc["answer"]
+    for c in (one, two):
+        # the ground truth: the identity element sleeps 20 ms per batch, at every count
         slow = c["figures"]["stages"]["slow"]
         assert 20.0 <= slow["service"] < 200.0, slow
-        check = next(ch for ch in c["checks"] if ch["what"].startswith("slow.service.mean"))
-        assert check["outcome"] == "holds", check
-        assert c["figures"]["frames"] > 0 and c["figures"]["e2e"]["mean"]["value"] >= 20.0
-    assert one["outcome"] == "holds", one["checks"]  # 5 frames/s with ~30 ms of work: kept even on a busy machine
-    assert 4.0 <= one["figures"]["fps"]["value"] <= 6.0 and one["rate_fps"] == 5.0
-    leading = 0
-    for c in counts:
-        if c["outcome"] != "holds":
-            break
-        leading = c["streams"]
-    assert doc["capacity"] == leading and doc["answer"].startswith(f"capacity {leading} stream")
-    if len(counts) == 2 and leading == 2:
-        assert doc["answer"].endswith("; stopped by Ctrl-C during 3 streams"), doc["answer"]
-    if len(counts) == 2:
-        assert doc["prediction"] and doc["prediction"]["a_ms"]["1"] == pytest.approx(one["figures"]["e2e"]["mean"]["value"])
-        assert "predicted capacity" in err
+        assert c["figures"]["e2e"]["mean"]["value"] >= 20.0 and c["rate_fps"] == 5.0
+        fps = c["figures"]["fps"]
+        assert fps["low"] <= fps["value"] <= fps["high"] and 2.5 <= fps["value"] <= 6.0
+    assert doc["prediction"]["a_ms"]["1"] == pytest.approx(one["figures"]["e2e"]["mean"]["value"])
+    assert doc["prediction"]["a_ms"]["2"] == pytest.approx(two["figures"]["e2e"]["mean"]["value"])
+    assert "predicted capacity" in err
     assert (traces / "streams-1.trace.jsonl").stat().st_size > 0
     report = (tmp_path / "report.md").read_text()
     assert "#### Frame delay per stream count" in report and f"**{doc['answer']}**" in report
