@@ -158,7 +158,8 @@ def config_text(kind: str, clips: list[Path], fps: int, model: str, late_ms: int
     sets the mux's batch-size to the stream count and widens the tiler's grid); for the RTSP kinds
     the mux waits one frame period for a batch, and rtsp-late drops frames older than ``late_ms``."""
     width, height = size
-    sources = "\n".join(f"  - {{uri: '{c.as_uri()}', loop: true}}" for c in clips)
+    # Paths, not file:// URIs, quoted as JSON (valid YAML): the config reader takes a URI's %20 literally.
+    sources = "\n".join(f"  - {{uri: {json.dumps(str(c))}, loop: true}}" for c in clips)
     mux = f"batch-size: 1, width: {width}, height: {height}"
     if kind != "file":  # nvstreammux's advice: batched-push-timeout = one frame period of the fastest source
         mux += f", batched-push-timeout: {1_000_000 // fps}" + (f", max-latency: {late_ms}" if kind == "rtsp-late" else "")
@@ -168,7 +169,7 @@ sources:
 {sources}
 stages:
   - mux: {{{mux}}}
-  - infer: {{model: '{MODELS[model]}', threshold: 0.3}}
+  - infer: {{model: {json.dumps(str(MODELS[model]))}, threshold: 0.3}}
   - tiler: {{rows: 1, columns: 1, width: {width}, height: {height}}}
   - convert: {{format: RGBA}}
   - osd: {{line-width: 3}}
