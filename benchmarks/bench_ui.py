@@ -2,6 +2,7 @@
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_ui.py [--minutes 5] [--nodes 2] [--sources 6] [--fps 60] [--quick]
     PYTHONPATH=. .venv/bin/python benchmarks/bench_ui.py --fleet --nodes 64 --sources 4 --fps 30 [--minutes 5] [--open-minutes 1]
+    PYTHONPATH=. .venv/bin/python benchmarks/bench_ui.py --follow-cpu [--nodes 2 --sources 3 --fps 30 --period 20]
 
 A relay (``python -m dcuscope.relay``) is fed by simulated nodes (``probes.ship.simnode --paced``: every event
 shipped when its time comes), by default 2 DCUs x 6 sources x 60 fps = 720 frames/s, 8,640
@@ -30,6 +31,12 @@ saturates starves Chromium's frames whatever the page does: these tell which it 
 - ``all``: a fresh page on ``?open=*``, every DCU drawn as before the overview, for
   ``--open-minutes``: reported beside the others, no verdict (``--no-all`` leaves it out).
 
+With ``--follow-cpu`` the page follows every DCU live in the stage view, redrawing every animation
+frame (the page before its redraws were capped: ``dcuscope.setFollowRedrawMs(0)``) and then as it
+does (at most every FOLLOW_REDRAW_MS of ui/static/app.js), ``--period`` s each after ``--warmup``
+s, on one page; it prints the draws/s and the CPU Chromium used in each (cores, and the renderer's
+and GPU process's shares) side by side. It passes when the page draws at >= 10/s as it does.
+
 Every simulated node connects from 127.0.0.1, so the relay is started as bench_relay.py starts
 it, with its per-address connection cap raised (else 16 nodes leave the browser no connection).
 Without Chromium or Playwright, or when the page does not load, it says so in one line and
@@ -42,6 +49,7 @@ import argparse
 import os
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -139,6 +147,22 @@ class CpuMeter:
         return {"chromium": browser, "load": load, "busy": (sum(cpu) - idle) / self.tick, "total": sum(cpu) / self.tick}
 
 
+def chromium_cpu_s(cpu: "CpuMeter") -> dict[str, float]:
+    """CPU seconds used so far by each kind of Chromium process (``--type=``: renderer, gpu-process,
+    utility; the browser itself without one), summed."""
+    out: dict[str, float] = {}
+    for pid, name in cpu.descendants().items():
+        if not name.startswith(("chrom", "headless")):
+            continue
+        try:
+            cmdline = Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+        except OSError:
+            continue
+        kind = next((w[len("--type="):] for w in cmdline.split() if w.startswith("--type=")), "browser")
+        out[kind] = out.get(kind, 0.0) + cpu.cpu_s(pid)
+    return out
+
+
 def cpu_rates(now: dict, before: dict, dt: float) -> dict:
     """Cores used over ``dt`` s by Chromium and by the load, and the machine's busy share (%)."""
     if not now or not before or dt <= 0:
@@ -221,6 +245,71 @@ def watch(playwright, url: str, args: argparse.Namespace, errors: list[str]) -> 
     measure(page, max(1, round(args.minutes * 60 / args.period)), args.period, samples)
     browser.close()
     return samples
+
+
+# --- --follow-cpu: the page following live, redrawn every animation frame and capped ----------------
+
+FOLLOW_MIN_DRAWS = 10.0
+"""A page following live draws at least this often (draws/s) to look live (tests/ui/test_browser.py too)."""
+FOLLOW_MODES = [("every frame", 0), ("capped", None)]
+"""The redraw modes measured: a name and setFollowRedrawMs's argument (None: the page's own)."""
+
+
+def follow_state(page, cpu: CpuMeter, seconds: float) -> dict:
+    """Draws/s and cores of Chromium (all, renderer, GPU process) over ``seconds`` s of ``page``."""
+    draws0, k0, t0 = page.evaluate("() => window.dcuscope.debug().draws"), chromium_cpu_s(cpu), time.monotonic()
+    page.wait_for_timeout(seconds * 1000)
+    draws1, k1, t1 = page.evaluate("() => window.dcuscope.debug().draws"), chromium_cpu_s(cpu), time.monotonic()
+    dt = t1 - t0
+    used = {k: v - k0.get(k, 0.0) for k, v in k1.items()}
+    return {"seconds": dt, "draws_per_s": (draws1 - draws0) / dt, "chromium_cores": sum(used.values()) / dt,
+            "renderer_cores": used.get("renderer", 0.0) / dt, "gpu_cores": used.get("gpu-process", 0.0) / dt}
+
+
+FOLLOW_ROWS = [("draws/s", "draws_per_s", ".1f"), ("Chromium CPU, cores", "chromium_cores", ".2f"),
+               ("  renderer", "renderer_cores", ".2f"), ("  GPU process", "gpu_cores", ".2f")]
+
+
+def follow_table(states: dict[str, dict]) -> list[str]:
+    """The states side by side, one line per figure."""
+    width = max(len(r[0]) for r in FOLLOW_ROWS)
+    lines = [f"{'':{width}} " + " ".join(f"{name:>12}" for name in states)]
+    for label, key, spec in FOLLOW_ROWS:
+        lines.append(f"{label:{width}} " + " ".join(f"{fmt(st[key], spec):>12}" for st in states.values()))
+    return lines
+
+
+def follow_cpu(playwright, url: str, args: argparse.Namespace, errors: list[str]) -> dict[str, dict]:
+    """The page following every DCU in each FOLLOW_MODES mode in turn (the module's docstring)."""
+    browser = launch_chromium(playwright)
+    page, _ = open_page(browser, url + "/?open=*", errors)
+    print(f"load: {args.nodes} nodes x {args.sources} sources x {args.fps:g} fps = "
+          f"{args.nodes * args.sources * args.fps:g} frames/s; warm-up {args.warmup:g} s, {args.period:g} s a mode",
+          flush=True)
+    page.wait_for_function("(n) => Object.values(window.dcuscope.debug().stores).filter((s) => s.received > 0)"
+                           ".length >= n", arg=args.nodes, timeout=120_000)
+    page.wait_for_timeout(args.warmup * 1000)
+    cpu, states = CpuMeter(), {}
+    default = page.evaluate("() => window.dcuscope.debug().followRedrawMs")
+    for name, ms in FOLLOW_MODES:
+        page.evaluate("(ms) => window.dcuscope.setFollowRedrawMs(ms)", default if ms is None else ms)
+        page.wait_for_timeout(1000)
+        states[name] = follow_state(page, cpu, args.period)
+        print(f"{name}: {states[name]['draws_per_s']:.1f} draws/s, {states[name]['chromium_cores']:.2f} cores", flush=True)
+    browser.close()
+    return states
+
+
+def report_follow(states: dict[str, dict], errors: list[str]) -> int:
+    for line in follow_table(states):
+        print(line)
+    capped, every = states["capped"], states["every frame"]
+    saved = 1 - capped["chromium_cores"] / every["chromium_cores"] if every["chromium_cores"] > 0 else float("nan")
+    ok = capped["draws_per_s"] >= FOLLOW_MIN_DRAWS and not errors
+    print(f"{'PASS' if ok else 'FAIL'}: capped draws >= {FOLLOW_MIN_DRAWS:g}/s: {capped['draws_per_s']:.1f}; "
+          f"Chromium CPU {every['chromium_cores']:.2f} -> {capped['chromium_cores']:.2f} cores ({100 * saved:.0f} % less)"
+          f"{'' if not errors else f'; page errors: {len(errors)}'}")
+    return 0 if ok else 1
 
 
 # --- --fleet: the overview, one DCU opened from it, every DCU ------------------------------------
@@ -341,10 +430,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=5.0, help="measured time (after warm-up)")
     parser.add_argument("--nodes", type=int, default=2)
-    parser.add_argument("--sources", type=int, default=6)
-    parser.add_argument("--fps", type=float, default=60.0, help="frames per second per source")
-    parser.add_argument("--warmup", type=float, default=20.0, help="seconds before the first sample")
-    parser.add_argument("--period", type=float, default=10.0, help="seconds per sample")
+    parser.add_argument("--sources", type=int, help="per node (default 6; --follow-cpu: 3)")
+    parser.add_argument("--fps", type=float, help="frames per second per source (default 60; --follow-cpu: 30)")
+    parser.add_argument("--warmup", type=float, help="seconds before the first sample (default 20; --follow-cpu: 5)")
+    parser.add_argument("--period", type=float, help="seconds per sample (default 10; --follow-cpu: 20, a mode)")
     parser.add_argument("--json", type=Path, help="write the samples and summary here")
     parser.add_argument("--quick", action="store_true",
                         help="a smoke test: 1 node x 2 sources x 30 fps, 1 s warm-up, two 1 s periods")
@@ -353,7 +442,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--open-minutes", type=float, default=1.0, help="--fleet: measured time of the one and all states")
     parser.add_argument("--heap-period", type=float, default=30.0, help="--fleet: seconds per sample of the overview")
     parser.add_argument("--no-all", action="store_true", help="--fleet: leave out the state with every DCU opened")
+    parser.add_argument("--follow-cpu", action="store_true",
+                        help="Chromium's CPU following live, redrawn every animation frame and as the page does")
     args = parser.parse_args(argv)
+    defaults = {"sources": 3, "fps": 30.0, "warmup": 5.0, "period": 20.0} if args.follow_cpu else \
+        {"sources": 6, "fps": 60.0, "warmup": 20.0, "period": 10.0}
+    for key, value in defaults.items():
+        if getattr(args, key) is None:
+            setattr(args, key, value)
+    if args.follow_cpu:
+        args.minutes = (len(FOLLOW_MODES) * (args.period + 1)) / 60
     if args.quick:
         args.nodes, args.sources, args.fps, args.warmup, args.period = 1, 2, 30.0, 1.0, 1.0
         args.minutes = 2 * args.period / 60
@@ -382,7 +480,9 @@ def main(argv: list[str] | None = None) -> int:
                            paced=True)
         try:
             with sync_playwright() as playwright:
-                if args.fleet:
+                if args.follow_cpu:
+                    states = follow_cpu(playwright, relay.url, args, errors)
+                elif args.fleet:
                     states = fleet(playwright, relay.url, args, errors)
                 else:
                     samples = watch(playwright, relay.url, args, errors)
@@ -392,6 +492,8 @@ def main(argv: list[str] | None = None) -> int:
             feeder.stop()
             relay.stop()
 
+    if args.follow_cpu:
+        return report_follow(states, errors)
     if args.fleet:
         return report_fleet(states, errors, args)
     summary = summarise(samples, errors)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from benchmarks.bench_ui import summarise
+from benchmarks.bench_ui import follow_table, summarise
 from benchmarks.figures import NA
 from tests.benchmarks.smoke import assert_cannot_run, assert_ran, run_benchmark
 from tests.ui.helpers import CHROMIUM
@@ -40,3 +40,13 @@ def test_without_a_measured_period_the_rates_are_n_a_with_the_reason():
     rates = ("min_fps", "mean_fps", "max_draw_ms_mean", "frames_per_s_in")
     assert [summary[key] for key in rates] == [none] * 4
     assert summary["heap_start_mib"] == summary["heap_end_mib"] == 25.0
+
+
+def test_follow_cpu_prints_the_modes_side_by_side():
+    """--follow-cpu's table (its run takes a minute: measured by hand, BENCHMARKS.md)."""
+    state = {"seconds": 20.0, "draws_per_s": 60.0, "chromium_cores": 0.49, "renderer_cores": 0.38, "gpu_cores": 0.09}
+    lines = follow_table({"every frame": state, "capped": dict(state, draws_per_s=30.0, chromium_cores=0.33)})
+    assert lines[0].split() == ["every", "frame", "capped"]
+    assert lines[1].split() == ["draws/s", "60.0", "30.0"]
+    assert lines[2].split() == ["Chromium", "CPU,", "cores", "0.49", "0.33"]
+    assert [line.split()[0] for line in lines[3:]] == ["renderer", "GPU"]

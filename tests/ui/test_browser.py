@@ -109,6 +109,24 @@ def debug_with_panel_text(page) -> dict:
     return page.evaluate(PANEL_TEXT_JS)
 
 
+DRAW_RATE_JS = """async (ms) => {
+  const draws = window.dcuscope.debug().draws;
+  const t0 = performance.now();
+  let frames = 0;
+  await new Promise((done) => {
+    const tick = () => {
+      frames++;
+      if (performance.now() - t0 < ms) requestAnimationFrame(tick);
+      else done();
+    };
+    requestAnimationFrame(tick);
+  });
+  const d = window.dcuscope.debug();
+  return {draws: d.draws - draws, frames, ms: performance.now() - t0, cap: d.followRedrawMs};
+}"""
+"""The page's draws and animation frames over ``ms`` ms, and its least ms between the redraws of a following view."""
+
+
 def has_all_bars(d: dict) -> bool:
     bars = d["stage"]["bars"]
     return all(all(bars.get(n, {}).get(s, 0) > 0 for s in FIVE) for n in NODES)
@@ -119,6 +137,13 @@ def test_stage_view_shows_both_dcus_in_the_stage_colours(live):
     d = wait_for(lambda: (lambda d: d if has_all_bars(d) else None)(debug(page)), 120, 0.5,
                  "bars of the five stages of both DCUs")
     assert d["transport"] == "socket.io" and d["mode"] == "live" and not d["paused"]
+    # Following the streaming DCUs, the view redraws often enough to look live, but not every animation
+    # frame (app.js FOLLOW_REDRAW_MS, 30 ms; every frame cost Chromium 0.5 core): at least
+    # 10 draws/s, or, on a machine that gives Chromium fewer animation frames, most of those it gets.
+    rate = page.evaluate(DRAW_RATE_JS, 1000)
+    per_s = 1000 * rate["draws"] / rate["ms"]
+    assert per_s >= min(10, 0.8 * 1000 * rate["frames"] / rate["ms"]), rate
+    assert rate["cap"] >= 30 and rate["draws"] <= rate["ms"] / rate["cap"] + 2, rate
     for stage, colour in FIVE.items():
         assert d["colours"][stage] == colour
     legend = page.locator("#legend .legend-item").all_inner_texts()

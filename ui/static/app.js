@@ -25,6 +25,14 @@ const MAX_WIDTH_MS = 3 * 3600 * 1000;
 const PANEL_REFRESH_MS = 500;
 const OVERVIEW_REFRESH_MS = 1000;
 const EMPTY_REDRAW_MS = 500; // a live view with no frames to draw: only its axis moves, twice a second is plenty
+// A view that scrolls by itself (following the live edge, or a session playing) or takes new frames
+// redraws at most every FOLLOW_REDRAW_MS: every other animation frame at 60 Hz (every fourth at 120 Hz,
+// fifth at 144 Hz), about 30 draws a second. Redrawn every animation frame, a page following 2 streaming
+// DCUs cost headless Chromium 0.49 core; capped, 0.33 (benchmarks/bench_ui.py --follow-cpu). The 5 s
+// wide view moves ~10 px a draw instead of ~5: it still reads as scrolling live, and new frames show at
+// most 30 ms later. What a person does (a zoom, a drag, a click, the pointer's tooltip) sets view.dirty
+// or mouse.fresh and still draws on the next animation frame.
+const FOLLOW_REDRAW_MS = 30;
 const TIP_MARGIN = 4; // px between the tooltip and the viewport's edges
 const STAGE_NAMES = { mux: "frame collection", infer: "neural network", tiler: "collage", convert: "post-processing", osd: "on-screen display" };
 
@@ -52,7 +60,7 @@ const live = new Dataset("live");
 let current = live;
 const view = {
   follow: true, width: DEFAULT_WIDTH_MS, end: Date.now(), limit: null, perSource: false, expanded: new Set(), raw: false,
-  tab: "stage", windowed: false, frameCount: 75, dirty: true, panelsDirty: true, openGaps: new Set(), openNodes: new Set(),
+  tab: "stage", windowed: false, frameCount: 75, dirty: true, fresh: false, panelsDirty: true, openGaps: new Set(), openNodes: new Set(),
 };
 let skewSamples = [];
 let skew = 0;
@@ -212,7 +220,7 @@ function ingest(ds, node, block, capacity = LIVE_CAPACITY) {
   }
   if (store.ingest(block)) {
     for (const s of store.lanes) colours.get(store.stages[s]);
-    if (ds === current) view.dirty = true;
+    if (ds === current) view.fresh = true; // drawn with the next capped redraw (FOLLOW_REDRAW_MS)
   }
 }
 
@@ -254,7 +262,7 @@ const feed = new LiveFeed(api, {
     if (!isOpen(node)) return;
     live.stats.set(node, stats);
     if (current === live) view.panelsDirty = true;
-    if (current === live && view.tab === "frame") view.dirty = true; // the counts' p99 hint
+    if (current === live && view.tab === "frame") view.fresh = true; // the counts' p99 hint
   },
   overview(msg, keepMs) {
     fleet.merge(msg?.rows, Date.now(), keepMs);
@@ -635,7 +643,8 @@ const perf = {
 let lastTs = null;
 let panelsAt = -Infinity; // not 0: requestAnimationFrame's clock starts at 0 as the page loads
 let drawnAt = -Infinity;
-let draws = 0; // the views drawn (debug: an idle page draws twice a second, not every animation frame)
+let draws = 0; // the views drawn (debug: an idle page draws twice a second, a following one ~30 times, not every animation frame)
+let followRedrawMs = FOLLOW_REDRAW_MS; // window.dcuscope.setFollowRedrawMs: a benchmark's 0 draws every animation frame
 
 function updateLegend() {
   const entries = colours.entries();
@@ -679,13 +688,16 @@ function frame(ts) {
     }
   }
   const t0 = performance.now();
-  // Following the live edge redraws every animation frame while there are frames to scroll; with
-  // none (no DCU opened, or none has sent any), a redraw a frame cost an idle page a quarter of a core.
+  // Following the live edge redraws at most every FOLLOW_REDRAW_MS while there are frames to scroll
+  // (new frames likewise); with none (no DCU opened, or none has sent any), only every EMPTY_REDRAW_MS:
+  // a redraw a frame cost an idle page a quarter of a core. A person's input draws at once.
   const empty = current === live && live.stores.size === 0;
-  if (view.dirty || mouse?.fresh || (view.follow && (!empty || ts - drawnAt >= EMPTY_REDRAW_MS))) {
+  const since = ts - drawnAt;
+  if (view.dirty || mouse?.fresh || ((view.fresh || view.follow) && since >= (empty ? EMPTY_REDRAW_MS : followRedrawMs))) {
     drawnAt = ts;
     draws += 1;
     view.dirty = false;
+    view.fresh = false;
     if (view.tab === "stage") stageView.draw(view.end - view.width, view.end);
     else if (view.tab === "frame") frameView.draw(view.end, view.frameCount);
     updateTooltip();
@@ -803,11 +815,15 @@ window.dcuscope = {
       stats: Object.fromEntries(current.stats), nodes: [...current.nodes.values()],
       overview: { ...overviewTable.last, count: $("#overview-count").textContent, filter: overviewTable.filter },
       opened: choice === OPEN_ALL ? OPEN_ALL : [...opened].sort(), chosen: choice !== null,
-      subscription: feed.subscribed, liveStores: [...live.stores.keys()].sort(), draws,
+      subscription: feed.subscribed, liveStores: [...live.stores.keys()].sort(), draws, followRedrawMs,
     };
   },
   perf: (lastMs) => perf.summary(lastMs),
   setLimit,
+  /** Benchmarks: the least ms between the redraws of a following view (0: every animation frame, as before FOLLOW_REDRAW_MS). */
+  setFollowRedrawMs(ms) {
+    followRedrawMs = ms;
+  },
 };
 
 setClockMode(false);
