@@ -20,7 +20,7 @@ documents are assembled into Markdown like the paper's (a table per bitrate, and
 table) on stdout and in ``--out``.
 
 Gone with issue 49: ``--repeat`` (capacity's 95 % intervals say how far a figure holds),
-``--all-streams``, ``--frames``, ``--bitrates-at``, ``--keep-traces`` (run capacity on a written
+``--frames``, ``--bitrates-at``, ``--keep-traces`` (run capacity on a written
 config) and the OpenCV plot (capacity draws with matplotlib).
 """
 
@@ -182,10 +182,13 @@ def series(kinds, rates, bitrates) -> list[tuple[str, int, int]]:
     return [(k, f, b) for b in bitrates for k in kinds for f in rates]
 
 
-def capacity_command(config: Path, kind: str, args: argparse.Namespace, report: Path, plot: Path | None) -> list[str]:
+def capacity_command(config: Path, kind: str, args: argparse.Namespace, report: Path, plot: Path | None,
+                     bitrate: int = BITRATES[0]) -> list[str]:
+    """The capacity run of one series; RTSP streams are served at the series' bitrate."""
     return ([sys.executable, "-m", "dcuscope.cli", "capacity", str(config), "--max-streams", str(args.max_streams),
              "--duration", f"{args.duration:g}", "--warmup", f"{args.warmup:g}", "--json", "-o", str(report)]
-            + (["--rtsp"] if kind != "file" else []) + (["--plot", str(plot)] if plot else []))
+            + (["--rtsp", "--rtsp-bitrate", str(bitrate)] if kind != "file" else [])
+            + (["--all-streams"] if args.all_streams else []) + (["--plot", str(plot)] if plot else []))
 
 
 # -- report (pure) -----------------------------------------------------------------------------
@@ -302,6 +305,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     p.add_argument("--rates", type=_ints, default=list(RATES), help="clip frame rates (default 30,60)")
     p.add_argument("--bitrates", type=_ints, default=list(BITRATES), help="clip bitrates, kbit/s (default 3982,4971,7955)")
     p.add_argument("--max-streams", type=int, default=4, help="highest stream count (default 4)")
+    p.add_argument("--all-streams", action="store_true", help="every count up to --max-streams, past the first that "
+                                                              "does not keep 90 %% of the rate (capacity --all-streams)")
     p.add_argument("--duration", type=float, help="seconds per stream count (default 20)")
     p.add_argument("--warmup", type=float, help="seconds of frames left out at the start of each (default 5)")
     p.add_argument("--clip-seconds", type=int, default=10, help="length of the clips made (default 10)")
@@ -375,7 +380,7 @@ def main(argv: list[str] | None = None) -> int:
         report.unlink(missing_ok=True)
         plot = args.plot and args.plot.with_name(f"{args.plot.stem}-{kind}-{fps}-{bitrate}{args.plot.suffix or '.png'}")
         log(f"[series {n}/{len(plan)}] {kind} {fps} fps {bitrate} kbit/s: dcuscope capacity {config.name}")
-        proc = subprocess.Popen(capacity_command(config, kind, args, report, plot), cwd=ROOT, stdout=subprocess.DEVNULL,
+        proc = subprocess.Popen(capacity_command(config, kind, args, report, plot, bitrate), cwd=ROOT, stdout=subprocess.DEVNULL,
                                 env={**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])})
         try:
             code = proc.wait()

@@ -79,6 +79,11 @@ def add_capacity_parser(sub) -> None:
     p.add_argument("--rtsp", action="store_true",
                    help="serve the file sources as live RTSP streams on loopback (dcuscope serve-rtsp, on this "
                         "machine: its CPU is reported) instead of playing the files")
+    p.add_argument("--all-streams", action="store_true",
+                   help="go on to --max-streams past the first count that does not pass (every count's figures, as "
+                        "the paper's tables; the capacity is still the last count of the passing run from 1)")
+    p.add_argument("--rtsp-bitrate", type=int, default=4000, metavar="KBPS",
+                   help="--rtsp: the H.264 bitrate the streams are served at (default %(default)d kbit/s)")
     p.add_argument("--predict", action="store_true", help="run 1 and 2 streams only, and predict the capacity from them")
     out = p.add_mutually_exclusive_group()
     out.add_argument("--json", action="store_true", help="print the whole report as one JSON object")
@@ -109,6 +114,8 @@ def _checked(args: argparse.Namespace):
         raise UsageError("--fps-floor is a percentage of the source's rate: more than 0, at most 100")
     if args.duration <= 0 or args.warmup < 0 or args.warmup >= args.duration:
         raise UsageError(f"--warmup ({args.warmup:g} s) must leave part of --duration ({args.duration:g} s) to measure")
+    if args.rtsp_bitrate < 1:
+        raise UsageError("--rtsp-bitrate must be at least 1 kbit/s")
     if args.predict and args.max_streams < 2:
         raise UsageError("--predict runs 1 and 2 streams: --max-streams must be at least 2")
     if args.plot is not None:
@@ -120,7 +127,9 @@ def _checked(args: argparse.Namespace):
     check_replicable(config, args.rtsp)
     return Plan(config_file=file, config=config, max_streams=args.max_streams, slos=slos,
                 fps_floor=args.fps_floor / 100, duration=args.duration, warmup=args.warmup,
-                keep_batch=args.keep_batch, rtsp=args.rtsp, counts=[1, 2] if args.predict else [])
+                keep_batch=args.keep_batch, rtsp=args.rtsp, rtsp_bitrate=args.rtsp_bitrate,
+                counts=[1, 2] if args.predict else list(range(1, args.max_streams + 1)),
+                past_failure=args.predict or args.all_streams)
 
 
 def run_capacity(args: argparse.Namespace) -> int:
@@ -137,7 +146,7 @@ def run_capacity(args: argparse.Namespace) -> int:
 
     doc = {"plan": {"config": str(args.config), "duration_s": plan.duration, "warmup_s": plan.warmup,
                     "max_streams": plan.max_streams, "fps_floor_pct": args.fps_floor, "keep_batch": plan.keep_batch,
-                    "rtsp": plan.rtsp, "predict_only": args.predict, "date": time.strftime("%Y-%m-%d %H:%M %Z")},
+                    "rtsp": plan.rtsp, "all_streams": args.all_streams, "predict_only": args.predict, "date": time.strftime("%Y-%m-%d %H:%M %Z")},
            "bounds": [f"fps ≥ {args.fps_floor:g} % of the source's rate"] + [s.short() for s in plan.slos],
            "counts": [], "prediction": None, "capacity": None, "answer": None, "notes": _notes(plan)}
 
@@ -160,7 +169,7 @@ def run_capacity(args: argparse.Namespace) -> int:
             stopped or "the runs at 1 and 2 streams did not both give figures")
     else:
         doc["capacity"], doc["answer"] = answer(doc["counts"], plan.max_streams, stopped)
-        undecided = any(c["outcome"] not in (HOLDS, FAILS) for c in counts) or any(c["error"] for c in counts)
+        undecided = doc["capacity"] is None or any(c["outcome"] not in (HOLDS, FAILS) for c in counts[:doc["capacity"] + 1])
     _write(args.output, doc)
     if args.plot is not None and doc["counts"]:
         from dcuscope.capacity.plot import draw

@@ -4,15 +4,16 @@ The first ``warmup`` seconds of frames are left out (model load, the first batch
 Intervals come from :mod:`dcuscope.probes.trace.bootstrap`, as compare's do: the frames of a run are
 resampled in blocks of consecutive frames, so that their correlation is kept.
 
-- Frames/s per stream: for each stream, 1 / the mean gap between the origins of its frames that
-  reached the sink; its interval from the gaps' block bootstrap. The stream that keeps the
+- Frames/s per stream: for each stream, its frames that reached the sink counted per second
+  (:func:`slowest_stream_fps`); its interval from the block bootstrap of the counts. The stream that keeps the
   smallest share of its nominal rate is what a floor is checked against (every camera must keep
   its rate); the mean over the streams is the paper's figure.
 - End to end: the frame delay (origin to sink) of complete frames: mean (the paper's A = S/n),
   p50, p95, p99, each with its interval.
 - Each stage's mean delay, service and wait (delay = service + wait), and utilization (busy
   fraction of the run); the limiting stage (:func:`dcuscope.probes.trace.delays.bottleneck`).
-- Frames dropped after the warm-up, by reason, and frames lost before the mux.
+- Frames dropped after the warm-up, by reason, and frames lost before the mux (not those still
+  queued when the run was ended: the search ends it, not the pipeline).
 """
 
 from __future__ import annotations
@@ -33,6 +34,10 @@ QUANTILES = (50, 95, 99)
 FIGURES = ("mean",) + tuple(f"p{q}" for q in QUANTILES)
 RESAMPLES = 1000
 LEVEL = 0.95
+RATE_BINS = (8, 30)
+"""Bins a stream's frames are counted in (one a second, at least 8, at most 30) for its rate's interval."""
+NOT_DROPS = {"stopped"}
+"""Drop reasons that are not the pipeline's: frames still queued when the run was ended."""
 
 
 def after_warmup(events: np.ndarray, warmup_s: float) -> np.ndarray:
@@ -115,6 +120,8 @@ def measure(trace: Trace, streams: int, warmup_s: float, seed: int = 0, resample
     dropped: dict[str, int] = {}
     for src in stats["sources"].values():
         for reason, n in src["dropped"].items():
+            if reason in NOT_DROPS:
+                continue
             dropped[reason] = dropped.get(reason, 0) + n
         for reason in ("lost_upstream", "decoder_dropped"):
             if src[reason]:
@@ -132,26 +139,35 @@ def measure(trace: Trace, streams: int, warmup_s: float, seed: int = 0, resample
 def slowest_stream_fps(fd, sources: dict[str, dict], rng: np.random.Generator,
                        resamples: int) -> tuple[Estimate | None, float | None]:
     """(frames/s, nominal rate) of the stream that keeps the smallest share of its nominal rate (of
-    the fewest frames/s when rates are unknown), its interval that of 1 / its mean origin gap;
-    (None, its rate) when a stream brought fewer than 3 frames through."""
+    the fewest frames/s when rates are unknown), with its interval; (None, its rate) when a stream
+    brought fewer than 3 frames through.
+
+    The rate is (n - 1) / the span of the stream's n complete frames; its interval is the block
+    bootstrap's of the mean of the frames counted in equal bins of that span (:data:`RATE_BINS`). Counting, not timing the gaps between frames: a live stream that comes in bursts
+    (a jitter buffer, a batch) at a steady rate has gaps that swing widely, short after long,
+    while its count per bin hardly moves."""
     table, complete = fd.table, fd.chains.complete
     worst = None
     for sid in sorted(int(s) for s in sources):
         nominal = sources[str(sid)]["nominal_fps"]
-        origin = np.sort(table.origin[complete & (table.source == sid)]).astype(np.float64)
+        origin = np.sort(table.origin[complete & (table.source == sid)]).astype(np.float64) / 1e9
         if len(origin) < 3:
             return None, nominal
-        gaps = np.diff(origin) / 1e9
-        fps = 1.0 / gaps.mean()
+        span = origin[-1] - origin[0]
+        if span <= 0:
+            return None, nominal
+        bins = int(np.clip(np.floor(span), *RATE_BINS))
+        counts = np.histogram(origin, bins=bins, range=(origin[0], origin[-1]))[0] * bins / span
+        fps = (len(origin) - 1) / span  # n frames mark n - 1 intervals (delays.fps_by_source)
         share = fps / nominal if nominal else fps
         if worst is None or share < worst[0]:
-            worst = (share, fps, gaps, nominal)
+            worst = (share, fps, counts, nominal)
     if worst is None:
         return None, None
-    _, fps, gaps, nominal = worst
-    r = resample(gaps, rng, resamples)
-    low_gap, high_gap = interval(r, "mean", LEVEL)
-    return Estimate(fps, 1.0 / high_gap, 1.0 / low_gap), nominal
+    _, fps, counts, nominal = worst
+    low, high = interval(resample(counts, rng, resamples), "mean", LEVEL)
+    shift = fps - counts.mean()  # the bins count the last frame's interval too: centre on the estimate
+    return Estimate(fps, low + shift, high + shift), nominal
 
 
 def stage_estimate(figures: CountFigures, stage: str, kind: str, figure: str, seed: int = 0,

@@ -73,7 +73,7 @@ def draw(doc: dict, path: Path) -> None:
     ax.legend(handles + h2, labels + l2, loc="upper left", fontsize=8, framealpha=0.9)
     title = f"dcuscope capacity: {Path(doc['plan']['config']).name}"
     if doc.get("answer"):
-        title += f" — capacity {doc['capacity']}" if doc.get("capacity") is not None else ""
+        title += f" — capacity {doc['capacity'] if doc.get('capacity') is not None else 'unknown'}"
     ax.set_title(title)
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -8,6 +8,7 @@ undecided ends the search too: the counts above it would rest on it.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -16,6 +17,8 @@ import sys
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from urllib.parse import urlparse
+from urllib.request import url2pathname
 from typing import Callable
 
 from dcuscope.capacity.measure import measure
@@ -41,34 +44,31 @@ class Plan:
     warmup: float
     keep_batch: bool = False
     rtsp: bool = False
+    rtsp_bitrate: int = 4000
     workdir: Path = Path(".")
     counts: list[int] = field(default_factory=list)
-    """The counts to run in order (default 1..max_streams)."""
+    """The counts to run, in order."""
+    past_failure: bool = False
+    """Run every count of ``counts`` (--all-streams, --predict), not only up to the first that does not pass."""
 
 
-def run_count(plan: Plan, streams: int, say: Callable[[str], None]) -> dict:
+def run_count(plan: Plan, streams: int) -> dict:
     """One count: its process, its trace measured, its bounds checked; the count's document."""
     trace = plan.workdir / f"streams-{streams}.trace.jsonl"
     spec = {"config": str(plan.config_file), "streams": streams, "keep_batch": plan.keep_batch,
             "trace": str(trace), "duration": plan.duration}
     doc: dict = {"streams": streams, "error": None, "cpu_cores": None, "server_cores": None}
-    server = None
-    if plan.rtsp:
-        from dcuscope.capacity.rtspserve import RtspServer
-
-        clips = [Path(plan.config.sources[i % len(plan.config.sources)].location.removeprefix("file://"))
-                 for i in range(streams)]
-        server = RtspServer(clips).__enter__()
-        rate = source_rate(plan.config)
-        spec["rtsp_uris"] = server.uris
-        spec["mux_timeout_us"] = int(1e6 / float(rate)) if rate else 33_333
     started = time.monotonic()
     try:
-        result = _child(spec, plan.workdir / f"streams-{streams}.json", plan.duration)
-    finally:
-        if server is not None:
-            server.__exit__()
-            doc["server_cores"] = server.cores
+        with _served(plan, streams) as server:
+            if server is not None:
+                rate = source_rate(plan.config)
+                spec["rtsp_uris"] = server.uris
+                spec["mux_timeout_us"] = int(1e6 / float(rate)) if rate else 33_333  # one frame period
+            result = _child(spec, plan.workdir / f"streams-{streams}.json", plan.duration)
+        doc["server_cores"] = server.cores if server is not None else None
+    except RuntimeError as exc:  # serve-rtsp did not start
+        result = {"error": str(exc)}
     doc["wall_s"] = time.monotonic() - started
     if result.get("bad_input"):
         raise UsageError(result["error"])
@@ -88,6 +88,17 @@ def run_count(plan: Plan, streams: int, say: Callable[[str], None]) -> dict:
     doc.update(outcome=FAILS if doc["error"] else outcome(checks), checks=[asdict(c) for c in checks],
                figures=figures.to_json(), limiting=figures.limiting, rate_fps=rate)
     return doc
+
+
+def _served(plan: Plan, streams: int):
+    """``--rtsp``: the streams of this count served live (stream i plays file source i mod their number)."""
+    if not plan.rtsp:
+        return contextlib.nullcontext()
+    from dcuscope.capacity.rtspserve import RtspServer
+
+    sources = plan.config.sources
+    files = [Path(url2pathname(urlparse(sources[i % len(sources)].location).path)) for i in range(streams)]
+    return RtspServer(files, plan.rtsp_bitrate)
 
 
 def cpu_cores(samples: list, trace, warmup_s: float) -> float | None:
@@ -139,16 +150,15 @@ def search(plan: Plan, say: Callable[[str], None], on_count: Callable[[dict], No
     """Run the plan's counts until one does not pass; (the counts' documents, why it stopped early)."""
     check_replicable(plan.config, plan.rtsp)
     counts: list[dict] = []
-    todo = plan.counts or list(range(1, plan.max_streams + 1))
-    for streams in todo:
+    for streams in plan.counts:
         say(f"{streams} stream{'s' if streams != 1 else ''}: running {plan.duration:g} s "
             f"({plan.warmup:g} s warm-up left out)")
         try:
-            doc = run_count(plan, streams, say)
+            doc = run_count(plan, streams)
         except KeyboardInterrupt:
             return counts, f"stopped by Ctrl-C during {streams} stream{'s' if streams != 1 else ''}"
         counts.append(doc)
         on_count(doc)
-        if doc["outcome"] != HOLDS and not plan.counts:
+        if doc["outcome"] != HOLDS and not plan.past_failure:
             break
     return counts, None

@@ -115,15 +115,18 @@ def outcome(checks: list[Check]) -> str:
     return FAILS if FAILS in found else UNDECIDED if UNDECIDED in found else HOLDS
 
 
-def answer(counts: list[dict], max_streams: int, stopped: str | None = None) -> tuple[int, str]:
+def answer(counts: list[dict], max_streams: int, stopped: str | None = None) -> tuple[int | None, str]:
     """(capacity, the one-line answer) from the counts' documents, in order (each with ``streams``,
-    ``outcome``, ``checks`` and ``limiting``); ``stopped`` says why the search ended early (Ctrl-C)."""
+    ``outcome``, ``checks`` and ``limiting``); ``stopped`` says why the search ended early (Ctrl-C).
+    The capacity is None when not even 1 stream was decided (undecided, a run that failed, or none run)."""
     passed = 0
     for c in counts:
         if c["outcome"] != HOLDS:
             break
         passed = c["streams"]
-    head = f"capacity {passed} stream{'s' if passed != 1 else ''}"
+    first = counts[0] if counts else None
+    unknown = first is None or (first["outcome"] != HOLDS and (first["outcome"] == UNDECIDED or not first["checks"]))
+    head = "capacity unknown" if unknown else f"capacity {passed} stream{'s' if passed != 1 else ''}"
     if passed:
         held = next(c for c in counts if c["streams"] == passed)
         head += f": {' and '.join(ch['what'] for ch in held['checks'])} hold at {passed} with 95 % confidence"
@@ -140,6 +143,8 @@ def answer(counts: list[dict], max_streams: int, stopped: str | None = None) -> 
         tail = f"at {passed + 1} " + "; ".join(f"{ch['what'].split(' (')[0]} fails ({ch['detail']})" for ch in failed)
         neck = nxt.get("limiting")
         if neck and neck.get("utilization") is not None:
-            util = neck["thread_utilization"] if neck.get("thread_utilization") else neck["utilization"]
-            tail += f"; {neck['stage']} {'saturates' if neck.get('saturated') else 'limits'} (utilization {util:.0%})"
-    return passed, head + (f"; {tail}" if tail else "")
+            thread = neck.get("thread_utilization")
+            shared = f", its thread {thread:.0%}" if thread is not None and thread >= neck["utilization"] + 0.005 else ""
+            tail += (f"; {neck['stage']} {'saturates' if neck.get('saturated') else 'limits'} "
+                     f"(utilization {neck['utilization']:.0%}{shared})")
+    return None if unknown else passed, head + (f"; {tail}" if tail else "")

@@ -52,10 +52,10 @@ def test_series_are_bitrate_major_and_the_quick_run_keeps_a_given_duration(tmp_p
     assert (quick.bitrates, quick.rates, quick.max_streams, quick.duration, quick.warmup) == ([3982], [30], 2, 8.0, 3.0)
     args = parse_args(["--quick", "--duration", "10", "--max-streams", "3"])
     assert (args.duration, args.warmup, args.max_streams) == (10.0, 3.0, 2)
-    cmd = capacity_command(tmp_path / "c.yaml", "rtsp-late", args, tmp_path / "c.json", tmp_path / "c.png")
+    cmd = capacity_command(tmp_path / "c.yaml", "rtsp-late", args, tmp_path / "c.json", tmp_path / "c.png", 4971)
     assert cmd[1:] == ["-m", "dcuscope.cli", "capacity", str(tmp_path / "c.yaml"), "--max-streams", "2", "--duration",
-                       "10", "--warmup", "3", "--json", "-o", str(tmp_path / "c.json"), "--rtsp", "--plot",
-                       str(tmp_path / "c.png")]
+                       "10", "--warmup", "3", "--json", "-o", str(tmp_path / "c.json"), "--rtsp", "--rtsp-bitrate",
+                       "4971", "--plot", str(tmp_path / "c.png")]
     assert "--rtsp" not in capacity_command(tmp_path / "c.yaml", "file", args, tmp_path / "c.json", None)
 
 

@@ -145,13 +145,22 @@ def test_the_answer_says_the_capacity_the_bounds_and_what_gives_out_next():
     assert capacity == 5
     assert line == ("capacity 5 streams: fps ≥ 27 (90 % of 30) hold at 5 with 95 % confidence; at 6 fps ≥ 27 fails "
                     "(slowest stream 22.0 fps [21.8, 22.2]); infer saturates (utilization 98%)")
+    neck = {"stage": "infer", "utilization": 0.79, "thread_utilization": 0.89, "saturated": False}
+    assert answer([count(1, FAILS, fps=20.0, limiting=neck)], 8) == (
+        0, "capacity 0 streams; at 1 fps ≥ 27 fails (slowest stream 20.0 fps [19.8, 20.2]); infer limits "
+           "(utilization 79%, its thread 89%)")
     undecided = [count(1, HOLDS), count(2, UNDECIDED, checks=[{"what": "e2e.p99 ≤ 200 ms", "outcome": UNDECIDED,
                                                                "detail": "e2e.p99 198.0 ms [180.0, 215.0]"}])]
     assert answer(undecided, 8) == (1, "capacity 1 stream: fps ≥ 27 (90 % of 30) hold at 1 with 95 % confidence; "
                                        "undecided at 2: run longer (--duration) (e2e.p99 198.0 ms [180.0, 215.0])")
     assert answer([count(1, HOLDS), count(2, HOLDS)], 2)[1].endswith("; --max-streams 2 reached: it may take more")
     failed = [count(1, FAILS, checks=[], error="source 0 lost: not found")]
-    assert answer(failed, 4) == (0, "capacity 0 streams; at 1 the run failed: source 0 lost: not found")
+    assert answer(failed, 4) == (None, "capacity unknown; at 1 the run failed: source 0 lost: not found")
+    unsure = [count(1, UNDECIDED, checks=[{"what": "fps ≥ 27 (90 % of 30)", "outcome": UNDECIDED,
+                                           "detail": "slowest stream 27.5 fps [26.0, 29.0]"}])]
+    assert answer(unsure, 4) == (None, "capacity unknown; undecided at 1: run longer (--duration) (slowest stream "
+                                       "27.5 fps [26.0, 29.0])")
+    assert answer([], 4, "stopped by Ctrl-C during 1 stream") == (None, "capacity unknown; stopped by Ctrl-C during 1 stream")
     assert answer([count(1, HOLDS)], 4, "stopped by Ctrl-C during 2 streams")[1].endswith("; stopped by Ctrl-C during 2 streams")
 
 
