@@ -4,8 +4,9 @@ The first ``warmup`` seconds of frames are left out (model load, the first batch
 Intervals come from :mod:`dcuscope.probes.trace.bootstrap`, as compare's do: the frames of a run are
 resampled in blocks of consecutive frames, so that their correlation is kept.
 
-- Frames/s per stream: for each stream, its frames that reached the sink counted per second
-  (:func:`slowest_stream_fps`); its interval from the block bootstrap of the counts. The stream that keeps the
+- Frames/s per stream: for each stream, 1 / the mean gap between the origins of its frames that
+  reached the sink; its interval from the gaps' block bootstrap, in blocks of at least a second
+  (:func:`slowest_stream_fps`). The stream that keeps the
   smallest share of its nominal rate is what a floor is checked against (every camera must keep
   its rate); the mean over the streams is the paper's figure.
 - End to end: the frame delay (origin to sink) of complete frames: mean (the paper's A = S/n),
@@ -18,11 +19,12 @@ resampled in blocks of consecutive frames, so that their correlation is kept.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from dcuscope.probes.trace.bootstrap import interval, resample
+from dcuscope.probes.trace.bootstrap import block_length, interval, resample
 from dcuscope.probes.trace.compare import E2E, time_series
 from dcuscope.probes.trace.delays import delay_stats, frame_delays
 from dcuscope.probes.trace.events import FACT, ORIGIN
@@ -34,8 +36,6 @@ QUANTILES = (50, 95, 99)
 FIGURES = ("mean",) + tuple(f"p{q}" for q in QUANTILES)
 RESAMPLES = 1000
 LEVEL = 0.95
-RATE_BINS = (8, 30)
-"""Bins a stream's frames are counted in (one a second, at least 8, at most 30) for its rate's interval."""
 NOT_DROPS = {"stopped"}
 """Drop reasons that are not the pipeline's: frames still queued when the run was ended."""
 
@@ -142,32 +142,29 @@ def slowest_stream_fps(fd, sources: dict[str, dict], rng: np.random.Generator,
     the fewest frames/s when rates are unknown), with its interval; (None, its rate) when a stream
     brought fewer than 3 frames through.
 
-    The rate is (n - 1) / the span of the stream's n complete frames; its interval is the block
-    bootstrap's of the mean of the frames counted in equal bins of that span (:data:`RATE_BINS`). Counting, not timing the gaps between frames: a live stream that comes in bursts
-    (a jitter buffer, a batch) at a steady rate has gaps that swing widely, short after long,
-    while its count per bin hardly moves."""
+    The rate is (n - 1) / the span of the stream's n complete frames, i.e. 1 / their mean gap; its
+    interval is that of 1 / the mean gap by the block bootstrap, in blocks of at least a second of
+    frames. A live stream that comes in bursts (a jitter buffer, a batch) at a steady rate has
+    gaps that swing widely, short after long: blocks shorter than a burst would take that swing
+    for uncertainty, while a second's gaps add up to about a second."""
     table, complete = fd.table, fd.chains.complete
     worst = None
     for sid in sorted(int(s) for s in sources):
         nominal = sources[str(sid)]["nominal_fps"]
-        origin = np.sort(table.origin[complete & (table.source == sid)]).astype(np.float64) / 1e9
-        if len(origin) < 3:
+        origin = np.sort(table.origin[complete & (table.source == sid)]).astype(np.float64)
+        if len(origin) < 3 or origin[-1] == origin[0]:
             return None, nominal
-        span = origin[-1] - origin[0]
-        if span <= 0:
-            return None, nominal
-        bins = int(np.clip(np.floor(span), *RATE_BINS))
-        counts = np.histogram(origin, bins=bins, range=(origin[0], origin[-1]))[0] * bins / span
-        fps = (len(origin) - 1) / span  # n frames mark n - 1 intervals (delays.fps_by_source)
+        gaps = np.diff(origin) / 1e9
+        fps = 1.0 / gaps.mean()
         share = fps / nominal if nominal else fps
         if worst is None or share < worst[0]:
-            worst = (share, fps, counts, nominal)
+            worst = (share, fps, gaps, nominal)
     if worst is None:
         return None, None
-    _, fps, counts, nominal = worst
-    low, high = interval(resample(counts, rng, resamples), "mean", LEVEL)
-    shift = fps - counts.mean()  # the bins count the last frame's interval too: centre on the estimate
-    return Estimate(fps, low + shift, high + shift), nominal
+    _, fps, gaps, nominal = worst
+    block = min(max(block_length(gaps), math.ceil(fps)), max(1, len(gaps) // 3))
+    low_gap, high_gap = interval(resample(gaps, rng, resamples, block=block), "mean", LEVEL)
+    return Estimate(fps, 1.0 / high_gap, 1.0 / low_gap), nominal
 
 
 def stage_estimate(figures: CountFigures, stage: str, kind: str, figure: str, seed: int = 0,
