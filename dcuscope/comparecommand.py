@@ -22,8 +22,11 @@ verdict (slower, faster, no significant change).
 Frames of one run are not independent (a slow frame delays the next; a busy machine slows a
 stretch of them), so intervals come from the circular block bootstrap: each run is resampled in
 blocks of consecutive frames (in the order of their origin), the block length chosen from the
-run's own autocorrelation (Politis & White's rule), and the interval is the 2.5-97.5 percentile
-range of NEW - BASE over the resamples. A figure is slower (faster) when its whole interval is
+run's own autocorrelation (Politis & White's rule); as blocks cut the correlation at their ends,
+the resamples spread too little, and each figure's are stretched by the factor that the run's
+autocorrelation says is missing. The interval is the 2.5-97.5 percentile range of NEW - BASE
+over the resamples, widened by Student's t with a degree of freedom per block (the spread is
+itself an estimate from that many blocks). A figure is slower (faster) when its whole interval is
 above (below) zero and the change is at least --noise % of BASE and --noise-ms. Each interval is 95 % on its own;
 the verdict over a whole table uses Holm's correction, so that identical runs are called
 different in at most 5 % of comparisons.

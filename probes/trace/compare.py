@@ -4,8 +4,8 @@ The document ``dcuscope compare`` prints (table, ``--json``, ``--markdown``), it
 page's compare view draws. For each stage (matched by name) and kind (delay, service, wait; end to
 end: the frame delay of :mod:`dcuscope.probes.trace.delays`) and each input: frames, mean, p50, p90, p99 in
 ms; for each input after the first, the change against the first with its 95 % interval from the
-circular block bootstrap (:mod:`dcuscope.probes.trace.bootstrap`), over the input's complete frames in the
-order of their origin.
+circular block bootstrap, its spread corrected for the bias of blocks (:mod:`dcuscope.probes.trace.bootstrap`),
+over the input's complete frames in the order of their origin.
 
 Verdicts. A figure is *slower* (*faster*) when its whole interval lies above (below) zero and the
 change is at least ``noise_pct`` of BASE and ``noise_ms`` (smaller ones are noise however sure:
@@ -35,7 +35,9 @@ NOISE_MS = 0.1
 """Changes smaller than this, or than NOISE_PCT of BASE, get no verdict: a queue's hand-over to its
 thread takes tens of µs more in one run than in the next (a wake-up), surely and of no consequence."""
 METHOD = ("circular block bootstrap (Politis & Romano) over each run's frames in time order, block length by "
-          "Politis & White's rule; 95 % percentile intervals of NEW - BASE; input verdicts by Holm's correction")
+          "Politis & White's rule, each figure's replicates stretched by the block bootstrap's variance bias "
+          "(from the run's autocovariances); 95 % percentile intervals of NEW - BASE widened by Student's t with "
+          "a degree of freedom a block; input verdicts by Holm's correction")
 SLOWER, FASTER, SAME, FEW = "slower", "faster", "no significant change", "too few frames"
 MIN_TAIL = 10
 """A percentile needs this many frames beyond it in each run for its interval to mean much (p99: 1,000

@@ -1,5 +1,5 @@
 """The --quick runs of the benchmarks that take seconds: bench_live_memory.py, bench_stats.py,
-bench_pipeline.py and bench_probes.py; and their tables fed figures a run could not produce."""
+bench_pipeline.py, bench_probes.py and bench_coverage.py; and their tables fed figures a run could not produce."""
 
 from __future__ import annotations
 
@@ -96,3 +96,11 @@ def test_live_tick_runs_each_checkout_in_turn_and_prints_its_cost_beside_this_on
     assert int(lines[1].split("tick, ")[1].split(" frames")[0].replace(",", "")) > 100
     done = run_benchmark("bench_live_tick.py", "--checkout", "/nonexistent")
     assert done.returncode == 2 and "not a dcuscope checkout" in done.stderr
+
+
+def test_coverage_prints_old_and_new_side_by_side():
+    done = run_benchmark("bench_coverage.py", "--runs", "2", "--frames", "300", "--resamples", "50")
+    assert_ran(done)
+    rows = [line.split(" | ")[:3] for line in done.stdout.splitlines() if line.startswith("| old") or line.startswith("| new")]
+    assert rows == [[f"| {m}", phi, noise] for m in ("old", "new") for phi in ("0.7", "0.9")
+                    for noise in ("gaussian", "lognormal")], done.stdout
