@@ -122,7 +122,15 @@ class Mux(AttributeProperties, GstBase.Aggregator):
         return GstBase.Aggregator.do_sink_event(self, aggpad, event)
 
     def do_get_next_time(self):
-        return self.simple_get_next_time()
+        """Live: the running time of the earliest frame waiting; the aggregator pushes a batch at this
+        time + its latency (``batched-push-timeout`` + the sources' own, which covers a camera's
+        capture) without the pads still empty, and waits for a frame while none waits.
+
+        Not the aggregator's ``simple_get_next_time``: that is the position of the output segment,
+        which this element does not advance: it stayed 0, every wait had passed before it began,
+        and nearly every batch went out with one camera alone (and the thread spun meanwhile)."""
+        times = [self._running_time(pad, buf) for pad in self.sinkpads if (buf := pad.peek_buffer()) is not None]
+        return min(times) if times else Gst.CLOCK_TIME_NONE
 
     def _batch_limit(self) -> int:
         return self.batch_size or max(len(self.sinkpads), 1)

@@ -100,6 +100,19 @@ def test_a_frame_is_scaled_into_its_batch_slot():
     slot.unmap(mapped)
 
 
+def test_live_cameras_that_push_together_make_full_batches():
+    """Two live cameras at 10 fps push each frame a frame period after its running time (its
+    capture began then). The aggregator's own next time, its output position, stayed 0: the push
+    timeout had always passed, and 80-90 % of the batches went out with one camera alone."""
+    camera = "videotestsrc is-live=true num-buffers=20 ! video/x-raw,format=RGB,width=64,height=48,framerate=10/1"
+    batches = run(f"mux name=m width=64 height=48 live-source=true ! fakesink name=out signal-handoffs=true "
+                  f"{camera} ! framestamp source-id=0 ! m.sink_0 {camera} ! framestamp source-id=1 ! m.sink_1")
+    assert sorted(i for _, ids, _, _ in batches for i in ids) == [(s, f) for s in (0, 1) for f in range(20)]
+    # every batch has both cameras' frame of one period (the last may be pushed alone at the end)
+    full = [ids for _, ids, _, _ in batches if len(ids) == 2]
+    assert len(full) >= 19 and all(a[1] == b[1] for a, b in full), batches
+
+
 def test_a_late_frame_never_stamps_a_batch_at_or_before_the_last_one():
     """Live: the mux pushes on its timeout without a late camera; the late frame, whose running
     time is that of the batch already gone, came out as a second batch with the same PTS, which
