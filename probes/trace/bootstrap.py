@@ -180,7 +180,10 @@ def resample(x: np.ndarray, rng: np.random.Generator, resamples: int = RESAMPLES
     if block is None:
         for f, v in out.items():
             influence = x if f == "mean" else (x <= estimate[f]).astype(np.float64)
-            out[f] = _widened(v, stretch(influence, b))
+            # Within what the resamples reached: a percentile's replicates can be bimodal (a run with
+            # one stall: with it in or out), and stretching about their mean then left the range
+            # (a p99 interval reaching below the p50).
+            out[f] = np.clip(_widened(v, stretch(influence, b)), v.min(), v.max())
     return Resampled(block=b, estimate=estimate, replicates=out, blocks=n / b if block is None else math.inf)
 
 
