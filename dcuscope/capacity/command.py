@@ -12,6 +12,7 @@ import json
 import sys
 import tempfile
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 from dcuscope.core.errors import UsageError
@@ -148,6 +149,7 @@ def run_capacity(args: argparse.Namespace) -> int:
                     "max_streams": plan.max_streams, "fps_floor_pct": args.fps_floor, "keep_batch": plan.keep_batch,
                     "rtsp": plan.rtsp, "all_streams": args.all_streams, "predict_only": args.predict, "date": time.strftime("%Y-%m-%d %H:%M %Z")},
            "bounds": [f"fps ≥ {args.fps_floor:g} % of the source's rate"] + [s.short() for s in plan.slos],
+           "slos": [asdict(s) for s in plan.slos],
            "counts": [], "prediction": None, "capacity": None, "answer": None, "notes": _notes(plan)}
 
     def on_count(count: dict) -> None:

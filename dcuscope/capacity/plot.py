@@ -52,6 +52,10 @@ def draw(doc: dict, path: Path) -> None:
         ns = sorted(int(n) for n in pred)
         ax.plot(ns, [pred.get(n, pred.get(str(n))) for n in ns], "k--", marker="o", markersize=3, linewidth=1,
                 label="A predicted from 1 and 2 streams")
+    for slo in doc.get("slos", []):
+        if slo["stage"] == "e2e" and slo["figure"] in ("p99", "mean"):
+            ax.axhline(slo["value_ms"], color="black", linestyle="--" if slo["figure"] == "p99" else ":", linewidth=1,
+                       label=f"bound e2e.{slo['figure']} {slo['op']} {slo['value_ms']:g} ms")
     ax.set_xlabel("streams")
     ax.set_ylabel("mean frame delay per stage, ms (stacked: A = S/n)")
     ax.set_xticks(sorted(set(x) | {int(n) for n in pred}))
