@@ -147,7 +147,8 @@ def run_capacity(args: argparse.Namespace) -> int:
 
     doc = {"plan": {"config": str(args.config), "duration_s": plan.duration, "warmup_s": plan.warmup,
                     "max_streams": plan.max_streams, "fps_floor_pct": args.fps_floor, "keep_batch": plan.keep_batch,
-                    "rtsp": plan.rtsp, "all_streams": args.all_streams, "predict_only": args.predict, "date": time.strftime("%Y-%m-%d %H:%M %Z")},
+                    "rtsp": plan.rtsp, "all_streams": args.all_streams, "predict_only": args.predict,
+                    "date": time.strftime("%Y-%m-%d %H:%M %Z")},
            "bounds": [f"fps ≥ {args.fps_floor:g} % of the source's rate"] + [s.short() for s in plan.slos],
            "slos": [asdict(s) for s in plan.slos],
            "counts": [], "prediction": None, "capacity": None, "answer": None, "notes": _notes(plan)}
@@ -171,7 +172,8 @@ def run_capacity(args: argparse.Namespace) -> int:
             stopped or "the runs at 1 and 2 streams did not both give figures")
     else:
         doc["capacity"], doc["answer"] = answer(doc["counts"], plan.max_streams, stopped)
-        undecided = doc["capacity"] is None or any(c["outcome"] not in (HOLDS, FAILS) for c in counts[:doc["capacity"] + 1])
+        decisive = counts[:doc["capacity"] + 1] if doc["capacity"] is not None else counts
+        undecided = doc["capacity"] is None or any(c["outcome"] not in (HOLDS, FAILS) or c["error"] for c in decisive)
     _write(args.output, doc)
     if args.plot is not None and doc["counts"]:
         from dcuscope.capacity.plot import draw
