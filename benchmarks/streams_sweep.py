@@ -41,6 +41,7 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.figures import NA, CannotRun, Notes, run  # noqa: E402
+from dcuscope.capacity.report import limiting  # noqa: E402
 
 MEDIA = ROOT / "assets" / "media"
 MODELS = {"centernet": ROOT / "assets" / "models" / "centernet_mobilenetv3_coco80.onnx",
@@ -219,9 +220,7 @@ def _limit(neck: dict | None, notes: Notes) -> str:
         return notes.cell(NA("no stage had a delay after the warm-up: no limiting stage"))
     if neck["utilization"] is None:
         return f"{neck['stage']} " + notes.cell(NA("no service times in the trace: the utilization is unknown"))
-    thread = neck["thread_utilization"]
-    shared = f" (thread {thread:.0%})" if thread is not None and thread >= neck["utilization"] + 0.005 else ""
-    return f"{neck['stage']} {neck['utilization']:.0%}{shared}{' sat.' if neck['saturated'] else ''}"
+    return limiting(neck)
 
 
 def _dropped(f: dict) -> str:

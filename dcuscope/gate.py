@@ -39,16 +39,21 @@ def parse_bound(text: str) -> Bound:
     if not m:
         raise DcuscopeError(f"--fail-if {text!r}: expected STAGE[.KIND].FIGURE OP VALUE, e.g. \"infer.p99 > +5%\" or "
                             "\"e2e.p50 > +2ms\" (OP: > >= < <=; VALUE in %, ms, us or s)")
-    parts = m["metric"].split(".")
-    figure = parts[-1]
-    kind = parts[-2] if len(parts) >= 3 and parts[-2] in KINDS else "delay"
-    stage = ".".join(parts[:-2] if len(parts) >= 3 and parts[-2] in KINDS else parts[:-1])
+    stage, kind, figure = metric_parts(m["metric"])
     if not stage or figure not in FIGURES:
         raise DcuscopeError(f"--fail-if {text!r}: the figure must be one of {', '.join(FIGURES)} after a stage name "
                             "(or e2e), e.g. infer.p99")
     percent = m["unit"] == "%"
     value = float(m["value"]) * (1.0 if percent else _TO_MS[m["unit"]])
     return Bound(text=text.strip(), stage=stage, kind=kind, figure=figure, op=m["op"], value=value, percent=percent)
+
+
+def metric_parts(metric: str) -> tuple[str, str, str]:
+    """``infer.service.p99`` -> (stage, kind, figure): ("infer", "service", "p99"); KIND defaults to
+    delay (``e2e.p50`` -> ("e2e", "delay", "p50")); a stage name may hold dots. Unchecked."""
+    parts = metric.split(".")
+    has_kind = len(parts) >= 3 and parts[-2] in KINDS
+    return ".".join(parts[:-2] if has_kind else parts[:-1]), parts[-2] if has_kind else "delay", parts[-1]
 
 
 @dataclass

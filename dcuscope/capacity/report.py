@@ -23,7 +23,8 @@ def _ms(x: float | None) -> str:
     return "n/a" if x is None else f"{x:.1f}"
 
 
-def _limiting(neck: dict | None) -> str:
+def limiting(neck: dict | None) -> str:
+    """The limiting stage as ``infer 62%, thread 97% sat.`` (its thread's utilization where other stages share it)."""
     if not neck:
         return "n/a"
     if neck.get("utilization") is None:
@@ -52,7 +53,7 @@ def count_rows(doc: dict) -> list[list[str]]:
         if f["fps"] and abs(f["fps_mean"] - f["fps"]["value"]) >= 0.05:
             fps += f", mean {f['fps_mean']:.1f}"
         rows.append([str(c["streams"]), fps] + [_est(f["e2e"].get(k)) for k in E2E_FIGURES]
-                    + [_limiting(c["limiting"]), _dropped(f), c["outcome"] + (f": {c['error']}" if c["error"] else "")])
+                    + [limiting(c["limiting"]), _dropped(f), c["outcome"] + (f": {c['error']}" if c["error"] else "")])
     return rows
 
 

@@ -18,7 +18,8 @@ from dataclasses import dataclass
 
 from dcuscope.capacity.measure import CountFigures, Estimate, stage_estimate
 from dcuscope.core.errors import UsageError
-from dcuscope.probes.trace.compare import E2E, KINDS
+from dcuscope.gate import metric_parts
+from dcuscope.probes.trace.compare import E2E
 
 FIGURES = ("mean", "p50", "p90", "p95", "p99")
 HOLDS, FAILS, UNDECIDED = "holds", "fails", "undecided"
@@ -48,11 +49,7 @@ def parse_slo(text: str) -> Slo:
     if not m:
         raise UsageError(f"--slo {text!r}: expected STAGE[.KIND].FIGURE OP VALUE, e.g. \"e2e.p99 <= 200ms\" or "
                          "\"infer.mean <= 60ms\" (OP: <= < >= >; VALUE in ms, us or s)")
-    parts = m["metric"].split(".")
-    figure = parts[-1]
-    has_kind = len(parts) >= 3 and parts[-2] in KINDS
-    kind = parts[-2] if has_kind else "delay"
-    stage = ".".join(parts[:-2] if has_kind else parts[:-1])
+    stage, kind, figure = metric_parts(m["metric"])
     if not stage or figure not in FIGURES:
         raise UsageError(f"--slo {text!r}: the figure must be one of {', '.join(FIGURES)} after a stage name (or e2e), "
                          "e.g. e2e.p99")

@@ -89,9 +89,9 @@ def test_markdown_has_one_table_per_bitrate_a_column_per_kind_and_rate_and_the_p
     assert "| streams | file 30 fps | rtsp-late 30 fps |" in text
     assert "| 1 | 40.0 (p95 60) @ 30.0 | 120.0 (p95 180) @ 29.0? |" in text
     assert "| 2 | 90.0 (p95 135) @ 15.0* | – |" in text
-    assert ("| file | 30 | 3982 | 2 | infer 90% (thread 95%) sat. | 36.0/9.0 | 21.6/5.4 | 7.2/1.8 | 3.6/0.9 | 3.6/0.9 "
+    assert ("| file | 30 | 3982 | 2 | infer 90%, thread 95% sat. | 36.0/9.0 | 21.6/5.4 | 7.2/1.8 | 3.6/0.9 | 3.6/0.9 "
             "| 0.0 | 90.0 | 135.0 | 15.0* | 0 | 1.50 | – |") in text
-    assert "| rtsp-late | 30 | 3982 | 1 | infer 90% (thread 95%) | " in text and "| late 30 (30, 15%) | 1.50 | 0.45 |" in text
+    assert "| rtsp-late | 30 | 3982 | 1 | infer 90%, thread 95% | " in text and "| late 30 (30, 15%) | 1.50 | 0.45 |" in text
     rows = [line.split(" | ")[:3] for line in text.splitlines() if line.startswith(("| file |", "| rtsp-late |"))]
     assert rows == [["| file", "30", "3982"]] * 2 + [["| file", "30", "7955"], ["| rtsp-late", "30", "3982"]]
     assert "- file 30 fps 3982 kbit/s: capacity 1 stream" in text
