@@ -180,10 +180,7 @@ def resample(x: np.ndarray, rng: np.random.Generator, resamples: int = RESAMPLES
     if block is None:
         for f, v in out.items():
             influence = x if f == "mean" else (x <= estimate[f]).astype(np.float64)
-            # Within what the resamples reached: a percentile's replicates can be bimodal (a run with
-            # one stall: with it in or out), and stretching about their mean then left the range
-            # (a p99 interval reaching below the p50).
-            out[f] = np.clip(_widened(v, stretch(influence, b)), v.min(), v.max())
+            out[f] = _widened(v, stretch(influence, b))
     return Resampled(block=b, estimate=estimate, replicates=out, blocks=n / b if block is None else math.inf)
 
 
@@ -235,9 +232,14 @@ def widening(blocks: float, level: float) -> float:
 
 
 def _widened(v: np.ndarray, factor: float) -> np.ndarray:
-    """``v`` stretched about its mean by ``factor``."""
+    """``v`` stretched about its mean by ``factor``, within the range it reached.
+
+    Replicates can be skewed or bimodal: a run with one stall has a p99 with the stall in a resample
+    or out, and a stage that sleeps at least 20 ms, a few times much longer, a mean that no resample
+    puts under 20 ms. Stretched about their mean, such replicates left the range that any resample
+    gave (a p99 interval reaching below the p50; a mean below 20 ms)."""
     centre = v.mean()
-    return centre + factor * (v - centre)
+    return np.clip(centre + factor * (v - centre), v.min(), v.max())
 
 
 def change(base: Resampled, new: Resampled, figure: str, level: float = 0.95) -> Change:
