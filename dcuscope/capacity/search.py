@@ -146,19 +146,24 @@ def _child(spec: dict, spec_file: Path, duration: float) -> dict:
     return result
 
 
-def search(plan: Plan, say: Callable[[str], None], on_count: Callable[[dict], None] = lambda _: None) -> tuple[list[dict], str | None]:
-    """Run the plan's counts until one does not pass; (the counts' documents, why it stopped early)."""
+def search(plan: Plan, say: Callable[[str], None],
+           on_count: Callable[[dict], None] = lambda _: None) -> tuple[list[dict], str | None]:
+    """Run the plan's counts until one does not pass; (the counts' documents, why it stopped early).
+    Ctrl-C, wherever it comes in a count, stops the search with the counts measured before it."""
     check_replicable(plan.config, plan.rtsp)
     counts: list[dict] = []
     for streams in plan.counts:
-        say(f"{streams} stream{'s' if streams != 1 else ''}: running {plan.duration:g} s "
-            f"({plan.warmup:g} s warm-up left out)")
         try:
+            say(f"{streams} stream{'s' if streams != 1 else ''}: running {plan.duration:g} s "
+                f"({plan.warmup:g} s warm-up left out)")
             doc = run_count(plan, streams)
         except KeyboardInterrupt:
             return counts, f"stopped by Ctrl-C during {streams} stream{'s' if streams != 1 else ''}"
         counts.append(doc)
-        on_count(doc)
+        try:
+            on_count(doc)
+        except KeyboardInterrupt:
+            return counts, f"stopped by Ctrl-C after {streams} stream{'s' if streams != 1 else ''}"
         if doc["outcome"] != HOLDS and not plan.past_failure:
             break
     return counts, None

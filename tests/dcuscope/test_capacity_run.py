@@ -47,7 +47,7 @@ def capacity(*args, **kw) -> subprocess.Popen:
 def test_a_search_reports_each_count_predicts_and_on_ctrl_c_prints_what_it_measured(tmp_path):
     traces = tmp_path / "traces"
     # bounds that hold on a busy machine too (the floor at half the rate): the search reaches 3
-    proc = capacity(config(tmp_path), "--max-streams", 3, "--duration", 4, "--warmup", 1, "--fps-floor", 50,
+    proc = capacity(config(tmp_path), "--max-streams", 6, "--duration", 4, "--warmup", 1, "--fps-floor", 50,
                     "--slo", "slow.service.mean >= 20ms", "--slo", "e2e.p99 <= 10s", "--json",
                     "-o", tmp_path / "report.md", "--plot", tmp_path / "plot.png", "--keep-traces", traces)
     err = ""
@@ -55,17 +55,20 @@ def test_a_search_reports_each_count_predicts_and_on_ctrl_c_prints_what_it_measu
     while "3 streams: running" not in err and proc.poll() is None and time.monotonic() < deadline:
         err += proc.stderr.readline()
     assert "3 streams: running" in err, err
-    time.sleep(1.0)
-    proc.send_signal(signal.SIGINT)
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)  # during 3 streams, or 4 on a machine so busy that this line came late
     out, rest = proc.communicate(timeout=60)
     err += rest
     assert proc.returncode == 130, err
     doc = json.loads(out)
-    one, two = doc["counts"]
-    assert (one["streams"], two["streams"], one["outcome"], two["outcome"]) == (1, 2, "holds", "holds"), err
-    assert doc["capacity"] == 2 and doc["answer"].startswith("capacity 2 streams: fps ≥ 2.5 (50 % of 5) and "
-                                                             "slow.service.mean ≥ 20 ms and e2e.p99 ≤ 10000 ms hold at 2")
-    assert doc["answer"].endswith("; stopped by Ctrl-C during 3 streams"), doc["answer"]
+    counts = doc["counts"]
+    one, two = counts[:2]
+    assert [c["streams"] for c in counts] in ([1, 2], [1, 2, 3]) and all(c["outcome"] == "holds" for c in counts), err
+    assert doc["capacity"] == len(counts) and doc["answer"].startswith(
+        f"capacity {len(counts)} streams: fps ≥ 2.5 (50 % of 5) and slow.service.mean ≥ 20 ms and e2e.p99 ≤ 10000 ms "
+        f"hold at {len(counts)}")
+    assert doc["answer"].endswith((f"; stopped by Ctrl-C during {len(counts) + 1} streams",
+                                   f"; stopped by Ctrl-C after {len(counts)} streams")), doc["answer"]
     for c in (one, two):
         # the ground truth: the identity element sleeps 20 ms per batch, at every count
         slow = c["figures"]["stages"]["slow"]
