@@ -1,8 +1,9 @@
 """``dcuscope capacity CONFIG``: how many streams fit on this machine, within bounds, with what
 confidence, and what runs out first.
 
-Exit status: 0 an answer (the capacity, possibly 0), 1 no answer (a count undecided, or a run that
-failed), 2 bad input (one line), 130 Ctrl-C (after the report of what was measured).
+Exit status: 0 an answer (the capacity, possibly 0), 1 not final (the count after the capacity
+undecided, the capacity unknown, or a run that failed), 2 bad input (one line), 130 Ctrl-C (after
+the report of what was measured).
 """
 
 from __future__ import annotations
@@ -50,8 +51,8 @@ examples:
 or e2e (the frame delay); KIND delay (default), service or wait; FIGURE mean, p50, p90, p95 or p99;
 OP <= < >= >; VALUE in ms, us or s.
 
-exit status: 0 answered; 1 no answer (undecided, or a run failed); 2 bad input; 130 Ctrl-C (after
-printing what was measured).
+exit status: 0 answered; 1 not final (the count after the capacity undecided, the capacity unknown,
+or a run failed); 2 bad input; 130 Ctrl-C (after printing what was measured).
 """
 
 DEFAULT_MAX_STREAMS = 8
