@@ -52,7 +52,7 @@ or e2e (the frame delay); KIND delay (default), service or wait; FIGURE mean, p5
 OP <= < >= >; VALUE in ms, us or s.
 
 exit status: 0 answered; 1 not final (the count after the capacity undecided, the capacity unknown,
-or a run failed); 2 bad input; 130 Ctrl-C (after printing what was measured).
+or a run failed); 2 bad input; 130 Ctrl-C or SIGTERM (after printing what was measured).
 """
 
 DEFAULT_MAX_STREAMS = 8
@@ -137,7 +137,7 @@ def _checked(args: argparse.Namespace):
 def run_capacity(args: argparse.Namespace) -> int:
     from dcuscope.capacity.predict import describe, predict
     from dcuscope.capacity.report import render
-    from dcuscope.capacity.search import search
+    from dcuscope.capacity.search import search, stop_on_signals
     from dcuscope.capacity.verdict import FAILS, HOLDS, answer
 
     plan = _checked(args)
@@ -163,7 +163,7 @@ def run_capacity(args: argparse.Namespace) -> int:
             say(describe(doc["prediction"]))
         _write(args.output, doc)
 
-    with tempfile.TemporaryDirectory(prefix="dcuscope-capacity-") as tmp:
+    with tempfile.TemporaryDirectory(prefix="dcuscope-capacity-") as tmp, stop_on_signals():
         plan.workdir = args.keep_traces or Path(tmp)
         plan.workdir.mkdir(parents=True, exist_ok=True)
         counts, stopped = search(plan, say, on_count)

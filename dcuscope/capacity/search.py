@@ -149,7 +149,8 @@ def _child(spec: dict, spec_file: Path, duration: float) -> dict:
 def search(plan: Plan, say: Callable[[str], None],
            on_count: Callable[[dict], None] = lambda _: None) -> tuple[list[dict], str | None]:
     """Run the plan's counts until one does not pass; (the counts' documents, why it stopped early).
-    Ctrl-C, wherever it comes in a count, stops the search with the counts measured before it."""
+    Ctrl-C (or SIGTERM: :class:`Stopped`), wherever it comes in a count, stops the search with the
+    counts measured before it."""
     check_replicable(plan.config, plan.rtsp)
     counts: list[dict] = []
     for streams in plan.counts:
@@ -157,13 +158,42 @@ def search(plan: Plan, say: Callable[[str], None],
             say(f"{streams} stream{'s' if streams != 1 else ''}: running {plan.duration:g} s "
                 f"({plan.warmup:g} s warm-up left out)")
             doc = run_count(plan, streams)
-        except KeyboardInterrupt:
-            return counts, f"stopped by Ctrl-C during {streams} stream{'s' if streams != 1 else ''}"
+        except KeyboardInterrupt as exc:
+            return counts, f"stopped by {_by(exc)} during {streams} stream{'s' if streams != 1 else ''}"
         counts.append(doc)
         try:
             on_count(doc)
-        except KeyboardInterrupt:
-            return counts, f"stopped by Ctrl-C after {streams} stream{'s' if streams != 1 else ''}"
+        except KeyboardInterrupt as exc:
+            return counts, f"stopped by {_by(exc)} after {streams} stream{'s' if streams != 1 else ''}"
         if doc["outcome"] != HOLDS and not plan.past_failure:
             break
     return counts, None
+
+
+class Stopped(KeyboardInterrupt):
+    """A stop asked by a signal other than Ctrl-C (SIGTERM: a service manager, a CI job's timeout)."""
+
+    def __init__(self, by: str):
+        super().__init__(by)
+        self.by = by
+
+
+def _by(exc: KeyboardInterrupt) -> str:
+    return exc.by if isinstance(exc, Stopped) else "Ctrl-C"
+
+
+@contextlib.contextmanager
+def stop_on_signals():
+    """SIGINT and SIGTERM stop the search as Ctrl-C does, whatever this process inherited: a job
+    started in the background of a shell ignores SIGINT, and ``dcuscope run`` stops on both too."""
+    def stop(signum, _frame):
+        if signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        raise Stopped(signal.Signals(signum).name)
+
+    before = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, handler in before.items():
+            signal.signal(s, handler)

@@ -49,7 +49,10 @@ def test_a_search_reports_each_count_predicts_and_on_ctrl_c_prints_what_it_measu
     # bounds that hold on a busy machine too (the floor at half the rate): the search reaches 3
     proc = capacity(config(tmp_path), "--max-streams", 6, "--duration", 4, "--warmup", 1, "--fps-floor", 50,
                     "--slo", "slow.service.mean >= 20ms", "--slo", "e2e.p99 <= 10s", "--json",
-                    "-o", tmp_path / "report.md", "--plot", tmp_path / "plot.png", "--keep-traces", traces)
+                    "-o", tmp_path / "report.md", "--plot", tmp_path / "plot.png", "--keep-traces", traces,
+                    # started with SIGINT ignored, as a shell's background job or a CI runner's step may be:
+                    # capacity stops on it all the same, as dcuscope run does
+                    preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
     err = ""
     deadline = time.monotonic() + 120
     while "3 streams: running" not in err and proc.poll() is None and time.monotonic() < deadline:
