@@ -27,6 +27,7 @@ from dcuscope.capacity.verdict import FAILS, HOLDS, Slo, check_fps, check_slo, o
 from dcuscope.core.errors import UsageError
 from dcuscope.pipeline.config import PipelineConfig
 from dcuscope.probes.trace.events import ORIGIN
+from dcuscope.probes.trace.tracefile import read_trace
 
 START_ALLOWANCE_S = 90.0
 """Time a count may take beyond its --duration (start-up, model load) before it is killed."""
@@ -76,12 +77,11 @@ def run_count(plan: Plan, streams: int) -> dict:
         return {**doc, "outcome": FAILS, "error": result["error"], "checks": [], "figures": None, "limiting": None}
     if result["lost"]:
         doc["error"] = "; ".join(f"source {i} lost: {why}" for i, why in result["lost"].items())
-    from dcuscope.probes.trace.tracefile import read_trace
-
     run = read_trace(trace)
     figures = measure(run, streams, plan.warmup)
     doc["cpu_cores"] = cpu_cores(result["cpu"], run, plan.warmup)
-    rate = figures.nominal_fps or (float(source_rate(plan.config)) if source_rate(plan.config) else None)
+    forced = source_rate(plan.config)
+    rate = figures.nominal_fps or (float(forced) if forced else None)
     checks = [check_fps(figures, plan.fps_floor, rate)] + [check_slo(s, figures) for s in plan.slos]
     if figures.frames < 2:
         doc["error"] = doc["error"] or "no frame went through the whole pipeline after the warm-up"
