@@ -86,10 +86,12 @@ class Relay:
         self.proc.wait(30)
 
 
-def categorise(raw: Path) -> tuple[collections.Counter, int]:
-    """Samples per category of a py-spy ``--format raw`` file (collapsed stacks), and their total
-    (waits left out, :data:`WAITING`)."""
+def categorise(raw: Path) -> tuple[collections.Counter, int, collections.Counter]:
+    """Samples per category of a py-spy ``--format raw`` file (collapsed stacks), their total
+    (waits left out, :data:`WAITING`), and samples per (category, place): the innermost dcuscope
+    function on the stack, or the innermost function where none is."""
     counts: collections.Counter = collections.Counter()
+    places: collections.Counter = collections.Counter()
     total = 0
     for line in raw.read_text().splitlines():
         stack, _, n = line.rpartition(" ")
@@ -102,7 +104,20 @@ def categorise(raw: Path) -> tuple[collections.Counter, int]:
         names = ";" + ";".join(frames)
         name = next((name for name, keys in CATEGORIES if any(";" + k in names for k in keys)), OTHER)
         counts[name] += int(n)
-    return counts, total
+        places[name, _place(stack.split(";"))] += int(n)
+    return counts, total, places
+
+
+def _place(stack: list[str]) -> str:
+    """``function (file)`` of the innermost frame of dcuscope's own code, else of the innermost frame."""
+    for frame in reversed(stack):
+        where = frame.partition(" (")[2]
+        if where and "site-packages" not in where and "/lib/python3" not in where and "<" not in where:
+            break
+    else:
+        frame = stack[-1]
+    func, _, where = frame.partition(" (")
+    return f"{func} ({Path(where.split(':')[0]).name})" if where else func
 
 
 def profile(checkout: Path, nodes: int, seconds: float, page: bool, spy: str, tmp: Path, stores: Stores, store: str,
@@ -146,11 +161,12 @@ def profile(checkout: Path, nodes: int, seconds: float, page: bool, spy: str, tm
     for raw, b, a in zip(raws, before, after):
         if not raw.exists():
             raise SystemExit("profile_relay: py-spy wrote no samples (it needs ptrace: run as root or with CAP_SYS_PTRACE)")
-        counts, total = categorise(raw)
+        counts, total, places = categorise(raw)
         raw.unlink()
         out.append({"events": a[0] - b[0], "batches": a[1] - b[1], "cpu_s": a[2] - b[2], "wall_s": wall,
                     "nodes_cpu_s": nodes_cpu / relays,
-                    "shares": {name: counts[name] / max(total, 1) for name, _ in (*CATEGORIES, (OTHER, ()))}})
+                    "shares": {name: counts[name] / max(total, 1) for name, _ in (*CATEGORIES, (OTHER, ()))},
+                    "places": {f"{c}\t{place}": n / max(total, 1) for (c, place), n in places.items()}})
     return out
 
 
@@ -159,8 +175,9 @@ def _counters(relay: Relay) -> tuple[float, float, float]:
     return (relay.counter("dcuscope_relay_events"), relay.counter("dcuscope_relay_batches"), _proc_cpu(relay.proc.pid))
 
 
-def report(label: str, runs: list[dict], together: int = 1) -> list[str]:
-    """The figures of ``runs`` (relays' profiles; ``together`` of them at a time: their walls overlap)."""
+def report(label: str, runs: list[dict], together: int = 1, top: int = 0) -> list[str]:
+    """The figures of ``runs`` (relays' profiles; ``together`` of them at a time: their walls overlap);
+    with ``top``, under each category its ``top`` places (:func:`_place`) by µs per batch."""
     events = sum(r["events"] for r in runs)
     batches = sum(r["batches"] for r in runs)
     cpu = sum(r["cpu_s"] for r in runs)
@@ -173,6 +190,15 @@ def report(label: str, runs: list[dict], together: int = 1) -> list[str]:
     for name, _ in (*CATEGORIES, (OTHER, ())):
         share = sum(r["shares"][name] * r["cpu_s"] for r in runs) / max(cpu, 1e-9)
         lines.append(f"  {name:<46} {100 * share:5.0f}% {share * per_event:9.2f} {share * per_batch:9.0f}")
+        if top:
+            places: collections.Counter = collections.Counter()
+            for r in runs:
+                for key, sh in r["places"].items():
+                    c, _, place = key.partition("\t")
+                    if c == name:
+                        places[place] += sh * r["cpu_s"] / max(cpu, 1e-9)
+            for place, sh in places.most_common(top):
+                lines.append(f"    {place[:70]:<70} {sh * per_event:6.2f} {sh * per_batch:9.0f}")
     return lines
 
 
@@ -189,6 +215,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--checkout", action="append", type=Path, default=[],
                    help="another checkout to profile beside this one (repeatable), e.g. a `git worktree` of main")
     p.add_argument("--rounds", type=int, default=1, help="times each checkout is profiled, in turn (default 1)")
+    p.add_argument("--top", type=int, default=0, metavar="N",
+                   help="under each category, its N costliest places: the innermost dcuscope function on the stack "
+                        "(µs per event and per batch)")
     args = p.parse_args(argv)
     spy = shutil.which("py-spy", path=f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}")
     if spy is None:
@@ -219,7 +248,7 @@ def main(argv: list[str] | None = None) -> int:
             stores.close()
     for k, (c, runs) in enumerate(zip(checkouts, results)):
         label = "this checkout" if k == 0 else str(c)
-        print("\n".join(report(f"{label}, all relays", [r for rnd in runs for r in rnd], args.relays)))
+        print("\n".join(report(f"{label}, all relays", [r for rnd in runs for r in rnd], args.relays, args.top)))
         if args.relays > 1:
             for i in range(args.relays):
                 print("\n".join(report(f"{label}, relay {i + 1}{' (the page is on it)' if i == 0 and not args.no_page else ''}",

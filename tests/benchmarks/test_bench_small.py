@@ -104,3 +104,30 @@ def test_coverage_prints_old_and_new_side_by_side():
     rows = [line.split(" | ")[:3] for line in done.stdout.splitlines() if line.startswith("| old") or line.startswith("| new")]
     assert rows == [[f"| {m}", phi, noise] for m in ("old", "new") for phi in ("0.7", "0.9")
                     for noise in ("gaussian", "lognormal")], done.stdout
+
+
+def test_profile_relay_splits_samples_by_category_and_names_the_innermost_place_of_ours(tmp_path):
+    from benchmarks.profile_relay import categorise, report
+    raw = tmp_path / "raw.txt"
+    raw.write_text(
+        "<module> (/x/relay/__main__.py:1);Ticker.tick (/x/relay/api/ui.py:9);maintain_all (/x/relay/live/run.py:5);"
+        "LiveRun._merge (/x/relay/live/run.py:9);unique (/v/lib/python3.11/site-packages/numpy/lib/a.py:3) 30\n"
+        "<module> (/x/relay/__main__.py:1);Ingest.handle (/x/relay/ingest/endpoint.py:1);"
+        "write (/usr/lib/python3.11/asyncio/selector_events.py:5) 10\n"
+        "<module> (/x/relay/__main__.py:1);EpollSelector.select (/usr/lib/python3.11/selectors.py:4) 50\n")
+    counts, total, places = categorise(raw)
+    assert total == 40  # the event loop waiting is not CPU
+    assert counts["pairing (LiveRun.maintain, maintain_all)"] == 30
+    assert places["pairing (LiveRun.maintain, maintain_all)", "LiveRun._merge (run.py)"] == 30
+    assert places["ingest: receive, decode, check, acknowledge", "Ingest.handle (endpoint.py)"] == 10
+    run = {"events": 1000, "batches": 10, "cpu_s": 0.004, "wall_s": 1.0, "nodes_cpu_s": 0.0,
+           "shares": {name: counts[name] / total for name in counts},
+           "places": {f"{c}\t{p}": n / total for (c, p), n in places.items()}}
+    run["shares"].update({name: run["shares"].get(name, 0.0) for name in
+                          ("push: frames built", "fan-out: Redis publish and receive", "push: encoded and sent",
+                           "statistics pushed", "fleet rows", "store writer thread",
+                           "socket writes (pushes, acknowledgements)", "clock exchanges", "other")})
+    lines = report("here", [run], top=3)
+    at = next(i for i, line in enumerate(lines) if line.lstrip().startswith("pairing"))
+    assert re.fullmatch(r" +pairing \(LiveRun\.maintain, maintain_all\) +75% +3\.00 +300", lines[at])
+    assert re.fullmatch(r" +LiveRun\._merge \(run\.py\) +3\.00 +300", lines[at + 1])
