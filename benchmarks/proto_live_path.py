@@ -160,6 +160,19 @@ def _batches(ev: np.ndarray, start: int, end: int) -> list[tuple[int, np.ndarray
     return out
 
 
+def _warm(live: list[LiveRun], events: list[np.ndarray], seconds: float) -> list[list[tuple[int, np.ndarray]]]:
+    """Each run fed its node's first second (the open table and the rings fill); returns the batches
+    each node ships in the ``seconds`` after it."""
+    warm, end = T0 + 1_000_000_000, T0 + int((seconds + 1) * 1e9)
+    after = []
+    for run, ev in zip(live, events):
+        for _, b in _batches(ev, T0, warm):
+            run.add(b)
+        run.maintain()
+        after.append(_batches(ev, warm, end))
+    return after
+
+
 def relay_loop(way: str, runs: int, seconds: float, hz: float, dll: ctypes.CDLL | None) -> dict:
     """``today`` or ``native``: the relay's CPU from wire bytes to pushed columns."""
     corr, events = _setup(runs, seconds)
@@ -167,19 +180,14 @@ def relay_loop(way: str, runs: int, seconds: float, hz: float, dll: ctypes.CDLL 
     make = (lambda: NativeRun(header, dll, budget=64 << 20)) if way == "native" else (lambda: LiveRun(header, budget=64 << 20))
     live = [make() for _ in range(runs)]
     warm, end = T0 + 1_000_000_000, T0 + int((seconds + 1) * 1e9)
-    wires = []
-    for run, ev in zip(live, events):
-        for _, b in _batches(ev, T0, warm):
-            run.add(b)
-        run.maintain()
-        wires.append([(t, encode_batch(RUN_ID, k, b, compress=True)) for k, (t, b) in enumerate(_batches(ev, warm, end))])
+    wires = [[(t, encode_batch(RUN_ID, k, b, compress=True)) for k, (t, b) in enumerate(plan)]
+             for plan in _warm(live, events, seconds)]
     pushed = [run.visible for run in live]
     at = [0] * runs
-    step, t, ticks, n_events, n_batches = int(1e9 / hz), warm, 0, 0, 0
+    step, t, n_events, n_batches = int(1e9 / hz), warm, 0, 0
     cpu = time.process_time()
     while t < end:
         t += step
-        ticks += 1
         for k, run in enumerate(live):
             w = wires[k]
             while at[k] < len(w) and w[at[k]][0] <= t:
@@ -205,13 +213,7 @@ def node_loop(way: str, runs: int, seconds: float, dll: ctypes.CDLL | None) -> d
     corr, events = _setup(runs, seconds)
     header = header_for("DCU", SOURCES, T0)
     live = [NativeRun(header, dll, budget=16 << 20) if dll else LiveRun(header, budget=16 << 20) for _ in range(runs)]
-    warm, end = T0 + 1_000_000_000, T0 + int((seconds + 1) * 1e9)
-    plans = []
-    for run, ev in zip(live, events):
-        for _, b in _batches(ev, T0, warm):
-            run.add(b)
-        run.maintain()
-        plans.append(_batches(ev, warm, end))
+    plans = _warm(live, events, seconds)
     sent = [run.visible for run in live]
     messages: list[list[tuple[int, bytes]]] = [[] for _ in live]
     n_events = 0
