@@ -1,21 +1,22 @@
-"""Issue 50's prototype: the relay's live hot loop done three ways, measured side by side in one run
+"""Issue 50's prototypes: the relay's live hot loop done three ways, measured side by side in one run
 (CPU time per event and per batch, in-process, the paper's pace: R paced DCUs at 4,300 events/s in
 batches of ~176 events, pushes at 30 ticks a second for a page showing every DCU).
 
-- ``today``: what a relay does now: each batch decoded from its wire bytes (``decode_batch``),
-  queued in its run (``LiveRun.add``); each tick every run merged, judged (``maintain_all``) and its
-  newly shown frames' columns corrected for the push (``framepack.corrected``).
-- ``native``: the same with each run's merge (``LiveRun._merge``: open frames found or opened, cells
-  scatter-min'd, a few dozen numpy calls) done by one compiled pass over the batch's records
-  (``benchmarks/proto/native_merge.c``, compiled here with ``cc``; an open-addressing hash of the
-  frame keys). Judging, showing, finalising and pushing stay the delay model's numpy.
-- ``node pairs`` (and ``node pairs, native``, the node merging with the compiled pass): each node
-  runs the live engine on its own events and ships its newly shown frames'
-  columns (``framepack.node_columns``, what a push carries) instead of events; the relay appends
-  them and corrects them per push. Its two halves are measured apart: the node's shipping thread
-  (pair, judge, encode: CPU per event of the node's own events, a goal of at most 1 µs) and the
-  relay's (decode, append, push). The relay half is a lower bound: finalised frames' statistics, the
-  store and fleet rows are left out of it.
+- ``numpy merge``: the relay before issue 50: each batch decoded from its wire bytes
+  (``decode_batch``), queued in its run (``LiveRun.add``); each tick every run merged with numpy
+  (``LiveRun._merge``: open frames found or opened, cells scatter-min'd, a few dozen numpy calls),
+  judged (``maintain_all``) and its newly shown frames' columns corrected for the push
+  (``framepack.corrected``).
+- ``compiled merge``: the same with each batch merged by one compiled pass over its records
+  (``relay/live/c/merge.c``: an open-addressing hash of the frame keys), as relays do since.
+  Judging, showing, finalising and pushing stay the delay model's numpy.
+- ``node pairs`` (and ``node pairs, compiled``, the node merging with the compiled pass): each node
+  runs the live engine on its own events and ships its newly shown frames' columns
+  (``framepack.node_columns``, what a push carries) instead of events; the relay appends them and
+  corrects them per push. Its two halves are measured apart: the node's shipping thread (pair,
+  judge, encode: CPU per event of the node's own events, a goal of at most 1 µs) and the relay's
+  (decode, append, push). The relay half is a lower bound: finalised frames' statistics, the store
+  and fleet rows are left out of it.
 
 ``--floor``: the per-message cost of any relay written in Python with aiohttp, whatever it does with
 a batch: a server that receives binary messages of a paced batch's size on a real WebSocket and
@@ -29,13 +30,10 @@ the server's CPU per message from ``/proc``.
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
 import os
-import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -47,8 +45,8 @@ from dcuscope.probes.ship.simnode import EVENTS_PER_FRAME, header_for, synth_eve
 from dcuscope.probes.ship.wire import decode_batch, encode_batch  # noqa: E402
 from dcuscope.relay.clock.correction import Correction, Segment  # noqa: E402
 from dcuscope.relay.live import framepack  # noqa: E402
-from dcuscope.relay.live.opentable import OpenTable  # noqa: E402
-from dcuscope.relay.live.run import PUSHED_FRAMES, Grow, LiveConfig, LiveRun, maintain_all  # noqa: E402
+from dcuscope.relay.live import cmerge  # noqa: E402
+from dcuscope.relay.live.run import PUSHED_FRAMES, Grow, LiveRun, maintain_all  # noqa: E402
 
 RATE = 4300.0
 SOURCES = 2
@@ -56,89 +54,6 @@ BATCH_S = 0.040
 """A paced node ships a batch every 40 ms (probes/ship/relayexport.py, adaptive)."""
 T0 = 1_700_000_000_000_000_000
 RUN_ID = "0" * 31 + "1"
-HERE = Path(__file__).resolve().parent / "proto"
-
-
-# --- the native merge ----------------------------------------------------------------------------
-
-def load_native(folder: Path) -> ctypes.CDLL:
-    cc = shutil.which("cc") or shutil.which("gcc")
-    if cc is None:
-        print("proto_live_path: no C compiler (cc) for the compiled merge: install gcc", file=sys.stderr)
-        sys.exit(2)
-    lib = folder / "libnativemerge.so"
-    subprocess.run([cc, "-O2", "-shared", "-fPIC", "-o", str(lib), str(HERE / "native_merge.c")], check=True)
-    dll = ctypes.CDLL(str(lib))
-    p = ctypes.c_void_p
-    dll.merge.restype = ctypes.c_int64
-    dll.merge.argtypes = [p, ctypes.c_int64, ctypes.c_int, p, p, ctypes.c_int64, p, p, p, ctypes.c_int64, ctypes.c_int64,
-                          p, p, ctypes.c_int64, p, p]
-    dll.rebuild.restype = None
-    dll.rebuild.argtypes = [p, ctypes.c_int64, p, p, ctypes.c_int64]
-    return dll
-
-
-class NativeOpenTable(OpenTable):
-    """The open table with a hash of its keys that the compiled merge reads and fills."""
-
-    dll: ctypes.CDLL
-
-    def __init__(self, stages: int) -> None:
-        super().__init__(stages)
-        self._hash(1024)
-
-    def _hash(self, slots: int) -> None:
-        self.hkey = np.full(slots, -1, np.int64)
-        self.hrow = np.zeros(slots, np.int64)
-        self.dll.rebuild(self._key.ctypes.data, self.n, self.hkey.ctypes.data, self.hrow.ctypes.data, slots - 1)
-
-    def room(self, more: int) -> None:
-        """Rows and hash slots for ``more`` frames opening."""
-        need = self.n + more
-        if need > len(self._key):
-            old, n = self._arrays(), self.n
-            self._alloc(max(2 * len(self._key), need))
-            for big, small in zip(self._arrays(), old):
-                big[:n] = small[:n]
-        if 2 * need > len(self.hkey):
-            self._hash(1 << int(2 * need).bit_length())
-
-    def keep(self, rows: np.ndarray) -> None:
-        super().keep(rows)
-        self._hash(len(self.hkey))
-
-
-class NativeRun(LiveRun):
-    """LiveRun whose merge is the compiled pass (the rest as it is)."""
-
-    def __init__(self, header, dll: ctypes.CDLL, config: LiveConfig = LiveConfig(), budget: int | None = None) -> None:
-        NativeOpenTable.dll = dll
-        super().__init__(header, config, budget)
-        self._open = NativeOpenTable(self._s)
-        self._dll = dll
-        self._out = np.zeros(3, np.int64)
-
-    def _merge(self, events: np.ndarray) -> None:
-        self.accounting.add(events)
-        if not self._framed.all():
-            self._framed[self._src_index(events["source"].astype(np.int64))] = True
-        t = self._open
-        t.room(len(events))
-        n0 = t.n
-        out = self._out
-        out[:] = (0, self.newest, 0)
-        rows = self._dll.merge(events.ctypes.data, len(events), self._s, t.hkey.ctypes.data, t.hrow.ctypes.data,
-                               len(t.hkey) - 1, t._key.ctypes.data, t._cells.ctypes.data, t._last.ctypes.data, t.n,
-                               len(t._key), self._src_ids.ctypes.data, self._watermark.ctypes.data, len(self._src_ids),
-                               self._has_exit.ctypes.data, out.ctypes.data)
-        if rows < 0:
-            raise RuntimeError("prototype: the open table is over its cap (not handled here)")
-        t.n = rows
-        t._shown[n0:rows] = False
-        t._end[n0:rows] = 0
-        self.late += int(out[0])
-        self.newest = int(out[1])
-        self._dirty = True
 
 
 # --- the hot loop, three ways -------------------------------------------------------------------
@@ -173,12 +88,11 @@ def _warm(live: list[LiveRun], events: list[np.ndarray], seconds: float) -> list
     return after
 
 
-def relay_loop(way: str, runs: int, seconds: float, hz: float, dll: ctypes.CDLL | None) -> dict:
-    """``today`` or ``native``: the relay's CPU from wire bytes to pushed columns."""
+def relay_loop(way: str, runs: int, seconds: float, hz: float) -> dict:
+    """``numpy merge`` or ``compiled merge``: the relay's CPU from wire bytes to pushed columns."""
     corr, events = _setup(runs, seconds)
     header = header_for("DCU", SOURCES, T0)
-    make = (lambda: NativeRun(header, dll, budget=64 << 20)) if way == "native" else (lambda: LiveRun(header, budget=64 << 20))
-    live = [make() for _ in range(runs)]
+    live = [LiveRun(header, budget=64 << 20, compiled=way == "compiled merge") for _ in range(runs)]
     warm, end = T0 + 1_000_000_000, T0 + int((seconds + 1) * 1e9)
     wires = [[(t, encode_batch(RUN_ID, k, b, compress=True)) for k, (t, b) in enumerate(plan)]
              for plan in _warm(live, events, seconds)]
@@ -206,13 +120,13 @@ def relay_loop(way: str, runs: int, seconds: float, hz: float, dll: ctypes.CDLL 
             "frames": sum(run.visible for run in live)}
 
 
-def node_loop(way: str, runs: int, seconds: float, dll: ctypes.CDLL | None) -> dict:
+def node_loop(way: str, runs: int, seconds: float) -> dict:
     """``node pairs``, the node's half: each node pairs and judges its own batches as it ships them
-    and encodes the columns of the frames newly shown (with ``dll``, merged by the compiled pass).
-    Returns the node's CPU and the messages."""
+    and encodes the columns of the frames newly shown (``node pairs, compiled``: merged by the
+    compiled pass). Returns the node's CPU and the messages."""
     corr, events = _setup(runs, seconds)
     header = header_for("DCU", SOURCES, T0)
-    live = [NativeRun(header, dll, budget=16 << 20) if dll else LiveRun(header, budget=16 << 20) for _ in range(runs)]
+    live = [LiveRun(header, budget=16 << 20, compiled=way.endswith("compiled")) for _ in range(runs)]
     plans = _warm(live, events, seconds)
     sent = [run.visible for run in live]
     messages: list[list[tuple[int, bytes]]] = [[] for _ in live]
@@ -263,48 +177,14 @@ def relay_of_frames(node: dict, seconds: float, hz: float) -> dict:
 
 
 def measure(way: str, runs: int, seconds: float, hz: float) -> list[dict]:
-    with tempfile.TemporaryDirectory() as tmp:
-        dll = load_native(Path(tmp)) if "native" in way else None
-        if way.startswith("node pairs"):
-            node = node_loop(way, runs, seconds, dll)
-            relay = relay_of_frames(node, seconds, hz)
-            del node["messages"], node["corr"]
-            return [node, relay]
-        return [relay_loop(way, runs, seconds, hz, dll)]
-
-
-def check_native_equals_numpy(runs: int = 2, seconds: float = 4.0) -> None:
-    """The prototype's merge leaves the engine where numpy's does: the same frames shown, with the same
-    columns, the same late events and whole-run statistics. Some frames are dropped midway (evicted
-    incomplete), a tenth of the events come twice, and the first batch comes again at the end (late:
-    its frames are finalised)."""
-    with tempfile.TemporaryDirectory() as tmp:
-        dll = load_native(Path(tmp))
-        header = header_for("DCU", SOURCES, T0)
-        fps = RATE / (EVENTS_PER_FRAME * SOURCES)
-        for r in range(runs):
-            ev = synth_events(int(fps * seconds), SOURCES, fps, T0, drop_rate=0.05, seed=r)
-            again = ev[::10].copy()  # a tracepoint that sees a frame twice: its cell keeps the earliest time
-            again["ts"] += 500
-            ev = np.concatenate([ev, again])
-            ev = ev[np.argsort(ev["ts"], kind="stable")]
-            batches = [b for _, b in _batches(ev, T0, T0 + int((seconds + 1) * 1e9))]
-            config = LiveConfig(settle_s=0.5, evict_s=1.0)
-            a, b = LiveRun(header, config), NativeRun(header, dll, config)
-            for batch in [*batches, batches[0]]:
-                shown = []
-                for run in (a, b):
-                    since = run.visible
-                    run.add(batch)
-                    run.maintain()
-                    shown.append(run.recent_columns(since, PUSHED_FRAMES))
-                # Rows open in event order here, in key order in numpy: a tick shows the same frames, in another order.
-                (ia, fa), (ib, fb) = shown
-                oa, ob = np.lexsort((ia[2], ia[1])), np.lexsort((ib[2], ib[1]))
-                assert np.array_equal(ia[1:, oa], ib[1:, ob]) and np.array_equal(fa[:, oa], fb[:, ob], equal_nan=True)
-            counts = [(run.visible, run.finalised, run.evicted, run.late, run.newest) for run in (a, b)]
-            assert counts[0] == counts[1] and a.late > 0 and a.evicted > 0, counts
-            assert a.run_stats() == b.run_stats()
+    if "compiled" in way and cmerge.load() is None:
+        raise SystemExit(f"proto_live_path: no compiled merge ({cmerge.unavailable_reason()})")
+    if way.startswith("node pairs"):
+        node = node_loop(way, runs, seconds)
+        relay = relay_of_frames(node, seconds, hz)
+        del node["messages"], node["corr"]
+        return [node, relay]
+    return [relay_loop(way, runs, seconds, hz)]
 
 
 # --- the per-message floor ----------------------------------------------------------------------
@@ -398,8 +278,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.inner:
         print(json.dumps(measure(args.inner, args.runs, args.seconds, args.hz)))
         return 0
-    check_native_equals_numpy()
-    ways = ("today", "native", "node pairs", "node pairs, native")
+    if cmerge.load() is None:
+        print(f"proto_live_path: the compiled merge is unavailable ({cmerge.unavailable_reason()})", file=sys.stderr)
+        return 2
+    ways = ("numpy merge", "compiled merge", "node pairs", "node pairs, compiled")
     results: dict[tuple[str, str], list[dict]] = {}
     for _ in range(args.rounds):
         for way in ways:
@@ -409,8 +291,7 @@ def main(argv: list[str] | None = None) -> int:
                 sys.exit(f"proto_live_path: {way} failed: {out.stderr.strip()[-2000:]}")
             for r in json.loads(out.stdout.strip().splitlines()[-1]):
                 results.setdefault((r["way"], r["side"]), []).append(r)
-    print(f"{args.runs} paced DCUs, {args.hz:g} push ticks/s, {args.seconds:g} s of node time, {args.rounds} rounds "
-          f"(the native merge checked equal to numpy's first)")
+    print(f"{args.runs} paced DCUs, {args.hz:g} push ticks/s, {args.seconds:g} s of node time, {args.rounds} rounds")
     print(f"  {'way':<18} {'where':<6} {'µs/event':>9} {'µs/batch':>9} {'frames':>8}   per round (µs/event)")
     base = None
     for (way, side), rs in results.items():
@@ -419,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
         base = base or per_event
         rounds = ", ".join(f"{1e6 * r['cpu_s'] / r['events']:.2f}" for r in rs)
         print(f"  {way:<18} {side:<6} {per_event:9.2f} {1e6 * cpu / b:9.0f} {rs[-1]['frames']:8,}   {rounds}"
-              f"{'' if side == 'node' else f'  ({base / per_event:.2f}× today)'}")
+              f"{'' if side == 'node' else f'  ({base / per_event:.2f}× the numpy merge)'}")
     return 0
 
 

@@ -3,7 +3,7 @@
 # Python GI overrides, RTSP server, Chromium for the UI tests, linuxptp and Prometheus for the
 # clock and metrics tests, PostgreSQL for the shared store's, Redis for the relays' live
 # fan-out), a venv that sees Debian's PyGObject, the project in editable mode with the tested
-# versions of constraints.txt, the native probe library, and the UI's pinned front-end packages. Fast (~1 s) when all is in place.
+# versions of constraints.txt, the native probe library, the relay's compiled merge, and the UI's pinned front-end packages. Fast (~1 s) when all is in place.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -54,6 +54,7 @@ if [ ! -f "$STAMPS/pip-$deps_hash" ]; then
 fi
 
 "$VENV/bin/python" -m dcuscope.probes.capture.native build >/dev/null || say "warning: native probes not built; Python probes will be used (slower)"
+"$VENV/bin/python" -m dcuscope.relay.live.cmerge build >/dev/null || say "warning: the relay's compiled merge not built; relays will merge with numpy (slower)"
 
 if [ -f ui/package-lock.json ]; then
   ui_hash=$(sha256sum ui/package-lock.json | cut -c1-16)

@@ -1,9 +1,11 @@
-"""Compile the native library (its C modules in ``c/``) with the system's compiler and GStreamer.
+"""Compile the native library (its C modules in ``c/``) with the system's compiler and GStreamer,
+and the relay's compiled merge (``relay/live/c``, :data:`MERGE`), which needs a C compiler only.
 
 Standard library only: ``setup.py`` loads this file by its path while a wheel is built (nothing of
-dcuscope nor numpy is importable then), and :mod:`dcuscope.probes.capture.native` calls it in a
-checkout. Where the build puts the library it also writes :data:`STATE`: one line, ``built`` or why
-not; an installed dcuscope reads it instead of compiling (site-packages is not ours to write).
+dcuscope nor numpy is importable then), and :mod:`dcuscope.probes.capture.native` and
+:mod:`dcuscope.relay.live.cmerge` call it in a checkout. Where the build puts a library it also
+writes :data:`STATE`: one line, ``built`` or why not; an installed dcuscope reads it instead of
+compiling (site-packages is not ours to write).
 """
 
 from __future__ import annotations
@@ -25,12 +27,24 @@ PACKAGES = "gcc pkg-config libgstreamer1.0-dev"
 """What the build needs, as Debian and Ubuntu name it."""
 
 
+class Library:
+    """A shared library: its C modules (bottom-up), its file name, whether it links GStreamer."""
+
+    def __init__(self, modules: tuple[str, ...], name: str, gstreamer: bool) -> None:
+        self.modules, self.name, self.gstreamer = modules, name, gstreamer
+
+
+PROBES = Library(MODULES, LIBRARY_NAME, gstreamer=True)
+MERGE = Library(("merge",), "libdcuscope_merge.so", gstreamer=False)
+"""The relay's live merge (relay/live/c): no GStreamer, so a relay-only host builds it too."""
+
+
 class CBuildError(Exception):
     """The library could not be compiled; the message says what was missing."""
 
 
-def sources(c_dir: Path) -> list[Path]:
-    return [c_dir / f"{name}.c" for name in MODULES]
+def sources(c_dir: Path, library: Library = PROBES) -> list[Path]:
+    return [c_dir / f"{name}.c" for name in library.modules]
 
 
 def _compiler() -> str:
@@ -49,15 +63,15 @@ def _gst_flags() -> list[str]:
     return shlex.split(res.stdout)
 
 
-def compile_library(c_dir: Path, library: Path) -> Path:
-    """Compile the C modules of ``c_dir`` into ``library``; raises :class:`CBuildError`."""
+def compile_library(c_dir: Path, library: Path, which: Library = PROBES) -> Path:
+    """Compile the C modules of ``c_dir`` (those of ``which``) into ``library``; raises :class:`CBuildError`."""
     library.parent.mkdir(parents=True, exist_ok=True)
     # Compile to a private name and rename: two processes building at once never load a
     # half-written library (nor GStreamer's plugin scanner, which looks at every *.so there).
     fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=library.parent)
     os.close(fd)
     cmd = [_compiler(), "-O2", "-std=gnu11", "-Wall", "-Werror=implicit-function-declaration", "-shared", "-fPIC",
-           "-o", tmp, *map(str, sources(c_dir)), *_gst_flags()]
+           "-o", tmp, *map(str, sources(c_dir, which)), *(_gst_flags() if which.gstreamer else [])]
     try:
         res = subprocess.run(cmd, capture_output=True, text=True)
     except OSError as exc:
@@ -65,17 +79,18 @@ def compile_library(c_dir: Path, library: Path) -> Path:
         raise CBuildError(f"cannot run the C compiler {cmd[0]}: {exc.strerror}") from exc
     if res.returncode != 0:
         os.unlink(tmp)
-        raise CBuildError(f"compiling the native probes failed:\n{res.stderr.strip()}")
+        raise CBuildError(f"compiling {which.name} failed:\n{res.stderr.strip()}")
     os.replace(tmp, library)
     return library
 
 
-def build_for_install(c_dir: Path, folder: Path) -> str | None:
+def build_for_install(c_dir: Path, folder: Path, which: Library = PROBES) -> str | None:
     """Compile into ``folder`` as a package build does: writes :data:`STATE`; returns why it
-    built nothing (the package then uses Python probes and has no tracer), or None."""
-    (folder / LIBRARY_NAME).unlink(missing_ok=True)  # an earlier build's, in a build folder used again
+    built nothing (the package then uses Python probes and has no tracer, or the relay merges in
+    numpy), or None."""
+    (folder / which.name).unlink(missing_ok=True)  # an earlier build's, in a build folder used again
     try:
-        compile_library(c_dir, folder / LIBRARY_NAME)
+        compile_library(c_dir, folder / which.name, which)
     except CBuildError as exc:
         reason = str(exc).splitlines()[0]
         (folder / STATE).write_text(reason + "\n")

@@ -1,9 +1,13 @@
-"""The open frames of a live run: rows in the order the frames opened, found by key through a sorted index.
+"""The open frames of a live run: rows in the order the frames opened, found by key through an index.
 
 A paced node opens a few frames per batch while hundreds wait to settle. Kept sorted by key, the
 table was copied whole and sorted again on every batch that opened one; here opening appends rows
-(amortised, as :class:`dcuscope.relay.live.run.Grow`) and re-sorts only the index of keys, and only
-:meth:`OpenTable.keep` (finalisation and eviction, a few times a second) moves rows.
+(amortised, as :class:`dcuscope.relay.live.run.Grow`) and only :meth:`OpenTable.keep`
+(finalisation and eviction, a few times a second) moves rows.
+
+The index is a hash of the keys that the compiled merge (:mod:`dcuscope.relay.live.cmerge`) reads and
+fills as it opens frames (:meth:`OpenTable.merge`); without that library, a sorted array of the keys,
+sorted again when frames open.
 
 Rows are in opening order, not key order: what reads the table takes frames as a set.
 """
@@ -14,22 +18,35 @@ import numpy as np
 
 from dcuscope.probes.trace.events import FRAME_CELLS
 from dcuscope.probes.trace.frametable import MISSING
+from dcuscope.relay.live.cmerge import CompiledMerge, events_pointer
 
 MIN_ROWS = 64
+MIN_SLOTS = 256
+"""Hash slots at least (a power of two, at least twice the rows open)."""
 
 
 class OpenTable:
     """Open frames of one run: per row its key (``source << KEY_SHIFT | frame``), cells (the earliest
     timestamp of each (stage, point)), newest event time, whether it was shown, and where its chain ended."""
 
-    def __init__(self, stages: int) -> None:
+    def __init__(self, stages: int, compiled: CompiledMerge | None = None) -> None:
         self._s = stages
         self.n = 0
+        self._c = compiled
         self._alloc(MIN_ROWS)
         self._sorted = np.zeros(0, np.int64)
-        """The open keys, sorted."""
+        """Without the compiled merge: the open keys, sorted."""
         self._row_of = np.zeros(0, np.int64)
         """The row of each key of ``_sorted``."""
+        self._hkey = np.full(MIN_SLOTS, -1, np.int64)
+        """With the compiled merge: the hash's slots (key, -1 free) and each one's row."""
+        self._hrow = np.zeros(MIN_SLOTS, np.int64)
+        self._io = np.zeros(3, np.int64)
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the compiled merge keeps this table (:meth:`merge` may be called)."""
+        return self._c is not None
 
     def _alloc(self, rows: int) -> None:
         self._key = np.zeros(rows, np.int64)
@@ -71,10 +88,17 @@ class OpenTable:
 
     @property
     def nbytes(self) -> int:
-        return sum(a.nbytes for a in self._arrays()) + self._sorted.nbytes + self._row_of.nbytes
+        index = self._sorted.nbytes + self._row_of.nbytes + self._hkey.nbytes + self._hrow.nbytes
+        return sum(a.nbytes for a in self._arrays()) + index
 
     def locate(self, key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Each key's row, and whether it is open (the row is meaningless where not)."""
+        if self._c is not None:
+            key = np.ascontiguousarray(key, np.int64)
+            rows, found = np.empty(len(key), np.int64), np.empty(len(key), bool)
+            self._c.locate(key.ctypes.data, len(key), self._hkey.ctypes.data, self._hrow.ctypes.data, len(self._hkey) - 1,
+                           rows.ctypes.data, found.ctypes.data)
+            return rows, found
         if len(self._sorted) == 0:
             return np.zeros(len(key), np.int64), np.zeros(len(key), bool)
         pos = np.minimum(np.searchsorted(self._sorted, key), len(self._sorted) - 1)
@@ -86,17 +110,16 @@ class OpenTable:
         if k == 0:
             return
         n = self.n
-        if n + k > len(self._key):
-            old = self._arrays()
-            self._alloc(max(2 * len(self._key), n + k))
-            for big, small in zip(self._arrays(), old):
-                big[:n] = small[:n]
+        self._room(k)
         self._key[n:n + k] = new_keys
         self._cells[n:n + k] = MISSING
         self._last[n:n + k] = 0
         self._shown[n:n + k] = False
         self._end[n:n + k] = 0
         self.n = n + k
+        if self._c is not None:
+            self._reindex()
+            return
         keys = np.concatenate([self._sorted, new_keys])
         order = np.argsort(keys, kind="stable")
         self._sorted = keys[order]
@@ -117,6 +140,48 @@ class OpenTable:
             for a in self._arrays():
                 a[:k] = a[idx]
         self.n = k
+        if self._c is not None:
+            self._reindex()
+            return
         order = np.argsort(self._key[:k], kind="stable")
         self._sorted = self._key[:k][order]
         self._row_of = order.astype(np.int64)
+
+    def merge(self, events: np.ndarray, src_ids: np.ndarray, watermark: np.ndarray, has_exit: np.ndarray,
+              newest: int) -> tuple[int, int, int]:
+        """Merge a batch of events (EVENT_DTYPE) with the compiled pass: frames open as their first event
+        comes (in event order), unless late (at or below their source's ``watermark``, ``src_ids`` sorted,
+        every source of the batch among them); ``has_exit`` (bool per stage) is marked in place. The
+        caller keeps the table within its cap. Returns (late events, the newest frame event's time or
+        ``newest``, frame events merged into a row)."""
+        events, address = events_pointer(events)
+        self._room(len(events))
+        io = self._io
+        io[:] = (0, newest, 0)
+        n = self._c.merge(address, len(events), self._s, self._hkey.ctypes.data, self._hrow.ctypes.data,
+                          len(self._hkey) - 1, self._key.ctypes.data, self._cells.ctypes.data, self._last.ctypes.data,
+                          self._shown.ctypes.data, self._end.ctypes.data, self.n, len(self._key), src_ids.ctypes.data,
+                          watermark.ctypes.data, len(src_ids), has_exit.ctypes.data, io.ctypes.data)
+        if n < 0:
+            raise RuntimeError("the compiled merge found no room in the open table")
+        self.n = int(n)
+        return int(io[0]), int(io[1]), int(io[2])
+
+    def _room(self, k: int) -> None:
+        """Rows (and, compiled, hash slots) for ``k`` more frames."""
+        n = self.n
+        if n + k > len(self._key):
+            old = self._arrays()
+            self._alloc(max(2 * len(self._key), n + k))
+            for big, small in zip(self._arrays(), old):
+                big[:n] = small[:n]
+        if self._c is not None and len(self._hkey) < 2 * (n + k):
+            self._reindex(2 * (n + k))
+
+    def _reindex(self, at_least: int = 0) -> None:
+        """The hash of the open keys made again, with slots for ``at_least`` keys' worth (and never more
+        than 8 times the rows open, so a table that emptied gives its memory back)."""
+        want = max(MIN_SLOTS, 1 << int(max(2 * self.n, at_least) - 1).bit_length())
+        if want > len(self._hkey) or len(self._hkey) > 4 * want:
+            self._hkey, self._hrow = np.empty(want, np.int64), np.empty(want, np.int64)
+        self._c.rehash(self._key.ctypes.data, self.n, self._hkey.ctypes.data, self._hrow.ctypes.data, len(self._hkey) - 1)

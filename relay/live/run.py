@@ -44,7 +44,7 @@ from dcuscope.probes.trace.delays import NS_PER_MS, Chains, FrameDelays, Series,
 from dcuscope.probes.trace.events import EXIT, FRAME_CELLS, GROUP, READY, TraceHeader
 from dcuscope.probes.trace.facts import Accounting
 from dcuscope.probes.trace.frametable import MISSING, FrameTable, frame_events, frame_table_from_cells
-from dcuscope.relay.live import framepack
+from dcuscope.relay.live import cmerge, framepack
 from dcuscope.relay.live.opentable import OpenTable
 from dcuscope.relay.live.values import RELATIVE_ERROR, OriginSpans, RunValues
 
@@ -195,13 +195,16 @@ def _judge_together(ticks: list[_Tick]) -> None:
 class LiveRun:
     """Live pairing and statistics of one run of one node."""
 
-    def __init__(self, header: TraceHeader, config: LiveConfig = LiveConfig(), budget: int | None = None) -> None:
+    def __init__(self, header: TraceHeader, config: LiveConfig = LiveConfig(), budget: int | None = None, *,
+                 compiled: bool = True) -> None:
+        """``compiled``: merge batches with the compiled pass where it loads (:mod:`dcuscope.relay.live.cmerge`);
+        False merges with numpy (the two leave a run alike)."""
         self.header = header
         self.stages = list(header.stages)
         self.config = config
         s = len(self.stages)
         self._s = s
-        self._open = OpenTable(s)
+        self._open = OpenTable(s, cmerge.load() if compiled else None)
         self._has_exit = np.zeros(s, bool)
         self._judged_exits: np.ndarray | None = None
         """``_has_exit`` when the shown frames were judged: should it change, they are judged again."""
@@ -352,6 +355,9 @@ class LiveRun:
 
     def _merge(self, events: np.ndarray) -> None:
         self.accounting.add(events)
+        if self._open.compiled and self._open.n + len(events) <= self._open_cap:
+            self._merge_compiled(events)
+            return
         events = frame_events(events)
         if len(events) == 0:
             return
@@ -379,6 +385,18 @@ class LiveRun:
         cells[slot[ready] + GROUP] = code[ready]
         np.maximum.at(self._open.last, pos, ts)
         self._dirty = True
+
+    def _merge_compiled(self, events: np.ndarray) -> None:
+        """:meth:`_merge` in one compiled pass, where the batch cannot take the open table over its cap
+        (were each event a new frame): frames open in event order rather than key order, nothing else differs."""
+        if not self._framed.all():
+            framed = frame_events(events)["source"]
+            if len(framed):
+                self._framed[self._src_index(framed.astype(np.int64))] = True
+        late, self.newest, placed = self._open.merge(events, self._src_ids, self._watermark, self._has_exit, self.newest)
+        self.late += late
+        if placed:
+            self._dirty = True
 
     def _place(self, key: np.ndarray, frame: np.ndarray, src: np.ndarray,
                ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,173 @@
+"""The live engine's compiled merge (relay/live/c/merge.c) against its numpy merge and against the
+offline delay model, on real traces and on synthetic runs that take every path of the merge."""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from dcuscope.probes.capture import cbuild
+from dcuscope.probes.ship.simnode import header_for, synth_events
+from dcuscope.probes.trace.delays import node_stats
+from dcuscope.probes.trace.events import ENTER, EXIT
+from dcuscope.probes.trace.tracefile import read_trace
+from dcuscope.relay.live import cmerge
+from dcuscope.relay.live.run import PUSHED_FRAMES, LiveConfig, LiveRun
+from tests.conftest import cli_env
+from tests.probes.synth import pipeline_run
+from tests.relay.helpers import assert_stats_equal
+
+T0 = 1_700_000_000_000_000_000
+TWO_CAMERAS = """node: CAM-2
+sources:
+  - {test: ball, width: 160, height: 120, rate: 30}
+  - {test: smpte, width: 160, height: 120, rate: 30}
+stages:
+  - mux: {batch-size: 2, width: 160, height: 120}
+  - tiler: {rows: 1, columns: 2, width: 320, height: 120}
+  - convert: {}
+"""
+
+
+@pytest.fixture(scope="module")
+def real_traces(tmp_path_factory):
+    """Two real traces: an unchanged gst-launch app through a tee (GStreamer's tracer, its graph), and a
+    dcuscope pipeline whose mux batches two live-rate cameras (service and wait times, groups)."""
+    tmp = tmp_path_factory.mktemp("traces")
+    (tmp / "two.yaml").write_text(TWO_CAMERAS)
+    commands = {
+        "tee": ["trace", "--node", "CAM-1", "-o", "tee.jsonl", "--", "gst-launch-1.0", "-q", "videotestsrc", "num-buffers=150",
+                "!", "video/x-raw,width=160,height=120", "!", "tee", "name=t", "!", "queue", "!", "videoconvert", "!",
+                "fakesink", "t.", "!", "queue", "!", "fakesink"],
+        "two": ["run", "two.yaml", "--probes", "--trace", "two.jsonl", "-n", "120", "-q"],
+    }
+    traces = {}
+    for name, args in commands.items():
+        done = subprocess.run([sys.executable, "-m", "dcuscope.cli", *args], cwd=tmp, env=cli_env(),
+                              capture_output=True, text=True, timeout=120)
+        assert done.returncode == 0, done.stderr[-3000:]
+        traces[name] = read_trace(tmp / f"{name}.jsonl")
+    return traces
+
+
+def both(header, config: LiveConfig = LiveConfig()) -> tuple[LiveRun, LiveRun]:
+    compiled = LiveRun(header, config)
+    assert compiled._open.compiled, cmerge.unavailable_reason()
+    return compiled, LiveRun(header, config, compiled=False)
+
+
+def feed_alike(runs: tuple[LiveRun, LiveRun], batches: list[np.ndarray]) -> None:
+    """Each batch to both runs, a tick after each: the same frames shown at every tick, with the same
+    pushed columns (in another order: the compiled merge opens frames in event order)."""
+    for batch in batches:
+        shown = []
+        for run in runs:
+            since = run.visible
+            run.add(batch)
+            run.maintain()
+            shown.append(run.recent_columns(since, PUSHED_FRAMES))
+        (ia, fa), (ib, fb) = shown
+        oa, ob = np.lexsort((ia[2], ia[1])), np.lexsort((ib[2], ib[1]))
+        assert np.array_equal(ia[1:, oa], ib[1:, ob]) and np.array_equal(fa[:, oa], fb[:, ob], equal_nan=True)
+    a, b = runs
+    assert [(r.visible, r.finalised, r.evicted, r.late, r.newest, r.open_count) for r in runs][0] == \
+           (b.visible, b.finalised, b.evicted, b.late, b.newest, b.open_count)
+    assert sorted(a.open_keys().tolist()) == sorted(b.open_keys().tolist())
+
+
+def chunks(events: np.ndarray, size: int) -> list[np.ndarray]:
+    return [events[i:i + size] for i in range(0, len(events), size)]
+
+
+@pytest.mark.parametrize("name", ["tee", "two"])
+def test_on_real_traces_the_compiled_merge_gives_the_offline_statistics(real_traces, name):
+    trace = real_traces[name]
+    assert len(trace.events) > 1000
+    runs = both(trace.header)
+    feed_alike(runs, chunks(trace.events, 97))
+    offline = node_stats(trace.header, trace.events, trace.dropped)
+    for run in runs:
+        run.finish()
+        assert_stats_equal(offline, run.run_stats(trace.dropped))
+    assert runs[0].run_stats(trace.dropped) == runs[1].run_stats(trace.dropped)
+    end = runs[0].newest  # by default the window ends at the present, which moves between two calls
+    assert runs[0].window_stats(end) == runs[1].window_stats(end)
+
+
+def test_drops_duplicates_disorder_and_late_events_leave_both_merges_alike():
+    header, events, _ = pipeline_run(600, 4, jitter_ns=5_000_000, batched_mux=True, seed=3)
+    events = events[np.argsort(events["ts"], kind="stable")]
+    again = events[(events["point"] == EXIT) | (events["point"] == ENTER)][::7].copy()
+    again["ts"] += 300_000  # tracepoints that saw a frame twice: the cell keeps the earliest
+    mixed = np.concatenate([events, again])
+    mixed = mixed[np.argsort(mixed["ts"], kind="stable")]
+    rng = np.random.default_rng(1)
+    batches = [c[rng.permutation(len(c))] for c in chunks(mixed, 250)]  # order inside a batch must not matter
+    runs = both(header, LiveConfig(settle_s=0.2, evict_s=0.5))
+    feed_alike(runs, [*batches, batches[0], batches[1]])  # the first batches again, late
+    assert runs[0].late > 0 and runs[0].finalised > 0
+    assert runs[0].run_stats() == runs[1].run_stats()
+
+
+def test_a_table_at_its_cap_evicts_as_numpy_does_through_the_hash():
+    """Batches that could take the open table past its cap take the numpy merge (eviction first) on the
+    compiled table: its keys are then found and opened through the hash."""
+    header = header_for("n", 3)
+    events = synth_events(400, 3, 30.0, T0, drop_rate=0.2, seed=5)
+    runs = both(header, LiveConfig(max_open_frames=100, settle_s=0.2, evict_s=30))
+    feed_alike(runs, chunks(events, 61))
+    assert runs[0].evicted > 0 and runs[0].finalised > 0, (runs[0].evicted, runs[0].finalised)
+    assert runs[0].run_stats(0) == runs[1].run_stats(0)
+
+
+def test_without_a_compiler_the_relay_says_why_once_and_merges_with_numpy(tmp_path, monkeypatch, caplog):
+    monkeypatch.setattr(cmerge, "_loaded", None)
+    monkeypatch.setattr(cmerge, "_reason", None)
+    monkeypatch.setattr(cmerge, "LIBRARY", tmp_path / "_build" / cmerge.LIBRARY.name)
+    monkeypatch.setenv("CC", "false")
+    with caplog.at_level(logging.WARNING, logger=cmerge.__name__):
+        assert cmerge.load() is None and cmerge.load() is None
+    reason = cmerge.unavailable_reason()
+    assert reason.startswith("compiling libdcuscope_merge.so failed")
+    assert [r.getMessage() for r in caplog.records] == [f"live merge: numpy (the compiled merge is unavailable: {reason})"]
+    header = header_for("n", 2)
+    run = LiveRun(header)
+    assert not run._open.compiled
+    events = synth_events(100, 2, 30.0, T0, seed=2)
+    for c in chunks(events, 50):
+        run.add(c)
+        run.maintain()
+    assert_stats_equal(node_stats(header, events), run.run_stats())
+
+
+def test_the_build_and_check_commands():
+    for command, says in (("build", cmerge.LIBRARY.name), ("check", "compiled merge loaded")):
+        done = subprocess.run([sys.executable, "-m", "dcuscope.relay.live.cmerge", command], env=cli_env(),
+                              capture_output=True, text=True, timeout=60)
+        assert done.returncode == 0 and says in done.stdout, done.stderr
+    done = subprocess.run([sys.executable, "-m", "dcuscope.relay.live.cmerge"], env=cli_env(), capture_output=True, text=True)
+    assert done.returncode == 2 and "usage" in done.stderr
+
+
+def test_a_merge_keeping_a_cells_latest_time_is_caught(tmp_path, monkeypatch):
+    """The comparison above can fail: a compiled merge that keeps each cell's latest time, not its
+    earliest, shows other frames than numpy's on the same real batches."""
+    (tmp_path / "c").mkdir()
+    source = (cmerge.C_DIR / "merge.c").read_text()
+    wrong = source.replace("e->ts < c[e->point]", "e->ts > c[e->point]")
+    assert wrong != source
+    (tmp_path / "c" / "merge.c").write_text(wrong)
+    library = cbuild.compile_library(tmp_path / "c", tmp_path / "wrong.so", cbuild.MERGE)
+    monkeypatch.setattr(cmerge, "_loaded", cmerge.CompiledMerge(ctypes.CDLL(str(library))))
+    header, events, _ = pipeline_run(200, 2, seed=8)
+    events = events[np.argsort(events["ts"], kind="stable")]
+    again = events[events["point"] == EXIT][::5].copy()
+    again["ts"] += 300_000
+    mixed = np.concatenate([events, again])
+    with pytest.raises(AssertionError):
+        feed_alike(both(header), chunks(mixed[np.argsort(mixed["ts"], kind="stable")], 100))
