@@ -4,7 +4,7 @@
   become ``dcuscope.core`` … ``dcuscope.ui``; ``assets/`` (the models and clips, with their notes)
   and ``configs/`` go in as ``dcuscope/assets`` and ``dcuscope/configs``.
 - The native library (the GStreamer tracer and the tracepoints, ``probes/capture/c``) is compiled
-  against the system's GStreamer as the package is built: :mod:`probes.capture.cbuild`, loaded here
+  against the system's GStreamer as the package is built: :mod:`core.cbuild`, loaded here
   by its path. Without a compiler or GStreamer's headers the package is built all the same, says
   so in one line, and its Python probes are used (``dcuscope`` says so again where it matters).
 - The wheel is tagged for the platform (it holds a shared library) but any Python 3.
@@ -49,7 +49,7 @@ PACKAGE_DATA = {name: ["*"] for name, folder in PACKAGE_DIR.items() if not (ROOT
 
 
 def _cbuild():
-    spec = importlib.util.spec_from_file_location("dcuscope_cbuild", ROOT / "probes" / "capture" / "cbuild.py")
+    spec = importlib.util.spec_from_file_location("dcuscope_cbuild", ROOT / "core" / "cbuild.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

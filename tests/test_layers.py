@@ -213,12 +213,12 @@ C_DIR = REPO / "probes" / "capture" / "c"
 
 
 def c_modules() -> list[str]:
-    """The native library's modules, bottom-up, as probes.capture.cbuild compiles them."""
-    tree = ast.parse((REPO / "probes" / "capture" / "cbuild.py").read_text())
+    """The native library's modules, bottom-up, as core.cbuild compiles them."""
+    tree = ast.parse((REPO / "core" / "cbuild.py").read_text())
     for node in tree.body:
         if isinstance(node, ast.Assign) and [getattr(t, "id", "") for t in node.targets] == ["MODULES"]:
             return list(ast.literal_eval(node.value))
-    raise AssertionError("probes/capture/cbuild.py defines no MODULES")
+    raise AssertionError("core/cbuild.py defines no MODULES")
 
 
 C_MODULES = c_modules()

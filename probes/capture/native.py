@@ -1,6 +1,6 @@
 """Build and load the native library (the probes' ring and tracepoints, and the GStreamer tracer).
 
-The library (its C modules in ``c/``, compiled by :mod:`dcuscope.probes.capture.cbuild`) is
+The library (its C modules in ``c/``, compiled by :mod:`dcuscope.core.cbuild`) is
 ``_build/libgstdcuscope.so`` beside this file. In a checkout it is compiled on demand (git-ignored;
 the project setup runs ``python -m dcuscope.probes.capture.native build`` once). Installed, the
 package's build compiled it, or wrote why not (``_build/BUILD-STATE``): nothing is compiled into
@@ -22,7 +22,7 @@ import numpy as np
 
 from dcuscope.core.errors import DcuscopeError
 from dcuscope.core.gst import Gst
-from dcuscope.probes.capture import cbuild
+from dcuscope.core import cbuild
 from dcuscope.probes.capture.ring import RingStats
 from dcuscope.probes.trace.events import EVENT_DTYPE
 

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from dcuscope.core.errors import DcuscopeError
-from dcuscope.probes.capture import cbuild
+from dcuscope.core import cbuild
 from dcuscope.probes.trace.events import EVENT_DTYPE
 
 HERE = Path(__file__).resolve().parent

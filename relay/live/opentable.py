@@ -41,7 +41,7 @@ class OpenTable:
         self._hkey = np.full(MIN_SLOTS, -1, np.int64)
         """With the compiled merge: the hash's slots (key, -1 free) and each one's row."""
         self._hrow = np.zeros(MIN_SLOTS, np.int64)
-        self._io = np.zeros(3, np.int64)
+        self._io = np.zeros(4, np.int64)
 
     @property
     def compiled(self) -> bool:
@@ -151,21 +151,22 @@ class OpenTable:
               newest: int) -> tuple[int, int, int]:
         """Merge a batch of events (EVENT_DTYPE) with the compiled pass: frames open as their first event
         comes (in event order), unless late (at or below their source's ``watermark``, ``src_ids`` sorted,
-        every source of the batch among them); ``has_exit`` (bool per stage) is marked in place. The
-        caller keeps the table within its cap. Returns (late events, the newest frame event's time or
-        ``newest``, frame events merged into a row)."""
+        every source of the batch among them); ``has_exit`` (bool per stage) is marked in place. Rows
+        and hash slots grow as frames open (doubling); the caller keeps the table within its cap.
+        Returns (late events, the newest frame event's time or ``newest``, frame events merged into a row)."""
         events, address = events_pointer(events)
-        self._room(len(events))
         io = self._io
-        io[:] = (0, newest, 0)
-        n = self._c.merge(address, len(events), self._s, self._hkey.ctypes.data, self._hrow.ctypes.data,
-                          len(self._hkey) - 1, self._key.ctypes.data, self._cells.ctypes.data, self._last.ctypes.data,
-                          self._shown.ctypes.data, self._end.ctypes.data, self.n, len(self._key), src_ids.ctypes.data,
-                          watermark.ctypes.data, len(src_ids), has_exit.ctypes.data, io.ctypes.data)
-        if n < 0:
-            raise RuntimeError("the compiled merge found no room in the open table")
-        self.n = int(n)
-        return int(io[0]), int(io[1]), int(io[2])
+        io[:] = (0, newest, 0, 0)
+        while True:
+            n = self._c.merge(address, len(events), self._s, self._hkey.ctypes.data, self._hrow.ctypes.data,
+                              len(self._hkey) - 1, self._key.ctypes.data, self._cells.ctypes.data, self._last.ctypes.data,
+                              self._shown.ctypes.data, self._end.ctypes.data, self.n, len(self._key), src_ids.ctypes.data,
+                              watermark.ctypes.data, len(src_ids), has_exit.ctypes.data, io.ctypes.data)
+            self.n = int(n)
+            if io[3] == len(events):
+                return int(io[0]), int(io[1]), int(io[2])
+            # Out of rows or hash slots at event io[3], the frames before it merged: room, then on from there.
+            self._room(max(self.n, MIN_ROWS))
 
     def _room(self, k: int) -> None:
         """Rows (and, compiled, hash slots) for ``k`` more frames."""

@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from dcuscope.probes.capture import cbuild
+from dcuscope.core import cbuild
 from dcuscope.probes.ship.simnode import header_for, synth_events
 from dcuscope.probes.trace.delays import node_stats
 from dcuscope.probes.trace.events import ENTER, EXIT

@@ -56,24 +56,25 @@ void dcu_merge_locate(const int64_t *keys, int64_t n, const int64_t *hkey, const
     }
 }
 
-/* Merge n events into the rows open (rows of rows_cap allocated). Frame events only: drops and facts
- * (point >= FRAME_POINTS) are skipped. An event of a frame not open whose source's watermark
+/* Merge events [io[3], n) into the rows open (rows of rows_cap allocated). Frame events only: drops and
+ * facts (point >= FRAME_POINTS) are skipped. An event of a frame not open whose source's watermark
  * (src_ids sorted, watermark beside) is at or above it is late: counted, not merged. Every frame
  * event, late or not, raises newest and marks its stage's exit point.
  *
- * The caller makes room first: rows_cap - rows >= n and mask + 1 >= 2 * (rows + n). Returns the rows
- * open after, or -1 if the room was short (nothing is undone then: a bug of the caller).
- * io: [late, newest, placed] in and out (placed: frame events merged into a row). */
+ * Returns the rows open after. It stops early when a frame must open and there is no row for it
+ * (rows_cap), or the hash would pass half full: io[3] < n then says where to go on from once the
+ * caller made room (what came before is merged and counted).
+ * io: [late, newest, placed, start] in and out (placed: frame events merged into a row). */
 int64_t dcu_merge(const event_t *ev, int64_t n, int32_t n_stages,
                   int64_t *hkey, int64_t *hrow, int64_t mask,
                   int64_t *okey, int64_t *cells, int64_t *last, uint8_t *shown, int64_t *end,
                   int64_t rows, int64_t rows_cap,
                   const int64_t *src_ids, const int64_t *watermark, int64_t n_src,
                   uint8_t *has_exit, int64_t *io) {
-    if (rows_cap - rows < n || mask + 1 < 2 * (rows + n)) return -1;
     int64_t late = io[0], newest = io[1], placed = io[2];
     const int64_t row_cells = (int64_t)n_stages * CELLS;
-    for (int64_t i = 0; i < n; i++) {
+    int64_t i = io[3];
+    for (; i < n; i++) {
         const event_t *e = &ev[i];
         if (e->point < 0 || e->point >= FRAME_POINTS) continue;
         if (e->ts > newest) newest = e->ts;
@@ -94,6 +95,7 @@ int64_t dcu_merge(const event_t *ev, int64_t n, int32_t n_stages,
                 late++;
                 continue;
             }
+            if (rows >= rows_cap || 2 * (rows + 1) > mask + 1) break;
             row = rows++;
             okey[row] = key;
             last[row] = 0;
@@ -113,5 +115,6 @@ int64_t dcu_merge(const event_t *ev, int64_t n, int32_t n_stages,
     io[0] = late;
     io[1] = newest;
     io[2] = placed;
+    io[3] = i;
     return rows;
 }

@@ -1,4 +1,4 @@
-"""Compile the native library (its C modules in ``c/``) with the system's compiler and GStreamer,
+"""Compile the probes' native library (``probes/capture/c``) with the system's compiler and GStreamer,
 and the relay's compiled merge (``relay/live/c``, :data:`MERGE`), which needs a C compiler only.
 
 Standard library only: ``setup.py`` loads this file by its path while a wheel is built (nothing of
