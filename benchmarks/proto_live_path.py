@@ -292,14 +292,14 @@ def main(argv: list[str] | None = None) -> int:
             for r in json.loads(out.stdout.strip().splitlines()[-1]):
                 results.setdefault((r["way"], r["side"]), []).append(r)
     print(f"{args.runs} paced DCUs, {args.hz:g} push ticks/s, {args.seconds:g} s of node time, {args.rounds} rounds")
-    print(f"  {'way':<18} {'where':<6} {'µs/event':>9} {'µs/batch':>9} {'frames':>8}   per round (µs/event)")
+    print(f"  {'way':<20} {'where':<6} {'µs/event':>9} {'µs/batch':>9} {'frames':>8}   per round (µs/event)")
     base = None
     for (way, side), rs in results.items():
         cpu, ev, b = sum(r["cpu_s"] for r in rs), sum(r["events"] for r in rs), sum(r["batches"] for r in rs)
         per_event = 1e6 * cpu / ev
         base = base or per_event
         rounds = ", ".join(f"{1e6 * r['cpu_s'] / r['events']:.2f}" for r in rs)
-        print(f"  {way:<18} {side:<6} {per_event:9.2f} {1e6 * cpu / b:9.0f} {rs[-1]['frames']:8,}   {rounds}"
+        print(f"  {way:<20} {side:<6} {per_event:9.2f} {1e6 * cpu / b:9.0f} {rs[-1]['frames']:8,}   {rounds}"
               f"{'' if side == 'node' else f'  ({base / per_event:.2f}× the numpy merge)'}")
     return 0
 
