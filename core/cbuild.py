@@ -43,6 +43,14 @@ class CBuildError(Exception):
     """The library could not be compiled; the message says what was missing."""
 
 
+class NotBuilt(CBuildError):
+    """An installed dcuscope whose package build compiled no such library: ``state`` says why."""
+
+    def __init__(self, state: str) -> None:
+        super().__init__(state)
+        self.state = state
+
+
 def sources(c_dir: Path, library: Library = PROBES) -> list[Path]:
     return [c_dir / f"{name}.c" for name in library.modules]
 
@@ -82,6 +90,29 @@ def compile_library(c_dir: Path, library: Path, which: Library = PROBES) -> Path
         raise CBuildError(f"compiling {which.name} failed:\n{res.stderr.strip()}")
     os.replace(tmp, library)
     return library
+
+
+def installed_state(folder: Path) -> str | None:
+    """``built``, or why the install built no library into ``folder``; None in a checkout (compiled on demand)."""
+    try:
+        return (folder / STATE).read_text().strip() or "unknown"
+    except FileNotFoundError:
+        return None
+
+
+def ensure(c_dir: Path, library: Path, which: Library = PROBES, force: bool = False) -> Path:
+    """``library``, compiled from ``c_dir`` unless one newer than its sources and headers is there.
+    Installed (:data:`STATE` beside it), nothing is compiled: raises :class:`NotBuilt` when the
+    install built none; :class:`CBuildError` when compiling fails."""
+    state = installed_state(library.parent)
+    if state is not None:
+        if state == "built" and library.exists():
+            return library
+        raise NotBuilt(state)
+    newest = max(p.stat().st_mtime for p in [*sources(c_dir, which), *c_dir.glob("*.h")])
+    if not force and library.exists() and library.stat().st_mtime >= newest:
+        return library
+    return compile_library(c_dir, library, which)
 
 
 def build_for_install(c_dir: Path, folder: Path, which: Library = PROBES) -> str | None:

@@ -28,11 +28,8 @@ from dcuscope.probes.trace.events import EVENT_DTYPE
 
 HERE = Path(__file__).resolve().parent
 C_DIR = HERE / "c"
-SOURCES = cbuild.sources(C_DIR)
-HEADERS = sorted(C_DIR.glob("*.h"))
 BUILD_DIR = HERE / "_build"
 LIBRARY = BUILD_DIR / cbuild.LIBRARY_NAME
-INSTALL_STATE = BUILD_DIR / cbuild.STATE
 ABI_VERSION = 2
 
 _lock = threading.Lock()
@@ -44,28 +41,14 @@ class BuildError(DcuscopeError):
     """The native library could not be compiled; the message says what was missing."""
 
 
-def installed_state() -> str | None:
-    """``built``, or why the install built no library; None in a checkout (compiled on demand)."""
-    try:
-        return INSTALL_STATE.read_text().strip() or "unknown"
-    except FileNotFoundError:
-        return None
-
-
 def build(force: bool = False) -> Path:
     """Compile the library unless an up-to-date one is there; returns its path. Installed, only
     says whether the install built it."""
-    state = installed_state()
-    if state is not None:
-        if state == "built" and LIBRARY.exists():
-            return LIBRARY
-        raise BuildError(f"dcuscope was installed without its native library ({state}); "
-                         f"install {cbuild.PACKAGES} (Debian/Ubuntu names) and reinstall dcuscope")
-    newest = max(p.stat().st_mtime for p in SOURCES + HEADERS)
-    if not force and LIBRARY.exists() and LIBRARY.stat().st_mtime >= newest:
-        return LIBRARY
     try:
-        return cbuild.compile_library(C_DIR, LIBRARY)
+        return cbuild.ensure(C_DIR, LIBRARY, force=force)
+    except cbuild.NotBuilt as exc:
+        raise BuildError(f"dcuscope was installed without its native library ({exc.state}); "
+                         f"install {cbuild.PACKAGES} (Debian/Ubuntu names) and reinstall dcuscope") from exc
     except cbuild.CBuildError as exc:
         raise BuildError(str(exc)) from exc
 

@@ -29,7 +29,6 @@ HERE = Path(__file__).resolve().parent
 C_DIR = HERE / "c"
 BUILD_DIR = HERE / "_build"
 LIBRARY = BUILD_DIR / cbuild.MERGE.name
-INSTALL_STATE = BUILD_DIR / cbuild.STATE
 ABI = 1
 
 log = logging.getLogger(__name__)
@@ -62,27 +61,14 @@ class CompiledMerge:
         self.merge = dll.dcu_merge
 
 
-def installed_state() -> str | None:
-    """``built``, or why the install built no library; None in a checkout (compiled on demand)."""
-    try:
-        return INSTALL_STATE.read_text().strip() or "unknown"
-    except FileNotFoundError:
-        return None
-
-
 def build(force: bool = False) -> Path:
     """Compile the library unless an up-to-date one is there; returns its path. Installed, only
     says whether the install built it."""
-    state = installed_state()
-    if state is not None:
-        if state == "built" and LIBRARY.exists():
-            return LIBRARY
-        raise BuildError(f"dcuscope was installed without its compiled merge ({state}); install gcc and reinstall")
-    sources = cbuild.sources(C_DIR, cbuild.MERGE)
-    if not force and LIBRARY.exists() and LIBRARY.stat().st_mtime >= max(s.stat().st_mtime for s in sources):
-        return LIBRARY
     try:
-        return cbuild.compile_library(C_DIR, LIBRARY, cbuild.MERGE)
+        return cbuild.ensure(C_DIR, LIBRARY, cbuild.MERGE, force)
+    except cbuild.NotBuilt as exc:
+        raise BuildError(f"dcuscope was installed without its compiled merge ({exc.state}); install gcc and "
+                         f"reinstall") from exc
     except cbuild.CBuildError as exc:
         raise BuildError(str(exc)) from exc
 
@@ -118,13 +104,15 @@ def main(argv: list[str] | None = None) -> int:
         try:
             print(build(force=True))
         except BuildError as exc:
-            print(f"dcuscope: {exc}", file=sys.stderr)
+            print(f"dcuscope: compiled merge not built ({exc}); relays will merge with numpy", file=sys.stderr)
             return 1
         return 0
     if args == ["check"]:
-        merge = load()
-        print(f"compiled merge loaded: {LIBRARY}" if merge else f"compiled merge unavailable: {unavailable_reason()}")
-        return 0 if merge else 1
+        if load() is None:
+            print(f"compiled merge unavailable: {unavailable_reason()}", file=sys.stderr)
+            return 1
+        print(f"compiled merge loaded: {LIBRARY}")
+        return 0
     print("usage: python -m dcuscope.relay.live.cmerge build|check", file=sys.stderr)
     return 2
 
