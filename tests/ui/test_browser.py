@@ -248,6 +248,9 @@ def test_frame_view_limit_turns_bars_deep_red_and_counts(live):
     page.click(".tab[data-tab=frame]")
     d = wait_for(lambda: (lambda d: d if all(d["frame"]["nodes"].get(n, {}).get("shown", 0) > 0 for n in NODES)
                           else None)(debug(page)), 60, 0.3, "frame bars of both DCUs")
+    # and their statistics (a paused view is not drawn again: the counts below say the p99 once it came)
+    wait_for(lambda: all("its p99" in page.locator(f'.frame-panel[data-node="{n}"] .frame-head').inner_text() for n in NODES),
+             30, 0.2, "both DCUs' p99 in the frame view")
 
     def set_limit(value: str) -> dict:
         page.fill("#limit-input", value)
@@ -258,7 +261,10 @@ def test_frame_view_limit_turns_bars_deep_red_and_counts(live):
     # No limit by default (the relay has no --frame-limit): no bar judged, 75 bars a pixel apart, and
     # the counts say what they count.
     page.click("#pause")
-    d = debug(page)
+    # The counts of the draw at the paused instant (a following view redraws at most every 30 ms, so the
+    # last draw before the click may hold a frame or two fewer).
+    d = wait_for(lambda: (lambda d: d if d["paused"] and d["frame"].get("tEnd") == d["window"][1] else None)(debug(page)),
+                 5, 0.05, "the frame view drawn at the paused instant")
     assert d["frame"]["limit"] is None
     for node in NODES:
         c = d["frame"]["nodes"][node]
