@@ -19,8 +19,6 @@ import sys
 import threading
 from pathlib import Path
 
-import numpy as np
-
 from dcuscope.core.errors import DcuscopeError
 from dcuscope.core import cbuild
 from dcuscope.probes.trace.events import EVENT_DTYPE
@@ -90,12 +88,6 @@ def load() -> CompiledMerge | None:
 def unavailable_reason() -> str | None:
     """Why :func:`load` gave None (None when it loaded, or was not tried)."""
     return _reason
-
-
-def events_pointer(events: np.ndarray) -> tuple[np.ndarray, int]:
-    """``events`` as contiguous EVENT_DTYPE records (the array kept alive by the caller) and its address."""
-    events = np.ascontiguousarray(events, dtype=EVENT_DTYPE)
-    return events, events.ctypes.data
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from dcuscope.probes.trace.events import FRAME_CELLS
+from dcuscope.probes.trace.events import EVENT_DTYPE, FRAME_CELLS
 from dcuscope.probes.trace.frametable import MISSING
-from dcuscope.relay.live.cmerge import CompiledMerge, events_pointer
+from dcuscope.relay.live.cmerge import CompiledMerge
 
 MIN_ROWS = 64
 MIN_SLOTS = 256
@@ -38,9 +38,10 @@ class OpenTable:
         """Without the compiled merge: the open keys, sorted."""
         self._row_of = np.zeros(0, np.int64)
         """The row of each key of ``_sorted``."""
-        self._hkey = np.full(MIN_SLOTS, -1, np.int64)
+        slots = MIN_SLOTS if compiled is not None else 0
+        self._hkey = np.full(slots, -1, np.int64)
         """With the compiled merge: the hash's slots (key, -1 free) and each one's row."""
-        self._hrow = np.zeros(MIN_SLOTS, np.int64)
+        self._hrow = np.zeros(slots, np.int64)
         self._io = np.zeros(4, np.int64)
 
     @property
@@ -154,7 +155,8 @@ class OpenTable:
         every source of the batch among them); ``has_exit`` (bool per stage) is marked in place. Rows
         and hash slots grow as frames open (doubling); the caller keeps the table within its cap.
         Returns (late events, the newest frame event's time or ``newest``, frame events merged into a row)."""
-        events, address = events_pointer(events)
+        events = np.ascontiguousarray(events, dtype=EVENT_DTYPE)  # the records the C pass reads, kept alive here
+        address = events.ctypes.data
         io = self._io
         io[:] = (0, newest, 0, 0)
         while True:
