@@ -16,12 +16,14 @@ from dcuscope.relay.export.otlpconfig import DEFAULT_EVERY, DEFAULT_QUEUE, DEFAU
 from dcuscope.relay.guard.auth import load_tokens
 from dcuscope.relay.guard.limits import Limits, limits_help
 from dcuscope.relay.guard.proxy import TrustedProxies
+from dcuscope.relay.store.base import STORE_TIMEOUT_S
 from dcuscope.relay.store.compaction import COMPACT_AFTER_S
 from dcuscope.relay.store.engines import is_url
 from dcuscope.relay.store.retention import parse_retention
 from dcuscope.relay.workers import run_workers
 
 MAX_COMPACT_AFTER_S = 7 * 86_400.0
+MIN_STORE_TIMEOUT_S, MAX_STORE_TIMEOUT_S = 0.5, 600.0
 
 
 def add_relay_parser(subparsers) -> argparse.ArgumentParser:
@@ -47,7 +49,14 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", default="dcuscope.db", metavar="FILE|URL",
                    help="where sessions are stored: an SQLite file (one relay; default ./dcuscope.db) or a PostgreSQL "
                         "database, postgresql://USER[:PASSWORD]@HOST[:PORT]/DB, shared by any number of relays: any "
-                        "relay takes any node, and a node whose relay died resumes its run on another (README, Fleet)")
+                        "relay takes any node, and a node whose relay died resumes its run on another (README, Fleet); "
+                        "postgresql://H1:5432,H2:5432/DB?target_session_attrs=read-write follows whichever host is "
+                        "the primary (docs/store-failover.md)")
+    p.add_argument("--store-timeout", type=float, default=STORE_TIMEOUT_S, metavar="SECONDS",
+                   help="a PostgreSQL store's write not answered within this long is cancelled, and its node told to "
+                        "send it again (nothing is stored twice): a relay never hangs on its store, e.g. on commits "
+                        "waiting for a synchronous standby that is gone (/api/health and /metrics say so; "
+                        f"docs/store-failover.md) (default {STORE_TIMEOUT_S:g})")
     p.add_argument("--workers", type=int, default=1, metavar="N",
                    help="run N relay processes on this host sharing --port (SO_REUSEPORT) and the --db PostgreSQL "
                         "store: N cores for ingest; each answers UDP clock exchanges on the clock port + its index "
@@ -124,7 +133,9 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
                         "(redis://HOST:PORT/DB; python-socketio's AsyncRedisManager): with relays sharing "
                         "--db postgresql://..., a page on any relay shows every DCU of the fleet live. Redis "
                         "down: ingest and storage go on, other relays' pages catch up when it returns; rediss://: "
-                        "over TLS, the server's certificate checked (the system's CAs, or --redis-ca)")
+                        "over TLS, the server's certificate checked (the system's CAs, or --redis-ca); "
+                        "redis+sentinel://S1:26379,S2:26379/DB/SERVICE: Redis Sentinels, the master of SERVICE "
+                        "followed through a failover (docs/store-failover.md)")
     p.add_argument("--redis-ca", metavar="FILE",
                    help="with --redis rediss://...: the CA certificates (PEM) the Redis server's certificate must "
                         "come from, instead of the system's (the same as the URL's ssl_ca_certs=FILE)")
@@ -184,6 +195,10 @@ def run_relay(args: argparse.Namespace) -> int:
     if not 0 <= args.compact_after <= MAX_COMPACT_AFTER_S:
         raise RelayError(f"--compact-after takes 0 (never) to {MAX_COMPACT_AFTER_S:g} seconds, not {args.compact_after:g}")
     options["compact_after_s"] = args.compact_after
+    if not MIN_STORE_TIMEOUT_S <= args.store_timeout <= MAX_STORE_TIMEOUT_S:
+        raise RelayError(f"--store-timeout takes {MIN_STORE_TIMEOUT_S:g} to {MAX_STORE_TIMEOUT_S:g} seconds, "
+                         f"not {args.store_timeout:g}")
+    options["store_timeout_s"] = args.store_timeout
     if args.workers != 1:
         if not 2 <= args.workers <= 64:
             raise RelayError(f"--workers must be 1..64, not {args.workers}")

@@ -54,6 +54,7 @@ from dcuscope.relay.guard.tls import ServerTls
 from dcuscope.relay.ingest.endpoint import SYNCS_KEPT, Ingest
 from dcuscope.relay.live.run import LiveConfig
 from dcuscope.relay.live.state import RelayState
+from dcuscope.relay.store.base import STORE_TIMEOUT_S
 from dcuscope.relay.store.compaction import COMPACT_AFTER_S
 from dcuscope.relay.store.compactor import Compactor
 from dcuscope.relay.store.retention import Retention, retain
@@ -150,7 +151,7 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
                frame_limits: FrameLimits = FrameLimits(), otlp: OtlpConfig | None = None,
                trusted_proxies: TrustedProxies = TrustedProxies(), redis: str | None = None,
                name: str | None = None, compact_after_s: float = COMPACT_AFTER_S,
-               tls: ServerTls | None = None) -> tuple[web.Application, Relay]:
+               tls: ServerTls | None = None, store_timeout_s: float = STORE_TIMEOUT_S) -> tuple[web.Application, Relay]:
     """The relay's app; who may do what is :mod:`dcuscope.relay.guard.policy`'s (``token``: the admin's, ``viewer_tokens``
     and ``node_tokens``: NAME -> token); while anyone may read, requests must name an IP, localhost or one of ``allow_hosts``
     (:mod:`dcuscope.relay.guard.hostcheck`). ``otlp``: export sampled frames as traces (:mod:`dcuscope.relay.export.otlp`; its
@@ -159,14 +160,16 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     relay's pushes to every relay's browsers (:mod:`dcuscope.relay.api.fanout`). ``name``: how pages and other relays
     name this one (default: HOST:PORT once listening). ``compact_after_s``: batches stored that long are
     compacted (:mod:`dcuscope.relay.store.compaction`; 0: never). ``tls``: the port speaks HTTPS only
-    (:mod:`dcuscope.relay.guard.tls`; with its client CA, ``/ingest`` takes only nodes with a certificate it signed)."""
+    (:mod:`dcuscope.relay.guard.tls`; with its client CA, ``/ingest`` takes only nodes with a certificate it signed).
+    ``store_timeout_s``: a PostgreSQL store's writes not answered within it are cancelled and sent again
+    (:mod:`dcuscope.relay.store.writer`)."""
     if clock not in CLOCK_MODES:
         raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
     refused: Counter = Counter()
     policy = Policy(token, viewer_tokens, node_tokens, refused, certified=tls is not None and tls.verifies_clients)  # a token given twice: before anything starts
     limits = fit_descriptors(limits)
     # The name other relays sharing the store see (/api/health's store.relays).
-    storage = Storage(db, name=f"{socket.gethostname()} pid {os.getpid()}")
+    storage = Storage(db, name=f"{socket.gethostname()} pid {os.getpid()}", timeout_s=store_timeout_s)
     state = RelayState(storage, clock, live, limits, frame_limits)
     state.relay_name = name or ""
     manager, fanout = create_manager(redis)

@@ -12,6 +12,10 @@ tests/relay/nsnet.py), trusting clients from the subnets the host is directly co
 ``PostgresServer(tls=ISSUED)`` (a server certificate of tests/tlscerts.py) takes TLS connections only
 (``ssl=on``, pg_hba's ``hostssl``; plain TCP is refused): user ``postgres`` without a password, and user
 ``USER`` (:data:`USER`) with password :data:`PASSWORD` (scram-sha-256), as a relay would log in.
+``PostgresServer(synchronous=True)`` is a primary whose commits wait for its synchronous standby
+(``synchronous_commit=on``, the standby named :data:`STANDBY`), made by :meth:`PostgresServer.standby`
+(``pg_basebackup -R``): :meth:`PostgresServer.kill9` kills a server as a machine dies,
+:meth:`PostgresServer.promote` makes a standby the primary.
 """
 
 from __future__ import annotations
@@ -20,8 +24,10 @@ import glob
 import os
 import pwd
 import shutil
+import signal
 import subprocess
 import tempfile
+import time
 import uuid
 from pathlib import Path
 from typing import Sequence
@@ -34,6 +40,10 @@ FAST = "-c fsync=off -c synchronous_commit=off -c full_page_writes=off"
 """The tests' durability settings: nothing waits for the disk."""
 DURABLE = "-c fsync=on -c synchronous_commit=on -c full_page_writes=on"
 """PostgreSQL's defaults, said explicitly: every commit waits for its WAL to reach the disk."""
+SYNCHRONOUS = "-c synchronous_commit=on -c synchronous_standby_names=dcuscope_standby"
+"""A primary's commits wait for its standby (by name): the tests' FAST settings, but for that."""
+STANDBY = "-c cluster_name=dcuscope_standby"
+"""The standby's name, which its WAL receiver gives the primary (libpq's application_name)."""
 USER = "dcuscope"
 PASSWORD = "s3cret pw/ok"
 """A TLS server's password user: its password has characters a URL must escape."""
@@ -50,16 +60,19 @@ def bindir() -> Path:
 
 
 class PostgresServer:
-    def __init__(self, durable: bool = False, listen: Sequence[str] = (), tls=None) -> None:
+    def __init__(self, durable: bool = False, listen: Sequence[str] = (), tls=None, synchronous: bool = False) -> None:
         """``durable``: fsync, synchronous_commit and full_page_writes on (PostgreSQL's defaults), not
         off as the tests run it. ``listen``: addresses to listen on besides 127.0.0.1 (they must exist
         when the server starts); clients reaching them from a directly connected subnet (pg_hba's
         ``samenet``: a namespace's end of its veth pair) are trusted, as on loopback. ``tls``: the
-        server's certificate and key (tests/tlscerts.py ``Issued``): TLS connections only."""
+        server's certificate and key (tests/tlscerts.py ``Issued``): TLS connections only. ``synchronous``:
+        commits wait for the standby :meth:`standby` makes."""
         self.durable = durable
         self.tls = tls
         self.listen = ["127.0.0.1", *listen]
         self.settings = f"-c listen_addresses={','.join(self.listen)} {SETTINGS} {DURABLE if durable else FAST}"
+        if synchronous:
+            self.settings += f" {SYNCHRONOUS}"
         self.bin = bindir()
         self.port = free_port()
         self.dir = Path(tempfile.mkdtemp(prefix="dcuscope-pg-"))
@@ -108,6 +121,42 @@ class PostgresServer:
                   "-o", f"-p {self.port} -k {self.dir} {self.settings}", "start")
         return self
 
+    def standby(self) -> "PostgresServer":
+        """A standby of this server, streaming its WAL (``pg_basebackup -R``), started on its own port;
+        this server's synchronous standby if it is ``synchronous``. Promoted, it waits for no standby."""
+        other = PostgresServer()
+        other.settings += f" {STANDBY}"
+        other._run("pg_basebackup", "-D", str(other.data), "-R", "-X", "stream", "--no-sync", "-h", "127.0.0.1",
+                   "-p", str(self.port), "-U", "postgres", timeout=120)
+        return other.resume()
+
+    def promote(self) -> None:
+        """A standby becomes a primary (``pg_ctl promote``, waiting until it takes writes)."""
+        self._run("pg_ctl", "-D", str(self.data), "-w", "-t", "60", "promote")
+
+    def kill9(self) -> None:
+        """The server killed as a machine dies: SIGKILL to the postmaster and to every process it started
+        (the postmaster stopped first, so that it starts none meanwhile). Returns once they are gone;
+        their lock file is left as a dead machine leaves it, naming no live process."""
+        pid = int((self.data / "postmaster.pid").read_text().split()[0])
+        os.kill(pid, signal.SIGSTOP)
+        victims = [pid, *(int(Path(stat).parent.name) for stat in glob.glob("/proc/[0-9]*/stat")
+                          if _stat(stat)[1:2] == [str(pid)])]
+        for victim in victims:
+            try:
+                os.kill(victim, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+        deadline = time.monotonic() + 30
+        while any(_stat(f"/proc/{v}/stat")[:1] not in ([], ["Z"]) for v in victims):
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"PostgreSQL processes {victims} outlived SIGKILL")
+            time.sleep(0.02)
+        # A zombie (its parent, here, may be slow to reap it) still holds its PID: PostgreSQL would take
+        # the lock files for a live server's.
+        (self.data / "postmaster.pid").unlink(missing_ok=True)
+        (self.dir / f".s.PGSQL.{self.port}.lock").unlink(missing_ok=True)
+
     def stop(self, mode: str = "fast") -> None:
         """``fast`` ends every connection and stops; ``immediate`` as if the server crashed."""
         self._run("pg_ctl", "-D", str(self.data), "-m", mode, "-w", "stop")
@@ -138,3 +187,11 @@ class PostgresServer:
         except (RuntimeError, subprocess.TimeoutExpired):
             pass
         shutil.rmtree(self.dir, ignore_errors=True)
+
+
+def _stat(path: str) -> list[str]:
+    """A process's state and parent PID (``/proc/PID/stat``'s fields 3 and 4), or [] if it is gone."""
+    try:
+        return Path(path).read_text().rsplit(")", 1)[1].split()[:2]
+    except (OSError, IndexError):
+        return []

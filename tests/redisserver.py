@@ -4,7 +4,8 @@ Started without persistence (no RDB snapshots, no AOF): the relays keep nothing 
 outlive it (it carries their live pushes; the store keeps the data). ``stop()`` then ``start()``
 again on the same port is a Redis restart as an operator's would be. ``RedisServer(tls=ISSUED)`` (a
 server certificate of tests/tlscerts.py) takes TLS connections only (``--tls-port``, ``--port 0``),
-without asking clients for certificates; its URL is ``rediss://``.
+without asking clients for certificates; its URL is ``rediss://``. ``RedisServer(replica_of=OTHER)``
+is OTHER's replica; :class:`RedisSentinel` watches a master and promotes a replica when it dies.
 """
 
 from __future__ import annotations
@@ -28,9 +29,10 @@ def redis_binary() -> str:
 
 
 class RedisServer:
-    def __init__(self, port: int | None = None, tls=None) -> None:
+    def __init__(self, port: int | None = None, tls=None, replica_of: "RedisServer | None" = None) -> None:
         self.port = port or free_port()
         self.tls = tls
+        self.more = ["--replicaof", "127.0.0.1", str(replica_of.port)] if replica_of is not None else []
         self.dir = Path(tempfile.mkdtemp(prefix="dcuscope-redis-"))
         self.log = self.dir / "redis.log"
         self.proc: subprocess.Popen | None = None
@@ -46,7 +48,8 @@ class RedisServer:
                     "--tls-key-file", str(self.tls.key), "--tls-auth-clients", "no"]
         self.proc = subprocess.Popen(
             [redis_binary(), *port, "--bind", "127.0.0.1", "--save", "", "--appendonly", "no",
-             "--dir", str(self.dir), "--logfile", str(self.log), "--daemonize", "no", "--protected-mode", "yes"],
+             "--dir", str(self.dir), "--logfile", str(self.log), "--daemonize", "no", "--protected-mode", "yes",
+             *self.more],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
@@ -74,6 +77,12 @@ class RedisServer:
         context.verify_mode = ssl.CERT_NONE
         return context
 
+    def kill9(self) -> None:
+        """Killed as a machine dies (SIGKILL)."""
+        self.proc.kill()
+        self.proc.wait(10)
+        self.proc = None
+
     def stop(self) -> None:
         if self.proc is not None and self.proc.poll() is None:
             self.proc.terminate()
@@ -90,3 +99,37 @@ class RedisServer:
 
     def _log_tail(self) -> str:
         return self.log.read_text()[-1500:] if self.log.exists() else ""
+
+
+class RedisSentinel(RedisServer):
+    """One Redis Sentinel (``redis-server --sentinel``) watching ``master`` as service :data:`SERVICE`:
+    a master silent for ``down_ms`` is replaced by one of its replicas (one sentinel is a quorum here)."""
+
+    SERVICE = "dcuscope"
+
+    def __init__(self, master: RedisServer, down_ms: int = 1000) -> None:
+        super().__init__()
+        self.master, self.down_ms = master, down_ms
+
+    @property
+    def url(self) -> str:
+        """What a relay's ``--redis`` takes: the sentinels, the database, the service."""
+        return f"redis+sentinel://127.0.0.1:{self.port}/0/{self.SERVICE}"
+
+    def start(self, timeout: float = 20.0) -> "RedisSentinel":
+        # Sentinel rewrites its configuration file (what it learns of replicas and failovers).
+        config = self.dir / "sentinel.conf"
+        config.write_text(f"port {self.port}\nbind 127.0.0.1\ndir {self.dir}\nlogfile {self.log}\n"
+                          f"sentinel monitor {self.SERVICE} 127.0.0.1 {self.master.port} 1\n"
+                          f"sentinel down-after-milliseconds {self.SERVICE} {self.down_ms}\n"
+                          f"sentinel failover-timeout {self.SERVICE} 5000\n")
+        self.proc = subprocess.Popen([redis_binary(), str(config), "--sentinel"], stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.DEVNULL)
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"redis sentinel exited ({self.proc.returncode}): {self._log_tail()}")
+            if self.ping():
+                return self
+            time.sleep(0.05)
+        raise RuntimeError(f"redis sentinel did not answer on 127.0.0.1:{self.port}: {self._log_tail()}")

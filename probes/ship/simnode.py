@@ -18,6 +18,7 @@ import argparse
 import os
 import json
 import sys
+import threading
 import time
 
 import numpy as np
@@ -75,13 +76,14 @@ def _events(ts, source, frame, stage, point) -> np.ndarray:
 
 
 def feed(exporter: RelayExporter, events: np.ndarray, *, paced: bool, clock: PretendClock | None = None,
-         tick_s: float = 0.01, max_buffered: int = 200_000, chunk: int = 4096) -> None:
-    """Write ``events`` (node-clock times: ``clock``'s): paced, each once its time came; else as
-    fast as the exporter's buffer drains (throughput tests)."""
+         tick_s: float = 0.01, max_buffered: int = 200_000, chunk: int = 4096,
+         stop: threading.Event | None = None) -> int:
+    """Write ``events`` (node-clock times: ``clock``'s): paced, each once its time came, until ``stop``
+    is set; else as fast as the exporter's buffer drains (throughput tests). Returns how many were written."""
     clock = clock or PretendClock()
     if paced:
         i = 0
-        while i < len(events):
+        while i < len(events) and not (stop is not None and stop.is_set()):
             now = clock.now()
             j = int(np.searchsorted(events["ts"], now, side="right"))
             if j > i:
@@ -90,12 +92,13 @@ def feed(exporter: RelayExporter, events: np.ndarray, *, paced: bool, clock: Pre
             # Until the next event is due (at least a tick: events closer than that go together): a slow
             # node wakes for its events, not 1/tick_s times a second.
             due_s = (int(events["ts"][i]) - clock.now()) / 1e9 if i < len(events) else 0.0
-            time.sleep(max(tick_s, due_s))
-        return
+            time.sleep(max(tick_s, due_s) if stop is None else min(max(tick_s, due_s), 0.1))
+        return i
     for i in range(0, len(events), chunk):
         while exporter.counters()["buffered"] > max_buffered:
             time.sleep(0.002)
         exporter.write(events[i:i + chunk])
+    return len(events)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -128,6 +131,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", help="write header and shipped events here (.npz)")
     p.add_argument("--linger", action="store_true",
                    help="after the last event, keep the run open (connected, not ended) until standard input closes")
+    p.add_argument("--until-stdin-closes", action="store_true",
+                   help="with --paced: stop writing events when standard input closes (a test ends the run when "
+                        "its check is done); --out holds those written")
     args = p.parse_args(argv)
     tls = tls_from_args(args)
 
@@ -143,7 +149,11 @@ def main(argv: list[str] | None = None) -> int:
                              ptp_socket=args.ptp_socket, tls=tls)
     started = time.monotonic()
     exporter.start(header)
-    feed(exporter, events, paced=args.paced, clock=pretend)
+    stop = None
+    if args.until_stdin_closes:
+        stop = threading.Event()
+        threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
+    events = events[:feed(exporter, events, paced=args.paced, clock=pretend, stop=stop)]
     if args.linger:
         sys.stdin.read()  # a test holds the run live for as long as its check needs, then closes our stdin
     exporter.close(dropped=0)

@@ -31,6 +31,11 @@ Redis is not needed for anything but those pushes. While it is down or restartin
 - ``/api/health``'s ``fanout`` says so, and the log has one line per change (python-socketio's own
   line per failed attempt is held back).
 
+``redis+sentinel://S1:26379,S2:26379/DB/SERVICE`` names Redis Sentinels instead of a Redis: every
+connection asks them for the master of SERVICE (python-socketio's and redis-py's own support), so a
+master that dies and is replaced by a promoted replica is followed within ``RETRY_S`` of the
+promotion (docs/store-failover.md).
+
 ``rediss://`` is Redis over TLS: the server's certificate is checked against the system's CAs, or
 those of ``--redis-ca FILE`` (:func:`check_url`), and its name against the URL's host. A certificate
 that fails the check is a Redis that cannot be reached: one line in the log, ``fanout.error`` says why.
@@ -46,11 +51,13 @@ from urllib.parse import urlencode, urlsplit, urlunsplit
 
 import socketio
 from socketio.packet import Packet
+from socketio.redis_manager import parse_redis_sentinel_url
 
 from dcuscope.core.clocks import NEVER
 from dcuscope.relay.errors import RelayError
 from dcuscope.relay.urls import redact
 
+SENTINEL = "redis+sentinel"
 CHANNEL = "dcuscope"
 """The Redis channel the relays' Socket.IO servers share (python-socketio's ``channel``)."""
 ROOM_CHANNEL = CHANNEL + ":room:"
@@ -74,8 +81,17 @@ def check_url(url: str, ca: str | None = None) -> str:
     ``ssl_ca_certs``, else the system's CAs."""
     parts = urlsplit(url)
     scheme = parts.scheme.lower()
-    if scheme not in ("redis", "rediss", "unix", "redis+sentinel"):
-        raise RelayError(f"--redis {redact(url)!r}: not a Redis URL (redis://HOST:PORT/DB, rediss://, unix://)")
+    if scheme not in ("redis", "rediss", "unix", SENTINEL):
+        raise RelayError(f"--redis {redact(url)!r}: not a Redis URL (redis://HOST:PORT/DB, rediss://, unix://, "
+                         f"{SENTINEL}://HOST:PORT[,HOST:PORT...]/DB/SERVICE)")
+    if scheme == SENTINEL:
+        try:
+            _, service, _ = parse_redis_sentinel_url(url)
+        except ValueError as exc:
+            raise RelayError(f"--redis {redact(url)!r}: cannot read the sentinels ({exc}): give each as HOST:PORT, "
+                             f"{SENTINEL}://HOST:PORT[,HOST:PORT...]/DB/SERVICE") from None
+        if service is None:
+            raise RelayError(f"--redis {redact(url)!r}: name the Sentinels' service: {SENTINEL}://HOST:PORT/DB/SERVICE")
     if ca is None:
         return url
     if scheme != "rediss":
@@ -86,6 +102,17 @@ def check_url(url: str, ca: str | None = None) -> str:
         raise RelayError(f"--redis-ca {ca}: {exc.strerror}") from None
     query = "&".join(q for q in (parts.query, urlencode({"ssl_ca_certs": ca}, safe="/")) if q)
     return urlunsplit(parts._replace(query=query))
+
+
+def redis_client(url: str, **options):
+    """An asyncio Redis client of ``url`` (as :func:`check_url` returned it): a Sentinel URL's follows
+    the master of its service, as python-socketio's manager does."""
+    from redis import asyncio as aioredis
+
+    if urlsplit(url).scheme.lower() != SENTINEL:
+        return aioredis.Redis.from_url(url, **options)
+    sentinels, service, kwargs = parse_redis_sentinel_url(url)
+    return aioredis.sentinel.Sentinel(sentinels, **options, **kwargs).master_for(service)
 
 
 class FanoutHealth:

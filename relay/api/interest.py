@@ -17,7 +17,7 @@ import logging
 import time
 from dataclasses import dataclass
 
-from dcuscope.relay.api.fanout import TIMEOUT_S, FanoutHealth
+from dcuscope.relay.api.fanout import TIMEOUT_S, FanoutHealth, redis_client
 
 KEY = "dcuscope:watching"
 PERIOD_S = 0.5
@@ -46,9 +46,7 @@ class Interest:
         """DCU (or ALL) -> the frames per push other relays' browsers showing it ask for."""
         self._redis = None
         if url is not None:
-            from redis import asyncio as aioredis
-
-            self._redis = aioredis.Redis.from_url(url, socket_connect_timeout=TIMEOUT_S, socket_timeout=TIMEOUT_S)
+            self._redis = redis_client(url, socket_connect_timeout=TIMEOUT_S, socket_timeout=TIMEOUT_S)
 
     def wanted(self) -> dict[str, set[int]]:
         """DCU (or ALL) -> the frames per push the browsers showing it ask for (each a room of its own)."""

@@ -1,7 +1,7 @@
 """HTTP JSON API of the relay (aiohttp routes); each is READ in :mod:`dcuscope.relay.guard.policy`.
 
-- ``GET /api/health``: {ok, uptime_s, runs, rejected, clock_rejected, paused, storage {ok[, leases, error, since,
-  failed_writes]}, limits, memory {live_bytes, live_budget_bytes, run_budget_bytes, runs_with_live_state},
+- ``GET /api/health``: {ok, uptime_s, runs, rejected, clock_rejected, paused, storage {ok, reconnects, timeouts,
+  waiting_for_standby[, leases, error, since, failed_writes]}, limits, memory {live_bytes, live_budget_bytes, run_budget_bytes, runs_with_live_state},
   heap {available, arena, in_use, free, mmapped, reclaims, collected, last_reclaim_ms, last_trim_ms}: what
   malloc holds, and the passes that gave memory back after runs left it (:mod:`dcuscope.relay.heap`),
   refused {LIMIT or reason: what it refused}, proxy {trusted, proxied, proxied_open} (null without

@@ -24,7 +24,7 @@ each histogram series being len(BUCKETS_S) + 3 = 34 samples (buckets, +Inf, sum,
     34 (2 + 3 S + G)  +  4 S  +  K (6 + R)  +  18
 
 (~1,250 for a typical node: 8 stages, 8 gaps, 4 sources; 14,328 at every default
-limit), plus 7 for the relay itself, one per refusal reason (``dcuscope_relay_refused_total``) and those
+limit), plus 12 for the relay itself, one per refusal reason (``dcuscope_relay_refused_total``) and those
 of :attr:`RelayCollector.extra`.
 """
 
@@ -99,6 +99,7 @@ class RelayCollector(Collector):
         for reason, count in sorted(self.guard.refused.items()):
             refused.add_metric([reason], count)
         yield refused
+        yield from self._store_families()
         yield GaugeMetricFamily("dcuscope_relay_live_bytes", "Bytes the runs' live states hold",
                                 value=state.memory_view()["live_bytes"])
         refused = CounterMetricFamily("dcuscope_relay_refused", "Connections, requests and hellos refused, by reason "
@@ -106,6 +107,21 @@ class RelayCollector(Collector):
         for reason, count in sorted(self.refusals().items()):
             refused.add_metric([reason], count)
         yield refused
+
+    def _store_families(self) -> Iterator[Metric]:
+        storage = self.state.storage
+        yield GaugeMetricFamily("dcuscope_relay_store_up", "1 while the store takes writes, 0 while they fail "
+                                "(as /api/health's storage.ok)", value=int(storage.health()["ok"]))
+        yield GaugeMetricFamily("dcuscope_relay_store_waiting_for_standby", "1 while the store's commits wait for "
+                                "its synchronous standby (writes held back), else 0", value=int(storage.waiting))
+        yield CounterMetricFamily("dcuscope_relay_store_failed_writes", "Writes refused for the store failing "
+                                  "(their nodes send them again)", value=storage.failed_writes)
+        timeouts = CounterMetricFamily("dcuscope_relay_store_timeouts", "Writes cancelled for taking longer than "
+                                       "--store-timeout, by cause (synchronous_standby: committed on the primary, "
+                                       "not confirmed by its synchronous standby)", labels=["cause"])
+        for cause, count in sorted(storage.timeouts.items()):
+            timeouts.add_metric([cause], count)
+        yield timeouts
 
     def exposition(self) -> bytes:
         """The text format of every family now (what ``generate_latest(self.registry)`` writes, faster)."""

@@ -61,6 +61,9 @@ LEASE_S = 4.0
 may take it then, at most this long after its owner stopped (froze, or lost the store)."""
 RENEW_S = 1.0
 """A shared store: how often a relay renews its leases (a few missed renewals lose nothing)."""
+STORE_TIMEOUT_S = 5.0
+"""A shared store: the longest a relay waits for a write's answer (``--store-timeout``) before it
+cancels the write and tells its sender to send it again (:class:`StoreTimeout`)."""
 HISTORY_COLUMNS = ("from_ns", "ref_ns", "offset_ns", "drift_ppb", "uncertainty_ns", "growth_ppb")
 RUN_FIELDS = frozenset({"ended_ns", "written", "dropped", "lost", "clock", "history"})
 REJECTED_CHARS = 200
@@ -84,6 +87,18 @@ class NotOwner(RelayError):
 class StoreUnavailable(RelayError):
     """The store cannot be reached or failed (a full disk, a PostgreSQL restart): what was being
     written is refused whole and written again by whoever sent it."""
+
+
+class StoreTimeout(StoreUnavailable):
+    """A write whose answer did not come within the relay's bound (``--store-timeout``): it was
+    cancelled, and whether it was stored is unknown, so it counts as not stored (written again by
+    whoever sent it; a batch written twice is stored once). The connection stays: the store answers,
+    slowly. ``standby``: the write was committed on the primary and waited for its synchronous
+    standby to confirm it (PostgreSQL's ``synchronous_commit`` with a standby that is gone)."""
+
+    def __init__(self, message: str, standby: bool) -> None:
+        super().__init__(message)
+        self.standby = standby
 
 
 @dataclass(frozen=True)
@@ -171,6 +186,10 @@ class Database(ABC):
         """Keep owning the runs owned here (a shared store's owners renew, see
         :mod:`dcuscope.relay.store.postgres`); returns those another relay took meanwhile."""
         return set()
+
+    def probe(self) -> None:
+        """Commit a transaction that writes (what a shared store's synchronous standby must confirm):
+        returns once it did, as any write would (:class:`StoreTimeout` past the bound)."""
 
     def _fence(self, executor: Any, runs: set[str]) -> None:
         """In a write's transaction: :class:`NotOwner` unless ``runs`` are all still owned here

@@ -35,6 +35,19 @@ Same tables and meaning as :mod:`dcuscope.relay.store.sqlite`. What a shared sto
 Batches go in with one statement per group (arrays unnested, ``ON CONFLICT DO NOTHING``), their
 payloads stored uncompressed by PostgreSQL (they are compressed already or small).
 
+**A store that waits is not a store that hangs.** With ``timeout_s`` (the relay's ``--store-timeout``)
+a thread beside the connection cancels a write not answered within it (PostgreSQL's cancel request:
+the statement stops, or, if it was committing and waiting for a synchronous standby that is gone,
+the wait stops with the transaction committed on the primary only), and the write raises
+:class:`StoreTimeout`: its sender sends it again. A batch whose commit was cancelled, or whose
+connection died mid-commit, may thus be stored already: sent again, it conflicts on its
+``(run, seq)`` and is stored once (what the relay's writer makes of that:
+:mod:`dcuscope.relay.store.writer`).
+
+**Multi-host URLs.** ``--db postgresql://h1:5432,h2:5432/DB?target_session_attrs=read-write`` is
+libpq's own: each connection goes to whichever host is the primary then (a standby is read-only and
+refused), so a relay whose primary died reconnects, once one is promoted, to the new primary.
+
 A transaction PostgreSQL rolled back for a conflict with another relay's (a deadlock, a
 serialization failure: SQLSTATE class 40) is tried again, up to ``CONFLICT_TRIES`` times: it is
 not the store failing. psycopg files these errors under ``OperationalError``, which otherwise means
@@ -46,6 +59,7 @@ from __future__ import annotations
 import json
 import logging
 import secrets
+import threading
 import time
 from contextlib import nullcontext
 from typing import Any
@@ -55,7 +69,7 @@ import psycopg
 from dcuscope.relay.errors import RelayError
 from dcuscope.relay.urls import redact
 from dcuscope.relay.store.base import (HISTORY_COLUMNS, LEASE_S, SCHEMA_VERSION, BatchRow, Database, NotOwner,
-                              StoreUnavailable, check_resume, secret_hash)
+                                       StoreTimeout, StoreUnavailable, check_resume, secret_hash)
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
@@ -161,6 +175,8 @@ mid-write): its row locks and advisory locks go with it."""
 TCP_USER_TIMEOUT_MS = 3000
 """A relay's connection whose sent data goes unacknowledged this long is dead (a network cut)."""
 CONNECT_TIMEOUT_S = 3
+WATCH_S = 0.1
+"""How often the thread bounding the writes (``timeout_s``) looks at the one in progress."""
 ROLLED_BACK = "40"
 """SQLSTATE class of a transaction rolled back for a conflict (40001 serialization, 40P01 deadlock)."""
 CONFLICT_TRIES = 5
@@ -168,6 +184,15 @@ CONFLICT_TRIES = 5
 CONFLICT_PAUSE_S = 0.01
 """Pause before the next try, times the number of the try (the other transaction finishes meanwhile)."""
 APPLICATION = "dcuscope-relay"
+WAITING_FOR_STANDBY = "waiting for the store's synchronous standby"
+UNCONFIRMED_S = 120.0
+"""How long a relay process remembers the secret of a new run whose registration failed without
+saying whether it was stored (:data:`_UNCONFIRMED`)."""
+_UNCONFIRMED: dict[str, tuple[str, float]] = {}
+"""Run -> (the secret issued at its first hello, until when: monotonic) for registrations whose commit
+was cancelled or whose connection was lost mid-commit: stored perhaps, their secret never reached the
+node. The node's hello again, without a secret, gets that secret from the process that issued it, not
+a refusal for lacking one. Process-wide: a relay reconnecting opens a new connection."""
 
 log = logging.getLogger(__name__)
 
@@ -217,10 +242,12 @@ class PostgresDatabase(Database):
     engine = "postgresql"
     shared = True
 
-    def __init__(self, url: str, name: str = "", owner: str | None = None, lease_s: float = LEASE_S) -> None:
+    def __init__(self, url: str, name: str = "", owner: str | None = None, lease_s: float = LEASE_S,
+                 timeout_s: float | None = None) -> None:
         """``owner``: who holds the leases this connection takes (a relay process, the same across
         its reconnections; default: this connection alone); ``lease_s``: how long a lease it takes
-        or renews holds."""
+        or renews holds; ``timeout_s``: a transaction not answered within it is cancelled
+        (:class:`StoreTimeout`; None: waited for as long as it takes)."""
         self.location = redact(url)
         self.lease_s = lease_s
         self.name = name
@@ -231,6 +258,12 @@ class PostgresDatabase(Database):
         """Owned runs whose advisory lock this connection holds (the fast path)."""
         self.conflicts = 0
         """Transactions tried again after a conflict with another relay's."""
+        self.timeout_s = timeout_s
+        self._started = 0.0
+        """When the transaction in progress started (monotonic; 0: none is)."""
+        self._cancelled = False
+        """Whether the transaction in progress was cancelled for taking longer than ``timeout_s``."""
+        self._closing = threading.Event()
         try:
             self.conn = psycopg.connect(url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S,
                                         application_name=f"{APPLICATION} {name}".strip()[:63],
@@ -241,7 +274,20 @@ class PostgresDatabase(Database):
             raise StoreUnavailable(f"{self.location}: cannot connect: {_first_line(exc)}") from exc
         except ValueError as exc:  # psycopg's word for a URL it cannot parse
             raise RelayError(f"{self.location}: not a PostgreSQL URL: {exc}") from exc
+        if timeout_s is not None:
+            threading.Thread(target=self._bound, name="dcuscope-store-timeout", daemon=True).start()
         self._transaction(self._create_schema)
+
+    def _bound(self) -> None:
+        """Cancels a transaction running longer than ``timeout_s`` (the thread that runs it is blocked in it)."""
+        while not self._closing.wait(min(WATCH_S, self.timeout_s / 4)):
+            started = self._started
+            if started and not self._cancelled and time.monotonic() - started > self.timeout_s:
+                self._cancelled = True
+                try:
+                    self.conn.cancel_safe(timeout=CONNECT_TIMEOUT_S)
+                except (psycopg.Error, OSError) as exc:  # the connection is failing: the write will say so
+                    log.info("%s: cannot cancel a write: %s", self.location, _first_line(exc))
 
     def _create_schema(self, cur: psycopg.Cursor) -> None:
         cur.execute("SELECT pg_advisory_xact_lock(%s, %s)", SCHEMA_LOCK)
@@ -283,15 +329,28 @@ class PostgresDatabase(Database):
                 time.sleep(CONFLICT_PAUSE_S * attempt)
 
     def _once(self, fn, block: bool = True) -> Any:
+        self._cancelled = False
+        self._started = time.monotonic()
         try:
             with self.conn.transaction() if block else nullcontext(), self.conn.cursor() as cur:
-                return fn(cur)
+                result = fn(cur)
         except psycopg.OperationalError as exc:
+            if self._cancelled:
+                raise StoreTimeout(f"{self.location}: no answer within {self.timeout_s:g} s (--store-timeout): "
+                                   f"cancelled", standby=False) from exc
             if (exc.sqlstate or "").startswith(ROLLED_BACK):
                 raise _Conflict() from exc
             raise StoreUnavailable(f"{self.location}: {type(exc).__name__}: {_first_line(exc)}") from exc
         except psycopg.InterfaceError as exc:  # the connection was closed
             raise StoreUnavailable(f"{self.location}: {_first_line(exc)}") from exc
+        finally:
+            self._started = 0.0
+        if self._cancelled:
+            # Cancelled, yet done: PostgreSQL ends a commit's wait for its synchronous standby so,
+            # the transaction committed here and not confirmed there.
+            raise StoreTimeout(f"{self.location}: {WAITING_FOR_STANDBY}: a commit not confirmed within "
+                               f"{self.timeout_s:g} s (--store-timeout)", standby=True)
+        return result
 
     def _rows(self, sql: str, args: tuple = ()) -> list[tuple]:
         def query(cur: psycopg.Cursor) -> list[tuple]:
@@ -304,11 +363,17 @@ class PostgresDatabase(Database):
     def register_run(self, run: str, node: str, header: dict, live_session: int | None,
                      secret: str | None) -> tuple[int, int, str | None]:
         now = time.time_ns()
-        issued = secrets.token_hex(16)
+        pending = _UNCONFIRMED.get(run)
+        pending = pending[0] if pending is not None and pending[1] > time.monotonic() else None
+        issued = pending or secrets.token_hex(16)  # a registration tried again issues the same secret
 
         def register(cur: psycopg.Cursor) -> tuple[int, int, str | None]:
             cur.execute("SELECT session, node, header, first_seen_ns, secret FROM runs WHERE id = %s", (run,))
             row = cur.fetchone()
+            if row is not None and secret is None and pending is not None and row[4] == secret_hash(pending):
+                # This process registered the run; the node never heard so.
+                check_resume(run, row[1], row[2], row[4], node, header, pending)
+                return int(row[0]), int(row[3]), pending
             if row is not None:
                 check_resume(run, row[1], row[2], row[4], node, header, secret)
                 cur.execute("UPDATE runs SET last_seen_ns = %s WHERE id = %s", (now, run))
@@ -327,7 +392,16 @@ class PostgresDatabase(Database):
                         (run, session, node, json.dumps(header), now, now, secret_hash(issued), lock_key(run)))
             return session, now, issued
 
-        return self._transaction(register)
+        try:
+            out = self._transaction(register)
+        except StoreUnavailable:
+            now_s = time.monotonic()
+            for old in [r for r, (_, until) in _UNCONFIRMED.items() if until <= now_s]:
+                del _UNCONFIRMED[old]
+            _UNCONFIRMED[run] = (issued, now_s + UNCONFIRMED_S)
+            raise
+        _UNCONFIRMED.pop(run, None)
+        return out
 
     def own_run(self, run: str) -> bool:
         if run in self.owned:
@@ -383,6 +457,10 @@ class PostgresDatabase(Database):
             "WHERE l.run = o.run AND l.generation = o.generation AND l.owner = %s RETURNING l.run",
             (self.lease_s, runs, [self.owned[r] for r in runs], self.owner))}
         return self._forget(set(runs) - kept)
+
+    def probe(self) -> None:
+        # A transaction id taken is a commit record written, which a synchronous standby confirms.
+        self._rows("SELECT pg_current_xact_id()")
 
     def _forget(self, lost: set[str]) -> set[str]:
         """Runs no longer owned here (given back, or taken by another relay): their advisory locks let go."""
@@ -541,6 +619,7 @@ class PostgresDatabase(Database):
                 "conflicts": self.conflicts}
 
     def close(self) -> None:
+        self._closing.set()
         self.conn.close()
 
 

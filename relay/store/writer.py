@@ -16,6 +16,15 @@ or could not renew in time), and runs a write was refused for (fenced), are hand
 can renew nothing until it reconnects. The relay lets their nodes go: they come back, to this relay
 or another, and resume. :meth:`Storage.leases_fresh` says whether the leases are surely still
 held now (renewed within ``LEASE_S``), as pushes need.
+
+A write the store does not answer within ``timeout_s`` (``--store-timeout``) is cancelled
+(:class:`dcuscope.relay.store.base.StoreTimeout`) and refused like any failed write; the connection
+stays. One cancelled while committing, waiting for a synchronous standby that is gone, puts the relay
+in the state "waiting for the store's synchronous standby": batches and the writes of hellos are
+refused at once (their nodes hold them), and only the lease renewal, once a second, tries the store,
+until its commit returns. A batch whose outcome is unknown (its write cancelled, or its connection
+lost mid-commit) may be stored already: sent again, the store finds it there, and it is taken as
+stored now (fed to the live state then), once.
 """
 
 from __future__ import annotations
@@ -34,7 +43,8 @@ from typing import Any
 
 from dcuscope.core.clocks import NEVER
 from dcuscope.relay.errors import RelayError
-from dcuscope.relay.store.base import LEASE_S, RENEW_S, BatchRow, Database, NotOwner, StoreUnavailable
+from dcuscope.relay.store.base import (LEASE_S, RENEW_S, STORE_TIMEOUT_S, BatchRow, Database, NotOwner, StoreTimeout,
+                                       StoreUnavailable)
 from dcuscope.relay.store.engines import open_database
 
 GROUP_LIMIT = 2000
@@ -50,12 +60,22 @@ DESCRIBE_S = 2.0
 """The store's description (the relays sharing it) is refreshed this often."""
 WRITES = frozenset({"register_run", "update_run", "mark_rejected", "own_run", "disown_run"})
 """Calls whose success shows that storage works again."""
+HELD_WHILE_WAITING = WRITES | {"put_fleet", "fleet_rows"}
+"""Calls refused at once while the store waits for its synchronous standby (each would wait out
+``--store-timeout``); reads go on."""
+UNSURE_LIMIT = 100_000
+"""Batches of unknown outcome remembered at most (a store failing for long: the oldest are dropped,
+and one of them sent again counts as a duplicate in the live state, stored once all the same)."""
 
 log = logging.getLogger(__name__)
 
 
 class _Reconnecting(StoreUnavailable):
     """A write refused at once: the store connection was lost and is being opened again."""
+
+
+class _Waiting(StoreUnavailable):
+    """A write refused at once: the store waits for its synchronous standby."""
 
 
 @dataclass
@@ -75,13 +95,14 @@ class _Call:
 class Storage:
     """The relay's database, written by one thread; coroutines wait for their commit."""
 
-    def __init__(self, db: str | Path, name: str = "") -> None:
+    def __init__(self, db: str | Path, name: str = "", timeout_s: float = STORE_TIMEOUT_S) -> None:
         self.db = db
         """What ``--db`` named: readers (stored sessions) open their own connections to it."""
         self.name = name
         self.owner = f"{name or 'relay'} {secrets.token_hex(6)}"
         """Who holds this relay's leases on a shared store: the same across its reconnections."""
-        self._database: Database | None = open_database(db, name=name, owner=self.owner)
+        self.timeout_s = timeout_s
+        self._database: Database | None = open_database(db, name=name, owner=self.owner, timeout_s=timeout_s)
         self.location = self._database.location
         self.shared = self._database.shared
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
@@ -90,6 +111,14 @@ class Storage:
         self.commits = 0
         self.batches_written = 0
         self.reconnects = 0
+        self.failed_writes = 0
+        """Writes and calls refused for the store failing, since the relay started."""
+        self.timeouts = {"synchronous_standby": 0, "other": 0}
+        """Writes cancelled for taking longer than ``timeout_s``, by cause."""
+        self.waiting = False
+        """Whether the store waits for its synchronous standby (writes refused at once meanwhile)."""
+        self._unsure: dict[tuple[str, int], bool] = {}
+        """Batches (run, seq) whose write failed without saying whether it was stored, oldest first."""
         self.on_owners_lost: Callable[[], None] | None = None
         """Called on the event loop when the connection that owned this relay's runs was lost."""
         self.on_runs_lost: Callable[[set[str]], None] | None = None
@@ -139,7 +168,8 @@ class Storage:
         failed_writes, failed {what: count}} (for /api/health). ``leases`` (a shared store):
         {lease_s, renewed_s_ago, fresh}."""
         failure = self._failure
-        out = dict(self._described, reconnects=self.reconnects)
+        out = dict(self._described, reconnects=self.reconnects, timeouts=dict(self.timeouts),
+                   waiting_for_standby=self.waiting)
         if self.shared:
             out["leases"] = {"lease_s": LEASE_S, "renewed_s_ago": round(time.monotonic() - self._renewed_at, 2),
                              "fresh": self.leases_fresh()}
@@ -169,10 +199,24 @@ class Storage:
                 why = self._failure["error"] if self._failure is not None else "connection lost"
                 raise _Reconnecting(f"{self.location}: not connected, connecting again ({why})")
             self._tried_at = time.monotonic()
-            self._database = open_database(self.db, name=self.name, owner=self.owner)
+            self._database = open_database(self.db, name=self.name, owner=self.owner, timeout_s=self.timeout_s)
             self.reconnects += 1
             log.info("%s: connected again", self.location)
         return self._database
+
+    def _timed_out(self, exc: StoreTimeout) -> None:
+        """A write was cancelled: counted; one cancelled in its commit's wait for the synchronous
+        standby holds writes back until a renewal's commit returns (:meth:`_worked`)."""
+        self.timeouts["synchronous_standby" if exc.standby else "other"] += 1
+        if exc.standby:
+            self.waiting = True
+
+    def _broke(self, exc: StoreUnavailable) -> None:
+        """A write failed for the store: a timeout keeps the connection, anything else drops it."""
+        if isinstance(exc, StoreTimeout):
+            self._timed_out(exc)
+        elif not isinstance(exc, _Waiting):
+            self._lost()
 
     def _lost(self) -> None:
         """The connection failed: a shared store's is dropped and opened again at the next write,
@@ -208,12 +252,14 @@ class Storage:
             log.error("%s: storage failing (%s); batches are held by their nodes until it works again",
                       self.location, text)
         failure["failed_writes"] += 1
+        self.failed_writes += 1
         failure["failed"][what] = failure["failed"].get(what, 0) + 1
-        if not isinstance(exc, _Reconnecting):  # the cause stays said
+        if not isinstance(exc, (_Reconnecting, _Waiting)):  # the cause stays said
             failure["error"] = text
         return StoreUnavailable(f"{self.location}: cannot {what}: {text}")
 
     def _worked(self) -> None:
+        self.waiting = False
         failure, self._failure = self._failure, None
         if failure is not None:
             log.warning("%s: storage works again after %d failed writes in %.1f s (%s)", self.location,
@@ -247,8 +293,8 @@ class Storage:
         described = renewed = time.monotonic()
         while True:
             if self.shared and (time.monotonic() - renewed >= RENEW_S or self._lost_pending):
-                renewed = time.monotonic()
                 self._renew()
+                renewed = time.monotonic()  # from its end: one waited out (--store-timeout) leaves room for writes
             if time.monotonic() - described >= DESCRIBE_S:
                 self._describe()
                 described = time.monotonic()
@@ -272,13 +318,24 @@ class Storage:
             for call in (g for g in group if isinstance(g, _Call)):
                 self._run_call(call)
 
+    def _remember_unsure(self, batches: list[_Batch]) -> None:
+        """Batches whose write may have been stored though it failed (cancelled, or its connection
+        lost, mid-commit): found stored when sent again, they are new to this relay all the same."""
+        for b in batches:
+            self._unsure[(b.row.run, b.row.seq)] = True
+        while len(self._unsure) > UNSURE_LIMIT:
+            del self._unsure[next(iter(self._unsure))]
+
     def _renew(self) -> None:
         """Renew this relay's leases; hand on the runs another relay took."""
         started = time.monotonic()
         try:
-            lost = self._connection(reconnect=True).renew()
+            database = self._connection(reconnect=True)
+            if self.waiting:
+                database.probe()  # a relay holding no run renews nothing: this asks the standby all the same
+            lost = database.renew()
         except StoreUnavailable as exc:
-            self._lost()
+            self._broke(exc)
             self._failed("renew leases", exc)
             return
         self._renewed_at = started
@@ -292,16 +349,18 @@ class Storage:
             return
         try:
             self._described = self._database.describe()
-        except StoreUnavailable:
-            self._lost()
+        except StoreUnavailable as exc:
+            self._broke(exc)
 
     def _run_call(self, call: _Call) -> None:
         try:
+            if self.waiting and call.name in HELD_WHILE_WAITING:
+                raise _Waiting(f"{self.location}: {self._failure['error'] if self._failure else 'waiting'}")
             database = self._connection()
             fn = getattr(database, call.name) if isinstance(call.name, str) else partial(call.name, database)
             value = fn(*call.args, **call.kwargs)
         except StoreUnavailable as exc:  # the store failed (a full disk, a lost server), not the caller
-            self._lost()
+            self._broke(exc)
             what = call.name if isinstance(call.name, str) else getattr(call.name, "__name__", "write")
             outcome = (call.future, None, self._failed(what, exc))
         except Exception as exc:  # noqa: BLE001 - handed to the awaiting coroutine
@@ -318,6 +377,8 @@ class Storage:
         if not batches:
             return
         try:
+            if self.waiting:
+                raise _Waiting(f"{self.location}: {self._failure['error'] if self._failure else 'waiting'}")
             inserted = self._connection().put_batches([b.row for b in batches], time.time_ns())
         except NotOwner as exc:
             # Runs another relay took (fenced): this relay writes them no more and lets their
@@ -332,11 +393,15 @@ class Storage:
             # Any failure fails this group's batches (their nodes send them again); the thread
             # goes on serving the next ones.
             if isinstance(exc, StoreUnavailable):
-                self._lost()
+                self._broke(exc)
+                if not isinstance(exc, (_Waiting, _Reconnecting)):
+                    self._remember_unsure(batches)
             err = self._failed("store batches", exc)
             self._resolve_all([(b.future, None, err) for b in batches])
             return
         self._worked()
+        if self._unsure:
+            inserted = [self._unsure.pop((b.row.run, b.row.seq), False) or ok for b, ok in zip(batches, inserted)]
         self.commits += 1
         self.batches_written += sum(inserted)
         self._resolve_all([(b.future, ok, None) for b, ok in zip(batches, inserted)])

@@ -26,6 +26,7 @@ import numpy as np
 from dcuscope.probes.ship.relaylink import Link
 from dcuscope.probes.ship.simnode import header_for
 from dcuscope.probes.trace.events import TraceHeader
+from dcuscope.relay.store.runs import list_sessions, load_runs
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -100,10 +101,11 @@ def _readline(proc: subprocess.Popen, timeout: float) -> str:
 def start_node(url: str, node: str, out: Path, *, frames: int = 100, sources: int = 2, fps: float = 25.0,
                paced: bool = False, offset_ns: int = 0, t0_ns: int = 0, drop_rate: float = 0.0, seed: int = 0,
                token: str | None = None, extra: list[str] | None = None, linger: bool = False,
-               prefix: list[str] | None = None) -> subprocess.Popen:
+               until_stdin: bool = False, prefix: list[str] | None = None) -> subprocess.Popen:
     """A ``probes.ship.simnode`` process; with ``linger`` its run stays open after the last event until
-    its stdin closes (``finish_node`` closes it). ``prefix``: a command that execs the node's command
-    line it is given (``ip netns exec NS``)."""
+    its stdin closes (``finish_node`` closes it); with ``until_stdin`` (and ``paced``) it stops writing
+    events then, ``frames`` being a most. ``prefix``: a command that execs the node's command line it is
+    given (``ip netns exec NS``)."""
     cmd = [*(prefix or []), sys.executable, "-m", "dcuscope.probes.ship.simnode", "--relay", url, "--node", node, "--out", str(out),
            "--frames", str(frames), "--sources", str(sources), "--fps", str(fps), "--seed", str(seed),
            "--clock-offset-ns", str(offset_ns), "--drop-rate", str(drop_rate)]
@@ -115,9 +117,11 @@ def start_node(url: str, node: str, out: Path, *, frames: int = 100, sources: in
         cmd += ["--token", token]
     if linger:
         cmd.append("--linger")
+    if until_stdin:
+        cmd.append("--until-stdin-closes")
     cmd += extra or []
     return subprocess.Popen(cmd, cwd=ROOT, env=env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            stdin=subprocess.PIPE if linger else subprocess.DEVNULL)
+                            stdin=subprocess.PIPE if linger or until_stdin else subprocess.DEVNULL)
 
 
 def finish_node(proc: subprocess.Popen, timeout: float = 60) -> dict:
@@ -250,3 +254,22 @@ class HandNode:
     async def close(self) -> None:
         await self.link.close()
         await self.session.close()
+
+
+def connected(relay: RelayProcess) -> set[str]:
+    """The nodes streaming to ``relay`` (its /api/nodes lists the whole fleet, each with the relay holding it)."""
+    try:
+        me = get_json(f"{relay.url}/api/health", timeout=2)["relay"]
+        return {n["node"] for n in get_json(f"{relay.url}/api/nodes", timeout=2)
+                if n["connected"] and not n["ended"] and n["relay"] == me}
+    except OSError:
+        return set()
+
+
+def stored_equals_sent(store: str, node: str, sent: np.ndarray) -> None:
+    """``node`` has one run in ``store``, holding every event it sent, each once."""
+    runs = [r for s in list_sessions(store) for r in s["runs"] if r["node"] == node]
+    assert len(runs) == 1, runs  # the node resumed its run: no second one
+    (stored,) = load_runs(store, runs[0]["run"], corrected=False)
+    assert runs[0]["events"] == len(stored.events) == len(sent), (node, runs[0]["events"], len(stored.events), len(sent))
+    assert np.array_equal(sort_events(stored.events), sort_events(sent))  # 0 lost, 0 stored twice

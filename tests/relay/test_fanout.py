@@ -1,5 +1,6 @@
-"""Relays on one PostgreSQL and one Redis: a browser on either gets every relay's DCUs, and a Redis
-outage degrades without losing anything. Real relays, PostgreSQL 15 and redis-server from Debian
+"""Relays on one PostgreSQL and one Redis: a browser on either gets every relay's DCUs, a Redis
+outage degrades without losing anything, and a Redis master replaced by its replica (Redis Sentinel)
+is followed. Real relays, PostgreSQL 15 and redis-server from Debian
 (tests/pgserver.py, tests/redisserver.py), simulated nodes, a python-socketio client as the browser."""
 
 from __future__ import annotations
@@ -8,11 +9,12 @@ import asyncio
 import time
 
 import pytest
+import redis
 import socketio
 
 from dcuscope.relay.live.framepack import unpack_push
-from tests.relay.helpers import RelayProcess, finish_node, get_json, load_node, start_node, wait_for
-from tests.relay.test_fleet import stored_equals_sent
+from tests.redisserver import RedisSentinel, RedisServer
+from tests.relay.helpers import RelayProcess, finish_node, get_json, load_node, start_node, stored_equals_sent, wait_for
 
 pytestmark = pytest.mark.xdist_group("fanout")
 FRAMES = 400
@@ -159,6 +161,74 @@ def test_a_redis_restart_loses_nothing_and_pushes_resume_by_themselves(tmp_path,
             lines = [ln for ln in (tmp_path / f"{name}.log").read_text().splitlines() if "redis" in ln.lower()]
             assert len([ln for ln in lines if "cannot" in ln]) == 1, lines  # one line per change
             assert len([ln for ln in lines if "connected;" in ln]) == 2, lines  # at start, and once back
+    finally:
+        if node.poll() is None:
+            node.kill()
+        a.stop()
+        b.stop()
+
+
+@pytest.fixture
+def sentinel_redis():
+    """A Redis master, its replica, and a Sentinel watching them (tests/redisserver.py)."""
+    servers = []
+    try:
+        master = RedisServer().start()
+        servers.append(master)
+        replica = RedisServer(replica_of=master).start()
+        servers.append(replica)
+        # The Sentinel learns the replicas from the master's INFO: at its start, then every 10 s.
+        wait_for(lambda: redis.Redis(port=master.port).info("replication").get("connected_slaves") == 1, 20,
+                 what="the replica following the master")
+        sentinel = RedisSentinel(master).start()
+        servers.append(sentinel)
+        wait_for(lambda: redis.Redis(port=sentinel.port).execute_command("SENTINEL", "REPLICAS", RedisSentinel.SERVICE),
+                 20, what="the Sentinel knowing the replica")
+        yield master, replica, sentinel
+    finally:
+        for server in reversed(servers):
+            server.close()
+
+
+def test_a_redis_master_replaced_by_its_replica_is_followed_through_sentinel(tmp_path, pg_url, sentinel_redis):
+    master, replica, sentinel = sentinel_redis
+    args = ["--redis", sentinel.url]
+    a = RelayProcess(pg_url, log=tmp_path / "a.log", args=[*args, "--name", "relay-a"])
+    b = RelayProcess(pg_url, log=tmp_path / "b.log", args=[*args, "--name", "relay-b"])
+    node = start_node(a.url, "DCU-A", tmp_path / "a.npz", frames=FRAMES, sources=2, fps=40, paced=True)
+    try:
+        wait_for(lambda: "DCU-A" in held_by(b), 30, what="B lists A's DCU")
+
+        async def watch() -> float:
+            browser = Browser()
+            await browser.open(b.url, ["DCU-A"])
+            for _ in range(200):
+                await asyncio.sleep(0.1)
+                if browser.frames("DCU-A"):
+                    break
+            assert browser.frames("DCU-A"), "no live frames of A's DCU on B before the master died"
+            master.kill9()
+            died = time.monotonic()
+            await asyncio.sleep(0.5)
+            for _ in range(300):
+                await asyncio.sleep(0.1)
+                if browser.frames("DCU-A", after=time.monotonic() - 0.1):
+                    break
+            resumed = time.monotonic() - died
+            await browser.sio.disconnect()
+            return resumed
+
+        resumed = asyncio.run(watch())
+        print(f"\nRedis master killed: pushes of A's DCU on B again {resumed:.1f} s later (Sentinel: down after 1 s)")
+        assert resumed < 15.0, f"pushes resumed {resumed:.1f} s after the master died"
+        assert redis.Redis(port=replica.port).info("replication")["role"] == "master"  # Sentinel promoted it
+        for relay in (a, b):
+            health = get_json(f"{relay.url}/api/health")["fanout"]
+            assert health["ok"] and health["outages"] == 1 and health["url"] == sentinel.url, health
+        counters = finish_node(node, 60)
+        assert counters["acked"] == counters["events"] and counters["lost"] == 0
+        _, sent = load_node(tmp_path / "a.npz")
+        stored_equals_sent(pg_url, "DCU-A", sent)
     finally:
         if node.poll() is None:
             node.kill()

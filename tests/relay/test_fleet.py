@@ -11,17 +11,16 @@ import time
 import uuid
 
 import aiohttp
-import numpy as np
 import pytest
 
 from dcuscope.probes.ship.relaylink import Link
 from dcuscope.probes.ship.simnode import header_for
 from dcuscope.probes.trace.tracefile import read_trace
-from dcuscope.relay.store.runs import list_sessions, load_runs
+from dcuscope.relay.store.runs import list_sessions
 from tests.conftest import cli_env
 from tests.pgserver import PostgresServer
-from tests.relay.helpers import (RelayProcess, finish_node, get_json, kill_all, load_node, sort_events, start_node,
-                                 wait_for)
+from tests.relay.helpers import (RelayProcess, connected, finish_node, get_json, kill_all, load_node, start_node,
+                                 stored_equals_sent, wait_for)
 
 FAILOVER_S = 10
 
@@ -35,24 +34,6 @@ def node_config(tmp_path, name: str):
                     "stages:\n  - mux: {batch-size: 2, width: 160, height: 120}\n"
                     "  - tiler: {width: 320, height: 120}\n  - convert: {}\n  - osd: {}\n")
     return path
-
-
-def connected(relay: RelayProcess) -> set[str]:
-    """The nodes streaming to ``relay`` (its /api/nodes lists the whole fleet, each with the relay holding it)."""
-    try:
-        me = get_json(f"{relay.url}/api/health", timeout=2)["relay"]
-        return {n["node"] for n in get_json(f"{relay.url}/api/nodes", timeout=2)
-                if n["connected"] and not n["ended"] and n["relay"] == me}
-    except OSError:
-        return set()
-
-
-def stored_equals_sent(store: str, node: str, sent: np.ndarray) -> None:
-    runs = [r for s in list_sessions(store) for r in s["runs"] if r["node"] == node]
-    assert len(runs) == 1, runs  # the node resumed its run: no second one
-    (stored,) = load_runs(store, runs[0]["run"], corrected=False)
-    assert runs[0]["events"] == len(stored.events) == len(sent), (node, runs[0]["events"], len(stored.events), len(sent))
-    assert np.array_equal(sort_events(stored.events), sort_events(sent))  # 0 lost, 0 stored twice
 
 
 @pytest.mark.long

@@ -22,10 +22,10 @@ import pytest
 
 from dcuscope.relay.store.runs import list_sessions
 from tests.pgserver import PostgresServer
-from tests.relay.helpers import RelayProcess, finish_node, get_json, kill_all, load_node, start_node, wait_for
+from tests.relay.helpers import (RelayProcess, finish_node, get_json, kill_all, load_node, start_node,
+                                 stored_equals_sent, wait_for)
 from tests.relay.nsnet import Namespace, netns_permitted
 from tests.relay.test_fanout import Browser
-from tests.relay.test_fleet import stored_equals_sent
 
 pytestmark = pytest.mark.long
 RECOVERY_S = 45

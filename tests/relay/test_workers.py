@@ -14,8 +14,7 @@ import pytest
 
 from dcuscope.relay.workers import worker_argv
 from tests.ports import free_port
-from tests.relay.helpers import ROOT, _readline, env, finish_node, get_json, load_node, start_node
-from tests.relay.test_fleet import stored_equals_sent
+from tests.relay.helpers import ROOT, _readline, env, finish_node, get_json, load_node, start_node, stored_equals_sent
 
 
 @pytest.mark.parametrize("argv", [["relay", "--port", "3000", "--workers", "4", "--db", "postgresql://h/db"],
