@@ -203,7 +203,7 @@ def _registered(database: PostgresDatabase, run: str, header: dict):
 @pytest.mark.parametrize("args, says", [
     (["--store-timeout", "0.1"], "--store-timeout takes 0.5 to 600 seconds, not 0.1"),
     (["--redis", "redis+sentinel://127.0.0.1:26379/0"], "name the Sentinels' service"),
-    (["--redis", "redis+sentinel://127.0.0.1/0/dcuscope"], "each sentinel as HOST:PORT"),
+    (["--redis", "redis+sentinel://127.0.0.1/0/dcuscope"], "give each as HOST:PORT"),
     (["--redis", "http://127.0.0.1:6379/0"], "not a Redis URL"),
 ])
 def test_bad_store_and_redis_options_get_a_one_line_error(tmp_path, capsys, args, says):
