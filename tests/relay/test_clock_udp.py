@@ -20,8 +20,9 @@ from dcuscope.probes.ship.relayexport import RelayExporter
 from dcuscope.probes.ship.simnode import header_for, synth_events
 from dcuscope.probes.trace.events import ORIGIN
 from dcuscope.core.clocks import CLOCKS, PretendClock
-from dcuscope.probes.clocks.udpclock import (BURST, DATAGRAM_BYTES, VERSION, Tagger, UdpClock, decode_answer,
-                                    enable_rx_timestamps, encode_request, new_secret, parse_offer, recv_stamped)
+from dcuscope.probes.clocks.udpclock import (BURST, DATAGRAM_BYTES, VERSION, Tagger, UdpClock, clock_difference_ns,
+                                             decode_answer, enable_rx_timestamps, encode_request, new_secret,
+                                             parse_offer, recv_stamped)
 from dcuscope.relay.clock.correction import ClockSample, ntp_sample
 from dcuscope.relay.clock.udp import ClockUdp
 from dcuscope.relay.guard.limits import Limits
@@ -255,7 +256,7 @@ def test_kernel_receive_times_are_moved_to_the_probes_clock(tmp_path, clock):
         udp = await UdpClock.open("127.0.0.1", port, key, PretendClock(clock_id=clock_id))
         try:
             samples = await udp.burst()
-            truth = time.clock_gettime_ns(clock_id) - time.time_ns()
+            truth = clock_difference_ns(clock_id, reads=50)  # not skewed by a preemption between two reads
         finally:
             udp.close()
             await node.close()

@@ -1,6 +1,7 @@
-"""Relays sharing one PostgreSQL store: failover without loss, one owner per run, one session,
-and a store restart that holds nodes back. Real relays, real PostgreSQL (tests/pgserver.py), real
-nodes (``dcuscope run`` pipelines and simulated nodes)."""
+"""Relays sharing one PostgreSQL store: failover without loss, one owner per run, one session.
+Real relays, real PostgreSQL (tests/pgserver.py), real nodes (``dcuscope run`` pipelines and
+simulated nodes). A PostgreSQL restart: tests/relay/test_relay_faults.py; the store's own failover
+(a standby promoted, a standby gone): tests/relay/test_store_failover.py."""
 
 from __future__ import annotations
 
@@ -18,9 +19,7 @@ from dcuscope.probes.ship.simnode import header_for
 from dcuscope.probes.trace.tracefile import read_trace
 from dcuscope.relay.store.runs import list_sessions
 from tests.conftest import cli_env
-from tests.pgserver import PostgresServer
-from tests.relay.helpers import (RelayProcess, connected, finish_node, get_json, kill_all, load_node, start_node,
-                                 stored_equals_sent, wait_for)
+from tests.relay.helpers import RelayProcess, connected, get_json, kill_all, stored_equals_sent, wait_for
 
 FAILOVER_S = 10
 
@@ -133,38 +132,3 @@ def test_two_relays_racing_for_one_run_and_one_session_make_one_owner_and_one_se
         a.stop()
         b.stop()
     assert len(list_sessions(pg_url)) == 1
-
-
-@pytest.fixture
-def own_postgres():
-    """A PostgreSQL server of this test's own (it is restarted)."""
-    server = PostgresServer().start()
-    yield server
-    server.close()
-
-
-def test_a_postgresql_restart_mid_run_holds_nodes_back_and_loses_nothing(tmp_path, own_postgres):
-    store = own_postgres.new_database()
-    relay = RelayProcess(store, log=tmp_path / "relay.log")
-    try:
-        procs = {n: start_node(relay.url, n, tmp_path / f"{n}.npz", frames=500, fps=50, paced=True, seed=i)
-                 for i, n in enumerate(("p", "q"))}
-        wait_for(lambda: connected(relay) == {"p", "q"}, 30, what="two nodes streaming")
-        own_postgres.stop("fast")
-        failing = wait_for(lambda: (h := get_json(f"{relay.url}/api/health"))["ok"] is False and h, 15,
-                           what="the relay seeing its store down")
-        assert failing["storage"]["failed_writes"] > 0, failing
-        time.sleep(2)
-        own_postgres.resume()
-        wait_for(lambda: get_json(f"{relay.url}/api/health")["ok"], 30, what="the store working again")
-        counters = {n: finish_node(p, 90) for n, p in procs.items()}
-    finally:
-        relay.stop()
-    for name, c in counters.items():
-        assert c["acked"] == c["events"] and c["lost"] == 0, c
-        assert c["retries"] > 0 or c["connects"] > 1, c  # held back, or let go and resumed
-        _, sent = load_node(tmp_path / f"{name}.npz")
-        stored_equals_sent(store, name, sent)
-    log = relay.log.read_text()
-    assert "Traceback" not in log, log[-3000:]
-    assert log.count("storage failing") == 1 and log.count("storage works again") == 1, log[-3000:]
