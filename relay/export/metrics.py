@@ -94,17 +94,14 @@ class RelayCollector(Collector):
         conns.add_metric(["ingest"], ingest.connected)
         conns.add_metric(["tcp"], self.guard.open)
         yield conns
-        refused = CounterMetricFamily("dcuscope_relay_refused", "Connections and requests the guards refused, by "
-                                      "reason (as /api/health's refused)", labels=["reason"])
-        for reason, count in sorted(self.guard.refused.items()):
-            refused.add_metric([reason], count)
-        yield refused
         yield from self._store_families()
         yield GaugeMetricFamily("dcuscope_relay_live_bytes", "Bytes the runs' live states hold",
                                 value=state.memory_view()["live_bytes"])
+        # One family: the guards' refusals (connections, requests) and the relay's (hellos, credentials,
+        # roles, names) share their counter where they overlap.
         refused = CounterMetricFamily("dcuscope_relay_refused", "Connections, requests and hellos refused, by reason "
                                       "(as /api/health's refused: credentials, roles, limits, names)", labels=["reason"])
-        for reason, count in sorted(self.refusals().items()):
+        for reason, count in sorted({**self.guard.refused, **self.refusals()}.items()):
             refused.add_metric([reason], count)
         yield refused
 

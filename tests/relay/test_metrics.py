@@ -42,7 +42,10 @@ async def scrape(url: str, **headers) -> dict[str, list]:
         async with http.get(f"{url}/metrics", headers=headers) as r:
             assert r.status == 200 and r.headers["Content-Type"] == CONTENT_TYPE_LATEST
             text = await r.text()
-    return {f.name: f.samples for f in text_string_to_metric_families(text)}
+    families = list(text_string_to_metric_families(text))
+    names = [f.name for f in families]
+    assert len(names) == len(set(names)), sorted({n for n in names if names.count(n) > 1})  # one TYPE line each
+    return {f.name: f.samples for f in families}
 
 
 async def get_json(url: str, path: str) -> dict:
