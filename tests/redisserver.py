@@ -51,14 +51,18 @@ class RedisServer:
              "--dir", str(self.dir), "--logfile", str(self.log), "--daemonize", "no", "--protected-mode", "yes",
              *self.more],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        return self._answering("redis-server", timeout)
+
+    def _answering(self, what: str, timeout: float):
+        """This server once it answers PING; RuntimeError with its log's end if it exits or stays silent."""
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
-                raise RuntimeError(f"redis-server exited ({self.proc.returncode}): {self._log_tail()}")
+                raise RuntimeError(f"{what} exited ({self.proc.returncode}): {self._log_tail()}")
             if self.ping():
                 return self
             time.sleep(0.05)
-        raise RuntimeError(f"redis-server did not answer on 127.0.0.1:{self.port} in {timeout:g} s: {self._log_tail()}")
+        raise RuntimeError(f"{what} did not answer on 127.0.0.1:{self.port} in {timeout:g} s: {self._log_tail()}")
 
     def ping(self) -> bool:
         try:
@@ -125,11 +129,4 @@ class RedisSentinel(RedisServer):
                           f"sentinel failover-timeout {self.SERVICE} 5000\n")
         self.proc = subprocess.Popen([redis_binary(), str(config), "--sentinel"], stdout=subprocess.DEVNULL,
                                      stderr=subprocess.DEVNULL)
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"redis sentinel exited ({self.proc.returncode}): {self._log_tail()}")
-            if self.ping():
-                return self
-            time.sleep(0.05)
-        raise RuntimeError(f"redis sentinel did not answer on 127.0.0.1:{self.port}: {self._log_tail()}")
+        return self._answering("redis sentinel", timeout)

@@ -39,6 +39,13 @@ class Browser:
         await self.sio.connect(url, namespaces=["/ui"], transports=["websocket"], wait_timeout=10,
                                auth={"subscribe": {"nodes": nodes, "max_frames": 500}})
 
+    async def wait_frames(self, node: str, seconds: float, after: float = 0.0) -> bool:
+        """Whether frames of ``node`` that came after ``after`` are here, or come within ``seconds``."""
+        deadline = time.monotonic() + seconds
+        while not self.frames(node, after) and time.monotonic() < deadline:
+            await asyncio.sleep(0.1)
+        return bool(self.frames(node, after))
+
     def frames(self, node: str, after: float = 0.0) -> list[dict]:
         return [f for t, e, d in self.got if e == "frames" and t >= after for f in d["nodes"].get(node, {}).get("frames", [])]
 
@@ -119,11 +126,8 @@ def test_a_redis_restart_loses_nothing_and_pushes_resume_by_themselves(tmp_path,
         async def watch() -> tuple[Browser, float, float]:
             browser = Browser()
             await browser.open(b.url, ["DCU-A"])
-            for _ in range(200):  # within a second unloaded; a loaded machine is slower
-                await asyncio.sleep(0.1)
-                if browser.frames("DCU-A"):
-                    break
-            assert browser.frames("DCU-A"), "no live frames of A's DCU on B before the outage"
+            # within a second unloaded; a loaded machine is slower
+            assert await browser.wait_frames("DCU-A", 20), "no live frames of A's DCU on B before the outage"
             redis_server.stop()
             down = time.monotonic()
             await asyncio.sleep(1.5)
@@ -202,18 +206,11 @@ def test_a_redis_master_replaced_by_its_replica_is_followed_through_sentinel(tmp
         async def watch() -> float:
             browser = Browser()
             await browser.open(b.url, ["DCU-A"])
-            for _ in range(200):
-                await asyncio.sleep(0.1)
-                if browser.frames("DCU-A"):
-                    break
-            assert browser.frames("DCU-A"), "no live frames of A's DCU on B before the master died"
+            assert await browser.wait_frames("DCU-A", 20), "no live frames of A's DCU on B before the master died"
             master.kill9()
             died = time.monotonic()
-            await asyncio.sleep(0.5)
-            for _ in range(300):
-                await asyncio.sleep(0.1)
-                if browser.frames("DCU-A", after=time.monotonic() - 0.1):
-                    break
+            await asyncio.sleep(0.5)  # frames pushed before the kill may still arrive
+            await browser.wait_frames("DCU-A", 30, after=time.monotonic())
             resumed = time.monotonic() - died
             await browser.sio.disconnect()
             return resumed
