@@ -22,9 +22,11 @@ from tests.benchmarks.smoke import assert_ran, json_lines, run_benchmark
 
 GROWTH_PER_PAYLOAD = 0.25
 """Growth of RSS per restart (Theil-Sen) over restarts 5..20, as a share of one run's raw payload."""
-HWM_PAYLOADS = 3.0
+HWM_PAYLOADS = 8.0
 """How much the RSS high-water mark may rise after restart 5, in runs' raw payloads (the peak of one
-restart's transients recurs; it rises when runs' memory is kept: then by ~15 payloads in 20 restarts)."""
+restart's transients recurs; it rises when runs' memory is kept: then by ~15 payloads in 20 restarts).
+A loaded machine's transients reach further: a fresh-clone run at a load of 12 rose by 6.1 payloads
+(a run whose live state peaked at 2.3 times the others', its RSS back to the warm figure after)."""
 
 
 @pytest.mark.long
