@@ -259,8 +259,8 @@ class PostgresDatabase(Database):
         self.conflicts = 0
         """Transactions tried again after a conflict with another relay's."""
         self.timeout_s = timeout_s
-        self._started = 0.0
-        """When the transaction in progress started (monotonic; 0: none is)."""
+        self._started: float | None = None
+        """When the transaction in progress started (monotonic; None: none is)."""
         self._cancelled = False
         """Whether the transaction in progress was cancelled for taking longer than ``timeout_s``."""
         self._closing = threading.Event()
@@ -282,7 +282,7 @@ class PostgresDatabase(Database):
         """Cancels a transaction running longer than ``timeout_s`` (the thread that runs it is blocked in it)."""
         while not self._closing.wait(min(WATCH_S, self.timeout_s / 4)):
             started = self._started
-            if started and not self._cancelled and time.monotonic() - started > self.timeout_s:
+            if started is not None and not self._cancelled and time.monotonic() - started > self.timeout_s:
                 self._cancelled = True
                 try:
                     self.conn.cancel_safe(timeout=CONNECT_TIMEOUT_S)
@@ -344,7 +344,7 @@ class PostgresDatabase(Database):
         except psycopg.InterfaceError as exc:  # the connection was closed
             raise StoreUnavailable(f"{self.location}: {_first_line(exc)}") from exc
         finally:
-            self._started = 0.0
+            self._started = None
         if self._cancelled:
             # Cancelled, yet done: PostgreSQL ends a commit's wait for its synchronous standby so,
             # the transaction committed here and not confirmed there.
