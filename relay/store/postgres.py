@@ -38,8 +38,10 @@ payloads stored uncompressed by PostgreSQL (they are compressed already or small
 **A store that waits is not a store that hangs.** With ``timeout_s`` (the relay's ``--store-timeout``)
 a thread beside the connection cancels a write not answered within it (PostgreSQL's cancel request:
 the statement stops, or, if it was committing and waiting for a synchronous standby that is gone,
-the wait stops with the transaction committed on the primary only), and the write raises
-:class:`StoreTimeout`: its sender sends it again. A batch whose commit was cancelled, or whose
+the wait stops with the transaction committed on the primary only, and PostgreSQL warns so), and the
+write raises :class:`StoreTimeout`: its sender sends it again. A cancel is sent under a lock the
+transactions take at their end: it never reaches the next transaction, and one that ended by itself
+meanwhile is no timeout. A batch whose commit was cancelled, or whose
 connection died mid-commit, may thus be stored already: sent again, it conflicts on its
 ``(run, seq)`` and is stored once (what the relay's writer makes of that:
 :mod:`dcuscope.relay.store.writer`).
@@ -263,6 +265,12 @@ class PostgresDatabase(Database):
         """When the transaction in progress started (monotonic; None: none is)."""
         self._cancelled = False
         """Whether the transaction in progress was cancelled for taking longer than ``timeout_s``."""
+        self._unconfirmed = False
+        """Whether PostgreSQL warned, in the cancelled transaction, that its commit's wait for the
+        synchronous standby was cancelled (committed here, not confirmed there)."""
+        self._cancelling = threading.Lock()
+        """Held while a cancel is sent, and by a transaction at its end: a cancel meant for one
+        transaction never stops the next."""
         self._closing = threading.Event()
         try:
             self.conn = psycopg.connect(url, autocommit=True, connect_timeout=CONNECT_TIMEOUT_S,
@@ -274,6 +282,7 @@ class PostgresDatabase(Database):
             raise StoreUnavailable(f"{self.location}: cannot connect: {_first_line(exc)}") from exc
         except ValueError as exc:  # psycopg's word for a URL it cannot parse
             raise RelayError(f"{self.location}: not a PostgreSQL URL: {exc}") from exc
+        self.conn.add_notice_handler(self._notice)
         if timeout_s is not None:
             threading.Thread(target=self._bound, name="dcuscope-store-timeout", daemon=True).start()
         self._transaction(self._create_schema)
@@ -281,13 +290,20 @@ class PostgresDatabase(Database):
     def _bound(self) -> None:
         """Cancels a transaction running longer than ``timeout_s`` (the thread that runs it is blocked in it)."""
         while not self._closing.wait(min(WATCH_S, self.timeout_s / 4)):
-            started = self._started
-            if started is not None and not self._cancelled and time.monotonic() - started > self.timeout_s:
+            with self._cancelling:
+                started = self._started
+                if started is None or self._cancelled or time.monotonic() - started <= self.timeout_s:
+                    continue
                 self._cancelled = True
                 try:
                     self.conn.cancel_safe(timeout=CONNECT_TIMEOUT_S)
                 except (psycopg.Error, OSError) as exc:  # the connection is failing: the write will say so
                     log.info("%s: cannot cancel a write: %s", self.location, _first_line(exc))
+
+    def _notice(self, diagnostic: psycopg.errors.Diagnostic) -> None:
+        # "canceling wait for synchronous replication due to user request" (its words are localised).
+        if self._cancelled and diagnostic.severity_nonlocalized == "WARNING":
+            self._unconfirmed = True
 
     def _create_schema(self, cur: psycopg.Cursor) -> None:
         cur.execute("SELECT pg_advisory_xact_lock(%s, %s)", SCHEMA_LOCK)
@@ -329,28 +345,36 @@ class PostgresDatabase(Database):
                 time.sleep(CONFLICT_PAUSE_S * attempt)
 
     def _once(self, fn, block: bool = True) -> Any:
-        self._cancelled = False
+        self._cancelled = self._unconfirmed = False
         self._started = time.monotonic()
         try:
             with self.conn.transaction() if block else nullcontext(), self.conn.cursor() as cur:
                 result = fn(cur)
         except psycopg.OperationalError as exc:
-            if self._cancelled:
+            if self._end():
                 raise StoreTimeout(f"{self.location}: no answer within {self.timeout_s:g} s (--store-timeout): "
                                    f"cancelled", standby=False) from exc
             if (exc.sqlstate or "").startswith(ROLLED_BACK):
                 raise _Conflict() from exc
             raise StoreUnavailable(f"{self.location}: {type(exc).__name__}: {_first_line(exc)}") from exc
         except psycopg.InterfaceError as exc:  # the connection was closed
+            self._end()
             raise StoreUnavailable(f"{self.location}: {_first_line(exc)}") from exc
-        finally:
-            self._started = None
-        if self._cancelled:
-            # Cancelled, yet done: PostgreSQL ends a commit's wait for its synchronous standby so,
-            # the transaction committed here and not confirmed there.
+        except BaseException:
+            self._end()
+            raise
+        if self._end() and self._unconfirmed:
+            # Cancelled, yet done, with PostgreSQL's warning: the commit's wait for its synchronous
+            # standby was ended so, the transaction committed here and not confirmed there.
             raise StoreTimeout(f"{self.location}: {WAITING_FOR_STANDBY}: a commit not confirmed within "
                                f"{self.timeout_s:g} s (--store-timeout)", standby=True)
-        return result
+        return result  # (cancelled as it ended by itself: done all the same)
+
+    def _end(self) -> bool:
+        """The transaction in progress ended (once no cancel is being sent): whether it was cancelled."""
+        with self._cancelling:
+            self._started = None
+            return self._cancelled
 
     def _rows(self, sql: str, args: tuple = ()) -> list[tuple]:
         def query(cur: psycopg.Cursor) -> list[tuple]:

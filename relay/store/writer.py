@@ -117,6 +117,9 @@ class Storage:
         """Writes cancelled for taking longer than ``timeout_s``, by cause."""
         self.waiting = False
         """Whether the store waits for its synchronous standby (writes refused at once meanwhile)."""
+        self._waiting_for = ""
+        """What the write that started the wait said (/api/health's error while waiting: a read failing
+        meanwhile for another cause does not hide it)."""
         self._unsure: dict[tuple[str, int], bool] = {}
         """Batches (run, seq) whose write failed without saying whether it was stored, oldest first."""
         self.on_owners_lost: Callable[[], None] | None = None
@@ -175,7 +178,10 @@ class Storage:
                              "fresh": self.leases_fresh()}
         if failure is None:
             return dict(out, ok=True)
-        return {**out, **failure, "ok": False, "failed": dict(failure["failed"])}
+        out = {**out, **failure, "ok": False, "failed": dict(failure["failed"])}
+        if self.waiting:
+            out["error"] = self._waiting_for
+        return out
 
     def leases_fresh(self) -> bool:
         """Whether this relay surely still holds its leases: renewed less than ``LEASE_S`` ago,
@@ -210,6 +216,7 @@ class Storage:
         self.timeouts["synchronous_standby" if exc.standby else "other"] += 1
         if exc.standby:
             self.waiting = True
+            self._waiting_for = str(exc).removeprefix(f"{self.location}: ")
 
     def _broke(self, exc: StoreUnavailable) -> None:
         """A write failed for the store: a timeout keeps the connection, anything else drops it."""
@@ -351,11 +358,12 @@ class Storage:
             self._described = self._database.describe()
         except StoreUnavailable as exc:
             self._broke(exc)
+            self._failed("describe the store", exc)
 
     def _run_call(self, call: _Call) -> None:
         try:
             if self.waiting and call.name in HELD_WHILE_WAITING:
-                raise _Waiting(f"{self.location}: {self._failure['error'] if self._failure else 'waiting'}")
+                raise _Waiting(f"{self.location}: {self._waiting_for}")
             database = self._connection()
             fn = getattr(database, call.name) if isinstance(call.name, str) else partial(call.name, database)
             value = fn(*call.args, **call.kwargs)
@@ -378,7 +386,7 @@ class Storage:
             return
         try:
             if self.waiting:
-                raise _Waiting(f"{self.location}: {self._failure['error'] if self._failure else 'waiting'}")
+                raise _Waiting(f"{self.location}: {self._waiting_for}")
             inserted = self._connection().put_batches([b.row for b in batches], time.time_ns())
         except NotOwner as exc:
             # Runs another relay took (fenced): this relay writes them no more and lets their
