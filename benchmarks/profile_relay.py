@@ -53,7 +53,7 @@ CATEGORIES = (
 )
 """What a sample is for: the first category one of whose functions (a name, or the start of one) is on its stack."""
 OTHER = "other"
-WAITING = ("EpollSelector.select", "Storage._worker")
+WAITING = ("EpollSelector.select", "Storage._worker", "Storage._round")
 """A sample whose innermost function is one of these is a thread waiting (the event loop in
 ``select``, the store thread on its queue), which py-spy cannot always tell from work: not CPU."""
 

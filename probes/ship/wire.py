@@ -27,6 +27,7 @@ import math
 import struct
 import uuid
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -132,8 +133,10 @@ def encode_batch(run: str, seq: int, events: np.ndarray, compress: bool = False)
     return head + payload
 
 
-def decode_batch(data: object, n_stages: int, max_events: int = MAX_BATCH_EVENTS) -> Batch:
-    """Parse and validate one batch; ``n_stages`` bounds the stage index of every event."""
+def decode_batch(data: object, n_stages: int, max_events: int = MAX_BATCH_EVENTS,
+                 check: Callable[[np.ndarray, int], None] | None = None) -> Batch:
+    """Parse and validate one batch; ``n_stages`` bounds the stage index of every event. ``check``:
+    what validates its events, :func:`check_events` or another that refuses the same ones."""
     if isinstance(data, (bytearray, memoryview)):
         data = bytes(data)
     if not isinstance(data, bytes):
@@ -162,7 +165,7 @@ def decode_batch(data: object, n_stages: int, max_events: int = MAX_BATCH_EVENTS
     if len(raw) != size:
         raise ProtocolError(f"batch holds {len(raw)} bytes of events, {count} events need {size}")
     events = np.frombuffer(raw, dtype=EVENT_DTYPE)
-    check_events(events, n_stages)
+    (check or check_events)(events, n_stages)
     return Batch(uuid.UUID(bytes=run).hex, int(seq), events, payload, bool(flags & FLAG_ZLIB))
 
 

@@ -72,18 +72,20 @@ def _code_table() -> np.ndarray:
     return table
 
 
-_CODES = _code_table()
+CODE_TABLE = _code_table()
+"""``[point, code as a byte]`` (256 x 256 bools): whether that point allows that code (the relay's
+compiled batch check reads it, :mod:`dcuscope.relay.live.cmerge`)."""
 
 
 def codes_valid(point: np.ndarray, code: np.ndarray) -> np.ndarray:
     """Per event: its ``code`` is one its point allows (group size, reason, fact kind, or 0)."""
     point, code = np.asarray(point), np.asarray(code)
     if point.dtype == np.int8 and code.dtype == np.int8:  # the wire's and the trace's event dtype
-        return _CODES[point.view(np.uint8), code.view(np.uint8)]
+        return CODE_TABLE[point.view(np.uint8), code.view(np.uint8)]
     point, code = point.astype(np.int64), code.astype(np.int64)
     fits = (point >= 0) & (point < 256) & (code >= -128) & (code < 128)
     return np.where(point == READY, code != 0,
-                    fits & _CODES[np.where(fits, point, 255), np.where(fits, code, 0).astype(np.int8).view(np.uint8)])
+                    fits & CODE_TABLE[np.where(fits, point, 255), np.where(fits, code, 0).astype(np.int8).view(np.uint8)])
 
 
 EVENT_DTYPE = np.dtype(

@@ -13,6 +13,8 @@ many samples, with a bound that holds at every timestamp, and keeps the history 
 
 from __future__ import annotations
 
+import math
+from bisect import bisect_right
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -183,9 +185,19 @@ class Correction:
                                t["growth"][seg])
 
     def at(self, ts: int) -> tuple[int, int]:
-        """(offset, uncertainty) in ns at one node timestamp."""
-        a = np.array([ts], dtype=np.int64)
-        return int(self.offsets(a)[0]), int(self.uncertainties(a)[0])
+        """(offset, uncertainty) in ns at one node timestamp: :meth:`offsets` and :meth:`uncertainties`
+        of it, in Python's arithmetic (the same float64 operations and rounding; a push asks once a
+        run, where numpy's would cost more than the frames' own)."""
+        if not self.segments:
+            return 0, self.base_uncertainty_ns
+        s = self.segments[max(bisect_right(self._froms, ts) - 1, 0)]
+        off = s.offset_ns + int(round(float(s.drift_ppb) * float(ts - s.ref_ns) / 1e9))
+        unc = s.uncertainty_ns + self.base_uncertainty_ns + math.ceil(float(s.growth_ppb) * float(abs(ts - s.ref_ns)) / 1e9)
+        return off, unc
+
+    @cached_property
+    def _froms(self) -> tuple[int, ...]:
+        return tuple(s.from_ns for s in self.segments)
 
     def correct(self, ts: np.ndarray, at: np.ndarray | None = None) -> np.ndarray:
         """Node timestamps moved to the relay's clock (MISSING kept as it is); ``at`` as in :meth:`offsets`."""

@@ -111,6 +111,10 @@ class RelayCollector(Collector):
                                 "(as /api/health's storage.ok)", value=int(storage.health()["ok"]))
         yield GaugeMetricFamily("dcuscope_relay_store_waiting_for_standby", "1 while the store's commits wait for "
                                 "its synchronous standby (writes held back), else 0", value=int(storage.waiting))
+        yield CounterMetricFamily("dcuscope_relay_store_commits", "Transactions that committed batches (a round's "
+                                  "batches, of every node, commit in one)", value=storage.commits)
+        yield CounterMetricFamily("dcuscope_relay_store_batches", "Batches those transactions stored",
+                                  value=storage.batches_written)
         yield CounterMetricFamily("dcuscope_relay_store_failed_writes", "Writes refused for the store failing "
                                   "(their nodes send them again)", value=storage.failed_writes)
         timeouts = CounterMetricFamily("dcuscope_relay_store_timeouts", "Writes cancelled for taking longer than "

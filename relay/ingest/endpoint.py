@@ -47,21 +47,24 @@ import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 
+import numpy as np
 from aiohttp import WSCloseCode, WSMsgType, web
 
 from dcuscope.probes.ship import envelope
 from dcuscope.probes.ship.errors import LimitExceeded, ProtocolError
-from dcuscope.probes.ship.wire import (MAX_MESSAGE_BYTES, RELAY_HEARTBEAT_S, Batch, decode_batch, decode_clock, decode_end, decode_hello,
-                         declared_bytes)
+from dcuscope.probes.ship.wire import (MAX_MESSAGE_BYTES, RELAY_HEARTBEAT_S, Batch, check_events, decode_batch, decode_clock,
+                                      decode_end, decode_hello, declared_bytes)
 from dcuscope.relay.clock.correction import ClockSample, ntp_sample, sample_fault
 from dcuscope.probes.clocks.udpclock import new_secret
 from dcuscope.relay.clock.udp import ClockUdp
 from dcuscope.relay.errors import RelayError
 from dcuscope.relay.guard.policy import PRINCIPAL
 from dcuscope.relay.guard.limits import ByteBucket, Limits, TokenBucket
+from dcuscope.relay.live import cmerge
 from dcuscope.relay.live.state import OWNED_RETRY_MS, RelayState, RunState, TryLater
-from dcuscope.relay.store.base import NotOwner, StoreUnavailable
+from dcuscope.relay.store.base import BatchRow, NotOwner, StoreUnavailable
 
 MAX_STORING = 256
 """Batches of one connection being stored at once (a node keeps 64 in flight)."""
@@ -95,6 +98,8 @@ class _Conn:
     hello: bool = False
     """Whether it said hello (taking it may wait on the store: not overdue meanwhile)."""
     tasks: set[asyncio.Task] = field(default_factory=set)
+    storing: set[asyncio.Future] = field(default_factory=set)
+    """Its batches being stored: each future is done once its store ended."""
 
 
 class Ingest:
@@ -120,6 +125,11 @@ class Ingest:
         """Events and batches stored and fed to the live state (``/metrics``)."""
         self.clock_udp: ClockUdp | None = None
         """The UDP clock exchange, once the server listens for it (None: not offered)."""
+        compiled = cmerge.load()
+        self._check = check_events if compiled is None else partial(_check_compiled, compiled)
+        """What validates a batch's events: in one compiled pass where the live engine's library loads."""
+        self._acks: list[tuple[_Conn, str]] = []
+        """Acknowledgements of the rounds settled since the last were sent."""
         self.private_channel: Callable[[web.BaseRequest], bool] = _over_tls
         """Whether a connection cannot be read on the way: the one place that decides which get
         a clock secret (a test without TLS may make it say yes)."""
@@ -155,10 +165,10 @@ class Ingest:
             self._conns.pop(conn.sid, None)
             if conn.clock_key is not None and self.clock_udp is not None:
                 self.clock_udp.forget(conn.clock_key)
-            if conn.tasks:
+            if conn.tasks or conn.storing:
                 # Batches being stored finish (their acknowledgements have nowhere to go), before
                 # the run is let go: on a shared store another relay may take it then.
-                await asyncio.gather(*conn.tasks, return_exceptions=True)
+                await asyncio.gather(*conn.tasks, *conn.storing, return_exceptions=True)
             if conn.run is not None:
                 self.state.detach(conn.run, conn.sid)
         return ws
@@ -433,10 +443,10 @@ class Ingest:
     async def _on_batch(self, conn: _Conn, data: bytes) -> None:
         if conn.run is None:
             raise ProtocolError("batch before hello")
-        if len(conn.tasks) >= MAX_STORING:
+        if len(conn.storing) >= MAX_STORING:
             raise ProtocolError(f"more than {MAX_STORING} batches unacknowledged")
         rs = self.state.runs[conn.run]
-        batch = decode_batch(data, len(rs.header.stages))
+        batch = decode_batch(data, len(rs.header.stages), check=self._check)
         if batch.run != rs.run:
             raise ProtocolError("batch of another run on this connection")
         named = rs.live.admit_sources(batch.events["source"], self._limits.sources)
@@ -444,57 +454,79 @@ class Ingest:
             raise LimitExceeded("sources", f"run {rs.run} would name {named} distinct source ids, more than this "
                                            f"relay takes ({self._limits.sources}: --limit sources=N)")
         rs.last_seen = time.time()
-        # Stored concurrently, so that the batches in flight commit together.
-        task = asyncio.create_task(self._store(conn, rs, batch))
-        conn.tasks.add(task)
-        task.add_done_callback(conn.tasks.discard)
-        task.add_done_callback(_report_failure)
-
-    async def _store(self, conn: _Conn, rs: RunState, batch: Batch) -> None:
         seq = batch.seq
         if seq in rs.seqs:
             rs.duplicates += 1
             await self._send(conn, envelope.ack(seq, dup=True))
-            return
-        pending = rs.storing.get(seq)
-        if pending is not None:
+        elif seq in rs.storing:
             # The same batch, resent on a newer connection while the first copy is being stored.
+            self._await_copy(conn, rs, seq)
+        else:
+            self._commit(conn, rs, batch)
+
+    def _await_copy(self, conn: _Conn, rs: RunState, seq: int) -> None:
+        """Acknowledge ``seq`` on ``conn`` once its first copy's store ended (rare: a task of its own)."""
+        async def answer(pending: asyncio.Future) -> None:
             if await asyncio.shield(pending):
                 rs.duplicates += 1
                 await self._send(conn, envelope.ack(seq, dup=True))
             else:
                 await self._send(conn, self._refused(seq))
-            return
-        answer = await self._commit(rs, batch)
-        if answer is not None:
-            await self._send(conn, answer)
+        done = asyncio.get_running_loop().create_future()
+        conn.storing.add(done)
+        task = asyncio.create_task(answer(rs.storing[seq]))
+        task.add_done_callback(lambda t: (conn.storing.discard(done), done.set_result(None)))
+        task.add_done_callback(_report_failure)
 
-    async def _commit(self, rs: RunState, batch: Batch) -> str | None:
-        """Store, then feed the live state: a batch reaches the statistics once it is stored, so a
-        batch storage refused, sent again, counts once. None: the store refused it for another
-        relay owns the run now (its node is let go, :meth:`let_go_runs`, and told nothing)."""
+    def _commit(self, conn: _Conn, rs: RunState, batch: Batch) -> None:
+        """Queue ``batch`` with the store; once its round committed, :meth:`_stored` feeds the live state
+        and acknowledges it. A batch reaches the statistics once it is stored, so a batch storage
+        refused, sent again, counts once."""
         done = asyncio.get_running_loop().create_future()
         rs.storing[batch.seq] = done
-        new = None
+        conn.storing.add(done)
+        row = BatchRow(rs.run, batch.seq, len(batch.events), batch.compressed, batch.payload)
         try:
-            new = await self.state.storage.put_batch(rs.run, batch.seq, len(batch.events), batch.compressed,
-                                                     batch.payload)
-        except NotOwner:
-            return None
-        except RelayError:  # storage logs that it fails, once
-            return self._refused(batch.seq)
-        finally:
-            rs.storing.pop(batch.seq, None)
-            done.set_result(new is not None)
+            self.state.storage.queue_batch(row, partial(self._stored, conn, rs, batch, done))
+        except RelayError as exc:
+            self._stored(conn, rs, batch, done, None, exc)
+
+    def _stored(self, conn: _Conn, rs: RunState, batch: Batch, done: asyncio.Future, new: bool | None,
+                error: BaseException | None) -> None:
+        """How ``batch``'s store ended (on the event loop, with its round): fed to the live state if new,
+        and its acknowledgement queued; none when the store refused it for another relay owns the run
+        now (its node is let go, :meth:`let_go_runs`, and told nothing)."""
+        rs.storing.pop(batch.seq, None)
+        conn.storing.discard(done)
+        done.set_result(error is None)
+        if isinstance(error, NotOwner):
+            return
+        if error is not None:
+            if not isinstance(error, RelayError):  # a bug, not the store failing: said loudly
+                log.error("ingest: storing a batch failed", exc_info=error)
+            self._acknowledge(conn, self._refused(batch.seq))  # storage logs that it fails, once
+            return
         rs.seqs.add(batch.seq)
         if new:
-            rs.live.add(batch.events)
+            rs.live.add(batch.events, admitted=True)  # its sources were, as it arrived
             self.state.note_events(rs)
             self.events_in += len(batch.events)
             self.batches_in += 1
         else:  # stored before this relay's run state knew it: already in the live state
             rs.duplicates += 1
-        return envelope.ack(batch.seq, dup=not new)
+        self._acknowledge(conn, envelope.ack(batch.seq, dup=not new))
+
+    def _acknowledge(self, conn: _Conn, text: str) -> None:
+        """Queue an acknowledgement: a round's leave together, from one task (not one per batch)."""
+        if not self._acks:
+            task = asyncio.get_running_loop().create_task(self._send_acks())
+            task.add_done_callback(_report_failure)
+        self._acks.append((conn, text))
+
+    async def _send_acks(self) -> None:
+        acks, self._acks = self._acks, []
+        for conn, text in acks:
+            await self._send(conn, text)
 
     def _refused(self, seq: int) -> str:
         return envelope.ack(seq, False, error=STORAGE_FAILED, retry_ms=self.state.storage.retry_ms())
@@ -503,7 +535,14 @@ class Ingest:
 def _report_failure(task: asyncio.Task) -> None:
     # A bug, not a node's fault: said loudly, since nobody awaits these tasks' results.
     if not task.cancelled() and task.exception() is not None:
-        log.error("ingest: storing a batch failed", exc_info=task.exception())
+        log.error("ingest: acknowledging batches failed", exc_info=task.exception())
+
+
+def _check_compiled(compiled: cmerge.CompiledMerge, events: np.ndarray, n_stages: int) -> None:
+    """:func:`check_events` in one compiled pass; numpy's says what is wrong with a batch it refuses."""
+    if compiled.first_invalid(events, n_stages) >= 0:
+        check_events(events, n_stages)
+        raise ProtocolError("an event is invalid")  # were the two to disagree
 
 
 def _over_tls(request: web.BaseRequest) -> bool:

@@ -21,13 +21,16 @@ from pathlib import Path
 
 from dcuscope.core.errors import DcuscopeError
 from dcuscope.core import cbuild
-from dcuscope.probes.trace.events import EVENT_DTYPE
+import numpy as np
+
+from dcuscope.probes.ship.wire import FRAME_LIMIT, SOURCE_LIMIT
+from dcuscope.probes.trace.events import CODE_TABLE, EVENT_DTYPE
 
 HERE = Path(__file__).resolve().parent
 C_DIR = HERE / "c"
 BUILD_DIR = HERE / "_build"
 LIBRARY = BUILD_DIR / cbuild.MERGE.name
-ABI = 1
+ABI = 2
 
 log = logging.getLogger(__name__)
 _lock = threading.Lock()
@@ -46,17 +49,27 @@ class CompiledMerge:
         p, i64 = ctypes.c_void_p, ctypes.c_int64
         dll.dcu_merge_abi.restype = ctypes.c_int
         dll.dcu_merge_event_size.restype = ctypes.c_int
+        if dll.dcu_merge_abi() != ABI or dll.dcu_merge_event_size() != EVENT_DTYPE.itemsize:
+            raise BuildError(f"{LIBRARY.name} is of another version (ABI {dll.dcu_merge_abi()}, this dcuscope needs {ABI})")
         dll.dcu_merge_rehash.restype = None
         dll.dcu_merge_rehash.argtypes = [p, i64, p, p, i64]
         dll.dcu_merge_locate.restype = None
         dll.dcu_merge_locate.argtypes = [p, i64, p, p, i64, p, p]
         dll.dcu_merge.restype = i64
         dll.dcu_merge.argtypes = [p, i64, ctypes.c_int32, p, p, i64, p, p, p, p, p, i64, i64, p, p, i64, p, p]
-        if dll.dcu_merge_abi() != ABI or dll.dcu_merge_event_size() != EVENT_DTYPE.itemsize:
-            raise BuildError(f"{LIBRARY.name} is of another version (ABI {dll.dcu_merge_abi()}, this dcuscope needs {ABI})")
+        dll.dcu_check.restype = i64
+        dll.dcu_check.argtypes = [p, i64, ctypes.c_int32, p, i64, i64]
         self.rehash = dll.dcu_merge_rehash
         self.locate = dll.dcu_merge_locate
         self.merge = dll.dcu_merge
+        self._check = dll.dcu_check
+        self._codes = np.ascontiguousarray(CODE_TABLE, np.uint8)
+        self._codes_at = self._codes.ctypes.data
+
+    def first_invalid(self, events: np.ndarray, n_stages: int) -> int:
+        """The index of the first event of ``events`` (EVENT_DTYPE, contiguous) that
+        :func:`dcuscope.probes.ship.wire.check_events` refuses, or -1."""
+        return self._check(events.ctypes.data, len(events), n_stages, self._codes_at, SOURCE_LIMIT, FRAME_LIMIT)
 
 
 def build(force: bool = False) -> Path:

@@ -65,9 +65,12 @@ def corrected(ints: np.ndarray, floats: np.ndarray, corr: Correction, stages: in
     origin, end = ints[rows["origin"]][0], ints[rows["end"]][0]
     fc = corr.per_frame(origin)
     out = ints.copy()
-    out[times] = fc.correct(ints[times].T).T
+    # FrameCorrection.correct of each frame's times, a frame a column (its segment broadcast along the rows).
+    block = ints[times]
+    moved = block - (fc.offset + np.rint(fc.drift * (block - fc.ref).astype(np.float64) / 1e9).astype(np.int64))
+    out[times] = np.where(block == MISSING, block, moved)
     out[keep] = ints[keep]
-    out[rows["clock_ns"]] = fc.offsets(origin)
+    out[rows["clock_ns"]] = origin - moved[0]  # the offsets at the origins (the first of the times' rows)
     out[rows["clock_uncertainty_ns"]] = fc.uncertainties(origin)
     floats = floats.copy()
     floats[_rows(FLOAT_FIELDS, stages)["glass_ms"]] -= fc.offsets(end).astype(np.float64)

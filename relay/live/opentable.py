@@ -43,6 +43,8 @@ class OpenTable:
         """With the compiled merge: the hash's slots (key, -1 free) and each one's row."""
         self._hrow = np.zeros(slots, np.int64)
         self._io = np.zeros(4, np.int64)
+        self._at: tuple[int, ...] | None = None
+        """:meth:`_addresses` (None: taken again at the next merge)."""
 
     @property
     def compiled(self) -> bool:
@@ -55,6 +57,13 @@ class OpenTable:
         self._last = np.zeros(rows, np.int64)
         self._shown = np.zeros(rows, bool)
         self._end = np.zeros(rows, np.int64)
+        self._at = None
+
+    def _addresses(self) -> tuple[int, ...]:
+        """Where the compiled pass finds the hash and the rows: taken once per allocation, not per batch."""
+        if self._at is None:
+            self._at = tuple(a.ctypes.data for a in (self._hkey, self._hrow, *self._arrays(), self._io))
+        return self._at
 
     def _arrays(self) -> tuple[np.ndarray, ...]:
         return self._key, self._cells, self._last, self._shown, self._end
@@ -160,10 +169,10 @@ class OpenTable:
         io = self._io
         io[:] = (0, newest, 0, 0)
         while True:
-            n = self._c.merge(address, len(events), self._s, self._hkey.ctypes.data, self._hrow.ctypes.data,
-                              len(self._hkey) - 1, self._key.ctypes.data, self._cells.ctypes.data, self._last.ctypes.data,
-                              self._shown.ctypes.data, self._end.ctypes.data, self.n, len(self._key), src_ids.ctypes.data,
-                              watermark.ctypes.data, len(src_ids), has_exit.ctypes.data, io.ctypes.data)
+            hkey, hrow, key, cells, last, shown, end, io_at = self._addresses()
+            n = self._c.merge(address, len(events), self._s, hkey, hrow, len(self._hkey) - 1, key, cells, last, shown, end,
+                              self.n, len(self._key), src_ids.ctypes.data, watermark.ctypes.data, len(src_ids),
+                              has_exit.ctypes.data, io_at)
             self.n = int(n)
             if io[3] == len(events):
                 return int(io[0]), int(io[1]), int(io[2])
@@ -187,4 +196,5 @@ class OpenTable:
         want = max(MIN_SLOTS, 1 << int(max(2 * self.n, at_least) - 1).bit_length())
         if want > len(self._hkey) or len(self._hkey) > 4 * want:
             self._hkey, self._hrow = np.empty(want, np.int64), np.empty(want, np.int64)
+            self._at = None
         self._c.rehash(self._key.ctypes.data, self.n, self._hkey.ctypes.data, self._hrow.ctypes.data, len(self._hkey) - 1)

@@ -321,14 +321,16 @@ class LiveRun:
 
     # --- ingest -------------------------------------------------------------------------------
 
-    def add(self, events: np.ndarray) -> None:
-        """Queue a batch of validated events (stage and point in range, see probes.ship.wire).
+    def add(self, events: np.ndarray, admitted: bool = False) -> None:
+        """Queue a batch of validated events (stage and point in range, see probes.ship.wire);
+        ``admitted``: its source ids were noted already (:meth:`admit_sources`).
 
         Merging costs a few dozen numpy calls whatever the batch size, so batches wait here
         until the next :meth:`maintain` (the relay's tick) or read, and merge as one.
         """
         if len(events):
-            self._note_sources(self._new_sources(events["source"]))
+            if not admitted:
+                self._note_sources(self._new_sources(events["source"]))
             self._pending.append(events)
             self.events += len(events)
             self._heard_ns = time.monotonic_ns()
@@ -512,21 +514,18 @@ class LiveRun:
 
     def _end_tick(self, tick: _Tick) -> int:
         t, open_, rows = self._open, tick.open_, tick.rows
-        complete, end = t.shown.copy(), t.end.copy()
-        if len(rows):
-            complete[rows], end[rows] = tick.complete, tick.end
-        shown = complete & ~t.shown
-        k = int(shown.sum())
+        new = tick.complete & ~t.shown[rows] if len(rows) else np.zeros(0, bool)
+        shown = rows[new]  # the frames shown now are among those judged now, in row order
+        k = len(shown)
         if k:
             t.shown[shown] = True
-            t.end[shown] = end[shown]
+            t.end[shown] = tick.end[new]
             r = self._recent
             n = np.arange(self.visible + 1, self.visible + k + 1)
             r["n"].extend(n)
             r["source"].extend(open_.source[shown])
             r["frame"].extend(open_.frame[shown])
             r["cells"].extend(open_.cells[shown])
-            new = shown[rows]  # the frames shown now are among those judged now, in the same order
             ints = tick.ints[:, new]
             ints[0] = n
             self._pushed["ints"].extend(ints.T)
@@ -537,6 +536,9 @@ class LiveRun:
         if self.newest < self._next_finalise and t.n <= self._open_cap:
             return k
         self._next_finalise = self.newest + FINALISE_PERIOD_NS
+        complete, end = t.shown.copy(), t.end.copy()
+        if len(rows):  # a shown frame judged again (the run's exit points changed) may be incomplete now
+            complete[rows], end[rows] = tick.complete, tick.end
         done = complete & (end <= self.newest - self._settle_ns)
         stale = ~complete & (t.last < self.newest - int(self.config.evict_s * 1e9))
         excess = t.n - int(done.sum()) - int(stale.sum()) - self._open_cap

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dcuscope.relay.clock.correction import ClockEstimate, correction_ns, correction_of, ntp_sample
+from dcuscope.relay.clock.correction import ClockEstimate, Correction, Segment, correction_ns, correction_of, ntp_sample
 from dcuscope.relay.clock.model import WINDOW_NS, ClockEstimator, half_width
 
 
@@ -66,3 +66,24 @@ def test_correction_policy():
     assert correction_ns("auto", None, none) == (0, "none")
     with pytest.raises(ValueError):
         correction_ns("bogus", est, none)
+
+
+def test_the_correction_at_one_timestamp_is_that_of_the_arrays():
+    """``Correction.at`` (a push's head, in Python's arithmetic) equals ``offsets`` and ``uncertainties``
+    of the same timestamp (numpy's), before the first segment, at each start, and where a drift's
+    product ends in exactly half a nanosecond (both round it to even)."""
+    rng = np.random.default_rng(11)
+    t0 = 1_700_000_000_000_000_000
+    segments = tuple(Segment(t0 + k * 10**9, t0 + k * 10**9 - 5 * 10**8, int(rng.integers(-10**9, 10**9)),
+                             drift_ppb=int(rng.integers(-10**5, 10**5)), uncertainty_ns=int(rng.integers(0, 10**6)),
+                             growth_ppb=int(rng.integers(0, 10**4))) for k in range(4))
+    halves = (Segment(t0, t0, 0, drift_ppb=500, growth_ppb=500), Segment(t0 + 10**9, t0, 7, drift_ppb=1500))
+    for corr in (Correction("estimate", "", segments, 250), Correction("estimate", "", halves),
+                 Correction("none", "no estimate"), Correction("ptp", "", (), 80)):
+        ts = np.concatenate([t0 + rng.integers(-2 * 10**9, 6 * 10**9, 500),
+                             [t0 - 1, t0, t0 + 1, t0 + 1_000_000, t0 + 10**9, t0 + 1_001_000_000, t0 + 3 * 10**9 - 1]]).astype(np.int64)
+        want = list(zip(corr.offsets(ts).tolist(), corr.uncertainties(ts).tolist()))
+        assert [corr.at(int(t)) for t in ts] == want
+    # 0.5 ns of drift rounds to 0 (its bound up to 1), 1501.5 ns to 1502: half to even, as numpy's rint
+    assert Correction("estimate", "", halves).at(t0 + 1_000_000) == (0, 1)
+    assert Correction("estimate", "", halves).at(t0 + 1_001_000_000) == (7 + 1502, 0)

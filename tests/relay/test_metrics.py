@@ -180,6 +180,9 @@ def test_histograms_gauges_and_counters_equal_the_delay_model_and_api_stats(tmp_
         {(("state", s),): float(s == "unavailable") for s in PTP_STATES}
     assert values_of(fams, "dcuscope_relay_events", "dcuscope_relay_events_total") == {(): len(events) + 1}
     assert values_of(fams, "dcuscope_relay_batches", "dcuscope_relay_batches_total") == {(): 5}
+    assert values_of(fams, "dcuscope_relay_store_batches", "dcuscope_relay_store_batches_total") == {(): 5}
+    commits = values_of(fams, "dcuscope_relay_store_commits", "dcuscope_relay_store_commits_total")[()]
+    assert 1 <= commits <= 5
     assert values_of(fams, "dcuscope_node_connected", "dcuscope_node_connected") == {(("node", "A"),): 1.0}
     assert values_of(fams, "dcuscope_node_ended", "dcuscope_node_ended") == {(("node", "A"),): 0.0}
 

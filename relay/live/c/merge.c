@@ -10,7 +10,7 @@
 #include <stdint.h>
 #include <string.h>
 
-#define MERGE_ABI 1
+#define MERGE_ABI 2
 #define MISSING (-1)
 #define CELLS 6
 #define EXIT 2
@@ -26,6 +26,20 @@ typedef struct { int64_t ts, frame; int32_t source; int16_t stage; int8_t point,
 int dcu_merge_abi(void) { return MERGE_ABI; }
 
 int dcu_merge_event_size(void) { return (int)sizeof(event_t); }
+
+/* The first of n events a pipeline cannot produce, or -1: probes.ship.wire.check_events in one pass
+ * (the relay checks every batch it receives with this where it loads; numpy says what is wrong).
+ * codes: [256 points][256 codes as bytes], whether a point allows a code (no point out of range does). */
+int64_t dcu_check(const event_t *ev, int64_t n, int32_t n_stages, const uint8_t *codes,
+                  int64_t source_limit, int64_t frame_limit) {
+    for (int64_t i = 0; i < n; i++) {
+        const event_t *e = &ev[i];
+        if (!codes[(uint8_t)e->point * 256 + (uint8_t)e->code] || e->stage < 0 || e->stage >= n_stages
+            || e->source < 0 || e->source >= source_limit || e->frame < 0 || e->frame >= frame_limit || e->ts <= 0)
+            return i;
+    }
+    return -1;
+}
 
 static inline uint64_t mix(uint64_t k) {
     k ^= k >> 33;

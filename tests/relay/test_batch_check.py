@@ -1,0 +1,91 @@
+"""The relay's compiled batch check refuses exactly the events numpy's ``check_events`` refuses, and
+the relay says what is wrong with numpy's words."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+from dcuscope.probes.ship.errors import ProtocolError
+from dcuscope.probes.ship.simnode import synth_events
+from dcuscope.probes.ship.wire import FRAME_LIMIT, SOURCE_LIMIT, check_events, decode_batch, encode_batch
+from dcuscope.probes.trace.events import EVENT_DTYPE, READY
+from dcuscope.relay.ingest.endpoint import _check_compiled
+from dcuscope.relay.live import cmerge
+
+T0 = 1_700_000_000_000_000_000
+STAGES = 3
+
+
+@pytest.fixture(scope="module")
+def compiled() -> cmerge.CompiledMerge:
+    merge = cmerge.load()
+    assert merge is not None, cmerge.unavailable_reason()
+    return merge
+
+
+def _numpy_first(events: np.ndarray) -> int:
+    try:
+        check_events(events, STAGES)
+    except ProtocolError as exc:
+        return int(re.match(r"event (\d+) invalid", str(exc)).group(1))
+    return -1
+
+
+BAD = [("point", 7), ("point", -1), ("stage", -1), ("stage", STAGES), ("source", -1), ("source", SOURCE_LIMIT),
+       ("frame", -1), ("frame", FRAME_LIMIT), ("ts", 0), ("ts", -5)]
+
+
+@pytest.mark.parametrize("field,value", BAD)
+def test_a_field_out_of_range_is_found_where_numpy_finds_it(compiled, field, value):
+    events = synth_events(40, 2, 30.0, T0, seed=3)
+    events = events[events["stage"] < STAGES].copy()
+    assert compiled.first_invalid(events, STAGES) == -1 == _numpy_first(events)
+    at = len(events) // 2
+    events[field][at] = value
+    events["ts"][at + 3] = 0  # a later one too: the first is said
+    assert compiled.first_invalid(events, STAGES) == at == _numpy_first(events)
+
+
+def test_codes_a_point_does_not_allow_are_refused(compiled):
+    events = synth_events(20, 1, 30.0, T0, seed=4)
+    events = events[events["stage"] < STAGES].copy()
+    at = len(events) // 3
+    for point, code in ((READY, 0), (0, 3), (5, 127), (6, -100)):
+        bad = events.copy()
+        bad["point"][at], bad["code"][at] = point, code
+        assert compiled.first_invalid(bad, STAGES) == at == _numpy_first(bad)
+    events["point"][at], events["code"][at] = READY, 2  # a ready event's group size
+    assert compiled.first_invalid(events, STAGES) == -1 == _numpy_first(events)
+
+
+def test_random_records_are_judged_alike(compiled):
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        events = np.frombuffer(rng.integers(0, 256, 24 * 64, np.uint8).tobytes(), EVENT_DTYPE).copy()
+        # Most fields in range, so that the first invalid event falls anywhere, not always at 0.
+        ok = rng.random(64) < 0.97
+        events["ts"][ok] = np.abs(events["ts"][ok]) % (1 << 62) + 1
+        events["frame"][ok] = np.abs(events["frame"][ok]) % FRAME_LIMIT
+        events["source"][ok] = np.abs(events["source"][ok]) % SOURCE_LIMIT
+        events["stage"][ok] = np.abs(events["stage"][ok]) % STAGES
+        events["point"][ok] = np.abs(events["point"][ok]) % 3
+        events["code"][ok] = 0
+        assert compiled.first_invalid(events, STAGES) == _numpy_first(events)
+
+
+def test_the_relay_refuses_a_bad_batch_in_numpys_words(compiled):
+    events = synth_events(10, 1, 30.0, T0, seed=5)
+    events = events[events["stage"] < STAGES].copy()
+    events["stage"][4] = STAGES
+    data = encode_batch("ab" * 16, 0, events, compress=True)
+    check = lambda e, n: _check_compiled(compiled, e, n)  # noqa: E731
+    with pytest.raises(ProtocolError) as by_numpy:
+        decode_batch(data, STAGES)
+    with pytest.raises(ProtocolError) as by_compiled:
+        decode_batch(data, STAGES, check=check)
+    assert str(by_compiled.value) == str(by_numpy.value) and str(by_numpy.value).startswith("event 4 invalid")
+    events["stage"][4] = 0
+    assert len(decode_batch(encode_batch("ab" * 16, 0, events), STAGES, check=check).events) == len(events)
