@@ -46,8 +46,10 @@ def capacity(*args, **kw) -> subprocess.Popen:
 @pytest.mark.long
 def test_a_search_reports_each_count_predicts_and_on_ctrl_c_prints_what_it_measured(tmp_path):
     traces = tmp_path / "traces"
-    # bounds that hold on a busy machine too (the floor at half the rate): the search reaches 3
-    proc = capacity(config(tmp_path), "--max-streams", 6, "--duration", 4, "--warmup", 1, "--fps-floor", 50,
+    # bounds that hold on a busy machine too (the floor at half the rate): the search reaches 3. A
+    # 2 s warm-up: a live file whose first frames came late (a loaded machine) catches up at the
+    # pipeline's pace, not its own, until its backlog is gone (a fresh clone's CI measured 10 fps)
+    proc = capacity(config(tmp_path), "--max-streams", 6, "--duration", 5, "--warmup", 2, "--fps-floor", 50,
                     "--slo", "slow.service.mean >= 20ms", "--slo", "e2e.p99 <= 10s", "--json",
                     "-o", tmp_path / "report.md", "--plot", tmp_path / "plot.png", "--keep-traces", traces,
                     # started with SIGINT ignored, as a shell's background job or a CI runner's step may be:
