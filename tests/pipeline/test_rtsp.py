@@ -179,10 +179,11 @@ def test_a_stalled_stream_is_reported_while_the_others_go_on_and_its_return_too(
     assert "was lost" not in stderr
     origins = read_trace(tmp_path / "t.jsonl").events
     origins = origins[origins["point"] == ORIGIN]
-    # 1.5 s after the freeze: frames still in the 200 ms jitter buffer have come out by then, even
-    # decoded late on a loaded machine (one came out 0.5 s after, with the suite on 2 cores).
-    frozen = origins[(origins["ts"] > stopped_at + 1_500_000_000) & (origins["ts"] < resumed_at)]
-    assert (frozen["source"] == 0).sum() == 0 and (frozen["source"] == 1).sum() >= 40  # 10 fps for 5.5 s
+    # 3 s after the freeze: frames still in the 200 ms jitter buffer have come out by then, even
+    # decoded late on a loaded machine (with the suite on 2 cores one came out 0.5 s after, and
+    # once one more than 1.5 s after).
+    frozen = origins[(origins["ts"] > stopped_at + 3_000_000_000) & (origins["ts"] < resumed_at)]
+    assert (frozen["source"] == 0).sum() == 0 and (frozen["source"] == 1).sum() >= 28  # 10 fps for 4 s
     after = origins[origins["ts"] > resumed_at]
     assert (after["source"] == 0).sum() >= 10  # the stream came back
 

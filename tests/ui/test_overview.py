@@ -207,6 +207,13 @@ def test_the_filter_keeps_rows_whose_dcu_relay_bottleneck_or_alerts_match(fleet,
     assert shown("", NODES) == NODES
 
 
+def click_row(page, node: str) -> None:
+    """Click ``node``'s row as a user does: the pointer over the rows first, which holds their order
+    still (a push may reorder them, worst first, between finding a row and the pointer reaching it)."""
+    page.hover("#overview tbody tr[data-node] >> nth=0")
+    page.click(f'#overview tbody tr[data-node="{node}"]')
+
+
 def address(page) -> str:
     """The page's address as the page holds it now (``page.url`` follows it later, after an event
     from the browser: read right after a click, it may still be the one before)."""
@@ -216,7 +223,7 @@ def address(page) -> str:
 def test_a_click_opens_one_dcu_and_the_relay_pushes_only_its_frames(fleet, page):
     page, traffic = page
     node = "DCU-3"
-    page.click(f'#overview tbody tr[data-node="{node}"]')
+    click_row(page, node)
     assert address(page) == f"/?open={node}"
     d = wait_for(lambda: (lambda d: d if sum(d["stage"]["bars"].get(node, {}).values()) > 0 else None)(debug(page)),
                  30, 0.3, f"{node}'s bars")
@@ -240,7 +247,7 @@ def test_a_click_opens_one_dcu_and_the_relay_pushes_only_its_frames(fleet, page)
     page.click(".tab[data-tab=stage]")
 
     # Closed again: its frames are dropped and the relay stops pushing them.
-    page.click(f'#overview tbody tr[data-node="{node}"]')
+    click_row(page, node)
     assert address(page) == "/?open="
     d = debug(page)
     assert d["liveStores"] == [] and d["stores"] == {} and d["stats"] == {} and d["nodes"] == []
@@ -281,12 +288,12 @@ def test_two_opened_dcus_are_what_the_moments_view_offers_and_it_says_what_is_mi
         wait_for(lambda: line.inner_text() == text, 10, 0.2, f"the moments line to say {text!r}, not {line.inner_text()!r}")
         return line.get_attribute("class") or ""
 
-    page.click('#overview tbody tr[data-node="DCU-1"]')
+    click_row(page, "DCU-1")
     page.click(".tab[data-tab=moments]")
     # One DCU open of six: open another (said plainly, not as an error).
     assert "field-msg" not in says("Moments need two DCUs open: only DCU-1 is open. Open another in the fleet "
                                    "overview above (click its row).")
-    page.click('#overview tbody tr[data-node="DCU-2"]')
+    click_row(page, "DCU-2")
     assert address(page) == "/?open=DCU-1,DCU-2"
     wait_for(lambda: page.locator("#moments-a option").all_inner_texts() == ["DCU-1", "DCU-2"], 10, 0.2,
              "the opened DCUs in the moments selectors")
@@ -354,7 +361,7 @@ def test_without_the_socketio_client_the_overview_and_an_opened_dcu_are_polled(f
         d = wait_for(lambda: (lambda d: d if d["overview"]["total"] == len(NODES) else None)(debug(page)), 30, 0.3,
                      "six rows polled")
         assert d["transport"] == "polling" and d["opened"] == [] and d["liveStores"] == []
-        page.click('#overview tbody tr[data-node="DCU-6"]')
+        click_row(page, "DCU-6")
         d = wait_for(lambda: (lambda d: d if sum(d["stage"]["bars"].get("DCU-6", {}).values()) > 0 else None)(
             debug(page)), 30, 0.3, "DCU-6's bars while polling")
         assert d["liveStores"] == ["DCU-6"] and [n["node"] for n in d["nodes"]] == ["DCU-6"]
