@@ -229,9 +229,10 @@ class FrameCorrection:
     """The segment's bound plus the correction's base bound."""
     growth: np.ndarray
 
-    def offsets(self, ts: np.ndarray) -> np.ndarray:
+    def offsets(self, ts: np.ndarray, columns: bool = False) -> np.ndarray:
+        """``columns``: ``ts`` is (k, n), a frame's k timestamps per column (no transposes needed)."""
         ts = np.asarray(ts, dtype=np.int64)
-        off, ref, drift = (_rows(a, ts) for a in (self.offset, self.ref, self.drift))
+        off, ref, drift = ((a if columns else _rows(a, ts)) for a in (self.offset, self.ref, self.drift))
         return off + np.rint(drift * (ts - ref).astype(np.float64) / 1e9).astype(np.int64)
 
     def uncertainties(self, ts: np.ndarray) -> np.ndarray:
@@ -239,10 +240,10 @@ class FrameCorrection:
         unc, ref, growth = (_rows(a, ts) for a in (self.uncertainty, self.ref, self.growth))
         return unc + np.ceil(growth * np.abs(ts - ref).astype(np.float64) / 1e9).astype(np.int64)
 
-    def correct(self, ts: np.ndarray) -> np.ndarray:
-        """Node timestamps moved to the relay's clock (MISSING kept as it is)."""
+    def correct(self, ts: np.ndarray, columns: bool = False) -> np.ndarray:
+        """Node timestamps moved to the relay's clock (MISSING kept as it is); ``columns`` as in :meth:`offsets`."""
         ts = np.asarray(ts, dtype=np.int64)
-        return np.where(ts == MISSING, ts, ts - self.offsets(ts))
+        return np.where(ts == MISSING, ts, ts - self.offsets(ts, columns))
 
 
 def _rows(per_frame: np.ndarray, ts: np.ndarray) -> np.ndarray:

@@ -19,10 +19,10 @@ import sys
 import threading
 from pathlib import Path
 
-from dcuscope.core.errors import DcuscopeError
-from dcuscope.core import cbuild
 import numpy as np
 
+from dcuscope.core.errors import DcuscopeError
+from dcuscope.core import cbuild
 from dcuscope.probes.ship.wire import FRAME_LIMIT, SOURCE_LIMIT
 from dcuscope.probes.trace.events import CODE_TABLE, EVENT_DTYPE
 

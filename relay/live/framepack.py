@@ -65,10 +65,8 @@ def corrected(ints: np.ndarray, floats: np.ndarray, corr: Correction, stages: in
     origin, end = ints[rows["origin"]][0], ints[rows["end"]][0]
     fc = corr.per_frame(origin)
     out = ints.copy()
-    # FrameCorrection.correct of each frame's times, a frame a column (its segment broadcast along the rows).
-    block = ints[times]
-    moved = block - (fc.offset + np.rint(fc.drift * (block - fc.ref).astype(np.float64) / 1e9).astype(np.int64))
-    out[times] = np.where(block == MISSING, block, moved)
+    moved = fc.correct(ints[times], columns=True)
+    out[times] = moved
     out[keep] = ints[keep]
     out[rows["clock_ns"]] = origin - moved[0]  # the offsets at the origins (the first of the times' rows)
     out[rows["clock_uncertainty_ns"]] = fc.uncertainties(origin)
