@@ -319,12 +319,31 @@ def summarize(values_ms: np.ndarray | Iterable[float]) -> dict:
     values = np.asarray(values_ms, dtype=np.float64).ravel()
     if values.size == 0:
         return {"count": 0, "mean_ms": None, "p50_ms": None, "p95_ms": None, "p99_ms": None, "max_ms": None}
-    p50, p95, p99 = np.percentile(values, PERCENTILES, method="linear")
+    if np.isnan(values).any():
+        p50, p95, p99 = np.percentile(values, PERCENTILES, method="linear")  # NaN, as numpy says
+    else:  # numpy's figures, one partition for the six ranks they read (np.percentile: ~2x the time)
+        n = values.size
+        ranks = np.floor((n - 1) * (np.asarray(PERCENTILES, np.float64) / 100)).astype(np.int64)
+        part = np.partition(values, np.unique(np.concatenate([ranks, np.minimum(ranks + 1, n - 1)])))
+        p50, p95, p99 = linear_percentiles(n, lambda at: part[at])
     total_ns = float(np.rint(values * NS_PER_MS).sum())
     return {
         "count": int(values.size), "mean_ms": total_ns / values.size / NS_PER_MS,
         "p50_ms": float(p50), "p95_ms": float(p95), "p99_ms": float(p99), "max_ms": float(values.max()),
     }
+
+
+def linear_percentiles(n: int, at: Callable[[np.ndarray], np.ndarray]) -> list[float]:
+    """PERCENTILES of ``n`` sorted values, ``at(ranks)`` giving the values at those ranks, as
+    ``np.percentile(method="linear")`` computes them (its virtual index, and its lerp from the
+    nearer end) without selecting them again."""
+    virtual = (n - 1) * (np.asarray(PERCENTILES, np.float64) / 100)
+    below = np.floor(virtual)
+    gamma = virtual - below
+    lo = below.astype(np.int64)
+    a, b = at(lo), at(np.minimum(lo + 1, n - 1))
+    diff = b - a
+    return np.where(gamma >= 0.5, b - diff * (1 - gamma), a + diff * gamma).tolist()
 
 
 Summarizer = Callable[[str, str, np.ndarray], dict]

@@ -22,7 +22,7 @@ import math
 
 import numpy as np
 
-from dcuscope.probes.trace.delays import NS_PER_MS, PERCENTILES, summarize
+from dcuscope.probes.trace.delays import NS_PER_MS, PERCENTILES, linear_percentiles, summarize
 from dcuscope.relay.rollup.sketch import ALPHA, GAMMA, LOG_GAMMA
 
 RELATIVE_ERROR = ALPHA
@@ -137,12 +137,12 @@ class RunValues:
         """``summarize`` of the (sorted) exact values and ``extra`` (sorted), to its last bit
         but for the percentiles' interpolation, done as numpy's "linear" method does it."""
         held = self._exact[:self._n_exact]
-        values = np.insert(held, np.searchsorted(held, extra), extra) if len(extra) else held
-        count = len(values)
+        count = len(held) + len(extra)
         total_ns = self._exact_ns + float(np.rint(extra * NS_PER_MS).sum())
-        p50, p95, p99 = _linear_percentiles(values)
+        p50, p95, p99 = linear_percentiles(count, lambda ranks: _merged_at(held, extra, ranks))
+        top = max(float(held[-1]) if len(held) else -math.inf, float(extra[-1]) if len(extra) else -math.inf)
         return {"count": count, "mean_ms": total_ns / count / NS_PER_MS, "p50_ms": p50, "p95_ms": p95,
-                "p99_ms": p99, "max_ms": float(values[-1])}
+                "p99_ms": p99, "max_ms": top}
 
     def _add(self, values: np.ndarray) -> None:
         if not len(values):
@@ -153,17 +153,20 @@ class RunValues:
         self._max = max(self._max, float(values.max()))
 
 
-def _linear_percentiles(ascending: np.ndarray) -> list[float]:
-    """PERCENTILES of sorted values, as ``np.percentile(method="linear")`` computes them (its
-    virtual index, and its lerp from the nearer end) without selecting them again."""
-    n = len(ascending)
-    virtual = (n - 1) * (np.asarray(PERCENTILES, np.float64) / 100)
-    below = np.floor(virtual)
-    gamma = virtual - below
-    lo = below.astype(np.int64)
-    a, b = ascending[lo], ascending[np.minimum(lo + 1, n - 1)]
-    diff = b - a
-    return np.where(gamma >= 0.5, b - diff * (1 - gamma), a + diff * gamma).tolist()
+def _merged_at(held: np.ndarray, extra: np.ndarray, ranks: np.ndarray) -> np.ndarray:
+    """The values at ``ranks`` of ``held`` and ``extra`` (both ascending) merged as ``np.insert(held,
+    np.searchsorted(held, extra), extra)`` merges them, without building it (a copy of every held
+    value, up to ``exact_limit``, for six lookups)."""
+    if not len(extra):
+        return held[ranks]
+    placed = np.searchsorted(held, extra) + np.arange(len(extra))  # each extra value's rank, ascending
+    k = np.searchsorted(placed, ranks)  # extra values ranked before each rank
+    hit = k < len(placed)
+    hit[hit] = placed[k[hit]] == ranks[hit]
+    out = np.empty(len(ranks))
+    out[hit] = extra[k[hit]]
+    out[~hit] = held[ranks[~hit] - k[~hit]]
+    return out
 
 
 def _merge(keys: np.ndarray, counts: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

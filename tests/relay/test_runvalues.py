@@ -123,3 +123,15 @@ def test_values_finalised_between_summaries_are_merged_in_when_one_is_asked():
             for key in expected:
                 assert got[key] == expected[key] or abs(got[key] - expected[key]) <= 1e-12 * abs(expected[key]), key
     assert values.exact and values.count == len(seen)
+
+
+def test_open_values_equal_to_finalised_ones_and_beyond_both_ends_summarize_as_summarize_does():
+    """The percentiles of finalised and open values are read from the two without merging them: ties
+    between the two, and open values below or above every finalised one, land at summarize's ranks."""
+    rng = np.random.default_rng(3)
+    values = RunValues(exact_limit=100_000)
+    held = np.round(rng.lognormal(1.0, 1.0, 997), 3)
+    values.extend(held)
+    for extra in (held[rng.integers(0, len(held), 40)], np.array([-5.0, 0.0, held.min()]),
+                  np.array([held.max(), held.max() + 1, 1e6]), np.repeat(np.median(held), 500), np.array([7.0])):
+        assert values.summary(extra) == summarize(np.concatenate([held, extra]))
