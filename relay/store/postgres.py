@@ -174,6 +174,12 @@ come back later instead."""
 IDLE_IN_TRANSACTION_MS = 3000
 """PostgreSQL ends a relay's session left idle inside a transaction this long (the relay froze
 mid-write): its row locks and advisory locks go with it."""
+GENERIC_PLANS = "force_generic_plan"
+"""A relay's writer plans a prepared statement once per session. Left to choose, PostgreSQL plans
+:data:`PUT_BATCHES` again at every execution (with its arrays' lengths known each custom plan looks
+cheaper than the generic one), and that planning costs the server ~0.3 ms a round, as much as
+the rows (BENCHMARKS.md, issue 50, third step). The writer's statements all find rows by key; the
+relay's readers (stored sessions, history) open connections of their own, planned as PostgreSQL chooses."""
 TCP_USER_TIMEOUT_MS = 3000
 """A relay's connection whose sent data goes unacknowledged this long is dead (a network cut)."""
 CONNECT_TIMEOUT_S = 3
@@ -221,7 +227,7 @@ WITH held AS (
 ), stored AS (
     INSERT INTO batches (run, seq, count, compressed, received_ns, data)
     SELECT r, s, c, z, %(now)s, d
-    FROM unnest(%(run)s::text[], %(seq)s::bigint[], %(count)s::int[], %(compressed)s::bool[], %(data)s::bytea[])
+    FROM unnest(%(run)s::text[], %(seq)s::bigint[], %(count)s::int[], %(compressed)s::bool[], %(data)b::bytea[])
         AS b(r, s, c, z, d)
     WHERE (SELECT count(*) FROM held) = %(held)s
         AND coalesce((SELECT g.last_seq FROM segments g WHERE g.run = b.r AND g.first_seq <= b.s
@@ -237,7 +243,8 @@ SELECT (SELECT array_agg(run) FROM held), array_agg(run), array_agg(seq) FROM st
 and checked (the fence), then its rows inserted, none if a lease is not held (an InitPlan, run
 before the insert), each once (a batch sent again conflicts and is left out, and so is one a segment
 holds: one index probe), then the events
-of those inserted added to their runs' counts."""
+of those inserted added to their runs' counts. The payloads go as a binary parameter (``%b``): psycopg
+sends a list in text by default, and a bytea[] in text is hex that the server parses back."""
 
 
 class PostgresDatabase(Database):
@@ -245,11 +252,12 @@ class PostgresDatabase(Database):
     shared = True
 
     def __init__(self, url: str, name: str = "", owner: str | None = None, lease_s: float = LEASE_S,
-                 timeout_s: float | None = None) -> None:
+                 timeout_s: float | None = None, generic_plans: bool = False) -> None:
         """``owner``: who holds the leases this connection takes (a relay process, the same across
         its reconnections; default: this connection alone); ``lease_s``: how long a lease it takes
         or renews holds; ``timeout_s``: a transaction not answered within it is cancelled
-        (:class:`StoreTimeout`; None: waited for as long as it takes)."""
+        (:class:`StoreTimeout`; None: waited for as long as it takes); ``generic_plans``: the
+        session plans each prepared statement once (:data:`GENERIC_PLANS`), as a relay's writer wants."""
         self.location = redact(url)
         self.lease_s = lease_s
         self.name = name
@@ -277,7 +285,8 @@ class PostgresDatabase(Database):
                                         application_name=f"{APPLICATION} {name}".strip()[:63],
                                         tcp_user_timeout=TCP_USER_TIMEOUT_MS, keepalives=1, keepalives_idle=2,
                                         keepalives_interval=1, keepalives_count=2,
-                                        options=f"-c idle_in_transaction_session_timeout={IDLE_IN_TRANSACTION_MS}")
+                                        options=f"-c idle_in_transaction_session_timeout={IDLE_IN_TRANSACTION_MS}"
+                                                + (f" -c plan_cache_mode={GENERIC_PLANS}" if generic_plans else ""))
         except psycopg.Error as exc:
             raise StoreUnavailable(f"{self.location}: cannot connect: {_first_line(exc)}") from exc
         except ValueError as exc:  # psycopg's word for a URL it cannot parse

@@ -120,7 +120,7 @@ class Storage:
         """Who holds this relay's leases on a shared store: the same across its reconnections."""
         self.timeout_s = timeout_s
         self.group_wait_s = group_wait_s
-        self._database: Database | None = open_database(db, name=name, owner=self.owner, timeout_s=timeout_s)
+        self._database: Database | None = open_database(db, name=name, owner=self.owner, timeout_s=timeout_s, writer=True)
         self.location = self._database.location
         self.shared = self._database.shared
         self._queue: queue.SimpleQueue = queue.SimpleQueue()
@@ -230,7 +230,7 @@ class Storage:
                 why = self._failure["error"] if self._failure is not None else "connection lost"
                 raise _Reconnecting(f"{self.location}: not connected, connecting again ({why})")
             self._tried_at = time.monotonic()
-            self._database = open_database(self.db, name=self.name, owner=self.owner, timeout_s=self.timeout_s)
+            self._database = open_database(self.db, name=self.name, owner=self.owner, timeout_s=self.timeout_s, writer=True)
             self.reconnects += 1
             log.info("%s: connected again", self.location)
         return self._database

@@ -445,3 +445,30 @@ def test_a_lease_not_renewed_is_lost_at_the_next_renewal(pg_url):
     finally:
         x.close()
         y.close()
+
+
+def test_a_writer_plans_its_group_statement_once_and_stores_what_it_is_given(pg_url):
+    """A relay's writer (``writer=True``) plans the statement that stores a group once per session:
+    PostgreSQL, left to choose, plans it again at every execution (counted in its own
+    pg_prepared_statements, as another connection shows). Its payloads, sent in binary, come back
+    byte for byte."""
+    events = synth_events(5, 1, 25.0, T0)
+    plans = {}
+    for writer in (True, False):
+        database = open_database(pg_url, name="w" if writer else "r", writer=writer)
+        run = uuid.uuid4().hex
+        try:
+            assert database.own_run(run)
+            database.register_run(run, "n", header_for("n", 1).to_dict(), None, None)
+            sent = {seq: payload(run, seq, events, seq % 2 == 0) for seq in range(12)}
+            for seq, data in sent.items():
+                assert database.put_batches([BatchRow(run, seq, len(events), seq % 2 == 0, data)], 1) == [True]
+            plans[writer] = database.conn.execute(
+                "SELECT generic_plans, custom_plans FROM pg_prepared_statements WHERE statement LIKE %s",
+                ("%INSERT INTO batches%",)).fetchone()
+            stored = dict(database.conn.execute("SELECT seq, data FROM batches WHERE run = %s", (run,)).fetchall())
+            assert {seq: bytes(data) for seq, data in stored.items()} == sent
+        finally:
+            database.close()
+    assert plans[True][1] == 0 and plans[True][0] >= 1, plans
+    assert plans[False][1] > 1, plans
