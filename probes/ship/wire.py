@@ -166,7 +166,7 @@ def decode_batch(data: object, n_stages: int, max_events: int = MAX_BATCH_EVENTS
         raise ProtocolError(f"batch holds {len(raw)} bytes of events, {count} events need {size}")
     events = np.frombuffer(raw, dtype=EVENT_DTYPE)
     (check or check_events)(events, n_stages)
-    return Batch(uuid.UUID(bytes=run).hex, int(seq), events, payload, bool(flags & FLAG_ZLIB))
+    return Batch(run.hex(), int(seq), events, payload, bool(flags & FLAG_ZLIB))  # the run id as uuid.UUID(bytes=run).hex writes it
 
 
 def declared_bytes(data: bytes) -> int:

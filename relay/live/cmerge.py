@@ -30,7 +30,7 @@ HERE = Path(__file__).resolve().parent
 C_DIR = HERE / "c"
 BUILD_DIR = HERE / "_build"
 LIBRARY = BUILD_DIR / cbuild.MERGE.name
-ABI = 2
+ABI = 3
 
 log = logging.getLogger(__name__)
 _lock = threading.Lock()
@@ -59,10 +59,13 @@ class CompiledMerge:
         dll.dcu_merge.argtypes = [p, i64, ctypes.c_int32, p, p, i64, p, p, p, p, p, i64, i64, p, p, i64, p, p]
         dll.dcu_check.restype = i64
         dll.dcu_check.argtypes = [p, i64, ctypes.c_int32, p, i64, i64]
+        dll.dcu_unknown_source.restype = i64
+        dll.dcu_unknown_source.argtypes = [p, i64, i64, p, i64]
         self.rehash = dll.dcu_merge_rehash
         self.locate = dll.dcu_merge_locate
         self.merge = dll.dcu_merge
         self._check = dll.dcu_check
+        self._unknown = dll.dcu_unknown_source
         self._codes = np.ascontiguousarray(CODE_TABLE, np.uint8)
         self._codes_at = self._codes.ctypes.data
 
@@ -70,6 +73,11 @@ class CompiledMerge:
         """The index of the first event of ``events`` (EVENT_DTYPE, contiguous) that
         :func:`dcuscope.probes.ship.wire.check_events` refuses, or -1."""
         return self._check(events.ctypes.data, len(events), n_stages, self._codes_at, SOURCE_LIMIT, FRAME_LIMIT)
+
+    def first_unknown(self, sources: np.ndarray, ids: np.ndarray) -> int:
+        """The index of the first of ``sources`` (int32, one dimension, any stride: e.g. a batch's
+        ``events["source"]``) not among ``ids`` (int64, sorted, contiguous), or -1."""
+        return self._unknown(sources.ctypes.data, len(sources), sources.strides[0], ids.ctypes.data, len(ids))
 
 
 def build(force: bool = False) -> Path:

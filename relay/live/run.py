@@ -204,7 +204,8 @@ class LiveRun:
         self.config = config
         s = len(self.stages)
         self._s = s
-        self._open = OpenTable(s, cmerge.load() if compiled else None)
+        self._compiled = cmerge.load() if compiled else None
+        self._open = OpenTable(s, self._compiled)
         self._has_exit = np.zeros(s, bool)
         self._judged_exits: np.ndarray | None = None
         """``_has_exit`` when the shown frames were judged: should it change, they are judged again."""
@@ -455,8 +456,12 @@ class LiveRun:
         self._raise_watermark(source, frame)
 
     def _new_sources(self, sources: np.ndarray) -> np.ndarray:
-        """The distinct ids of ``sources`` not seen before, sorted (none, the common case, found without a sort)."""
+        """The distinct ids of ``sources`` not seen before, sorted (none, the common case, found without a sort:
+        in one compiled pass where it loads)."""
         ids = self._src_ids
+        if len(ids) and self._compiled is not None and sources.dtype == np.int32 and sources.ndim == 1:
+            if self._compiled.first_unknown(sources, ids) < 0:
+                return ids[:0]
         if len(ids):
             known = ids[np.minimum(np.searchsorted(ids, sources), len(ids) - 1)] == sources
             if known.all():

@@ -89,3 +89,37 @@ def test_the_relay_refuses_a_bad_batch_in_numpys_words(compiled):
     assert str(by_compiled.value) == str(by_numpy.value) and str(by_numpy.value).startswith("event 4 invalid")
     events["stage"][4] = 0
     assert len(decode_batch(encode_batch("ab" * 16, 0, events), STAGES, check=check).events) == len(events)
+
+
+def test_a_batch_of_known_sources_is_told_from_one_naming_a_new_source_where_it_first_does(compiled):
+    """The compiled lookup of a batch's sources among a run's (sorted) ids finds the first unknown
+    one where numpy finds it, reading the source field of the records in place (and a plain array),
+    for runs of one id, of many, and ids that only differ past the first."""
+    rng = np.random.default_rng(9)
+    for _ in range(300):
+        ids = np.unique(rng.integers(0, 40, int(rng.integers(1, 12)))).astype(np.int64)
+        events = np.zeros(int(rng.integers(0, 200)), EVENT_DTYPE)
+        events["source"] = rng.choice(ids, len(events))
+        if len(events) and rng.random() < 0.5:
+            events["source"][int(rng.integers(0, len(events)))] = int(rng.integers(0, 45))
+        unknown = np.flatnonzero(~np.isin(events["source"], ids))
+        expected = int(unknown[0]) if len(unknown) else -1
+        assert compiled.first_unknown(events["source"], ids) == expected
+        assert compiled.first_unknown(np.ascontiguousarray(events["source"]), ids) == expected
+
+
+def test_a_live_run_notes_a_new_source_among_known_ones(compiled):
+    """A batch whose sources are all known notes nothing; one naming a new id among them notes it,
+    with its own watermark, whether its events came first or last."""
+    from dcuscope.probes.ship.simnode import header_for
+    from dcuscope.relay.live.run import LiveRun
+
+    run = LiveRun(header_for("n", 2, T0))
+    events = synth_events(20, 2, 25.0, T0)
+    assert run.admit_sources(events["source"], 8) == 2 and run.admit_sources(events["source"], 8) == 2
+    for where in (0, -1):
+        batch = events.copy()
+        batch["source"][where] = 5 if where == 0 else 7
+        before = len(run._src_ids)
+        assert run.admit_sources(batch["source"], 8) == before + 1
+    assert run._src_ids.tolist() == [0, 1, 5, 7] and run._watermark.tolist() == [-1] * 4

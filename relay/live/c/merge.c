@@ -10,7 +10,7 @@
 #include <stdint.h>
 #include <string.h>
 
-#define MERGE_ABI 2
+#define MERGE_ABI 3
 #define MISSING (-1)
 #define CELLS 6
 #define EXIT 2
@@ -37,6 +37,25 @@ int64_t dcu_check(const event_t *ev, int64_t n, int32_t n_stages, const uint8_t 
         if (!codes[(uint8_t)e->point * 256 + (uint8_t)e->code] || e->stage < 0 || e->stage >= n_stages
             || e->source < 0 || e->source >= source_limit || e->frame < 0 || e->frame >= frame_limit || e->ts <= 0)
             return i;
+    }
+    return -1;
+}
+
+/* The first of n source ids (int32, stride bytes apart: a field of a batch's records) that is not
+ * among the n_src ids of src_ids (sorted), or -1: relay.live.run.LiveRun's check, at every batch,
+ * that its sources are known. A run of equal ids is looked up once. */
+int64_t dcu_unknown_source(const char *sources, int64_t n, int64_t stride, const int64_t *src_ids, int64_t n_src) {
+    int64_t known = -1;
+    for (int64_t i = 0; i < n; i++) {
+        int64_t s = *(const int32_t *)(sources + i * stride);
+        if (known >= 0 && s == known) continue;
+        int64_t lo = 0, hi = n_src;
+        while (lo < hi) {
+            int64_t mid = lo + (hi - lo) / 2;
+            if (src_ids[mid] < s) lo = mid + 1; else hi = mid;
+        }
+        if (lo == n_src || src_ids[lo] != s) return i;
+        known = s;
     }
     return -1;
 }
