@@ -459,10 +459,10 @@ class LiveRun:
         """The distinct ids of ``sources`` not seen before, sorted (none, the common case, found without a sort:
         in one compiled pass where it loads)."""
         ids = self._src_ids
-        if len(ids) and self._compiled is not None and sources.dtype == np.int32 and sources.ndim == 1:
-            if self._compiled.first_unknown(sources, ids) < 0:
-                return ids[:0]
         if len(ids):
+            compiled = self._compiled is not None and sources.dtype == np.int32 and sources.ndim == 1
+            if compiled and self._compiled.first_unknown(sources, ids) < 0:
+                return ids[:0]
             known = ids[np.minimum(np.searchsorted(ids, sources), len(ids) - 1)] == sources
             if known.all():
                 return ids[:0]

@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 
 from dcuscope.probes.ship.errors import ProtocolError
-from dcuscope.probes.ship.simnode import synth_events
+from dcuscope.probes.ship.simnode import header_for, synth_events
 from dcuscope.probes.ship.wire import FRAME_LIMIT, SOURCE_LIMIT, check_events, decode_batch, encode_batch
 from dcuscope.probes.trace.events import EVENT_DTYPE, READY
 from dcuscope.relay.ingest.endpoint import _check_compiled
 from dcuscope.relay.live import cmerge
+from dcuscope.relay.live.run import LiveRun
 
 T0 = 1_700_000_000_000_000_000
 STAGES = 3
@@ -111,9 +112,6 @@ def test_a_batch_of_known_sources_is_told_from_one_naming_a_new_source_where_it_
 def test_a_live_run_notes_a_new_source_among_known_ones(compiled):
     """A batch whose sources are all known notes nothing; one naming a new id among them notes it,
     with its own watermark, whether its events came first or last."""
-    from dcuscope.probes.ship.simnode import header_for
-    from dcuscope.relay.live.run import LiveRun
-
     run = LiveRun(header_for("n", 2, T0))
     events = synth_events(20, 2, 25.0, T0)
     assert run.admit_sources(events["source"], 8) == 2 and run.admit_sources(events["source"], 8) == 2
