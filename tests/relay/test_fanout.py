@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import time
 
+import numpy as np
 import pytest
 import redis
 import socketio
@@ -17,7 +18,13 @@ from tests.redisserver import RedisSentinel, RedisServer
 from tests.relay.helpers import RelayProcess, finish_node, get_json, load_node, start_node, stored_equals_sent, wait_for
 
 pytestmark = pytest.mark.xdist_group("fanout")
-FRAMES = 400
+FRAMES = 800
+"""Frames a source at most: 20 s at 40 fps."""
+
+
+def has_figures(row: dict) -> bool:
+    """Whether an overview row carries its run's window figures: fps, frame delay p99, bottleneck."""
+    return bool(row["fps"] and row["p99_ms"] is not None and row["bottleneck"])
 
 
 def held_by(relay: RelayProcess) -> dict[str, str]:
@@ -49,6 +56,10 @@ class Browser:
     def frames(self, node: str, after: float = 0.0) -> list[dict]:
         return [f for t, e, d in self.got if e == "frames" and t >= after for f in d["nodes"].get(node, {}).get("frames", [])]
 
+    def rows_of(self, node: str) -> list[dict]:
+        """Every overview row of ``node`` it got, in order."""
+        return [r for _, e, d in self.got if e == "overview" for r in d["rows"] if r["node"] == node]
+
     def rows(self, after: float = 0.0) -> dict[str, dict]:
         return {r["node"]: r for t, e, d in self.got if e == "overview" and t >= after for r in d["rows"]}
 
@@ -58,9 +69,10 @@ def test_a_browser_on_one_relay_gets_every_relays_dcus_and_only_those_it_shows(t
     a = RelayProcess(pg_url, log=tmp_path / "a.log", args=[*args, "--name", "relay-a"])
     b = RelayProcess(pg_url, log=tmp_path / "b.log", args=[*args, "--name", "relay-b"])
     try:
-        # 10 s of frames each: the watch below starts once both relays list both (a loaded machine is slower).
-        on_a = start_node(a.url, "DCU-A", tmp_path / "a.npz", frames=FRAMES, sources=2, fps=40, paced=True, linger=True)
-        on_b = start_node(b.url, "DCU-B", tmp_path / "b.npz", frames=FRAMES, sources=2, fps=40, paced=True, linger=True)
+        # Frames flow until the watch below is over (at most FRAMES a source, 20 s): on a loaded machine
+        # the watch starts late, and a run whose frames were over would read fps 0 and no bottleneck.
+        on_a = start_node(a.url, "DCU-A", tmp_path / "a.npz", frames=FRAMES, sources=2, fps=40, paced=True, until_stdin=True)
+        on_b = start_node(b.url, "DCU-B", tmp_path / "b.npz", frames=FRAMES, sources=2, fps=40, paced=True, until_stdin=True)
         both = {"DCU-A": "relay-a", "DCU-B": "relay-b"}
         wait_for(lambda: held_by(a) == both and held_by(b) == both, 30, what="each relay lists both DCUs")
 
@@ -68,9 +80,10 @@ def test_a_browser_on_one_relay_gets_every_relays_dcus_and_only_those_it_shows(t
             shows_a, shows_b = Browser(), Browser()
             await shows_a.open(b.url, ["DCU-A"])  # a DCU of the other relay
             await shows_b.open(b.url, ["DCU-B"])
-            # Until each got frames of its DCU (at most 20 s), and 1 s more for any it should not get.
+            # Until each got frames of its DCU and a row with A's figures (at most 20 s), and 1 s more
+            # for any it should not get.
             for _ in range(200):
-                if shows_a.frames("DCU-A") and shows_b.frames("DCU-B"):
+                if all(b.frames(n) and any(map(has_figures, b.rows_of("DCU-A"))) for b, n in ((shows_a, "DCU-A"), (shows_b, "DCU-B"))):
                     break
                 await asyncio.sleep(0.1)
             await asyncio.sleep(1.0)
@@ -90,20 +103,21 @@ def test_a_browser_on_one_relay_gets_every_relays_dcus_and_only_those_it_shows(t
             rows = browser.rows()
             assert rows.keys() == {"DCU-A", "DCU-B"}
             assert rows["DCU-A"]["relay"] == "relay-a" and rows["DCU-B"]["relay"] == "relay-b"
-            # Some row carried A's figures (the last may not: a loaded machine starts the watch late,
-            # when A's 200 frames are over and its window's fps reads 0).
-            figures = [r for _, e, d in browser.got if e == "overview" for r in d["rows"] if r["node"] == "DCU-A"]
-            assert any(r["fps"] and r["p99_ms"] is not None and r["bottleneck"] for r in figures), figures[-3:]
+            # Some row carried A's figures (not every one: the first come before A's window has any).
+            figures = browser.rows_of("DCU-A")
+            assert any(map(has_figures, figures)), figures[-3:]
             stats = [d for _, e, d in browser.got if e == "stats"]
             assert stats and all(len(d["nodes"]) == 1 for d in stats)
 
-        # B answers for A's DCU from the store: the same frames as A's own live state.
+        # B answers for A's DCU from the store: the same frames as A's own live state, every one A sent whole.
         finish_node(on_a, 60)
         finish_node(on_b, 60)
         mirrored = get_json(f"{b.url}/api/frames?node=DCU-A&limit=2000")
         own = get_json(f"{a.url}/api/frames?node=DCU-A&limit=2000")
         key = lambda f: (f["source"], f["frame"], f["delay_ms"])  # noqa: E731
-        assert len(own["frames"]) == 2 * FRAMES and sorted(map(key, mirrored["frames"])) == sorted(map(key, own["frames"]))
+        events = load_node(tmp_path / "a.npz")[1]
+        sent = np.unique(events[events["stage"] == events["stage"].max()][["source", "frame"]])  # reached the sink
+        assert len(own["frames"]) == len(sent) and sorted(map(key, mirrored["frames"])) == sorted(map(key, own["frames"]))
         stats_b, stats_a = get_json(f"{b.url}/api/stats?node=DCU-A"), get_json(f"{a.url}/api/stats?node=DCU-A")
         assert stats_b["frames"] == stats_a["frames"] and stats_b["frame"]["p99_ms"] == stats_a["frame"]["p99_ms"]
         overview = get_json(f"{b.url}/api/overview")
@@ -199,7 +213,7 @@ def test_a_redis_master_replaced_by_its_replica_is_followed_through_sentinel(tmp
     args = ["--redis", sentinel.url]
     a = RelayProcess(pg_url, log=tmp_path / "a.log", args=[*args, "--name", "relay-a"])
     b = RelayProcess(pg_url, log=tmp_path / "b.log", args=[*args, "--name", "relay-b"])
-    node = start_node(a.url, "DCU-A", tmp_path / "a.npz", frames=FRAMES, sources=2, fps=40, paced=True)
+    node = start_node(a.url, "DCU-A", tmp_path / "a.npz", frames=400, sources=2, fps=40, paced=True)  # 10 s
     try:
         wait_for(lambda: "DCU-A" in held_by(b), 30, what="B lists A's DCU")
 
