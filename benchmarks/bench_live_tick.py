@@ -3,7 +3,8 @@ in batches of ~180 events), a tick every 1/HZ s of node time that merges each ru
 its complete frames and builds their pushed columns (clock-corrected), as the relay's pusher does
 for a page showing every DCU (all runs' frames judged together where the checkout's pusher does so,
 ``relay.live.run.maintain_all``). No network, no store: the part of a relay's CPU that grows with
-pushes, measured by process CPU time.
+pushes, measured by process CPU time. Then what the statistics a stats push asks for cost a run
+(``window_stats``, ``run_stats``) at the end, and the bytes the engine holds a run.
 
 Side by side with other checkouts (``--checkout DIR``: this script run there, alternating
 ``--rounds`` times), since these machines are shared and noisy.
@@ -79,7 +80,18 @@ def measure(runs: int, seconds: float, hz: float) -> dict:
             if run.visible > pushed[k]:
                 push(k, run)
     cpu = time.process_time() - cpu
-    return {"events": total, "cpu_s": cpu, "run_ticks": runs * ticks, "frames": sum(run.visible for run in live)}
+    # What a stats push costs a run at the end (the window full once --seconds is past its 10 s), and what it holds.
+    stats_ms = {}
+    for name in ("window_stats", "run_stats"):
+        took = []
+        for run in live:
+            for _ in range(3):
+                began = time.process_time()
+                getattr(run, name)()
+                took.append(time.process_time() - began)
+        stats_ms[name] = 1e3 * float(np.median(took))
+    return {"events": total, "cpu_s": cpu, "run_ticks": runs * ticks, "frames": sum(run.visible for run in live),
+            "stats_ms": stats_ms, "run_mb": sum(run.nbytes for run in live) / runs / 2**20}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -117,6 +129,9 @@ def main(argv: list[str] | None = None) -> int:
         base = base or per_event
         print(f"{'this checkout' if k == 0 else str(c)}: {per_event:.2f} µs per event, {1e6 * cpu / ticks:.0f} µs per run "
               f"and tick, {r[-1]['frames']:,} frames shown ({per_event / base:.2f}× this checkout)")
+        window, whole = (sorted(x["stats_ms"][name] for x in r) for name in ("window_stats", "run_stats"))
+        print(f"  statistics of a run at the end, ms (each round's median): window {', '.join(f'{v:.2f}' for v in window)}; "
+              f"whole run {', '.join(f'{v:.2f}' for v in whole)}; the engine holds {r[-1]['run_mb']:.1f} MB a run")
     return 0
 
 

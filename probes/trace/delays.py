@@ -32,7 +32,8 @@ turned into zero or partial delays. Loops run over stages and sources, never ove
 
 Three steps, each one function: :func:`frame_delays` (per frame: its chain, its per-stage
 columns, its end-to-end delay), :func:`series` (the values the statistics take, of complete
-frames) and :func:`delay_summary` (count, mean, percentiles, share, bottleneck). A new
+frames: :func:`frame_values` picks them per frame, :func:`series_of` gathers them per stage) and
+:func:`delay_summary` (count, mean, percentiles, share, bottleneck). A new
 per-stage figure is one more entry of ``FrameDelays.per_stage`` (:data:`STAGE_COLUMNS`): the
 CSV, the per-frame JSON and the summaries list it from there.
 """
@@ -209,26 +210,82 @@ class Series:
     """Stage -> number of the streaming thread that pushes its output (probes.trace.events facts)."""
 
 
+@dataclass
+class FrameValues:
+    """What :func:`series` takes of each complete frame, and nothing else (rows in table order):
+    a set of frames summarised again later (the relay's rolling window, whose frames were judged
+    when they were finalised) needs neither their events nor the delay model's pass over them."""
+
+    per_stage: dict[str, np.ndarray]
+    """:data:`STAGE_COLUMNS` -> (n, n_stages) float64 ns, NaN where undefined (as :class:`FrameDelays`)."""
+    prev: np.ndarray
+    """(n, n_stages) the previous stage each frame passed (-1 for none): whose gap it is."""
+    first: np.ndarray
+    """(n, n_stages) bool: the frame is the first of its output buffer there (its service is busy time)."""
+    frame: np.ndarray
+    """(n,) float64 ns end-to-end delays."""
+    glass: np.ndarray
+    """(n,) float64 ns glass-to-glass delays, NaN without a capture time."""
+    origin: np.ndarray
+    """(n,) int64 origin timestamps."""
+    end: np.ndarray
+    """(n,) int64 chain ends."""
+
+    FIELDS = ("prev", "first", "frame", "glass", "origin", "end")
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    def take(self, rows: np.ndarray) -> FrameValues:
+        return FrameValues({k: v[rows] for k, v in self.per_stage.items()},
+                           **{k: getattr(self, k)[rows] for k in self.FIELDS})
+
+    @staticmethod
+    def concat(parts: list[FrameValues]) -> FrameValues:
+        return FrameValues({k: np.concatenate([p.per_stage[k] for p in parts]) for k in STAGE_COLUMNS},
+                           **{k: np.concatenate([getattr(p, k) for p in parts]) for k in FrameValues.FIELDS})
+
+
+def frame_values(fd: FrameDelays) -> FrameValues:
+    """The :class:`FrameValues` of the complete frames of ``fd`` (views when all are complete)."""
+    c = fd.chains.complete
+    rows = slice(None) if c.all() else c
+    return FrameValues({k: fd.per_stage[k][rows] for k in STAGE_COLUMNS}, prev=fd.chains.prev[rows],
+                       first=fd.table.group[rows] > 0, frame=fd.delay[rows], glass=fd.glass[rows],
+                       origin=fd.table.origin[rows], end=fd.chains.end[rows])
+
+
 def series(fd: FrameDelays, threads: dict[str, int] | None = None) -> Series:
     """The stage delays, gaps, service and wait times, frame delays and busy times of the
     complete frames of ``fd``; ``threads`` as :attr:`Series.threads`."""
-    ch, stages = fd.chains, fd.table.stages
-    delay, gap = fd.per_stage["delay"], fd.per_stage["gap"]
-    out = Series(stages={}, gaps={}, frame=fd.delay[ch.complete], glass=fd.glass[~np.isnan(fd.glass)],
-                 span_ns=_span_ns(fd), threads=dict(threads or {}))
-    service, wait = fd.per_stage["service"], fd.per_stage["wait"]
+    return series_of(frame_values(fd), fd.table.stages, fd.chains.has_exit, threads)
+
+
+def series_of(values: FrameValues, stages: list[str], has_exit: np.ndarray,
+              threads: dict[str, int] | None = None) -> Series:
+    """:func:`series` of frames given by their :class:`FrameValues`, judged by ``has_exit`` (the
+    exit points the frames were judged by: which stages have delays)."""
+    v = values
+    delay, gap, service, wait = (v.per_stage[k] for k in STAGE_COLUMNS)
+    span_ns = int(v.end.max() - v.origin.min()) if len(v) else 0
+    out = Series(stages={}, gaps={}, frame=v.frame, glass=v.glass[~np.isnan(v.glass)], span_ns=span_ns,
+                 threads=dict(threads or {}))
     for s, name in enumerate(stages):
-        if ch.has_exit[s]:
-            out.stages[name] = delay[ch.complete & ~np.isnan(delay[:, s]), s]
-            timed = ch.complete & ~np.isnan(service[:, s])
+        if has_exit[s]:
+            out.stages[name] = delay[~np.isnan(delay[:, s]), s]
+            timed = ~np.isnan(service[:, s])
             if timed.any():
                 out.service[name], out.wait[name] = service[timed, s], wait[timed, s]
-                out.busy[name] = int(service[timed & (fd.table.group[:, s] > 0), s].sum())
+                out.busy[name] = int(service[timed & v.first[:, s], s].sum())
     for b, name_b in enumerate(stages):
-        ok = ch.complete & ~np.isnan(gap[:, b])
-        prev_b = ch.prev[ok, b]
-        for a in np.unique(prev_b):
-            out.gaps[f"{stages[a]}->{name_b}"] = gap[ok, b][prev_b == a]
+        ok = ~np.isnan(gap[:, b])
+        if not ok.any():
+            continue
+        prev_b, gap_b = v.prev[ok, b], gap[ok, b]
+        # The previous stages, in order: counted (a gap's previous stage is a stage, never -1).
+        for a in np.flatnonzero(np.bincount(prev_b, minlength=len(stages))):
+            same = prev_b == a
+            out.gaps[f"{stages[a]}->{name_b}"] = gap_b if same.all() else gap_b[same]
     return out
 
 
@@ -301,11 +358,6 @@ def fill_levels(fd: FrameDelays, stage: int) -> tuple[np.ndarray, np.ndarray]:
     times, levels = times[order], np.cumsum(steps[order])
     last_of_time = np.append(times[1:] != times[:-1], True)[:len(times)]
     return times[last_of_time], levels[last_of_time]
-
-
-def _span_ns(fd: FrameDelays) -> int:
-    c = fd.chains.complete
-    return int(fd.chains.end[c].max() - fd.table.origin[c].min()) if c.any() else 0
 
 
 def summarize(values_ms: np.ndarray | Iterable[float]) -> dict:

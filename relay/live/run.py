@@ -40,7 +40,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dcuscope.probes.trace.delays import NS_PER_MS, Chains, FrameDelays, Series, chains, delay_summary, frame_delays, series
+from dcuscope.probes.trace.delays import (NS_PER_MS, STAGE_COLUMNS, FrameDelays, FrameValues, Series, delay_summary,
+                                          frame_delays, frame_values, series, series_of)
 from dcuscope.probes.trace.events import EXIT, FRAME_CELLS, GROUP, READY, TraceHeader
 from dcuscope.probes.trace.facts import Accounting
 from dcuscope.probes.trace.frametable import MISSING, FrameTable, frame_events, frame_table_from_cells
@@ -56,8 +57,8 @@ MERGE_EVENTS = 65536
 """Queued events merged at once at most (one batch's worth), so a merge's transient arrays stay small."""
 FRAME_OVERHEAD = 32
 """Bytes an open frame holds besides its cells (key, last timestamp, shown flag, merge copies)."""
-RING_OVERHEAD = 20
-"""Bytes a kept frame holds besides its cells (source, frame, end)."""
+RECENT_OVERHEAD = 20
+"""Bytes a recent frame holds besides its cells and pushed columns (cursor, source, frame)."""
 SHARES = {"open": 0.25, "ring": 0.2, "recent": 0.05, "exact": 0.45, "evicted": 0.05}
 """How a run's byte budget is split between its parts."""
 PUSHED_FRAMES = 512
@@ -67,13 +68,20 @@ MIN_FRAMES = 16
 """Frames every part may hold whatever the budget."""
 
 
+def kept_frame_bytes(stages: int) -> int:
+    """Bytes a frame kept for the rolling window holds with ``stages`` stages: its
+    :class:`~dcuscope.probes.trace.delays.FrameValues` (four per-stage float64 columns, ``prev`` (int16)
+    and ``first`` per stage, three of 8 bytes), ``lacks_exit`` per stage, its source (4) and end (8)."""
+    return stages * (len(STAGE_COLUMNS) * 8 + 2 + 1 + 1) + 3 * 8 + 4 + 8
+
+
 @dataclass(frozen=True)
 class LiveConfig:
     window_s: float = 10.0
     settle_s: float = 2.0
     evict_s: float = 10.0
     ring_frames: int = 65536
-    """Finalised frames kept whole for the rolling window."""
+    """Finalised frames kept for the rolling window (their values, :attr:`LiveRun._ring`)."""
     recent_frames: int = 4096
     """Complete frames kept for the UI and /api/frames."""
     max_open_frames: int = 200_000
@@ -229,8 +237,16 @@ class LiveRun:
         self.accounting = Accounting(self.stages)
         self._origins = OriginSpans()
         ring, recent = config.ring_frames, config.recent_frames
-        self._ring = {"source": Grow(np.int32, cap=ring), "frame": Grow(np.int64, cap=ring),
-                      "cells": Grow(np.int64, (s, FRAME_CELLS), ring), "end": Grow(np.int64, cap=ring)}
+        self._ring = {"source": Grow(np.int32, cap=ring), "end": Grow(np.int64, cap=ring),
+                      **{f"stage_{k}": Grow(np.float64, (s,), ring) for k in STAGE_COLUMNS}, "prev": Grow(np.int16, (s,), ring),
+                      "first": Grow(bool, (s,), ring), "frame_delay": Grow(np.float64, cap=ring),
+                      "glass": Grow(np.float64, cap=ring), "origin": Grow(np.int64, cap=ring),
+                      "lacks_exit": Grow(bool, (s,), ring)}
+        """The complete frames finalised, kept for the rolling window: the values its statistics take
+        of them (:class:`~dcuscope.probes.trace.delays.FrameValues`), so that they are not judged again,
+        and the stages each passed with no exit there. None of the values depends on the run's exit
+        points; completeness does, and only through those stages: a kept frame that passed a stage
+        without an exit there is incomplete once the run has seen an exit at that stage."""
         self._evicted_last = Grow(np.int64, cap=config.evicted_kept)
         self._recent = {"n": Grow(np.int64, cap=recent), "source": Grow(np.int32, cap=recent),
                         "frame": Grow(np.int64, cap=recent), "cells": Grow(np.int64, (s, FRAME_CELLS), recent)}
@@ -266,9 +282,9 @@ class LiveRun:
         c, row = self.config, self._s * FRAME_CELLS * 8
         share = {part: int(budget * f) for part, f in SHARES.items()}
         self._open_cap = min(c.max_open_frames, max(MIN_FRAMES, share["open"] // (row + FRAME_OVERHEAD)))
-        ring = min(c.ring_frames, max(MIN_FRAMES, share["ring"] // (2 * (row + RING_OVERHEAD))))
+        ring = min(c.ring_frames, max(MIN_FRAMES, share["ring"] // (2 * kept_frame_bytes(self._s))))
         pushed = (framepack.int_rows(self._s) + framepack.float_rows(self._s)) * 8
-        recent = min(c.recent_frames, max(MIN_FRAMES, share["recent"] // (2 * (row + pushed + RING_OVERHEAD))))
+        recent = min(c.recent_frames, max(MIN_FRAMES, share["recent"] // (2 * (row + pushed + RECENT_OVERHEAD))))
         for g in self._ring.values():
             g.set_cap(ring)
         for g in self._recent.values():
@@ -577,17 +593,14 @@ class LiveRun:
         table.links = self.header.links
         return table
 
-    def _chains(self, frames: _Frames) -> Chains:
-        """Completeness and ends of ``frames``, judged by the exit points of the whole run."""
-        return chains(self._table(frames), self._has_exit)
-
     def _delays(self, frames: _Frames) -> FrameDelays:
         """The delay model's figures of ``frames``, judged by the exit points of the whole run."""
         return frame_delays(self._table(frames), self._has_exit)
 
     def _finalise(self, frames: _Frames) -> None:
         fd = self._delays(frames)
-        values = series(fd)
+        kept = frame_values(fd)
+        values = series_of(kept, self.stages, self._has_exit)
         for kind in self._values:
             for name, v in getattr(values, kind).items():
                 self._series(kind, name).extend(v / NS_PER_MS)
@@ -602,12 +615,24 @@ class LiveRun:
         self.finalised += int(c.sum())
         if self.on_finalise is not None:
             self.on_finalise(fd, values)
+        # The window keeps the complete ones (a frame shown, then judged incomplete when the run's
+        # exit points changed, is finalised all the same, and counted nowhere).
         ring = self._ring
-        ring["source"].extend(frames.source)
-        ring["frame"].extend(frames.frame)
-        ring["cells"].extend(frames.cells)
-        ring["end"].extend(fd.chains.end)
+        ring["source"].extend(frames.source[c])
+        ring["end"].extend(kept.end)
+        for k in STAGE_COLUMNS:
+            ring[f"stage_{k}"].extend(kept.per_stage[k])
+        for k, v in (("prev", kept.prev), ("first", kept.first), ("frame_delay", kept.frame), ("glass", kept.glass),
+                     ("origin", kept.origin)):
+            ring[k].extend(v)
+        ring["lacks_exit"].extend((fd.chains.passed & (fd.chains.t_out == MISSING))[c])
         self._raise_watermark(frames.source, frames.frame)
+
+    def _kept_values(self, rows: np.ndarray) -> FrameValues:
+        ring = self._ring
+        return FrameValues({k: ring[f"stage_{k}"].view[rows] for k in STAGE_COLUMNS}, prev=ring["prev"].view[rows],
+                           first=ring["first"].view[rows], frame=ring["frame_delay"].view[rows],
+                           glass=ring["glass"].view[rows], origin=ring["origin"].view[rows], end=ring["end"].view[rows])
 
     def _note_span(self, first_origin: int, last_end: int) -> None:
         self._first_origin = first_origin if self._first_origin is None else min(self._first_origin, first_origin)
@@ -674,23 +699,24 @@ class LiveRun:
         end = self.present_ns() if end_ns is None else end_ns
         cutoff = end - int(self.config.window_s * 1e9)
         ring = self._ring
-        sel = ring["end"].view >= cutoff
+        sel = np.flatnonzero(ring["end"].view >= cutoff)
+        # Kept frames are judged by the run's exit points as they are now, as the open ones are.
+        sel = sel[~(ring["lacks_exit"].view[sel] & self._has_exit).any(axis=1)]
         open_ = self._open_frames()
-        och = self._chains(open_)
+        ofd = self._delays(open_)
+        och = ofd.chains
         osel = och.complete & (och.end >= cutoff)
-        fd = self._delays(_Frames(np.concatenate([ring["source"].view[sel], open_.source[osel]]),
-                                  np.concatenate([ring["frame"].view[sel], open_.frame[osel]]),
-                                  np.concatenate([ring["cells"].view[sel], open_.cells[osel]])))
-        c = fd.chains.complete
+        values = FrameValues.concat([self._kept_values(sel), frame_values(ofd).take(osel[och.complete])])
+        source = np.concatenate([ring["source"].view[sel], open_.source[osel]])
         incomplete = int((self._evicted_last.view >= cutoff).sum()) + int((~och.complete & (self._open.last >= cutoff)).sum())
-        fps = OriginSpans().fps(self._all_sources(), fd.table.origin[c], fd.table.source[c])
+        fps = OriginSpans().fps(self._all_sources(), values.origin, source)
         return {
             "window_s": self.config.window_s,
             "end_ns": end,
-            **delay_summary(series(fd, self.accounting.threads())),
+            **delay_summary(series_of(values, self.stages, self._has_exit, self.accounting.threads())),
             "fps": fps,
             "sources": self.accounting.sources(fps),
-            "frames": {"complete": int(c.sum()), "incomplete": incomplete},
+            "frames": {"complete": len(values), "incomplete": incomplete},
         }
 
     def _all_sources(self) -> list[int]:

@@ -9,8 +9,9 @@ import pytest
 
 from dcuscope.probes.ship.simnode import header_for, synth_events
 from dcuscope.probes.ship.wire import SOURCE_LIMIT
-from dcuscope.probes.trace.delays import node_stats
+from dcuscope.probes.trace.delays import frame_delays, node_stats
 from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT, TraceHeader
+from dcuscope.probes.trace.frametable import frame_table
 from dcuscope.relay.live.run import LiveConfig, LiveRun
 from tests.probes.synth import pipeline_run
 from tests.relay.helpers import assert_stats_equal
@@ -103,6 +104,40 @@ def test_window_covers_recent_frames_only():
     # A run silent for longer than the window has nothing in it.
     gone = run.window_stats(run.newest + 10_500_000_000)
     assert gone["frames"] == {"complete": 0, "incomplete": 0} and gone["fps"] == {"0": 0.0}
+
+
+def _window_by_the_model(header, events, end_ns: int, window_s: float) -> dict:
+    """node_stats over the frames whose chain (judged over every event) ended in the window."""
+    fd = frame_delays(frame_table(header, events))
+    inside = fd.chains.complete & (fd.chains.end >= end_ns - int(window_s * 1e9))
+    ids = set(zip(fd.table.source[inside].tolist(), fd.table.frame[inside].tolist()))
+    return node_stats(header, events[[(s, f) in ids for s, f in zip(events["source"].tolist(), events["frame"].tolist())]])
+
+
+@pytest.mark.parametrize("exits_from", [None, 240])
+def test_the_window_summarises_kept_frames_from_their_values_by_the_exit_points_seen_since(exits_from):
+    """The window's frames finalised earlier are summarised from the values kept when they were
+    finalised, not judged again from their events; yet by the exit points the run has seen since:
+    the sink's exit, first seen at frame ``exits_from``, makes every frame without one incomplete,
+    kept ones too, as the model judges them over every event."""
+    header = header_for("n", 1)
+    events = synth_events(300, 1, 10.0, T0, seed=9)  # 30 s at 10 fps
+    sink = len(header.stages) - 1
+    if exits_from is not None:
+        late = events[(events["stage"] == sink) & (events["frame"] >= exits_from)].copy()
+        late["point"], late["ts"] = EXIT, late["ts"] + 1_000_000
+        events = np.concatenate([events, late])
+        events = events[np.argsort(events["ts"], kind="stable")]
+    run = LiveRun(header, LiveConfig(window_s=10.0))
+    feed(run, events, 40)
+    end = run.newest
+    window = run.window_stats(end)
+    assert run._ring["end"].n > 0 and (run._ring["end"].view >= end - 10_000_000_000).any()  # kept frames in it
+    assert len({kept.n for kept in run._ring.values()}) == 1  # a row a frame in every kept column
+    expected = _window_by_the_model(header, events, end, 10.0)
+    for key in ("stages", "gaps", "frame", "bottleneck", "fps"):
+        assert window[key] == expected[key], key
+    assert window["frames"]["complete"] == expected["frames"]["complete"] == (100 if exits_from is None else 60)
 
 
 def test_visible_frames_and_bottleneck():
