@@ -179,16 +179,16 @@ def test_a_stalled_stream_is_reported_while_the_others_go_on_and_its_return_too(
     assert "was lost" not in stderr
     origins = read_trace(tmp_path / "t.jsonl").events
     origins = origins[origins["point"] == ORIGIN]
-    # Source 0 went silent for the freeze while source 1 went on. Judged by the longest gap between
-    # source 0's frames, not by a fixed time after the freeze: frames already sent come out late on
-    # a loaded machine (in a CI run of the suite, one more than 3 s after), and the frames after the
-    # resume come out as late, so the gap stays near the freeze's 7 s.
+    # Source 0 went silent for the freeze while source 1 went on: the longest gap between source 0's
+    # frames spans the resume and is most of the freeze's 7 s. No fixed time after the freeze is
+    # asked: frames sent before it come out late on a loaded machine (in CI runs of the suite one
+    # came out 0.5, 1.5 and once more than 3 s after), while those after the resume need not.
     ts = np.sort(origins[origins["source"] == 0]["ts"])
     longest = int(np.argmax(np.diff(ts)))
     gap_from, gap_to = ts[longest], ts[longest + 1]
-    assert gap_from < resumed_at < gap_to and gap_to - gap_from > 4_000_000_000, (stopped_at, resumed_at, gap_from, gap_to)
-    within = origins[(origins["ts"] > gap_from) & (origins["ts"] < gap_to)]
-    assert (within["source"] == 1).sum() >= 35  # 10 fps for more than 4 s
+    assert gap_from < resumed_at < gap_to and gap_to - gap_from > 3_000_000_000, (stopped_at, resumed_at, gap_from, gap_to)
+    frozen = origins[(origins["ts"] > stopped_at) & (origins["ts"] < resumed_at)]
+    assert (frozen["source"] == 1).sum() >= 28  # of 70 at 10 fps for 7 s: fewer on a loaded machine
     after = origins[origins["ts"] > resumed_at]
     assert (after["source"] == 0).sum() >= 10  # the stream came back
 
