@@ -134,6 +134,8 @@ class ClockEstimator:
     _appended_ns: int | None = field(default=None, init=False, repr=False)
     """Relay time of the newest sample when the last history segment was appended."""
     _restarted: bool = field(default=False, init=False, repr=False)
+    version: int = field(default=0, init=False)
+    """Counts the reports taken: the estimate and the history change with a report, and only then."""
 
     def add(self, t1: int, t2: int, t3: int, t4: int, via: str = "websocket") -> None:
         self.add_samples([ntp_sample(t1, t2, t3, t4, via)])
@@ -153,6 +155,7 @@ class ClockEstimator:
         self._estimate = fit(self.points)
         self._note(self.points[0].node_ns if before is None or self._restarted else before,
                    max(s.at_ns for s in samples))
+        self.version += 1
 
     def _take(self, s: ClockSample) -> None:
         if self._estimate is not None and _outside(self._estimate, s):

@@ -92,9 +92,25 @@ def test_live_tick_runs_each_checkout_in_turn_and_prints_its_cost_beside_this_on
     assert lines[0] == "2 paced runs, 30 ticks/s, 1 s of node time, 1 rounds"
     assert re.fullmatch(r"this checkout: [\d.]+ µs per event, \d+ µs per run and tick, [\d,]+ frames shown \(1\.00× this checkout\)",
                         lines[1])
-    assert re.fullmatch(r"\S+: [\d.]+ µs per event, \d+ µs per run and tick, [\d,]+ frames shown \([\d.]+× this checkout\)", lines[2])
+    assert re.fullmatch(r"\S+: [\d.]+ µs per event, \d+ µs per run and tick, [\d,]+ frames shown \([\d.]+× this checkout\)", lines[3])
+    for line in (lines[2], lines[4]):  # each checkout's statistics under its line
+        assert re.fullmatch(r"  statistics of a run at the end, ms \(each round's median\): window [\d.]+; whole run [\d.]+; "
+                            r"the engine holds [\d.]+ MB a run", line), line
     assert int(lines[1].split("tick, ")[1].split(" frames")[0].replace(",", "")) > 100
     done = run_benchmark("bench_live_tick.py", "--checkout", "/nonexistent")
+    assert done.returncode == 2 and "not a dcuscope checkout" in done.stderr
+
+
+def test_push_clock_times_a_runs_pushes_with_its_clock_history_beside_other_checkouts():
+    done = run_benchmark("bench_push_clock.py", "--runs", "2", "--reports", "20", "--pushes", "3", "--rounds", "1",
+                         "--checkout", ".")
+    assert_ran(done)
+    lines = done.stdout.splitlines()
+    assert lines[0] == "2 runs, 20 clock reports each, 3 pushes timed, 1 rounds; µs per run and push (each round's median)"
+    for line, who in zip(lines[1:], ("this checkout", r"\S+")):
+        history = re.fullmatch(who + r": clock history (\d+) estimates; frames pushed \d+; statistics pushed \d+", line)
+        assert history and 15 <= int(history[1]) <= 20, line  # about one a report, 2 s apart
+    done = run_benchmark("bench_push_clock.py", "--checkout", "/nonexistent")
     assert done.returncode == 2 and "not a dcuscope checkout" in done.stderr
 
 

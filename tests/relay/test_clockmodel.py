@@ -243,3 +243,35 @@ def test_a_sample_bound_covers_the_drift_while_the_exchange_lasts():
     truth = clock.truth_at_node(np.array([s.node_ns]))[0]
     assert abs(s.offset_ns - truth) > (s.rtt_ns + 1) // 2 + TIMESTAMP_FLOOR_NS  # RTT/2 alone falls short
     assert abs(s.offset_ns - truth) <= half_width(s.rtt_ns)
+
+
+def test_a_runs_correction_is_made_again_only_when_its_clock_or_ptp_state_changed(tmp_path):
+    """RelayState.correction gives the one correction_of gives for the run's clock now, made once
+    per clock report or PTP state (each push of a run asks for it; a full history makes it slow)."""
+    from dcuscope.probes.ship.simnode import header_for
+    from dcuscope.relay.live.run import LiveRun
+    from dcuscope.relay.live.seqset import SeqSet
+    from dcuscope.relay.live.state import RelayState, RunState
+    from dcuscope.relay.store.writer import Storage
+
+    header = header_for("n", 1)
+    clock = Clock(3_000_000, 10.0)
+    rs = RunState(run="run-1", node="n", session=1, header=header, live=LiveRun(header), seqs=SeqSet())
+    for mode in ("estimate", "auto"):
+        state = RelayState(Storage(tmp_path / f"{mode}.db"), mode)
+        for k in range(MAX_HISTORY + 20):
+            rs.clock.add(*exchange(clock, k * 2 * S, 50_000, 50_000))
+            if k % 50 == 0 or k > MAX_HISTORY + 15:
+                made = state.correction(rs)
+                assert made is state.correction(rs)  # nothing changed: the same one
+                assert made == correction_of(mode, rs.clock.estimate(), rs.ptp, history=rs.clock.history)
+        assert len(state.correction(rs).segments) == MAX_HISTORY
+        before = state.correction(rs)
+        rs.ptp = {"state": "locked", "gm_present": True, "port_state": "SLAVE", "master_offset_ns": 10,
+                  "system_clock": {"follows_ptp": True, "synced": True, "by": "phc2sys"}}
+        after = state.correction(rs)
+        assert after is not before and after == correction_of(mode, rs.clock.estimate(), rs.ptp, history=rs.clock.history)
+        assert after.applied == ("ptp" if mode == "auto" else "estimate")
+        rs.ptp = {"state": "unavailable"}
+        rs.clock = type(rs.clock)(history=list(rs.clock.history[:3]))  # a run's estimator replaced
+        assert state.correction(rs).segments == tuple(rs.clock.history[:3])
