@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -107,20 +105,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.inner:
         print(json.dumps(measure(args.runs, args.seconds, args.hz)))
         return 0
-    here = Path(__file__).resolve().parents[1]
-    checkouts = [here, *(c.resolve() for c in args.checkout)]
-    for c in checkouts[1:]:
-        if not (c / "relay" / "live" / "run.py").exists():
-            p.error(f"--checkout {c}: not a dcuscope checkout (no relay/live/run.py)")
-    results: list[list[dict]] = [[] for _ in checkouts]
-    for _ in range(args.rounds):
-        for c, runs in zip(checkouts, results):
-            out = subprocess.run([sys.executable, __file__, "--inner", "--runs", str(args.runs), "--seconds", str(args.seconds),
-                                  "--hz", str(args.hz)], cwd=c, env=dict(os.environ, PYTHONPATH=str(c)),
-                                 capture_output=True, text=True, check=False)
-            if out.returncode != 0:
-                sys.exit(f"bench_live_tick: {c} failed: {out.stderr.strip().splitlines()[-1:]}")
-            runs.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # not in --inner: another checkout's code runs there
+    from benchmarks.checkouts import alternate, checkouts as found
+
+    checkouts = found(p, args.checkout, "relay/live/run.py")
+    results = alternate(__file__, ["--runs", str(args.runs), "--seconds", str(args.seconds), "--hz", str(args.hz)],
+                        checkouts, args.rounds)
     base = None
     print(f"{args.runs} paced runs, {args.hz:g} ticks/s, {args.seconds:g} s of node time, {args.rounds} rounds")
     for k, (c, r) in enumerate(zip(checkouts, results)):

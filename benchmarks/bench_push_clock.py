@@ -20,8 +20,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -87,20 +85,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.inner:
         print(json.dumps(measure(args.runs, args.reports, args.pushes)))
         return 0
-    here = Path(__file__).resolve().parents[1]
-    checkouts = [here, *(c.resolve() for c in args.checkout)]
-    for c in checkouts[1:]:
-        if not (c / "relay" / "live" / "state.py").exists():
-            p.error(f"--checkout {c}: not a dcuscope checkout (no relay/live/state.py)")
-    results: list[list[dict]] = [[] for _ in checkouts]
-    for _ in range(args.rounds):
-        for c, got in zip(checkouts, results):
-            out = subprocess.run([sys.executable, __file__, "--inner", "--runs", str(args.runs), "--reports",
-                                  str(args.reports), "--pushes", str(args.pushes)],
-                                 cwd=c, env=dict(os.environ, PYTHONPATH=str(c)), capture_output=True, text=True, check=False)
-            if out.returncode != 0:
-                sys.exit(f"bench_push_clock: {c} failed: {out.stderr.strip().splitlines()[-1:]}")
-            got.append(json.loads(out.stdout.strip().splitlines()[-1]))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # not in --inner: another checkout's code runs there
+    from benchmarks.checkouts import alternate, checkouts as found
+
+    checkouts = found(p, args.checkout, "relay/live/state.py")
+    results = alternate(__file__, ["--runs", str(args.runs), "--reports", str(args.reports), "--pushes", str(args.pushes)],
+                        checkouts, args.rounds)
     print(f"{args.runs} runs, {args.reports} clock reports each, {args.pushes} pushes timed, {args.rounds} rounds; "
           "µs per run and push (each round's median)")
     for k, (c, got) in enumerate(zip(checkouts, results)):
