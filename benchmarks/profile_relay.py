@@ -122,20 +122,21 @@ def _place(stack: list[str]) -> str:
 
 
 def profile(checkout: Path, nodes: int, seconds: float, page: bool, spy: str, tmp: Path, stores: Stores, store: str,
-            relays: int) -> list[dict]:
-    """One profile of ``relays`` relays of ``checkout`` on a fresh store: each relay's figures."""
+            relays: int, warmup: float = 0.0) -> list[dict]:
+    """One profile of ``relays`` relays of ``checkout`` on a fresh store, ``warmup`` seconds after the
+    nodes are all in: each relay's figures."""
     db = stores.fresh(store)
     started: list[Relay] = []
     procs: list[subprocess.Popen] = []
     try:
         for _ in range(relays):
             started.append(Relay(checkout, db, stores.fanout(relays)))
-        procs = start_nodes([r.url for r in started], nodes, int(RATE * (seconds + 60)), paced=True,
+        procs = start_nodes([r.url for r in started], nodes, int(RATE * (warmup + seconds + 60)), paced=True,
                             fps=RATE / (EVENTS_PER_FRAME * SOURCES))
         deadline = time.monotonic() + 120
         while len(_received(started)[0]) < nodes and time.monotonic() < deadline:
             time.sleep(0.5)
-        time.sleep(1)
+        time.sleep(1 + warmup)
         before = [_counters(r) for r in started]
         n0, w0 = sum(_proc_cpu(p.pid) for p in procs), time.monotonic()
         raws = [tmp / f"samples-{k}.txt" for k in range(relays)]
@@ -208,6 +209,9 @@ def main(argv: list[str] | None = None) -> int:
                                 epilog=__doc__.split("\n\n", 1)[1])
     p.add_argument("--nodes", type=int, default=8, help="paced simulated DCUs (4,300 events/s each; default 8)")
     p.add_argument("--seconds", type=float, default=20.0, help="length of each profile (default 20)")
+    p.add_argument("--warmup", type=float, default=0.0, metavar="S",
+                   help="profile S seconds after the nodes are all in (default 0): a run's clock history, one estimate a "
+                        "report, is full (256) after ~9 minutes, the steady state of a long-running fleet")
     p.add_argument("--no-page", action="store_true", help="no /ui client: the relays pair, store and serve no push")
     p.add_argument("--relays", type=int, default=1, help="relay processes sharing the store (default 1; more need "
                                                        "--store postgresql)")
@@ -239,10 +243,11 @@ def main(argv: list[str] | None = None) -> int:
             for k in range(args.rounds):
                 for c, runs in zip(checkouts, results):
                     print(f"round {k + 1}/{args.rounds}: {c.name}, {args.relays} relay(s) on {args.store}, {args.nodes} DCUs, "
-                          f"{args.seconds:g} s {'with no page' if args.no_page else 'with a page showing every DCU'}",
+                          f"{args.seconds:g} s {'with no page' if args.no_page else 'with a page showing every DCU'}"
+                          + (f", after {args.warmup:g} s of warm-up" if args.warmup else ""),
                           file=sys.stderr, flush=True)
                     runs.append(profile(c, args.nodes, args.seconds, not args.no_page, spy, Path(tmp), stores, args.store,
-                                        args.relays))
+                                        args.relays, args.warmup))
         except CannotRun as exc:
             sys.exit(f"profile_relay: {exc}")
         finally:
