@@ -103,6 +103,31 @@ def test_a_click_opens_the_reason_in_full_and_it_stays_open(streaming, page):
     page.wait_for_selector('#nodes-body tr[data-detail="DCU-2"]', state="detached", timeout=5_000)
 
 
+def test_a_click_that_spans_a_refresh_still_opens_the_row(streaming, page):
+    """The panel is rebuilt every second (its counters), and the browser fires no click once the
+    element pressed left the page: a press inside the panel holds it until the press ends."""
+    events = '#nodes-body tr[data-node="DCU-1"] td:nth-child(7)'
+    at = page.evaluate("(sel) => { const r = document.querySelector(sel).getBoundingClientRect(); "
+                       "return [r.x + r.width / 2, r.y + r.height / 2]; }", events)
+    page.mouse.move(*at)
+    page.mouse.down()
+    # Marked once pressed (the row may be rebuilt until then): a rebuild from here on would drop the mark.
+    shown = page.evaluate("(sel) => { const td = document.querySelector(sel); td.dataset.pressed = 'here'; "
+                          "return td.textContent; }", events)
+    try:
+        # Pressed until the relay counted other events than the row shows, and the page had 2 s to draw them.
+        counted = wait_for(lambda: (n := f"{next(x for x in get_json(f'{streaming.url}/api/nodes') if x['node'] == 'DCU-1')['events']:,}")
+                           != shown and n, 20, 0.2, "DCU-1's events counted on")
+        page.wait_for_timeout(2000)
+        held = page.locator("#nodes-body [data-pressed=here]").count() == 1 and page.locator(events).inner_text() == shown
+    finally:
+        page.mouse.up()
+    assert held, f"the row was rebuilt during the press ({shown} events shown, the relay counted {counted})"
+    page.locator('#nodes-body tr[data-detail="DCU-1"]').wait_for(timeout=5_000)
+    page.wait_for_function("(e) => document.querySelectorAll('#nodes-body tr[data-node=\"DCU-1\"] td')[6].textContent !== e",
+                           arg=shown, timeout=5_000)  # drawn once the press ended
+
+
 YOUNG_PAGE = """
 window.__frames = 0;
 window.__panelsAt = null;

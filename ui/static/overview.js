@@ -5,6 +5,7 @@
 // rewritten only when its text changed, and rows move only when the order changed.
 
 import { clockState, esc, liveState, offsetText, RELAY_SILENT } from "./panels.js";
+import { pressedWithin } from "./press.js";
 import { formatDelay } from "./timefmt.js";
 
 export const ROW_STALE_MS = 3000; // a row nobody refreshed for this long is shown stale
@@ -301,8 +302,12 @@ export class OverviewTable {
     return tr;
   }
 
-  /** Show `fleet`'s rows: `opened` marked, the filter applied, worst first (unless held). */
+  /**
+   * Show `fleet`'s rows: `opened` marked, the filter applied, worst first (unless held). Not while a
+   * press is on the rows (a cell rewritten under it would lose its click): the next refresh shows them.
+   */
   update(fleet, opened, now) {
+    if (pressedWithin(this.body)) return;
     const rows = [...fleet.rows.values()];
     for (const [node, tr] of this.trs) {
       if (!fleet.rows.has(node)) {

@@ -1,14 +1,18 @@
 // Statistics and nodes panels: HTML tables rebuilt from the relay's JSON (only when it changed).
 
+import { pressedWithin } from "./press.js";
 import { formatDelay } from "./timefmt.js";
 
 export const esc = (s) => String(s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
 const ms = (v) => (v === null || v === undefined ? "–" : formatDelay(v));
 const int = (v) => (v === null || v === undefined ? "–" : Number(v).toLocaleString("en-US"));
 
-/** Set innerHTML only when it differs: the panels refresh every second without churning the DOM. */
+/**
+ * Set innerHTML only when it differs: the panels refresh every second without churning the DOM.
+ * Not while a press is inside `el` (its click would be lost): the next refresh after it sets it.
+ */
 export function setHtml(el, html) {
-  if (el._html !== html) {
+  if (el._html !== html && !pressedWithin(el)) {
     el._html = html;
     el.innerHTML = html;
   }

@@ -1,0 +1,12 @@
+// Presses under way. A browser fires a click only if the element pressed is still in the page when
+// the press ends: a view that rewrites its HTML from a push while a press is inside it loses that
+// click (a press lasts ~0.1 s, the figures change every second). Such views wait for the press's end.
+
+let pressedOn = null;
+addEventListener("pointerdown", (ev) => { pressedOn = ev.target; }, true);
+for (const end of ["pointerup", "pointercancel"]) addEventListener(end, () => { pressedOn = null; }, true);
+
+/** Whether a press began inside `el` and has not ended. */
+export function pressedWithin(el) {
+  return pressedOn !== null && el.contains(pressedOn);
+}
