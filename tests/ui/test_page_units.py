@@ -17,7 +17,7 @@ def js(page, body: str, arg=None):
     return page.evaluate(
         """async ([body, arg]) => {
             const m = {};
-            for (const name of ["timefmt", "store", "colours", "panels", "stageview", "coverage"]) Object.assign(m, await import(`/${name}.js`));
+            for (const name of ["timefmt", "store", "colours", "panels", "stageview", "coverage", "press"]) Object.assign(m, await import(`/${name}.js`));
             return new Function("m", "arg", `return (async () => { ${body} })()`)(m, arg);
         }""", [body, arg])
 
@@ -540,3 +540,28 @@ def test_nodes_panel_states_the_clock_in_a_word_and_keeps_every_fact_in_the_deta
     # PTP's own reason shows where the clock's reason does not hold it, and only once where it does.
     assert "pmc says so" in d["ptp"] and b["text"].count("slave of aabbcc.fffe.000001") == 1
     assert out["stored"] == ["ignored", "uncorrected"] and "offset beyond any relay's bound" in out["storedTitle"]
+
+
+def test_a_press_is_under_way_from_its_pointerdown_until_its_release_or_the_page_losing_the_focus(page):
+    out = js(page, """
+        const box = document.createElement("div"), inside = document.createElement("button"),
+              other = document.createElement("button");
+        box.appendChild(inside);
+        document.body.append(box, other);
+        const press = (el) => el.dispatchEvent(new PointerEvent("pointerdown", {bubbles: true}));
+        const states = {before: m.pressedWithin(box)};
+        press(inside);
+        other.focus(); inside.focus(); other.dispatchEvent(new FocusEvent("blur"));  // an element's blur: still pressed
+        states.pressed = [m.pressedWithin(box), m.pressedWithin(inside), m.pressedWithin(other)];
+        window.dispatchEvent(new PointerEvent("pointerup"));
+        states.released = m.pressedWithin(box);
+        press(inside);
+        window.dispatchEvent(new FocusEvent("blur"));
+        states.pageBlurred = m.pressedWithin(box);
+        press(other);
+        states.elsewhere = m.pressedWithin(box);
+        window.dispatchEvent(new PointerEvent("pointercancel"));
+        box.remove(); other.remove();
+        return states;""")
+    assert out == {"before": False, "pressed": [True, True, False], "released": False, "pageBlurred": False,
+                   "elsewhere": False}

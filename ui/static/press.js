@@ -4,7 +4,10 @@
 
 let pressedOn = null;
 addEventListener("pointerdown", (ev) => { pressedOn = ev.target; }, true);
+// A press ends when its button is released, anywhere (the page still hears it), or when the page
+// itself loses the focus (not an element of it: their blur comes with every press).
 for (const end of ["pointerup", "pointercancel"]) addEventListener(end, () => { pressedOn = null; }, true);
+addEventListener("blur", (ev) => { if (ev.target === window) pressedOn = null; });
 
 /** Whether a press began inside `el` and has not ended. */
 export function pressedWithin(el) {
