@@ -8,7 +8,7 @@ from dcuscope.core.clocks import CLOCKS
 from dcuscope.core.errors import ConfigError, PipelineError
 from dcuscope.core.gst import Gst
 from dcuscope.pipeline.config import PipelineConfig
-from dcuscope.pipeline.elements import make_stage_element
+from dcuscope.pipeline.elements import check_source_and_sink_values, make_stage_element
 from dcuscope.pipeline.sinks import Outputs, build_outputs, link_outputs
 from dcuscope.pipeline.sources import SourceBin
 from dcuscope import plugins
@@ -34,6 +34,7 @@ class BuiltPipeline:
 def build_pipeline(config: PipelineConfig) -> BuiltPipeline:
     """Build (not start) the pipeline of ``config``. ConfigError for bad stages, PipelineError else."""
     plugins.register()
+    check_source_and_sink_values(config)
     pipeline = Gst.Pipeline.new(config.node)
     stages = [make_stage_element(config, stage) for stage in config.stages]
     mux = stages[0] if stages[0].get_factory().get_name() == "mux" else None

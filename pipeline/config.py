@@ -41,7 +41,8 @@ Any graph the structured form cannot say is one ``launch:`` line in gst-launch s
 dcuscope's elements available (``pipeline.launch``): it replaces sources, stages and sinks.
 
 This module checks the structure (keys, types, files); :mod:`dcuscope.pipeline.elements` checks the
-stages against the installed GStreamer elements and their properties.
+stages, and the source and sink values that become element properties, against the installed
+GStreamer elements and their property specs, before the pipeline is built.
 
 The objects are frozen: once checked, a configuration is not changed by whoever uses it. A
 command-line override makes a new one (``dataclasses.replace``); building a pipeline returns

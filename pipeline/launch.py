@@ -14,6 +14,7 @@ from __future__ import annotations
 from dcuscope.core.gst import GLib, Gst
 from dcuscope.pipeline.build import BuiltPipeline
 from dcuscope.pipeline.config import PipelineConfig
+from dcuscope.pipeline.elements import check_launch_choices
 from dcuscope import plugins
 
 
@@ -31,6 +32,7 @@ def build_launch(config: PipelineConfig) -> BuiltPipeline:
         pipeline = Gst.Pipeline.new(config.node)
         pipeline.add(built)
     pipeline.set_name(config.node)
+    check_launch_choices(config.document, ("launch",), pipeline)
     sinks = [e for e in pipeline.iterate_recurse() if e.get_factory() is not None
              and e.flags & Gst.ElementFlags.SINK]
     if not sinks:

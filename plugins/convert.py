@@ -85,6 +85,7 @@ class Convert(AttributeProperties, GstBase.BaseTransform):
         "height": (int, "Height", "Output height in pixels (0 = the input's)",
                    0, MAX_SIZE, DEFAULT_HEIGHT, GObject.ParamFlags.READWRITE),
     }
+    CHOICES = {"format": FORMATS}
 
     def __init__(self):
         super().__init__()

@@ -69,6 +69,7 @@ class Infer(AttributeProperties, GstBase.BaseTransform):
         "spin-wait": (bool, "Spin wait", "ONNX Runtime threads spin between batches: a little less latency per "
                       "batch, but they burn CPU time the other stages need", DEFAULT_SPIN_WAIT, RW),
     }
+    CHOICES = {"decoder": DECODERS}
 
     def __init__(self):
         super().__init__()

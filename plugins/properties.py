@@ -16,6 +16,10 @@ class AttributeProperties:
     """Mixin (before the GStreamer base class) giving ``do_get_property``/``do_set_property``."""
 
     PROPERTIES: dict = {}
+    CHOICES: dict[str, tuple] = {}
+    """Property -> every value it takes, where its GObject type cannot say so (a text property that
+    is really an enum): the element refuses others when it starts, and a YAML configuration is
+    checked against the same tuple before anything runs (``pipeline/elements.py``)."""
 
     def init_properties(self) -> None:
         """Every property at its default (the spec's second-to-last item, for every type)."""

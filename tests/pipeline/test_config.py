@@ -8,11 +8,14 @@ from pathlib import Path
 
 import pytest
 
-from dcuscope.core.errors import ConfigError
+from dcuscope.core.errors import ConfigError, UsageError
+from dcuscope.core.gst import Gst
 from dcuscope.cli import build_parser
 from dcuscope.runcommand import apply_overrides
 from dcuscope.pipeline.build import build_pipeline
 from dcuscope.pipeline.config import load_config
+from dcuscope.pipeline.launch import build_launch
+from dcuscope.shipped import CONFIGS, configs_command, resolve, summary
 from tests.conftest import VTEST, run_cli
 
 GOOD = f"""\
@@ -119,6 +122,13 @@ BAD = [
      ":2: stages[0]: with several sources the first stage must be a mux"),
     ("bad enum", "sources: [{test: ball}]\nstages:\n  - factory: queue\n    properties: {leaky: sideways}\n",
      ":4: stages[0].properties.leaky: expected one of: no, upstream, downstream"),
+    # Checked before running: each of these used to start the pipeline (and fail, or run with another value).
+    ("our text enum", "sources: [{test: ball}]\nstages:\n  - convert: {format: RGBX2}\n",
+     ":3: stages[0].convert.format: expected one of: RGB, BGR, RGBA, BGRA, RGBx, BGRx, I420, NV12, GRAY8; got 'RGBX2'"),
+    ("test pattern", "sources:\n  - test: bogus\nstages: [{queue: {}}]\n",
+     ":2: sources[0].test: expected one of: smpte, snow, black,"),
+    ("bitrate out of x264enc's range", "sources: [{test: ball}]\nstages: [{queue: {}}]\n"
+     "sink:\n  type: file\n  path: out.mp4\n  bitrate: 9999999\n", ":6: sink.bitrate: 9999999 is out of range [1, 2048000]"),
 ]
 
 
@@ -194,3 +204,53 @@ def test_max_latency_reaches_the_mux_which_ages_frames_on_the_probes_clock(tmp_p
     mux, stamp = built.stages[0], built.sources[0].stamp
     assert mux.get_property("max-latency") == 150
     assert mux.get_property("clock-id") == stamp.get_property("clock-id") == 11
+
+
+@pytest.mark.parametrize("stage,expected", [
+    ("factory: identity\n    properties: {drop-buffer-flags: live+bogus}",
+     ":4: stages[0].properties.drop-buffer-flags: unknown flag 'bogus': expected flags from: live, decode-only, "),
+    ("factory: capsfilter\n    properties: {caps: 'video/x-raw,format={RGB,RGBX2}'}",
+     ":4: stages[0].properties.caps: unknown video format 'RGBX2' (known: I420, YV12, "),
+    ("infer: {decoder: yolo9}", ":3: stages[0].infer.decoder: expected one of: auto, centernet, ssd, yolo; got 'yolo9'"),
+], ids=["flags", "caps format", "infer decoder"])
+def test_values_are_checked_against_what_the_element_knows(tmp_path, gst_registered, stage, expected):
+    cfg = load_config(write(tmp_path, f"sources: [{{test: ball}}]\nstages:\n  - {stage}\n"))
+    with pytest.raises(ConfigError) as caught:
+        build_pipeline(cfg)
+    assert expected in str(caught.value), caught.value
+
+
+def test_good_flags_and_caps_are_set(tmp_path, gst_registered):
+    cfg = load_config(write(tmp_path, "sources: [{test: ball}]\nstages:\n"
+                                      "  - factory: identity\n    properties: {drop-buffer-flags: [live, discont]}\n"
+                                      "  - factory: identity\n    properties: {drop-buffer-flags: 0}\n"
+                                      "  - factory: capsfilter\n    properties: {caps: 'video/x-raw,format={RGB,NV12}'}\n"))
+    first, second, caps = build_pipeline(cfg).stages
+    assert int(first.get_property("drop-buffer-flags")) == int(Gst.BufferFlags.LIVE | Gst.BufferFlags.DISCONT)
+    assert int(second.get_property("drop-buffer-flags")) == 0  # refused before: it equals the default
+    assert caps.get_property("caps").get_structure(0).get_value("format").array == ["RGB", "NV12"]
+
+
+def test_a_launch_line_checks_our_text_enums_before_running(tmp_path, gst_registered):
+    cfg = load_config(write(tmp_path, "launch: videotestsrc num-buffers=1 ! convert name=c format=RGBX2 ! fakesink\n"))
+    with pytest.raises(ConfigError, match=r"pipeline.yaml:1: launch: c.format: expected one of: RGB, .*; got 'RGBX2'"):
+        build_launch(cfg)
+
+
+def test_configs_lists_whole_sentences(tmp_path, capsys):
+    (tmp_path / "x.yaml").write_text("# Two cameras, batched: the mux waits for both, e.g. after a stall. Then more\n"
+                                     "# text that is not the first sentence.\n#   dcuscope run x.yaml\nnode: X\n")
+    assert summary(tmp_path / "x.yaml") == "Two cameras, batched: the mux waits for both, e.g. after a stall."
+    configs_command(build_parser().parse_args(["configs"]))
+    listing = capsys.readouterr().out.split("\n\n")[0]
+    entries = [line for line in listing.splitlines() if not line.startswith(" ")]
+    assert len(entries) == len(list(CONFIGS.glob("*.yaml")))
+    for entry in listing.replace("\n ", " ").splitlines():  # the wrapped lines joined again
+        assert entry.rstrip().endswith((".", "!", "?")), entry
+
+
+def test_a_shipped_configs_path_outside_a_checkout_suggests_its_name(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(UsageError, match=r"^configs/quad.yaml: no such configuration file; .*: dcuscope run quad$"):
+        resolve(Path("configs/quad.yaml"))
+    assert resolve(Path("elsewhere/x.yaml")) == Path("elsewhere/x.yaml")  # load_config says it is missing
