@@ -94,8 +94,8 @@ def _run_built(args: argparse.Namespace, config: PipelineConfig, built) -> int:
         if sink.kind == "rtsp":
             console.write(f"serving {sink.url} (sink {sink.name})\n")
     runner = Runner(built, num_frames=args.num_frames, duration=args.duration, progress=progress,
-                    progress_every=1.0 if console.isatty() else 5.0)
-    probing = None
+                    progress_every=1.0 if console.isatty() else 5.0, traced=config.probes.enabled)
+    probing = delivery = None
     if config.probes.enabled:
         from dcuscope.probes.instrument import start_probes
 
@@ -109,7 +109,7 @@ def _run_built(args: argparse.Namespace, config: PipelineConfig, built) -> int:
         result = runner.run()
     finally:
         if probing is not None:
-            probing.stop()
+            delivery = probing.stop()
     for index, reason in result.dead_sources.items():
         console.write(f"dcuscope: source {index} ({config.sources[index].description}) was lost: {reason}\n")
     for index, stalls in result.stalls.items():
@@ -131,6 +131,12 @@ def _run_built(args: argparse.Namespace, config: PipelineConfig, built) -> int:
     for sink in config.sinks:
         if sink.path is not None and progress is not None:
             console.write(f"output: {sink.path}\n")
+    if delivery is not None and not delivery.complete:
+        from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
+
+        if progress is None:  # --quiet: the summary said nothing, the exit status must not stand alone
+            console.write(f"dcuscope: {delivery.line()}\n")
+        return UNACKNOWLEDGED_STATUS
     return 0
 
 
@@ -143,7 +149,7 @@ def detection_lines(stages) -> list[str]:
             continue
         kinds = ", ".join(f"{label} {n}" for label, n in found.most_common(MOST_COMMON))
         more = len(found) - MOST_COMMON
-        kinds += f", {more} more kinds" if more > 0 else ""
+        kinds += f", {more} more {'kind' if more == 1 else 'kinds'}" if more > 0 else ""
         lines.append(f"{stage.get_name()}: {found.total()} objects in {stage.inferred_frames} frames"
                      + (f" ({kinds})" if kinds else ""))
     return lines

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from dcuscope.core import signals
 from dcuscope.core.errors import DcuscopeError
+from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
 from dcuscope.probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
 
 
@@ -24,7 +25,10 @@ def add_ship_parser(sub) -> None:
                     "host. Ends when the trace ends (its process exited) or on Ctrl-C.",
         epilog="example:\n  GST_PLUGIN_PATH=\"$(dcuscope plugin-path)\" GST_TRACERS=\"dcuscope(node=CAM-1,"
                "trace=cam1.trace.jsonl)\" \\\n      gst-launch-1.0 ... &\n"
-               "  dcuscope ship cam1.trace.jsonl --relay http://monitor:3000",
+               "  dcuscope ship cam1.trace.jsonl --relay http://monitor:3000\n\n"
+               "Exit status: 0 every event acknowledged by a relay, 1 TRACE named no stage within --wait,\n"
+               f"2 bad arguments, {UNACKNOWLEDGED_STATUS} events not all acknowledged within --close-timeout "
+               "(the last line counts\nthem; TRACE still holds them).",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("trace", type=Path, metavar="TRACE", help="the trace file being written")
     p.add_argument("--relay", required=True, metavar="URL[,URL...]",

@@ -5,7 +5,10 @@ CMD runs with dcuscope's plugin on ``GST_PLUGIN_PATH`` and the ``dcuscope`` trac
 ``GST_TRACERS`` (docs/tracer.md), so gst-launch-1.0, a C program and a Python program are traced
 alike, unchanged. With ``--relay`` the trace is shipped live while CMD runs
 (:class:`dcuscope.probes.ship.tailship.TailShipper`). When CMD ends, its trace's ``stats`` summary goes to
-stderr (CMD's stdout stays its own) and CMD's exit status is returned (128 + N for a signal N).
+stderr (CMD's stdout stays its own) and CMD's exit status is returned (128 + N for a signal N);
+a CMD that failed is reported with its status and the last line of its stderr (which passes
+through dcuscope for that). An earlier TRACE waits as ``TRACE.previous`` while CMD runs, and is
+put back when CMD's trace names no stage (it ran no pipeline): never replaced by an empty one.
 
 Signals: CMD runs in a process group of its own; SIGINT (Ctrl-C), SIGTERM and SIGHUP sent to
 dcuscope go to that group first, and dcuscope waits for CMD to end (a second Ctrl-C is passed
@@ -16,6 +19,7 @@ CMD therefore does not read the terminal.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import shutil
 import signal
@@ -24,9 +28,17 @@ import subprocess
 import sys
 import threading
 from pathlib import Path
+from typing import TYPE_CHECKING, NamedTuple
 
 from dcuscope.core.errors import DcuscopeError
+from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
 from dcuscope.probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
+
+if TYPE_CHECKING:
+    from dcuscope.probes.ship.tailship import TailShipper
+
+EXPORTER_CLOSE_S = 60.0
+"""``--close-timeout``'s default: probes.trace.events.EXPORTER_CLOSE_S (not imported: numpy slows the start)."""
 
 EPILOG = """\
 examples:
@@ -35,27 +47,32 @@ examples:
   dcuscope trace --relay http://monitor:3000 --node DCU-7 -- python3 app.py
 
 CMD's environment gets GST_PLUGIN_PATH (dcuscope's plugin first) and GST_TRACERS (dcuscope's tracer
-after any already set there). TRACE is overwritten. The summary goes to stderr when CMD ends;
-`dcuscope stats TRACE`, `dcuscope export TRACE` and `dcuscope compare` read TRACE later.
-Ctrl-C and SIGTERM go to CMD, and dcuscope waits for it. Exit status: CMD's (128 + N if signal N
-ended it); 2 when CMD cannot be started or an option is wrong.
-"""
+after any already set there). TRACE is replaced; an earlier one waits as TRACE.previous while
+CMD runs, put back if CMD traced nothing (it ran no pipeline), removed otherwise. The
+summary goes to stderr when CMD ends; `dcuscope stats TRACE`, `dcuscope export TRACE` and
+`dcuscope compare` read TRACE later. CMD's stderr passes through dcuscope: a CMD that failed is
+reported with its exit status and its stderr's last line. Ctrl-C and SIGTERM go to CMD, and
+dcuscope waits for it. Exit status: CMD's (128 + N if signal N ended it); when CMD exits 0 but
+--relay did not acknowledge every event, {unacknowledged}; 2 when CMD cannot be started or an option is wrong.
+""".format(unacknowledged=UNACKNOWLEDGED_STATUS)
 
 FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 SHIP_DRAIN_S = 5.0
 """After CMD ended, how long the shipper may take to reach the trace's end line by itself."""
+STDERR_DRAIN_S = 2.0
+"""After CMD ended, how long its stderr may stay open (a child of CMD holding it) before dcuscope goes on."""
 
 
 def add_trace_parser(sub) -> None:
     p = sub.add_parser(
         "trace", help="run any GStreamer program (gst-launch-1.0, C, Python) traced per frame: -- CMD [ARGS...]",
-        description="Run CMD with dcuscope's tracer (GST_TRACERS=dcuscope): every element of every pipeline it "
-                    "runs gets per-frame enter/exit tracepoints, written to TRACE and, with --relay, shipped live. "
+        description="Run CMD with dcuscope's tracer (GST_TRACERS=dcuscope): every element of every pipeline it\n"
+                    "runs gets per-frame enter/exit tracepoints, written to TRACE and, with --relay, shipped live.\n"
                     "When CMD ends, print the trace's statistics (as `dcuscope stats`) and return CMD's exit status.",
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
-        usage="dcuscope trace [-h] [--node NAME] [-o TRACE] [--relay URL[,URL...]] [--token TOKEN] [--relay-ca FILE] "
-              "[--relay-cert FILE [--relay-key FILE]] [--quiet] "
-              "-- CMD [ARGS...]")
+        usage="dcuscope trace [-h] [--node NAME] [-o TRACE] [--relay URL[,URL...]] [--token TOKEN]\n"
+              "                      [--relay-ca FILE] [--relay-cert FILE [--relay-key FILE]] [--close-timeout S]\n"
+              "                      [--quiet] -- CMD [ARGS...]")
     p.add_argument("--node", metavar="NAME", help="the node's name in the trace and on the relay (default: the host name)")
     p.add_argument("-o", "--output", type=Path, metavar="TRACE", help="the trace file (default NODE.trace.jsonl)")
     p.add_argument("--relay", metavar="URL[,URL...]", help="ship the trace live to this relay (several, comma-separated: "
@@ -63,6 +80,10 @@ def add_trace_parser(sub) -> None:
     p.add_argument("--token", metavar="TOKEN", default=os.environ.get(TOKEN_ENV),
                    help=f"the relay's node token, if it asks for one (default ${TOKEN_ENV})")
     add_tls_arguments(p)
+    p.add_argument("--close-timeout", type=_positive_float, default=EXPORTER_CLOSE_S, metavar="S",
+                   help="once CMD ended, keep trying every --relay for up to S seconds until all that was sent is "
+                        "acknowledged (default %(default)g); what is still unacknowledged then is reported lost "
+                        "(TRACE still holds it)")
     p.add_argument("--quiet", "-q", action="store_true", help="no summary when CMD ends (the trace is still written)")
     p.add_argument("command", nargs=argparse.REMAINDER, metavar="CMD", help="the program and its arguments, after --")
     p.set_defaults(func=run_trace)
@@ -90,8 +111,10 @@ def run_trace(args: argparse.Namespace) -> int:
         raise DcuscopeError(f"trace: no dcuscope GStreamer plugin: {exc}") from exc
     node = args.node or socket.gethostname()
     trace = (args.output or Path(f"{node}.trace.jsonl")).absolute()
+    previous = trace.with_name(trace.name + ".previous")
     try:
-        trace.unlink(missing_ok=True)  # a shipper must not read a previous run's lines
+        if trace.exists():  # moved aside, not removed: put back should CMD trace nothing
+            trace.replace(previous)
     except OSError as exc:
         raise DcuscopeError(f"trace: {trace}: cannot replace it: {exc.strerror or exc}") from exc
     if args.relay:
@@ -103,24 +126,91 @@ def run_trace(args: argparse.Namespace) -> int:
     env["GST_TRACERS"] = ";".join(t for t in (env.get("GST_TRACERS"), tracer_spec(node, trace)) if t)
 
     try:
-        child = subprocess.Popen(command, env=env, process_group=0)
+        child = subprocess.Popen(command, env=env, process_group=0, stderr=subprocess.PIPE)
     except OSError as exc:
         raise DcuscopeError(f"trace: cannot start {command[0]}: {exc.strerror or exc}") from exc
-    previous = {s: signal.signal(s, lambda signum, _f: _forward(child, signum)) for s in FORWARDED}
+    errors = _Tee(child.stderr)
+    handlers = {s: signal.signal(s, lambda signum, _f: _forward(child, signum)) for s in FORWARDED}
     stop = threading.Event()
-    shipper = _start_shipper(args, trace, stop) if args.relay else None
+    shipping = _start_shipper(args, trace, stop) if args.relay else None
     try:
         code = _wait(child)
+        errors.join(STDERR_DRAIN_S)
     finally:
-        if shipper is not None:
-            shipper.join(SHIP_DRAIN_S)
+        if shipping is not None:
+            shipping.thread.join(SHIP_DRAIN_S)
             stop.set()
-            shipper.join()
-        for s, handler in previous.items():
+            shipping.thread.join()
+        for s, handler in handlers.items():
             signal.signal(s, handler)
+    traced = _settle(trace, previous)
     if not args.quiet:
-        _summary(trace, command[0])
+        _summary(trace if traced else None, trace, command[0])
+    if code != 0:
+        said = f": {errors.last}" if errors.last else " (nothing on its stderr)"
+        print(f"dcuscope: {command[0]} {_ended(code)}{said}", file=sys.stderr)
+    if code == 0 and shipping is not None and not shipping.shipper.delivery.complete:
+        return UNACKNOWLEDGED_STATUS
     return code
+
+
+class _Tee:
+    """Passes CMD's stderr on to dcuscope's, keeping its last line (a failed CMD is reported with it)."""
+
+    def __init__(self, pipe) -> None:
+        self._pipe, self._tail = pipe, b""
+        self._thread = threading.Thread(target=self._copy, name="dcuscope-stderr", daemon=True)
+        self._thread.start()
+
+    def _copy(self) -> None:
+        fd, out = self._pipe.fileno(), sys.stderr.buffer
+        while chunk := os.read(fd, 65536):
+            out.write(chunk)
+            out.flush()
+            self._tail = (self._tail + chunk)[-4096:]
+
+    def join(self, timeout: float) -> None:
+        self._thread.join(timeout)
+
+    @property
+    def last(self) -> str:
+        lines = [line.strip() for line in self._tail.decode(errors="replace").splitlines() if line.strip()]
+        return lines[-1] if lines else ""
+
+
+def _ended(code: int) -> str:
+    try:
+        return f"was ended by {signal.Signals(code - 128).name} (exit status {code})" if code > 128 else \
+            f"failed (exit status {code})"
+    except ValueError:  # above 128 but no signal's: its own status
+        return f"failed (exit status {code})"
+
+
+def _settle(trace: Path, previous: Path) -> bool:
+    """Whether CMD traced something (its trace names a stage): then ``previous`` (an earlier trace)
+    goes; else CMD's empty trace goes and ``previous`` is put back."""
+    if trace.exists() and _names_a_stage(trace):
+        previous.unlink(missing_ok=True)
+        return True
+    try:
+        trace.unlink(missing_ok=True)
+        if previous.exists():
+            previous.replace(trace)
+    except OSError as exc:
+        print(f"dcuscope: cannot put back {trace}: {exc.strerror or exc}; the earlier trace is {previous}",
+              file=sys.stderr)
+    return False
+
+
+def _names_a_stage(path: Path) -> bool:
+    """Whether the trace's header (its first line) lists a stage; an unreadable header counts as
+    one (the summary then says what is wrong with it), so that a run's frames are never thrown away."""
+    try:
+        with open(path, "rb") as f:
+            header = json.loads(f.readline()).get("header", {})
+        return bool(header.get("stages"))
+    except (OSError, ValueError, AttributeError):
+        return True
 
 
 def _forward(child: subprocess.Popen, signum: int) -> None:
@@ -136,10 +226,16 @@ def _wait(child: subprocess.Popen) -> int:
     return 128 - code if code < 0 else code
 
 
-def _start_shipper(args: argparse.Namespace, trace: Path, stop: threading.Event) -> threading.Thread:
+class _Shipping(NamedTuple):
+    shipper: TailShipper
+    thread: threading.Thread
+
+
+def _start_shipper(args: argparse.Namespace, trace: Path, stop: threading.Event) -> _Shipping:
     from dcuscope.probes.ship.tailship import TailShipper
 
-    shipper = TailShipper(trace, args.relay, args.token, args.node, tls=tls_from_args(args))
+    shipper = TailShipper(trace, args.relay, args.token, args.node, close_timeout_s=args.close_timeout,
+                          tls=tls_from_args(args))
 
     def ship() -> None:
         try:
@@ -148,17 +244,19 @@ def _start_shipper(args: argparse.Namespace, trace: Path, stop: threading.Event)
             print(f"dcuscope: trace: shipping stopped: {exc}", file=sys.stderr)
     thread = threading.Thread(target=ship, name="dcuscope-ship", daemon=True)
     thread.start()
-    return thread
+    return _Shipping(shipper, thread)
 
 
-def _summary(trace: Path, program: str) -> None:
+def _summary(trace: Path | None, named: Path, program: str) -> None:
+    """The stats of ``trace`` (this run's), or why there is none (``named``: where it was to go)."""
     from dcuscope.tracecommands import format_stats
     from dcuscope.probes.trace.stats import stats_document
     from dcuscope.probes.trace.tracefile import read_trace
 
-    if not trace.exists():
-        print(f"dcuscope: {program} wrote no trace to {trace}: it ran no GStreamer pipeline that carried a frame "
-              "(or it set GST_TRACERS itself)", file=sys.stderr)
+    if trace is None:
+        earlier = f"; {named}, an earlier run's, is kept as it was" if named.exists() else ""
+        print(f"dcuscope: {program} wrote no trace to {named}: it ran no GStreamer pipeline that carried a frame "
+              f"(or it set GST_TRACERS itself){earlier}", file=sys.stderr)
         return
     try:
         t = read_trace(trace)
@@ -167,3 +265,10 @@ def _summary(trace: Path, program: str) -> None:
         print(f"dcuscope: {exc}", file=sys.stderr)
         return
     print(f"\ndcuscope: {program} traced\n{text}", file=sys.stderr, end="")
+
+
+def _positive_float(text: str) -> float:
+    value = float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError("must be positive")
+    return value

@@ -68,8 +68,10 @@ class Runner:
     """
 
     def __init__(self, built: BuiltPipeline, num_frames: int | None = None, duration: float | None = None,
-                 progress: TextIO | None = sys.stderr, progress_every: float = 1.0):
+                 progress: TextIO | None = sys.stderr, progress_every: float = 1.0, traced: bool = False):
         self.built = built
+        self.traced = traced
+        """Whether probes trace the run (the final line then says how a trace counts frames)."""
         self.num_frames = num_frames
         self.duration = duration
         self.progress = progress
@@ -314,8 +316,9 @@ class Runner:
         if r.past_limit:
             them = "it" if r.past_limit == 1 else "them"
             camera = f" ({r.past_limit_camera_frames} camera frames)" if r.past_limit_camera_frames != r.past_limit else ""
-            text += (f"; {r.past_limit} more{camera} had passed every stage when the limit was reached and were not "
-                     f"written (a trace counts {them} complete)")
+            text += (f"; {r.past_limit} more{camera} had passed every stage when the limit was reached and "
+                     f"{'was' if r.past_limit == 1 else 'were'} not written"
+                     + (f" (a trace counts {them} complete)" if self.traced else ""))
         return text
 
     def _say(self, text: str) -> None:

@@ -20,6 +20,7 @@ from dcuscope.probes.capture.shipper import Shipper
 from dcuscope.probes.capture.sourcewatch import SourceWatch
 from dcuscope.probes.capture.tracer import Tracer, attach
 from dcuscope.probes.clocks.sysclock import DEFAULT_UDS
+from dcuscope.probes.ship.delivery import Delivery
 from dcuscope.probes.ship.errors import ExportError
 from dcuscope.probes.ship.nodetls import RelayTls
 from dcuscope.probes.ship.relayexport import RelayExporter
@@ -64,23 +65,28 @@ class RunProbes:
     relay: RelayExporter | None = None
     watch: SourceWatch | None = None
 
-    def stop(self) -> None:
-        """Stop shipping and write the summary; raises ExportError if the relay refused the node
-        (``dcuscope run`` then exits non-zero with that one line)."""
+    def stop(self) -> Delivery | None:
+        """Stop shipping and write the summary; what the relay stored (None without --relay).
+        Raises ExportError if the relay refused the node (``dcuscope run`` then exits non-zero
+        with that one line)."""
         self.shipper.stop()
         if self.watch is not None:
             self.watch.stop()
         tracepoints = self.tracer.tracepoints
         self.tracer.detach()
+        delivery = self.relay.delivery() if self.relay is not None else None
         if self.progress is not None:
-            where = f"trace: {self.trace}" if self.trace else "events sent to the relay"
+            where = f"; trace: {self.trace}" if self.trace else ""
             dropped = self.tracer.dropped
             self.progress.write(f"probes: {self.shipper.shipped} events from {tracepoints} tracepoints "
-                                f"({self.tracer.backend}, {self.tracer.trigger}), {dropped} dropped; {where}\n")
+                                f"({self.tracer.backend}, {self.tracer.trigger}), {dropped} dropped{where}\n")
             for error in self.shipper.errors:
                 self.progress.write(f"probes: {error}\n")
         if self.relay is not None and self.relay.refused:
             raise ExportError(self.relay.refused)
+        if self.progress is not None and delivery is not None:
+            self.progress.write(f"probes: {delivery.line()}\n")
+        return delivery
 
 
 def default_trace_path(node: str) -> Path:
@@ -99,7 +105,8 @@ class LaunchProbes:
     shipper: TailShipper | None = None
     thread: threading.Thread | None = None
 
-    def stop(self) -> None:
+    def stop(self) -> Delivery | None:
+        """Finish the trace and write the summary; what the relay stored (None without --relay)."""
         try:
             stages, events, dropped = self.tracer.finish()  # the end line: the shipper sends the rest, closes
         except TraceError as exc:
@@ -111,6 +118,7 @@ class LaunchProbes:
         if self.progress is not None and stages is not None:
             self.progress.write(f"probes: {events} events from {stages} stages (the dcuscope tracer, every element), "
                                 f"{dropped} dropped; trace: {self.trace}\n")
+        return self.shipper.delivery if self.shipper is not None else None
 
 
 def _start_tracer(config: PipelineConfig, relay: str | None, token: str | None, progress: TextIO | None,

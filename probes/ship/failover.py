@@ -72,6 +72,8 @@ class Failover:
         """The relay of ``urls`` in use: connected, or the one tried next."""
         self._node, self._token, self._backoff = node, token, backoff_s
         self.last_error = ""
+        self.tried: list[str] = []
+        """The relays of ``urls`` tried so far, in the order first tried (the node's summary names them)."""
         self.refused: str | None = None
         """Why the relay refused this node (a wrong or missing token), if it did."""
         self._moves_said: set[tuple[str, str, str]] = set()
@@ -162,6 +164,8 @@ class Failover:
                        on_ack: Callable[[dict], None]) -> tuple[Link, dict, dict] | Miss:
         """A link that said hello (``make_hello()`` once connected), with the hello and the relay's
         reply; or why not."""
+        if self.url not in self.tried:
+            self.tried.append(self.url)
         try:
             link = await Link.open(session, self.url, self._token, on_ack)
         except Refused as exc:

@@ -37,6 +37,7 @@ from dcuscope.probes.clocks.sysclock import DEFAULT_UDS
 from dcuscope.probes.clocks.udpclock import parse_offer
 from dcuscope.probes.ship.aio import describe, wait_event
 from dcuscope.probes.ship.clockreport import ClockReporter
+from dcuscope.probes.ship.delivery import Delivery
 from dcuscope.probes.ship.errors import ExportError
 from dcuscope.probes.ship.failover import Failover
 from dcuscope.probes.ship.nodetls import RelayTls
@@ -157,6 +158,12 @@ class RelayExporter:
         """Events this node will never deliver (buffer overflow)."""
         return self.outbox.lost
 
+    def delivery(self) -> Delivery:
+        """What this run delivered so far (after ``close``: what it delivered)."""
+        box = self.outbox
+        return Delivery(box.written + box.shed, box.acked, list(self.relays.tried), self.relays.last_error,
+                        self.refused)
+
     def counters(self) -> dict:
         box = self.outbox
         return {
@@ -164,7 +171,7 @@ class RelayExporter:
             "connects": self._connects, "batches": box.next_seq,
             "written": box.written, "sent": box.sent, "acked": box.acked, "lost": self.lost,
             "buffered": box.unacked_n + box.pending_n, "retries": box.retries,
-            "last_error": self.relays.last_error, "clock_via": self.clocks.via,
+            "last_error": self.relays.last_error, "tried": list(self.relays.tried), "clock_via": self.clocks.via,
             "clock_forged": self.clocks.forged,
         }
 
@@ -253,8 +260,6 @@ class RelayExporter:
         if self._link is not None:
             # A short run still leaves the relay its clock estimate.
             await wait_event(self._synced, max(0.0, acks_until - time.monotonic()))
-        if box.unacked and not self.refused:  # a refusal is the whole story
-            log.warning("relay exporter %s: %d events not acknowledged at close", self.node, box.unacked_n)
         link = self._link
         if link is not None and box.doubtful:
             try:

@@ -25,6 +25,7 @@ import numpy as np
 
 from dcuscope.core.clocks import PretendClock
 from dcuscope.probes.clocks.sysclock import DEFAULT_UDS
+from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
 from dcuscope.probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
 from dcuscope.probes.ship.relayexport import RelayExporter
 from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
@@ -101,8 +102,11 @@ def feed(exporter: RelayExporter, events: np.ndarray, *, paced: bool, clock: Pre
     return len(events)
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m dcuscope.probes.ship.simnode", description=__doc__.splitlines()[0])
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m dcuscope.probes.ship.simnode", description=__doc__.splitlines()[0],
+        epilog=f"Exit status: 0 every event acknowledged by a relay, {UNACKNOWLEDGED_STATUS} not (the JSON line on "
+               "stdout counts them), 2 bad arguments.")
     p.add_argument("--relay", required=True)
     p.add_argument("--node", required=True)
     p.add_argument("--token", default=os.environ.get(TOKEN_ENV))
@@ -126,7 +130,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="cut batches every --flush-interval or at --batch-events, not as soon as the link is idle "
                         "(the behaviour before adaptive batching, for side-by-side benchmarks)")
     p.add_argument("--max-buffer-events", type=int, default=2_000_000)
-    p.add_argument("--close-timeout", type=float, default=30.0)
+    p.add_argument("--close-timeout", type=float, default=30.0, metavar="S",
+                   help="at the end, keep trying every --relay for up to S seconds until all is acknowledged "
+                        "(default 30)")
     p.add_argument("--ptp-socket", default=DEFAULT_UDS, help=f"the local ptp4l's UDS, read with pmc (default {DEFAULT_UDS})")
     p.add_argument("--out", help="write header and shipped events here (.npz)")
     p.add_argument("--linger", action="store_true",
@@ -134,7 +140,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--until-stdin-closes", action="store_true",
                    help="with --paced: stop writing events when standard input closes (a test ends the run when "
                         "its check is done); --out holds those written")
-    args = p.parse_args(argv)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     tls = tls_from_args(args)
 
     pretend = PretendClock(args.clock_offset_ns, args.clock_drift_ppm, start_ns=args.clock_start_ns)
@@ -160,7 +170,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         np.savez(args.out, events=events, header=json.dumps(header.to_dict()))
     print(json.dumps(dict(exporter.counters(), events=len(events), seconds=time.monotonic() - started)), flush=True)
-    return 0
+    delivery = exporter.delivery()
+    print(f"simnode {args.node}: {delivery.line()}", file=sys.stderr, flush=True)
+    return 0 if delivery.complete else UNACKNOWLEDGED_STATUS
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ from typing import Callable
 
 import numpy as np
 
+from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS, Delivery
 from dcuscope.probes.ship.errors import ExportError
 from dcuscope.probes.ship.nodetls import RelayTls
 from dcuscope.probes.ship.relayexport import RelayExporter
@@ -43,9 +44,17 @@ class TailShipper:
         self.exporter: RelayExporter | None = None
         self.sent = 0
         self.runs = 0
+        self._delivered = Delivery()
+        """What the relay runs closed so far delivered."""
+
+    @property
+    def delivery(self) -> Delivery:
+        """What this shipper's relay runs delivered: the closed ones, and the open one so far."""
+        return self._delivered + self.exporter.delivery() if self.exporter is not None else self._delivered
 
     def run(self, stop: threading.Event, settle_s: float = 1.0, wait_s: float = 60.0) -> int:
-        """Ship until the trace ends or ``stop`` is set; 0 done, 1 the trace never named a stage."""
+        """Ship until the trace ends or ``stop`` is set; 0 done, 1 the trace never named a stage,
+        UNACKNOWLEDGED_STATUS the relays did not acknowledge every event."""
         pending, header = self._settle(stop, settle_s, wait_s)
         if header is None:
             return 0 if stop.is_set() else 1
@@ -69,9 +78,10 @@ class TailShipper:
                 ended, dropped = update.ended, update.dropped
         self._close(dropped)
         state = "ended" if ended else "still being written"
-        self.say(f"ship: {self.sent} events of {self._name(self.follower.header)} sent to {self.relay} in "
-                 f"{self.runs} run(s); the trace is {state}")
-        return 0
+        delivery = self.delivery
+        self.say(f"ship: {self._name(self.follower.header)}, {self.runs} run(s), the trace is {state}; "
+                 f"{delivery.line()}")
+        return 0 if delivery.complete else UNACKNOWLEDGED_STATUS
 
     def _settle(self, stop, settle_s: float, wait_s: float) -> tuple[list[np.ndarray], TraceHeader | None]:
         """Events read until the stages stayed the same for settle_s (or the trace ended)."""
@@ -113,5 +123,6 @@ class TailShipper:
         exporter, self.exporter = self.exporter, None
         if exporter is not None:
             exporter.close(dropped)
+            self._delivered += exporter.delivery()
             if exporter.refused:
                 raise ExportError(exporter.refused)

@@ -1,6 +1,8 @@
 """``dcuscope trace -- CMD``: gst-launch-1.0, a C program and a Python program traced unchanged; the
-signals go to CMD first; CMD's exit status comes back; shipped live to a relay, the stored run is
-the trace file's run (``dcuscope compare`` reads both the same)."""
+signals go to CMD first; CMD's exit status comes back, a failed CMD's with its stderr's last line,
+its empty trace never replacing an earlier one; shipped live to a relay, the stored run is the
+trace file's run (``dcuscope compare`` reads both the same), and an unreachable relay is a
+non-zero exit."""
 
 from __future__ import annotations
 
@@ -14,9 +16,11 @@ import time
 
 import pytest
 
+from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
 from dcuscope.probes.trace.tracefile import read_trace
 from dcuscope.relay.store.runs import list_sessions
 from tests.conftest import REPO, cli_env, run_cli
+from tests.ports import free_port
 from tests.ui.helpers import RelayThread
 
 APP_SOURCE = REPO / "tests" / "probes" / "capture" / "data" / "probed_app.c"
@@ -118,6 +122,9 @@ def test_shipped_live_the_stored_run_is_the_trace(tmp_path):
                          "videotestsrc", "num-buffers=120", "!", "identity", "name=work", "sleep-time=1000", "!",
                          "fakesink", cwd=tmp_path)
         assert result.returncode == 0, result.stderr
+        events = len(read_trace(trace).events)
+        assert f"relay: {events} events stored (acknowledged), 0 not acknowledged; relays tried: {relay.url}\n" \
+            in result.stderr
         runs = [r for s in list_sessions(tmp_path / "relay.db") for r in s["runs"] if r["node"] == "SHIP-1"]
         assert len(runs) == 1, runs
         doc = json.loads(run_cli("compare", trace, f"run:{runs[0]['run']}", "--db", tmp_path / "relay.db",
@@ -135,3 +142,27 @@ def test_without_a_command_or_with_a_missing_one_exit_2(tmp_path):
         result = run_cli("trace", *args, cwd=tmp_path)
         assert result.returncode == 2 and says in result.stderr, result.stderr
         assert len(result.stderr.splitlines()) == 1
+
+
+def test_an_unreachable_relay_within_close_timeout_exits_non_zero_saying_nothing_was_stored(tmp_path):
+    url, trace = f"http://127.0.0.1:{free_port()}", tmp_path / "lonely.trace.jsonl"  # nothing listens there
+    result = run_cli("trace", "--relay", url, "--close-timeout", "1", "--node", "LONELY", "-o", trace, "--",
+                     "gst-launch-1.0", "-q", "videotestsrc", "num-buffers=10", "!", "fakesink", cwd=tmp_path)
+    assert result.returncode == UNACKNOWLEDGED_STATUS, result.stderr
+    events = len(read_trace(trace).events)  # the trace still holds them all
+    assert f"relay: 0 events stored (acknowledged), {events} not acknowledged; relays tried: {url}; last error: " \
+           f"cannot reach relay {url}" in result.stderr
+
+
+def test_a_failed_app_is_reported_as_such_and_the_earlier_trace_is_kept(tmp_path):
+    trace = tmp_path / "vm.trace.jsonl"
+    trace.write_text("an earlier run's trace\n")
+    result = run_cli("trace", "--node", "vm", "--", "gst-launch-1.0", "videotestsrc", "num-buffers=10", "!",
+                     "nosuchelement", "!", "fakesink", cwd=tmp_path)
+    assert result.returncode == 1, result.stderr  # gst-launch-1.0's own
+    assert result.stderr.splitlines()[-1] == \
+        'dcuscope: gst-launch-1.0 failed (exit status 1): WARNING: erroneous pipeline: no element "nosuchelement"'
+    assert f"wrote no trace to {trace}: it ran no GStreamer pipeline" in result.stderr
+    assert f"{trace}, an earlier run's, is kept as it was" in result.stderr and "header" not in result.stderr
+    assert trace.read_text() == "an earlier run's trace\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [trace.name]  # no TRACE.previous left

@@ -8,6 +8,7 @@ import time
 import pytest
 import socketio
 
+from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
 from dcuscope.relay.api.ui import DEFAULT_PUSH_HZ
 from dcuscope.relay.live.framepack import unpack_push
 from tests.conftest import run_cli
@@ -39,7 +40,7 @@ def test_token_refusals(tmp_path):
         for name, token in (("intruder", None), ("viewer", VIEWER)):
             bad = start_node(relay.url, name, tmp_path / f"{name}.npz", frames=20, fps=50, token=token,
                              extra=["--close-timeout", "2"])
-            counters = finish_node(bad, 30)
+            counters = finish_node(bad, 30, status=UNACKNOWLEDGED_STATUS)
             assert counters["acked"] == 0 and "refused the token" in counters["last_error"], name
         assert get_json(f"{relay.url}/api/health", VIEWER)["refused"]["role"] >= 1
         good = start_node(relay.url, "DCU-1", tmp_path / "good.npz", frames=20, fps=50, token=TOKEN)

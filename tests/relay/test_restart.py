@@ -7,6 +7,7 @@ import time
 
 import numpy as np
 
+from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
 from dcuscope.probes.trace.delays import node_stats
 from dcuscope.relay.store.runs import load_runs
 from tests.ports import free_port
@@ -55,7 +56,7 @@ def test_outage_beyond_the_buffer_is_counted_and_reported(tmp_path):
         relay.kill9()
         time.sleep(4.0)
         relay = RelayProcess(db, port=port)
-        counters = finish_node(node, 90)
+        counters = finish_node(node, 90, status=UNACKNOWLEDGED_STATUS)
         assert counters["lost"] > 1000
         assert counters["acked"] + counters["lost"] == counters["events"]
         nodes = wait_for(lambda: [n for n in get_json(f"{relay.url}/api/nodes") if n["ended"]], 10, what="end")

@@ -5,7 +5,10 @@ evicted batches leave no gap at the relay; the probe shipper waits for its close
 from __future__ import annotations
 
 import asyncio
+import json
 import math
+import subprocess
+import sys
 import time
 
 import numpy as np
@@ -15,6 +18,7 @@ from dcuscope.core.gst import Gst
 from dcuscope.plugins import framestamp
 from dcuscope.probes.capture.shipper import Shipper
 from dcuscope.probes.capture.tracer import attach
+from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
 from dcuscope.probes.ship.errors import ExportError
 from dcuscope.probes.ship.relayexport import RelayExporter
 from dcuscope.probes.ship.simnode import header_for, synth_events
@@ -46,6 +50,21 @@ def test_unreachable_relay_write_returns_at_once_and_losses_are_counted():
     exporter.close(dropped=3)
     assert time.perf_counter() - t < 5.0
     assert exporter.counters()["written"] == len(events)
+    delivery = exporter.delivery()
+    assert (delivery.events, delivery.stored, delivery.tried) == (len(events), 0, [url]) and not delivery.complete
+    assert delivery.line().startswith(f"relay: 0 events stored (acknowledged), {len(events)} not acknowledged; "
+                                      f"relays tried: {url}; last error: cannot reach relay {url}")
+
+
+def test_the_simulated_node_exits_non_zero_when_its_events_were_not_all_acknowledged():
+    url = f"http://127.0.0.1:{free_port()}"  # nothing listens there
+    node = subprocess.run([sys.executable, "-m", "dcuscope.probes.ship.simnode", "--relay", url, "--node", "lonely",
+                           "--frames", "5", "--close-timeout", "1"], capture_output=True, text=True, timeout=60)
+    assert node.returncode == UNACKNOWLEDGED_STATUS, node.stderr
+    counters = json.loads(node.stdout.splitlines()[-1])
+    assert counters["acked"] == 0 and counters["tried"] == [url]
+    assert node.stderr.splitlines()[-1].startswith(f"simnode lonely: relay: 0 events stored (acknowledged), "
+                                                   f"{counters['events']} not acknowledged; relays tried: {url}")
 
 
 def test_bad_arguments_are_user_errors():
