@@ -14,6 +14,8 @@ from dcuscope.core.errors import DcuscopeError, PipelineError
 from dcuscope.capacity.command import add_capacity_parser
 from dcuscope.comparecommand import add_compare_parser
 from dcuscope.dbcommand import add_db_parser
+from dcuscope.helpformat import use_everywhere
+from dcuscope.sessionscommand import add_sessions_parsers
 from dcuscope.shipcommand import add_ship_parser
 from dcuscope.shipped import add_configs_parser
 from dcuscope.traceapp import add_trace_parser
@@ -44,7 +46,9 @@ SIGTERM ends the run cleanly (end-of-stream, so the MP4 is finalised), as --dura
 never does. Files drain: every frame read is processed. Live sources (cameras, streams, live:
 true) stop at once instead: frames still queued (a pipeline that cannot keep up) are dropped
 and counted (reason "stopped" in the trace), so that the run ends within about a batch's time.
-Exit status: 0 done, 1 the pipeline failed, 2 bad configuration or arguments.
+Exit status: 0 done, 1 the pipeline failed, 2 bad configuration or arguments, 3 the run went
+well but --relay did not acknowledge every probe event within --close-timeout (the summary's
+"relay:" line counts them; a --trace file still holds them), 130 aborted.
 """
 
 PLUGIN_EPILOG = """\
@@ -156,6 +160,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_trace_parser(sub)
     add_relay_parser(sub)
     add_db_parser(sub)
+    add_sessions_parsers(sub)
+    use_everywhere(parser)
     return parser
 
 

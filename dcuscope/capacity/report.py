@@ -41,48 +41,53 @@ def _dropped(figs: dict) -> str:
     return f"{total} (" + ", ".join(f"{k} {v}" for k, v in figs["dropped"].items()) + ")"
 
 
+def _cpu(c: dict) -> str:
+    cpu = "n/a" if c.get("cpu_cores") is None else f"{c['cpu_cores']:.2f}"
+    if c.get("server_cores") is not None:
+        cpu += f" + serve-rtsp {c['server_cores']:.2f}"
+    return cpu
+
+
 def count_rows(doc: dict) -> list[list[str]]:
-    """Per count: streams, fps/stream, A, p50, p95, p99, limiting stage, dropped, outcome."""
+    """Per count: streams, fps/stream, A, p50, p95, p99, limiting stage, dropped, CPU cores, outcome."""
     rows = []
     for c in doc["counts"]:
         f = c.get("figures")
         if not f:
-            rows.append([str(c["streams"]), "n/a", "n/a", "n/a", "n/a", "n/a", "n/a", "n/a", f"failed: {c['error']}"])
+            rows.append([str(c["streams"])] + ["n/a"] * 8 + [f"failed: {c['error']}"])
             continue
         fps = f"{f['fps']['value']:.1f} ({f['fps']['low']:.1f}–{f['fps']['high']:.1f})" if f["fps"] else "n/a"
         if f["fps"] and abs(f["fps_mean"] - f["fps"]["value"]) >= 0.05:
             fps += f", mean {f['fps_mean']:.1f}"
         rows.append([str(c["streams"]), fps] + [_est(f["e2e"].get(k)) for k in E2E_FIGURES]
-                    + [limiting(c["limiting"]), _dropped(f), c["outcome"] + (f": {c['error']}" if c["error"] else "")])
+                    + [limiting(c["limiting"]), _dropped(f), _cpu(c),
+                       c["outcome"] + (f": {c['error']}" if c["error"] else "")])
     return rows
 
 
 COUNT_HEAD = ["streams", "fps/stream (slowest)", "A = S/n, mean ms", "p50 ms", "p95 ms", "p99 ms", "limiting stage",
-              "dropped", "bounds"]
+              "dropped", "CPU cores", "bounds"]
+STAGE_HEAD = ["streams", "stage", "delay ms", "service ms", "wait ms", "utilization"]
+BETWEEN = "(between stages)"
+"""The row of the frame delay spent in no stage: the delays of a count's rows sum to its A."""
 
 
 def stage_rows(doc: dict) -> tuple[list[str], list[list[str]]]:
-    """Figure 12's data: per count, each stage's delay = service + wait (ms) and utilization."""
+    """Figure 12's data, a row per count and stage: its mean delay, its service and wait (delay =
+    service + wait, ms) and its utilization; then the time between stages."""
     stages = list(dict.fromkeys(s for c in doc["counts"] if c.get("figures") for s in c["figures"]["stages"]))
     rows = []
     for c in doc["counts"]:
         f = c.get("figures")
         if not f:
             continue
-        cells = []
         for s in stages:
             st = f["stages"].get(s)
-            if st is None:
-                cells.append("–")
-                continue
-            split = f" = {_ms(st['service'])} + {_ms(st['wait'])}" if st["service"] is not None else ""
-            cells.append(f"{_ms(st['delay'])}{split} · {_pct(st['utilization'])}")
-        cells.append(_ms(f["between_ms"]))
-        cpu = "n/a" if c.get("cpu_cores") is None else f"{c['cpu_cores']:.2f}"
-        if c.get("server_cores") is not None:
-            cpu += f" + serve-rtsp {c['server_cores']:.2f}"
-        rows.append([str(c["streams"])] + cells + [cpu])
-    return ["streams"] + stages + ["between", "CPU cores"], rows
+            if st is not None:
+                rows.append([str(c["streams"]), s, _ms(st["delay"]), _ms(st["service"]), _ms(st["wait"]),
+                             _pct(st["utilization"])])
+        rows.append([str(c["streams"]), BETWEEN, _ms(f["between_ms"]), "–", "–", "–"])
+    return STAGE_HEAD, rows
 
 
 def prediction_rows(doc: dict) -> list[list[str]]:
@@ -111,9 +116,15 @@ PREDICTION_HEAD = ["streams", "A measured", "A predicted", "fps measured", "fps 
                    "busiest thread predicted"]
 
 
+PLACEHOLDERS = ("–", "n/a")
+"""What a cell of figures holds where it has none."""
+
+
 def _table(head: list[str], rows: list[list[str]]) -> list[str]:
     widths = [max(len(r[i]) for r in [head, *rows]) for i in range(len(head))]
-    fmt = lambda r: "  ".join(x.ljust(w) if i in (0,) or not x[:1].isdigit() else x.rjust(w)  # noqa: E731
+    # A column of figures is right-aligned whole, its "–" and "n/a" too; the first (streams) reads as a label.
+    numeric = [i > 0 and all(r[i][:1].isdigit() or r[i] in PLACEHOLDERS for r in rows) for i in range(len(head))]
+    fmt = lambda r: "  ".join(x.rjust(w) if numeric[i] else x.ljust(w)  # noqa: E731
                               for i, (x, w) in enumerate(zip(r, widths))).rstrip()
     return [fmt(head)] + [fmt(r) for r in rows]
 
@@ -134,14 +145,17 @@ def render(doc: dict, markdown: bool = False) -> str:
                 "#### Frame delay per stream count (the paper's Tables 4–6), 95 % intervals in brackets", ""]
         out += table(COUNT_HEAD, count_rows(doc)) + [""]
         head, rows = stage_rows(doc)
-        out += ["Per stage, ms: delay = service + wait · utilization (Figure 12's data):" if not markdown else
-                "#### Per stage, ms: delay = service + wait · utilization (Figure 12's data)", ""]
+        out += ["Per stage (Figure 12's data): mean delay in ms = service (its own work) + wait (queued,\n"
+                "batching, blocked downstream); utilization: the share of the run it was busy:" if not markdown else
+                "#### Per stage (Figure 12's data): mean delay = service + wait, and utilization", ""]
         out += table(head, rows) + [""]
     p = doc.get("prediction")
     if p:
         out += ["Prediction from 1 and 2 streams beside the measurement:" if not markdown else
                 "#### Prediction from 1 and 2 streams beside the measurement", ""]
-        out += table(PREDICTION_HEAD, prediction_rows(doc)) + ["", describe(p)]
+        out += table(PREDICTION_HEAD, prediction_rows(doc))
+        if describe(p) != doc.get("answer"):  # --predict: the answer is the prediction, said once, last
+            out += ["", describe(p)]
         if p["unpredicted"]:
             out.append(f"not predicted (the model extrapolates e2e figures and stage means only): {', '.join(p['unpredicted'])}")
         out.append("")
@@ -149,5 +163,5 @@ def render(doc: dict, markdown: bool = False) -> str:
         out.append(f"note: {note}")
     answer = doc.get("answer")
     if answer:
-        out += ["", f"**{answer}**" if markdown else answer]
+        out += [""] * (out[-1] != "") + [f"**{answer}**" if markdown else answer]
     return "\n".join(out).rstrip() + "\n"

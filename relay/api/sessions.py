@@ -1,7 +1,8 @@
 """Stored sessions, browsed like live ones: HTTP routes over the relay's database.
 
 - ``GET /api/sessions/{session}/nodes``: [{node, run, stages, sources, frames, events, first_ns,
-  last_ns, dropped, lost, clock, ended}], one per run of the session (a node seen twice: NODE, NODE_2)
+  last_ns, dropped, lost, clock, ended}], one per run of the session, ``node`` its name
+  (:func:`dcuscope.relay.store.runs.run_name`: a node seen twice, ``NODE · run ID8`` each)
 - ``GET /api/sessions/{session}/frames?node=NAME&since=CURSOR&limit=N``: the node's complete
   frames in the order their chains ended, shaped as ``GET /api/frames`` (cursor = position, from 1)
 - ``GET /api/sessions/{session}/stats?node=NAME``: ``probes.trace.delays.node_stats`` over the node's
@@ -34,7 +35,6 @@ from dcuscope.probes.trace.delays import FrameDelays, delay_stats, frame_delays
 from dcuscope.probes.trace.events import TraceHeader
 from dcuscope.probes.trace.facts import Accounting
 from dcuscope.probes.trace.frametable import frame_table
-from dcuscope.probes.trace.stats import unique_name
 from dcuscope.relay.api.routes import int_arg
 from dcuscope.relay.clock.correction import Correction
 from dcuscope.relay.clock.entry import clock_entry
@@ -42,7 +42,7 @@ from dcuscope.relay.errors import RelayError, http_error
 from dcuscope.relay.guard.policy import add_read
 from dcuscope.relay.live.framejson import block, frame_dicts
 from dcuscope.relay.live.state import RelayState
-from dcuscope.relay.store.runs import StoredRun, load_runs
+from dcuscope.relay.store.runs import StoredRun, load_runs, run_names
 
 CACHED_SESSIONS = 3
 LIVE_TTL_S = 2.0
@@ -112,13 +112,8 @@ def pair_run(run: StoredRun, name: str) -> StoredNode:
 
 def load_session_nodes(path, session: int) -> list[StoredNode]:
     """Every run of a stored session, paired (blocking: call it in a worker thread)."""
-    nodes: list[StoredNode] = []
-    taken: set[str] = set()
-    for run in load_runs(path, session, corrected=False):
-        name = unique_name(run.header.node, taken)
-        taken.add(name)
-        nodes.append(pair_run(run, name))
-    return nodes
+    runs = load_runs(path, session, corrected=False)
+    return [pair_run(run, name) for run, name in zip(runs, run_names([(r.header.node, r.run) for r in runs]))]
 
 
 class SessionCache:

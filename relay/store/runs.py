@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -159,11 +160,23 @@ def session_nodes(db: str | Path, session: int) -> list[str]:
         database.close()
 
 
+def run_name(node: str, run: str, twins: bool) -> str:
+    """A stored run's name in its session, the one name the CLI (``stats --session``, ``runs``,
+    ``compare``) and the page give it: its node, and where the session holds ``twins`` (other runs
+    of the node) the first 8 digits of its id, as ``run:ID`` takes it: ``vm · run fcef7528``."""
+    return node + (f" · run {run[:RUN_DIGITS_SHOWN]}" if twins else "")
+
+
+def run_names(runs: list[tuple[str, str]]) -> list[str]:
+    """The :func:`run_name` of each (node, run id) of one session's runs."""
+    count = Counter(node for node, _ in runs)
+    return [run_name(node, run, count[node] > 1) for node, run in runs]
+
+
 def run_label(session: int, node: str, run: str, twins: bool) -> str:
-    """A stored run as ``dcuscope compare`` and the page's Compare tab name it: ``session 3 · DCU-1``;
-    where the session holds ``twins`` (other runs of the node), with the first 8 digits of the run's
-    id, as ``run:ID`` takes it: ``session 1 · vm · run fcef7528``."""
-    return f"session {session} · {node}" + (f" · run {run[:RUN_DIGITS_SHOWN]}" if twins else "")
+    """A stored run named across sessions (``dcuscope compare``, the page's Compare tab):
+    ``session 3 · DCU-1``, ``session 1 · vm · run fcef7528`` (:func:`run_name`)."""
+    return f"session {session} · {run_name(node, run, twins)}"
 
 
 def list_sessions(db: str | Path) -> list[dict]:

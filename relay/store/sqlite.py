@@ -101,6 +101,10 @@ def connect(path: str | Path, create: bool = True) -> sqlite3.Connection:
         raise RelayError(f"{path}: no such relay database")
     try:
         conn = sqlite3.connect(str(path), timeout=30, isolation_level=None, check_same_thread=False)
+        # A reader of a store checks that it is one before anything below writes to the file.
+        if not create and conn.execute("SELECT 1 FROM sqlite_master WHERE name = 'meta'").fetchone() is None:
+            conn.close()
+            raise RelayError(f"{path}: not a dcuscope relay database (an SQLite file without dcuscope's tables)")
         # A new file gives the pages compaction frees back on request (relay.store.compaction);
         # an older one keeps them for later rows (setting this needs an empty file, before WAL).
         conn.execute("PRAGMA auto_vacuum=INCREMENTAL")

@@ -4,6 +4,8 @@ bad input (exit 2, one line, before anything runs)."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -191,10 +193,34 @@ def test_the_report_has_the_papers_tables_the_prediction_and_the_answer():
     doc["capacity"], doc["answer"] = answer(counts, 8)
     text = render(doc)
     assert "A = S/n, mean ms" in text and "300.0 (299.0–301.0)" in text and "s0 98%, thread 99% sat." in text
-    assert "s0" in text and "= 20.0 + 0.0 · 20%" in text and "note: a note" in text
+    assert "note: a note" in text
+    # Figure 12's data names its terms: a row per count and stage, delay = service + wait
+    head = next(line for line in text.splitlines() if line.startswith("streams  stage"))
+    assert re.split(r"\s{2,}", head) == ["streams", "stage", "delay ms", "service ms", "wait ms", "utilization"]
+    assert ["1", "s0", "20.0", "20.0", "0.0", "20%"] in [line.split() for line in text.splitlines()]
+    assert "·" not in text.split("Per stage")[1].split("Prediction")[0]
     assert "predicted capacity 4" in text and text.rstrip().endswith(doc["answer"])
     md = render(doc, markdown=True)
     assert "| streams | fps/stream (slowest)" in md and f"**{doc['answer']}**" in md
+
+
+def test_a_prediction_alone_says_its_answer_once_and_its_columns_line_up():
+    counts = [count(1, HOLDS, u=(0.20, 0.05)), count(2, HOLDS, u=(0.42, 0.06), a=70.0)]
+    prediction = predict(*counts, [], n_cores=2)
+    doc = {"plan": {"config": "x.yaml", "duration_s": 20.0, "warmup_s": 5.0, "fps_floor_pct": 90.0, "max_streams": 8,
+                    "predict_only": True},
+           "bounds": ["fps ≥ 90 % of the source's rate"], "counts": counts, "prediction": prediction, "notes": [],
+           "answer": describe(prediction)}
+    text = render(doc)
+    assert text.count(describe(prediction)) == 1 and text.rstrip().endswith(describe(prediction)), text
+    lines = text.splitlines()
+    table = lines[lines.index("Prediction from 1 and 2 streams beside the measurement:") + 2:]
+    table = table[:table.index("")]
+    assert [r.split()[0] for r in table[1:]] == ["1", "2", "3", "4", "5"]
+    # every cell of a column ends where its header ends, the measured ones of 3 streams and more ("–") too
+    ends = [m.end() for m in re.finditer(r"\S+(?: \S+)*", table[0])]
+    for row in table[1:]:
+        assert [m.end() for m in re.finditer(r"\S+", row)][1:] == ends[1:], (table[0], row)
 
 
 @pytest.mark.parametrize("argv, says", [

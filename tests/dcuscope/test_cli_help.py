@@ -54,3 +54,42 @@ def test_run_help_gives_both_clock_aids_as_testing_aids_and_relay_help_the_clock
     assert "--clock-offset-ms MS TESTING AID: " in run and "--clock-drift-ppm PPM TESTING AID: " in run, run
     relay = " ".join(run_cli("relay", "--help", timeout=60).stdout.split())
     assert "--clock-port N" in relay and "0 turns it off" in relay and "clock_packets_per_s" in relay, relay
+
+
+def every_parser(parser: argparse.ArgumentParser, name: str = "dcuscope"):
+    """(name, parser) of ``parser`` and of every subcommand under it, nested ones too (``db migrate``)."""
+    yield name, parser
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub, p in action.choices.items():
+                yield from every_parser(p, f"{name} {sub}")
+
+
+@pytest.mark.parametrize("columns, most", [("300", 100), ("72", 72)])
+def test_every_help_line_wraps_at_the_terminal_width_and_at_100_columns_off_a_terminal(monkeypatch, columns, most):
+    monkeypatch.setenv("COLUMNS", columns)  # pytest's stdout is no terminal: 300 is capped at 100
+    long = [(name, line) for name, p in every_parser(build_parser()) for line in p.format_help().splitlines()
+            if len(line) > most]
+    assert long == []
+
+
+def test_a_wrapped_example_still_runs_and_a_hand_written_usage_wraps_whole_groups(monkeypatch):
+    monkeypatch.setenv("COLUMNS", "60")
+    text = subcommands()["plugin-path"].format_help()
+    example = text[text.index("example:"):text.index("  dcuscope stats dcu1")].splitlines()[1:]
+    assert len(example) > 3 and all(line.endswith(" \\") for line in example[:-1]), example
+    assert " ".join(line.strip().removesuffix(" \\") for line in example) == (
+        'GST_PLUGIN_PATH="$(dcuscope plugin-path)" GST_TRACERS="dcuscope(node=DCU-1,trace=dcu1.trace.jsonl)" '
+        "gst-launch-1.0 videotestsrc num-buffers=300 ! videoconvert ! x264enc ! fakesink")
+    monkeypatch.setenv("COLUMNS", "64")  # the widest group, 38 characters, fits after the 22 of "usage: dcuscope trace"
+    usage = subcommands()["trace"].format_usage()
+    assert "[--relay-cert FILE [--relay-key FILE]]" in usage.replace("\n", " ")
+    assert len(usage.splitlines()) > 2 and all(len(line) <= 62 for line in usage.splitlines()), usage
+
+
+def test_stored_runs_are_found_with_dcuscope_sessions_and_runs_not_the_http_api():
+    parsers = dict(every_parser(build_parser()))
+    assert [name for name, p in parsers.items() if "/api/sessions" in p.format_help()] == []
+    for name in ("dcuscope stats", "dcuscope export", "dcuscope compare"):
+        text = " ".join(parsers[name].format_help().split())
+        assert "dcuscope sessions --db DB" in text and "dcuscope runs --db DB" in text, name

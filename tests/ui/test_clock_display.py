@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+import re
 
 import numpy as np
 import pytest
@@ -251,7 +252,21 @@ def test_the_toggle_moves_each_nodes_bars_by_its_offset_and_says_which_clock(end
                    "the corrected tooltip")
     assert any(tip.splitlines()[-1].startswith(f"corrected to the relay's clock (estimate: {o} subtracted ± ")
                for o in said), tip
+    assert re.search(r" (ms|µs) subtracted ± [\d.,]+ \1\)$", tip), tip  # one unit for the offset and its bound
     page.mouse.move(5, 5)
+
+
+@pytest.mark.parametrize("clock_ms, bound_ms, raw, says", [
+    (-0.001, 0.0051, False, "corrected to the relay's clock (estimate: −1.0 µs subtracted ± 5.1 µs)"),
+    (3.0124, 0.051, False, "corrected to the relay's clock (estimate: +3.012 ms subtracted ± 0.051 ms)"),
+    (0.2, 1.5, True, "raw node clock (the relay subtracts +0.200 ms ± 1.500 ms)"),
+    (0.00001, 0.0051, False, "corrected to the relay's clock (estimate: 0.0 µs subtracted ± 5.1 µs)"),
+    (-2500.0, 0.04, False, "corrected to the relay's clock (estimate: −2.500000 s subtracted ± 0.000040 s)"),
+])
+def test_a_bars_clock_line_gives_the_offset_and_its_bound_in_one_unit(session_page, clock_ms, bound_ms, raw, says):
+    line = session_page.evaluate("""async ([clock, bound, raw]) => (await import('/stageview.js')).StageView
+        .describeClock({clock, bound, raw, applied: "estimate"})""", [clock_ms, bound_ms, raw])
+    assert line == says
 
 
 def _band_bound_ms(frames: list[dict], window: list[float]) -> tuple[float, float]:

@@ -8,7 +8,7 @@
 
 import { tint } from "./colours.js";
 import { columnCoverage, Intervals, serviceStart } from "./coverage.js";
-import { clockTicks, formatClock, formatClockPrecise, formatDelay } from "./timefmt.js";
+import { clockTicks, formatClock, formatClockPrecise, formatDelay, formatOffsetBound } from "./timefmt.js";
 
 export const GUTTER = 150;
 const AXIS_H = 30;
@@ -527,8 +527,8 @@ export class StageView {
 
   /** Which clock a bar's times are on: "raw node clock (...)" or "corrected: ... ± ...". */
   static describeClock(h) {
-    const offset = `${h.clock >= 0 ? "+" : "−"}${Math.abs(h.clock).toFixed(3)} ms`;
-    const bound = h.bound === h.bound ? ` ${formatBound(h.bound)}` : "";
+    const { offset, bound: said } = formatOffsetBound(h.clock, h.bound);  // one unit for both
+    const bound = said ? ` ${said}` : "";
     if (h.applied === "none" || h.applied === "ignored") {
       return `${h.raw ? "raw node clock" : "not corrected"}: the relay has no usable clock estimate (${h.applied})`;
     }

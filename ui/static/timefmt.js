@@ -33,6 +33,20 @@ export function formatDelay(ms) {
   return `${(ms / 1000).toFixed(3)} s`;
 }
 
+/**
+ * A clock offset and its bound (ms) in one unit, the larger one's: {offset: "−1.0 µs", bound: "± 5.1 µs"},
+ * {offset: "+3.012 ms", bound: "± 0.051 ms"} (two units side by side read as two scales). `bound`
+ * is "" where unknown (NaN); an offset that rounds to 0 has no sign ("−0" reads as a fault).
+ */
+export function formatOffsetBound(offsetMs, boundMs) {
+  const known = Number.isFinite(boundMs);
+  const big = Math.max(Math.abs(offsetMs), known ? Math.abs(boundMs) : 0);
+  const [scale, unit, digits] = big < 1 ? [1000, "µs", big < 0.01 ? 1 : 0] : big < 1000 ? [1, "ms", 3] : [0.001, "s", 6];
+  const text = (ms) => `${(Math.abs(ms) * scale).toFixed(digits)} ${unit}`;
+  const zero = Number((Math.abs(offsetMs) * scale).toFixed(digits)) === 0;
+  return { offset: `${zero ? "" : offsetMs >= 0 ? "+" : "−"}${text(offsetMs)}`, bound: known ? `± ${text(boundMs)}` : "" };
+}
+
 /** The smallest step of `steps` that is at least `minMs`, else the largest. */
 function stepAtLeast(steps, minMs) {
   for (const s of steps) if (s >= minMs) return s;
