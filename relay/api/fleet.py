@@ -13,7 +13,9 @@ nobody; cut off from the store, nothing says it does): ``state`` "relay silent",
 it last wrote the row, ``relay`` still naming it, ``fps`` None (nobody measures its rate now), and
 on the overview row the alert "relay silent: last heard N s ago". A relay that died lets its DCUs
 reconnect to another within seconds, whose rows then take over; one nobody refreshed for
-``ROW_TTL_S`` is deleted.
+``ROW_TTL_S`` is deleted. A run that ended stays listed for ``Limits.ended_keep_s`` (its relay then
+releases it, :meth:`RelayState.release_ended`); its row, no longer refreshed, leaves the others'
+lists after ``STALE_S``.
 """
 
 from __future__ import annotations
@@ -94,8 +96,9 @@ class Fleet:
             window = state.window(rs, fresh=False)
             drops = self._drops.setdefault(run, CountHistory()).recent(view["drops"], now)
             incomplete = self._incomplete.setdefault(run, CountHistory()).recent(view["frames"]["evicted"], now)
+            whole = rs.whole.get(rs.live, rs.dropped, False, len(state.runs)) if rs.ended else None
             rows[node] = overview_row(view, window, state.relay_name, state.frame_limits.limit_ns(node), drops,
-                                      incomplete)
+                                      incomplete, whole)
         self._drops = {r: h for r, h in self._drops.items() if r in state.runs}
         self._incomplete = {r: h for r, h in self._incomplete.items() if r in state.runs}
         self.rows, self.views = rows, views
@@ -123,7 +126,10 @@ class Fleet:
         for node, run, relay, updated_ns, view, row in stored:
             if node in rows:
                 continue
-            remote[node] = Remote(run, relay, int(updated_ns), json.loads(view), json.loads(row))
+            row = json.loads(row)
+            if row.get("ended") and now - int(updated_ns) > STALE_S * 1e9:
+                continue  # its relay no longer lists it (Limits.ended_keep_s), or is gone: it is stored, not live
+            remote[node] = Remote(run, relay, int(updated_ns), json.loads(view), row)
         self.remote = remote
         if self.mirrors is not None:
             for node in rows:

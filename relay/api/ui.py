@@ -256,6 +256,7 @@ class Ticker:
             self._pair(wanted)
         if now - self._fleet_at >= FLEET_PERIOD_S:
             self._fleet_at = now
+            self.state.release_ended()  # before the rows are built: a run that left is in none
             await self._push_fleet(wanted)
         if wanted:
             await self._push_stats(wanted)

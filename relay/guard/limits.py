@@ -62,6 +62,9 @@ class Limits:
     a new run of that name takes over and the old connection is closed; until then a new run is refused."""
     runs_held: int = 64
     """Runs whose live state the relay keeps in memory (ended and superseded runs leave first; they stay stored)."""
+    ended_keep_s: float = 60.0
+    """How long a run that ended stays among the fleet's live rows (the overview, /api/nodes) before its live state
+    leaves memory; it stays stored, in the page's session list and History."""
     # --- values ---
     clock_offset_s: float = 86400.0
     """Largest clock offset (node - relay) a sample or correction may state; beyond, the sample is rejected."""

@@ -4,7 +4,7 @@ A row holds what tells which DCU needs a look: its state (:func:`connection_stat
 run's rolling window (the figures the stage view's "window" shows), frames per second over all
 sources (None once the run ended: it has no rate, and says "ended"; a run gone silent reads 0
 within the window's 10 s, :meth:`dcuscope.relay.live.run.LiveRun.present_ns`), the frame delay p99, the
-bottleneck and its utilization, the clock's state, drops, and alerts: short texts for what the shipped Prometheus alert rules (configs/prometheus/dcuscope-rules.yml)
+bottleneck and its utilization (of a run that ended, its whole run's, ``figures`` saying which), the clock's state, drops, and alerts: short texts for what the shipped Prometheus alert rules (configs/prometheus/dcuscope-rules.yml)
 would fire on, judged here from the relay's own figures so that a page without Prometheus shows
 them too.
 """
@@ -43,21 +43,28 @@ class CountHistory:
 
 
 def overview_row(view: dict, window: dict, relay: str, limit_ns: int | None, drops_recent: int,
-                 incomplete_recent: int) -> dict:
+                 incomplete_recent: int, whole: dict | None = None) -> dict:
     """The row of one DCU: ``view`` as ``RelayState.node_view``, ``window`` its rolling-window
     statistics, ``relay`` the name of the relay holding it, ``limit_ns`` its frame delay limit
     (``--frame-limit``, None without one), ``drops_recent`` frames dropped or lost and
-    ``incomplete_recent`` frames given up incomplete (evicted) within DROPS_WINDOW_S."""
+    ``incomplete_recent`` frames given up incomplete (evicted) within DROPS_WINDOW_S.
+
+    A run that ended has no window to speak of (it empties as its frames age out, its p99 drifting
+    to nothing): its row gives ``whole``, the run's whole-run statistics, instead, and says so in
+    ``figures`` ("whole run"; "window" otherwise)."""
     fps_by_source = window.get("fps") or {}
     fps = float(sum(fps_by_source.values())) if fps_by_source and not view["ended"] else None
-    p99 = (window.get("frame") or {}).get("p99_ms")
-    neck = window.get("bottleneck")
+    at_end = view["ended"] and whole is not None
+    figures = whole if at_end else window
+    p99 = (figures.get("frame") or {}).get("p99_ms")
+    neck = figures.get("bottleneck")
     bottleneck = ({"stage": neck["stage"], "utilization": neck.get("utilization"), "saturated": neck.get("saturated")}
                   if neck else None)
     alerts = _alerts(view, bottleneck, p99, limit_ns, drops_recent, incomplete_recent)
     return {"node": view["node"], "run": view["run"], "relay": relay, "connected": view["connected"],
             "ended": view["ended"], "state": connection_state(view["connected"], view["ended"]), "fps": fps,
-            "p99_ms": p99, "frames": view["frames"]["shown"], "drops": view["drops"], "bottleneck": bottleneck,
+            "p99_ms": p99, "figures": "whole run" if at_end else "window", "frames": view["frames"]["shown"],
+            "drops": view["drops"], "bottleneck": bottleneck,
             "clock": view["clock"], "ptp": view["ptp"], "alerts": alerts, "updated_ns": time.time_ns()}
 
 

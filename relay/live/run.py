@@ -47,6 +47,7 @@ from dcuscope.probes.trace.facts import Accounting
 from dcuscope.probes.trace.frametable import MISSING, FrameTable, frame_events, frame_table_from_cells
 from dcuscope.relay.live import cmerge, framepack
 from dcuscope.relay.live.opentable import OpenTable
+from dcuscope.relay.live.sourcewindow import SourceWindow
 from dcuscope.relay.live.values import RELATIVE_ERROR, OriginSpans, RunValues
 
 NEVER = np.iinfo(np.int64).max
@@ -235,6 +236,7 @@ class LiveRun:
         self._first_origin: int | None = None
         self._last_end: int | None = None
         self.accounting = Accounting(self.stages)
+        self._source_window = SourceWindow(config.window_s)
         self._origins = OriginSpans()
         ring, recent = config.ring_frames, config.recent_frames
         self._ring = {"source": Grow(np.int32, cap=ring), "end": Grow(np.int64, cap=ring),
@@ -374,6 +376,7 @@ class LiveRun:
 
     def _merge(self, events: np.ndarray) -> None:
         self.accounting.add(events)
+        self._source_window.add(events)
         if self._open.compiled and self._open.n + len(events) <= self._open_cap:
             self._merge_compiled(events)
             return
@@ -678,6 +681,7 @@ class LiveRun:
             **delay_summary(values, self._session_summary),
             "fps": fps,
             "sources": self.accounting.sources(fps),
+            "span_s": values.span_ns / 1e9,
             "dropped": int(dropped),
             "frames": {"complete": self.finalised + n_open_complete,
                        "incomplete": self.evicted + len(fd) - n_open_complete},
@@ -715,7 +719,8 @@ class LiveRun:
             "end_ns": end,
             **delay_summary(series_of(values, self.stages, self._has_exit, self.accounting.threads())),
             "fps": fps,
-            "sources": self.accounting.sources(fps),
+            # Counted over the same window as the frames, as the statistics panel shows them side by side.
+            "sources": self._source_window.sources(self.accounting.sources(fps), cutoff),
             "frames": {"complete": len(values), "incomplete": incomplete},
         }
 

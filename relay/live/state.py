@@ -337,6 +337,17 @@ class RelayState:
         self._disown(run)
         self.rebalance()
 
+    def release_ended(self, now: float | None = None) -> list[str]:
+        """Release the runs that ended, their node gone, longer than ``Limits.ended_keep_s`` ago: the fleet's
+        live rows are for what runs (three ended runs beside two live ones would make five rows, more than a
+        page opens by itself). They stay stored. Returns the nodes whose run left."""
+        now = time.time() if now is None else now
+        keep = self.limits.ended_keep_s
+        gone = [rs for rs in self.runs.values() if rs.ended and rs.sid is None and now - rs.last_seen >= keep]
+        for rs in gone:
+            self.release(rs.run)
+        return [rs.node for rs in gone]
+
     async def reject(self, run: str, reason: str) -> None:
         """A run the relay closed for what it sent: kept apart from sessions, out of memory."""
         self.release(run)

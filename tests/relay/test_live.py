@@ -10,7 +10,7 @@ import pytest
 from dcuscope.probes.ship.simnode import header_for, synth_events
 from dcuscope.probes.ship.wire import SOURCE_LIMIT
 from dcuscope.probes.trace.delays import frame_delays, node_stats
-from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT, TraceHeader
+from dcuscope.probes.trace.events import DROP, ENTER, EVENT_DTYPE, EXIT, FACT, FACT_LOST_UPSTREAM, LATE, TraceHeader
 from dcuscope.probes.trace.frametable import frame_table
 from dcuscope.relay.live.run import LiveConfig, LiveRun
 from tests.probes.synth import pipeline_run
@@ -104,6 +104,33 @@ def test_window_covers_recent_frames_only():
     # A run silent for longer than the window has nothing in it.
     gone = run.window_stats(run.newest + 10_500_000_000)
     assert gone["frames"] == {"complete": 0, "incomplete": 0} and gone["fps"] == {"0": 0.0}
+
+
+def test_the_windows_sources_count_the_window_as_its_frames_do():
+    """The statistics panel shows the window's sources beside its frames: both over the last window_s, not
+    the sources over the whole run (871 delivered beside 102 frames)."""
+    header = header_for("n", 2)
+    events = synth_events(500, 2, 10.0, T0, seed=6)  # 50 s at 10 fps a source
+    # Two drops, one long before the window and one within it; a counter fact rising in both.
+    extra = np.zeros(4, EVENT_DTYPE)
+    extra["ts"] = [T0 + 5_000_000_000, T0 + 45_000_000_000, T0 + 5_000_000_000, T0 + 45_000_000_000]
+    extra["point"], extra["source"] = [DROP, DROP, FACT, FACT], 0
+    extra["code"] = [LATE, LATE, FACT_LOST_UPSTREAM, FACT_LOST_UPSTREAM]
+    extra["frame"] = [3, 450, 7, 10]  # a drop's frame; a fact's cumulative value
+    events = np.concatenate([events, extra])
+    events = events[np.argsort(events["ts"], kind="stable")]
+    run = LiveRun(header, LiveConfig(window_s=10.0))
+    feed(run, events, 300)
+    w, whole = run.window_stats(), run.run_stats()
+    assert whole["sources"]["0"]["delivered"] == 500 and whole["sources"]["0"]["dropped"] == {"late": 2}
+    assert whole["sources"]["0"]["lost_upstream"] == 10
+    delivered = sum(v["delivered"] for v in w["sources"].values())
+    # Origins are binned by 0.1 s and frames judged by their chain's end: a frame or two a source apart.
+    assert w["frames"]["complete"] - 4 <= delivered <= w["frames"]["complete"] + 4, (delivered, w["frames"])
+    assert 190 <= delivered <= 206
+    assert w["sources"]["0"]["dropped"] == {"late": 1} and w["sources"]["0"]["lost_upstream"] == 3
+    assert w["sources"]["1"]["dropped"] == {} and w["sources"]["1"]["lost_upstream"] == 0
+    assert whole["span_s"] == pytest.approx(50.0, abs=0.5)
 
 
 def _window_by_the_model(header, events, end_ns: int, window_s: float) -> dict:

@@ -54,6 +54,17 @@ def test_worst_first_is_down_then_alerts_then_bottleneck_utilization_then_p99_th
                    "a-twin", "ended", "quiet", "z-twin", "no-figures"]
 
 
+def test_an_ended_row_says_its_figures_are_its_whole_runs(page):
+    """The relay gives an ended run's whole-run p99 (its window empties): the row says whose they are."""
+    out = js(page, ROWS_JS + """
+        const text = (html) => { const d = document.createElement("div"); d.innerHTML = html; return d.textContent; };
+        const cells = (r) => m.rowCells(r, false, now).map(text);
+        return {ended: cells(row("vm", {connected: false, ended: true, fps: null, p99_ms: 6.85, figures: "whole run"})),
+                live: cells(row("live", {figures: "window"}))};""")
+    assert out["ended"][2] == "ended" and out["ended"][3] == "6.85 ms whole run"
+    assert out["live"][3] == "40.00 ms"
+
+
 def test_a_row_whose_relay_went_silent_is_down_says_so_once_and_counts_its_silence_on(page):
     out = js(page, ROWS_JS + """
         const silent = row("silent", {connected: false, state: "relay silent", silent_s: 4.2, stale: true,

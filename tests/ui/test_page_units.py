@@ -17,7 +17,7 @@ def js(page, body: str, arg=None):
     return page.evaluate(
         """async ([body, arg]) => {
             const m = {};
-            for (const name of ["timefmt", "store", "colours", "panels", "stageview", "coverage", "press"]) Object.assign(m, await import(`/${name}.js`));
+            for (const name of ["timefmt", "store", "colours", "panels", "stageview", "coverage", "press", "frameview"]) Object.assign(m, await import(`/${name}.js`));
             return new Function("m", "arg", `return (async () => { ${body} })()`)(m, arg);
         }""", [body, arg])
 
@@ -229,6 +229,69 @@ def test_stats_panel_shows_the_relays_shares_and_bottleneck_and_derives_none(pag
         return {whole: html(false), window: html(true)};""")
     assert out["whole"] == [["mux", True, "13%"], ["infer", False, "25%"]]
     assert out["window"] == [["mux", False, "–"], ["infer", False, "50%"]]
+
+
+def test_each_stats_block_says_its_window_and_frames_and_every_table_counts_them(page):
+    """Its title says what every table of the block counts: the window's span and frames, or the whole run's;
+    the sources table is the window's (as the relay counts it), the node's own drop counters said whole-run."""
+    out = js(page, """
+        const s = (n) => ({count: n, mean_ms: 5, p50_ms: 5, p95_ms: 5, p99_ms: 6, max_ms: 7, share: 1});
+        const src = (n) => ({"0": {delivered: n, fps: 10, nominal_fps: 10, lost_upstream: 0, decoder_dropped: 0, dropped: {}}});
+        const whole = {stages: {mux: s(871)}, gaps: {}, frame: s(871), fps: {}, frames: {complete: 871, incomplete: 1},
+                       sources: src(871), span_s: 87.4, dropped: 2, lost: 3};
+        const window = {stages: {mux: s(102)}, gaps: {}, frame: s(102), fps: {}, frames: {complete: 102, incomplete: 0},
+                        sources: src(103), window_s: 10};
+        const block = (windowed) => {
+            const div = document.createElement("div");
+            div.innerHTML = m.statsHtml([["DCU-1", {...whole, window}, ["mux"]]], new m.StageColours(), windowed);
+            return {title: div.querySelector("h3 .muted").textContent,
+                    delivered: div.querySelector("table.sources tbody tr td:nth-child(2)").textContent,
+                    frames: div.querySelector("tr[data-stage=mux] td:nth-child(2)").textContent,
+                    foot: div.querySelector(".stats-foot").textContent.replace(/\\s+/g, " ").trim()};
+        };
+        return {window: block(true), whole: block(false), span: [m.spanText(7), m.spanText(187), m.spanText(7390)]};""")
+    assert out["window"]["title"] == "last 10 s · 102 frames"
+    assert out["window"]["frames"] == "102" and out["window"]["delivered"] == "103"
+    assert "(probe buffer 2, transport 3: whole run)" in out["window"]["foot"]
+    assert "102 complete, 0 incomplete" in out["window"]["foot"]
+    assert out["whole"]["title"] == "whole run (1 min 27 s) · 871 frames"
+    assert out["whole"]["delivered"] == "871" and "whole run)" not in out["whole"]["foot"]
+    assert out["span"] == ["7 s", "3 min 07 s", "2 h 03 min"]
+
+
+def test_the_legend_lists_only_the_stages_of_the_dcus_shown(page):
+    """Coloured as every DCU seen, listed as the shown ones have them: no "queue" beside a DCU without one."""
+    out = js(page, """
+        const colours = new m.StageColours();
+        const store = (node, stages) => {
+            const st = new m.NodeStore(node, stages, 16, 16);
+            st.ingest({run: node, stages, has_exit: stages.map(() => true), frames: []});
+            for (const lane of st.lanes) colours.get(st.stages[lane]);
+            return st;
+        };
+        const one = store("DCU-1", ["mux", "infer", "osd"]);
+        const two = store("DCU-2", ["mux", "queue", "infer", "osd"]);
+        const names = (stores) => m.legendEntries(colours, stores).map(([stage]) => stage);
+        return {one: names([one]), both: names([one, two]), none: names([])};""")
+    assert out["one"] == ["mux", "infer", "osd"]
+    assert out["both"] == ["mux", "infer", "osd", "queue"]
+    assert out["none"] == []
+
+
+def test_the_frame_counts_say_where_they_start_and_why(page):
+    """Two DCUs started together count from different instants when the relay kept fewer seconds of the
+    faster one (its newest few thousand frames): each says where it starts and why."""
+    out = js(page, """
+        const ring = new m.DelayRing(8);
+        ring.push(3, new Date(2024, 0, 2, 21, 8, 26).getTime(), 3001);
+        const young = new m.DelayRing(8);
+        young.push(3, new Date(2024, 0, 2, 21, 7, 14).getTime(), 1);
+        const text = (r) => { const d = document.createElement("div"); d.innerHTML = m.sinceText(r); return d.textContent; };
+        return {late: text(ring), young: text(young), title: (() => { const d = document.createElement("div");
+            d.innerHTML = m.sinceText(ring); return d.querySelector("[title]").title; })()};""")
+    assert out["young"] == " since 21:07:14 (its run's start)"
+    assert out["late"] == " since 21:08:26 (the relay's oldest kept: 3,000 before it not received)"
+    assert "newest few thousand frames" in out["title"] and "3,000 earlier frames" in out["title"]
 
 
 # --- service and wait (issue 11): the relay splits each stage delay; the page only draws it ------

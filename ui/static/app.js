@@ -5,7 +5,7 @@
 // its frames, so the page's cost follows what it shows, not the fleet's size. ?open=A,B (or * for
 // every DCU) says which are opened; without it a fleet of at most AUTO_OPEN_MAX DCUs is opened whole.
 
-import { baseName, StageColours } from "./colours.js";
+import { baseName, legendEntries, StageColours } from "./colours.js";
 import { Api, LiveFeed, listSessions, loadSession, SESSION_CAPACITY } from "./feed.js";
 import { CompareView } from "./compareview.js";
 import { FrameView } from "./frameview.js";
@@ -66,7 +66,7 @@ let skewSamples = [];
 let skew = 0;
 let mouse = null;
 let drag = null;
-let legendSize = -1;
+let legendKey = null;
 
 function describe(node, source) {
   const info = current.nodes.get(node);
@@ -133,10 +133,12 @@ function shownNow() {
  * Recompute the opened DCUs; release those closed (their frames, statistics, views) and tell the relay.
  * Unless the user named the DCUs, the DCUs the page holds count beside the fleet's rows: a row that
  * expires (its relay restarting, or late) closes nothing, as the page's views never lost a DCU before.
+ * Except a DCU whose run ended: its row leaves once the relay lets it go (--limit ended_keep_s), and its
+ * views with it (the run is stored: the session list holds it).
  */
 function syncOpened() {
-  const next = openedOf(choice, choice === null || choice === OPEN_ALL
-    ? [...new Set([...fleet.names(), ...live.nodes.keys(), ...live.stores.keys()])] : fleet.names());
+  const held = [...live.nodes.keys(), ...live.stores.keys()].filter((n) => fleet.rows.has(n) || !live.nodes.get(n)?.ended);
+  const next = openedOf(choice, choice === null || choice === OPEN_ALL ? [...new Set([...fleet.names(), ...held])] : fleet.names());
   const same = next.size === opened.size && [...next].every((n) => opened.has(n));
   if (same && (choice === OPEN_ALL) === (feed.wanted === null)) return;
   for (const node of opened) if (!next.has(node)) release(node);
@@ -647,9 +649,10 @@ let draws = 0; // the views drawn (debug: an idle page draws twice a second, a f
 let followRedrawMs = FOLLOW_REDRAW_MS; // window.dcuscope.setFollowRedrawMs: a benchmark's 0 draws every animation frame
 
 function updateLegend() {
-  const entries = colours.entries();
-  if (entries.length === legendSize) return;
-  legendSize = entries.length;
+  const entries = legendEntries(colours, current.sorted());
+  const key = entries.map(([stage, colour]) => `${stage}\u0000${colour}`).join("\u0001");
+  if (key === legendKey) return;
+  legendKey = key;
   $("#legend").innerHTML = entries.map(([stage, colour]) => {
     const desc = STAGE_NAMES[baseName(stage)];
     return `<span class="legend-item" data-stage="${stage.replace(/[<&"]/g, "")}"><span class="swatch" style="background:${colour}"></span>`

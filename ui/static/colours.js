@@ -73,3 +73,13 @@ export class StageColours {
     return [...this.assigned.entries()];
   }
 }
+
+/**
+ * The legend: [[stage, colour]] of the stages the shown DCUs draw bars for (their lanes), in order of
+ * first use. Only theirs: a stage another DCU has (a queue) is not listed beside a DCU without it.
+ */
+export function legendEntries(colours, stores) {
+  const shown = new Set();
+  for (const store of stores) for (const lane of store.lanes) shown.add(store.stages[lane]);
+  return colours.entries().filter(([stage]) => shown.has(stage));
+}

@@ -16,7 +16,22 @@ const MAX_PITCH = 14; // px per frame at most (few frames)
 const GAP_FROM = 2; // px per frame from which bars are drawn a pixel apart
 
 export const RECEIVED_TITLE = "The frames of this DCU the page received: the relay's most recent ones (a few thousand "
-  + "at most) when the DCU was opened here, then every new one; at most the last 1,048,576.";
+  + "at most) when the DCU was opened here, then every new one; at most the last 1,048,576. So each DCU counts from "
+  + "its own instant: a DCU with more frames a second has fewer seconds in the relay's few thousand.";
+
+/**
+ * Where a DCU's counts start, and why there: its run's first frame, or the oldest frame the relay
+ * still kept of it (the relay keeps each run's newest few thousand frames) when the page opened it.
+ */
+export function sinceText(c) {
+  if (c.since === null || c.since === undefined) return "";
+  const at = ` since ${esc(formatClock(c.since).slice(0, 8))}`;
+  if (!c.firstN || c.firstN <= 1) return `${at} (its run's start)`;
+  const before = fmtInt(c.firstN - 1);
+  return `${at} <span class="since-why" title="the relay keeps each run's newest few thousand frames: `
+    + `${before} earlier frames of this run had left it when the DCU was opened here (its stored session holds them)">`
+    + `(the relay's oldest kept: ${before} before it not received)</span>`;
+}
 
 const fmtInt = (n) => n.toLocaleString("en-US");
 const pct = (a, b) => (b ? `${((100 * a) / b).toFixed(1)}%` : "–");
@@ -188,7 +203,7 @@ export class FrameView {
 
     const ring = store.delays;
     const counts = { shown: K, overShown: over, received: ring.size, overReceived: ring.over, binned: !!rows?.binned,
-      limit, pitch: rows?.pitch ?? null, bar: rows?.bar ?? null, since: ring.since, wrapped: ring.wrapped };
+      limit, pitch: rows?.pitch ?? null, bar: rows?.bar ?? null, since: ring.since, firstN: ring.firstN, wrapped: ring.wrapped };
     this.updateCounts(panel, counts, this.model.p99?.(store.node) ?? null);
     return counts;
   }
@@ -203,7 +218,7 @@ export class FrameView {
       }
     };
     const n = `<span class="received">${fmtInt(c.received)}</span>`;
-    const since = c.since === null ? "" : ` since ${esc(formatClock(c.since).slice(0, 8))}`;
+    const since = sinceText(c);
     const received = c.wrapped ? `the last ${n} frames received` : `${n} frames received${since}`;
     if (c.limit === null) {
       const hint = p99 === null ? "" : ` (its p99: ${esc(formatDelay(p99))})`;

@@ -171,6 +171,15 @@ function fpsCell(row) {
   return row.fps === null || row.fps === undefined ? dash : Number(row.fps).toFixed(1);
 }
 
+export const WHOLE_RUN_TITLE = "the DCU's run ended: its whole run's figures, as they stood at its end";
+
+/** The p99 cell: over the window, or, once the run ended, over its whole run (said so: no window is left to drift). */
+function p99Cell(row) {
+  if (row.p99_ms === null || row.p99_ms === undefined) return dash;
+  const text = esc(formatDelay(row.p99_ms));
+  return row.figures === "whole run" ? `${text} <span class="muted figures" title="${WHOLE_RUN_TITLE}">whole run</span>` : text;
+}
+
 /** The cells of a row as HTML, in column order (the table rewrites a cell only when its HTML changed). */
 export function rowCells(row, isOpen, now) {
   const { text: stateText, cls: state } = liveState(row, Math.max(0, (now - row.seen) / 1000));
@@ -189,7 +198,7 @@ export function rowCells(row, isOpen, now) {
       + `${stale ? ` <span class="badge stale" title="${row.stale ? "its relay stopped refreshing it" : `not refreshed for ${age} s`}">`
         + `${silent ? esc(stateText) : "stale"}</span>` : ""}`,
     fpsCell(row),
-    row.p99_ms === null || row.p99_ms === undefined ? dash : esc(formatDelay(row.p99_ms)),
+    p99Cell(row),
     neck?.stage ? `${esc(neck.stage)}${u === null || u === undefined ? "" : ` <b>${Math.round(100 * u)} %</b>`}` : dash,
     `<span class="clock-state clock-${cs.cls}">${esc(cs.label)}</span> <span class="ov-offset">${offsetText(row.clock)}</span>`,
     int(row.drops),
@@ -201,8 +210,8 @@ export const COLUMNS = [
   ["DCU", "click a row to open or close the DCU's stage, frame and moments views"],
   ["relay", "the relay holding the DCU"],
   ["fps", "frames per second over the relay's rolling window (its last 10 s), all sources: 0 when no frame came in it, \"ended\" once the DCU's run ended"],
-  ["frame p99", "end-to-end frame delay, 99th percentile over the window"],
-  ["bottleneck", "the relay's bottleneck stage and its utilization (busy share of wall time)"],
+  ["frame p99", "end-to-end frame delay, 99th percentile over the window; once the DCU's run ended, over its whole run (said so)"],
+  ["bottleneck", "the relay's bottleneck stage and its utilization (busy share of wall time), over the same span as the p99"],
   ["clock", "what the relay does with the DCU's timestamps; node clock − relay clock ± its bound"],
   ["drops", "frames dropped"],
   ["alerts", "the relay's alerts, and the page's when a row is stale"],

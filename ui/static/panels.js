@@ -85,10 +85,34 @@ function sourcesHtml(sources) {
     + `<th>RTP packets lost</th><th>decoder dropped</th><th>dropped (by reason)</th></tr></thead><tbody>${rows}</tbody></table>` : "";
 }
 
+const NODE_COUNTS_TITLE = "the node counts these over its whole run, not per frame: no window can hold them";
+
+/** A span in seconds, in the largest units that read well ("52 s", "3 min 07 s", "2 h 05 min"). */
+export function spanText(s) {
+  const t = Math.max(0, Math.round(s));
+  if (t < 60) return `${t} s`;
+  const pad = (v) => String(v).padStart(2, "0");
+  if (t < 3600) return `${Math.floor(t / 60)} min ${pad(t % 60)} s`;
+  return `${Math.floor(t / 3600)} h ${pad(Math.floor((t % 3600) / 60))} min`;
+}
+
+/**
+ * What a node's block counts, for its title: the window ("last 10 s") or the whole run (its span), and
+ * the complete frames every table of the block is over. `win`: the rolling window shown, or null.
+ */
+export function scopeText(win, full, frames) {
+  const n = Number(frames?.complete ?? 0);
+  const count = `${n.toLocaleString("en-US")} frame${n === 1 ? "" : "s"}`;
+  if (win) return `last ${win.window_s} s · ${count}`;
+  const span = full.span_s === null || full.span_s === undefined ? "" : ` (${spanText(full.span_s)})`;
+  return `whole run${span} · ${count}`;
+}
+
 /**
  * One block per node: stage rows (the relay's bottleneck marked, its reason shown), the
  * end-to-end row, gaps, sources, fps, drops; every figure as the relay computed it.
- * `windowed`: show the relay's rolling window (``stats.window``) instead of the whole run;
+ * `windowed`: show the relay's rolling window (``stats.window``) instead of the whole run, in every
+ * table of the block (the relay counts the window's sources too; the title says which, and its frames);
  * `openGaps`: nodes whose gaps table the user opened (kept open across refreshes).
  * An entry's fourth item: the stages where frame lineage stops (the trace's lineage_unknown).
  */
@@ -109,8 +133,10 @@ export function statsHtml(entries, colours, windowed, openGaps = new Set()) {
     const dropped = full.dropped ?? 0;
     const lost = full.lost ?? 0;
     const frames = st.frames ?? {};
-    const scope = windowed && full.window ? `last ${full.window.window_s} s` : "whole run";
-    const run = full.run ? ` · run ${esc(String(full.run).slice(0, 8))}` : "";
+    const scope = scopeText(windowed && full.window ? full.window : null, full, frames);
+    // A stored twin's name already holds its run ("vm · run fca2e7ed", relay.store.runs.run_name): not said twice.
+    const run = full.run && !String(node).endsWith(` · run ${String(full.run).slice(0, 8)}`)
+      ? ` · run ${esc(String(full.run).slice(0, 8))}` : "";
     const session = full.session ? ` · session ${esc(full.session)}` : "";
     return `<div class="stats-node" data-node="${esc(node)}">
       <h3>${esc(node)} <span class="muted">${scope}${run}${session}</span></h3>
@@ -120,7 +146,7 @@ export function statsHtml(entries, colours, windowed, openGaps = new Set()) {
       ${gaps ? `<details${openGaps.has(node) ? " open" : ""}><summary>gaps between stages (queueing, hand-over)</summary>
         <table class="stats"><tbody>${gaps}</tbody></table></details>` : ""}
       ${sources}
-      <p class="stats-foot">${sources ? "" : `fps ${fps}<br>`}drops <b class="drops">${int(dropped + lost)}</b> (probe buffer ${int(dropped)}, transport ${int(lost)})
+      <p class="stats-foot">${sources ? "" : `fps ${fps}<br>`}drops <b class="drops">${int(dropped + lost)}</b> (probe buffer ${int(dropped)}, transport ${int(lost)}${st === full ? "" : `: <span class="whole-run" title="${NODE_COUNTS_TITLE}">whole run</span>`})
       · frames ${int(frames.complete)} complete, ${int(frames.incomplete)} incomplete</p></div>`;
   }).join("");
 }

@@ -7,7 +7,8 @@ export const DELAY_CAPACITY = 1 << 20; // frame delays per node kept for the ove
 /**
  * The last `capacity` frame delays a page received for a DCU and how many exceed `limit` (null: no
  * limit, none counted), kept up to date on push; `since` is the origin (ms) of the first one, until
- * the ring wraps (`wrapped`: from then on it holds the last `capacity`).
+ * the ring wraps (`wrapped`: from then on it holds the last `capacity`); `firstN`, the first one's
+ * cursor in its run (1: the run's first frame; more: the relay no longer kept the earlier ones).
  */
 export class DelayRing {
   constructor(capacity = DELAY_CAPACITY, limit = null) {
@@ -18,10 +19,11 @@ export class DelayRing {
     this.limit = limit;
     this.over = 0;
     this.since = null;
+    this.firstN = null;
     this.wrapped = false;
   }
 
-  push(ms, origin = null) {
+  push(ms, origin = null, n = null) {
     const limit = this.limit;
     if (this.size === this.capacity) {
       if (limit !== null && this.values[this.head] > limit) this.over--;
@@ -29,7 +31,10 @@ export class DelayRing {
       this.head = (this.head + 1) % this.capacity;
       this.wrapped = true;
     } else {
-      if (this.size === 0 && this.since === null) this.since = origin;
+      if (this.size === 0 && this.since === null) {
+        this.since = origin;
+        this.firstN = n;
+      }
       this.values[(this.head + this.size) % this.capacity] = ms;
       this.size++;
     }
@@ -178,7 +183,7 @@ export class NodeStore {
     const c = this.sourceCounts.get(f.source);
     if (c === undefined) this._sources = null;
     this.sourceCounts.set(f.source, (c ?? 0) + 1);
-    this.delays.push(f.delay_ms, origin);
+    this.delays.push(f.delay_ms, origin, f.n ?? null);
     this.received++;
   }
 
