@@ -84,15 +84,18 @@ def _wait_for_relay(url: str, relay: subprocess.Popen, stop: _StopRequest, timeo
         raise PipelineError(f"the relay did not answer at {url} within {timeout_s:.0f} s")
 
 
-def status_lines(url: str) -> list[str]:
+def status_lines(url: str, said_ended: set | None = None) -> list[str]:
     """One line per DCU, aligned (two DCUs on one line would run past a terminal's width every 5 s):
     over the relay's rolling window (the last 10 s, as the page's overview), frames/s, mean frame
-    delay and verdict; a run that ended says so, and one gone silent that no frame came in the window."""
+    delay and verdict; a run that ended says so, once: the (node, run) pairs in ``said_ended`` were said
+    (it is added to), and a line would only repeat itself every 5 s for the rest of the demo. One gone
+    silent says that no frame came in the window. No line when every DCU listed ended and was said."""
     try:
         nodes = _get_json(f"{url}/api/nodes")
     except OSError as exc:
         return [f"relay unreachable: {exc}"]
     nodes = [n for n in (nodes if isinstance(nodes, list) else nodes.get("nodes", [])) if isinstance(n, dict)]
+    said_ended = set() if said_ended is None else said_ended
     width = max((len(n.get("node", "?")) for n in nodes), default=0) + 1
     lines = []
     for node in nodes:
@@ -100,7 +103,9 @@ def status_lines(url: str) -> list[str]:
         head = f"{name + ':':<{width}}"
         shown = (node.get("frames") or {}).get("shown", 0)
         if node.get("ended"):
-            lines.append(f"{head} ended ({shown:,} frames)")
+            if (name, node.get("run")) not in said_ended:
+                said_ended.add((name, node.get("run")))
+                lines.append(f"{head} ended ({shown:,} frames)")
             continue
         try:
             window = _get_json(f"{url}/api/stats?node={urllib.parse.quote(name)}").get("window") or {}
@@ -115,7 +120,7 @@ def status_lines(url: str) -> list[str]:
             lines.append(f"{head} no frame in the last {window.get('window_s', 10):.0f} s ({node.get('state', '?')})")
         else:
             lines.append(f"{head} waiting for frames")
-    return lines or ["no node connected yet"]
+    return lines if lines or nodes else ["no node connected yet"]
 
 
 def _verdict(b: dict | None) -> str:
@@ -151,13 +156,16 @@ def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = 
             print(f"\n  open {url}/ in a browser to watch the DCUs live. Ctrl-C stops the demo.\n", flush=True)
         started = time.monotonic()
         last_status = started
+        said_ended: set = set()
         while not stop and (duration is None or time.monotonic() - started < duration):
             time.sleep(0.5)
             if any(n.poll() is not None for n in nodes) or relay.poll() is not None:
                 raise PipelineError("a demo process exited early (see its message above)")
             if time.monotonic() - last_status >= STATUS_EVERY_S:
                 last_status = time.monotonic()
-                print("\n".join(f"demo: {line}" for line in status_lines(url)), flush=True)
+                lines = status_lines(url, said_ended)
+                if lines:
+                    print("\n".join(f"demo: {line}" for line in lines), flush=True)
         if stop:
             status = 128 + stop.signum
             said = "" if stop.signum == signal.SIGINT else f" {signal.Signals(stop.signum).name} received,"
@@ -180,9 +188,11 @@ def _stop_all(nodes: list[subprocess.Popen], relay: subprocess.Popen) -> None:
             proc.send_signal(signal.SIGTERM)
     for proc in nodes:
         _wait(proc, 30)
+    from dcuscope.relay.store.compactor import STOP_ROLLUP_S
+
     if relay.poll() is None:
         relay.send_signal(signal.SIGTERM)
-    _wait(relay, 15)
+    _wait(relay, 15 + STOP_ROLLUP_S)  # it rolls up its runs' last minutes as it stops, within STOP_ROLLUP_S
     print("demo: stopped", flush=True)
 
 

@@ -22,6 +22,7 @@ import os
 import sys
 import time
 from contextlib import contextmanager
+from dataclasses import replace
 from pathlib import Path
 
 from dcuscope.core.errors import DcuscopeError
@@ -78,7 +79,8 @@ def add_export_parser(subparsers) -> argparse.ArgumentParser:
 def _add_db_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--db", metavar="PATH|URL", help="a relay's store instead of trace files: its SQLite file, or its "
                                                    "PostgreSQL database (postgresql://USER@HOST/DB)")
-    p.add_argument("--session", metavar="ID", help="with --db: the stored session (see /api/sessions) or a run id")
+    p.add_argument("--session", metavar="ID", help="with --db: the stored session's number, or a run's id (its first 6+ "
+                                                   "digits): dcuscope sessions --db DB and dcuscope runs --db DB list them")
 
 
 def run_stats(args: argparse.Namespace) -> int:
@@ -112,7 +114,7 @@ def _rollup_stats(args: argparse.Namespace) -> int:
         now = time.time_ns()
         doc = summary(args.db, args.node, now - parse_duration_ns(args.since or "1d"), now)
         doc["elapsed_s"] = round(time.monotonic() - started, 3)
-        if not doc["rows"]:
+        if not doc["rows"] and not doc["raw"]["events"]:
             raise DcuscopeError(_no_rollups(args))
         with _open_output("-") as out:
             out.write(json.dumps(doc, indent=2) + "\n" if args.json else format_rollups(doc))
@@ -163,6 +165,8 @@ def format_rollups(doc: dict) -> str:
     lines.append(f"  frames         {frame['count']} complete, {frame['incomplete']} incomplete; {frame['lost']} events lost")
     lines.append(f"  exact: count, mean, min, max, drops, frames, lost; p50, p90, p99 from the sketch, within "
                  f"{doc['relative_error']:.0%} of the value")
+    if doc["raw"]["said"]:  # batches not compacted yet: counted from them, or said to be left out
+        lines.append(f"  raw: {doc['raw']['said']}")
     return "\n".join(lines) + "\n"
 
 
@@ -202,7 +206,19 @@ def _inputs(args: argparse.Namespace, command: str) -> list:
     if not is_url(args.db) and not Path(args.db).is_file():
         raise DcuscopeError(f"{command}: {args.db}: no such database")
 
-    return load_runs(args.db, args.session)
+    return _named(args.db, load_runs(args.db, args.session))
+
+
+def _named(db: str, runs: list) -> list:
+    """Stored runs under the names the page and ``dcuscope runs`` give them
+    (:func:`dcuscope.relay.store.runs.run_name`: ``vm · run fca2e7ed`` where the session holds two runs of vm),
+    a run asked for by its id included."""
+    from dcuscope.relay.store.runs import run_name, session_nodes
+
+    nodes = {s: session_nodes(db, s) for s in {r.session for r in runs}}
+    for r in runs:
+        r.header = replace(r.header, node=run_name(r.header.node, r.run, nodes[r.session].count(r.header.node) > 1))
+    return runs
 
 
 def _clocks(traces: list) -> list[Correction | None]:
@@ -246,7 +262,8 @@ def _origin(trace, db: str | None) -> str:
     """Where a node's events come from, for the title of its table."""
     if isinstance(trace, Trace):
         return f"{trace.path}{'' if trace.complete else ', no end line: the run did not close the trace'}"
-    return f"{db}: session {trace.session}, run {trace.run[:8]}{'' if trace.ended else ', not ended'}"
+    named = trace.header.node.endswith(f" · run {trace.run[:8]}")  # its name says its run already
+    return f"{db}: session {trace.session}{'' if named else f', run {trace.run[:8]}'}{'' if trace.ended else ', not ended'}"
 
 
 def format_stats(doc: dict, origins: list[str] | None = None) -> str:
@@ -341,8 +358,18 @@ def _clock_lines(st: dict) -> list[str]:
     if not c:
         return []
     why = f" ({c['why']})" if c.get("why") else ""
-    return [f"  clock          {c['applied']}: {c['correction_ns'] / 1e6:+.3f} ms subtracted "
-            f"± {c['uncertainty_ns'] / 1e3:.1f} µs{why}"]
+    offset, bound = offset_and_bound(c["correction_ns"], c["uncertainty_ns"])
+    return [f"  clock          {c['applied']}: {offset} subtracted ± {bound}{why}"]
+
+
+def offset_and_bound(offset_ns: float, bound_ns: float) -> tuple[str, str]:
+    """A clock offset and its bound in one unit, the larger one's, as the page's tooltip
+    (ui/static/timefmt.js formatOffsetBound): ("-1.0 µs", "5.1 µs"), ("+3.012 ms", "0.051 ms")."""
+    big = max(abs(offset_ns), abs(bound_ns))
+    scale, unit, digits = (1e3, "µs", 1 if big < 1e4 else 0) if big < 1e6 else (1e6, "ms", 3) if big < 1e9 else (1e9, "s", 6)
+    offset = f"{abs(offset_ns) / scale:.{digits}f}"
+    sign = "" if float(offset) == 0 else "+" if offset_ns >= 0 else "-"
+    return f"{sign}{offset} {unit}", f"{abs(bound_ns) / scale:.{digits}f} {unit}"
 
 
 def _num(value: float | None, digits: int = 3) -> str:

@@ -102,6 +102,8 @@ class Relay:
     """Gives back the memory of runs that left it (:mod:`dcuscope.relay.heap`)."""
     compactor: Compactor | None = None
     """Moves old batches into segments (:mod:`dcuscope.relay.store.compaction`; None: ``--compact-after 0``)."""
+    stop_said: str = ""
+    """What the stop rolled up (:meth:`Compactor.roll_up`), for the relay's last lines."""
     _task: asyncio.Task | None = None
     _retention: asyncio.Task | None = None
     _reclaim: asyncio.Task | None = None
@@ -143,6 +145,8 @@ class Relay:
         if self.compactor is not None:
             await asyncio.to_thread(self.compactor.stop)
         self.storage.stop()
+        if self.compactor is not None:  # the writer committed the last batches: the runs' tails are stored
+            self.stop_said = await asyncio.to_thread(self.compactor.roll_up)
 
 
 def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *, limits: Limits = Limits(),
@@ -194,7 +198,7 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     ticker = Ticker(state, ui, fleet, interest, push_hz)
     reclaimer = Reclaimer(lambda: state.released)
     exporter = OtlpExporter(otlp, state) if otlp is not None else None
-    compactor = Compactor(db, compact_after_s, storage.name) if compact_after_s > 0 else None
+    compactor = Compactor(db, compact_after_s, storage.name, storage.owner) if compact_after_s > 0 else None
 
     def refusals() -> dict[str, int]:
         refused["hello_timeout"] = ingest.hello_timeouts
@@ -353,6 +357,8 @@ async def _serve(host: str, port: int, db: str | Path, token: str | None, clock:
         flusher.cancel()
         await relay.stop()
         rate.flush(everything=True)
+        if relay.stop_said:
+            print(f"dcuscope relay: {relay.stop_said}", file=sys.stderr, flush=True)
         print("dcuscope relay: stopped", file=sys.stderr, flush=True)
 
 

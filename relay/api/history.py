@@ -5,6 +5,8 @@
   over that time (``dcuscope stats --db --node --since``'s, exact figures and those from the sketch
   named) and per stage, and end to end, a point per minute or hour (p50, p99, frames), a time
   without frames having none (a gap). ``since`` is a duration back from ``until_ns`` (default now).
+  Frames still in raw batches (not compacted yet) are counted too, and ``summary.raw`` says which
+  minutes those were; ``history.newest_ns`` is the newest event's time (the page's span ends there).
 
 Each request reads in a worker thread on a connection of its own (ingest goes on meanwhile).
 The token middleware of :mod:`dcuscope.relay.api.routes` guards them like every ``/api`` route.
@@ -20,7 +22,7 @@ from aiohttp import web
 from dcuscope.relay.errors import RelayError, http_error
 from dcuscope.relay.guard.policy import add_read
 from dcuscope.relay.live.state import RelayState
-from dcuscope.relay.store.history import history, nodes, parse_duration_ns, summary
+from dcuscope.relay.store.history import nodes, parse_duration_ns, span
 
 MAX_NAME = 200
 MAX_NS = 1 << 62
@@ -40,17 +42,15 @@ def add_history_routes(app: web.Application, state: RelayState) -> None:
         if not node or len(node) > MAX_NAME:
             raise http_error(web.HTTPBadRequest, f"node=NAME is required (at most {MAX_NAME} characters)")
         try:
-            span = parse_duration_ns(request.query.get("since", "1d"))
+            back = parse_duration_ns(request.query.get("since", "1d"))
             until = int(request.query.get("until_ns", time.time_ns()))
-            if not span <= until <= MAX_NS:
-                raise ValueError(f"until_ns must be {span}..{MAX_NS}")
+            if not back <= until <= MAX_NS:
+                raise ValueError(f"until_ns must be {back}..{MAX_NS}")
         except (RelayError, ValueError) as exc:
             raise http_error(web.HTTPBadRequest, f"since=DURATION (e.g. 30d), until_ns=NS: {exc}") from None
 
-        def read() -> dict:
-            return {"summary": summary(db, node, until - span, until), "history": history(db, node, until - span, until)}
         try:
-            return web.json_response(await asyncio.to_thread(read))
+            return web.json_response(await asyncio.to_thread(span, db, node, until - back, until))
         except RelayError as exc:
             raise http_error(web.HTTPServiceUnavailable, str(exc)) from exc
 

@@ -362,6 +362,51 @@ class Database(ABC):
             "DELETE FROM rollups WHERE (node, width_ns, start_ns, stage, run) IN (SELECT node, width_ns, start_ns, "
             "stage, run FROM rollups WHERE start_ns < %s LIMIT %s)"), (before_ns, limit)).rowcount)
 
+    def unrolled_batches(self, node: str, received_since_ns: int) -> list[tuple[str, int, int, int]]:
+        """(run, seq, events, received_ns) of ``node``'s batches not compacted yet (their frames not rolled
+        up) stored since ``received_since_ns``, by run and seq."""
+        return [(r, int(s), int(c), int(t)) for r, s, c, t in self._rows(
+            "SELECT b.run, b.seq, b.count, b.received_ns FROM batches b JOIN runs r ON r.id = b.run "
+            "WHERE r.node = %s AND b.received_ns >= %s ORDER BY b.run, b.seq", (node, received_since_ns))]
+
+    def unrolled_payloads(self, node: str, received_since_ns: int) -> list[tuple[str, int, bool, bytes]]:
+        """(run, seq, compressed, payload) of the batches :meth:`unrolled_batches` lists."""
+        return [(r, int(s), bool(z), bytes(d)) for r, s, z, d in self._rows(
+            "SELECT b.run, b.seq, b.compressed, b.data FROM batches b JOIN runs r ON r.id = b.run "
+            "WHERE r.node = %s AND b.received_ns >= %s ORDER BY b.run, b.seq", (node, received_since_ns))]
+
+    def unrolled_lost(self, run: str) -> int:
+        """The events ``run`` lost that its rollups do not hold yet (runs.rolled_lost)."""
+        rows = self._rows("SELECT lost - rolled_lost FROM runs WHERE id = %s", (run,))
+        return max(0, int(rows[0][0])) if rows else 0
+
+    def newest_compacted_ns(self, node: str, before_ns: int) -> int | None:
+        """The newest event time (node clock) of ``node``'s segments that start before ``before_ns``."""
+        rows = self._rows("SELECT max(s.last_ns) FROM segments s JOIN runs r ON r.id = s.run "
+                          "WHERE r.node = %s AND s.first_ns < %s", (node, before_ns))
+        return int(rows[0][0]) if rows and rows[0][0] is not None else None
+
+    def left_raw(self, skip: set[str] = frozenset()) -> tuple[int, int, int, int | None, int | None]:
+        """What compaction has not moved yet, but of the runs in ``skip``: (runs, batches, events,
+        first and last received_ns)."""
+        runs, batches, events, first, last = 0, 0, 0, None, None
+        for run, n, c, a, b in self._rows("SELECT run, count(*), sum(count), min(received_ns), max(received_ns) "
+                                          "FROM batches GROUP BY run"):
+            if run in skip:
+                continue
+            runs, batches, events = runs + 1, batches + int(n), events + int(c)
+            first = int(a) if first is None else min(first, int(a))
+            last = int(b) if last is None else max(last, int(b))
+        return runs, batches, events, first, last
+
+    def raw_before(self, received_ns: int) -> bool:
+        """Whether some batch stored before ``received_ns`` is still raw (not compacted)."""
+        return bool(self._rows("SELECT 1 FROM batches WHERE received_ns < %s LIMIT 1", (received_ns,)))
+
+    def held_elsewhere(self, owner: str) -> set[str]:
+        """Runs another relay than ``owner`` owns now (a store of one relay: none)."""
+        return set()
+
     def claim_compaction(self, run: str) -> bool:
         """Whether this connection may compact ``run`` now (on a shared store: no other is)."""
         return True

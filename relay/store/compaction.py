@@ -25,9 +25,12 @@ looks for a segment holding its seq).
 **Rollups.** The same transaction merges the rollups of the frames whose origin is in the range
 (:mod:`dcuscope.relay.rollup.compute`): each frame is counted once, whatever is killed when.
 
-**Who.** The relay compacts in a thread with its own store connection
+**Who.** The relay compacts in a process of its own with its own store connection
 (:class:`dcuscope.relay.store.compactor.Compactor`), so that reading and encoding never hold up the writer
-thread's commits; ``dcuscope db compact`` compacts a store no relay is compacting (one written
+thread's commits. A relay that stops (SIGINT, SIGTERM) compacts what its runs still hold raw, within
+:data:`dcuscope.relay.store.compactor.STOP_ROLLUP_S`; one that starts compacts first what a relay killed outright
+left raw (runs not heard from since); readers of rollups count what is still raw from the batches
+(:mod:`dcuscope.relay.store.unrolled`). ``dcuscope db compact`` compacts a store no relay is compacting (one written
 with ``--compact-after 0``, or by a relay before schema 5). On a shared store any relay may compact
 any run, one at a time (an advisory lock per run: two relays never encode the same range), and a
 relay that lost the race finds its range gone and leaves it.
@@ -89,14 +92,18 @@ class Compacted:
 
 def compact(db: Database, before_ns: int, min_events: int = MIN_SEGMENT_EVENTS,
             say: Callable[[str], None] | None = None, stop: Callable[[], bool] = lambda: False,
-            max_events: int = MAX_SEGMENT_EVENTS, waited_ns: int | None = None) -> Compacted:
+            max_events: int = MAX_SEGMENT_EVENTS, waited_ns: int | None = None,
+            skip: set[str] = frozenset()) -> Compacted:
     """Compact every batch of ``db`` stored before ``before_ns`` (a live run's: by ``min_events`` at
     least, unless its oldest due batch was stored before ``waited_ns``), segments of ``max_events``
-    at most; ``say`` hears a line per run compacted, ``stop`` is asked between ranges."""
+    at most, but those of the runs in ``skip``; ``say`` hears a line per run compacted, ``stop`` is
+    asked between ranges."""
     done = Compacted()
     for run, whole in db.compaction_due(before_ns, min_events, waited_ns):
         if stop():
             break
+        if run in skip:
+            continue
         if not db.claim_compaction(run):
             continue
         try:

@@ -14,6 +14,18 @@ child stops when it closes, so a relay killed outright takes its compactor with 
 prints one JSON line of its totals after each pass, which :meth:`Compactor.view` shows in
 ``/api/health``; it logs to the relay's stderr. SIGTERM stops it after the range being moved.
 
+**At start** the process starts at once, not ``--compact-after`` later, when the store holds batches
+stored before the relay started (a relay killed outright, SIGKILL or a crash, left them raw): its first
+pass compacts, whole, those of the runs not heard from since (:func:`catch_up`), and says so in the log.
+
+**At stop** (SIGINT, SIGTERM), once its compaction process ended and its writer committed the last
+batches, the relay compacts in its own process every batch still raw but those of runs another relay
+owns (:func:`roll_up_at_stop`): a stopped relay leaves its runs' rollups whole. It gives up after
+STOP_ROLLUP_S, between two ranges, and its last log lines say what it rolled up and how long it took,
+or what it left raw (compacted by the next relay as it starts; counted meanwhile by ``dcuscope stats
+--since`` and History from the batches). A run whose node is still live when its relay stops has its
+last frames in flight cut: they count as incomplete in the rollups.
+
 For tests only, ``DCUSCOPE_TEST_LIVE_WAIT_S`` in the relay's environment replaces LIVE_WAIT_S: with a
 short ``--compact-after`` it has a live run's rollups come in seconds, not in a minute and a half.
 """
@@ -40,6 +52,10 @@ COMPACT_EVERY_S = 30.0
 once as the process starts, ``--compact-after`` after the relay did (a relay restarted compacts
 what waited meanwhile)."""
 MIN_EVERY_S = 0.5
+STOP_ROLLUP_S = 10.0
+"""The longest a stopping relay compacts what its runs hold raw (about a microsecond of CPU an event:
+10 s is 10 million events, two minutes of 20 DCUs at the paper's pace; a relay's raw tail is at most
+``--compact-after`` plus a pass of its events)."""
 STOP_S = 30.0
 """How long a stopping relay waits for its compactor to finish the range it is moving."""
 TEST_LIVE_WAIT_ENV = "DCUSCOPE_TEST_LIVE_WAIT_S"
@@ -69,32 +85,50 @@ def rollups_within_s(after_s: float, live_wait: float = LIVE_WAIT_S) -> float:
 class Compactor:
     """The compaction process of a relay: started, watched and stopped; :meth:`view` for /api/health."""
 
-    def __init__(self, db: str | Path, after_s: float, name: str = "") -> None:
-        self.db, self.after_s, self.name = db, after_s, name
+    def __init__(self, db: str | Path, after_s: float, name: str = "", owner: str = "") -> None:
+        """``owner``: who holds the relay's leases on a shared store (its runs are its own to compact)."""
+        self.db, self.after_s, self.name, self.owner = db, after_s, name, owner
         self.every_s = pass_every_s(after_s)
         self.live_wait_s = live_wait_s()
         self.last: dict = {}
         self.proc: subprocess.Popen | None = None
         self._reader: threading.Thread | None = None
-        self._timer: threading.Timer | None = None
         self._lock = threading.Lock()
-        self._stopped = False
+        self._stopping = threading.Event()
+        self.started_ns = 0
 
     def start(self) -> None:
-        """Start the process once batches can be due (``after_s`` from now): a relay that lives less
-        long costs no process (the CPU of starting one: about half a second)."""
-        self._timer = threading.Timer(self.after_s, self._spawn)
-        self._timer.daemon = True
-        self._timer.start()
+        """Start the process now if an earlier relay left batches raw, else once batches can be due
+        (``after_s`` from now): a relay that lives less long costs no process (the CPU of starting
+        one: about half a second)."""
+        self.started_ns = time.time_ns()
+        threading.Thread(target=self._begin, name="dcuscope-relay-compact-start", daemon=True).start()
+
+    def _begin(self) -> None:
+        if self._left_before_start() or not self._stopping.wait(self.after_s):
+            self._spawn()
+
+    def _left_before_start(self) -> bool:
+        try:
+            database = open_database(self.db, create=False, name=self.name)
+        except RelayError:
+            return False
+        try:
+            return database.raw_before(self.started_ns)
+        except RelayError:
+            return False
+        finally:
+            database.close()
 
     def _spawn(self) -> None:
         with self._lock:
-            if self._stopped:
+            if self._stopping.is_set():
                 return
             self.proc = subprocess.Popen([sys.executable, "-m", "dcuscope.relay.store.compactor"], stdin=subprocess.PIPE,
                                          stdout=subprocess.PIPE, text=True)
         self.proc.stdin.write(json.dumps({"db": str(self.db), "after_s": self.after_s, "every_s": self.every_s,
-                                          "live_wait_s": self.live_wait_s, "name": self.name}) + "\n")
+                                          "live_wait_s": self.live_wait_s, "name": self.name, "owner": self.owner,
+                                          "left_before_ns": self.started_ns}) + "\n")
         self.proc.stdin.flush()
         self._reader = threading.Thread(target=self._read, name="dcuscope-relay-compact", daemon=True)
         self._reader.start()
@@ -111,10 +145,9 @@ class Compactor:
                         "relay restarts (`dcuscope db compact` compacts them meanwhile)", code)
 
     def stop(self) -> None:
+        """End the compaction process (after the range it is moving); :meth:`roll_up` then."""
         with self._lock:
-            self._stopped = True
-            if self._timer is not None:
-                self._timer.cancel()
+            self._stopping.set()
         if self.proc is None or self.proc.poll() is not None:
             return
         self.proc.terminate()
@@ -123,6 +156,10 @@ class Compactor:
         except subprocess.TimeoutExpired:
             self.proc.kill()
             self.proc.wait(5)
+
+    def roll_up(self, bound_s: float = STOP_ROLLUP_S) -> str:
+        """:func:`roll_up_at_stop` on this relay's store: call once the relay's writer stopped."""
+        return roll_up_at_stop(self.db, self.name, self.owner, bound_s)
 
     def view(self) -> dict:
         running = self.proc is not None and self.proc.poll() is None
@@ -136,9 +173,10 @@ class Passes:
     """The child's loop: a pass now, then every ``every_s`` until ``stop`` is set."""
 
     def __init__(self, db: str, after_s: float, every_s: float, name: str, stop: threading.Event,
-                 live_wait: float = LIVE_WAIT_S) -> None:
+                 live_wait: float = LIVE_WAIT_S, owner: str = "", left_before_ns: int = 0) -> None:
+        """``left_before_ns``: when the relay started (the first pass compacts what was left raw before)."""
         self.db, self.after_s, self.every_s, self.name, self.stop = db, after_s, every_s, name, stop
-        self.live_wait = live_wait
+        self.live_wait, self.owner, self.left_before_ns = live_wait, owner, left_before_ns
         self.done = Compacted()
         self.passes = 0
         self.failing: str | None = None
@@ -158,6 +196,10 @@ class Passes:
         try:
             if self._database is None:
                 self._database = open_database(self.db, name=self.name)  # the relay's: one relay in /api/health
+            if self.left_before_ns:
+                done = catch_up(self._database, self.left_before_ns, self.owner, self.stop.is_set)
+                self.left_before_ns = 0
+                self.done.add(done)
             now = time.time_ns()
             done = compact(self._database, now - int(self.after_s * 1e9), stop=self.stop.is_set,
                            waited_ns=now - int(self.live_wait * 1e9))
@@ -190,6 +232,52 @@ class Passes:
                           "cpu_s": round(time.process_time(), 3)}), flush=True)
 
 
+def catch_up(database: Database, before_ns: int, owner: str, stop=lambda: False) -> Compacted:
+    """Compact, whole, the batches stored before ``before_ns`` of the runs not heard from since (nor
+    owned by another relay): what a relay killed outright left raw. Said in the log."""
+    started = time.monotonic()
+    done = compact(database, before_ns, min_events=sys.maxsize, stop=stop, skip=database.held_elsewhere(owner))
+    if done.events:
+        log.warning("compaction: rolled up what an earlier relay left raw (it was killed, or stopped without "
+                    "compacting): %s in %.2f s", _said(done), time.monotonic() - started)
+    return done
+
+
+def roll_up_at_stop(db: str | Path, name: str, owner: str, bound_s: float = STOP_ROLLUP_S) -> str:
+    """Compact every batch still raw of runs no other relay owns, giving up after ``bound_s`` (between
+    ranges); what it did, in a line for the relay's last lines."""
+    started = time.monotonic()
+    try:
+        database = open_database(db, create=False, name=name)
+    except RelayError as exc:
+        return f"nothing rolled up at stop, the store failed: {exc}"
+    try:
+        skip = database.held_elsewhere(owner)
+        done = compact(database, time.time_ns() + 1, min_events=1, stop=lambda: time.monotonic() - started > bound_s,
+                       skip=skip)
+        runs, batches, events, first, last = database.left_raw(skip)
+    except RelayError as exc:
+        return f"rolling up at stop failed after {time.monotonic() - started:.1f} s: {exc}; the next relay rolls up the rest"
+    finally:
+        database.close()
+    took = time.monotonic() - started
+    head = f"rolled up its runs at stop: {_said(done)} in {took:.2f} s" if done.events else "nothing to roll up at stop"
+    if not events:
+        return head + (f" (bound {bound_s:g} s); nothing left raw" if done.events else "")
+    when = f"stored {_hhmm(first)} to {_hhmm(last)} UTC"
+    gave_up = f"gave up at the {bound_s:g} s bound" if took > bound_s else "not compacted"
+    return (f"{head}; {gave_up}: {events:,} events of {runs} runs left raw ({batches:,} batches {when}): the next "
+            f"relay on this store rolls them up as it starts, `dcuscope stats --since` counts them meanwhile")
+
+
+def _said(done: Compacted) -> str:
+    return f"{done.events:,} events of {done.batches:,} batches into {done.segments} segments"
+
+
+def _hhmm(ns: int) -> str:
+    return time.strftime("%H:%M", time.gmtime(ns / 1e9))
+
+
 def main() -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     settings = json.loads(sys.stdin.readline() or "{}")
@@ -206,7 +294,8 @@ def main() -> int:
 
     threading.Thread(target=parent_gone, daemon=True).start()
     Passes(settings["db"], float(settings["after_s"]), float(settings["every_s"]), settings.get("name", ""), stop,
-           float(settings.get("live_wait_s", LIVE_WAIT_S))).run()
+           float(settings.get("live_wait_s", LIVE_WAIT_S)), settings.get("owner", ""),
+           int(settings.get("left_before_ns", 0))).run()
     return 0
 
 

@@ -631,6 +631,10 @@ class PostgresDatabase(Database):
 
     # --- compaction -----------------------------------------------------------------------------
 
+    def held_elsewhere(self, owner: str) -> set[str]:
+        return {r for (r,) in self._rows("SELECT run FROM leases WHERE expires > clock_timestamp() AND owner <> %s",
+                                         (owner,))}
+
     def claim_compaction(self, run: str) -> bool:
         """A lock on compacting ``run`` for this connection (no wait: False if another holds it)."""
         return bool(self._rows("SELECT pg_try_advisory_lock(%s, %s)", _compaction_lock(run))[0][0])

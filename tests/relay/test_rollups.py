@@ -8,6 +8,8 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import re
+import signal
 import time
 
 import numpy as np
@@ -23,6 +25,7 @@ from dcuscope.relay.store.compaction import compact
 from dcuscope.relay.store.engines import open_database
 from dcuscope.relay.store.writer import Storage
 from tests.conftest import run_cli
+from tests.relay.helpers import RelayProcess, finish_node, get_json, start_node, wait_for
 from tests.relay.test_compaction import table_rows, write_run
 from tests.relay.test_store_engines import store  # noqa: F401 - the engines' fixture
 
@@ -157,3 +160,85 @@ def test_retention_deletes_old_rollups_apart_from_raw_events(store):
     assert 0 < deleted < before and table_rows(store, "rollups") == before - deleted
     assert table_rows(store, "segments") == 2  # raw events are raw retention's
     assert summary(store, "a", 0, time.time_ns())["first_ns"] >= time.time_ns() - 2 * HOUR_NS
+
+
+def _session_and_since(db, nodes) -> tuple[dict, dict]:
+    """Per node, the complete frames `stats --session 1` counts and `stats --node --since 1h`'s answer."""
+    session = run_cli("stats", "--db", db, "--session", "1", "--json")
+    assert session.returncode == 0, session.stderr
+    counts = {n: v["frames"]["complete"] for n, v in json.loads(session.stdout)["nodes"].items()}
+    since = {}
+    for node in nodes:
+        answer = run_cli("stats", "--db", db, "--node", node, "--since", "1h", "--json")
+        assert answer.returncode == 0, answer.stderr
+        since[node] = json.loads(answer.stdout)
+    return counts, since
+
+
+def _two_nodes(relay, tmp_path) -> None:
+    """Two paced nodes, 3 s of frames each, finished (every event acknowledged)."""
+    nodes = [start_node(relay.url, name, tmp_path / f"{name}.npz", frames=150, fps=50.0, sources=2, paced=True,
+                        seed=k) for k, name in enumerate(NODES)]
+    for node in nodes:
+        finish_node(node)
+
+
+NODES = ("DCU-1", "DCU-2")
+
+
+def test_a_relay_stopped_by_ctrl_c_leaves_rollups_that_count_what_its_session_counts(tmp_path):
+    """The default --compact-after (60 s): nothing of a few seconds' run is compacted while the relay
+    runs. Stopped by SIGINT, it rolls its runs up and says so; `stats --since` and History (a relay
+    started again on the store) then count every frame `stats --session` counts."""
+    from tests.ui.helpers import RelayThread
+
+    db = tmp_path / "r.db"
+    relay = RelayProcess(db)
+    _two_nodes(relay, tmp_path)
+    relay.proc.send_signal(signal.SIGINT)
+    assert relay.proc.wait(30) == 0
+    relay.stop()
+    last = relay.log.read_text().strip().splitlines()[-2:]
+    assert re.fullmatch(r"dcuscope relay: rolled up its runs at stop: [\d,]+ events of [\d,]+ batches into 2 segments "
+                        r"in [\d.]+ s \(bound 10 s\); nothing left raw", last[0]), last
+    assert last[1] == "dcuscope relay: stopped"
+    assert table_rows(str(db), "batches") == 0
+    counts, since = _session_and_since(db, NODES)
+    again = RelayThread(db)
+    try:
+        history = {n: get_json(f"{again.url}/api/history?node={n}&since=1h") for n in NODES}
+    finally:
+        again.stop()
+    for node in NODES:
+        assert since[node]["frame"]["count"] == counts[node] == 300, (node, since[node]["frame"], counts)
+        assert since[node]["raw"]["events"] == 0 and since[node]["raw"]["said"] == ""
+        assert history[node]["summary"]["frame"]["count"] == counts[node]
+        assert sum(p["frames"] for p in history[node]["history"]["frame"]) == counts[node]
+
+
+def test_a_killed_relays_raw_tail_is_counted_by_stats_since_and_rolled_up_by_the_next_relay(tmp_path):
+    """A relay killed outright (SIGKILL) leaves its runs raw: `stats --since` counts their frames from the
+    batches and says which minutes were raw; the next relay rolls them up as it starts, and says so."""
+    db = tmp_path / "r.db"
+    relay = RelayProcess(db)
+    _two_nodes(relay, tmp_path)
+    relay.kill9()
+    counts, since = _session_and_since(db, NODES)
+    for node in NODES:
+        raw = since[node]["raw"]
+        assert since[node]["frame"]["count"] == counts[node] == 300 and since[node]["rows"] == 0
+        assert raw["included"] and raw["events"] > 0 and raw["minutes"] >= 1, raw
+        assert re.fullmatch(r"minutes \d\d:\d\d to \d\d:\d\d UTC were still raw \([\d,]+ events not rolled up yet\): "
+                            r"counted from the stored batches", raw["said"]), raw
+    table = run_cli("stats", "--db", db, "--node", "DCU-1", "--since", "1h")
+    assert "  raw: minutes " in table.stdout, table.stdout
+    nxt = RelayProcess(db, log=tmp_path / "next.log")
+    try:
+        wait_for(lambda: table_rows(str(db), "batches") == 0, 30, what="the next relay to roll up what was raw")
+    finally:
+        nxt.stop()
+    assert "rolled up what an earlier relay left raw" in nxt.log.read_text()
+    counts_after, since_after = _session_and_since(db, NODES)
+    for node in NODES:
+        assert since_after[node]["frame"]["count"] == counts_after[node] == counts[node]
+        assert since_after[node]["raw"]["events"] == 0 and since_after[node]["rows"] > 0

@@ -7,6 +7,7 @@ relay); and a live DCU in History by itself, within a minute of when its relay s
 
 from __future__ import annotations
 
+import calendar
 import json
 import re
 import time
@@ -146,6 +147,42 @@ def test_the_history_view_draws_rollups_with_gaps_and_the_spans_statistics(brows
         page.close()
         relay.stop()
     assert not errors, errors
+
+
+def test_the_fitted_span_ends_at_the_newest_data_never_in_the_future(browser, tmp_path):
+    """A DCU whose 20 s of data ended some 20 s ago: the span opens on all of it and ends at its newest
+    event (the minute the note names), not at the end of a 5-minute span running into the future."""
+    path = str(tmp_path / "recent.db")
+    # Its newest event some 10 s into a minute, before that minute's middle, where its point is drawn
+    # unless the span ends sooner: the point then lies at the span's end.
+    minute = (time.time_ns() - 25 * 10**9) // MINUTE_NS * MINUTE_NS
+    events = synth_events(500, 2, 25.0, minute + 10 * 10**9 - 20 * 10**9, seed=3)
+    run, _ = write_run(path, events)
+    database = open_database(path)
+    database.conn.execute("UPDATE runs SET node = ? WHERE id = ?", (NODE, run))
+    compact(database, time.time_ns(), min_events=1)
+    database.close()
+    newest_ns = int(events["ts"].max())
+    relay = RelayThread(tmp_path / "recent.db")
+    page = browser.new_page(viewport={"width": 1280, "height": 800})
+    try:
+        page.goto(relay.url + "/")
+        with page.expect_response(lambda r: "/api/history?" in r.url) as answer:
+            page.click(".tab[data-tab=history]")
+        page.wait_for_selector("path.history-line", state="attached")
+        assert answer.value.json()["history"]["newest_ns"] == newest_ns
+        note = page.text_content("#history-note")
+        opened_ns = time.time_ns()
+        geometry = chart(page)
+    finally:
+        page.close()
+        relay.stop()
+    stamps = re.search(r"all its data, (\S+ \S+) to (\S+ \S+) UTC", note)
+    assert stamps, note
+    end_ns = calendar.timegm(time.strptime(stamps.group(2), "%Y-%m-%d %H:%M")) * 10**9
+    assert end_ns == newest_ns // MINUTE_NS * MINUTE_NS <= opened_ns, (note, newest_ns)
+    (x0, x1), xs = geometry["plot"], geometry["xs"]
+    assert max(xs) == pytest.approx(x1, abs=1.0), (xs, x1)  # the newest minute at the span's end
 
 
 @pytest.mark.long

@@ -2,9 +2,10 @@
 // stage, and for the frame end to end, p99 (solid) and p50 (dashed) of each minute or hour; a time
 // without frames breaks the line (a gap is a gap, never a slope). Above it, the statistics of the
 // whole span: counts, means, min, max exact, percentiles from the sketch (within 1 % of the value).
-// The span opens fitted to the DCU's data; the span select: back to that, or a span ending now;
-// wheel: zoom in or out around the pointer; drag: pan. While the tab is shown and not zoomed or
-// panned, the view asks again every REFRESH_MS, so that a live DCU's new minutes come by themselves.
+// The span opens fitted to the DCU's data, ending at its newest event (never in the future); the span
+// select: back to that, or a span ending now; wheel: zoom in or out around the pointer; drag: pan.
+// While the tab is shown and not zoomed or panned, the view asks again every REFRESH_MS, so that a
+// live DCU's new minutes come by themselves. Frames not rolled up yet are counted from the raw batches.
 
 import { StageColours } from "./colours.js";
 import { esc } from "./panels.js";
@@ -109,8 +110,8 @@ export class HistoryView {
   asked(node) {
     if (this.window) return this.window;
     const known = this.nodes.get(node);
-    if (this.spanSel.value === FIT && known) return [known.first_ns, known.last_ns + HOUR_NS];
     const now = Date.now() * 1e6;
+    if (this.spanSel.value === FIT && known) return [known.first_ns, Math.min(known.last_ns + HOUR_NS, now)];
     return [now - Number(this.spanSel.value === FIT ? 86400 : this.spanSel.value) * 1e9, now];
   }
 
@@ -129,7 +130,7 @@ export class HistoryView {
       return;
     }
     if (seq !== this.seq) return; // a newer request went out meanwhile
-    if (fit) [since, until] = fitted(doc.history) ?? [since, until];
+    if (fit) [since, until] = fitted(doc.history, Date.now() * 1e6) ?? [since, until];
     this.doc = doc;
     this.draw(doc.history, since, until);
     this.summary(doc.summary);
@@ -155,7 +156,8 @@ export class HistoryView {
     const lines = [["frame", h.frame], ...Object.entries(h.stages)];
     const top = niceCeil(Math.max(1e-3, ...lines.flatMap(([, pts]) => pts.map((p) => p.p99_ms))));
     const plotW = W - LEFT - RIGHT;
-    const x = (t) => LEFT + ((t - since) / (until - since)) * plotW;
+    // A minute's point is drawn at its middle, or at the span's end where that is past it (the newest minute).
+    const x = (t) => LEFT + ((Math.min(t, until) - since) / (until - since)) * plotW;
     const y = (ms) => TOP + (1 - ms / top) * (H - TOP - BOTTOM);
     const svg = [`<text class="axis axis-title" x="4" y="${TOP - 10}">delay · p99 solid, p50 dashed</text>`];
     for (const ms of delayTicks(top, H - TOP - BOTTOM, 40).values) {
@@ -202,7 +204,8 @@ export class HistoryView {
         `<td>${cell(v.p50_ms)}</td><td>${cell(v.p90_ms)}</td><td>${cell(v.p99_ms)}</td><td>${cell(v.max_ms)}</td>` +
         `<td>${v.drops ?? ""}</td></tr>`).join("") + `</tbody></table>` +
       `<p class="hint">Exact: frames, mean, min, max, drops (${s.frame.incomplete} incomplete frames, ${s.frame.lost} events lost). ` +
-      `p50, p90, p99 from the sketch, within ${s.relative_error * 100} % of the value.</p>`;
+      `p50, p90, p99 from the sketch, within ${s.relative_error * 100} % of the value.</p>` +
+      (s.raw?.said ? `<p class="hint history-raw">${esc(s.raw.said)}</p>` : "");
   }
 
   zoom(e) {
@@ -237,17 +240,17 @@ export class HistoryView {
 }
 
 /**
- * [since, until] around every point of a history (at least MIN_SPAN_NS, the data at its left then,
- * where a live DCU's next minutes will come), or null when it has none.
+ * [since, until] around every point of a history, ending at its newest event (`newest_ns`; else the end
+ * of its last minute or hour), never after `now`: at least MIN_SPAN_NS, widened to the left; or null
+ * when it has none.
  */
-export function fitted(h) {
+export function fitted(h, now = Infinity) {
   const ts = [h.frame, ...Object.values(h.stages)].flat().map((p) => p.t_ns);
   if (!ts.length) return null;
   const first = Math.min(...ts);
-  const last = Math.max(...ts) + h.width_ns;
-  const span = Math.max(MIN_SPAN_NS, (last - first) * 1.08);
-  const since = first - Math.min((span - (last - first)) / 2, span * 0.04);
-  return [since, since + span];
+  const until = Math.min(h.newest_ns ?? Math.max(...ts) + h.width_ns, now);
+  const span = Math.max(MIN_SPAN_NS, (until - first) * 1.04);
+  return [until - span, until];
 }
 
 /** Labelled ticks of a UTC time axis over [since, until] drawn `px` wide: round steps, labels apart. */
