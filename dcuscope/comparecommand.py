@@ -17,7 +17,9 @@ DESCRIPTION = """\
 Compare runs of a pipeline: for each stage (matched by name) and end to end, the frames and the
 mean, p50, p90 and p99 of delay, service and wait of every input, and for each input after the
 first (BASE) the change against BASE, in ms and in %, with its 95 % confidence interval and a
-verdict (slower, faster, no significant change).
+verdict (slower, faster, no significant change). Inputs of different pipelines (other stages) are
+compared only on the stages both have: a stage only one has, and end to end, keep their figures
+and get no change or verdict ("not in both").
 
 Frames of one run are not independent (a slow frame delays the next; a busy machine slows a
 stretch of them), so intervals come from the circular block bootstrap: each run is resampled in
@@ -27,9 +29,9 @@ the resamples spread too little, and each figure's are stretched by the factor t
 autocorrelation says is missing. The interval is the 2.5-97.5 percentile range of NEW - BASE
 over the resamples, widened by Student's t with a degree of freedom per block (the spread is
 itself an estimate from that many blocks). A figure is slower (faster) when its whole interval is
-above (below) zero and the change is at least --noise % of BASE and --noise-ms. Each interval is 95 % on its own;
-the verdict over a whole table uses Holm's correction, so that identical runs are called
-different in at most 5 % of comparisons.
+above (below) zero and the change is at least --noise % of BASE and --noise-ms. Each interval is
+95 % on its own; the verdict over a whole table uses Holm's correction, so that identical runs are
+called different in at most 5 % of comparisons.
 
 The intervals speak of these two runs, frame to frame: what differs from one run to the next
 as a whole (the cores the threads got, a machine busier during one run, where live frames fall
@@ -44,6 +46,7 @@ inputs:
   TRACE             a trace file (dcuscope run --trace, dcuscope trace, GST_TRACERS=dcuscope)
   session:ID        a stored session of --db (one node: pick it with --node when it has several)
   run:ID            a stored run of --db (its id or the first 6+ characters of it)
+                    (dcuscope sessions --db DB and dcuscope runs --db DB list them)
 
 examples:
   dcuscope compare before.trace.jsonl after.trace.jsonl
@@ -137,7 +140,7 @@ def _load_inputs(args: argparse.Namespace) -> list:
         if not fd.chains.complete.any():
             raise DcuscopeError(f"compare: {text}: no complete frame of node {header.node} (did the run carry frames "
                                 "through every stage?)")
-        out.append(Input(label=label, origin=origin, node=header.node, fd=fd))
+        out.append(Input(label=label, origin=origin, node=header.node, fd=fd, kinds=header.kinds))
     for i, label in zip(out, distinct_labels([i.label for i in out])):
         i.label = label
     return out
@@ -151,7 +154,7 @@ def _read(text: str, db: str | None) -> list[tuple]:
         if db is None:
             raise DcuscopeError(f"compare: {text} is stored: give --db PATH|URL of the relay's store")
         if kind == "session" and not key.isdigit():
-            raise DcuscopeError(f"compare: {text}: a session id is a number (see /api/sessions)")
+            raise DcuscopeError(f"compare: {text}: a session id is a number (dcuscope sessions --db DB lists them)")
         if kind == "run" and (len(key) < 6 or any(c not in "0123456789abcdef" for c in key.lower())):
             raise DcuscopeError(f"compare: {text}: a run id is 6 or more hexadecimal digits")
         from dcuscope.relay.store.engines import is_url

@@ -1,20 +1,24 @@
 """The comparison document (:mod:`dcuscope.probes.trace.compare`) as a terminal table or Markdown.
 
 Per stage and kind a block: one line per input with frames, mean, p50, p90, p99 in ms; under
-each input after BASE, the change of each figure in % of BASE (ms where BASE is 0) with its
-95 % interval, marked ``▲`` slower or ``▼`` faster where that is the verdict.
+each input after BASE, the change of each figure in ms and in % of BASE with the 95 % interval of
+the % (of the ms where BASE is 0), marked ``▲`` slower or ``▼`` faster where that is the verdict;
+``not in both`` where one side lacks the stage (or, for end to end, the pipelines' stages differ).
 """
 
 from __future__ import annotations
 
+import math
+
 from dcuscope.probes.trace.bootstrap import FIGURES
-from dcuscope.probes.trace.compare import E2E, FEW, MIN_TAIL, SAME, SLOWER
+from dcuscope.probes.trace.compare import APART, E2E, FEW, MIN_TAIL, SAME, SLOWER
 
 NEVER_WAIT_MS = 0.001
 MARK = {SLOWER: " ▲", SAME: "", "faster": " ▼", FEW: " ?"}
 
 
-LEGEND = (f"▲ slower, ▼ faster: 95 % interval entirely past 0 and the change at least the noise threshold; "
+LEGEND = ("change: NEW - BASE in ms, then in % of BASE with its 95 % interval; "
+          "▲ slower, ▼ faster: 95 % interval entirely past 0 and the change at least the noise threshold; "
           f"? too few frames: under {MIN_TAIL} beyond that percentile in a run (p99 of under 1,000 frames)")
 
 
@@ -24,18 +28,28 @@ def _title(row: dict) -> str:
     return f"{row['stage']} ({row['kind']})" if row["kind"] != "delay" else row["stage"]
 
 
-def _change(c: dict | None) -> str:
-    if c is None:
-        return "-"
+def _change(c: dict) -> str:
+    """``+2.049 ms +96.2% [+95.1, +97.3] ▲``: the ms as precise as the values, so that it reads as the
+    difference of the two lines above it."""
     if c["pct"] is not None:
-        text = f"{c['pct']:+.1f}% [{c['pct_low']:+.1f}, {c['pct_high']:+.1f}]"
+        text = f"{_ms(c['delta'])} ms {c['pct']:+.1f}% [{c['pct_low']:+.1f}, {c['pct_high']:+.1f}]"
     else:
-        text = f"{c['delta']:+.3f}ms [{c['low']:+.3f}, {c['high']:+.3f}]"
+        text = f"{_ms(c['delta'])} ms [{_ms(c['low'])}, {_ms(c['high'])}]"
     return text + MARK[c["verdict"]]
 
 
+def ms_digits(v: float) -> int:
+    """Decimals for ``v`` ms: to the µs, more below 0.1 ms so that it keeps 3 significant digits (an
+    element of a few µs reads 0.00213, not 0.002), to the ns at most."""
+    return 3 if v == 0 or abs(v) >= 0.1 else max(3, min(6, 2 - math.floor(math.log10(abs(v)))))
+
+
+def _ms(v: float) -> str:
+    return f"{v:+.{ms_digits(v)}f}"
+
+
 def _value(v: dict | None, figure: str) -> str:
-    return "-" if v is None else f"{v[figure]:.3f}"
+    return "-" if v is None else f"{v[figure]:.{ms_digits(v[figure])}f}"
 
 
 def never_wait(doc: dict) -> list[str]:
@@ -58,7 +72,8 @@ def blocks(doc: dict) -> list[tuple[str, list[list[str]]]]:
             lines.append([label, "-" if v is None else str(v["frames"])] + [_value(v, f) for f in FIGURES])
             if k:
                 c = row["changes"][k]
-                lines.append(["  change", ""] + [_change(None if c is None else c[f]) for f in FIGURES])
+                cells = [""] * len(FIGURES) if c is None else [_change(c[f]) for f in FIGURES]
+                lines.append(["  not in both" if c is None else "  change", ""] + cells)
         out.append((_title(row), lines))
     return out
 
@@ -76,12 +91,29 @@ def verdict_lines(doc: dict) -> list[str]:
     """Per input after BASE its verdict over the whole table (Holm), naming the figures."""
     out = []
     base = doc["inputs"][0]["label"]
-    for i, v in zip(doc["inputs"][1:], doc["verdicts"][1:]):
+    for k, (i, v) in enumerate(zip(doc["inputs"][1:], doc["verdicts"][1:]), start=1):
+        if i["apart"]:
+            shared = shared_stages(doc, k)
+            out.append(f"{i['label']} vs {base}: different pipelines, compared on the {len(shared)} stage"
+                       f"{'' if len(shared) == 1 else 's'} both have; not in both, no verdict: "
+                       f"{', '.join(_stage_name(s) for s in i['apart'])}")
+        if v["verdict"] == APART:
+            out.append(f"{i['label']} vs {base}: nothing to compare (no stage in both)")
+            continue
         named = v["slower"] or v["faster"]
         what = f": {', '.join(named[:6])}{' ...' if len(named) > 6 else ''}" if named else ""
         out.append(f"{i['label']} vs {base}: {v['verdict'].upper() if v['verdict'] != SAME else v['verdict']}{what} "
                    f"({v['figures']} figures, family-wise 5 %)")
     return out
+
+
+def shared_stages(doc: dict, k: int) -> list[str]:
+    """The stages input k is compared with BASE on (a row of each with a change)."""
+    return list(dict.fromkeys(r["stage"] for r in doc["rows"] if r["changes"][k] and r["stage"] != E2E))
+
+
+def _stage_name(stage: str) -> str:
+    return "end to end" if stage == E2E else stage
 
 
 def method_line(doc: dict) -> str:

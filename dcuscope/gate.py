@@ -75,6 +75,9 @@ def check(doc: dict, bound: Bound) -> list[Outcome]:
     out = []
     for k, inp in enumerate(doc["inputs"][1:], start=1):
         c = row["changes"][k]
+        if c is None and bound.stage in inp["apart"]:
+            raise DcuscopeError(f"--fail-if {bound.text!r}: {inp['label']} and BASE are different pipelines (not in "
+                                f"both: {', '.join(inp['apart'])}): they are compared only on the stages both have")
         if c is None:
             raise DcuscopeError(f"--fail-if {bound.text!r}: {inp['label']} or BASE has no {bound.kind} of "
                                 f"{bound.stage!r} to compare")

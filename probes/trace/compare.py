@@ -15,11 +15,19 @@ Each interval is 95 % on its own: among the 40-odd figures of a pipeline about t
 by chance. The verdict of a whole input is therefore Holm's, which keeps the chance of any false
 verdict in the table at 5 %: *slower* when some figure is still slower after Holm's correction
 (listed largest change first).
+
+Different pipelines. Where an input's stages differ from BASE's (another config's stage list, an app
+with one element more), it is compared with BASE only on the stages both have: a stage only one side
+has keeps its figures and no change, and so does the end to end delay, which spans stages only one
+side has; their verdicts are withheld (``changes`` is None), and the input's ``apart`` lists them.
+A source's stamp (``src2``) only one side has does not make another pipeline: more cameras through
+the same stages compare end to end, as the paper's tables of 1, 2 and 3 streams do. An input that
+shares no stage with BASE gets the verdict ``not in both``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -39,6 +47,10 @@ METHOD = ("circular block bootstrap (Politis & Romano) over each run's frames in
           "(from the run's autocovariances); 95 % percentile intervals of NEW - BASE widened by Student's t with "
           "a degree of freedom a block; input verdicts by Holm's correction")
 SLOWER, FASTER, SAME, FEW = "slower", "faster", "no significant change", "too few frames"
+APART = "not in both"
+"""The verdict of an input that has no figure in common with BASE (no stage of the same name)."""
+SOURCE_KIND = "framestamp"
+"""The kind of a dcuscope pipeline's per-source stage (``src0``, ``src1``, ... in a header's kinds)."""
 MIN_TAIL = 10
 """A percentile needs this many frames beyond it in each run for its interval to mean much (p99: 1,000
 frames): with fewer, the resamples' p99 is one of a handful of values, and the interval is lopsided
@@ -56,6 +68,8 @@ class Input:
     """Where it came from, in full."""
     node: str
     fd: FrameDelays
+    kinds: dict[str, str] = field(default_factory=dict)
+    """Stage -> its element's factory (TraceHeader.kinds): which stages are sources' stamps."""
 
 
 def distinct_labels(labels: list[str]) -> list[str]:
@@ -96,6 +110,7 @@ def compare(inputs: list[Input], resamples: int = RESAMPLES, seed: int = 0, nois
     rng = np.random.default_rng(seed)
     series = [time_series(i.fd) for i in inputs]
     keys = _row_keys(inputs, series)
+    apart = [_apart(inputs[0], i) for i in inputs]
     total, done = sum(k in s for k in keys for s in series), 0
     seen: list[dict] = [{} for _ in inputs]  # per input, stage -> (its delays, their resamples)
     rows = []
@@ -114,13 +129,13 @@ def compare(inputs: list[Input], resamples: int = RESAMPLES, seed: int = 0, nois
             done += v is not None
             if progress:
                 progress(done, total)
-        rows.append(_row(stage, kind, series, resampled, noise_pct, noise_ms))
+        rows.append(_row(stage, kind, series, resampled, noise_pct, noise_ms, apart))
     return {
         "method": {"interval": METHOD, "level": LEVEL, "resamples": resamples, "seed": seed, "noise_pct": noise_pct,
                    "noise_ms": noise_ms},
-        "inputs": [{"label": i.label, "origin": i.origin, "node": i.node,
-                    "frames": int(i.fd.chains.complete.sum()), "incomplete": int((~i.fd.chains.complete).sum())}
-                   for i in inputs],
+        "inputs": [{"label": i.label, "origin": i.origin, "node": i.node, "stages": list(i.fd.table.stages),
+                    "apart": a, "frames": int(i.fd.chains.complete.sum()),
+                    "incomplete": int((~i.fd.chains.complete).sum())} for i, a in zip(inputs, apart)],
         "stages": list(dict.fromkeys(stage for stage, _ in keys)),
         "rows": rows,
         "verdicts": [None] + [_input_verdict(rows, k) for k in range(1, len(inputs))],
@@ -134,15 +149,25 @@ def _row_keys(inputs: list[Input], series: list[dict]) -> list[tuple[str, str]]:
     return keys + [(E2E, "delay")]
 
 
+def _apart(base: Input, other: Input) -> list[str]:
+    """The stages only one of ``base`` and ``other`` has, in pipeline order (BASE's first), and E2E
+    when they differ in more than sources: what the two are not compared on."""
+    mine, theirs = base.fd.table.stages, other.fd.table.stages
+    only = [(s, base.kinds) for s in mine if s not in theirs] + [(s, other.kinds) for s in theirs if s not in mine]
+    if all(kinds.get(s) == SOURCE_KIND for s, kinds in only):
+        return []
+    return [s for s, _ in only] + [E2E]
+
+
 def _row(stage: str, kind: str, series: list[dict], resampled: list[Resampled | None], noise_pct: float,
-         noise_ms: float) -> dict:
+         noise_ms: float, apart: list[list[str]]) -> dict:
     values, changes = [], []
     for s, r in zip(series, resampled):
         v = s.get((stage, kind))
         values.append(None if r is None else {"frames": len(v), "block": r.block, **r.estimate})
     base = resampled[0]
     for k, r in enumerate(resampled[1:], start=1):
-        if base is None or r is None:
+        if base is None or r is None or stage in apart[k]:
             changes.append(None)
             continue
         frames = min(values[0]["frames"], values[k]["frames"])
@@ -173,6 +198,8 @@ def _input_verdict(rows: list[dict], k: int) -> dict:
     slower = [name for (name, c), ok in zip(figures, kept) if ok and c["verdict"] == SLOWER]
     faster = [name for (name, c), ok in zip(figures, kept) if ok and c["verdict"] == FASTER]
     verdict = SLOWER if slower else FASTER if faster else SAME
+    if not figures:
+        verdict = FEW if any(r["changes"][k] for r in rows) else APART
     return {"verdict": verdict, "slower": slower, "faster": faster, "figures": len(figures)}
 
 

@@ -2,7 +2,8 @@
 
 - ``GET /api/compare?base=RUN&new=RUN[&noise=PCT]``: the document of :func:`dcuscope.probes.trace.compare.compare`
   (per stage and end to end, each figure of NEW against BASE with its 95 % block-bootstrap interval and
-  verdict). RUN is a stored run's id or a prefix of it of 6 or more hex digits that names one run, as
+  verdict; two runs of different pipelines only on the stages both have, the rest ``not in both``).
+  RUN is a stored run's id or a prefix of it of 6 or more hex digits that names one run, as
   ``dcuscope compare run:ID`` takes it. Either side may instead be ``base=SESSION&base_node=NAME``
   (``new=SESSION&new_node=NAME``): the run of node NAME in that session, where it has exactly one.
   Each input's ``label`` is :func:`dcuscope.relay.store.runs.run_label`'s, as the CLI names the same run.
@@ -83,7 +84,7 @@ def add_compare_routes(app: web.Application, sessions: SessionCache) -> None:
             raise http_error(web.HTTPNotFound, f"run {node.run[:8]} of {node.header.node[:100]!r}: no complete frame")
         twins = sum(n.header.node == node.header.node for n in nodes) > 1
         return Input(label=run_label(session, node.header.node, node.run, twins), origin=f"run {node.run}",
-                     node=node.header.node, fd=node.fd), node
+                     node=node.header.node, fd=node.fd, kinds=node.header.kinds), node
 
     async def handler(request: web.Request) -> web.Response:
         (base, base_node), (new, new_node) = await side(request, "base"), await side(request, "new")

@@ -3,7 +3,8 @@ the gate's exit codes, the table, JSON and Markdown.
 
 Two ``dcuscope run`` pipelines of one config, A and B, run at the same time (so that they share the
 machine's load); then A2, a third of that config, beside C, whose identity sleeps 2 ms more per
-frame. Each comparison is of two runs made side by side. The model-free pipeline keeps
+frame. Each comparison is of two runs made side by side. Last, alone, "plain": that pipeline without
+the identity, a different pipeline. The model-free pipeline keeps
 CPU contention low; the module runs alone (a timing comparison beside five busy workers compares
 the workers)."""
 
@@ -15,6 +16,7 @@ import sys
 
 import pytest
 
+from dcuscope.compareformat import ms_digits
 from tests.conftest import REPO, cli_env, run_cli
 
 pytestmark = pytest.mark.alone
@@ -30,6 +32,12 @@ launch: videotestsrc is-live=true pattern=ball ! video/x-raw,width=320,height=24
 """One streaming thread: a queue's hand-over to its thread, with three pipelines on two cores, differs
 from one run to the next by more than the noise threshold (docs/compare.md: what intervals do not hold)."""
 EXTRA_MS = 2.0
+PLAIN = """\
+node: DCU-1
+launch: videotestsrc is-live=true pattern=ball ! video/x-raw,width=320,height=240,framerate=60/1 !
+  videoconvert name=convert ! fakesink name=sink
+"""
+"""CONFIG without its identity: another pipeline, whose frames end 2-4 ms sooner (no sleep)."""
 
 
 @pytest.fixture(scope="module")
@@ -47,6 +55,10 @@ def traces(tmp_path_factory) -> dict:
                                           env=cli_env(), stderr=subprocess.PIPE, text=True))
         for p in procs:
             assert p.wait(timeout=120) == 0, p.stderr.read()
+    (tmp / "plain.yaml").write_text(PLAIN)
+    out["plain"] = tmp / "plain.trace.jsonl"
+    run = run_cli("run", tmp / "plain.yaml", "--probes", "--trace", out["plain"], "-n", "100", "-q")
+    assert run.returncode == 0, run.stderr
     return out
 
 
@@ -133,3 +145,63 @@ def test_table_and_markdown_put_inputs_side_by_side(traces):
     md = run_cli("compare", traces["a"], traces["c"], "--markdown").stdout
     assert md.startswith("### dcuscope compare") and "| stage | input | frames | mean ms | p50 ms | p90 ms | p99 ms |" in md
     assert f"| work | `a` | {FRAMES} |" in md and "**c vs a: SLOWER" in md
+
+
+def test_the_table_and_markdown_give_each_change_in_ms_beside_percent(traces):
+    doc = compare_json(traces["a2"], traces["c"])
+    table = run_cli("compare", traces["a2"], traces["c"]).stdout.splitlines()
+    md = run_cli("compare", traces["a2"], traces["c"], "--markdown").stdout.splitlines()
+    for stage in ("work", "e2e"):
+        c = row(doc, stage)["changes"][1]
+        title = "end to end" if stage == "e2e" else stage
+        line = table[table.index(next(t for t in table if t.startswith(title))) + 3]
+        cells = next(m for m in md[md.index(next(m for m in md if m.startswith(f"| {title}"))):] if "*change*" in m)
+        for figure in ("mean", "p50", "p90", "p99"):
+            f = c[figure]
+            assert f["delta"] > 1.0 or figure == "p99"  # 2 ms more sleep: ms that read as such (p99: too few)
+            delta = f"{f['delta']:+.{ms_digits(f['delta'])}f}"  # to the µs, 3 significant digits below 0.1 ms
+            text = f"{delta} ms {f['pct']:+.1f}% [{f['pct_low']:+.1f}, {f['pct_high']:+.1f}]"
+            assert text in line and text in cells, (stage, figure, text, line, cells)
+    assert any(t.startswith("change: NEW - BASE in ms, then in % of BASE") for t in table)
+
+
+def test_different_pipelines_are_compared_only_on_the_stages_both_have(traces):
+    plain, c = traces["plain"], traces["c"]
+    doc = compare_json(plain, c)
+    assert doc["inputs"][1]["apart"] == ["work", "e2e"], doc["inputs"]
+    shared = {r["stage"] for r in doc["rows"]} - {"work", "e2e"}
+    assert "convert" in shared, shared
+    for r in doc["rows"]:
+        compared = r["changes"][1] is not None
+        assert compared == (r["stage"] in shared), (r["stage"], r["kind"], r["changes"][1])
+    assert row(doc, "e2e")["values"][1]["p50"] > row(doc, "e2e")["values"][0]["p50"] + 1.5  # shown, not judged
+    verdict = doc["verdicts"][1]
+    assert all(name.split(".")[0] in shared for name in verdict["slower"] + verdict["faster"]), verdict
+    table = run_cli("compare", plain, c).stdout.splitlines()
+    for title in ("work", "end to end"):
+        block = table.index(next(t for t in table if t.startswith(title)))
+        assert table[block + 3].split() == ["not", "in", "both"], table[block:block + 4]
+    assert f"c vs plain: different pipelines, compared on the {len(shared)} stages both have; not in both, no " \
+           "verdict: work, end to end" in table
+    gate = run_cli("compare", plain, c, "--fail-if", "e2e.p50 > +1ms")
+    assert gate.returncode == 2 and "different pipelines" in gate.stderr and len(gate.stderr.splitlines()) == 1
+
+
+def test_more_cameras_through_the_same_stages_compare_end_to_end():
+    # The paper's tables of 1, 2 and 3 streams: src2, a source's stamp only NEW has, is no other pipeline.
+    from dcuscope.probes.trace.compare import Input, compare
+    from dcuscope.probes.trace.delays import frame_delays
+    from dcuscope.probes.trace.frametable import frame_table
+    from tests.probes.synth import pipeline_run
+
+    inputs = []
+    for sources in (2, 3):
+        header, events, _ = pipeline_run(60, sources)
+        kinds = {f"src{k}": "framestamp" for k in range(sources)}
+        inputs.append(Input(label=f"{sources}", origin="synth", node=header.node, kinds=kinds,
+                            fd=frame_delays(frame_table(header, events))))
+    doc = compare(inputs, resamples=50)
+    assert doc["inputs"][1]["apart"] == [] and row(doc, "e2e")["changes"][1] is not None, doc["inputs"]
+    inputs[1].kinds = {}  # the same stage of an element of any other kind: another pipeline
+    doc = compare(inputs, resamples=50)
+    assert doc["inputs"][1]["apart"] == ["src2", "e2e"] and row(doc, "e2e")["changes"][1] is None

@@ -2,7 +2,9 @@
 two runs of one DCU in one session (gst-launch-1.0 traced and shipped live by ``dcuscope trace --relay``, the
 second's identity sleeping 2 ms more), while a simulated DCU keeps the session live. Each run is one entry
 of the page's selects; the page shows the figures the CLI prints for the same two runs, named as the CLI
-names them; the headline speaks of the figure shown; no value label lies under a whisker."""
+names them; it opens on a figure the runs decide, its headline agreeing with the rows shown, each change in
+ms and in %; two different pipelines get no verdict on what they do not share; no value label lies under a
+whisker."""
 
 from __future__ import annotations
 
@@ -89,6 +91,22 @@ def test_two_runs_of_one_dcu_in_one_session_show_what_the_cli_shows(browser, sto
         assert all(f"{i['label']}: {i['frames']} frames" in inputs for i in cli["inputs"]), inputs
         work = next(r for r in cli["rows"] if r["stage"] == "work" and r["kind"] == "delay")
         assert work["values"][1]["p50"] > work["values"][0]["p50"] + 1.5  # 2 ms more: the runs differ
+
+        # It opens on p50: a p99 of 200 frames has too few beyond it for any row to decide it.
+        assert page.input_value("#compare-figure") == "p50"
+        c = work["changes"][1]["p50"]
+        change = f"{c['delta']:+.3f} ms · {c['pct']:+.1f} % [{c['pct_low']:+.1f}, {c['pct_high']:+.1f}]"
+        assert change in page.text_content(".cmp-row[data-stage=work] .cmp-change"), change
+        # Whatever the figure, the headline says "slower" (in red) exactly where a row shown is slower.
+        shown_rows = [r for r in cli["rows"] if r["kind"] == "delay"]
+        for figure in ("p50", "p99", "mean", "p90"):
+            if figure != "p50":
+                page.select_option("#compare-figure", figure)
+            slower = [r["stage"] for r in shown_rows if r["changes"][1][figure]["verdict"] == "slower"]
+            headline = page.text_content(".compare-verdict")
+            red = page.locator(".compare-verdict .verdict-slower, .compare-verdict.verdict-slower").count()
+            assert ("slower" in headline) == bool(slower) == bool(red), (figure, slower, headline)
+            assert figure != "p99" or not slower  # p99: nothing decided, nothing red
         for figure in ("mean", "p50"):
             page.select_option("#compare-figure", figure)
             for r in (r for r in cli["rows"] if r["kind"] == "delay"):
@@ -102,7 +120,7 @@ def test_two_runs_of_one_dcu_in_one_session_show_what_the_cli_shows(browser, sto
         page.select_option("#compare-figure", "p99")  # of 200 frames: every row too few
         assert "p99 of delay, NEW against BASE: no row decided: too few frames" in page.text_content(".compare-shown")
         whole = page.text_content(".compare-whole")
-        assert "over the whole table (all" in whole and cli["verdicts"][1]["verdict"] in whole
+        assert "Over the whole table (all" in whole and cli["verdicts"][1]["verdict"] in whole
         page.select_option("#compare-figure", "p50")
         assert work["changes"][1]["p50"]["verdict"] == "slower"
         shown = page.locator(".compare-shown")
@@ -142,6 +160,12 @@ def test_two_runs_of_one_dcu_in_one_session_show_what_the_cli_shows(browser, sto
         assert answer.value.ok
         page.wait_for_function("document.querySelector('.compare-inputs').textContent.includes('different pipelines')")
         assert f"BASE session {session} · {OTHER}: 100 frames" in page.text_content(".compare-inputs")
+        # No stage in both: every row's verdict withheld, end to end too, and nothing red or green.
+        changes = page.eval_on_selector_all(".cmp-change", "cs => cs.map(c => [c.className, c.textContent])")
+        assert changes and all(cls == "cmp-change verdict-apart" for cls, _ in changes), changes
+        assert page.text_content(".cmp-row[data-stage=e2e] .cmp-change") == "not in both: the stages differ"
+        assert "no row in both runs" in page.text_content(".compare-shown")
+        assert page.locator("#compare-body .verdict-slower, #compare-body .verdict-faster").count() == 0
     finally:
         page.close()
     assert not errors, errors
