@@ -101,4 +101,4 @@ def test_a_bound_below_the_ground_truth_fails_at_one_stream_and_the_answer_says_
     answer = out.rstrip().splitlines()[-1]
     assert answer.startswith("capacity 0 streams; at 1 slow.service.mean ≤ 10 ms fails (slow.service.mean 2"), out
     assert "1 stream: FAILS" in err and "2 streams: running" not in err  # the search stops at the first failure
-    assert "Per stage, ms: delay = service + wait" in out and "slow" in out
+    assert "Per stage (Figure 12's data): mean delay in ms = service (its own work) + wait" in out and "slow" in out

@@ -21,6 +21,7 @@ import pytest
 
 from dcuscope.relay.clock.correction import Correction
 from dcuscope.relay.clock.entry import clock_entry
+from dcuscope.relay.guard.limits import Limits
 from dcuscope.relay.store.runs import load_runs
 from tests.probes.synth import run_commands
 from tests.relay.helpers import get_json, wait_for
@@ -39,7 +40,9 @@ MUX = "#e53935"
 def ended(tmp_path_factory):
     """A relay whose two nodes streamed and ended; the id of their session."""
     tmp = tmp_path_factory.mktemp("ui-clock")
-    relay = RelayThread(tmp / "relay.db")
+    # The module's tests read the ended runs' live rows for minutes on a loaded machine: kept past the
+    # default 60 s (Limits.ended_keep_s) for the whole module.
+    relay = RelayThread(tmp / "relay.db", limits=Limits(ended_keep_s=3600.0))
     # 10 s: long enough for several clock exchanges (every 2 s) even when a loaded machine delays some,
     # so that each run's clock history holds more than one estimate
     feeder = sim_nodes(relay.url, tmp, NODES, frames=300, sources=3, fps=30, paced=True, offsets_ns=[0, OFFSET_NS])
