@@ -115,26 +115,23 @@ def _rollup_stats(args: argparse.Namespace) -> int:
         doc = summary(args.db, args.node, now - parse_duration_ns(args.since or "1d"), now)
         doc["elapsed_s"] = round(time.monotonic() - started, 3)
         if not doc["rows"] and not doc["raw"]["events"]:
-            raise DcuscopeError(_no_rollups(args))
+            raise DcuscopeError(_nothing_stored(args))
         with _open_output("-") as out:
             out.write(json.dumps(doc, indent=2) + "\n" if args.json else format_rollups(doc))
     return 2 if failed else 0
 
 
-def _no_rollups(args: argparse.Namespace) -> str:
-    """Why ``stats --node --since`` has nothing to say yet, when it will, and how to have it now."""
-    from dcuscope.relay.store.compaction import COMPACT_AFTER_S
-    from dcuscope.relay.store.compactor import rollups_within_s
+def _nothing_stored(args: argparse.Namespace) -> str:
+    """Why ``stats --node --since`` has nothing to say: nothing of that node is stored in the span (its
+    rollups and its raw batches are both read), and which nodes have something."""
     from dcuscope.relay.store.history import nodes
     from dcuscope.relay.urls import redact
 
     db = redact(args.db)
     known = [n["node"] for n in nodes(args.db)]
-    others = f" (nodes with rollups: {', '.join(known[:10])})" if known and args.node not in known else ""
-    return (f"stats: no rollups of node {args.node!r} since {args.since or '1d'} in {db}{others}. A relay writes a "
-            f"run's rollups as it compacts its batches: within {rollups_within_s(COMPACT_AFTER_S):.0f} s of the run's "
-            f"start with the default --compact-after {COMPACT_AFTER_S:g}, never with --compact-after 0. To write them "
-            f"now: dcuscope db compact {db} (batches stored over {COMPACT_AFTER_S:g} s ago; --after 0: all of them)")
+    others = f" (nodes with data: {', '.join(known[:10])})" if known and args.node not in known else ""
+    return (f"stats: nothing stored of node {args.node!r} since {args.since or '1d'} in {db}{others}: a run's "
+            f"frames count here once its relay stored its first events")
 
 
 ROLLUP_COLUMNS = ("count", "mean_ms", "min_ms", "p50_ms", "p90_ms", "p99_ms", "max_ms")

@@ -356,6 +356,12 @@ class Database(ABC):
             "SELECT node, min(start_ns), max(start_ns) FROM rollups WHERE width_ns = %s GROUP BY node ORDER BY node",
             (HOUR_NS,))]
 
+    def raw_nodes(self) -> list[tuple[str, int, int]]:
+        """(node, first received_ns, last received_ns) of every node with batches not compacted yet."""
+        return [(n, int(a), int(b)) for n, a, b in self._rows(
+            "SELECT r.node, min(b.received_ns), max(b.received_ns) FROM batches b JOIN runs r ON r.id = b.run "
+            "GROUP BY r.node ORDER BY r.node")]
+
     def delete_rollups_part(self, before_ns: int, limit: int) -> int:
         """Delete up to ``limit`` rollup rows that start before ``before_ns`` (one short transaction)."""
         return self._transaction(lambda x: x.execute(self._sql(

@@ -14,9 +14,11 @@ child stops when it closes, so a relay killed outright takes its compactor with 
 prints one JSON line of its totals after each pass, which :meth:`Compactor.view` shows in
 ``/api/health``; it logs to the relay's stderr. SIGTERM stops it after the range being moved.
 
-**At start** the process starts at once, not ``--compact-after`` later, when the store holds batches
-stored before the relay started (a relay killed outright, SIGKILL or a crash, left them raw): its first
-pass compacts, whole, those of the runs not heard from since (:func:`catch_up`), and says so in the log.
+**At start** the process starts CATCH_UP_AFTER_S in, not ``--compact-after`` later, when the store holds
+batches stored before the relay started (a relay killed outright, SIGKILL or a crash, left them raw):
+its first pass compacts, whole, those of the runs not heard from since (:func:`catch_up`), and says so
+in the log. The nodes that resume their runs on this relay are back by then, and their runs are left
+to the usual passes.
 
 **At stop** (SIGINT, SIGTERM), once its compaction process ended and its writer committed the last
 batches, the relay compacts in its own process every batch still raw but those of runs another relay
@@ -56,6 +58,9 @@ STOP_ROLLUP_S = 10.0
 """The longest a stopping relay compacts what its runs hold raw (about a microsecond of CPU an event:
 10 s is 10 million events, two minutes of 20 DCUs at the paper's pace; a relay's raw tail is at most
 ``--compact-after`` plus a pass of its events)."""
+CATCH_UP_AFTER_S = 10.0
+"""How long a relay that found raw batches of an earlier relay waits before compacting them: its first
+seconds are the nodes' (a node reconnects within a few), not a process start's."""
 STOP_S = 30.0
 """How long a stopping relay waits for its compactor to finish the range it is moving."""
 TEST_LIVE_WAIT_ENV = "DCUSCOPE_TEST_LIVE_WAIT_S"
@@ -98,14 +103,15 @@ class Compactor:
         self.started_ns = 0
 
     def start(self) -> None:
-        """Start the process now if an earlier relay left batches raw, else once batches can be due
-        (``after_s`` from now): a relay that lives less long costs no process (the CPU of starting
-        one: about half a second)."""
+        """Start the process CATCH_UP_AFTER_S in if an earlier relay left batches raw, else once batches
+        can be due (``after_s`` from now): a relay that lives less long costs no process (the CPU of
+        starting one: about half a second)."""
         self.started_ns = time.time_ns()
         threading.Thread(target=self._begin, name="dcuscope-relay-compact-start", daemon=True).start()
 
     def _begin(self) -> None:
-        if self._left_before_start() or not self._stopping.wait(self.after_s):
+        wait_s = min(CATCH_UP_AFTER_S, self.after_s) if self._left_before_start() else self.after_s
+        if not self._stopping.wait(wait_s):
             self._spawn()
 
     def _left_before_start(self) -> bool:

@@ -139,12 +139,17 @@ def _history(node: str, since_ns: int, until_ns: int, width: int, rows: list[tup
 
 
 def nodes(db: str | Path) -> list[dict]:
-    """Every node with rollups: ``{node, first_ns, last_ns}`` (hours)."""
+    """Every node with rollups or raw batches (a live DCU before its first compaction, a store a relay
+    killed outright left): ``{node, first_ns, last_ns}`` (hours), by name."""
     database = open_database(db, create=False)
     try:
-        return [{"node": n, "first_ns": a, "last_ns": b} for n, a, b in database.rollup_nodes()]
+        spans = {n: (a, b) for n, a, b in database.rollup_nodes()}
+        for n, a, b in database.raw_nodes():
+            a, b = a // HOUR_NS * HOUR_NS, b // HOUR_NS * HOUR_NS
+            spans[n] = (min(a, spans[n][0]), max(b, spans[n][1])) if n in spans else (a, b)
     finally:
         database.close()
+    return [{"node": n, "first_ns": a, "last_ns": b} for n, (a, b) in sorted(spans.items())]
 
 
 def _figures(s: Sketch) -> dict:

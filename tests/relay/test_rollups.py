@@ -127,9 +127,8 @@ def test_stats_cli_answers_from_rollups_and_says_what_is_exact(tmp_path):
     doc = json.loads(run_cli("stats", "--db", path, "--node", "a", "--since", "30d", "--json").stdout)
     assert doc["frame"]["count"] == node_stats(header_for("a", 2), events)["frames"]["complete"]
     assert doc["exact"] and doc["from_sketch"] == ["p50_ms", "p90_ms", "p99_ms"] and doc["relative_error"] == ALPHA
-    # No rollups (yet): which nodes have some, when they come, and how to have them now.
-    nobody = ("no rollups of node 'nobody'", "(nodes with rollups: a)", "within 90 s of the run's start",
-              f"dcuscope db compact {path}")
+    # Nothing stored of that node: which nodes have something.
+    nobody = ("nothing stored of node 'nobody' since 1d", "(nodes with data: a)")
     for args, said in ((["--node", "nobody"], nobody), (["--node", "a", "--since", "3q"], ("duration",)),
                        (["--since", "1d"], ("--db PATH|URL --node NAME",))):
         bad = run_cli("stats", "--db", path, *args)

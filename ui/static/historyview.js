@@ -85,21 +85,17 @@ export class HistoryView {
     await this.load();
   }
 
-  /** Why there is nothing yet, when there will be, and how to have it now (the relay's settings). */
+  /** Why there is nothing yet: no DCU stored an event (a DCU is listed from its first stored batch). */
   async whenData() {
     let health = null;
     try {
       health = await this.api.get("/api/health");
     } catch (_) { /* said without the relay's figures */ }
-    const where = health?.storage?.location ?? "DB";
-    const now = `To write them now: dcuscope db compact ${where} (batches stored over 60 s ago; --after 0: all).`;
     const c = health?.compaction;
-    if (health && !c) return `No rollups yet: this relay does not compact (--compact-after 0), and rollups are written as batches are compacted. ${now}`;
-    const within = c ? `${Math.round(c.rollups_within_s)} s` : "about two minutes";
-    const every = c ? `every ${Math.round(c.every_s)} s` : "as it compacts";
-    return `No rollups yet: this relay writes a DCU's rollups as it compacts batches older than --compact-after` +
-      `${c ? ` (${c.after_s} s)` : ""}, within ${within} of a run's start, then ${every}; this view looks again ` +
-      `every ${REFRESH_MS / 1000} s. ${now}`;
+    const rolled = health && !c ? "this relay does not compact (--compact-after 0): its DCUs are counted from their batches"
+      : `its minutes are counted from the batches until the relay rolls them up (within ${c ? `${Math.round(c.rollups_within_s)} s` : "about two minutes"} of a run's start)`;
+    return `No DCU has stored anything yet. A DCU shows here once the relay stored its first events; ${rolled}. ` +
+      `This view looks again every ${REFRESH_MS / 1000} s.`;
   }
 
   say(text) {
