@@ -24,6 +24,9 @@ from tests.relay.helpers import get_json, wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 CHROMIUM = "/usr/bin/chromium"
+KEEP_ENDED = Limits(ended_keep_s=3600.0)
+"""A relay's limits for a module whose tests read ended runs' live rows for minutes on a loaded machine,
+past the 60 s an ended run stays in them by default (``--limit ended_keep_s``)."""
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync", "--no-first-run"]
 REAL_PIPELINES = (ROOT / "probes" / "instrument.py").is_file()

@@ -21,11 +21,10 @@ import pytest
 
 from dcuscope.relay.clock.correction import Correction
 from dcuscope.relay.clock.entry import clock_entry
-from dcuscope.relay.guard.limits import Limits
 from dcuscope.relay.store.runs import load_runs
 from tests.probes.synth import run_commands
 from tests.relay.helpers import get_json, wait_for
-from tests.ui.helpers import RelayThread, sim_nodes
+from tests.ui.helpers import KEEP_ENDED, RelayThread, sim_nodes
 
 pytestmark = pytest.mark.long  # its tests share a module fixture: one group of 30 s or more, started first
 
@@ -40,9 +39,7 @@ MUX = "#e53935"
 def ended(tmp_path_factory):
     """A relay whose two nodes streamed and ended; the id of their session."""
     tmp = tmp_path_factory.mktemp("ui-clock")
-    # The module's tests read the ended runs' live rows for minutes on a loaded machine: kept past the
-    # default 60 s (Limits.ended_keep_s) for the whole module.
-    relay = RelayThread(tmp / "relay.db", limits=Limits(ended_keep_s=3600.0))
+    relay = RelayThread(tmp / "relay.db", limits=KEEP_ENDED)
     # 10 s: long enough for several clock exchanges (every 2 s) even when a loaded machine delays some,
     # so that each run's clock history holds more than one estimate
     feeder = sim_nodes(relay.url, tmp, NODES, frames=300, sources=3, fps=30, paced=True, offsets_ns=[0, OFFSET_NS])

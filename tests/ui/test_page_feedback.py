@@ -15,7 +15,7 @@ import pytest
 
 from dcuscope.demo import status_lines
 from tests.relay.helpers import get_json, wait_for
-from tests.ui.helpers import RelayThread, sim_nodes, source_fps
+from tests.ui.helpers import KEEP_ENDED, RelayThread, sim_nodes, source_fps
 
 pytestmark = pytest.mark.long  # its tests share a module fixture: one group of 30 s or more, started first
 
@@ -44,7 +44,7 @@ def open_page(browser, url: str, viewport: dict | None = None, polling: bool = F
 def ended(tmp_path_factory):
     """A relay and a node with a long name that streamed 200 frames of 3 sources and ended."""
     tmp = tmp_path_factory.mktemp("feedback")
-    relay = RelayThread(tmp / "relay.db")
+    relay = RelayThread(tmp / "relay.db", limits=KEEP_ENDED)
     feeder = sim_nodes(relay.url, tmp, [LONG_NODE], frames=200, sources=3, fps=30, paced=False)
     try:
         feeder.wait(120)

@@ -42,9 +42,10 @@ def test_a_node_whose_relay_dies_goes_on_at_the_next_relay_of_its_list(tmp_path,
     url_b = f"http://127.0.0.1:{free_port()}"
     relay_a = RelayProcess(db, port=free_port())
     relay_b = None
-    # 2 sources at 50 fps for 8 s, written as their time comes: ~1,200 events/s in batches of 256.
+    # 2 sources at 50 fps for 14 s, written as their time comes: ~1,200 events/s in batches of 256. On a
+    # loaded machine relay B's start takes seconds: the node must still be writing when it switches.
     t0 = time.clock_gettime_ns(time.CLOCK_REALTIME) + 200_000_000
-    events = synth_events(400, 2, 50.0, t0, drop_rate=0.02)
+    events = synth_events(700, 2, 50.0, t0, drop_rate=0.02)
     exporter = RelayExporter(f"{relay_a.url},{url_b}", "DCU-1", batch_events=256, close_timeout_s=20.0)
     writer = threading.Thread(target=feed, args=(exporter, events), kwargs={"paced": True, "clock": PretendClock()},
                               daemon=True)
