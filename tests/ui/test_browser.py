@@ -13,7 +13,7 @@ import re
 import pytest
 
 from tests.relay.helpers import get_json, wait_for
-from tests.ui.helpers import ROOT, RelayThread, pipeline_nodes, sim_nodes
+from tests.ui.helpers import KEEP_ENDED, ROOT, RelayThread, pipeline_nodes, sim_nodes
 
 pytestmark = pytest.mark.long  # its tests share a module fixture: one group of 30 s or more, started first
 
@@ -44,7 +44,7 @@ PIXELS_JS = """([sel, y, h, colours, x = 0]) => {
 def live(browser, feeder_kind, tmp_path_factory):
     """A relay, two nodes streaming to it, and the page open on it."""
     tmp = tmp_path_factory.mktemp("ui-live")
-    relay = RelayThread(tmp / "relay.db")
+    relay = RelayThread(tmp / "relay.db", limits=KEEP_ENDED)  # the last tests read the ended runs
     if feeder_kind == "pipeline":
         feeder = pipeline_nodes(relay.url, tmp, NODES, duration=120)  # ended by the counters test
     else:
