@@ -48,6 +48,7 @@ from dcuscope.relay.errors import RelayError
 from dcuscope.relay.store.base import Database
 from dcuscope.relay.store.compaction import LIVE_WAIT_S, Compacted, compact
 from dcuscope.relay.store.engines import open_database
+from dcuscope.relay.store.unrolled import hhmm
 
 COMPACT_EVERY_S = 30.0
 """How often the due batches are looked for (more often with a short ``--compact-after``); also
@@ -270,7 +271,7 @@ def roll_up_at_stop(db: str | Path, name: str, owner: str, bound_s: float = STOP
     head = f"rolled up its runs at stop: {_said(done)} in {took:.2f} s" if done.events else "nothing to roll up at stop"
     if not events:
         return head + (f" (bound {bound_s:g} s); nothing left raw" if done.events else "")
-    when = f"stored {_hhmm(first)} to {_hhmm(last)} UTC"
+    when = f"stored {hhmm(first)} to {hhmm(last)} UTC"
     gave_up = f"gave up at the {bound_s:g} s bound" if took > bound_s else "not compacted"
     return (f"{head}; {gave_up}: {events:,} events of {runs} runs left raw ({batches:,} batches {when}): the next "
             f"relay on this store rolls them up as it starts, `dcuscope stats --since` counts them meanwhile")
@@ -279,9 +280,6 @@ def roll_up_at_stop(db: str | Path, name: str, owner: str, bound_s: float = STOP
 def _said(done: Compacted) -> str:
     return f"{done.events:,} events of {done.batches:,} batches into {done.segments} segments"
 
-
-def _hhmm(ns: int) -> str:
-    return time.strftime("%H:%M", time.gmtime(ns / 1e9))
 
 
 def main() -> int:

@@ -64,12 +64,12 @@ class Raw:
             return ""
         if not self.included:
             first, last = self.stored_ns or (0, 0)
-            return (f"{self.events:,} events stored {_hhmm(first)} to {_hhmm(last)} UTC are not rolled up yet and not "
+            return (f"{self.events:,} events stored {hhmm(first)} to {hhmm(last)} UTC are not rolled up yet and not "
                     f"counted here ({self.why}): `dcuscope db compact` rolls them up")
         minutes = self.minutes()
         if not minutes:
             return f"{self.events:,} raw events not rolled up yet: no frame of this span starts in them"
-        return (f"minutes {_hhmm(minutes[0])} to {_hhmm(minutes[-1] + MINUTE_NS)} UTC were still raw ({self.events:,} "
+        return (f"minutes {hhmm(minutes[0])} to {hhmm(minutes[-1] + MINUTE_NS)} UTC were still raw ({self.events:,} "
                 f"events not rolled up yet): counted from the stored batches")
 
 
@@ -116,5 +116,6 @@ def with_raw(database: Database, node: str, since_ns: int, until_ns: int,
     return stored, raw
 
 
-def _hhmm(ns: int) -> str:
+def hhmm(ns: int) -> str:
+    """``ns`` (wall clock) as the UTC minute the raw-batch lines name: ``14:03``."""
     return time.strftime("%H:%M", time.gmtime(ns / 1e9))
