@@ -46,7 +46,7 @@ def live(browser, feeder_kind, tmp_path_factory):
     tmp = tmp_path_factory.mktemp("ui-live")
     relay = RelayThread(tmp / "relay.db", limits=KEEP_ENDED)  # the last tests read the ended runs
     if feeder_kind == "pipeline":
-        feeder = pipeline_nodes(relay.url, tmp, NODES, duration=120)  # ended by the counters test
+        feeder = pipeline_nodes(relay.url, tmp, NODES, duration=300)  # ended by the counters test (SIGTERM)
     else:
         feeder = sim_nodes(relay.url, tmp, NODES, frames=900, sources=3, fps=30, paced=True,
                            offsets_ns=[0, 3_000_000])

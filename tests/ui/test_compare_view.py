@@ -1,6 +1,6 @@
 """The page's Compare tab in Chromium, ``/api/compare`` and ``dcuscope compare --db`` on the same stored runs:
 two runs of one DCU in one session (gst-launch-1.0 traced and shipped live by ``dcuscope trace --relay``, the
-second's identity sleeping 2 ms more), while a simulated DCU keeps the session live. Each run is one entry
+second's identity sleeping 6 ms more), while a simulated DCU keeps the session live. Each run is one entry
 of the page's selects; the page shows the figures the CLI prints for the same two runs, named as the CLI
 names them; it opens on a figure the runs decide, its headline agreeing with the rows shown, each change in
 ms and in %; two different pipelines get no verdict on what they do not share; no value label lies under a
@@ -44,7 +44,7 @@ def stored(tmp_path_factory):
     try:
         wait_for(lambda: any(n["node"] == OTHER for n in get_json(f"{relay.url}/api/nodes")), 30, what=f"{OTHER} live")
         shipped(relay, tmp, 2000)
-        shipped(relay, tmp, 4000)
+        shipped(relay, tmp, 8000)
         finish_node(other)
         [session] = list_sessions(tmp / "relay.db")
         runs = [r["run"] for r in session["runs"] if r["node"] == NODE]  # by first-seen time
@@ -90,7 +90,7 @@ def test_two_runs_of_one_dcu_in_one_session_show_what_the_cli_shows(browser, sto
         inputs = page.text_content(".compare-inputs")
         assert all(f"{i['label']}: {i['frames']} frames" in inputs for i in cli["inputs"]), inputs
         work = next(r for r in cli["rows"] if r["stage"] == "work" and r["kind"] == "delay")
-        assert work["values"][1]["p50"] > work["values"][0]["p50"] + 1.5  # 2 ms more: the runs differ
+        assert work["values"][1]["p50"] > work["values"][0]["p50"] + 3  # 6 ms more (a loaded machine oversleeps both)
 
         # It opens on p50: a p99 of 200 frames has too few beyond it for any row to decide it.
         assert page.input_value("#compare-figure") == "p50"
