@@ -102,8 +102,8 @@ class ConnGuard:
         """Peers whose connections start with a PROXY header (``--trusted-proxy``)."""
         self.tls = tls
         """The port speaks TLS only (None: plain HTTP only)."""
-        self._opening: set[asyncio.Task] = set()
-        """Connections being read for a header, peeked at or handshaking (TLS)."""
+        self._opening: set[_Guarded] = set()
+        """Connections being read for a header, peeked at or handshaking (TLS): each holds its socket."""
         self.proxied = 0
         """Connections a trusted proxy's header gave a client address, so far."""
         self._open: set[_Guarded] = set()
@@ -191,15 +191,14 @@ class ConnGuard:
     def _open_tls(self, sock: socket.socket, conn: "_Guarded") -> None:
         """Serve ``sock`` over TLS through ``conn``, which holds its place meanwhile."""
         self._opened(conn)
-        task = asyncio.create_task(conn.open_tls(sock, self.tls.context))
-        conn.opening = task
-        self._opening.add(task)
-        task.add_done_callback(self._opening.discard)
+        conn.sock = sock
+        conn.opening = asyncio.create_task(conn.open_tls(sock, self.tls.context))
+        self._opening.add(conn)
 
     def cancel_opening(self) -> None:
         """Drop the connections not yet handed to aiohttp (the site stops)."""
-        for task in list(self._opening):
-            task.cancel()
+        for conn in list(self._opening):
+            conn.close()
 
     @web.middleware
     async def middleware(self, request: web.Request, handler) -> web.StreamResponse:
@@ -225,6 +224,7 @@ class ConnGuard:
         self._now_idle(conn)
 
     def _closed(self, conn: "_Guarded") -> None:
+        self._opening.discard(conn)
         if conn not in self._open:
             return
         self._open.discard(conn)
@@ -279,6 +279,8 @@ class _Guarded(asyncio.Protocol):
         """Whether aiohttp has the connection (a proxied one: once its header is read and admitted)."""
         self.opening: asyncio.Task | None = None
         """A TLS connection's header, peek and handshake (:meth:`open_tls`), until aiohttp has it."""
+        self.sock: socket.socket | None = None
+        """A TLS connection's socket until :meth:`open_tls` starts (it then closes it, or hands it on)."""
         self._client: tuple | None = None
         """The client's address a PROXY header gave, for the transport's ``peername``."""
 
@@ -381,6 +383,14 @@ class _Guarded(asyncio.Protocol):
             self.transport.abort()
         elif self.opening is not None:
             self.opening.cancel()
+            if self.sock is not None:
+                # Not started yet (an accept burst's connection made room for a later one): a task
+                # cancelled before its first step never runs its body, so nothing else would ever
+                # close the socket or give its place back.
+                self.sock.close()
+                self.sock = None
+                self.opening = None
+                self.guard._closed(self)
 
     # --- TLS ----------------------------------------------------------------------------------------
 
@@ -388,6 +398,7 @@ class _Guarded(asyncio.Protocol):
         """Read the PROXY header (a trusted proxy's connection), peek at the first byte, and hand
         a TLS handshake to asyncio's TLS transport with this protocol; all within
         ``header_timeout_s``. Anything else is refused, and counted (see the module docstring)."""
+        self.sock = None  # started: closed or handed on below, whatever happens
         loop = asyncio.get_running_loop()
         limit = self.guard.limits.header_timeout_s
         why = "tls_timeout"
@@ -424,13 +435,18 @@ class _Guarded(asyncio.Protocol):
         except ProxyHeaderError as exc:
             self.guard.refused["proxy_header"] += 1
             log.warning("closing a connection from trusted proxy %s: %s", self.via, exc)
+        except ssl.SSLCertVerificationError as exc:  # the client's certificate: the operator must see why
+            self.guard.refused["tls_handshake"] += 1
+            why = refused_certificate(exc)
+            log.warning("TLS handshake with %s failed: %s", self._who(), why, extra={"rate_key": (why, self._who())})
         except (OSError, ssl.SSLError) as exc:  # a failed handshake, or the peer left
             self.guard.refused["tls_handshake"] += 1
             reason = getattr(exc, "reason", None) if isinstance(exc, ssl.SSLError) else None
             reason = reason or "the client ended it (does it trust this relay's certificate?)"
-            log.info("TLS handshake with %s failed: %s", self._who(), reason)
+            log.info("TLS handshake with %s failed: %s", self._who(), reason, extra={"rate_key": (reason, self._who())})
         finally:
             self.opening = None
+            self.guard._opening.discard(self)
             if self.transport is None:  # never handshaken: aiohttp never saw it
                 self._serving = False
                 if not handed:
@@ -550,6 +566,30 @@ def _set_peername(transport: asyncio.BaseTransport, client: tuple) -> None:
     if isinstance(extra, dict):
         extra["proxy_peername"] = transport.get_extra_info("peername")
         extra["peername"] = client
+
+
+VERIFY_REASONS = {
+    10: "its certificate expired",
+    9: "its certificate is not valid yet",
+    2: "unknown CA: its certificate comes from a CA that --tls-client-ca does not hold",
+    18: "unknown CA: its certificate is self-signed",
+    19: "unknown CA: its chain ends in a CA that --tls-client-ca does not hold",
+    20: "unknown CA: its certificate comes from a CA that --tls-client-ca does not hold",
+    21: "unknown CA: its certificate comes from a CA that --tls-client-ca does not hold",
+    26: "wrong purpose: its certificate is not for client authentication (clientAuth)",
+    23: "its certificate was revoked",
+    7: "its certificate's signature does not verify",
+}
+"""What a client certificate's verify error (OpenSSL's X509_V_ERR_* code) means to the operator."""
+
+
+def refused_certificate(exc: ssl.SSLCertVerificationError) -> str:
+    """Why the relay refused a client's certificate, with the verifier's own words and code. OpenSSL
+    keeps no certificate it refused, so an expired one's date is the node's to say (it checks its
+    own before connecting: :mod:`dcuscope.probes.ship.certcheck`)."""
+    code, said = exc.verify_code, exc.verify_message or exc.reason or "verification failed"
+    meaning = VERIFY_REASONS.get(code, "verification failed")
+    return f"refused the client certificate: {meaning}; the verifier said \"{said}\" (X509 error {code})"
 
 
 def _header_wants(header: bytearray) -> int:
