@@ -6,6 +6,7 @@ Nothing here is ever committed: every file lives in the folder a test gives (``t
     server = ca.issue("relay", ip="127.0.0.1")  # server.cert, server.key: SAN IP 127.0.0.1, DNS localhost
     node = ca.issue("DCU-1", client=True)       # CN=DCU-1, SAN DNS:DCU-1, clientAuth
     old = ca.issue("relay", expired=True)       # valid on 1-2 January 2000 only
+    rsa = ca.issue("relay", key="rsa")          # an RSA (2048-bit) key instead of an EC (P-256) one
 """
 
 from __future__ import annotations
@@ -48,15 +49,17 @@ class TestCA:
                  cwd=self.dir)
 
     def issue(self, name: str, *, ip: str | None = "127.0.0.1", client: bool = False,
-              expired: bool = False, dns: tuple[str, ...] = ()) -> Issued:
+              expired: bool = False, not_yet_valid: bool = False, dns: tuple[str, ...] = (),
+              key: str = "ec") -> Issued:
         """A certificate for ``name`` (its CN) signed by this CA: a server's (SAN ``DNS:localhost``,
         ``IP:ip``) or, with ``client``, a node's (SAN ``DNS:name``, clientAuth). ``expired``: valid on
-        1-2 January 2000 only."""
+        1-2 January 2000 only; ``not_yet_valid``: from 1 January 2099; ``key``: "ec" (P-256) or "rsa"."""
         self._serial += 1
         stem = self.dir / f"{self._serial:02d}-{''.join(c if c.isalnum() else '_' for c in name)}"
-        key, csr, cert, ext = (stem.with_suffix(s) for s in (".key", ".csr", ".pem", ".ext"))
-        _openssl("req", "-new", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
-                 "-keyout", str(key), "-out", str(csr), "-subj", f"/CN={name}", cwd=self.dir)
+        keyfile, csr, cert, ext = (stem.with_suffix(s) for s in (".key", ".csr", ".pem", ".ext"))
+        kind = ["rsa:2048"] if key == "rsa" else ["ec", "-pkeyopt", "ec_paramgen_curve:prime256v1"]
+        _openssl("req", "-new", "-newkey", *kind, "-nodes",
+                 "-keyout", str(keyfile), "-out", str(csr), "-subj", f"/CN={name}", cwd=self.dir)
         if client:
             sans = [f"DNS:{name}", *(f"DNS:{d}" for d in dns)]
             usage = "clientAuth"
@@ -68,12 +71,14 @@ class TestCA:
         args = ["x509", "-req", "-in", str(csr), "-CA", str(self.cert), "-CAkey", str(self.key),
                 "-set_serial", str(1000 + self._serial), "-extfile", str(ext), "-out", str(cert)]
         if expired:  # openssl 3.0's x509 cannot date a certificate back: `openssl ca` can
-            self._sign_expired(csr, cert, ext)
+            self._sign_dated(csr, cert, ext, "20000101000000Z", "20000102000000Z")
+        elif not_yet_valid:
+            self._sign_dated(csr, cert, ext, "20990101000000Z", "20990102000000Z")
         else:
             _openssl(*args, "-days", str(DAYS), cwd=self.dir)
-        return Issued(cert, key, name)
+        return Issued(cert, keyfile, name)
 
-    def _sign_expired(self, csr: Path, cert: Path, ext: Path) -> None:
+    def _sign_dated(self, csr: Path, cert: Path, ext: Path, start: str, end: str) -> None:
         db = self.dir / "index.txt"
         db.touch()
         (self.dir / "serial").write_text(f"{2000 + self._serial:04X}\n")
@@ -84,7 +89,7 @@ class TestCA:
             f"certificate={self.cert}\nprivate_key={self.key}\ndefault_md=sha256\npolicy=any\n"
             "unique_subject=no\ncopy_extensions=none\n[any]\ncommonName=supplied\n")
         _openssl("ca", "-batch", "-config", str(conf), "-in", str(csr), "-out", str(cert), "-notext",
-                 "-startdate", "20000101000000Z", "-enddate", "20000102000000Z", "-extfile", str(ext),
+                 "-startdate", start, "-enddate", end, "-extfile", str(ext),
                  cwd=self.dir)
 
 

@@ -6,20 +6,28 @@ A relay named ``https://HOST:PORT`` must show a certificate for HOST that the sy
 that asks for one (``dcuscope relay --tls-client-ca``). ``http://`` relays are spoken to in the clear,
 as ever. A relay that fails verification, or refuses the node's certificate, is one the node cannot
 use: :func:`tls_failure` says why in a few words, and the node moves on to its next relay, keeping its
-events (:mod:`dcuscope.probes.ship.failover`).
+events (:mod:`dcuscope.probes.ship.failover`). Before connecting, :func:`tls_from_args` says in one line
+whether this node's certificate is one such a relay refuses (expired, not valid yet, not for client
+authentication: :mod:`dcuscope.probes.ship.certcheck`), which the relay's refusal cannot tell it.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import ssl
 from dataclasses import dataclass
 
+from dcuscope.probes.ship.certcheck import CertificateUnreadable, certificate_problem
 from dcuscope.probes.ship.errors import ExportError
 
 TOKEN_ENV = "DCUSCOPE_TOKEN"
 """The environment variable a node's ``--token`` (and the relay's) defaults to: a secret given on a
 command line is in every process listing."""
+
+log = logging.getLogger(__name__)
+_told: set[str] = set()
+"""Certificates whose problem this process has said already."""
 
 
 @dataclass(frozen=True)
@@ -62,7 +70,23 @@ def tls_from_args(args: argparse.Namespace) -> RelayTls | None:
         raise ExportError("--relay-key goes with --relay-cert")
     tls = RelayTls(args.relay_ca, args.relay_cert, args.relay_key)
     tls.context()
+    if tls.cert is not None:
+        check_own_certificate(tls.cert)
     return tls
+
+
+def check_own_certificate(cert: str) -> str | None:
+    """Say once, in one line, why a relay that asks for node certificates would refuse ``cert``
+    (the node still runs: a relay that asks for none takes it); the problem, or None."""
+    try:
+        problem = certificate_problem(cert)
+    except (OSError, CertificateUnreadable):  # OpenSSL loaded it: what it checks, it will say
+        return None
+    if problem is not None and cert not in _told:
+        _told.add(cert)
+        log.warning("--relay-cert %s is %s: a relay that asks nodes for a certificate (--tls-client-ca) "
+                    "will refuse it", cert, problem)
+    return problem
 
 
 def tls_failure(exc: BaseException) -> str | None:

@@ -2,7 +2,9 @@
 able to fill the disk with the relay's log.
 
 :class:`RateFilter` lets the same message (logger and format string, so the same failure for
-different clients counts as one) through ``per_min`` times a minute and counts the rest;
+different clients counts as one) through ``per_min`` times a minute and counts the rest; a record
+logged with ``extra={"rate_key": KEY}`` counts apart per KEY (a TLS refusal per reason and client
+address: the first line of each is never held back, while fewer than :data:`MAX_KEYS` are tracked);
 :meth:`RateFilter.flush`, called now and then, logs one "suppressed N similar messages" line
 per message that was held back. :func:`install` puts one on the handlers of the root logger,
 where the relay's, aiohttp's, Socket.IO's and asyncio's records all end.
@@ -36,7 +38,7 @@ class RateFilter(logging.Filter):
         self.per_min = per_min
         self.suppressed = 0
         """Records held back so far, in all."""
-        self._seen: dict[tuple[str, str], _Seen] = {}
+        self._seen: dict[tuple[str, str, object], _Seen] = {}
 
     def filter(self, record: logging.LogRecord) -> bool:
         if record.levelno < logging.INFO:
@@ -44,9 +46,9 @@ class RateFilter(logging.Filter):
         verdict = getattr(record, "_rate_verdict", None)
         if verdict is not None:  # one record, several handlers: counted once
             return verdict
-        key = (record.name, str(record.msg)[:200])
+        key = (record.name, str(record.msg)[:200], getattr(record, "rate_key", None))
         if key not in self._seen and len(self._seen) >= MAX_KEYS:
-            key = (record.name, "(other messages)")
+            key = (record.name, "(other messages)", None)
         now = time.monotonic()
         seen = self._seen.get(key)
         if seen is None or now - seen.start >= WINDOW_S:
@@ -72,8 +74,8 @@ class RateFilter(logging.Filter):
                 if seen.suppressed:
                     self._summarise(key, seen)
 
-    def _summarise(self, key: tuple[str, str], seen: _Seen) -> None:
-        name, text = key
+    def _summarise(self, key: tuple[str, str, object], seen: _Seen) -> None:
+        name, text, _ = key
         # Logged with a format of its own, so a flood of summaries is itself bounded.
         logging.getLogger(name).log(seen.level, "suppressed %d similar messages in %d s: %s",
                                     seen.suppressed, WINDOW_S, text)
