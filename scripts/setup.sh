@@ -2,7 +2,7 @@
 # One-command, idempotent setup of dcuscope on Debian 12: system packages (GStreamer 1.22,
 # Python GI overrides, RTSP server, Chromium for the UI tests, linuxptp and Prometheus for the
 # clock and metrics tests, PostgreSQL for the shared store's, Redis for the relays' live
-# fan-out), a venv that sees Debian's PyGObject, the project in editable mode with the tested
+# fan-out, sslscan for the TLS cipher test), a venv that sees Debian's PyGObject, the project in editable mode with the tested
 # versions of constraints.txt, the native probe library, the relay's compiled merge, and the UI's pinned front-end packages. Fast (~1 s) when all is in place.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -13,6 +13,7 @@ APT_PACKAGES=(
   gstreamer1.0-plugins-bad gstreamer1.0-libav gstreamer1.0-tools gstreamer1.0-python3-plugin-loader
   gir1.2-gst-rtsp-server-1.0 libgstreamer1.0-dev libgstreamer-plugins-base1.0-dev
   pkg-config gcc python3-venv python3-dev chromium iproute2 iptables linuxptp prometheus postgresql redis-server
+  sslscan
 )
 VENV=.venv
 STAMPS=$VENV/.stamps
