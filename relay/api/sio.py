@@ -62,10 +62,38 @@ class OneLine(logging.Filter):
         return record.levelno >= logging.getLogger(record.name).getEffectiveLevel()
 
 
+class NoPackets(logging.Filter):
+    """Engine.IO and Socket.IO log every packet whole at INFO (a browser's Socket.IO ``auth`` with
+    its token, a client's event data): here a packet's log line says its type and size only, and
+    an event's name only when it is one the relay takes (a client may name an event anything).
+    Those lines, and the other per-message ones, are DEBUG's: at INFO a relay's log is about the
+    connections it closes, not every browser's traffic."""
+
+    PACKETS = ("%s: Received packet %s data %s", "%s: Sending packet %s data %s")
+    EVENT = 'received event "%s" from %s [%s]'
+    EVENTS = frozenset({"subscribe", "connect", "disconnect"})
+    CHATTER = frozenset({*PACKETS, EVENT, 'emitting event "%s" to %s [%s]', "%s is entering room %s [%s]",
+                         "%s is leaving room %s [%s]", "received ack from %s [%s]"})
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.msg in self.CHATTER:
+            record.levelno, record.levelname = logging.DEBUG, "DEBUG"
+        if record.msg in self.PACKETS and isinstance(record.args, tuple) and len(record.args) == 3:
+            sid, kind, data = record.args
+            size = len(data) if isinstance(data, (str, bytes, bytearray)) else len(repr(data))
+            record.msg = record.msg.replace("data %s", "(%d bytes)")
+            record.args = (sid, kind, size)
+        elif record.msg == self.EVENT and isinstance(record.args, tuple) and len(record.args) == 3:
+            event, sid, namespace = record.args
+            record.args = (event if event in self.EVENTS else "(another)", sid, namespace)
+        return True
+
+
 def _quiet_logger(name: str) -> logging.Logger:
     logger = logging.getLogger(name)
-    if not any(isinstance(f, OneLine) for f in logger.filters):
-        logger.addFilter(OneLine())
+    for kind in (NoPackets, OneLine):
+        if not any(isinstance(f, kind) for f in logger.filters):
+            logger.addFilter(kind())
     return logger
 
 

@@ -45,6 +45,7 @@ import time
 from pathlib import Path
 
 from dcuscope.relay.errors import RelayError
+from dcuscope.relay.guard import redact
 from dcuscope.relay.store.base import Database
 from dcuscope.relay.store.compaction import LIVE_WAIT_S, Compacted, compact
 from dcuscope.relay.store.engines import open_database
@@ -284,6 +285,7 @@ def _said(done: Compacted) -> str:
 
 def main() -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    redact.install()  # a --db URL's password, should a driver's line name it
     settings = json.loads(sys.stdin.readline() or "{}")
     if not settings.get("db"):
         print("dcuscope.relay.store.compactor: started by the relay (its settings come on stdin)", file=sys.stderr)
