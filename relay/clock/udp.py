@@ -7,10 +7,19 @@ is remembered in that connection's ``syncs``, where the ingest checks the sample
 reports (each pair counts once, a bounded number kept). Anything else is dropped unanswered and
 counted: a datagram of the wrong size or shape (``malformed``, ``oversize``), an unknown key
 (``unknown_key``), a key with a secret whose request has a wrong or no tag, or a tagged request
-for a key without one (``bad_tag``), one beyond its key's rate
-(``Limits.clock_packets_per_s``) or beyond all keys' rate together
-(``Limits.total_clock_packets_per_s``). An answer is never larger than its request, and has
-the request's version.
+for a key without one (``bad_tag``), one whose nonce was already answered for its key
+(``replayed``), one beyond its key's rate (``Limits.clock_packets_per_s``) or beyond all keys'
+rate together (``Limits.total_clock_packets_per_s``). An answer is never larger than its
+request, and has the request's version.
+
+Replays are dropped before they reach a rate bucket, so that a bystander who copies a node's
+genuine request cannot spend that node's budget with it: each key remembers the nonces it
+answered in the last ``REPLAY_WINDOW_S`` (a node draws 64 random bits per request, so its own
+never meet). What this does not stop: over a plain (untagged) connection the key travels in the
+clear, and whoever sees one request can forge others with fresh nonces, each answered and taken
+from the key's bucket as the node's are; and a request captured more than ``REPLAY_WINDOW_S``
+ago is answered once more, so a bystander holding many old requests of one connection can still
+spend part of its budget (a request carries no counter or time that would say how old it is).
 """
 
 from __future__ import annotations
@@ -18,9 +27,10 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import math
 import socket
 import time
-from collections import Counter
+from collections import Counter, OrderedDict
 
 from dcuscope.probes.clocks.udpclock import (Tagger, decode_request, enable_rx_timestamps, encode_answer, new_key,
                                     recv_stamped)
@@ -29,7 +39,11 @@ from dcuscope.relay.guard.limits import Limits
 READS_PER_WAKE = 256
 """Datagrams read per readiness callback: a flood cannot hold the event loop for longer; the
 kernel drops what its socket buffer cannot hold."""
-COUNTS = ("answered", "malformed", "oversize", "unknown_key", "bad_tag", "rate_key", "rate_total")
+REPLAY_WINDOW_S = 30.0
+"""How long a key remembers the nonces it answered: a copy of a request within it is dropped as
+``replayed``. A node's 8 exchanges a second leave ~240 nonces per key; at most its rate's worth
+(``Limits.clock_packets_per_s`` x (REPLAY_WINDOW_S + 1)) can be answered within it, and so kept."""
+COUNTS = ("answered", "malformed", "oversize", "unknown_key", "bad_tag", "replayed", "rate_key", "rate_total")
 
 log = logging.getLogger(__name__)
 
@@ -52,11 +66,40 @@ class PacketBucket:
         return True
 
 
+class NonceWindow:
+    """The nonces answered in the last ``window_s`` seconds, at most ``most`` of them (the oldest
+    forgotten first). Time, not a count alone, decides what is forgotten: a count would let whoever
+    holds more old requests than it keeps replay them in turn, each one pushing out the next."""
+
+    __slots__ = ("_window_s", "_most", "_at")
+
+    def __init__(self, window_s: float, most: int) -> None:
+        self._window_s, self._most = window_s, most
+        self._at: OrderedDict[int, float] = OrderedDict()
+
+    def __len__(self) -> int:
+        return len(self._at)
+
+    def seen(self, nonce: int, now: float) -> bool:
+        """Whether ``nonce`` was answered within the window (``now``: ``time.monotonic()``)."""
+        at, since = self._at, now - self._window_s
+        while at and next(iter(at.values())) < since:
+            at.popitem(last=False)
+        return nonce in at
+
+    def add(self, nonce: int, now: float) -> None:
+        self._at[nonce] = now
+        if len(self._at) > self._most:
+            self._at.popitem(last=False)
+
+
 class _Key:
-    __slots__ = ("syncs", "bucket", "tagger")
+    __slots__ = ("syncs", "bucket", "tagger", "nonces")
 
     def __init__(self, syncs: dict[tuple[int, int], None], rate: float, tagger: Tagger | None) -> None:
         self.syncs, self.bucket, self.tagger = syncs, PacketBucket(rate), tagger
+        # The bucket answers at most rate x (window + 1) within a window: a bound never reached.
+        self.nonces = NonceWindow(REPLAY_WINDOW_S, math.ceil(rate * (REPLAY_WINDOW_S + 1)))
 
 
 class ClockUdp:
@@ -136,12 +179,17 @@ class ClockUdp:
         if request.tagged != (tagger is not None) or tagger is not None and not tagger.check(data):
             self.counts["bad_tag"] += 1
             return
+        now = time.monotonic()
+        if entry.nonces.seen(request.nonce, now):  # before the buckets: a replay costs the node nothing
+            self.counts["replayed"] += 1
+            return
         if not entry.bucket.take():
             self.counts["rate_key"] += 1
             return
         if not self._total.take():
             self.counts["rate_total"] += 1
             return
+        entry.nonces.add(request.nonce, now)
         t3 = time.time_ns()
         try:
             sock.sendto(encode_answer(request.nonce, t2, t3, tagger), sender)

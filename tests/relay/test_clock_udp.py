@@ -1,7 +1,8 @@
 """The UDP clock exchange on a real relay process with real nodes on loopback: samples arrive over
 UDP and the relay's correction holds the injected truth (offset and drift) within its stated
 bound; hostile datagrams and forged or replayed samples are dropped and counted, unanswered,
-and a good node's estimate is unaffected; without UDP a node falls back to the WebSocket."""
+and a good node's estimate is unaffected; a replayed request is answered once and costs its node
+nothing; without UDP a node falls back to the WebSocket."""
 
 from __future__ import annotations
 
@@ -24,7 +25,7 @@ from dcuscope.probes.clocks.udpclock import (BURST, DATAGRAM_BYTES, VERSION, Tag
                                              decode_answer, enable_rx_timestamps, encode_request, new_secret,
                                              parse_offer, recv_stamped)
 from dcuscope.relay.clock.correction import ClockSample, ntp_sample
-from dcuscope.relay.clock.udp import ClockUdp
+from dcuscope.relay.clock.udp import ClockUdp, NonceWindow
 from dcuscope.relay.guard.limits import Limits
 from dcuscope.relay.server import start_relay
 from tests.relay.helpers import (ROOT, HandNode, RelayProcess, env, finish_node, get_json, start_node, wait_for)
@@ -421,3 +422,79 @@ def test_only_a_private_connection_gets_a_clock_secret_and_its_node_refuses_move
     asyncio.run(scenario())
     said = [r.getMessage() for r in caplog.records if "refused for a wrong tag" in r.getMessage()]
     assert len(said) == 1 and "from 127.0.0.1" in said[0], said
+
+
+REPLAYS = 400
+
+
+async def _captured_request(key: bytes, secret: bytes | None) -> bytes:
+    """One request exactly as the node's own code sends it, caught on its way and never delivered."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as catcher:
+        catcher.bind(("127.0.0.1", 0))
+        catcher.setblocking(False)
+        udp = await UdpClock.open("127.0.0.1", catcher.getsockname()[1], key, PretendClock(), secret)
+        try:
+            assert await udp.burst(count=1, spacing_s=0, timeout_s=0.02) == []
+        finally:
+            udp.close()
+        return catcher.recv(2048)
+
+
+async def _settled(udp: ClockUdp, total: int) -> None:
+    """Until the relay has taken ``total`` datagrams in all (whatever it made of them), at most 5 s."""
+    deadline = time.monotonic() + 5
+    while sum(udp.counts.values()) < total and time.monotonic() < deadline:
+        await asyncio.sleep(0.005)
+
+
+@pytest.mark.parametrize("tagged", [True, False], ids=["tagged", "plain"])
+def test_a_replayed_request_is_answered_once_and_costs_the_node_nothing(tagged):
+    """A bystander replays one genuine, captured request REPLAYS times while the node runs a burst:
+    the relay answers it once, drops and counts the other copies before they reach the key's rate
+    bucket, and every exchange of the node's burst completes."""
+    async def scenario():
+        udp = ClockUdp(Limits(), 256)
+        udp.start("127.0.0.1", 0)
+        secret = new_secret() if tagged else None
+        key = udp.register({}, secret)
+        attacker = _udp_socket()
+        node = await UdpClock.open("127.0.0.1", udp.port, key, PretendClock(), secret)
+        try:
+            request = await _captured_request(key, secret)
+            answers = 0
+
+            async def replay() -> None:
+                nonlocal answers
+                sent, chunk = 0, REPLAYS // BURST
+                while sent < REPLAYS:  # in chunks spread over the node's burst, each taken before the next
+                    for _ in range(chunk):
+                        attacker.sendto(request, ("127.0.0.1", udp.port))
+                    sent += chunk
+                    await _settled(udp, sent)
+                    answers += len(_answers(attacker))
+                    await asyncio.sleep(0.02)
+
+            samples, _ = await asyncio.gather(node.burst(), replay())
+            await _settled(udp, REPLAYS + len(samples))
+            answers += len(_answers(attacker))
+            counts = dict(udp.counts)
+            figures = f"{answers} answers to {REPLAYS} replays, {len(samples)}/{BURST} exchanges completed, {counts}"
+            assert answers == 1 and counts["replayed"] == REPLAYS - 1, figures
+            assert len(samples) == BURST and counts["answered"] == 1 + BURST, figures
+            assert counts["rate_key"] == counts["rate_total"] == 0, figures
+        finally:
+            node.close()
+            attacker.close()
+            udp.stop()
+
+    asyncio.run(scenario())
+
+
+def test_a_key_forgets_the_nonces_it_answered_after_the_window_and_keeps_a_bounded_number():
+    window = NonceWindow(30.0, 4)
+    window.add(1, 100.0)
+    assert window.seen(1, 129.9) and not window.seen(2, 129.9)
+    assert not window.seen(1, 130.1) and len(window) == 0  # a copy captured longer ago is answered again
+    for nonce in range(10):
+        window.add(nonce, 200.0)
+    assert len(window) == 4 and [window.seen(n, 200.0) for n in (5, 6, 9)] == [False, True, True]
