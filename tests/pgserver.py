@@ -13,9 +13,12 @@ tests/relay/nsnet.py), trusting clients from the subnets the host is directly co
 (``ssl=on``, pg_hba's ``hostssl``; plain TCP is refused): user ``postgres`` without a password, and user
 ``USER`` (:data:`USER`) with password :data:`PASSWORD` (scram-sha-256), as a relay would log in.
 ``PostgresServer(synchronous=True)`` is a primary whose commits wait for its synchronous standby
-(``synchronous_commit=on``, the standby named :data:`STANDBY`), made by :meth:`PostgresServer.standby`
+(``synchronous_commit = on``, the standby named :data:`STANDBY`), made by :meth:`PostgresServer.standby`
 (``pg_basebackup -R``): :meth:`PostgresServer.kill9` kills a server as a machine dies,
-:meth:`PostgresServer.promote` makes a standby the primary.
+:meth:`PostgresServer.promote` makes a standby the primary. Those two settings are in the primary's
+``postgresql.conf``, as docs/store-failover.md sets them up, not on its command line: ``pg_basebackup``
+copies them to the standby, which, promoted, keeps waiting for a standby named so (itself), as a
+promoted standby does, until they are changed (docs/store-failover.md, the promotion by hand).
 """
 
 from __future__ import annotations
@@ -36,14 +39,16 @@ from urllib.parse import quote
 from tests.ports import free_port
 
 SETTINGS = "-c max_connections=300 -c shared_buffers=64MB"
-FAST = "-c fsync=off -c synchronous_commit=off -c full_page_writes=off"
+NO_DISK = "-c fsync=off -c full_page_writes=off"
+FAST = f"{NO_DISK} -c synchronous_commit=off"
 """The tests' durability settings: nothing waits for the disk."""
 DURABLE = "-c fsync=on -c synchronous_commit=on -c full_page_writes=on"
 """PostgreSQL's defaults, said explicitly: every commit waits for its WAL to reach the disk."""
-SYNCHRONOUS = "-c synchronous_commit=on -c synchronous_standby_names=dcuscope_standby"
-"""A primary's commits wait for its standby (by name): the tests' FAST settings, but for that."""
-STANDBY = "-c cluster_name=dcuscope_standby"
-"""The standby's name, which its WAL receiver gives the primary (libpq's application_name)."""
+STANDBY = "dcuscope_standby"
+"""The standby's name (its ``cluster_name``), which its WAL receiver gives the primary (libpq's application_name)."""
+SYNCHRONOUS = f"synchronous_commit = on\nsynchronous_standby_names = '{STANDBY}'\n"
+"""A primary's commits wait for its standby (by name), in its postgresql.conf: the tests' FAST settings
+but for that (a ``synchronous_commit=off`` on the command line would override the file)."""
 USER = "dcuscope"
 PASSWORD = "s3cret pw/ok"
 """A TLS server's password user: its password has characters a URL must escape."""
@@ -66,13 +71,13 @@ class PostgresServer:
         when the server starts); clients reaching them from a directly connected subnet (pg_hba's
         ``samenet``: a namespace's end of its veth pair) are trusted, as on loopback. ``tls``: the
         server's certificate and key (tests/tlscerts.py ``Issued``): TLS connections only. ``synchronous``:
-        commits wait for the standby :meth:`standby` makes."""
+        commits wait for the standby :meth:`standby` makes (:data:`SYNCHRONOUS`, in its postgresql.conf)."""
         self.durable = durable
         self.tls = tls
+        self.synchronous = synchronous
         self.listen = ["127.0.0.1", *listen]
-        self.settings = f"-c listen_addresses={','.join(self.listen)} {SETTINGS} {DURABLE if durable else FAST}"
-        if synchronous:
-            self.settings += f" {SYNCHRONOUS}"
+        self.settings = (f"-c listen_addresses={','.join(self.listen)} {SETTINGS} "
+                         f"{DURABLE if durable else NO_DISK if synchronous else FAST}")
         self.bin = bindir()
         self.port = free_port()
         self.dir = Path(tempfile.mkdtemp(prefix="dcuscope-pg-"))
@@ -103,6 +108,9 @@ class PostgresServer:
 
     def start(self) -> "PostgresServer":
         self._run("initdb", "-D", str(self.data), "-A", "trust", "-U", "postgres", "-E", "UTF8", "--no-sync")
+        if self.synchronous:
+            with open(self.data / "postgresql.conf", "a") as conf:
+                conf.write(SYNCHRONOUS)
         if len(self.listen) > 1:
             with open(self.data / "pg_hba.conf", "a") as hba:
                 hba.write("host all all samenet trust\n")
@@ -121,14 +129,22 @@ class PostgresServer:
                   "-o", f"-p {self.port} -k {self.dir} {self.settings}", "start")
         return self
 
-    def standby(self) -> "PostgresServer":
-        """A standby of this server, streaming its WAL (``pg_basebackup -R``), started on its own port;
-        this server's synchronous standby if it is ``synchronous``. Promoted, it waits for no standby."""
-        other = PostgresServer()
-        other.settings += f" {STANDBY}"
-        other._run("pg_basebackup", "-D", str(other.data), "-R", "-X", "stream", "--no-sync", "-h", "127.0.0.1",
-                   "-p", str(self.port), "-U", "postgres", timeout=120)
-        return other.resume()
+    def standby(self, name: str = STANDBY) -> "PostgresServer":
+        """A standby of this server named ``name`` (its ``cluster_name``), streaming its WAL
+        (``pg_basebackup -R``), started on its own port; this server's synchronous standby if it is
+        ``synchronous`` and ``name`` is :data:`STANDBY`. It has this server's configuration files (the
+        data directory's, copied): promoted, it waits for the standby they name, until told otherwise."""
+        other = PostgresServer(durable=self.durable, synchronous=self.synchronous)
+        other.settings += f" -c cluster_name={name}"
+        try:
+            # A checkpoint at once, not a spread one: after a promotion, or with much written, that one
+            # takes minutes (checkpoint_completion_target of checkpoint_timeout).
+            other._run("pg_basebackup", "-D", str(other.data), "-R", "-X", "stream", "--checkpoint=fast", "--no-sync",
+                       "-h", "127.0.0.1", "-p", str(self.port), "-U", "postgres", timeout=120)
+            return other.resume()
+        except BaseException:
+            other.close()
+            raise
 
     def promote(self) -> None:
         """A standby becomes a primary (``pg_ctl promote``, waiting until it takes writes)."""

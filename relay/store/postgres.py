@@ -492,8 +492,10 @@ class PostgresDatabase(Database):
         return self._forget(set(runs) - kept)
 
     def probe(self) -> None:
-        # A transaction id taken is a commit record written, which a synchronous standby confirms.
-        self._rows("SELECT pg_current_xact_id()")
+        # A commit that wrote WAL, which a synchronous standby must confirm (one that only took a
+        # transaction id writes none of its own, and never waits: a promoted server still naming
+        # a standby that is gone would look healthy). Any user may emit a logical message.
+        self._rows("SELECT pg_logical_emit_message(true, 'dcuscope', '')")
 
     def _forget(self, lost: set[str]) -> set[str]:
         """Runs no longer owned here (given back, or taken by another relay): their advisory locks let go."""
