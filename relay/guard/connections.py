@@ -52,7 +52,7 @@ from aiohttp import web
 from dcuscope.relay.guard.limits import Limits
 from dcuscope.relay.guard.proxy import (V2_FIXED_BYTES, V2_SIGNATURE, ProxyHeader, ProxyHeaderError, TrustedProxies,
                                parse_header)
-from dcuscope.relay.guard.tls import ServerTls
+from dcuscope.relay.guard.tls import ServerTls, refused_certificate
 
 RESERVED_FDS = 128
 """Descriptors kept for all but client connections: SQLite (the writer and the session readers'
@@ -566,30 +566,6 @@ def _set_peername(transport: asyncio.BaseTransport, client: tuple) -> None:
     if isinstance(extra, dict):
         extra["proxy_peername"] = transport.get_extra_info("peername")
         extra["peername"] = client
-
-
-VERIFY_REASONS = {
-    10: "its certificate expired",
-    9: "its certificate is not valid yet",
-    2: "unknown CA: its certificate comes from a CA that --tls-client-ca does not hold",
-    18: "unknown CA: its certificate is self-signed",
-    19: "unknown CA: its chain ends in a CA that --tls-client-ca does not hold",
-    20: "unknown CA: its certificate comes from a CA that --tls-client-ca does not hold",
-    21: "unknown CA: its certificate comes from a CA that --tls-client-ca does not hold",
-    26: "wrong purpose: its certificate is not for client authentication (clientAuth)",
-    23: "its certificate was revoked",
-    7: "its certificate's signature does not verify",
-}
-"""What a client certificate's verify error (OpenSSL's X509_V_ERR_* code) means to the operator."""
-
-
-def refused_certificate(exc: ssl.SSLCertVerificationError) -> str:
-    """Why the relay refused a client's certificate, with the verifier's own words and code. OpenSSL
-    keeps no certificate it refused, so an expired one's date is the node's to say (it checks its
-    own before connecting: :mod:`dcuscope.probes.ship.certcheck`)."""
-    code, said = exc.verify_code, exc.verify_message or exc.reason or "verification failed"
-    meaning = VERIFY_REASONS.get(code, "verification failed")
-    return f"refused the client certificate: {meaning}; the verifier said \"{said}\" (X509 error {code})"
 
 
 def _header_wants(header: bytearray) -> int:

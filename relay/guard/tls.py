@@ -11,6 +11,9 @@ that has none still gets the page and the API) and fails the handshake of one th
 ``/ingest`` then takes only connections that presented a verified one, and the node streams under
 the name it gives (:func:`dcuscope.relay.guard.policy.certificate_principal`: its first DNS subjectAltName, else its CN) only.
 
+:func:`refused_certificate` says why a client's certificate failed verification (expired, not yet
+valid, unknown CA, wrong purpose), for the connection guard's log line.
+
 Protocols and ciphers are Mozilla's "intermediate" configuration (server side TLS, version 5.7):
 TLS 1.2 and 1.3 only; for TLS 1.2 only ECDHE key exchange (forward secrecy) with AES-GCM or
 ChaCha20-Poly1305 (:data:`TLS12_CIPHERS`: nothing with RSA key exchange, CBC or SHA-1, whatever the
@@ -33,6 +36,19 @@ TLS12_CIPHERS = ":".join(("ECDHE-ECDSA-AES128-GCM-SHA256", "ECDHE-RSA-AES128-GCM
                           "ECDHE-ECDSA-AES256-GCM-SHA384", "ECDHE-RSA-AES256-GCM-SHA384",
                           "ECDHE-ECDSA-CHACHA20-POLY1305", "ECDHE-RSA-CHACHA20-POLY1305"))
 """Mozilla intermediate's TLS 1.2 ciphers, but its DHE ones (see the module docstring)."""
+VERIFY_REASONS = {
+    10: "its certificate expired",
+    9: "its certificate is not valid yet",
+    2: "unknown CA: its certificate comes from a CA that --tls-client-ca does not hold",
+    18: "unknown CA: its certificate is self-signed",
+    19: "unknown CA: its chain ends in a CA that --tls-client-ca does not hold",
+    20: "unknown CA: its certificate comes from a CA that --tls-client-ca does not hold",
+    21: "unknown CA: its certificate comes from a CA that --tls-client-ca does not hold",
+    26: "wrong purpose: its certificate is not for client authentication (clientAuth)",
+    23: "its certificate was revoked",
+    7: "its certificate's signature does not verify",
+}
+"""What a client certificate's verify error (OpenSSL's X509_V_ERR_* code) means to the operator."""
 
 
 class ServerTls:
@@ -75,6 +91,15 @@ class ServerTls:
                 raise RelayError(f"--tls-client-ca {self.client_ca}: {_reason(exc)}") from None
             context.verify_mode = ssl.CERT_OPTIONAL
         return context
+
+
+def refused_certificate(exc: ssl.SSLCertVerificationError) -> str:
+    """Why the relay refused a client's certificate, with the verifier's own words and code. OpenSSL
+    keeps no certificate it refused, so an expired one's date is the node's to say (it checks its
+    own before connecting: :mod:`dcuscope.probes.ship.certcheck`)."""
+    code, said = exc.verify_code, exc.verify_message or exc.reason or "verification failed"
+    meaning = VERIFY_REASONS.get(code, "verification failed")
+    return f"refused the client certificate: {meaning}; the verifier said \"{said}\" (X509 error {code})"
 
 
 def _reason(exc: BaseException) -> str:

@@ -282,7 +282,6 @@ def _said(done: Compacted) -> str:
     return f"{done.events:,} events of {done.batches:,} batches into {done.segments} segments"
 
 
-
 def main() -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     redact.install()  # a --db URL's password, should a driver's line name it
