@@ -128,3 +128,14 @@ def build_for_install(c_dir: Path, folder: Path, which: Library = PROBES) -> str
         return reason
     (folder / STATE).write_text("built\n")
     return None
+
+
+if __name__ == "__main__":
+    # Standard library only, Python 3.7+: a root filesystem without dcuscope builds with it
+    # (scripts/platforms.sh): python3 core/cbuild.py probes/capture/c OUT/libgstdcuscope.so
+    import sys
+
+    try:
+        print(compile_library(Path(sys.argv[1]), Path(sys.argv[2])))
+    except (CBuildError, IndexError) as exc:
+        sys.exit(f"cbuild: {exc or 'usage: cbuild.py C_DIR LIBRARY'}")

@@ -18,9 +18,14 @@ import gi  # noqa: E402
 gi.require_version("Gst", "1.0")
 gi.require_version("GstBase", "1.0")
 gi.require_version("GstVideo", "1.0")
-gi.require_version("GstRtspServer", "1.0")
 gi.require_version("GstPbutils", "1.0")
 gi.require_version("GstApp", "1.0")
+RTSP_SERVER_PACKAGE = "gir1.2-gst-rtsp-server-1.0"
+"""GstRtspServer's bindings, as Debian and Ubuntu name them: only the rtsp sink and serve-rtsp need them."""
+try:
+    gi.require_version("GstRtspServer", "1.0")
+except ValueError:
+    pass  # rtsp_server() says what to install when it is needed
 
 from gi.repository import GLib, GObject, Gst, GstBase, GstVideo  # noqa: E402
 
@@ -38,4 +43,17 @@ def _quiet_floating_warning(domain: str, level, message: str, *_user) -> None:
 
 
 GLib.log_set_handler("GStreamer", GLib.LogLevelFlags.LEVEL_CRITICAL, _quiet_floating_warning, None)
-__all__ = ["GLib", "GObject", "Gst", "GstBase", "GstVideo"]
+
+
+def rtsp_server():
+    """GStreamer's RTSP server bindings (``GstRtspServer``); DcuscopeError naming the package if missing."""
+    try:
+        from gi.repository import GstRtspServer
+    except ImportError as exc:
+        from dcuscope.core.errors import DcuscopeError
+
+        raise DcuscopeError(f"serving RTSP needs GStreamer's RTSP server bindings: apt-get install {RTSP_SERVER_PACKAGE}") from exc
+    return GstRtspServer
+
+
+__all__ = ["GLib", "GObject", "Gst", "GstBase", "GstVideo", "rtsp_server"]

@@ -6,14 +6,15 @@ import argparse
 import os
 import importlib.metadata
 import sys
-import tomllib
 from pathlib import Path
 
 from dcuscope.core import signals
 from dcuscope.core.errors import DcuscopeError, PipelineError
+from dcuscope.core.pycompat import tomllib
 from dcuscope.capacity.command import add_capacity_parser
 from dcuscope.comparecommand import add_compare_parser
 from dcuscope.dbcommand import add_db_parser
+from dcuscope.extras import require_pipeline
 from dcuscope.helpformat import use_everywhere
 from dcuscope.sessionscommand import add_sessions_parsers
 from dcuscope.shipcommand import add_ship_parser
@@ -187,12 +188,14 @@ def _positive_float(text: str) -> float:
 
 
 def _run(args: argparse.Namespace) -> int:
+    require_pipeline("run")
     from dcuscope.runcommand import run_command
 
     return run_command(args)
 
 
 def _demo(args: argparse.Namespace) -> int:
+    require_pipeline("demo")
     from dcuscope.demo import run_demo
 
     return run_demo(port=args.port, duration=args.duration, db=args.db)

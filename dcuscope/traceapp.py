@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
 from dcuscope.core.errors import DcuscopeError
+from dcuscope.core.pycompat import NEW_PROCESS_GROUP
 from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
 from dcuscope.probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
 
@@ -126,7 +127,7 @@ def run_trace(args: argparse.Namespace) -> int:
     env["GST_TRACERS"] = ";".join(t for t in (env.get("GST_TRACERS"), tracer_spec(node, trace)) if t)
 
     try:
-        child = subprocess.Popen(command, env=env, process_group=0, stderr=subprocess.PIPE)
+        child = subprocess.Popen(command, env=env, **NEW_PROCESS_GROUP, stderr=subprocess.PIPE)
     except OSError as exc:
         raise DcuscopeError(f"trace: cannot start {command[0]}: {exc.strerror or exc}") from exc
     errors = _Tee(child.stderr)

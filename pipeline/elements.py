@@ -192,7 +192,7 @@ def _caps_value(doc: Document, path: KeyPath, value: Any) -> Gst.Caps:
     if caps is None:
         raise doc.error(path, f"expected caps as gst-launch-1.0 writes them (video/x-raw,format=RGB,width=640); got {value!r}")
     for i in range(caps.get_size()):
-        s = caps.get_structure(i)
+        s = caps[i]
         if s.get_name() != "video/x-raw" or not s.has_field("format"):
             continue
         formats = s.get_value("format")

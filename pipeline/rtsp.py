@@ -13,13 +13,13 @@ from typing import Callable
 
 from dcuscope.core import signals
 from dcuscope.core.errors import ConfigError, PipelineError, UsageError
-from dcuscope.core.gst import GLib, Gst
+from dcuscope.core.gst import GLib, Gst, rtsp_server
 from dcuscope.core.ports import check_port_free
 from dcuscope.pipeline.config import SourceConfig
 from dcuscope.pipeline.sources import SourceBin
 from dcuscope import plugins
 
-from gi.repository import GstRtspServer  # noqa: E402  (version pinned by core.gst)
+GstRtspServer = rtsp_server()  # serve-rtsp imports this module: it names the package if missing
 
 DEFAULT_PORT = 8554
 DEFAULT_BITRATE = 2000  # kbit/s

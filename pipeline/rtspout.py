@@ -12,10 +12,10 @@ from __future__ import annotations
 import threading
 
 from dcuscope.core.errors import PipelineError
-from dcuscope.core.gst import GLib, Gst
+from dcuscope.core.gst import GLib, Gst, rtsp_server
 from dcuscope.pipeline.config import SinkConfig
 
-from gi.repository import GstApp, GstRtspServer  # noqa: E402  (versions pinned by core.gst)
+from gi.repository import GstApp  # noqa: E402  (versions pinned by core.gst)
 
 FEED_LAUNCH = ("( appsrc name=feed is-live=true format=time do-timestamp=true ! h264parse ! "
                "rtph264pay name=pay0 pt=96 config-interval=1 )")
@@ -28,10 +28,11 @@ class RtspOut:
         self.config = config
         self._feeds: list[GstApp.AppSrc] = []
         self._lock = threading.Lock()
-        self.server = GstRtspServer.RTSPServer()
+        rtsp = rtsp_server()
+        self.server = rtsp.RTSPServer()
         self.server.set_address(config.host)
         self.server.set_service(str(config.port))
-        factory = GstRtspServer.RTSPMediaFactory()
+        factory = rtsp.RTSPMediaFactory()
         factory.set_launch(FEED_LAUNCH)
         factory.set_shared(True)
         factory.connect("media-configure", self._on_media_configure)
@@ -40,7 +41,7 @@ class RtspOut:
         if not self._source_id:
             raise PipelineError(f"sink {config.name}: cannot serve {config.url} (port {config.port} in use?)")
 
-    def _on_media_configure(self, _factory, media: GstRtspServer.RTSPMedia) -> None:
+    def _on_media_configure(self, _factory, media) -> None:
         feed = media.get_element().get_by_name("feed")
         with self._lock:
             self._feeds.append(feed)

@@ -109,7 +109,7 @@ class SourceBin(Gst.Bin):
 
     def _on_pad_added(self, _element, pad: Gst.Pad) -> None:
         caps = pad.get_current_caps() or pad.query_caps(None)
-        if caps.is_empty() or not caps.get_structure(0).get_name().startswith("video/"):
+        if caps.is_empty() or not caps[0].get_name().startswith("video/"):
             self._discard(pad)
             return
         if self._entry.is_linked():

@@ -95,7 +95,7 @@ def nominal_fps(pad: Gst.Pad) -> float | None:
     caps = pad.get_current_caps()
     if caps is None or caps.is_empty():
         return None
-    ok, num, den = caps.get_structure(0).get_fraction("framerate")
+    ok, num, den = caps[0].get_fraction("framerate")
     return num / den if ok and num > 0 and den > 0 else None
 
 

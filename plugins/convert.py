@@ -112,7 +112,7 @@ class Convert(AttributeProperties, GstBase.BaseTransform):
     def do_transform_caps(self, direction, caps, filter_):
         result = Gst.Caps.new_empty()
         for i in range(caps.get_size()):
-            s = caps.get_structure(i)  # a copy: PyGObject never hands out the caps' own
+            s = caps[i]  # a copy: PyGObject never hands out the caps' own
             if direction == Gst.PadDirection.SINK:
                 self._output_structure(s)
             else:

@@ -114,7 +114,7 @@ def read_frames(buf: Gst.Buffer) -> list[FrameId]:
     meta = buf.get_reference_timestamp_meta(FRAMES_CAPS)
     if meta is None:
         return []
-    s = meta.reference.get_structure(0)
+    s = meta.reference[0]
     sources, frames, origins = s.get_value("source"), s.get_value("frame"), s.get_value("origin")
     if isinstance(sources, int):  # one frame as plain fields (the dcuscope GStreamer tracer writes so)
         sources, frames, origins = [sources], [frames], [origins or 0]
@@ -150,7 +150,7 @@ def read_objects(buf: Gst.Buffer) -> Detections:
     meta = buf.get_reference_timestamp_meta(OBJECTS_CAPS)
     if meta is None:
         return Detections()
-    s = meta.reference.get_structure(0)
+    s = meta.reference[0]
     if s.get_value("count") == 0:
         return Detections()
     boxes = np.stack([np.asarray(list(s.get_value(k)), np.float32) for k in ("x1", "y1", "x2", "y2")], 1)
@@ -180,7 +180,7 @@ class BatchLayout:
 
     @staticmethod
     def from_caps(caps: Gst.Caps) -> "BatchLayout":
-        s = caps.get_structure(0)
+        s = caps[0]
         return BatchLayout(s.get_value("width"), s.get_value("height"), s.get_value("batch-size"))
 
 

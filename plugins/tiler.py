@@ -68,7 +68,7 @@ class Tiler(AttributeProperties, GstBase.BaseTransform):
         else:
             result = Gst.Caps.new_empty()
             for i in range(caps.get_size()):
-                s = caps.get_structure(i)  # a copy: PyGObject never hands out the caps' own
+                s = caps[i]  # a copy: PyGObject never hands out the caps' own
                 out = Gst.Structure.new_empty("video/x-raw")
                 out.set_value("format", "RGB")
                 out.set_value("width", self.width)

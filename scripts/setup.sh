@@ -15,6 +15,9 @@ APT_PACKAGES=(
   pkg-config gcc python3-venv python3-dev chromium iproute2 iptables linuxptp prometheus postgresql redis-server
   sslscan
 )
+# The test suite's cross-compile check (tests/test_portability.py): the native library built for
+# aarch64 (Jetson) against Debian's arm64 GStreamer headers, beside the host's (multiarch).
+CROSS_PACKAGES=(gcc-aarch64-linux-gnu libc6-dev-arm64-cross libgstreamer1.0-dev:arm64)
 VENV=.venv
 STAMPS=$VENV/.stamps
 
@@ -25,11 +28,18 @@ for pkg in "${APT_PACKAGES[@]}"; do
   dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
 done
 if ! command -v npm >/dev/null 2>&1; then missing+=(npm); fi
+for pkg in "${CROSS_PACKAGES[@]}"; do
+  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
+done
 if [ ${#missing[@]} -gt 0 ]; then
   say "installing Debian packages: ${missing[*]}"
   SUDO=""
   if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
   export DEBIAN_FRONTEND=noninteractive
+  if ! dpkg --print-foreign-architectures | grep -qx arm64; then
+    say "adding Debian's arm64 architecture (multiarch) for the aarch64 cross-compile check"
+    $SUDO dpkg --add-architecture arm64
+  fi
   $SUDO apt-get update -qq
   $SUDO apt-get install -y -qq "${missing[@]}" >/dev/null
 fi
@@ -44,7 +54,7 @@ deps_hash=$(cat pyproject.toml setup.py constraints.txt | sha256sum | cut -c1-16
 if [ ! -f "$STAMPS/pip-$deps_hash" ]; then
   say "installing dcuscope and its Python dependencies into $VENV"
   log=$STAMPS/pip.log
-  if ! { "$VENV/bin/python" -m pip install -q --upgrade pip && "$VENV/bin/python" -m pip install -q -c constraints.txt -e '.[dev,plot]'; } >"$log" 2>&1; then
+  if ! { "$VENV/bin/python" -m pip install -q --upgrade pip && "$VENV/bin/python" -m pip install -q -c constraints.txt -e '.[pipeline,dev,plot]'; } >"$log" 2>&1; then
     cat "$log" >&2
     say "pip install failed (log above)"
     exit 1

@@ -17,6 +17,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from dcuscope.core.errors import UsageError
+from dcuscope.extras import require_pipeline
 
 DESCRIPTION = """\
 How many cameras can this machine take? Runs the pipeline of CONFIG at 1, 2, 3, ... streams, each
@@ -135,6 +136,7 @@ def _checked(args: argparse.Namespace):
 
 
 def run_capacity(args: argparse.Namespace) -> int:
+    require_pipeline("capacity")
     from dcuscope.capacity.predict import describe, predict
     from dcuscope.capacity.report import render
     from dcuscope.capacity.search import search, stop_on_signals

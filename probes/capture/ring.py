@@ -81,7 +81,7 @@ class PythonRing:
                 unidentified.append(1)
                 return
             try:
-                s = meta.reference.get_structure(0)
+                s = meta.reference[0]
                 sources, frames = s.get_value("source"), s.get_value("frame")
                 if isinstance(sources, int):
                     sources, frames = (sources,), (frames,)

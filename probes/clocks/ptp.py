@@ -22,6 +22,7 @@ import shutil
 import tempfile
 from pathlib import Path
 
+from dcuscope.core.pycompat import ASYNC_TIMEOUTS, timeout
 from dcuscope.probes.clocks.sysclock import DEFAULT_UDS, observe, system_clock
 
 PTP_LOCK_NS = 100_000
@@ -141,7 +142,7 @@ async def _converse(proc: asyncio.subprocess.Process, timeout_s: float) -> tuple
     its buffer, unseen by its poll, until stdin closes."""
     lines: list[str] = []
     try:
-        async with asyncio.timeout(timeout_s):
+        async with timeout(timeout_s):
             for query in QUERIES:
                 proc.stdin.write(f"{query}\n".encode())
                 await proc.stdin.drain()
@@ -152,7 +153,7 @@ async def _converse(proc: asyncio.subprocess.Process, timeout_s: float) -> tuple
                     lines.append(line)
                     if (head := _RESPONSE.match(line)) is not None and head.group(2) == query.split()[1]:
                         break
-    except (TimeoutError, BrokenPipeError, ConnectionResetError):
+    except (*ASYNC_TIMEOUTS, BrokenPipeError, ConnectionResetError):
         pass  # what came is used; a missing TIME_STATUS_NP makes it "unavailable"
     proc.stdin.close()  # pmc then waits 100 ms for stragglers and exits
     rest, err = await proc.communicate()

@@ -27,6 +27,7 @@ from typing import Awaitable, Callable, NamedTuple, Sequence
 
 import aiohttp
 
+from dcuscope.core.pycompat import ASYNC_TIMEOUTS
 from dcuscope.probes.ship.aio import describe, seconds, wait_event
 from dcuscope.probes.ship.errors import ExportError
 from dcuscope.probes.ship.nodetls import RelayTls
@@ -177,7 +178,7 @@ class Failover:
         hello = make_hello()
         try:
             reply = await link.call("hello", hello, HELLO_TIMEOUT_S)
-        except (ConnectionError, TimeoutError, aiohttp.ClientError) as exc:
+        except (ConnectionError, *ASYNC_TIMEOUTS, aiohttp.ClientError) as exc:
             await link.close()
             if link.elsewhere:  # another relay holds the run: not a refusal of this node
                 return Miss(ELSEWHERE_HOLDS, link.error, seconds(link.retry_ms))

@@ -34,6 +34,7 @@ import numpy as np
 from dcuscope.core.clocks import CLOCKS, PretendClock
 from dcuscope.probes.clocks.ptp import POLL_INTERVAL_S
 from dcuscope.probes.clocks.sysclock import DEFAULT_UDS
+from dcuscope.core.pycompat import ASYNC_TIMEOUTS
 from dcuscope.probes.clocks.udpclock import parse_offer
 from dcuscope.probes.ship.aio import describe, wait_event
 from dcuscope.probes.ship.clockreport import ClockReporter
@@ -264,7 +265,7 @@ class RelayExporter:
         if link is not None and box.doubtful:
             try:
                 await self.clocks.send(link, self.clocks.report())
-            except (ConnectionError, TimeoutError, aiohttp.ClientError) as exc:
+            except (ConnectionError, *ASYNC_TIMEOUTS, aiohttp.ClientError) as exc:
                 self.relays.note_error(f"could not ask the relay about doubtful batches: {describe(exc)}")
         for seq in list(box.doubtful):  # not known: counted lost
             box.settle_doubt(seq, False)
@@ -298,6 +299,6 @@ class RelayExporter:
             try:
                 await link.call("end", end, max(0.1, min(END_TIMEOUT_S, until - time.monotonic())))
                 return
-            except (ConnectionError, TimeoutError, aiohttp.ClientError) as exc:
+            except (ConnectionError, *ASYNC_TIMEOUTS, aiohttp.ClientError) as exc:
                 self.relays.note_error(f"could not send end: {describe(exc)}")
                 await asyncio.sleep(0.1)

@@ -24,6 +24,7 @@ from typing import Callable, Sequence
 import aiohttp
 from aiohttp import WSMsgType
 
+from dcuscope.core.pycompat import ASYNC_TIMEOUTS, timeout as deadline
 from dcuscope.probes.ship import envelope
 from dcuscope.probes.ship.errors import ExportError, ProtocolError
 from dcuscope.probes.ship.nodetls import RelayTls, tls_failure
@@ -116,7 +117,7 @@ class Link:
         headers = {"Authorization": f"Bearer {token}"} if token else {}
         ws_url = "ws" + url[len("http"):] + INGEST_PATH
         try:
-            async with asyncio.timeout(HANDSHAKE_TIMEOUT_S):
+            async with deadline(HANDSHAKE_TIMEOUT_S):
                 # Pings and pongs are read here (autoping off): a pong counts as the relay heard from.
                 ws = await session.ws_connect(ws_url, headers=headers, autoping=False,
                                               max_msg_size=MAX_MESSAGE_BYTES,
@@ -128,7 +129,7 @@ class Link:
                 raise ExportError(f"HTTP 403 {exc.message}: the relay wants a client certificate it trusts, "
                                   "naming this node (--relay-cert)") from exc
             raise ExportError(f"HTTP {exc.status} {exc.message}") from exc
-        except (aiohttp.ClientError, OSError, TimeoutError) as exc:
+        except (aiohttp.ClientError, OSError, *ASYNC_TIMEOUTS) as exc:
             why = tls_failure(exc)
             if why is None and url.startswith("https://") and dropped_after_handshake(exc):
                 # A relay that fails a client certificate's handshake closes without an alert
@@ -147,7 +148,7 @@ class Link:
         self._calls[ident] = future
         try:
             await self.ws.send_str(envelope.request(kind, data, ident))
-            async with asyncio.timeout(timeout):
+            async with deadline(timeout):
                 return await future
         finally:
             self._calls.pop(ident, None)

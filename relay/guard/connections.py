@@ -49,6 +49,7 @@ from dataclasses import replace
 
 from aiohttp import web
 
+from dcuscope.core.pycompat import ASYNC_TIMEOUTS, timeout
 from dcuscope.relay.guard.limits import Limits
 from dcuscope.relay.guard.proxy import (V2_FIXED_BYTES, V2_SIGNATURE, ProxyHeader, ProxyHeaderError, TrustedProxies,
                                parse_header)
@@ -404,7 +405,7 @@ class _Guarded(asyncio.Protocol):
         why = "tls_timeout"
         handed = False
         try:
-            async with asyncio.timeout(limit):
+            async with timeout(limit):
                 if self._header is not None:
                     why = "proxy_header"
                     if not await self._read_proxy_header(loop, sock):
@@ -425,7 +426,7 @@ class _Guarded(asyncio.Protocol):
                 handed = True  # asyncio's transport owns the socket from here, and closes it on failure
                 await loop.connect_accepted_socket(lambda: self, sock, ssl=context,
                                                    ssl_handshake_timeout=limit)
-        except TimeoutError:
+        except ASYNC_TIMEOUTS:
             if why == "proxy_header":
                 log.warning("closing a connection from trusted proxy %s: no complete PROXY header within %g s",
                             self.via, limit)

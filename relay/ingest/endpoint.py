@@ -52,6 +52,7 @@ from functools import partial
 import numpy as np
 from aiohttp import WSCloseCode, WSMsgType, web
 
+from dcuscope.core.pycompat import ASYNC_TIMEOUTS
 from dcuscope.probes.ship import envelope
 from dcuscope.probes.ship.errors import LimitExceeded, ProtocolError
 from dcuscope.probes.ship.wire import (MAX_MESSAGE_BYTES, RELAY_HEARTBEAT_S, Batch, check_events, decode_batch, decode_clock,
@@ -236,7 +237,7 @@ class Ingest:
                     await self._pace(conn, len(msg.data))
                     await self._on_message(conn, envelope.decode_request(msg.data))
                 elif msg.type == WSMsgType.ERROR:
-                    if isinstance(msg.data, (TimeoutError, ConnectionError)):
+                    if isinstance(msg.data, (*ASYNC_TIMEOUTS, ConnectionError)):
                         # No pong within the heartbeat (probes.ship.wire.RELAY_HEARTBEAT_S): the node froze or the
                         # network between is cut. Not its fault: the run is let go, to be resumed.
                         log.info("ingest: %s (run %s) silent: %s", conn.sid, conn.run or "-", msg.data)

@@ -9,11 +9,11 @@ import re
 import socket
 import subprocess
 import sys
-import tomllib
 
 import pytest
 
 from dcuscope.cli import build_parser
+from dcuscope.core.pycompat import tomllib
 from dcuscope.pipeline.config import load_config
 from dcuscope.probes.ship import simnode
 from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS

@@ -1,6 +1,8 @@
 """``pip install`` gives a working tool: the wheel built from the checkout, installed into a fresh
-venv (Debian's PyGObject beside it, as the README says), used from a folder outside the checkout:
-its tracer, a traced gst-launch-1.0, a pipeline whose default model detects, one import name."""
+venv (Debian's PyGObject beside it, as the README says), used from a folder outside the checkout.
+First without extras, the tracing side of a DCU (its tracer, a gst-launch-1.0 app traced and shipped
+to a relay, one import name, `run` naming the extra it lacks); then with [pipeline]: a pipeline whose
+default model detects, and the demo."""
 
 from __future__ import annotations
 
@@ -34,9 +36,19 @@ def pip_cache() -> str:
     return out.stdout.strip() if out.returncode == 0 and out.stdout.strip() else str(Path.home() / ".cache" / "pip")
 
 
+def pip(venv: Path, env: dict, *args: str) -> float:
+    """``pip install`` into ``venv`` with the tested versions; the seconds it took."""
+    started = time.monotonic()
+    done = subprocess.run([str(venv / "bin" / "pip"), "install", "-q", "--no-compile", "-c", str(REPO / "constraints.txt"),
+                           *args], env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr
+    return time.monotonic() - started
+
+
 @pytest.fixture(scope="module")
 def installed(tmp_path_factory):
-    """(venv, a clean environment for it, its HOME, the wheel): built and installed once."""
+    """(venv, a clean environment for it, its HOME, the wheel, a folder outside the checkout): the wheel
+    built once and installed without extras, the tracing side a DCU needs (docs/on-a-dcu.md)."""
     tmp = tmp_path_factory.mktemp("wheel")
     home = tmp / "home"
     home.mkdir()
@@ -51,14 +63,21 @@ def installed(tmp_path_factory):
     made = subprocess.run([SYSTEM_PYTHON, "-m", "venv", "--system-site-packages", str(venv)], env=env,
                           capture_output=True, text=True, timeout=120)
     assert made.returncode == 0, made.stderr
-    done = subprocess.run([str(venv / "bin" / "pip"), "install", "-q", "--no-compile", "-c", str(REPO / "constraints.txt"),
-                           str(wheel)],
-                          env=env, capture_output=True, text=True, timeout=600)
-    assert done.returncode == 0, done.stderr
+    took = pip(venv, env, str(wheel))
+    print(f"\nthe tracing side (no extras) installed in {took:.1f} s")
     env["PATH"] = f"{venv / 'bin'}{os.pathsep}{env['PATH']}"
     outside = tmp / "work"
     outside.mkdir()
     return venv, env, home, wheel, outside
+
+
+@pytest.fixture(scope="module")
+def pipeline(installed):
+    """The same venv with the [pipeline] extra added (OpenCV, ONNX Runtime): everything."""
+    venv, env, _, wheel, _ = installed
+    took = pip(venv, env, f"{wheel}[pipeline]")
+    print(f"\nthe [pipeline] extra installed in {took:.1f} s")
+    return installed
 
 
 def dcuscope(installed, *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
@@ -80,10 +99,18 @@ def test_the_wheel_holds_one_package_with_its_native_sources_models_and_configs(
                  "ui/static/vendor/socket.io.min.js", "plugins/loader/python/dcuscope_infer.py"):
         assert f"dcuscope/{part}" in names, part
     assert not [n for n in names if "__pycache__" in n or "/tests/" in n]
+    metadata = zipfile.ZipFile(wheel).read(next(n for n in names if n.endswith(".dist-info/METADATA"))).decode()
+    assert "Requires-Python: >=3.10" in metadata
+    assert "Provides-Extra: pipeline" in metadata and 'onnxruntime>=1.16; extra == "pipeline"' in metadata
 
 
-def test_the_installed_tool_traces_an_unchanged_app_and_its_default_model_detects(installed):
+def test_without_extras_a_dcu_traces_and_ships_and_run_names_the_extra(installed):
+    """The tracing side alone (no OpenCV, no ONNX Runtime): an unchanged app traced and shipped live to a
+    relay of the same install, which stores every event; `dcuscope run` says which extra it needs."""
     venv, env, home, _, outside = installed
+    for module in ("cv2", "onnxruntime"):
+        absent = subprocess.run([str(venv / "bin" / "python"), "-c", f"import {module}"], env=env, capture_output=True)
+        assert absent.returncode != 0, f"{module} is installed without the [pipeline] extra"
     # One import name: dcuscope, and none of the folders' names.
     probe = subprocess.run([str(venv / "bin" / "python"), "-c", "import importlib.util as u, dcuscope, json; print(json.dumps("
                             "[dcuscope.__file__, [n for n in ('core', 'plugins', 'pipeline', 'probes', 'relay', 'ui') "
@@ -99,14 +126,45 @@ def test_the_installed_tool_traces_an_unchanged_app_and_its_default_model_detect
                            capture_output=True, text=True, timeout=60)
     assert merge.returncode == 0 and Path(merge.stdout.split(": ", 1)[1].strip()).is_relative_to(venv), merge
 
-    traced = dcuscope(installed, "trace", "--node", "CAM-1", "-o", "cam.trace.jsonl", "--quiet", "--", *GST_LAUNCH)
-    assert traced.returncode == 0, traced.stderr
-    stats = dcuscope(installed, "stats", "cam.trace.jsonl", "--json")
-    assert stats.returncode == 0, stats.stderr
-    node = json.loads(stats.stdout)["nodes"]["CAM-1"]
-    assert node["frames"] == {"complete": 40, "incomplete": 0} and {"queue0", "videoconvert0"} <= set(node["stages"])
+    port = free_port()
+    relay = subprocess.Popen([str(venv / "bin" / "dcuscope"), "relay", "--port", str(port), "--clock-port", "0",
+                              "--db", "relay.db"], cwd=outside, env=env, stdout=subprocess.DEVNULL,
+                             stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            try:
+                get(f"http://127.0.0.1:{port}/api/health")
+                break
+            except OSError:
+                time.sleep(0.3)
+        traced = dcuscope(installed, "trace", "--node", "CAM-1", "-o", "cam.trace.jsonl", "--quiet",
+                          "--relay", f"http://127.0.0.1:{port}", "--", *GST_LAUNCH)
+        assert traced.returncode == 0, traced.stderr
+        stats = dcuscope(installed, "stats", "cam.trace.jsonl", "--json")
+        assert stats.returncode == 0, stats.stderr
+        node = json.loads(stats.stdout)["nodes"]["CAM-1"]
+        assert node["frames"] == {"complete": 40, "incomplete": 0} and {"queue0", "videoconvert0"} <= set(node["stages"])
+    finally:
+        relay.terminate()
+        relay.wait(30)
+    listed = dcuscope(installed, "sessions", "--db", "relay.db", "--json")
+    assert listed.returncode == 0, listed.stderr
+    (run,) = [r for s in json.loads(listed.stdout) for r in s["runs"] if r["node"] == "CAM-1"]
+    sent = json.loads((outside / "cam.trace.jsonl").read_text().splitlines()[-1])["end"]["events"]
+    assert run["events"] == sent > 0 and run["state"] == "ended" and run["lost"] == 0, (run, sent)
 
-    ran = dcuscope(installed, "run", "vtest", "--num-frames", "10", timeout=240)  # a shipped config, by name
+    ran = dcuscope(installed, "run", "vtest", "--num-frames", "10")
+    assert ran.returncode == 2 and len(ran.stderr.splitlines()) == 1, ran.stderr
+    assert "needs opencv-python-headless and onnxruntime" in ran.stderr
+    assert "pip install 'dcuscope[pipeline]'" in ran.stderr
+    # The trace (nothing else) in the working folder, beside the relay's store.
+    assert sorted(p.name for p in outside.iterdir() if not p.name.startswith("relay.db")) == ["cam.trace.jsonl"]
+
+
+def test_with_the_pipeline_extra_the_default_model_detects(pipeline):
+    venv, env, home, _, outside = pipeline
+    ran = dcuscope(pipeline, "run", "vtest", "--num-frames", "10", timeout=240)  # a shipped config, by name
     assert ran.returncode == 0, ran.stderr
     (line,) = [x for x in ran.stderr.splitlines() if x.startswith("infer: ")]
     objects, frames = int(line.split()[1]), int(line.split()[4])
@@ -117,13 +175,12 @@ def test_the_installed_tool_traces_an_unchanged_app_and_its_default_model_detect
     # `rustc --version` for its user agent, and rustup writes its settings.
     written = sorted(str(p.relative_to(home)) for p in home.rglob("*") if p.is_file())
     assert all(w.startswith((".cache/gstreamer-1.0/registry.", ".rustup/")) for w in written), written
-    assert sorted(p.name for p in outside.iterdir()) == ["cam.trace.jsonl"]
 
 
-def test_the_installed_demo_runs_two_dcus_that_report_all_five_stages_on_its_page(installed):
+def test_the_installed_demo_runs_two_dcus_that_report_all_five_stages_on_its_page(pipeline):
     """``dcuscope demo`` as the README gives it: the page and its vendored front-end served, both
     DCUs report every stage through the relay's API with a verdict each, and Ctrl-C stops it."""
-    venv, env, _, _, outside = installed
+    venv, env, _, _, outside = pipeline
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     demo = subprocess.Popen([str(venv / "bin" / "dcuscope"), "demo", "--port", str(port), "--duration", "150",

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 
+from dcuscope.core.pycompat import ASYNC_TIMEOUTS, timeout
 from dcuscope.probes.trace.delays import node_stats
 from tests.relay.helpers import (RelayProcess, assert_stats_equal, finish_node, get_json, load_node, read_http_answer,
                                  start_node, wait_for)
@@ -112,10 +113,10 @@ async def until_closed(reader: asyncio.StreamReader, limit_s: float) -> tuple[fl
     """Seconds until the relay closes the connection (at most ``limit_s``) and what it sent."""
     start, data = time.monotonic(), b""
     try:
-        async with asyncio.timeout(limit_s):
+        async with timeout(limit_s):
             while chunk := await reader.read(4096):
                 data += chunk
-    except (TimeoutError, OSError):
+    except (*ASYNC_TIMEOUTS, OSError):
         pass
     return time.monotonic() - start, data
 

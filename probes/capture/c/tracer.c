@@ -85,6 +85,7 @@ typedef struct {
   _Atomic int finished; /* dcu_tracer_finish: its trace is closed, its hooks do nothing */
   gboolean deepstream;  /* read frames from DeepStream's NvDsBatchMeta (deepstream=1; untested) */
   gboolean pre_hooks;  /* its push/chain-pre hooks are registered */
+  gboolean chain_hooks; /* GStreamer has pad-chain hooks (1.22 and later): see enter_peer */
 } GstDcuscopeTracer;
 
 typedef struct {
@@ -468,15 +469,33 @@ static void each_buffer(GObject *obj, GstPad *pad, GstBufferList *list, FrameHoo
   for (guint i = 0; i < n; i++) hook((GstDcuscopeTracer *)obj, pad, gst_buffer_list_get(list, i), &ts);
 }
 
+/* GStreamer before 1.22 has no pad-chain hooks: a frame enters an element when the pad before
+ * pushes it to the element's sink pad, at the same moment, in the same thread. A ghost pad (or
+ * its proxy) between them is no stage: its own push to the element's pad is hooked in turn. */
+static void enter_peer(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int64_t *when) {
+  GstPad *peer = gst_pad_get_peer(pad);
+  if (!peer) return;
+  frame_enter(self, peer, buf, when);
+  gst_object_unref(peer);
+}
+
 static void on_push_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuffer *buf) {
   (void)t;
+  GstDcuscopeTracer *self = (GstDcuscopeTracer *)obj;
   int64_t ts = 0;
-  frame_exit((GstDcuscopeTracer *)obj, pad, buf, &ts);
+  frame_exit(self, pad, buf, &ts);
+  if (!self->chain_hooks) enter_peer(self, pad, buf, &ts);
 }
 
 static void on_push_list_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBufferList *list) {
   (void)t;
-  each_buffer(obj, pad, list, frame_exit);
+  GstDcuscopeTracer *self = (GstDcuscopeTracer *)obj;
+  int64_t ts = 0;
+  guint n = gst_buffer_list_length(list);
+  for (guint i = 0; i < n; i++) {
+    frame_exit(self, pad, gst_buffer_list_get(list, i), &ts);
+    if (!self->chain_hooks) enter_peer(self, pad, gst_buffer_list_get(list, i), &ts);
+  }
 }
 
 static void on_chain_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuffer *buf) {
@@ -580,8 +599,14 @@ static void register_pre_hooks(GstDcuscopeTracer *self) {
   if (!self->in_process) gst_tracing_register_hook(tracer, "element-post-message-pre", G_CALLBACK(on_message));
   gst_tracing_register_hook(tracer, "pad-push-pre", G_CALLBACK(on_push_pre));
   gst_tracing_register_hook(tracer, "pad-push-list-pre", G_CALLBACK(on_push_list_pre));
-  gst_tracing_register_hook(tracer, "pad-chain-pre", G_CALLBACK(on_chain_pre));
-  gst_tracing_register_hook(tracer, "pad-chain-list-pre", G_CALLBACK(on_chain_list_pre));
+  /* Before 1.22 these names are unknown, and an unknown name registers a hook for every hook. */
+  guint major, minor, micro, nano;
+  gst_version(&major, &minor, &micro, &nano);
+  self->chain_hooks = major > 1 || minor >= 22;
+  if (self->chain_hooks) {
+    gst_tracing_register_hook(tracer, "pad-chain-pre", G_CALLBACK(on_chain_pre));
+    gst_tracing_register_hook(tracer, "pad-chain-list-pre", G_CALLBACK(on_chain_list_pre));
+  }
   self->pre_hooks = TRUE;
 }
 
@@ -659,7 +684,11 @@ static void gst_dcuscope_tracer_constructed(GObject *object) {
 
 
 static void stop_writer(GstDcuscopeTracer *self) {
+#if GLIB_CHECK_VERSION(2, 74, 0)
   DcuWriter *writer = g_atomic_pointer_exchange(&self->writer, NULL);
+#else  /* GLib before 2.74 (Debian 11, Ubuntu 22.04: JetPack 6, DeepStream 7.1): the builtin it wraps */
+  DcuWriter *writer = __atomic_exchange_n(&self->writer, NULL, __ATOMIC_SEQ_CST);
+#endif
   if (writer) dcu_writer_stop(writer);
 }
 
