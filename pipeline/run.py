@@ -29,7 +29,11 @@ from dcuscope.plugins.frames import read_frames
 EOS_GRACE_S = 15.0
 """How long a stop waits for end-of-stream at the sink with no frame reaching the sink meanwhile: a
 pipeline still draining its backlog (a loaded machine, a slow detector) is waited for, a stuck one
-is not."""
+is not. Longer where frames came further apart: :data:`GAPS_GRACE` times the longest gap between two
+frames at the sink, up to :data:`EOS_GRACE_MAX_S` (a detector at a frame in 20 s, as an emulated
+aarch64 DCU runs it)."""
+GAPS_GRACE = 3.0
+EOS_GRACE_MAX_S = 120.0
 
 
 @dataclass
@@ -84,6 +88,8 @@ class Runner:
         self._stop_asked_at: float | None = None
         self._last_frame_at = NEVER
         """When the last frame reached the sink (counted or, past --num-frames, dropped there)."""
+        self._longest_gap = 0.0
+        """The longest time between two frames reaching the sink."""
         self._stopped_by: str | None = None  # what asked for the stop: Ctrl-C, SIGTERM, a limit
         self._live_stop: LiveStop | None = None
         self._started: float | None = None  # time.monotonic() once PLAYING
@@ -150,7 +156,10 @@ class Runner:
 
     # -- callbacks -------------------------------------------------------------------------
     def _count_frame(self, _pad, info):
-        self._last_frame_at = time.monotonic()
+        now = time.monotonic()
+        if self._last_frame_at != NEVER:
+            self._longest_gap = max(self._longest_gap, now - self._last_frame_at)
+        self._last_frame_at = now
         carried = len(read_frames(info.get_buffer()))
         if self.num_frames is not None and self.result.frames >= self.num_frames:
             self.result.past_limit += 1
@@ -203,8 +212,9 @@ class Runner:
         started = self._started is not None
         if started and self.duration is not None and self._stop_asked_at is None and now - self._started >= self.duration:
             self._stop_for(f"--duration {self.duration:g} s")
-        if self._stop_asked_at is not None and now - max(self._stop_asked_at, self._last_frame_at) > EOS_GRACE_S:
-            self._say(f"\nend-of-stream did not reach the sink, nor any frame, within {EOS_GRACE_S:.0f} s: "
+        grace = min(max(EOS_GRACE_S, GAPS_GRACE * self._longest_gap), EOS_GRACE_MAX_S)
+        if self._stop_asked_at is not None and now - max(self._stop_asked_at, self._last_frame_at) > grace:
+            self._say(f"\nend-of-stream did not reach the sink, nor any frame, within {grace:.0f} s: "
                       "stopping anyway")
             self.result.aborted = "end-of-stream did not reach the sink"
             self._loop.quit()

@@ -73,16 +73,19 @@ rootfs() {
   mv "$dir.partial" "$dir" && echo "$dir"
 }
 
-# in_root DIR CMD...: CMD in the root filesystem, with /proc, /sys and /dev mounted in a mount
-# namespace of its own (gone with it), this host's DNS, and HOME=/root.
+# in_root DIR CMD...: CMD in the root filesystem, with /proc, /dev and (same architecture only) /sys
+# mounted in a mount namespace of its own (gone with it), this host's DNS, and HOME=/root. Under
+# qemu-user, this host's /sys describes x86 CPUs: ONNX Runtime's CPU detection reads it and crashes.
 in_root() {
-  local dir=$1; shift
+  local dir=$1 sys=1; shift
+  [ -f "$dir/.dcuscope-rootfs" ] && [ "$(cut -d' ' -f2 "$dir/.dcuscope-rootfs")" != "$(dpkg --print-architecture)" ] && sys=0
   cp -L /etc/resolv.conf "$dir/etc/resolv.conf" 2>/dev/null || true
   unshare --mount --propagation private -- bash -c '
-    d=$1; shift
-    mount -t proc proc "$d/proc" && mount --rbind /sys "$d/sys" && mount --rbind /dev "$d/dev" || exit 97
+    d=$1 sys=$2; shift 2
+    mount -t proc proc "$d/proc" && mount --rbind /dev "$d/dev" || exit 97
+    [ "$sys" = 0 ] || mount --rbind /sys "$d/sys" || exit 97
     exec chroot "$d" /usr/bin/env -i HOME=/root PATH=/usr/local/sbin:/usr/local/bin:/usr/sbin:/usr/bin:/sbin:/bin \
-      LANG=C.UTF-8 "$@"' _ "$dir" "$@"
+      LANG=C.UTF-8 "$@"' _ "$dir" "$sys" "$@"
 }
 
 # The sources as git sees them (tracked and new, not ignored), plus the page's vendored scripts.

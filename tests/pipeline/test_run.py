@@ -110,6 +110,18 @@ def test_a_stop_waits_for_a_pipeline_that_still_drains_and_not_for_a_stuck_one(t
     assert result.aborted == "end-of-stream did not reach the sink" and result.frames == 1, result
 
 
+def test_a_stop_waits_longer_where_frames_come_further_apart_than_the_grace(tmp_path, monkeypatch):
+    """A slow DCU (a detector at a frame in 20 s under emulation): frames 1.2 s apart, more than the
+    1 s grace; after three, the stop waits for the two still in flight (three times the longest gap)."""
+    monkeypatch.setattr(run_module, "EOS_GRACE_S", 1.0)
+    config = tmp_path / "slow.yaml"
+    config.write_text("sources:\n  - {test: ball, width: 160, height: 120, rate: 30}\nstages:\n"
+                      "  - queue: {max-size-buffers: 1, max-size-bytes: 0, max-size-time: 0}\n"
+                      "  - {factory: identity, properties: {sleep-time: 1200000}}\n")
+    result = Runner(build_pipeline(load_config(config)), num_frames=3, progress=None).run()
+    assert result.aborted is None and result.frames == 3 and result.past_limit >= 1, result
+
+
 def test_ctrl_c_ends_the_run_cleanly_and_finalises_the_video(tmp_path):
     out = tmp_path / "live.mp4"
     config = tmp_path / "ball.yaml"
