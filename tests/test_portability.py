@@ -10,8 +10,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 from dcuscope.core import cbuild
 from tests.conftest import REPO
 
@@ -46,10 +44,10 @@ def elf_machine(library: Path) -> int:
     return int.from_bytes(head[18:20], "little")
 
 
-@pytest.mark.skipif(not shutil.which(CROSS_CC), reason=f"{CROSS_CC} not installed (make setup installs it)")
 def test_the_native_library_cross_compiles_for_aarch64(tmp_path, monkeypatch):
     """The tracer and tracepoints built for aarch64 against arm64's GStreamer (libgstreamer1.0-dev:arm64,
     multiarch), and the relay's merge: both ELF files for AArch64, the tracer linking GStreamer."""
+    assert shutil.which(CROSS_CC), f"{CROSS_CC} is missing (make setup installs gcc-aarch64-linux-gnu)"
     assert Path(ARM64_PKG_CONFIG, "gstreamer-1.0.pc").is_file(), "libgstreamer1.0-dev:arm64 is missing (make setup)"
     monkeypatch.setenv("CC", CROSS_CC)
     monkeypatch.setenv("PKG_CONFIG_LIBDIR", f"{ARM64_PKG_CONFIG}:/usr/share/pkgconfig")
@@ -90,3 +88,17 @@ def test_python_3_10_s_deadline_times_out_as_asyncio_timeout_does():
         theirs = asyncio.run(outcome(native, delay, sleep_s, cancel_after))
         assert ours == theirs, (delay, sleep_s, cancel_after, ours, theirs)
     assert [asyncio.run(outcome(Deadline, *c)) for c in cases] == ["timed out", "done", "done", "cancelled", "timed out"]
+
+
+def test_platforms_script_lists_its_platforms_and_refuses_an_unknown_one():
+    """scripts/platforms.sh (not run by make test: it downloads root filesystems) says what each
+    platform checks, and an unknown name is one line and exit status 2, before anything is built."""
+    listed = subprocess.run(["bash", "scripts/platforms.sh", "--list"], cwd=REPO, capture_output=True, text=True,
+                            timeout=30)
+    assert listed.returncode == 0, listed.stderr
+    assert [line.split()[0] for line in listed.stdout.splitlines() if line[:2] == "  " and line[2] != " "] == \
+        ["bullseye", "trixie", "arm64"], listed.stdout
+    wrong = subprocess.run(["bash", "scripts/platforms.sh", "jetson"], cwd=REPO, capture_output=True, text=True,
+                           timeout=30)
+    assert wrong.returncode == 2 and wrong.stdout == "", (wrong.returncode, wrong.stdout)
+    assert wrong.stderr.strip() == "platforms.sh: unknown platform 'jetson' (bullseye, trixie, arm64 or all; --help)"
