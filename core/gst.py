@@ -15,6 +15,8 @@ ctypes.CDLL("libgcc_s.so.1", mode=os.RTLD_GLOBAL)
 
 import gi  # noqa: E402
 
+from dcuscope.core.errors import DcuscopeError  # noqa: E402
+
 gi.require_version("Gst", "1.0")
 gi.require_version("GstBase", "1.0")
 gi.require_version("GstVideo", "1.0")
@@ -50,8 +52,6 @@ def rtsp_server():
     try:
         from gi.repository import GstRtspServer
     except ImportError as exc:
-        from dcuscope.core.errors import DcuscopeError
-
         raise DcuscopeError(f"serving RTSP needs GStreamer's RTSP server bindings: apt-get install {RTSP_SERVER_PACKAGE}") from exc
     return GstRtspServer
 

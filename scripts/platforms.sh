@@ -88,12 +88,12 @@ in_root() {
       LANG=C.UTF-8 "$@"' _ "$dir" "$sys" "$@"
 }
 
-# The sources as git sees them (tracked and new, not ignored), plus the page's vendored scripts.
+# The sources as git sees them (tracked and new, not ignored; a file deleted but not yet committed is
+# skipped), plus the page's vendored scripts.
 copy_sources() {
   local to=$1
   rm -rf "$to" && mkdir -p "$to"
-  git ls-files -co --exclude-standard -z | xargs -0 -I{} sh -c '[ -e "{}" ] && printf "%s\0" "{}"' \
-    | tar --null -T - -cf - | tar -xf - -C "$to"
+  git ls-files -co --exclude-standard -z | tar --null --ignore-failed-read -T - -cf - 2>/dev/null | tar -xf - -C "$to"
   [ -d ui/static/vendor ] && cp -r ui/static/vendor "$to/ui/static/"
   return 0
 }

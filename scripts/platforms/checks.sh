@@ -51,7 +51,7 @@ install_dcuscope() {
     /opt/venv/bin/pip install -q --disable-pip-version-check -c /opt/constraints.txt "$what" >&3 2>&1
 }
 
-# ship_check NAME ROOT: relay on this host, NODE's stored events against its trace. Sets SAID.
+# stored_check DB TRACE NODE: NODE's run in this host's relay store against its trace; sets SAID.
 stored_check() {
   local db=$1 trace=$2 node=$3
   SAID=$("$PY" scripts/platforms/stored_vs_sent.py "$db" "$trace" "$node")
@@ -98,7 +98,6 @@ check_arm64() {
   root=$(rootfs arm64 bookworm arm64 "$ARM64_APT") || fail "debootstrap of bookworm arm64 failed" || return
   step "pip install the checkout there (the native library compiled there)"
   copy_sources "$root/opt/dcuscope-src"
-  rm -rf "$root/opt/dcuscope-src/build" "$root/opt/dcuscope-src"/*.egg-info
   started=$SECONDS
   install_dcuscope "$root" "/opt/dcuscope-src[pipeline]" || fail "pip install from source failed there" || return
   local took=$((SECONDS - started)) machine

@@ -462,20 +462,20 @@ static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, in
 
 typedef void (*FrameHook)(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int64_t *when);
 
-/* Each buffer of a list, all at the one time the list crossed the pad. */
-static void each_buffer(GObject *obj, GstPad *pad, GstBufferList *list, FrameHook hook) {
-  int64_t ts = 0;
+/* Each buffer of a list, all at the one time the list crossed the pad (*ts: 0 until read). */
+static void each_buffer(GstDcuscopeTracer *self, GstPad *pad, GstBufferList *list, FrameHook hook, int64_t *ts) {
   guint n = gst_buffer_list_length(list);
-  for (guint i = 0; i < n; i++) hook((GstDcuscopeTracer *)obj, pad, gst_buffer_list_get(list, i), &ts);
+  for (guint i = 0; i < n; i++) hook(self, pad, gst_buffer_list_get(list, i), ts);
 }
 
 /* GStreamer before 1.22 has no pad-chain hooks: a frame enters an element when the pad before
  * pushes it to the element's sink pad, at the same moment, in the same thread. A ghost pad (or
  * its proxy) between them is no stage: its own push to the element's pad is hooked in turn. */
-static void enter_peer(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int64_t *when) {
+static void enter_peer(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, GstBufferList *list, int64_t *ts) {
   GstPad *peer = gst_pad_get_peer(pad);
   if (!peer) return;
-  frame_enter(self, peer, buf, when);
+  if (list) each_buffer(self, peer, list, frame_enter, ts);
+  else frame_enter(self, peer, buf, ts);
   gst_object_unref(peer);
 }
 
@@ -484,18 +484,15 @@ static void on_push_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuffer *bu
   GstDcuscopeTracer *self = (GstDcuscopeTracer *)obj;
   int64_t ts = 0;
   frame_exit(self, pad, buf, &ts);
-  if (!self->chain_hooks) enter_peer(self, pad, buf, &ts);
+  if (!self->chain_hooks) enter_peer(self, pad, buf, NULL, &ts);
 }
 
 static void on_push_list_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBufferList *list) {
   (void)t;
   GstDcuscopeTracer *self = (GstDcuscopeTracer *)obj;
   int64_t ts = 0;
-  guint n = gst_buffer_list_length(list);
-  for (guint i = 0; i < n; i++) {
-    frame_exit(self, pad, gst_buffer_list_get(list, i), &ts);
-    if (!self->chain_hooks) enter_peer(self, pad, gst_buffer_list_get(list, i), &ts);
-  }
+  each_buffer(self, pad, list, frame_exit, &ts);
+  if (!self->chain_hooks) enter_peer(self, pad, NULL, list, &ts);
 }
 
 static void on_chain_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuffer *buf) {
@@ -507,7 +504,8 @@ static void on_chain_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBuffer *b
 static void on_chain_list_pre(GObject *obj, GstClockTime t, GstPad *pad, GstBufferList *list) {
   (void)t;
   /* Split by GStreamer and chained buffer by buffer: those calls record them. */
-  if (!dcu_pad_splits_lists(pad)) each_buffer(obj, pad, list, frame_enter);
+  int64_t ts = 0;
+  if (!dcu_pad_splits_lists(pad)) each_buffer((GstDcuscopeTracer *)obj, pad, list, frame_enter, &ts);
 }
 
 /* dcuscope's own mux posts a "dcuscope-drop" element message per frame it drops (late, or
