@@ -77,9 +77,10 @@ def test_two_more_milliseconds_of_sleep_are_found_where_they_are(traces):
     work = row(doc, "work")["changes"][1]
     e2e = row(doc, "e2e")["changes"][1]
     for c in (work["mean"], work["p50"], work["p90"], e2e["mean"], e2e["p50"]):
-        # The interval holds the 2 ms, or what a longer sleep overshoots beyond it on a loaded machine
-        # (a CI run measured 2.18-2.29 ms), and is far from 0.
-        assert c["verdict"] == "slower" and 1.0 < c["low"] < EXTRA_MS * 1.2 and EXTRA_MS - 0.05 < c["high"] < 3, c
+        # The interval holds the 2 ms, give or take what the two runs' sleeps overshoot on a loaded
+        # machine (CI runs measured 2.18-2.29 ms, and 1.72-1.87 ms where the baseline's sleeps
+        # overshot more), and is far from 0.
+        assert c["verdict"] == "slower" and 1.0 < c["low"] < EXTRA_MS * 1.2 and EXTRA_MS * 0.8 < c["high"] < 3, c
     assert row(doc, "convert")["changes"][1]["p50"]["verdict"] == "no significant change"
     verdict = doc["verdicts"][1]
     assert verdict["verdict"] == "slower" and verdict["slower"][0].startswith(("work", "e2e")), verdict
