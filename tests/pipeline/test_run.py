@@ -102,8 +102,7 @@ def draining(tmp_path: Path, sleep_ms: int) -> Runner:
 
 def stuck_after_the_first_frame(runner: Runner) -> Runner:
     """Nothing passes the queue after the first frame, end-of-stream included: a stuck pipeline."""
-    queue = next(e for e in runner.built.pipeline.iterate_recurse()
-                 if e.get_factory() is not None and e.get_factory().get_name() == "queue")
+    queue = runner.built.stages[0]  # draining()'s first stage
     passed = []
 
     def hold(_pad, info):
