@@ -46,10 +46,11 @@ def capacity(*args, **kw) -> subprocess.Popen:
 @pytest.mark.long
 def test_a_search_reports_each_count_predicts_and_on_ctrl_c_prints_what_it_measured(tmp_path):
     traces = tmp_path / "traces"
-    # bounds that hold on a busy machine too (the floor at half the rate): the search reaches 3. A
+    # bounds that hold on a busy machine too, so that the search reaches 3: the floor at a tenth of the
+    # rate (a CI machine running six test workers on two cores measured 2 streams at 2.1 fps of 5). A
     # 2 s warm-up: a live file whose first frames came late (a loaded machine) catches up at the
     # pipeline's pace, not its own, until its backlog is gone (a fresh clone's CI measured 10 fps)
-    proc = capacity(config(tmp_path), "--max-streams", 6, "--duration", 5, "--warmup", 2, "--fps-floor", 50,
+    proc = capacity(config(tmp_path), "--max-streams", 6, "--duration", 5, "--warmup", 2, "--fps-floor", 10,
                     "--slo", "slow.service.mean >= 20ms", "--slo", "e2e.p99 <= 10s", "--json",
                     "-o", tmp_path / "report.md", "--plot", tmp_path / "plot.png", "--keep-traces", traces,
                     # started with SIGINT ignored, as a shell's background job or a CI runner's step may be:
@@ -70,7 +71,7 @@ def test_a_search_reports_each_count_predicts_and_on_ctrl_c_prints_what_it_measu
     one, two = counts[:2]
     assert [c["streams"] for c in counts] in ([1, 2], [1, 2, 3]) and all(c["outcome"] == "holds" for c in counts), err
     assert doc["capacity"] == len(counts) and doc["answer"].startswith(
-        f"capacity {len(counts)} streams: fps ≥ 2.5 (50 % of 5) and slow.service.mean ≥ 20 ms and e2e.p99 ≤ 10000 ms "
+        f"capacity {len(counts)} streams: fps ≥ 0.5 (10 % of 5) and slow.service.mean ≥ 20 ms and e2e.p99 ≤ 10000 ms "
         f"hold at {len(counts)}")
     assert doc["answer"].endswith((f"; stopped by Ctrl-C during {len(counts) + 1} streams",
                                    f"; stopped by Ctrl-C after {len(counts)} streams")), doc["answer"]
@@ -80,7 +81,7 @@ def test_a_search_reports_each_count_predicts_and_on_ctrl_c_prints_what_it_measu
         assert 20.0 <= slow["service"] < 200.0, slow
         assert c["figures"]["e2e"]["mean"]["value"] >= 20.0 and c["rate_fps"] == 5.0
         fps = c["figures"]["fps"]
-        assert fps["low"] <= fps["value"] <= fps["high"] and 2.5 <= fps["value"] <= 6.0
+        assert fps["low"] <= fps["value"] <= fps["high"] and 0.5 <= fps["value"] <= 6.0
     assert doc["prediction"]["a_ms"]["1"] == pytest.approx(one["figures"]["e2e"]["mean"]["value"])
     assert doc["prediction"]["a_ms"]["2"] == pytest.approx(two["figures"]["e2e"]["mean"]["value"])
     assert "predicted capacity" in err
