@@ -33,9 +33,17 @@ def test_page_signs_in_with_its_form_and_keeps_no_token_in_its_address(browser, 
     # Chromium does not know the test's CA: the page is served over TLS all the same.
     context = browser.new_context(viewport={"width": 1280, "height": 800}, ignore_https_errors=True)
     page = context.new_page()
+    said: list[str] = []  # what the page met, for a failure's message
+    page.on("pageerror", lambda e: said.append(f"error: {e}"))
+    page.on("console", lambda m: said.append(f"console {m.type}: {m.text}"))
+    page.on("requestfailed", lambda r: said.append(f"failed: {r.method} {r.url} {r.failure}"))
     try:
         page.goto(relay.url + "/")
-        page.wait_for_selector("#signin:not([hidden])", timeout=30000)
+        try:
+            page.wait_for_selector("#signin:not([hidden])", timeout=30000)
+        except Exception as exc:
+            raise AssertionError(f"no sign-in form; #conn says {page.locator('#conn').inner_text()!r}, "
+                                 f"the relay refused {dict(relay.relay.guard.refused)}; the page met {said}") from exc
         assert page.locator("#signout").is_hidden()
         assert page.evaluate("window.dcuscope.debug().stores") == {}
         assert page.locator("#conn").inner_text() == "signed out"
@@ -74,4 +82,28 @@ def test_page_signs_in_with_its_form_and_keeps_no_token_in_its_address(browser, 
     finally:
         context.close()
         feeder.stop()
+        relay.stop()
+
+
+def test_an_unanswered_first_ask_is_asked_again_and_ends_at_the_sign_in_form(browser, tmp_path):
+    # The relay served the page, but its first GET /signin never gets an answer (a connection lost
+    # without a reset): the page asks again after ASK_TIMEOUT_MS, instead of waiting for ever with
+    # neither form nor feed. (An ask that fails outright was never the trouble: the feed's refusal
+    # shows the form.)
+    relay = RelayThread(tmp_path / "relay.db", token=TOKEN)
+    page = browser.new_page()
+    asks: list[str] = []
+
+    def hold_the_first(route):
+        asks.append(route.request.method)
+        if len(asks) > 1:
+            route.continue_()  # the first is left without an answer
+
+    page.route("**/signin", hold_the_first)
+    try:
+        page.goto(relay.url + "/")
+        page.wait_for_selector("#signin:not([hidden])", timeout=30000)
+        assert asks == ["GET", "GET"] and page.locator("#conn").inner_text() == "signed out"
+    finally:
+        page.close()
         relay.stop()

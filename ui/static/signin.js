@@ -3,15 +3,24 @@
 // enters the page's address, and the page never reads it back.
 
 const $ = (sel) => document.querySelector(sel);
+const ASK_TRIES = 5; // asks of GET /signin before the page starts its feed all the same
+const ASK_TIMEOUT_MS = 5000; // an ask with no answer by then is asked again
+const ASK_RETRY_MS = 1000;
 
-/** Whether the page may read the relay's data; shows the form when it must sign in first. */
+/** Whether the page may read the relay's data; shows the form when it must sign in first. A relay
+ * that served the page but whose answer got lost (a reset connection, a loaded machine) is asked
+ * again: without its answer the page cannot know it must show the form, and its feed would only
+ * ever say "relay unreachable". */
 export async function signedIn() {
   let who;
-  try {
-    const r = await fetch("/signin", { cache: "no-store" });
-    who = await r.json();
-  } catch (_) {
-    return true; // the relay is unreachable: the feed says so and retries
+  for (let ask = 1; who === undefined; ask++) {
+    try {
+      const r = await fetch("/signin", { cache: "no-store", signal: AbortSignal.timeout(ASK_TIMEOUT_MS) });
+      who = await r.json();
+    } catch (_) {
+      if (ask === ASK_TRIES) return true; // the relay is unreachable: the feed says so and retries
+      await new Promise((resolve) => setTimeout(resolve, ASK_RETRY_MS));
+    }
   }
   if (who.principal) {
     const out = $("#signout");
