@@ -42,7 +42,7 @@ from dcuscope.relay.live.framelimits import FrameLimits
 from dcuscope.relay.export.metrics import RelayCollector, add_metrics_route
 from dcuscope.relay.export.otlp import OtlpExporter
 from dcuscope.relay.export.otlpconfig import OtlpConfig
-from dcuscope.relay.guard import lograte, redact
+from dcuscope.relay.guard import badrequests, lograte, redact
 from dcuscope.relay.guard.connections import ConnGuard, GuardedSite, fit_descriptors
 from dcuscope.relay.guard.hostcheck import HostCheck
 from dcuscope.relay.guard.limits import Limits
@@ -331,6 +331,7 @@ def serve(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.
     """Run the relay until SIGINT or SIGTERM; ``options`` as :func:`start_relay`'s."""
     if host not in LOOPBACK and token is None and not options.get("node_tokens") and not options.get("viewer_tokens"):
         log.warning("relay listens on %s without --token: anyone who can reach it may feed or read it", host)
+    badrequests.install()
     rate = lograte.install(limits.log_repeats_per_min)
     redact.install([token or "", *(options.get("node_tokens") or {}).values(),
                     *(options.get("viewer_tokens") or {}).values()])

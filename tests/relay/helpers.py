@@ -90,12 +90,24 @@ class RelayProcess:
 
 
 def _readline(proc: subprocess.Popen, timeout: float) -> str:
-    import selectors
-    sel = selectors.DefaultSelector()
-    sel.register(proc.stdout, selectors.EVENT_READ)
-    if not sel.select(timeout):
-        return ""
-    return proc.stdout.readline().decode(errors="replace")
+    """A line of ``proc``'s stdout, or what came of it within ``timeout`` s ('' if nothing). Read a
+    byte at a time from the pipe itself: through the buffered ``proc.stdout``, two lines that came
+    in one read (two workers starting at once) would leave the second in its buffer, where a
+    select on the pipe never sees it."""
+    import select
+
+    fd = proc.stdout.fileno()
+    deadline = time.monotonic() + timeout
+    line = bytearray()
+    while not line.endswith(b"\n"):
+        left = deadline - time.monotonic()
+        if left <= 0 or not select.select([fd], [], [], left)[0]:
+            break
+        byte = os.read(fd, 1)
+        if not byte:  # the process closed its stdout
+            break
+        line += byte
+    return line.decode(errors="replace")
 
 
 def start_node(url: str, node: str, out: Path, *, frames: int = 100, sources: int = 2, fps: float = 25.0,

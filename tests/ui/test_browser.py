@@ -139,10 +139,12 @@ def test_stage_view_shows_both_dcus_in_the_stage_colours(live):
     assert d["transport"] == "socket.io" and d["mode"] == "live" and not d["paused"]
     # Following the streaming DCUs, the view redraws often enough to look live, but not every animation
     # frame (app.js FOLLOW_REDRAW_MS, 30 ms; every frame cost Chromium 0.5 core): at least
-    # 10 draws/s, or, on a machine that gives Chromium fewer animation frames, most of those it gets.
-    rate = page.evaluate(DRAW_RATE_JS, 1000)
+    # 10 draws/s, or, on a machine that gives Chromium fewer animation frames, half of those it gets
+    # (a loaded CI machine gave 14 frames in 1.1 s, some bunched closer than 30 ms, and 9 draws). A
+    # redraw held back for a second or more would still fail.
+    rate = page.evaluate(DRAW_RATE_JS, 2000)
     per_s = 1000 * rate["draws"] / rate["ms"]
-    assert per_s >= min(10, 0.8 * 1000 * rate["frames"] / rate["ms"]), rate
+    assert per_s >= min(10, 0.5 * 1000 * rate["frames"] / rate["ms"]), rate
     assert rate["cap"] >= 30 and rate["draws"] <= rate["ms"] / rate["cap"] + 2, rate
     for stage, colour in FIVE.items():
         assert d["colours"][stage] == colour
