@@ -12,6 +12,7 @@ import asyncio
 import json
 import os
 import re
+import select
 import signal
 import subprocess
 import sys
@@ -94,8 +95,6 @@ def _readline(proc: subprocess.Popen, timeout: float) -> str:
     byte at a time from the pipe itself: through the buffered ``proc.stdout``, two lines that came
     in one read (two workers starting at once) would leave the second in its buffer, where a
     select on the pipe never sees it."""
-    import select
-
     fd = proc.stdout.fileno()
     deadline = time.monotonic() + timeout
     line = bytearray()

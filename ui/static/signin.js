@@ -7,10 +7,9 @@ const ASK_TRIES = 5; // asks of GET /signin before the page starts its feed all 
 const ASK_TIMEOUT_MS = 5000; // an ask with no answer by then is asked again
 const ASK_RETRY_MS = 1000;
 
-/** Whether the page may read the relay's data; shows the form when it must sign in first. A relay
- * that served the page but whose answer got lost (a reset connection, a loaded machine) is asked
- * again: without its answer the page cannot know it must show the form, and its feed would only
- * ever say "relay unreachable". */
+/** Whether the page may read the relay's data; shows the form when it must sign in first. An ask
+ * left without an answer is given up after ASK_TIMEOUT_MS and asked again: awaited for ever, the
+ * page would show neither the form nor a feed. */
 export async function signedIn() {
   let who;
   for (let ask = 1; who === undefined; ask++) {
