@@ -72,12 +72,16 @@ class Runner:
     """
 
     def __init__(self, built: BuiltPipeline, num_frames: int | None = None, duration: float | None = None,
-                 progress: TextIO | None = sys.stderr, progress_every: float = 1.0, traced: bool = False):
+                 progress: TextIO | None = sys.stderr, progress_every: float = 1.0, traced: bool = False,
+                 duration_after_first_frame: bool = False):
         self.built = built
         self.traced = traced
         """Whether probes trace the run (the final line then says how a trace counts frames)."""
         self.num_frames = num_frames
         self.duration = duration
+        self.duration_after_first_frame = duration_after_first_frame
+        """``duration`` counts from the first frame at the sink, not from PLAYING (a capacity count:
+        a start slowed by a loaded machine must not eat the frames it measures)."""
         self.progress = progress
         self.progress_every = progress_every
         self.result = RunResult()
@@ -88,6 +92,7 @@ class Runner:
         self._stop_asked_at: float | None = None
         self._last_frame_at = NEVER
         """When the last frame reached the sink (counted or, past --num-frames, dropped there)."""
+        self._first_frame_at = NEVER
         self._longest_gap = 0.0
         """The longest time between two frames reaching the sink."""
         self._stopped_by: str | None = None  # what asked for the stop: Ctrl-C, SIGTERM, a limit
@@ -159,6 +164,8 @@ class Runner:
         now = time.monotonic()
         if self._last_frame_at != NEVER:
             self._longest_gap = max(self._longest_gap, now - self._last_frame_at)
+        else:
+            self._first_frame_at = now
         self._last_frame_at = now
         carried = len(read_frames(info.get_buffer()))
         if self.num_frames is not None and self.result.frames >= self.num_frames:
@@ -210,7 +217,9 @@ class Runner:
     def _tick(self):
         now = time.monotonic()
         started = self._started is not None
-        if started and self.duration is not None and self._stop_asked_at is None and now - self._started >= self.duration:
+        since = self._first_frame_at if self.duration_after_first_frame else self._started
+        if started and self.duration is not None and self._stop_asked_at is None and since != NEVER \
+                and now - since >= self.duration:
             self._stop_for(f"--duration {self.duration:g} s")
         grace = min(max(EOS_GRACE_S, GAPS_GRACE * self._longest_gap), EOS_GRACE_MAX_S)
         if self._stop_asked_at is not None and now - max(self._stop_asked_at, self._last_frame_at) > grace:

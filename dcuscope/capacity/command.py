@@ -75,7 +75,8 @@ def add_capacity_parser(sub) -> None:
     p.add_argument("--fps-floor", type=float, default=DEFAULT_FLOOR_PCT, metavar="PCT",
                    help="the %% of its source's frame rate the slowest stream must keep (default %(default)g)")
     p.add_argument("--duration", type=float, default=DEFAULT_DURATION, metavar="S",
-                   help="seconds per count (default %(default)g); longer runs give narrower intervals")
+                   help="seconds per count from its first frame (default %(default)g); longer runs give "
+                        "narrower intervals")
     p.add_argument("--warmup", type=float, default=DEFAULT_WARMUP, metavar="S",
                    help="seconds of frames left out at the start of each count (default %(default)g)")
     p.add_argument("--keep-batch", action="store_true", help="keep the mux's batch-size (default: the stream count)")

@@ -1,7 +1,8 @@
 """One stream count, in a process of its own: ``python -m dcuscope.capacity.count SPEC.json``.
 
 SPEC says the config, the stream count, how its sources are given (:func:`.plan.for_streams`), the
-trace file and the run's length. The run is ``dcuscope run``'s: the same build, probes and runner.
+trace file and the run's length, counted from the first frame at the sink (a start slowed by a loaded
+machine does not eat the frames measured). The run is ``dcuscope run``'s: the same build, probes and runner.
 The last line on stdout is one JSON object: the process's CPU time sampled through the run, and
 what the runner says went wrong (a source lost, an abort).
 """
@@ -31,7 +32,7 @@ def run_count(spec: dict) -> dict:
     config = replace(config, probes=replace(config.probes, enabled=True, trace=Path(spec["trace"])))
     built = build_pipeline(config)
     try:
-        runner = Runner(built, duration=spec["duration"], progress=None)
+        runner = Runner(built, duration=spec["duration"], progress=None, duration_after_first_frame=True)
         probing = start_probes(built, config, progress=None)
         samples = CpuSamples()
         try:

@@ -115,6 +115,32 @@ def stuck_after_the_first_frame(runner: Runner) -> Runner:
     return runner
 
 
+@pytest.mark.parametrize("after_first_frame", [True, False])
+def test_a_duration_after_the_first_frame_is_not_eaten_by_a_slow_start(tmp_path, after_first_frame):
+    # A capacity count (dcuscope/capacity/count.py) measures --duration from its first frame: a start
+    # that a loaded machine slows (here the first frame held 1.5 s, timed where it is held) leaves the
+    # measured time whole. `dcuscope run --duration` counts from PLAYING, as before.
+    config = tmp_path / "slow-start.yaml"
+    config.write_text("sources:\n  - {test: ball, width: 160, height: 120, rate: 30}\nstages:\n  - queue: {}\n")
+    built = build_pipeline(load_config(config))
+    runner = Runner(built, duration=1.0, progress=None, duration_after_first_frame=after_first_frame)
+    held: list[float] = []
+
+    def hold_the_first(_pad, _info):
+        if not held:
+            time.sleep(1.5)
+            held.append(time.monotonic())  # the first frame goes on now
+        return Gst.PadProbeReturn.OK
+    built.stages[0].get_static_pad("src").add_probe(Gst.PadProbeType.BUFFER, hold_the_first)
+    result = runner.run()
+    ended = time.monotonic()
+    assert result.aborted is None and held, result
+    if after_first_frame:
+        assert ended - held[0] >= 1.0 and result.frames >= 10, (ended - held[0], result)
+    else:
+        assert ended - held[0] < 1.0, (ended - held[0], result)
+
+
 def test_a_stop_waits_for_a_pipeline_that_still_drains_and_not_for_a_stuck_one(tmp_path, monkeypatch):
     monkeypatch.setattr(run_module, "EOS_GRACE_S", 1.0)
     # A frame every 0.1 s: 20 queued frames take 2 s, twice the grace, and end-of-stream comes.
