@@ -182,16 +182,41 @@ def hover_bar(page, box: dict, node: str, stage: str) -> str:
                              f"rows {d['stage']['rows']}") from exc
 
 
+def polled(d: dict) -> dict[str, int]:
+    """Frames each DCU's store received, where each DCU has bars drawn (of any stage)."""
+    bars = d["stage"]["bars"]
+    return {n: d["stores"][n]["received"] for n in NODES
+            if n in d["stores"] and sum(bars.get(n, {}).values()) > 0}
+
+
 def test_polling_fallback_without_the_socketio_client(live, browser):
-    """Right after the first bars, while the nodes stream: on a loaded machine the tests after it
-    outlast the nodes, and a live view with nothing new to show has no bars to find."""
+    """Right after the first bars, while the nodes stream: frames keep coming by HTTP polling and are
+    drawn. Not every stage's bar in the 5 s window: on a loaded machine a frame's way from mux to osd
+    (the demo's DCU-2 queues four cameras for SSD) can take longer than that (test_stage_view has
+    that check, over the socket, given more time)."""
     relay, _, _ = live
     page = browser.new_page(viewport={"width": 1200, "height": 800})
+    seen: list[dict] = []
+
+    def received() -> dict[str, int] | None:
+        d = debug(page)
+        seen.append(d)
+        got = polled(d)
+        return got if len(got) == len(NODES) else None
+
     try:
         page.route("**/vendor/socket.io.min.js", lambda route: route.abort())
         page.goto(relay.url + "/")
-        d = wait_for(lambda: (lambda d: d if has_all_bars(d) else None)(debug(page)), 60, 0.5, "bars while polling")
-        assert d["transport"] == "polling"
+        try:
+            first = wait_for(received, 60, 0.5, "bars of both DCUs while polling")
+            wait_for(lambda: (lambda got: got if got and all(got[n] > first[n] for n in NODES) else None)(received()),
+                     60, 0.5, "more frames of both DCUs by polling")
+        except AssertionError as exc:
+            last = seen[-1] if seen else {}
+            raise AssertionError(f"{exc}: transport {last.get('transport')}, window {last.get('window')}, "
+                                 f"bars {last.get('stage', {}).get('bars')}, stores {last.get('stores')}, "
+                                 f"opened {last.get('opened')}, status {page.locator('#conn').inner_text()!r}") from None
+        assert seen[-1]["transport"] == "polling"
         assert "polling" in page.locator("#conn").inner_text()
     finally:
         page.close()
