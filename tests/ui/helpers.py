@@ -202,9 +202,43 @@ def source_fps(url: str, node: str) -> dict[str, float]:
             if family.name == "dcuscope_source_fps" for s in family.samples if s.labels["node"] == node}
 
 
+NETWORK_CHANGED = "net::ERR_NETWORK_CHANGED"
+GOTO_TRIES = 3
+
+
+def _goto_again_when_the_network_changed(goto):
+    """``Page.goto``, again (GOTO_TRIES in all) while a request of the page failed with
+    net::ERR_NETWORK_CHANGED. Chromium aborts its requests when the host's interfaces change, which
+    the tests that make veth pairs and network namespaces do beside the UI's (a CI run lost a sign-in
+    page's module script so): not the relay's fault, and a page whose app script was lost cannot
+    recover by itself, as a person would by reloading."""
+    def go(page, url, **kwargs):
+        failed: list[str] = []
+
+        def note(request) -> None:
+            failed.append(request.failure or "")
+
+        page.on("requestfailed", note)
+        try:
+            for _ in range(GOTO_TRIES):
+                failed.clear()
+                response = goto(page, url, **kwargs)
+                if not any(NETWORK_CHANGED in f for f in failed):
+                    break
+            return response
+        finally:
+            page.remove_listener("requestfailed", note)
+    go.retries_network_changes = True
+    return go
+
+
 def launch_chromium(playwright, extra_args: list[str] | None = None):
     if not Path(CHROMIUM).exists():
         raise RuntimeError(f"{CHROMIUM} not found: install Debian's chromium package")
+    from playwright.sync_api import Page
+
+    if not getattr(Page.goto, "retries_network_changes", False):
+        Page.goto = _goto_again_when_the_network_changed(Page.goto)
     return playwright.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS + (extra_args or []))
 
 
