@@ -18,11 +18,13 @@ from dcuscope.extras import require_pipeline
 from dcuscope.helpformat import use_everywhere
 from dcuscope.sessionscommand import add_sessions_parsers
 from dcuscope.shipcommand import add_ship_parser
+from dcuscope.spoolcommand import add_spool_parser
 from dcuscope.shipped import add_configs_parser
 from dcuscope.traceapp import add_trace_parser
 from dcuscope.tracecommands import add_export_parser, add_stats_parser
 from dcuscope.probes.clocks.sysclock import DEFAULT_UDS
 from dcuscope.probes.ship.nodetls import TOKEN_ENV, add_tls_arguments
+from dcuscope.probes.ship.spoolargs import add_spool_arguments
 from dcuscope.relay.commands import add_relay_parser
 
 DESCRIPTION = """\
@@ -48,8 +50,10 @@ never does. Files drain: every frame read is processed. Live sources (cameras, s
 true) stop at once instead: frames still queued (a pipeline that cannot keep up) are dropped
 and counted (reason "stopped" in the trace), so that the run ends within about a batch's time.
 Exit status: 0 done, 1 the pipeline failed, 2 bad configuration or arguments, 3 the run went
-well but --relay did not acknowledge every probe event within --close-timeout (the summary's
-"relay:" line counts them; a --trace file still holds them), 130 aborted.
+well but --relay did not acknowledge every probe event within --close-timeout and the spool did
+not keep them (--no-spool, a full spool or disk; the summary's "relay:" line counts them; a --trace
+file still holds them), 130 aborted. Events kept in the spool are not lost: the next run, or
+dcuscope ship --drain, sends them (dcuscope spool lists them).
 """
 
 PLUGIN_EPILOG = """\
@@ -113,6 +117,7 @@ def build_parser() -> argparse.ArgumentParser:
     probes.add_argument("--token", metavar="TOKEN", default=os.environ.get(TOKEN_ENV),
                         help=f"the credential the relay asks for (default ${TOKEN_ENV}, which keeps it out of process listings)")
     add_tls_arguments(probes)
+    add_spool_arguments(probes)
     probes.add_argument("--close-timeout", type=_positive_float, default=CLOSE_TIMEOUT_S, metavar="S",
                         help="at the end of the run, keep trying every --relay for up to S seconds until all that "
                              "was sent is acknowledged, saying what it waits for (default %(default)g); what is "
@@ -133,7 +138,8 @@ def build_parser() -> argparse.ArgumentParser:
                                       "the UI's URL and a status line every few seconds; Ctrl-C stops all.")
     demo.add_argument("--port", type=int, default=3000, help="relay and UI port (default 3000)")
     demo.add_argument("--duration", type=_positive_float, metavar="S", help="stop after S seconds (default: Ctrl-C)")
-    demo.add_argument("--db", type=Path, help="SQLite file for the sessions (default ./dcuscope-demo.db)")
+    demo.add_argument("--db", type=Path, help="SQLite file for the sessions (default ./dcuscope-demo.db; the DCUs' "
+                                              "spool beside it, ./dcuscope-demo.spool/)")
     demo.set_defaults(func=_demo)
 
     rtsp = sub.add_parser("serve-rtsp", help="serve video files as live RTSP streams on loopback (looped, real time)",
@@ -154,6 +160,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_configs_parser(sub)
     add_ship_parser(sub)
+    add_spool_parser(sub)
     add_stats_parser(sub)
     add_export_parser(sub)
     add_compare_parser(sub)

@@ -150,8 +150,11 @@ def run_demo(port: int = 3000, duration: float | None = None, db: Path | None = 
             if stop:
                 break
             print(f"demo: starting {name} ({config.relative_to(DATA)}) with probes -> {url}", flush=True)
+            # The demo's own spool, beside its database: what a stopped demo left goes to the next demo's
+            # relay, never to a real relay that a later `dcuscope run --relay` on this machine ships to.
             nodes.append(_start("run", str(config), "--probes", "--relay", url, "--node", name, "-q",
-                                "--close-timeout", str(NODE_CLOSE_TIMEOUT_S), stdout=subprocess.DEVNULL))
+                                "--close-timeout", str(NODE_CLOSE_TIMEOUT_S), "--spool", str(db.with_suffix(".spool")),
+                                stdout=subprocess.DEVNULL))
         if not stop:
             print(f"\n  open {url}/ in a browser to watch the DCUs live. Ctrl-C stops the demo.\n", flush=True)
         started = time.monotonic()

@@ -100,8 +100,12 @@ def _run_built(args: argparse.Namespace, config: PipelineConfig, built) -> int:
         from dcuscope.probes.instrument import start_probes
 
         from dcuscope.probes.ship.nodetls import tls_from_args
+        from dcuscope.probes.ship.spoolargs import spool_from_args
 
-        probing = start_probes(built, config, relay=args.relay, token=args.token, tls=tls_from_args(args),
+        tls = tls_from_args(args)
+        spool = spool_from_args(args, lambda line: console.write(line + "\n"), relay=args.relay, token=args.token,
+                                tls=tls) if args.relay else None
+        probing = start_probes(built, config, relay=args.relay, token=args.token, tls=tls, spool=spool,
                                clock_offset_ns=int(args.clock_offset_ms * 1e6), progress=progress,
                                clock_drift_ppm=args.clock_drift_ppm, ptp_socket=args.ptp_socket,
                                close_timeout_s=args.close_timeout)

@@ -34,6 +34,7 @@ from dcuscope.core.errors import DcuscopeError
 from dcuscope.core.pycompat import NEW_PROCESS_GROUP
 from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
 from dcuscope.probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
+from dcuscope.probes.ship.spoolargs import add_spool_arguments, spool_from_args
 
 if TYPE_CHECKING:
     from dcuscope.probes.ship.tailship import TailShipper
@@ -54,7 +55,9 @@ summary goes to stderr when CMD ends; `dcuscope stats TRACE`, `dcuscope export T
 `dcuscope compare` read TRACE later. CMD's stderr passes through dcuscope: a CMD that failed is
 reported with its exit status and its stderr's last line. Ctrl-C and SIGTERM go to CMD, and
 dcuscope waits for it. Exit status: CMD's (128 + N if signal N ended it); when CMD exits 0 but
---relay did not acknowledge every event, {unacknowledged}; 2 when CMD cannot be started or an option is wrong.
+--relay did not acknowledge every event and the spool did not keep them (--no-spool, a full spool),
+{unacknowledged}; 2 when CMD cannot be started or an option is wrong. Events kept in the spool are sent
+by the next run or dcuscope ship --drain.
 """.format(unacknowledged=UNACKNOWLEDGED_STATUS)
 
 FORWARDED = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -73,6 +76,7 @@ def add_trace_parser(sub) -> None:
         epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
         usage="dcuscope trace [-h] [--node NAME] [-o TRACE] [--relay URL[,URL...]] [--token TOKEN]\n"
               "                      [--relay-ca FILE] [--relay-cert FILE [--relay-key FILE]] [--close-timeout S]\n"
+              "                      [--spool DIR | --no-spool] [--spool-max SIZE]\n"
               "                      [--quiet] -- CMD [ARGS...]")
     p.add_argument("--node", metavar="NAME", help="the node's name in the trace and on the relay (default: the host name)")
     p.add_argument("-o", "--output", type=Path, metavar="TRACE", help="the trace file (default NODE.trace.jsonl)")
@@ -81,6 +85,7 @@ def add_trace_parser(sub) -> None:
     p.add_argument("--token", metavar="TOKEN", default=os.environ.get(TOKEN_ENV),
                    help=f"the relay's node token, if it asks for one (default ${TOKEN_ENV})")
     add_tls_arguments(p)
+    add_spool_arguments(p)
     p.add_argument("--close-timeout", type=_positive_float, default=EXPORTER_CLOSE_S, metavar="S",
                    help="once CMD ended, keep trying every --relay for up to S seconds until all that was sent is "
                         "acknowledged (default %(default)g); what is still unacknowledged then is reported lost "
@@ -235,8 +240,9 @@ class _Shipping(NamedTuple):
 def _start_shipper(args: argparse.Namespace, trace: Path, stop: threading.Event) -> _Shipping:
     from dcuscope.probes.ship.tailship import TailShipper
 
-    shipper = TailShipper(trace, args.relay, args.token, args.node, close_timeout_s=args.close_timeout,
-                          tls=tls_from_args(args))
+    tls = tls_from_args(args)
+    shipper = TailShipper(trace, args.relay, args.token, args.node, close_timeout_s=args.close_timeout, tls=tls,
+                          spool=spool_from_args(args, relay=args.relay, token=args.token, tls=tls))
 
     def ship() -> None:
         try:

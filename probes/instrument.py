@@ -122,13 +122,13 @@ class LaunchProbes:
 
 
 def _start_tracer(config: PipelineConfig, relay: str | None, token: str | None, progress: TextIO | None,
-                  close_timeout_s: float, tls: RelayTls | None) -> LaunchProbes:
+                  close_timeout_s: float, tls: RelayTls | None, spool=None) -> LaunchProbes:
     trace = config.probes.trace or default_trace_path(config.node)
     probes = LaunchProbes(ProcessTracer(config.node, trace, config.probes.clock), Path(trace), progress, close_timeout_s)
     if relay is not None:
         probes.shipper = TailShipper(Path(trace), relay, token, config.node,
                                      say=lambda line: progress.write(line + "\n") if progress else None,
-                                     close_timeout_s=close_timeout_s, tls=tls)
+                                     close_timeout_s=close_timeout_s, tls=tls, spool=spool)
         # No stop event: it ends with the trace's end line, which stop() has the tracer write.
         probes.thread = threading.Thread(target=probes.shipper.run, args=(threading.Event(), 1.0, 1e9),
                                          name="dcuscope-tailship", daemon=True)
@@ -139,7 +139,7 @@ def _start_tracer(config: PipelineConfig, relay: str | None, token: str | None, 
 def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None = None, token: str | None = None,
                  clock_offset_ns: int = 0, progress: TextIO | None = None, clock_drift_ppm: float = 0.0,
                  ptp_socket: str = DEFAULT_UDS, close_timeout_s: float = EXPORTER_CLOSE_S,
-                 tls: RelayTls | None = None) -> RunProbes | LaunchProbes:
+                 tls: RelayTls | None = None, spool=None) -> RunProbes | LaunchProbes:
     """Attach tracepoints to every element of ``built`` (not yet playing) and start shipping.
     ``clock_offset_ns`` and ``clock_drift_ppm``: testing aids (:class:`dcuscope.core.clocks.PretendClock`).
     A ``launch:`` pipeline is traced by the dcuscope GStreamer tracer (:class:`LaunchProbes`)."""
@@ -148,7 +148,7 @@ def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None
     if config.launch is not None:
         if clock_offset_ns or clock_drift_ppm:
             raise UsageError("--clock-offset-ms and --clock-drift-ppm are not for launch: pipelines")
-        return _start_tracer(config, relay, token, progress, close_timeout_s, tls)
+        return _start_tracer(config, relay, token, progress, close_timeout_s, tls, spool)
     sources = {s.index: s.config.description for s in built.sources}
     tracer = attach(built.pipeline, config.node, clock=config.probes.clock, sources=sources,
                     trigger=config.probes.trigger)
@@ -165,7 +165,7 @@ def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None
     relay_exporter = None
     if relay is not None:
         relay_exporter = RelayExporter(relay, config.node, token=token, clock=config.probes.clock, pretend=pretend,
-                                       ptp_socket=ptp_socket, close_timeout_s=close_timeout_s, tls=tls)
+                                       ptp_socket=ptp_socket, close_timeout_s=close_timeout_s, tls=tls, spool=spool)
         exporters.append(relay_exporter)
     if pretend.shifts:
         exporters = [_Shifted(e, pretend) for e in exporters]

@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -50,6 +53,26 @@ def pytest_configure(config: pytest.Config) -> None:
     if config.getoption("dist", "no") == "loadgroup" and int(pytest.__version__.split(".")[0]) >= 9:
         raise pytest.UsageError(f"pytest {pytest.__version__} hides pytest-xdist's test groups (--dist loadgroup): "
                                 "install the versions in constraints.txt (make setup)")
+
+
+# Every node command spools unacknowledged events under $XDG_STATE_HOME/dcuscope/spool and drains
+# what earlier runs left there to its own relay: tests must not see each other's runs (nor the
+# user's). A folder per worker (session fixtures), per module (module fixtures: autouse ones come
+# first in their scope) and per test.
+os.environ["XDG_STATE_HOME"] = tempfile.mkdtemp(prefix="dcuscope-state-")
+atexit.register(shutil.rmtree, os.environ["XDG_STATE_HOME"], True)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def module_spool(tmp_path_factory):
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("XDG_STATE_HOME", str(tmp_path_factory.mktemp("module-state")))
+        yield
+
+
+@pytest.fixture(autouse=True)
+def own_spool(module_spool, tmp_path_factory, monkeypatch) -> None:
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path_factory.mktemp("state")))
 
 
 @pytest.fixture(scope="session")

@@ -25,10 +25,14 @@ class Delivery:
     last_error: str = ""
     refused: str | None = None
     """Why a relay refused this node (its token), if one did."""
+    spooled: int = 0
+    """Events not acknowledged but kept in the spool: a later drain sends them (not lost)."""
+    spool_dir: str = ""
 
     @property
     def unacknowledged(self) -> int:
-        return self.events - self.stored
+        """Events neither stored nor kept in the spool: lost."""
+        return self.events - self.stored - self.spooled
 
     @property
     def complete(self) -> bool:
@@ -37,13 +41,17 @@ class Delivery:
     def __add__(self, other: Delivery) -> Delivery:
         return Delivery(self.events + other.events, self.stored + other.stored,
                         self.tried + [u for u in other.tried if u not in self.tried],
-                        other.last_error or self.last_error, self.refused or other.refused)
+                        other.last_error or self.last_error, self.refused or other.refused,
+                        self.spooled + other.spooled, other.spool_dir or self.spool_dir)
 
     def line(self) -> str:
         """'relay: 480 events stored (acknowledged), 0 not acknowledged; relays tried: URL'."""
         tried = ", ".join(self.tried) if self.tried else "none (no event to send)"
         text = (f"relay: {self.stored} events stored (acknowledged), {self.unacknowledged} not acknowledged; "
                 f"relays tried: {tried}")
-        if not self.complete and (self.refused or self.last_error):
+        if self.spooled:
+            text += (f"; {self.spooled} events kept in the spool ({self.spool_dir}): they will be sent when a "
+                     "relay stores again (dcuscope ship --drain, or the next run)")
+        if (not self.complete or self.spooled) and (self.refused or self.last_error):
             text += f"; last error: {self.refused or self.last_error}"
         return text

@@ -22,6 +22,10 @@ its acknowledgement arrives or the relay is asked (``doubt`` in hello and clock 
 says which it stored); then it counts delivered or lost. The floor stays at the first doubtful
 batch meanwhile.
 
+With a spool (:mod:`dcuscope.probes.ship.spool`), every batch is on disk from its cut until acknowledged:
+the bound then holds only the batches kept in memory too; beyond it the oldest are read back
+from disk when their turn comes, and nothing is lost until the spool's own bound drops them.
+
 A batch the relay could not store holds all sending for a while (the time the relay asks,
 ``retry_ms``, growing while failures go on, capped), then goes again.
 """
@@ -29,6 +33,7 @@ A batch the relay could not store holds all sending for a while (the time the re
 from __future__ import annotations
 
 import asyncio
+import logging
 import threading
 import time
 from collections import OrderedDict, deque
@@ -39,6 +44,8 @@ import numpy as np
 from dcuscope.core.clocks import NEVER
 from dcuscope.probes.ship.aio import seconds, wait_event
 from dcuscope.probes.ship.relaylink import asked_retry_ms
+from dcuscope.probes.ship.runspool import RunSpool
+from dcuscope.probes.ship.spoolfile import SpoolError
 from dcuscope.probes.ship.wire import MAX_BATCH_EVENTS, MAX_DOUBT, encode_batch
 from dcuscope.probes.trace.events import EVENT_DTYPE
 
@@ -56,6 +63,8 @@ DEFAULT_MAX_BUFFER_EVENTS = 2_000_000
 DEFAULT_WINDOW = 64
 """Batches in flight (sent, not acknowledged) on one connection."""
 
+log = logging.getLogger(__name__)
+
 
 class Outbox:
     """Batches of run ``run_id``. :meth:`put` is the caller's (any thread, a short lock); every
@@ -64,8 +73,10 @@ class Outbox:
     def __init__(self, run_id: str, *, compress: bool = False, batch_events: int = DEFAULT_BATCH_EVENTS,
                  flush_interval_s: float = DEFAULT_FLUSH_INTERVAL_S, adaptive: bool = True,
                  min_flush_s: float = DEFAULT_MIN_FLUSH_S, max_buffer_events: int = DEFAULT_MAX_BUFFER_EVENTS,
-                 window: int = DEFAULT_WINDOW, backoff_s: tuple[float, float] = (0.1, 5.0)) -> None:
+                 window: int = DEFAULT_WINDOW, backoff_s: tuple[float, float] = (0.1, 5.0),
+                 spool: RunSpool | None = None) -> None:
         self.run_id, self._compress = run_id, compress
+        self.spool = spool
         self.batch_events = max(1, min(int(batch_events), MAX_BATCH_EVENTS))
         self.flush_interval_s, self.adaptive, self._min_flush = flush_interval_s, adaptive, min_flush_s
         self._max_events = int(max_buffer_events)
@@ -81,8 +92,12 @@ class Outbox:
         self.written = 0
 
         # The loop thread's.
-        self.unacked: OrderedDict[int, tuple[bytes, int]] = OrderedDict()
+        self.unacked: OrderedDict[int, tuple[bytes | None, int]] = OrderedDict()
+        """seq -> (the batch, or None where only the spool holds it; its events)."""
         self.unacked_n = 0
+        self._memory: OrderedDict[int, int] = OrderedDict()
+        """Unacknowledged batches whose bytes are in memory: seq -> events."""
+        self._memory_n = 0
         self.inflight: dict[int, float] = {}
         self._tried: set[int] = set()
         """Unacknowledged batches sent at least once (on any connection)."""
@@ -152,21 +167,64 @@ class Outbox:
             chunk = events[i:i + self.batch_events]
             seq = self.next_seq
             self.next_seq += 1
-            self.unacked[seq] = (encode_batch(self.run_id, seq, chunk, self._compress), len(chunk))
+            data = encode_batch(self.run_id, seq, chunk, self._compress)
+            self._spool(seq, len(chunk), data)
+            self.unacked[seq] = (data, len(chunk))
+            self._memory[seq] = len(chunk)
+            self._memory_n += len(chunk)
             self.unacked_n += len(chunk)
             self.to_send.append(seq)
-        while self.unacked_n > self._max_events and self.unacked:
-            seq, (_, n) = self.unacked.popitem(last=False)
-            self.inflight.pop(seq, None)
-            self.unacked_n -= n
-            if seq in self._tried:
-                self._tried.discard(seq)
-                self.doubtful[seq] = n
+        while self._memory_n > self._max_events and self._memory:
+            seq, n = self._memory.popitem(last=False)
+            self._memory_n -= n
+            if self.spool is not None and self.spool.holds(seq):
+                self.unacked[seq] = (None, n)  # read back from the spool when its turn comes
             else:
-                self.evicted += n
+                self._evict(seq)
         while len(self.doubtful) > MAX_DOUBT:  # more than a hello may ask about: given up
             self.evicted += self.doubtful.popitem(last=False)[1]
         return True
+
+    def _spool(self, seq: int, n: int, data: bytes) -> None:
+        """Batch ``seq`` onto the spool; the batches its bound dropped given up (counted lost)."""
+        if self.spool is None or self.spool.broken:
+            return
+        try:
+            dropped = self.spool.append(seq, n, data)
+        except SpoolError as exc:
+            log.warning("%s; this run goes on in memory only", exc)
+            return
+        for old, _ in dropped:
+            if old in self.unacked:
+                self._evict(old)
+
+    def _evict(self, seq: int) -> None:
+        """Give up unacknowledged batch ``seq``: doubtful if it was sent, else lost."""
+        _, n = self.unacked.pop(seq)
+        if self._memory.pop(seq, None) is not None:
+            self._memory_n -= n
+        self.inflight.pop(seq, None)
+        self.unacked_n -= n
+        if seq in self._tried:
+            self._tried.discard(seq)
+            self.doubtful[seq] = n
+        else:
+            self.evicted += n
+
+    def load_spooled(self, batches: list[tuple[int, int]], next_seq: int) -> None:
+        """A drain: the spooled batches ``(seq, events)`` are this outbox's, read from the spool
+        when sent; new batches would be numbered from ``next_seq``."""
+        for seq, n in batches:
+            self.unacked[seq] = (None, n)
+            self.unacked_n += n
+            self.to_send.append(seq)
+        self.written += sum(n for _, n in batches)
+        self.next_seq = max(next_seq, self.next_seq)
+
+    @property
+    def spooled_n(self) -> int:
+        """Unacknowledged events the spool holds (kept when the run ends)."""
+        return self.spool.events if self.spool is not None else 0
 
     async def cut_when_due(self, wake: asyncio.Event, progress: asyncio.Event, connected: Callable[[], bool]) -> None:
         """Cut batches when they are due (the module's "Batching") until cancelled; ``progress``
@@ -202,6 +260,13 @@ class Outbox:
         item = self.unacked.get(seq)
         if item is None or seq in self.inflight:
             return None
+        if item[0] is None:
+            try:
+                item = (self.spool.read(seq), item[1])
+            except (SpoolError, OSError, KeyError) as exc:
+                log.warning("spool: batch %d could not be read back (%s): its %d events are lost", seq, exc, item[1])
+                self._evict(seq)
+                return None
         if not self.inflight:
             self.waiting_since = time.monotonic()
         self.inflight[seq] = time.monotonic()
@@ -230,6 +295,10 @@ class Outbox:
         if item is not None:
             self.unacked_n -= item[1]
             self.acked += item[1]
+            if self._memory.pop(seq, None) is not None:
+                self._memory_n -= item[1]
+            if self.spool is not None:
+                self.spool.acked(seq)
         return "stored"
 
     def _hold(self, ack: dict) -> None:
@@ -268,4 +337,6 @@ class Outbox:
         report = {"lost": self.lost, "floor": self.floor()}
         if self.doubtful:
             report["doubt"] = list(self.doubtful)
+        if self.spool is not None:
+            report["spool"] = self.spool.spool.facts()
         return report

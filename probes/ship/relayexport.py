@@ -26,7 +26,7 @@ import logging
 import threading
 import time
 import uuid
-from typing import Sequence
+from typing import Callable, Sequence
 
 import aiohttp
 import numpy as np
@@ -46,6 +46,9 @@ from dcuscope.probes.ship.outbox import (DEFAULT_BATCH_EVENTS, DEFAULT_FLUSH_INT
                                 DEFAULT_MIN_FLUSH_S, DEFAULT_WINDOW, Outbox)
 from dcuscope.probes.ship.relaylink import Link
 from dcuscope.probes.ship.sending import send
+from dcuscope.probes.ship.runspool import RunSpool
+from dcuscope.probes.ship.spool import Spool
+from dcuscope.probes.ship.spoolfile import SpoolError
 from dcuscope.probes.ship.wire import PROTOCOL_VERSION
 from dcuscope.probes.trace.events import EXPORTER_CLOSE_S, TraceHeader
 
@@ -81,7 +84,8 @@ class RelayExporter:
                  sync_interval_s: float = 2.0, ptp_interval_s: float = POLL_INTERVAL_S,
                  ptp_socket: str = DEFAULT_UDS,
                  close_timeout_s: float = EXPORTER_CLOSE_S,
-                 backoff_s: tuple[float, float] = (0.1, 5.0), tls: RelayTls | None = None) -> None:
+                 backoff_s: tuple[float, float] = (0.1, 5.0), tls: RelayTls | None = None,
+                 spool: Spool | None = None, resume: RunSpool | None = None) -> None:
         if clock not in CLOCKS:
             raise ExportError(f"relay exporter: unknown clock {clock!r} (one of {', '.join(CLOCKS)})")
         self.relays = Failover(url, node, token, backoff_s, tls)
@@ -93,13 +97,20 @@ class RelayExporter:
             raise ExportError(f"relay exporter: the pretend clock reads clock {pretend.clock_id}, not {clock}")
         self.close_timeout_s = close_timeout_s
         """How long ``close`` keeps trying every relay for the acknowledgements and ``end``."""
-        self.run_id = uuid.uuid4().hex
+        self.run_id = resume.run if resume is not None else uuid.uuid4().hex
         self.outbox = Outbox(self.run_id, compress=compress, batch_events=batch_events,
                              flush_interval_s=flush_interval_s, adaptive=adaptive, min_flush_s=min_flush_s,
-                             max_buffer_events=max_buffer_events, window=window, backoff_s=backoff_s)
+                             max_buffer_events=max_buffer_events, window=window, backoff_s=backoff_s, spool=resume)
+        self._spool, self._resumed = spool, resume is not None
+        """The spool this run's batches go to (made at start); a drain ships a spooled run."""
+        self._end_heard = False
+        self.spool_gone = False
+        """After close: the run's spool was deleted (everything stored, the end heard)."""
+        if resume is not None:
+            self.outbox.load_spooled(resume.pending(), resume.next_seq())
         self.clocks = ClockReporter(node, pretend, self.outbox, sync_interval_s=sync_interval_s,
                                     ptp_interval_s=ptp_interval_s, ptp_socket=ptp_socket)
-        self._secret: str | None = None
+        self._secret: str | None = resume.meta.get("secret") if resume is not None else None
         """The relay's resume secret for this run (its first hello's reply): only with it may a
         connection resume the run."""
         self._header: dict | None = None
@@ -109,6 +120,7 @@ class RelayExporter:
         self._connects = 0
         self._connected = False
         self._link: Link | None = None
+        self._ended_ns, self._dropped = 0, 0
 
     @property
     def url(self) -> str:
@@ -130,6 +142,11 @@ class RelayExporter:
             log.warning("trace header names node %r, shipping it as %r", d["node"], self.node)
             d["node"] = self.node
         self._header = d
+        if self._spool is not None and not self._resumed:
+            try:
+                self.outbox.spool = self._spool.create_run(self.run_id, self.node, d, list(self.relays.urls))
+            except SpoolError as exc:
+                log.warning("%s; this run's events are kept in memory only", exc)
         ready = threading.Event()
         self._thread = threading.Thread(target=self._thread_main, args=(ready,), daemon=True,
                                          name=f"dcuscope-relay-{self.node}")
@@ -140,10 +157,14 @@ class RelayExporter:
         if len(events) and self.outbox.put(events) and self._loop is not None:
             self._loop.call_soon_threadsafe(self._wake.set)
 
-    def close(self, dropped: int) -> None:
-        """Send what is buffered, tell the relay the run ended; all within ``close_timeout_s``."""
+    def close(self, dropped: int, progress: Callable[[int, int], None] | None = None) -> None:
+        """Send what is buffered, tell the relay the run ended; all within ``close_timeout_s``.
+        ``progress`` (a drain): first wait while the relay keeps acknowledging, ``close_timeout_s``
+        at most without an acknowledgement, calling ``progress(stored, events)`` every CLOSE_SAY_S."""
         if self._thread is None or self._loop is None:
             return
+        if progress is not None:
+            asyncio.run_coroutine_threadsafe(self._until_stalled(progress), self._loop).result()
         deadline = time.monotonic() + self.close_timeout_s
         future = asyncio.run_coroutine_threadsafe(self._finish(int(dropped), deadline), self._loop)
         try:
@@ -151,6 +172,24 @@ class RelayExporter:
         except Exception as exc:  # noqa: BLE001 - closing must not raise into the pipeline's teardown
             log.warning("relay exporter %s: close: %s", self.node, exc or type(exc).__name__)
         self._thread.join(max(0.0, deadline - time.monotonic()))
+        spool = self.outbox.spool
+        if spool is not None:
+            if not self._resumed and (spool.events or not self._end_heard):  # run.json counts the spool's own losses
+                end = self._end
+                spool.set_end({**end, "lost": max(0, end["lost"] - int(spool.meta.get("lost", 0)))})
+            self.spool_gone = spool.close(self._end_heard)
+
+    async def _until_stalled(self, progress: Callable[[int, int], None]) -> None:
+        box = self.outbox
+        last, stalled_since, said = box.acked, time.monotonic(), time.monotonic()
+        while box.unacked and not self.refused and time.monotonic() - stalled_since < self.close_timeout_s:
+            self._progress.clear()
+            await wait_event(self._progress, 0.2)
+            if box.acked != last:
+                last, stalled_since = box.acked, time.monotonic()
+            if time.monotonic() - said >= CLOSE_SAY_S:
+                said = time.monotonic()
+                progress(box.acked, box.written)
 
     # --- introspection ------------------------------------------------------------------------
 
@@ -162,8 +201,10 @@ class RelayExporter:
     def delivery(self) -> Delivery:
         """What this run delivered so far (after ``close``: what it delivered)."""
         box = self.outbox
+        spool = box.spool
         return Delivery(box.written + box.shed, box.acked, list(self.relays.tried), self.relays.last_error,
-                        self.refused)
+                        self.refused, spooled=box.spooled_n if not self.spool_gone else 0,
+                        spool_dir=str(spool.spool.path) if spool is not None else "")
 
     def counters(self) -> dict:
         box = self.outbox
@@ -171,7 +212,8 @@ class RelayExporter:
             "run": self.run_id, "connected": self._connected, "relay": self.url if self._connected else "",
             "connects": self._connects, "batches": box.next_seq,
             "written": box.written, "sent": box.sent, "acked": box.acked, "lost": self.lost,
-            "buffered": box.unacked_n + box.pending_n, "retries": box.retries,
+            "buffered": box.unacked_n + box.pending_n, "pending": box.pending_n,
+            "spooled": box.spooled_n if box.spool is not None else None, "retries": box.retries,
             "last_error": self.relays.last_error, "tried": list(self.relays.tried), "clock_via": self.clocks.via,
             "clock_forged": self.clocks.forged,
         }
@@ -206,6 +248,8 @@ class RelayExporter:
     def _hello(self) -> dict:
         hello = {"proto": PROTOCOL_VERSION, "run": self.run_id, "header": self._header, **self.outbox.report(),
                  "ptp": self.clocks.ptp}
+        if self._resumed:
+            hello["spooled"] = True  # a past run drained: not the node's live one
         if self._secret is not None:
             hello["secret"] = self._secret
         return hello
@@ -214,6 +258,8 @@ class RelayExporter:
         """Ship on ``link`` until it ends or the exporter stops; why it ended ("" if it said nothing)."""
         if isinstance(reply.get("secret"), str):
             self._secret = reply["secret"]
+            if self.outbox.spool is not None:
+                self.outbox.spool.set_secret(self._secret)
         self.outbox.settle_doubts(hello.get("doubt", []), reply)
         self._connects += 1
         self._connected, self._link = True, link
@@ -253,6 +299,8 @@ class RelayExporter:
         box = self.outbox
         if box.cut():
             self._progress.set()
+        if not self._resumed:
+            self._ended_ns, self._dropped = time.time_ns(), dropped
         # What close() keeps to say end and tear down: at most half its time, so that a short
         # close_timeout_s still waits for acknowledgements (or a first answer from the relay).
         reserve = min(END_TIMEOUT_S + TEARDOWN_S, self.close_timeout_s / 2)
@@ -288,6 +336,15 @@ class RelayExporter:
             self._progress.clear()
             await wait_event(self._progress, min(0.2, max(until - time.monotonic(), 0.01)))
 
+    @property
+    def _end(self) -> dict:
+        """``end``: the run's events, dropped and lost (not the spooled: they come later), its end time."""
+        if self._resumed:
+            return self.outbox.spool.end()
+        box = self.outbox
+        return {"events": box.written, "dropped": self._dropped, "lost": self.lost + box.unacked_n - box.spooled_n,
+                "ended_ns": self._ended_ns}
+
     async def _say_end(self, dropped: int, until: float) -> None:
         """Tell the relay the run ended; a relay lost meanwhile is replaced by the next that answers."""
         while not self.refused and time.monotonic() < until:
@@ -295,9 +352,10 @@ class RelayExporter:
             if link is None:
                 await asyncio.sleep(0.1)
                 continue
-            end = {"events": self.outbox.written, "dropped": dropped, "lost": self.lost + self.outbox.unacked_n}
+            end = self._end
             try:
-                await link.call("end", end, max(0.1, min(END_TIMEOUT_S, until - time.monotonic())))
+                answer = await link.call("end", end, max(0.1, min(END_TIMEOUT_S, until - time.monotonic())))
+                self._end_heard = isinstance(answer, dict) and answer.get("ok") is True
                 return
             except (ConnectionError, *ASYNC_TIMEOUTS, aiohttp.ClientError) as exc:
                 self.relays.note_error(f"could not send end: {describe(exc)}")

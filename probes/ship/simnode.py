@@ -28,6 +28,7 @@ from dcuscope.probes.clocks.sysclock import DEFAULT_UDS
 from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
 from dcuscope.probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
 from dcuscope.probes.ship.relayexport import RelayExporter
+from dcuscope.probes.ship.spoolargs import add_spool_arguments, spool_from_args
 from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
 
 STAGES = ("mux", "infer", "tiler", "convert", "osd")
@@ -95,8 +96,11 @@ def feed(exporter: RelayExporter, events: np.ndarray, *, paced: bool, clock: Pre
             due_s = (int(events["ts"][i]) - clock.now()) / 1e9 if i < len(events) else 0.0
             time.sleep(max(tick_s, due_s) if stop is None else min(max(tick_s, due_s), 0.1))
         return i
+    # Held back while the exporter's buffer is full; with a spool, only while events wait to be cut (the
+    # spool takes every batch, the memory bound sends the oldest to disk only).
+    held = "pending" if exporter.counters()["spooled"] is not None else "buffered"
     for i in range(0, len(events), chunk):
-        while exporter.counters()["buffered"] > max_buffered:
+        while exporter.counters()[held] > max_buffered:
             time.sleep(0.002)
         exporter.write(events[i:i + chunk])
     return len(events)
@@ -134,6 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="at the end, keep trying every --relay for up to S seconds until all is acknowledged "
                         "(default 30)")
     p.add_argument("--ptp-socket", default=DEFAULT_UDS, help=f"the local ptp4l's UDS, read with pmc (default {DEFAULT_UDS})")
+    add_spool_arguments(p)
     p.add_argument("--out", help="write header and shipped events here (.npz)")
     p.add_argument("--linger", action="store_true",
                    help="after the last event, keep the run open (connected, not ended) until standard input closes")
@@ -156,7 +161,8 @@ def main(argv: list[str] | None = None) -> int:
                              batch_events=args.batch_events, flush_interval_s=args.flush_interval,
                              adaptive=not args.fixed_flush,
                              max_buffer_events=args.max_buffer_events, close_timeout_s=args.close_timeout,
-                             ptp_socket=args.ptp_socket, tls=tls)
+                             ptp_socket=args.ptp_socket, tls=tls,
+                             spool=spool_from_args(args, relay=args.relay, token=args.token, tls=tls))
     started = time.monotonic()
     exporter.start(header)
     stop = None

@@ -36,8 +36,8 @@ def _stderr(line: str) -> None:
 class TailShipper:
     def __init__(self, trace: Path, relay: str, token: str | None = None, node: str | None = None,
                  say: Callable[[str], None] = _stderr, close_timeout_s: float = EXPORTER_CLOSE_S,
-                 tls: RelayTls | None = None) -> None:
-        self.tls = tls
+                 tls: RelayTls | None = None, spool=None) -> None:
+        self.tls, self.spool = tls, spool
         self.follower = TraceFollower(trace)
         self.close_timeout_s = close_timeout_s
         self.relay, self.token, self.node, self.say = relay, token, node, say
@@ -108,7 +108,7 @@ class TailShipper:
 
     def _connect(self, header: TraceHeader) -> None:
         self.exporter = RelayExporter(self.relay, self._name(header), token=self.token, clock=header.clock,
-                                      close_timeout_s=self.close_timeout_s, tls=self.tls)
+                                      close_timeout_s=self.close_timeout_s, tls=self.tls, spool=self.spool)
         self.exporter.start(header)
         self.runs += 1
 

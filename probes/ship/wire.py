@@ -102,6 +102,10 @@ class Hello:
     doubt: tuple[int, ...] = ()
     """Batches the node sent and then evicted unacknowledged: the relay answers which of them it
     stored (``stored`` in its reply), so that the node counts those delivered, the others lost."""
+    spooled: bool = False
+    """A past run sent again from the node's spool (a drain): stored as itself, never the node's live run."""
+    spool: dict | None = None
+    """The node's spool: {bytes, oldest_ns} (:func:`sanitize_spool`); None: it keeps none."""
 
 
 @dataclass(frozen=True)
@@ -118,6 +122,8 @@ class ClockReport:
     """As :attr:`Hello.doubt` (the report is then a request: the reply says ``stored``)."""
     forged: int = 0
     """UDP clock answers the node refused for a wrong tag (forged or altered on the way), in its run."""
+    spool: dict | None = None
+    """As :attr:`Hello.spool`."""
 
 
 def encode_batch(run: str, seq: int, events: np.ndarray, compress: bool = False) -> bytes:
@@ -313,8 +319,22 @@ def decode_hello(obj: object, node: str | None = None, *, max_stages: int = MAX_
     if secret is not None and not (isinstance(secret, str) and len(secret) == SECRET_CHARS
                                    and all(c in "0123456789abcdef" for c in secret)):
         raise ProtocolError(f"hello.secret must be {SECRET_CHARS} hex digits")
+    spooled = d.get("spooled", False)
+    if not isinstance(spooled, bool):
+        raise ProtocolError("hello.spooled must be true or false")
     return Hello(run, header, lost, sanitize_ptp(d.get("ptp")), _int(d.get("floor", 0), "hello.floor"), secret,
-                 _doubt(d, "hello"))
+                 _doubt(d, "hello"), spooled, sanitize_spool(d.get("spool")))
+
+
+def sanitize_spool(obj: object) -> dict | None:
+    """A node's spool facts with their types: {bytes: int >= 0, oldest_ns: int or None}; None if absent or malformed."""
+    if not isinstance(obj, dict):
+        return None
+    size, oldest = _finite_int(obj.get("bytes")), obj.get("oldest_ns")
+    oldest = _finite_int(oldest) if oldest is not None else None
+    if size is None or size < 0:
+        return None
+    return {"bytes": size, "oldest_ns": oldest if oldest is not None and oldest > 0 else None}
 
 
 def _doubt(d: dict, what: str) -> tuple[int, ...]:
@@ -343,14 +363,16 @@ def decode_clock(obj: object) -> ClockReport:
         raise ProtocolError(f"clock.via must be one of {', '.join(CLOCK_VIAS)}, not {str(via)[:20]!r}")
     return ClockReport(out, _int(d.get("lost", 0), "clock.lost"), sanitize_ptp(d.get("ptp")),
                        _int(d.get("floor", 0), "clock.floor"), via, _doubt(d, "clock"),
-                       _int(d.get("forged", 0), "clock.forged"))
+                       _int(d.get("forged", 0), "clock.forged"), sanitize_spool(d.get("spool")))
 
 
-def decode_end(obj: object) -> tuple[int, int, int]:
-    """``end``: (events the node shipped, dropped in its probe buffer, lost in transport)."""
+def decode_end(obj: object) -> tuple[int, int, int, int | None]:
+    """``end``: (events the node shipped, dropped in its probe buffer, lost in transport, when the run
+    ended on the node: ns, or None when not said; a run drained from a spool ended long before)."""
     d = _dict(obj, "end")
+    ended = d.get("ended_ns")
     return (_int(d.get("events", 0), "end.events"), _int(d.get("dropped", 0), "end.dropped"),
-            _int(d.get("lost", 0), "end.lost"))
+            _int(d.get("lost", 0), "end.lost"), None if ended is None else _int(ended, "end.ended_ns"))
 
 
 PTP_STATES = ("unavailable", "unlocked", "locked", "lost")

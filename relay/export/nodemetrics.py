@@ -28,7 +28,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 
 from dcuscope.probes.ship.wire import PTP_STATES
 from dcuscope.probes.trace.events import DROP_REASONS
-from dcuscope.relay.live.state import RelayState, RunState
+from dcuscope.relay.live.state import RelayState, RunState, spool_view
 
 MAX_URI_CHARS = 200
 NS_PER_S = 1e9
@@ -49,6 +49,8 @@ SPECS = {
     "dcuscope_frames_incomplete": ("counter", "Frames evicted incomplete", ()),
     "dcuscope_probe_events_dropped": ("counter", "Events the node's probes dropped", ()),
     "dcuscope_probe_batches_lost": ("counter", "Batches the node lost before the relay had them", ()),
+    "dcuscope_node_spool_bytes": ("gauge", "Bytes the node keeps on disk until a relay stored them (every run)", ()),
+    "dcuscope_node_spool_oldest_age_seconds": ("gauge", "Age of the oldest event in the node's spool", ()),
     "dcuscope_frame_delay_limit_seconds": ("gauge", "The node's --frame-limit", ()),
     "dcuscope_clock_offset_seconds": ("gauge", "Estimated clock offset, node - relay", ()),
     "dcuscope_clock_uncertainty_seconds": ("gauge", "Bound on the error of the correction applied now", ()),
@@ -147,6 +149,11 @@ def _node_samples(out: Families, state: RelayState, rs: RunState) -> None:
     out.add("dcuscope_frames_incomplete", [node], live.evicted)
     out.add("dcuscope_probe_events_dropped", [node], rs.dropped)
     out.add("dcuscope_probe_batches_lost", [node], rs.lost)
+    spool = spool_view(rs.spool)
+    if spool["spool_bytes"] is not None:
+        out.add("dcuscope_node_spool_bytes", [node], spool["spool_bytes"])
+    if spool["spool_oldest_age_s"] is not None:
+        out.add("dcuscope_node_spool_oldest_age_seconds", [node], spool["spool_oldest_age_s"])
     limit = state.frame_limits.limit_ns(node)
     if limit is not None:
         out.add("dcuscope_frame_delay_limit_seconds", [node], limit / NS_PER_S)

@@ -377,6 +377,7 @@ class Ingest:
         accepted = [s for s in (self._check_sample(conn, rs, times, report.via) for times in report.samples) if s]
         rs.clock.add_samples(accepted)
         rs.ptp = report.ptp
+        rs.spool = report.spool
         rs.lost = max(rs.lost, report.lost)
         rs.clock_forged = max(rs.clock_forged, report.forged)
         stored = await self._stored_of(rs, report.doubt)
@@ -409,11 +410,14 @@ class Ingest:
         return None
 
     async def _on_end(self, rs: RunState, data: object) -> dict:
-        written, dropped, lost = decode_end(data)
+        written, dropped, lost, ended_ns = decode_end(data)
         rs.ended, rs.written, rs.dropped, rs.lost = True, written, dropped, max(rs.lost, lost)
         rs.live.finish()
         clock = dict(self.state.clock_view(rs), ptp=rs.ptp)
-        return await self._update_run(rs, ended_ns=time.time_ns(), written=written, dropped=dropped, lost=rs.lost,
+        now = time.time_ns()
+        # The node's own end time where it says one (a drained run ended hours ago): never in the future.
+        ended = now if not ended_ns or ended_ns > now else ended_ns
+        return await self._update_run(rs, ended_ns=ended, written=written, dropped=dropped, lost=rs.lost,
                                       clock=clock)
 
     async def _update_run(self, rs: RunState, **fields) -> dict:

@@ -136,6 +136,10 @@ class RunState:
     unsaved: dict = field(default_factory=dict)
     """Run fields (clock, end) storage failed to write: written again once it works."""
     ptp: dict = field(default_factory=lambda: {"state": "unavailable"})
+    past: bool = False
+    """Drained from the node's spool (hello ``spooled``): a past run, stored as itself, never live."""
+    spool: dict | None = None
+    """The node's spool as it last said: {bytes, oldest_ns} (probes.ship.wire.sanitize_spool)."""
     sid: str | None = None
     ended: bool = False
     written: int | None = None
@@ -219,7 +223,7 @@ class RelayState:
 
     def live_session(self) -> int | None:
         for rs in self.runs.values():
-            if rs.sid is not None and not rs.ended:
+            if rs.sid is not None and not rs.ended and not rs.past:
                 return rs.session
         return None
 
@@ -247,7 +251,8 @@ class RelayState:
                                         "first hello")
             else:
                 holder = self.node_run(hello.header.node)
-                if holder is not None and self._holds_name(holder) and not await self._resumes(hello):
+                if (holder is not None and self._holds_name(holder) and not hello.spooled
+                        and not await self._resumes(hello)):
                     holder.conflicts += 1
                     holder.conflict_at = time.time()
                     self.refused["name_taken"] += 1
@@ -256,13 +261,17 @@ class RelayState:
                 self._make_room()
                 rs, issued = await self._take(hello)
                 self.runs[hello.run] = rs
-                if holder is not None and holder.sid is not None and not holder.ended and rs.first_seen >= holder.first_seen:
+                if (holder is not None and holder.sid is not None and not holder.ended and not hello.spooled
+                        and rs.first_seen >= holder.first_seen):
                     displaced = holder.sid
-            self._make_current(rs)
+            if not hello.spooled:  # a drained past run is stored, never shown as the node's live one
+                self._make_current(rs)
             self.rebalance()
             previous, rs.sid = rs.sid, sid
             rs.lost = max(rs.lost, hello.lost)
             rs.ptp = hello.ptp
+            if not hello.spooled:  # a drain's hello says nothing of the live run's spool
+                rs.spool = hello.spool
             rs.last_seen = time.time()
             return Attached(rs, previous if previous != sid else None, displaced, issued)
 
@@ -358,8 +367,11 @@ class RelayState:
 
     async def _load(self, hello: Hello) -> tuple[RunState, str | None]:
         header = hello.header
+        past = (header.started_ns or None) if hello.spooled else None
+        stored_header = dict(header.to_dict(), spooled=True) if hello.spooled else header.to_dict()
         session, first_seen_ns, issued = await self.storage.call("register_run", hello.run, header.node,
-                                                                 header.to_dict(), self.live_session(), hello.secret)
+                                                                 stored_header, self.live_session(), hello.secret,
+                                                                 past)
         seqs = SeqSet(await self.storage.call("stored_seqs", hello.run))
         live = LiveRun(header, self.live_config, self.run_budget(len(self.runs) + 1))
         if seqs:
@@ -374,7 +386,8 @@ class RelayState:
         # A resumed run goes on with its stored clock history (the next write keeps exactly what is held).
         history = [s for s in await self.storage.call("run_history", hello.run) if segment_fault(s) is None]
         rs = RunState(run=hello.run, node=header.node, session=session, header=header, live=live, seqs=seqs,
-                      first_seen=first_seen_ns / 1e9, secret_hash=secret_hash, clock=ClockEstimator(history=history))
+                      first_seen=first_seen_ns / 1e9, secret_hash=secret_hash, clock=ClockEstimator(history=history),
+                      past=hello.spooled)
         # Frames rebuilt from storage above were exported before the relay restarted: not again.
         live.on_finalise = lambda fd, values: self._finalised(rs, fd, values)
         return rs, issued
@@ -469,6 +482,7 @@ class RelayState:
             "frames": {"shown": live.visible, "finalised": live.finalised, "evicted": live.evicted,
                        "late_events": live.late},
             "last_seen": rs.last_seen, "frame_limit_ms": None if limit is None else limit / 1e6,
+            **spool_view(rs.spool),
         }
 
     def nodes_view(self) -> list[dict]:
@@ -510,3 +524,12 @@ def _quietly(task: asyncio.Future) -> None:
     # connection released every lock it held.
     if not task.cancelled():
         task.exception()
+
+
+def spool_view(spool: dict | None) -> dict:
+    """``spool_bytes`` (None: the node keeps no spool) and ``spool_oldest_age_s`` (None: it holds nothing)."""
+    if spool is None:
+        return {"spool_bytes": None, "spool_oldest_age_s": None}
+    oldest = spool.get("oldest_ns")
+    return {"spool_bytes": spool["bytes"],
+            "spool_oldest_age_s": None if oldest is None else max(0.0, time.time() - oldest / 1e9)}

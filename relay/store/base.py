@@ -162,9 +162,11 @@ class Database(ABC):
 
     @abstractmethod
     def register_run(self, run: str, node: str, header: dict, live_session: int | None,
-                     secret: str | None) -> tuple[int, int, str | None]:
+                     secret: str | None, past_ns: int | None = None) -> tuple[int, int, str | None]:
         """Record a run at its (first or renewed) hello; returns its session, first-seen time (ns)
         and, for a new run, the resume secret to hand its node (only its hash is stored).
+        ``past_ns``: a past run drained from a node's spool, started then: a new one is first seen
+        then, in a session of its own (never the live one).
 
         A run id already stored must come from the same node with the same stages, and present
         the secret issued at its first hello, else :class:`RelayError` (:class:`ResumeRefused`):

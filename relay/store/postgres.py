@@ -394,8 +394,9 @@ class PostgresDatabase(Database):
     # --- runs ---------------------------------------------------------------------------------
 
     def register_run(self, run: str, node: str, header: dict, live_session: int | None,
-                     secret: str | None) -> tuple[int, int, str | None]:
+                     secret: str | None, past_ns: int | None = None) -> tuple[int, int, str | None]:
         now = time.time_ns()
+        first = past_ns if past_ns is not None else now
         pending = _UNCONFIRMED.get(run)
         pending = pending[0] if pending is not None and pending[1] > time.monotonic() else None
         issued = pending or secrets.token_hex(16)  # a registration tried again issues the same secret
@@ -412,18 +413,22 @@ class PostgresDatabase(Database):
                 cur.execute("UPDATE runs SET last_seen_ns = %s WHERE id = %s", (now, run))
                 return int(row[0]), int(row[3]), None
             cur.execute("SELECT pg_advisory_xact_lock(%s, %s)", SESSION_LOCK)
-            cur.execute(f"SELECT session FROM runs WHERE ended_ns IS NULL AND rejected IS NULL AND id <> %s "
-                        f"AND id IN ({HELD_RUNS}) ORDER BY first_seen_ns DESC LIMIT 1", (run,))
-            live = cur.fetchone()
+            live = None
+            if past_ns is None:
+                # Not a past run being drained (its header says "spooled"): it has a session of its own.
+                cur.execute(f"SELECT session FROM runs WHERE ended_ns IS NULL AND rejected IS NULL AND id <> %s "
+                            f"AND header NOT LIKE '%%\"spooled\": true%%' "
+                            f"AND id IN ({HELD_RUNS}) ORDER BY first_seen_ns DESC LIMIT 1", (run,))
+                live = cur.fetchone()
             if live is not None:
                 session = int(live[0])
             else:
-                cur.execute("INSERT INTO sessions (created_ns) VALUES (%s) RETURNING id", (now,))
+                cur.execute("INSERT INTO sessions (created_ns) VALUES (%s) RETURNING id", (first,))
                 session = int(cur.fetchone()[0])
             cur.execute("INSERT INTO runs (id, session, node, header, first_seen_ns, last_seen_ns, secret, lock_key) "
                         "VALUES (%s, %s, %s, %s, %s, %s, %s, %s)",
-                        (run, session, node, json.dumps(header), now, now, secret_hash(issued), lock_key(run)))
-            return session, now, issued
+                        (run, session, node, json.dumps(header), first, now, secret_hash(issued), lock_key(run)))
+            return session, first, issued
 
         try:
             out = self._transaction(register)

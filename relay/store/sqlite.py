@@ -188,7 +188,7 @@ class SqliteDatabase(Database):
     # --- runs ---------------------------------------------------------------------------------
 
     def register_run(self, run: str, node: str, header: dict, live_session: int | None,
-                     secret: str | None) -> tuple[int, int, str | None]:
+                     secret: str | None, past_ns: int | None = None) -> tuple[int, int, str | None]:
         now = time.time_ns()
         conn = self.conn
         row = conn.execute("SELECT session, node, header, first_seen_ns, secret FROM runs WHERE id = ?",
@@ -201,17 +201,18 @@ class SqliteDatabase(Database):
                 _rollback(conn)
             return int(row[0]), int(row[3]), None
         issued = secrets.token_hex(16)
+        first = past_ns if past_ns is not None else now
 
         def insert(conn: sqlite3.Connection) -> int:
-            session = live_session
+            session = live_session if past_ns is None else None
             if session is None:
-                session = conn.execute("INSERT INTO sessions (created_ns) VALUES (?)", (now,)).lastrowid
+                session = conn.execute("INSERT INTO sessions (created_ns) VALUES (?)", (first,)).lastrowid
             conn.execute("INSERT INTO runs (id, session, node, header, first_seen_ns, last_seen_ns, secret) "
                          "VALUES (?, ?, ?, ?, ?, ?, ?)",
-                         (run, session, node, json.dumps(header), now, now, secret_hash(issued)))
+                         (run, session, node, json.dumps(header), first, now, secret_hash(issued)))
             return int(session)
 
-        return self._transaction(insert), now, issued
+        return self._transaction(insert), first, issued
 
     def own_run(self, run: str) -> bool:
         return True

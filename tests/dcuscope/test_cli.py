@@ -80,8 +80,8 @@ def test_shipped_configurations_are_listed_run_by_name_and_copied_out(tmp_path):
 
 def test_a_run_whose_relay_stored_nothing_says_so_and_exits_non_zero(tmp_path):
     url = f"http://127.0.0.1:{free_port()}"  # nothing listens there
-    result = run_cli("run", "vtest", "-n", "3", "--probes", "--relay", url, "--close-timeout", "1", cwd=tmp_path,
-                     timeout=120)
+    result = run_cli("run", "vtest", "-n", "3", "--probes", "--relay", url, "--close-timeout", "1", "--no-spool",
+                     cwd=tmp_path, timeout=120)
     assert result.returncode == UNACKNOWLEDGED_STATUS, result.stderr
     (probes,) = [line for line in result.stderr.splitlines() if " tracepoints " in line]
     events = int(probes.split()[1])  # "probes: N events from ..."
@@ -102,7 +102,7 @@ NODE_COMMANDS = {"run": "dcuscope.runcommand", "trace": "dcuscope.traceapp", "sh
 OTHER_PROGRAMS = {
     "--clock-port": "relay", "--limit": "relay", "--tls-client-ca": "relay",  # what the relay must be told
     "--cflags": "pkg-config", "--libs": "pkg-config",  # core.cbuild runs it
-    "--camera": "the example program of trace's epilog", "--port": "core.ports' default (run passes option=None)",
+    "--camera": "the example program of trace's epilog", "--drain": "ship's, which sends the spool", "--port": "core.ports' default (run passes option=None)",
 }
 """Options messages name that belong to another program: the relay's are checked to be its own."""
 

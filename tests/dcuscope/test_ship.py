@@ -29,7 +29,7 @@ def test_an_unreachable_relay_is_reported_as_nothing_stored_and_exits_non_zero(t
     trace, url = tmp_path / "t.jsonl", f"http://127.0.0.1:{free_port()}"  # nothing listens there
     events = synth_events(5, 1, 25.0, 1_700_000_000_000_000_000)
     write_trace(trace, header_for("SHIP-1", 1), events)
-    result = run_cli("ship", trace, "--relay", url, "--settle", "0", "--close-timeout", "1")
+    result = run_cli("ship", trace, "--relay", url, "--settle", "0", "--close-timeout", "1", "--no-spool")
     assert result.returncode == UNACKNOWLEDGED_STATUS, result.stderr
     assert result.stderr.splitlines()[-1].startswith(
         f"ship: SHIP-1, 1 run(s), the trace is ended; relay: 0 events stored (acknowledged), {len(events)} not "

@@ -146,7 +146,7 @@ def test_without_a_command_or_with_a_missing_one_exit_2(tmp_path):
 
 def test_an_unreachable_relay_within_close_timeout_exits_non_zero_saying_nothing_was_stored(tmp_path):
     url, trace = f"http://127.0.0.1:{free_port()}", tmp_path / "lonely.trace.jsonl"  # nothing listens there
-    result = run_cli("trace", "--relay", url, "--close-timeout", "1", "--node", "LONELY", "-o", trace, "--",
+    result = run_cli("trace", "--relay", url, "--close-timeout", "1", "--no-spool", "--node", "LONELY", "-o", trace, "--",
                      "gst-launch-1.0", "-q", "videotestsrc", "num-buffers=10", "!", "fakesink", cwd=tmp_path)
     assert result.returncode == UNACKNOWLEDGED_STATUS, result.stderr
     events = len(read_trace(trace).events)  # the trace still holds them all

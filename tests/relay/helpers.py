@@ -237,10 +237,11 @@ class HandNode:
 
     @classmethod
     async def open(cls, url: str, node: str, run: str, token: str | None = None, stages: int = 1,
-                   secret: str | None = None, header: TraceHeader | None = None, ssl=None) -> "HandNode":
+                   secret: str | None = None, header: TraceHeader | None = None, ssl=None,
+                   extra: dict | None = None) -> "HandNode":
         """Say hello for ``run``, as ``node`` with ``header`` (by default that of a simulated node of
         ``stages`` sources); resuming a run takes the ``secret`` its first hello was given. ``ssl``:
-        the SSLContext of an https:// ``url``."""
+        the SSLContext of an https:// ``url``; ``extra``: more fields of the hello."""
         session = aiohttp.ClientSession(connector=aiohttp.TCPConnector(ssl=ssl) if ssl is not None else None)
         acks: asyncio.Queue = asyncio.Queue()
         try:
@@ -248,6 +249,7 @@ class HandNode:
             hello = {"proto": 2, "run": run, "header": (header or header_for(node, stages)).to_dict(), "lost": 0}
             if secret is not None:
                 hello["secret"] = secret
+            hello.update(extra or {})
             reply = await link.call("hello", hello, 5)
         except BaseException:
             await session.close()

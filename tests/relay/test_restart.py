@@ -49,7 +49,7 @@ def test_outage_beyond_the_buffer_is_counted_and_reported(tmp_path):
     relay = RelayProcess(db, port=port)
     # ~1,200 events/s against a 1,500-event buffer: a 4 s outage cannot be bridged.
     node = start_node(relay.url, "DCU-1", tmp_path / "n.npz", frames=300, sources=2, fps=50, paced=True,
-                      extra=["--max-buffer-events", "1500", "--batch-events", "256"])
+                      extra=["--max-buffer-events", "1500", "--batch-events", "256", "--no-spool"])
     try:
         wait_for(lambda: get_json(f"{relay.url}/api/nodes") and get_json(f"{relay.url}/api/nodes")[0]["events"] > 1000,
                  20, what="events before the kill")

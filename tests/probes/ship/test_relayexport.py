@@ -56,15 +56,25 @@ def test_unreachable_relay_write_returns_at_once_and_losses_are_counted():
                                       f"relays tried: {url}; last error: cannot reach relay {url}")
 
 
-def test_the_simulated_node_exits_non_zero_when_its_events_were_not_all_acknowledged():
+def test_the_simulated_node_exits_non_zero_when_its_events_were_not_all_acknowledged(tmp_path):
     url = f"http://127.0.0.1:{free_port()}"  # nothing listens there
     node = subprocess.run([sys.executable, "-m", "dcuscope.probes.ship.simnode", "--relay", url, "--node", "lonely",
-                           "--frames", "5", "--close-timeout", "1"], capture_output=True, text=True, timeout=60)
+                           "--frames", "5", "--close-timeout", "1", "--no-spool"], capture_output=True, text=True,
+                          timeout=60)
     assert node.returncode == UNACKNOWLEDGED_STATUS, node.stderr
     counters = json.loads(node.stdout.splitlines()[-1])
     assert counters["acked"] == 0 and counters["tried"] == [url]
     assert node.stderr.splitlines()[-1].startswith(f"simnode lonely: relay: 0 events stored (acknowledged), "
                                                    f"{counters['events']} not acknowledged; relays tried: {url}")
+    # With its spool (the default), nothing is lost: the events wait on disk, and the node says where.
+    spool = tmp_path / "spool"
+    node = subprocess.run([sys.executable, "-m", "dcuscope.probes.ship.simnode", "--relay", url, "--node", "lonely",
+                           "--frames", "5", "--close-timeout", "1", "--spool", str(spool)], capture_output=True,
+                          text=True, timeout=60)
+    assert node.returncode == 0, node.stderr
+    counters = json.loads(node.stdout.splitlines()[-1])
+    assert f"0 not acknowledged; relays tried: {url}; {counters['events']} events kept in the spool ({spool})" \
+        in node.stderr.splitlines()[-1]
 
 
 def test_bad_arguments_are_user_errors():

@@ -141,6 +141,20 @@ def hello(**over) -> dict:
 def test_hello():
     h = decode_hello(hello(), "n1")
     assert h.run == RUN and h.header.stages[:2] == ["src0", "src1"] and h.ptp == {"state": "locked"}
+    assert h.spooled is False and h.spool is None
+
+
+def test_a_drained_runs_hello_and_a_nodes_spool_facts():
+    h = decode_hello(hello(spooled=True, spool={"bytes": 5000, "oldest_ns": 1_700_000_000_000_000_000}), "n1")
+    assert h.spooled is True and h.spool == {"bytes": 5000, "oldest_ns": 1_700_000_000_000_000_000}
+    assert decode_hello(hello(spool={"bytes": 0, "oldest_ns": None}), "n1").spool == {"bytes": 0, "oldest_ns": None}
+    # Facts it cannot read are dropped, not the connection: they only inform.
+    for bad in ("lots", {"bytes": -1}, {"bytes": "5"}, {"bytes": 1e400}, {"oldest_ns": 5}, [1, 2]):
+        assert decode_hello(hello(spool=bad), "n1").spool is None, bad
+    assert decode_hello(hello(spool={"bytes": 7, "oldest_ns": -3}), "n1").spool == {"bytes": 7, "oldest_ns": None}
+    assert decode_clock({"samples": [], "spool": {"bytes": 9, "oldest_ns": 11}}).spool == {"bytes": 9, "oldest_ns": 11}
+    with pytest.raises(ProtocolError, match="hello.spooled must be true or false"):
+        decode_hello(hello(spooled="yes"), "n1")
 
 
 @pytest.mark.parametrize("data, message", [
@@ -191,9 +205,12 @@ def test_clock_and_end_messages():
     for via in ("tcp", ["udp"], "udp" * 100):
         with pytest.raises(ProtocolError, match="clock.via must be one of websocket, udp"):
             decode_clock({"via": via})
-    assert decode_end({"events": 5, "dropped": 1, "lost": 2}) == (5, 1, 2)
+    assert decode_end({"events": 5, "dropped": 1, "lost": 2}) == (5, 1, 2, None)
+    assert decode_end({"events": 5, "dropped": 1, "lost": 2, "ended_ns": 7}) == (5, 1, 2, 7)
     with pytest.raises(ProtocolError):
         decode_end({"events": "5"})
+    with pytest.raises(ProtocolError, match="end.ended_ns"):
+        decode_end({"events": 5, "ended_ns": -1})
 
 
 def test_ptp_sanitized():
