@@ -1,5 +1,6 @@
 """The --quick runs of the benchmarks that take seconds: bench_live_memory.py, bench_stats.py,
-bench_pipeline.py, bench_probes.py and bench_coverage.py; and their tables fed figures a run could not produce."""
+bench_pipeline.py, bench_probes.py, bench_coverage.py and bench_spool.py; and their tables fed figures a run could
+not produce."""
 
 from __future__ import annotations
 
@@ -147,3 +148,14 @@ def test_profile_relay_splits_samples_by_category_and_names_the_innermost_place_
     at = next(i for i, line in enumerate(lines) if line.lstrip().startswith("pairing"))
     assert re.fullmatch(r" +pairing \(LiveRun\.maintain, maintain_all\) +75% +3\.00 +300", lines[at])
     assert re.fullmatch(r" +LiveRun\._merge \(run\.py\) +3\.00 +300", lines[at + 1])
+
+
+def test_spool_quick_mode_measures_every_mode_side_by_side_and_drains():
+    done = run_benchmark("bench_spool.py", "--quick")
+    assert_ran(done)
+    figures = json_lines(done.stdout)[-1]
+    assert set(figures["cpu_us_per_event"]) == {"off", "on", "on, fsync every batch"}
+    assert all(v > 0 for v in figures["cpu_us_per_event"].values())
+    assert figures["on_vs_off"] == figures["cpu_us_per_event"]["on"] / figures["cpu_us_per_event"]["off"]
+    assert 24 <= figures["bytes_per_event"] < 25 and figures["drain_events_per_s"] > 0
+    assert "  spool                     µs/event   vs off" in done.stdout.splitlines()
