@@ -27,7 +27,6 @@ from dcuscope.probes.ship.wire import decode_batch
 from dcuscope.probes.trace.tracefile import read_trace
 from dcuscope.relay.store.runs import list_sessions, load_runs
 from tests.conftest import run_cli
-from tests.pgserver import PostgresServer
 from tests.ports import free_port
 from tests.relay.helpers import (HandNode, RelayProcess, finish_node, get_json, load_node, sort_events, start_node,
                                  stored_equals_sent, wait_for)
@@ -37,6 +36,21 @@ T0 = 1_790_000_000_000_000_000
 
 def drain(spool: Path, *extra: str) -> subprocess.CompletedProcess:
     return run_cli("ship", "--drain", "--spool", spool, "--close-timeout", "5", *extra, timeout=120)
+
+
+def drained(db: Path, port: int, spool: Path, node: str) -> tuple[dict, np.ndarray]:
+    """Start a relay on ``port`` (store ``db``), drain ``spool`` into it, stop it: ``node``'s stored run
+    and its events."""
+    relay = RelayProcess(db, port=port)
+    try:
+        done = drain(spool)
+        assert done.returncode == 0, done.stdout + done.stderr
+    finally:
+        relay.stop()
+    assert "Traceback" not in relay.log.read_text()
+    run = the_run(db, node)
+    (stored,) = load_runs(db, run["run"], corrected=False)
+    return run, stored.events
 
 
 def the_run(db: Path, node: str) -> dict:
@@ -113,15 +127,8 @@ def test_a_node_killed_mid_run_has_what_reached_its_spool_delivered_by_the_next_
     on_disk = spooled_events(spool)
     assert len(on_disk) > 0
     stored_before = the_run(db, "DCU-K")["events"]
-    relay = RelayProcess(db, port=port)  # a new relay process on the same store
-    try:
-        drained = drain(spool)
-        assert drained.returncode == 0, drained.stdout + drained.stderr
-    finally:
-        relay.stop()
-    run = the_run(db, "DCU-K")
-    (stored,) = load_runs(db, run["run"], corrected=False)
-    events = sort_events(stored.events)
+    run, events = drained(db, port, spool, "DCU-K")  # a new relay process on the same store
+    events = sort_events(events)
     assert len(np.unique(events)) == len(events)  # nothing stored twice
     expected = synth_events(4000, 2, 100.0, t0)
     assert np.isin(events, expected).all()  # nothing invented
@@ -150,18 +157,11 @@ def test_a_spool_at_its_bound_drops_the_oldest_counts_them_and_tells_the_relay(t
     assert Spool(spool).bytes() <= 1 << 20
     kept = sum(r.events for r in Spool(spool).runs())
     assert kept + counters["lost"] == len(sent) == counters["events"], (kept, counters)
-    relay = RelayProcess(db, port=port)
-    try:
-        drained = drain(spool)
-        assert drained.returncode == 0, drained.stdout + drained.stderr
-    finally:
-        relay.stop()
-    run = the_run(db, "DCU-C")
-    (stored,) = load_runs(db, run["run"], corrected=False)
+    run, stored = drained(db, port, spool, "DCU-C")
     assert run["lost"] == counters["lost"] and run["events"] == kept and run["written"] == len(sent)
     newest = sort_events(sent)[-1000:]
-    assert np.isin(newest, stored.events).all()  # the newest kept, the oldest gone
-    assert not np.isin(sort_events(sent)[:1000], stored.events).any()
+    assert np.isin(newest, stored).all()  # the newest kept, the oldest gone
+    assert not np.isin(sort_events(sent)[:1000], stored).any()
 
 
 def test_a_torn_tail_is_cut_said_and_the_rest_delivered(tmp_path):
@@ -241,20 +241,6 @@ def test_a_full_disk_is_one_line_and_the_run_goes_on_in_memory(tmp_path):
     m = re.search(r"relay: 0 events stored \(acknowledged\), (\d+) not acknowledged; .* (\d+) events kept in the spool",
                   err.splitlines()[-1])
     assert m and int(m[1]) > 0 and int(m[2]) > 0 and int(m[1]) + int(m[2]) == counters["events"], err
-
-
-@pytest.fixture
-def synchronous_store():
-    """A PostgreSQL primary whose commits wait for a synchronous standby (tests/pgserver.py)."""
-    primary = PostgresServer(synchronous=True).start()
-    standby = None
-    try:
-        standby = primary.standby()
-        yield primary, standby
-    finally:
-        primary.close()
-        if standby is not None:
-            standby.close()
 
 
 @pytest.mark.long

@@ -111,22 +111,9 @@ def health(relay: RelayProcess) -> dict:
     return get_json(f"{relay.url}/api/health", timeout=5)
 
 
-@pytest.fixture
-def servers():
-    primary = PostgresServer(synchronous=True).start()
-    standby = None
-    try:
-        standby = primary.standby()  # before any write: each commit waits for it
-        yield primary, standby
-    finally:
-        primary.close()
-        if standby is not None:
-            standby.close()
-
-
 @pytest.mark.long
-def test_a_lost_standby_holds_writes_back_and_a_promoted_one_takes_over_losing_nothing(tmp_path, servers):
-    primary, standby = servers
+def test_a_lost_standby_holds_writes_back_and_a_promoted_one_takes_over_losing_nothing(tmp_path, synchronous_store):
+    primary, standby = synchronous_store
     database = primary.new_database().rsplit("/", 1)[1]
     store = (f"postgresql://postgres@127.0.0.1:{primary.port},127.0.0.1:{standby.port}/{database}"
              "?target_session_attrs=read-write")
@@ -199,10 +186,10 @@ def test_a_lost_standby_holds_writes_back_and_a_promoted_one_takes_over_losing_n
 
 
 @pytest.mark.long
-def test_the_promotion_by_hand_run_as_documented_stores_every_event_once_and_needs_its_step_4(tmp_path, servers):
+def test_the_promotion_by_hand_run_as_documented_stores_every_event_once_and_needs_its_step_4(tmp_path, synchronous_store):
     steps = documented_sql()
     assert {1, 3, 4, 6} <= steps.keys(), f"{DOC.name}, {BY_HAND!r}: SQL for steps {sorted(steps)} only"
-    db1, db2 = servers
+    db1, db2 = synchronous_store
     database = db1.new_database().rsplit("/", 1)[1]
     store = (f"postgresql://postgres@127.0.0.1:{db1.port},127.0.0.1:{db2.port}/{database}"
              "?target_session_attrs=read-write")
@@ -273,8 +260,8 @@ def test_the_promotion_by_hand_run_as_documented_stores_every_event_once_and_nee
     assert "Traceback" not in log and "waiting for the store's synchronous standby" in log, log[-3000:]
 
 
-def test_a_cancelled_commit_is_stored_once_new_once_and_a_new_runs_secret_still_reaches_its_node(servers):
-    primary, standby = servers
+def test_a_cancelled_commit_is_stored_once_new_once_and_a_new_runs_secret_still_reaches_its_node(synchronous_store):
+    primary, standby = synchronous_store
     store = primary.new_database()
     header = header_for("N", 1).to_dict()
 
