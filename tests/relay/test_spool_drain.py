@@ -309,3 +309,16 @@ def test_a_nodes_spool_shows_in_its_node_view_and_metrics_and_malformed_facts_ar
     (age,) = [line for line in metrics.splitlines() if line.startswith('dcuscope_node_spool_oldest_age_seconds{node="DCU-P"}')]
     assert 3590 < float(age.split()[-1]) < 3700
     assert 'node="DCU-Q"' not in "".join(line for line in metrics.splitlines() if "spool" in line)
+
+
+def test_a_spool_folder_that_cannot_be_used_is_one_line_and_the_run_goes_on_in_memory(tmp_path):
+    (tmp_path / "file").write_text("not a folder")
+    node = start_node(f"http://127.0.0.1:{free_port()}", "DCU-U", tmp_path / "n.npz", frames=20, sources=1,
+                      extra=["--spool", str(tmp_path / "file" / "spool"), "--close-timeout", "1"])
+    out, err = node.communicate(timeout=60)
+    err = err.decode()
+    assert node.returncode == UNACKNOWLEDGED_STATUS and "Traceback" not in err, err
+    (said,) = [line for line in err.splitlines() if "spool" in line and "kept in memory only" in line]
+    assert f"the spool folder {tmp_path / 'file' / 'spool'} cannot be used: Not a directory" in said
+    counters = json.loads(out.decode().splitlines()[-1])
+    assert f"{counters['events']} not acknowledged" in err.splitlines()[-1]
