@@ -317,7 +317,7 @@ class RelayExporter:
                 self.relays.note_error(f"could not ask the relay about doubtful batches: {describe(exc)}")
         for seq in list(box.doubtful):  # not known: counted lost
             box.settle_doubt(seq, False)
-        await self._say_end(dropped, deadline - reserve * TEARDOWN_S / (END_TIMEOUT_S + TEARDOWN_S))
+        await self._say_end(deadline - reserve * TEARDOWN_S / (END_TIMEOUT_S + TEARDOWN_S))
         self._stop.set()
 
     async def _await_relay(self, until: float, deadline: float) -> None:
@@ -345,7 +345,7 @@ class RelayExporter:
         return {"events": box.written, "dropped": self._dropped, "lost": self.lost + box.unacked_n - box.spooled_n,
                 "ended_ns": self._ended_ns}
 
-    async def _say_end(self, dropped: int, until: float) -> None:
+    async def _say_end(self, until: float) -> None:
         """Tell the relay the run ended; a relay lost meanwhile is replaced by the next that answers."""
         while not self.refused and time.monotonic() < until:
             link = self._link

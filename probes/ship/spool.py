@@ -35,8 +35,8 @@ DEFAULT_MAX_BYTES = 10 << 30
 a day of a paper-sized DCU (4,300 events/s, 24 bytes an event)."""
 DEFAULT_FSYNC_S = 0.2
 LOCK = "lock"
-FACTS_S = 2.0
-SPOOL_ENV = "DCUSCOPE_SPOOL"
+FACTS_S = 10.0
+"""How often a node lists its spool again for the facts its clock reports carry (every 2 s)."""
 
 log = logging.getLogger(__name__)
 
@@ -113,8 +113,17 @@ class Spool:
         they seem to reach ``max_bytes``: drains in other processes delete segments)."""
 
     def run_dirs(self) -> list[Path]:
-        return sorted((p for p in self.path.iterdir() if p.is_dir() and (p / META).exists()),
-                      key=lambda p: (p / META).stat().st_mtime)
+        return sorted(p for p in self.path.iterdir() if p.is_dir() and (p / META).exists())
+
+    def _oldest_first(self) -> list[Path]:
+        """The run folders by when their runs began (``created_ns``; run.json is rewritten as a run goes,
+        so its time says nothing of the run's age), unreadable ones last."""
+        def began(d: Path) -> int:
+            try:
+                return int(read_json(d / META).get("created_ns", 0))
+            except (SpoolError, TypeError, ValueError):
+                return 1 << 62
+        return sorted(self.run_dirs(), key=began)
 
     def bytes(self) -> int:
         return sum(s.stat().st_size for d in self.run_dirs() for s in _segments(d))
@@ -243,7 +252,7 @@ class Spool:
         self._total = total + need
         if total + need <= self.max_bytes:
             return []
-        for d in self.run_dirs():
+        for d in self._oldest_first():
             if d == own.folder:
                 continue
             while total + need > self.max_bytes:

@@ -72,9 +72,9 @@ def made_ns(path: Path) -> int | None:
     return SEGMENT_HEAD.unpack(head)[1]
 
 
-def scan(path: Path, cut: bool = True) -> tuple[list[Record], int]:
+def scan(path: Path) -> tuple[list[Record], int]:
     """The records of segment ``path`` and the bytes after the last good one: a torn or corrupt
-    tail, truncated away when ``cut`` (a file without the segment head is cut whole)."""
+    tail, truncated away (a file without the segment head is cut whole)."""
     data = path.read_bytes()
     records: list[Record] = []
     good = SEGMENT_HEAD.size if len(data) >= SEGMENT_HEAD.size and data[:len(MAGIC)] == MAGIC else 0
@@ -89,7 +89,7 @@ def scan(path: Path, cut: bool = True) -> tuple[list[Record], int]:
         records.append(Record(seq, events, start, length, crc))
         pos = good = start + length
     tail = len(data) - good
-    if tail and cut:
+    if tail:
         with open(path, "r+b") as f:
             f.truncate(good)
             os.fsync(f.fileno())
