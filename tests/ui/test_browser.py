@@ -224,6 +224,10 @@ def test_polling_fallback_without_the_socketio_client(live, browser):
 
 def test_hover_names_node_stage_and_frame(live):
     _, _, page = live
+    # Paused when the window holds a bar of every stage of both DCUs: on a loaded machine a frame's way
+    # from mux to osd can outlast the 5 s window for a while (a run beside 3 more pipelines paused an
+    # empty one).
+    wait_for(lambda: has_all_bars(debug(page)), 120, 0.2, "bars of the five stages of both DCUs")
     page.click("#pause")
     assert debug(page)["paused"] and page.locator("#pause").inner_text() == "Resume"
     box = page.locator("#stage-canvas").bounding_box()
