@@ -32,7 +32,11 @@ T0 = 1_700_000_000_000_000_000
 
 def test_unreachable_relay_write_returns_at_once_and_losses_are_counted():
     url = f"http://127.0.0.1:{free_port()}"  # nothing listens there
-    exporter = RelayExporter(url, "lonely", max_buffer_events=5_000, batch_events=1000, close_timeout_s=1.0)
+    # A write that waited on the network would wait out a round of tries: the backoff (1 s here) or a
+    # connect timeout (2 s). The bound sits well below that and well above a loaded machine's hiccup
+    # (CI once measured 50.6 ms for a write that never touched the network).
+    exporter = RelayExporter(url, "lonely", max_buffer_events=5_000, batch_events=1000, close_timeout_s=1.0,
+                             backoff_s=(1.0, 5.0))
     exporter.start(header_for("lonely", 2))
     events = synth_events(2000, 2, 25.0, T0)  # 48,000 events
     worst = 0.0
@@ -41,7 +45,7 @@ def test_unreachable_relay_write_returns_at_once_and_losses_are_counted():
         exporter.write(events[i:i + 500])
         worst = max(worst, time.perf_counter() - t)
         time.sleep(0.002)
-    assert worst < 0.05, f"write took {worst * 1e3:.1f} ms"
+    assert worst < 0.5, f"write took {worst * 1e3:.1f} ms"
     time.sleep(0.3)
     c = exporter.counters()
     assert not c["connected"] and c["acked"] == 0 and "cannot reach relay" in c["last_error"]
