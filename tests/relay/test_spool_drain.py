@@ -253,12 +253,15 @@ def test_a_store_whose_standby_is_gone_longer_than_the_close_timeout_loses_nothi
     store = primary.new_database()
     spool = tmp_path / "spool"
     first = RelayProcess(store, log=tmp_path / "a.log", args=["--store-timeout", "1"])
-    node = start_node(first.url, "DCU-S", tmp_path / "n.npz", frames=150, sources=2, fps=50, paced=True,
+    # 12 s of frames: the standby goes at the first commit, long before the run ends, on a loaded machine too
+    # (with 3 s, CI once saw every batch committed before the standby was gone).
+    node = start_node(first.url, "DCU-S", tmp_path / "n.npz", frames=600, sources=2, fps=50, paced=True,
                       t0_ns=time.time_ns() + 500_000_000, extra=["--spool", str(spool), "--close-timeout", "1"])
     try:
         wait_for(lambda: get_json(f"{first.url}/api/nodes") and get_json(f"{first.url}/api/nodes")[0]["events"] > 0,
                  30, what="the node stored before the standby goes")
         standby.kill9()
+        assert node.poll() is None, "the run ended before the standby went: nothing was left to spool"
         out, err = node.communicate(timeout=60)
         err = err.decode()
         assert node.returncode == 0, err
