@@ -115,14 +115,19 @@ def test_relays_on_a_rediss_redis_reach_each_others_browsers_and_refuse_another_
         finish_node(node)
         fanout = {r: get_json(f"{r.url}/api/health")["fanout"] for r in relays}
         assert fanout[a]["ok"] and fanout[b]["ok"] and fanout[b]["received"] > 0, fanout
-        # C does not trust the server's CA: never connected, one line says why, and it serves on.
-        assert not fanout[c]["ok"] and "certificate verify failed" in fanout[c]["error"], fanout[c]
+        # C does not trust the server's CA: never connected, it says why, and it serves on. (On a loaded
+        # machine a try can time out before the handshake fails: the next one says why.)
+        wait_for(lambda: "certificate verify failed" in (get_json(f"{c.url}/api/health")["fanout"]["error"] or ""), 30,
+                 what="relay-c says the certificate failed")
+        assert not get_json(f"{c.url}/api/health")["fanout"]["ok"]
         assert get_json(f"{c.url}/api/health")["relay"] == "relay-c"
     finally:
         for relay in relays:
             relay.stop()
     lines = [ln for ln in (tmp_path / "relay-c.log").read_text().splitlines() if "redis" in ln.lower()]
-    assert len(lines) == 1 and "certificate verify failed" in lines[0], lines
+    # One line for each reason of the outage, not one for each try.
+    assert any("certificate verify failed" in ln for ln in lines) and len(lines) == len(set(lines)), lines
+    assert all("certificate verify failed" in ln or "Timeout" in ln for ln in lines), lines
 
 
 @pytest.mark.parametrize("args, says", [
