@@ -129,20 +129,19 @@ class FanoutHealth:
         """Messages of other relays this relay received (their pushes to rooms its browsers are in)."""
         self.rooms = 0
         """Room channels this relay listens to now."""
-        self._told_down: set[str] = set()
+        self._told_down = False
 
     def up(self) -> None:
         if not self.ok:
-            self.ok, self.since, self.error = True, time.time(), None
-            self._told_down.clear()
+            self.ok, self.since, self.error, self._told_down = True, time.time(), None, False
             log.warning("redis %s: connected; this relay's pushes reach every relay's browsers", self.url)
 
     def down(self, error: str) -> None:
         if self.ok:
             self.outages += 1
             self.since = time.time()
-        if error not in self._told_down:  # each reason once an outage (a timeout, then a refused certificate)
-            self._told_down.add(error)
+        if not self._told_down:
+            self._told_down = True
             log.warning("redis %s: %s; only this relay's browsers get its pushes (other relays' catch up from "
                         "the store when it returns)", self.url, error)
         self.ok, self.error = False, error

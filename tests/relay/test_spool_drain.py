@@ -201,8 +201,10 @@ def test_the_next_run_drains_earlier_runs_in_the_background_and_says_so(tmp_path
     _, earlier = load_node(tmp_path / "a.npz")
     relay = RelayProcess(db, port=port)
     try:
-        second = start_node(relay.url, "DCU-B", tmp_path / "b.npz", frames=200, sources=2, fps=50, paced=True,
-                            t0_ns=T0 + 10**12, seed=1, extra=["--spool", str(spool), "--close-timeout", "10"])
+        # 8 s of frames, paced in real time: the drain (a daemon thread, cut when the node exits: what it did
+        # not send stays spooled) has time to end on a loaded machine too (CI once saw the run end first).
+        second = start_node(relay.url, "DCU-B", tmp_path / "b.npz", frames=400, sources=2, fps=50, paced=True,
+                            t0_ns=time.time_ns() + 500_000_000, seed=1, extra=["--spool", str(spool), "--close-timeout", "10"])
         out, err = second.communicate(timeout=120)
         assert second.returncode == 0, err.decode()
         assert "spool: sending 1 earlier run(s), " in err.decode()

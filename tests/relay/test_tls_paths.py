@@ -125,9 +125,9 @@ def test_relays_on_a_rediss_redis_reach_each_others_browsers_and_refuse_another_
         for relay in relays:
             relay.stop()
     lines = [ln for ln in (tmp_path / "relay-c.log").read_text().splitlines() if "redis" in ln.lower()]
-    # One line for each reason of the outage, not one for each try.
-    assert any("certificate verify failed" in ln for ln in lines) and len(lines) == len(set(lines)), lines
-    assert all("certificate verify failed" in ln or "Timeout" in ln for ln in lines), lines
+    # One line for the outage, not one for each try: it names the first try's reason (the refused certificate,
+    # or on a loaded machine a timeout before the handshake failed; /api/health said the certificate above).
+    assert len(lines) == 1 and ("certificate verify failed" in lines[0] or "Timeout" in lines[0]), lines
 
 
 @pytest.mark.parametrize("args, says", [
