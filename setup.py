@@ -1,8 +1,8 @@
 """How the repository becomes the one package ``dcuscope`` (pyproject.toml holds the metadata).
 
-- The top-level folders ``core/``, ``plugins/``, ``pipeline/``, ``probes/``, ``relay/`` and ``ui/``
-  become ``dcuscope.core`` … ``dcuscope.ui``; ``assets/`` (the models and clips, with their notes)
-  and ``configs/`` go in as ``dcuscope/assets`` and ``dcuscope/configs``.
+- The package is the folder ``dcuscope/`` as it stands (the repository's top-level ``core/`` …
+  ``ui/`` are links into it); ``assets/`` (the models and clips, with their notes) and ``configs/``
+  go in as ``dcuscope/assets`` and ``dcuscope/configs``.
 - The native library (the GStreamer tracer and the tracepoints, ``probes/capture/c``) is compiled
   against the system's GStreamer as the package is built: :mod:`core.cbuild`, loaded here
   by its path. Without a compiler or GStreamer's headers the package is built all the same, says
@@ -20,36 +20,33 @@ from setuptools.command.build_py import build_py
 from setuptools.dist import Distribution
 
 ROOT = Path(__file__).resolve().parent
-SUBPACKAGES = ("core", "plugins", "pipeline", "probes", "relay", "ui")
 DATA = ("assets", "configs")
 SKIP = {"__pycache__", "_build", "node_modules"}
 """Folders left out: bytecode, a checkout's own native build, npm's download (what the page loads is
 copied to ui/static/vendor)."""
 
 
-def _folders(top: str) -> dict[str, str]:
-    """``dcuscope.X.Y`` -> ``X/Y`` for ``top`` and every folder in it (a folder of data too: setuptools
-    treats every folder as a package, and copies a package's files)."""
+def _folders(top: Path, name: str) -> dict[str, str]:
+    """``name.X.Y`` -> its folder, for ``top`` and every folder in it (a folder of data too:
+    setuptools treats every folder as a package, and copies a package's files)."""
     out = {}
-    for folder in [ROOT / top, *sorted(p for p in (ROOT / top).rglob("*") if p.is_dir())]:
-        rel = folder.relative_to(ROOT)
+    for folder in [top, *sorted(p for p in top.rglob("*") if p.is_dir())]:
+        rel = folder.relative_to(top)
         if any(part in SKIP or part.startswith(".") for part in rel.parts):
             continue
-        out["dcuscope." + ".".join(rel.parts)] = rel.as_posix()
+        out[".".join((name, *rel.parts))] = folder.relative_to(ROOT).as_posix()
     return out
 
 
-PACKAGE_DIR = {"dcuscope": "dcuscope"}
-PACKAGE_DIR.update({f"dcuscope.{p.name}": f"dcuscope/{p.name}" for p in sorted((ROOT / "dcuscope").iterdir())
-                    if (p / "__init__.py").is_file()})  # the composition root's own subpackages (capacity)
-for _top in (*SUBPACKAGES, *DATA):
-    PACKAGE_DIR.update(_folders(_top))
+PACKAGE_DIR = _folders(ROOT / "dcuscope", "dcuscope")
+for _top in DATA:
+    PACKAGE_DIR.update(_folders(ROOT / _top, f"dcuscope.{_top}"))
 PACKAGE_DATA = {name: ["*"] for name, folder in PACKAGE_DIR.items() if not (ROOT / folder / "__init__.py").is_file()}
 """Every file of a data folder (ui/static, the C sources, the loader's entries, models, configs)."""
 
 
 def _cbuild():
-    spec = importlib.util.spec_from_file_location("dcuscope_cbuild", ROOT / "core" / "cbuild.py")
+    spec = importlib.util.spec_from_file_location("dcuscope_cbuild", ROOT / "dcuscope" / "core" / "cbuild.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -67,17 +64,17 @@ class BuildWithNative(build_py):
         cbuild = _cbuild()
         folder = Path(self.build_lib) / "dcuscope" / "probes" / "capture" / "_build"
         folder.mkdir(parents=True, exist_ok=True)
-        reason = cbuild.build_for_install(ROOT / "probes" / "capture" / "c", folder)
+        reason = cbuild.build_for_install(ROOT / "dcuscope" / "probes" / "capture" / "c", folder)
         if reason:
             print(f"dcuscope: native probes not built ({reason}): Python probes will be used and there is no "
                   f"GStreamer tracer; install {cbuild.PACKAGES} (Debian/Ubuntu) and reinstall", file=sys.stderr)
         folder = Path(self.build_lib) / "dcuscope" / "relay" / "live" / "_build"
         folder.mkdir(parents=True, exist_ok=True)
-        reason = cbuild.build_for_install(ROOT / "relay" / "live" / "c", folder, cbuild.MERGE)
+        reason = cbuild.build_for_install(ROOT / "dcuscope" / "relay" / "live" / "c", folder, cbuild.MERGE)
         if reason:
             print(f"dcuscope: the relay's compiled merge not built ({reason}): relays will merge with numpy; "
                   f"install gcc and reinstall", file=sys.stderr)
-        if not (ROOT / "ui" / "static" / "vendor").is_dir():
+        if not (ROOT / "dcuscope" / "ui" / "static" / "vendor").is_dir():
             print("dcuscope: ui/static/vendor is missing (make setup, or python -m dcuscope.ui.vendor --npm): "
                   "the page will poll the HTTP API instead of Socket.IO", file=sys.stderr)
 

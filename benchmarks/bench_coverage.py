@@ -8,7 +8,7 @@ that the log has a standard deviation of 1 (a delay's tail: p99 ten times the me
 change is 2 ms; a row gives the share of ``--runs`` pairs whose 95 % interval of the change holds
 it, and the intervals' mean width. ``old`` is what compare used before issue 49: the circular block
 bootstrap with Politis & White's block length, uncorrected; ``new`` is
-:func:`dcuscope.probes.trace.bootstrap.resample` as it is. Both see the same runs.
+:func:`dcuscope.model.bootstrap.resample` as it is. Both see the same runs.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
-from dcuscope.probes.trace.bootstrap import FIGURES, block_length, change, resample  # noqa: E402
+from dcuscope.model.bootstrap import FIGURES, block_length, change, resample  # noqa: E402
 
 SHIFT = 2.0
 NOISES = ("gaussian", "lognormal")

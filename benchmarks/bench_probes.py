@@ -68,7 +68,7 @@ from benchmarks.figures import NA, CannotRun, Notes, fmt, last_line, maximum, me
 from dcuscope.core.gst import Gst  # noqa: E402
 from dcuscope.probes.capture import native  # noqa: E402
 from dcuscope.probes.capture.tracer import attach  # noqa: E402
-from dcuscope.probes.trace.events import EXIT  # noqa: E402
+from dcuscope.protocol.events import EXIT  # noqa: E402
 
 SCENARIOS = {
     "identity20": "videotestsrc num-buffers={frames} ! video/x-raw,width=16,height=16,format=RGB ! framestamp ! "

@@ -64,8 +64,8 @@ from benchmarks.figures import NA, CannotRun, Notes, dumps, fmt, last_line, run 
 from benchmarks.stores import SQLITE_SETTINGS, STORES, PostgresStore  # noqa: E402
 from dcuscope.probes.ship.relaylink import Link  # noqa: E402
 from dcuscope.probes.ship.simnode import EVENTS_PER_FRAME, header_for, synth_events  # noqa: E402
-from dcuscope.probes.ship.wire import PROTOCOL_VERSION, encode_batch  # noqa: E402
-from dcuscope.probes.trace.events import EVENT_DTYPE  # noqa: E402
+from dcuscope.protocol.events import EVENT_DTYPE  # noqa: E402
+from dcuscope.protocol.wire import PROTOCOL_VERSION, encode_batch  # noqa: E402
 
 NODE = "restarter"
 SOURCES = 2

@@ -22,7 +22,7 @@ if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
 from benchmarks.figures import fmt, ratio  # noqa: E402
-from dcuscope.probes.trace.delays import node_stats  # noqa: E402
+from dcuscope.model.delays import node_stats  # noqa: E402
 from dcuscope.probes.trace.export import perfetto_document, write_csv  # noqa: E402
 from dcuscope.probes.trace.tracefile import read_trace, write_trace  # noqa: E402
 from tests.probes.synth import pipeline_run  # noqa: E402

@@ -42,7 +42,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from dcuscope.probes.ship.simnode import EVENTS_PER_FRAME, header_for, synth_events  # noqa: E402
-from dcuscope.probes.ship.wire import decode_batch, encode_batch  # noqa: E402
+from dcuscope.protocol.wire import decode_batch, encode_batch  # noqa: E402
 from dcuscope.relay.clock.correction import Correction, Segment  # noqa: E402
 from dcuscope.relay.live import framepack  # noqa: E402
 from dcuscope.relay.live import cmerge  # noqa: E402

@@ -8,24 +8,25 @@ import importlib.metadata
 import sys
 from pathlib import Path
 
+from dcuscope.capacity.command import add_capacity_parser
+from dcuscope.comparecommand import add_compare_parser
 from dcuscope.core import signals
 from dcuscope.core.errors import DcuscopeError, PipelineError
 from dcuscope.core.pycompat import tomllib
-from dcuscope.capacity.command import add_capacity_parser
-from dcuscope.comparecommand import add_compare_parser
 from dcuscope.dbcommand import add_db_parser
 from dcuscope.extras import require_pipeline
 from dcuscope.helpformat import use_everywhere
+from dcuscope.probes.clocks.sysclock import DEFAULT_UDS
+from dcuscope.probes.ship.nodetls import add_tls_arguments
+from dcuscope.probes.ship.spoolargs import add_spool_arguments
+from dcuscope.protocol.credentials import TOKEN_ENV
+from dcuscope.relay.commands import add_relay_parser
 from dcuscope.sessionscommand import add_sessions_parsers
 from dcuscope.shipcommand import add_ship_parser
-from dcuscope.spoolcommand import add_spool_parser
 from dcuscope.shipped import add_configs_parser
+from dcuscope.spoolcommand import add_spool_parser
 from dcuscope.traceapp import add_trace_parser
 from dcuscope.tracecommands import add_export_parser, add_stats_parser
-from dcuscope.probes.clocks.sysclock import DEFAULT_UDS
-from dcuscope.probes.ship.nodetls import TOKEN_ENV, add_tls_arguments
-from dcuscope.probes.ship.spoolargs import add_spool_arguments
-from dcuscope.relay.commands import add_relay_parser
 
 DESCRIPTION = """\
 dcuscope: see where the time goes in multi-camera video-analytics pipelines.
@@ -73,7 +74,7 @@ MAX_DRIFT_PPM = 1000.0
 PYPROJECT = Path(__file__).resolve().parents[1] / "pyproject.toml"
 
 CLOSE_TIMEOUT_S = 60.0
-"""``--close-timeout``'s default: probes.trace.events.EXPORTER_CLOSE_S (not imported here: numpy slows the start)."""
+"""``--close-timeout``'s default: protocol.events.EXPORTER_CLOSE_S (not imported here: numpy slows the start)."""
 
 
 def version() -> str:

@@ -88,7 +88,7 @@ def add_compare_parser(sub) -> None:
 def run_compare(args: argparse.Namespace) -> int:
     from dcuscope.compareformat import format_markdown, format_table
     from dcuscope.gate import check, parse_bound
-    from dcuscope.probes.trace.compare import compare
+    from dcuscope.model.compare import compare
 
     try:
         bounds = [parse_bound(text) for text in args.fail_if or ()]
@@ -129,9 +129,9 @@ def _progress():
 
 
 def _load_inputs(args: argparse.Namespace) -> list:
-    from dcuscope.probes.trace.compare import Input, distinct_labels
-    from dcuscope.probes.trace.delays import frame_delays
-    from dcuscope.probes.trace.frametable import frame_table
+    from dcuscope.model.compare import Input, distinct_labels
+    from dcuscope.model.delays import frame_delays
+    from dcuscope.model.frametable import frame_table
 
     out: list[Input] = []
     for text in args.inputs:

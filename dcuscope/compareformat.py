@@ -1,4 +1,4 @@
-"""The comparison document (:mod:`dcuscope.probes.trace.compare`) as a terminal table or Markdown.
+"""The comparison document (:mod:`dcuscope.model.compare`) as a terminal table or Markdown.
 
 Per stage and kind a block: one line per input with frames, mean, p50, p90, p99 in ms; under
 each input after BASE, the change of each figure in ms and in % of BASE with the 95 % interval of
@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import math
 
-from dcuscope.probes.trace.bootstrap import FIGURES
-from dcuscope.probes.trace.compare import APART, E2E, FEW, MIN_TAIL, SAME, SLOWER
+from dcuscope.model.bootstrap import FIGURES
+from dcuscope.model.compare import APART, E2E, FEW, MIN_TAIL, SAME, SLOWER
 
 NEVER_WAIT_MS = 0.001
 MARK = {SLOWER: " ▲", SAME: "", "faster": " ▼", FEW: " ?"}

@@ -19,7 +19,7 @@ import urllib.parse
 import urllib.request
 from pathlib import Path
 
-from dcuscope import DATA
+from dcuscope.core.datadir import DATA
 from dcuscope.core.errors import PipelineError
 from dcuscope.core.ports import check_port_free
 

@@ -13,8 +13,8 @@ import re
 from dataclasses import dataclass
 
 from dcuscope.core.errors import DcuscopeError
-from dcuscope.probes.trace.bootstrap import FIGURES
-from dcuscope.probes.trace.compare import KINDS, find_row
+from dcuscope.model.bootstrap import FIGURES
+from dcuscope.model.compare import KINDS, find_row
 
 _BOUND = re.compile(r"^\s*(?P<metric>[^<>=\s]+)\s*(?P<op>>=|<=|>|<)\s*(?P<value>[+-]?(\d+(\.\d*)?|\.\d+))\s*"
                     r"(?P<unit>%|ms|us|µs|s)\s*$")

@@ -4,7 +4,7 @@
 A session and its runs come from the store's own listing (:meth:`dcuscope.relay.store.base.Database.list_sessions`,
 what ``GET /api/sessions`` serves); a run is named as everywhere else
 (:func:`dcuscope.relay.store.runs.run_name`). Frames are the complete frames of ``dcuscope stats
---session``, found by pairing the run's events (:mod:`dcuscope.probes.trace.delays`), so they are
+--session``, found by pairing the run's events (:mod:`dcuscope.model.delays`), so they are
 counted only in sessions of up to ``MAX_COUNTED_EVENTS`` events, unless ``runs --session`` names it.
 
 Each ``func`` returns the exit code: 0, or 2 after one ``dcuscope: error: ...`` line on stderr for
@@ -127,8 +127,8 @@ def listing(db: str, session: int | None = None, now_ns: int | None = None) -> l
 
 def _frames(db: str, session: int) -> dict[str, int]:
     """Run id -> its complete frames, paired as ``dcuscope stats --session`` pairs them."""
-    from dcuscope.probes.trace.delays import frame_delays
-    from dcuscope.probes.trace.frametable import frame_table
+    from dcuscope.model.delays import frame_delays
+    from dcuscope.model.frametable import frame_table
     from dcuscope.relay.errors import RelayError
     from dcuscope.relay.store.runs import load_runs
 

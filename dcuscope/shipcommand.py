@@ -14,8 +14,9 @@ from pathlib import Path
 from dcuscope.core import signals
 from dcuscope.core.errors import DcuscopeError
 from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
-from dcuscope.probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
+from dcuscope.probes.ship.nodetls import add_tls_arguments, tls_from_args
 from dcuscope.probes.ship.spoolargs import add_spool_arguments, spool_from_args
+from dcuscope.protocol.credentials import TOKEN_ENV
 
 
 def add_ship_parser(sub) -> None:

@@ -9,7 +9,7 @@ import re
 import textwrap
 from pathlib import Path
 
-from dcuscope import DATA
+from dcuscope.core.datadir import DATA
 from dcuscope.core.errors import UsageError
 
 CONFIGS = DATA / "configs"

@@ -33,14 +33,15 @@ from typing import TYPE_CHECKING, NamedTuple
 from dcuscope.core.errors import DcuscopeError
 from dcuscope.core.pycompat import NEW_PROCESS_GROUP
 from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
-from dcuscope.probes.ship.nodetls import TOKEN_ENV, add_tls_arguments, tls_from_args
+from dcuscope.probes.ship.nodetls import add_tls_arguments, tls_from_args
 from dcuscope.probes.ship.spoolargs import add_spool_arguments, spool_from_args
+from dcuscope.protocol.credentials import TOKEN_ENV
 
 if TYPE_CHECKING:
     from dcuscope.probes.ship.tailship import TailShipper
 
 EXPORTER_CLOSE_S = 60.0
-"""``--close-timeout``'s default: probes.trace.events.EXPORTER_CLOSE_S (not imported: numpy slows the start)."""
+"""``--close-timeout``'s default: protocol.events.EXPORTER_CLOSE_S (not imported: numpy slows the start)."""
 
 EPILOG = """\
 examples:
@@ -256,9 +257,9 @@ def _start_shipper(args: argparse.Namespace, trace: Path, stop: threading.Event)
 
 def _summary(trace: Path | None, named: Path, program: str) -> None:
     """The stats of ``trace`` (this run's), or why there is none (``named``: where it was to go)."""
-    from dcuscope.tracecommands import format_stats
     from dcuscope.probes.trace.stats import stats_document
     from dcuscope.probes.trace.tracefile import read_trace
+    from dcuscope.tracecommands import format_stats
 
     if trace is None:
         earlier = f"; {named}, an earlier run's, is kept as it was" if named.exists() else ""

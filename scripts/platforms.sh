@@ -94,7 +94,7 @@ copy_sources() {
   local to=$1
   rm -rf "$to" && mkdir -p "$to"
   git ls-files -co --exclude-standard -z | tar --null --ignore-failed-read -T - -cf - 2>/dev/null | tar -xf - -C "$to"
-  [ -d ui/static/vendor ] && cp -r ui/static/vendor "$to/ui/static/"
+  [ -d dcuscope/ui/static/vendor ] && cp -r dcuscope/ui/static/vendor "$to/dcuscope/ui/static/"
   return 0
 }
 

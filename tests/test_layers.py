@@ -1,18 +1,21 @@
 """The packages form layers that read bottom-up, and their modules a DAG: no upward import, no cycle.
 
     core      GI import, errors, signals, console        imports nothing of ours
+    protocol  what nodes and relays speak: events, wire, core
+              envelope, clock datagrams, errors
+    model     the delay model: frame tables, delays,     core, protocol
+              facts, comparisons
     plugins   the GStreamer elements                     core
     pipeline  config, build, run, sources, sinks, RTSP   core, plugins
-    probes    tracepoints, events, trace files, delay    core, plugins, pipeline
-              model, node exporters, wire format
-    relay     the monitoring server                      core, probes (and ui's files)
+    probes    the node: tracepoints, trace files, its    core, protocol, model, plugins, pipeline
+              clocks, its side of the relay protocol
     ui        the page and its vendoring tool            core
+    relay     the monitoring server                      core, protocol, model (and ui's files)
     dcuscope  the CLI and the demo: composition root     everything
 
 Every ``import`` counts, those inside functions too: an import moved into a function to dodge a
-cycle is still an edge of the graph. Installed, the packages are ``dcuscope.core`` … ``dcuscope.ui``
-(one import name, ``dcuscope/__init__.py``): the code imports them so, and this file names them by
-their folders.
+cycle is still an edge of the graph. The packages are the folders of ``dcuscope/`` (``dcuscope.core``
+… ``dcuscope.ui``, one import name); this file names them without the ``dcuscope.``.
 """
 
 from __future__ import annotations
@@ -24,25 +27,34 @@ from pathlib import Path
 import pytest
 
 REPO = Path(__file__).resolve().parents[1]
-SUBPACKAGES = ("core", "plugins", "pipeline", "probes", "relay", "ui")
+PACKAGE = REPO / "dcuscope"
 LAYERS = {
     "core": set(),
+    "protocol": {"core"},
+    "model": {"core", "protocol"},
     "plugins": {"core"},
     "pipeline": {"core", "plugins"},
-    "probes": {"core", "plugins", "pipeline"},
+    "probes": {"core", "protocol", "model", "plugins", "pipeline"},
     "ui": {"core"},
-    "relay": {"core", "probes", "ui"},
-    "dcuscope": {"core", "plugins", "pipeline", "probes", "relay", "ui"},
+    "relay": {"core", "protocol", "model", "ui"},
+    "dcuscope": {"core", "protocol", "model", "plugins", "pipeline", "probes", "relay", "ui"},
 }
+SUBPACKAGES = tuple(sorted(set(LAYERS) - {"dcuscope"}))
+COMPOSITION = {"capacity"}
+"""The composition root's own subpackages: ``dcuscope.capacity`` is of the layer ``dcuscope``."""
+DESIGN_FOLDERS = ("core", "plugins", "pipeline", "probes", "relay", "ui")
+"""The design's top-level folders: in the repository, links to their packages in ``dcuscope/``."""
 
 
 def modules() -> dict[str, Path]:
     found = {}
-    for package in LAYERS:
-        for path in sorted((REPO / package).rglob("*.py")):
-            parts = path.relative_to(REPO).with_suffix("").parts
-            name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
-            found[name] = path
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = path.relative_to(PACKAGE).with_suffix("").parts
+        if "_build" in parts or "node_modules" in parts:
+            continue
+        parts = parts[:-1] if parts[-1] == "__init__" else parts
+        name = ".".join(parts) if parts and parts[0] in SUBPACKAGES else ".".join(("dcuscope", *parts))
+        found[name] = path
     return found
 
 
@@ -95,18 +107,24 @@ GRAPH = {name: imported(name, path) for name, path in MODULES.items()}
 
 
 def test_every_package_is_assigned_a_layer():
-    packages = {p.parent.name for p in REPO.glob("*/__init__.py")} - {"tests", "benchmarks"}
-    assert packages == set(LAYERS), "a new top-level package needs a place in LAYERS"
-    from dcuscope import SUBPACKAGES as mapped  # what a checkout puts under dcuscope
-    built = next(ast.literal_eval(node.value) for node in ast.parse((REPO / "setup.py").read_text()).body
-                 if isinstance(node, ast.Assign) and [getattr(t, "id", "") for t in node.targets] == ["SUBPACKAGES"])
-    assert set(mapped) == set(built) == set(SUBPACKAGES) == set(LAYERS) - {"dcuscope"}  # and the build
+    packages = {p.parent.name for p in PACKAGE.glob("*/__init__.py")} - COMPOSITION
+    assert packages == set(SUBPACKAGES), "a new package in dcuscope/ needs a place in LAYERS"
+    packages = {p.parent.name for p in REPO.glob("*/__init__.py") if not p.parent.is_symlink()}
+    assert packages == {"dcuscope", "tests"}, "our code is in dcuscope/ (the one import name)"
+
+
+@pytest.mark.parametrize("folder", DESIGN_FOLDERS)
+def test_the_design_folders_are_the_packages(folder):
+    """``relay/`` in the repository is ``dcuscope/relay``: one copy of the code, found by the import
+    system, editors and type checkers through the file system, as installed."""
+    top = REPO / folder
+    assert top.is_symlink() and top.resolve() == (PACKAGE / folder).resolve(), f"{folder}/ is not a link to dcuscope/{folder}"
 
 
 def test_our_packages_are_imported_by_the_one_name():
     """``import relay`` would load a second copy of a module beside ``dcuscope.relay``'s, and fails
     where dcuscope is installed."""
-    ours = sorted(p for folder in (*LAYERS, "tests", "benchmarks") for p in (REPO / folder).rglob("*.py"))
+    ours = sorted(p for folder in ("dcuscope", "tests", "benchmarks") for p in (REPO / folder).rglob("*.py"))
     old = [f"{path.relative_to(REPO)}:{line}: {module}" for path in ours
            for line, module in absolute_imports(path) if module.split(".")[0] in SUBPACKAGES]
     assert not old, f"imported by the folder's name, not dcuscope.*: {old}"
@@ -180,8 +198,6 @@ PROBES_PARTS = {
 }
 """probes/'s parts and what each may import of the others (probes/__init__.py says what they hold).
 ``instrument`` composes them for ``dcuscope run``; nothing of probes imports it."""
-RELAY_MAY_IMPORT = {"trace", "clocks", "ship"}
-"""The contract between nodes and the relay: the relay never imports capture nor the composition."""
 
 
 def probes_part(name: str) -> str | None:
@@ -190,7 +206,7 @@ def probes_part(name: str) -> str | None:
 
 
 def test_probes_holds_only_its_parts():
-    found = {p.name.removesuffix(".py") for p in (REPO / "probes").iterdir()
+    found = {p.name.removesuffix(".py") for p in (PACKAGE / "probes").iterdir()
              if p.suffix == ".py" or (p / "__init__.py").exists()} - {"__init__"}
     assert found == set(PROBES_PARTS), "a new part of probes/ needs a place in PROBES_PARTS"
 
@@ -203,18 +219,21 @@ def test_probes_parts_import_one_way(name):
     assert "probes" not in GRAPH[name], f"{MODULES[name].relative_to(REPO)} imports the probes package itself"
 
 
-@pytest.mark.parametrize("name", sorted(n for n in MODULES if n.split(".")[0] == "relay"))
-def test_the_relay_reads_only_the_trace_model_clocks_and_wire(name):
-    wrong = sorted(t for t in GRAPH[name] if t.split(".")[0] == "probes" and probes_part(t) not in RELAY_MAY_IMPORT)
+@pytest.mark.parametrize("name", sorted(n for n in MODULES if n.split(".")[0] in {"relay", "probes"}))
+def test_node_and_relay_share_only_the_protocol_and_the_model(name):
+    """The relay imports nothing of the node (``probes``), the node nothing of the relay: what both
+    need is ``protocol`` (what they say) and ``model`` (what the events mean)."""
+    other = {"relay": "probes", "probes": "relay"}[name.split(".")[0]]
+    wrong = sorted(t for t in GRAPH[name] if t.split(".")[0] == other)
     assert not wrong, f"{MODULES[name].relative_to(REPO)} imports {wrong}"
 
 
-C_DIR = REPO / "probes" / "capture" / "c"
+C_DIR = PACKAGE / "probes" / "capture" / "c"
 
 
 def c_modules() -> list[str]:
     """The native library's modules, bottom-up, as core.cbuild compiles them."""
-    tree = ast.parse((REPO / "core" / "cbuild.py").read_text())
+    tree = ast.parse((PACKAGE / "core" / "cbuild.py").read_text())
     for node in tree.body:
         if isinstance(node, ast.Assign) and [getattr(t, "id", "") for t in node.targets] == ["MODULES"]:
             return list(ast.literal_eval(node.value))

@@ -29,7 +29,7 @@ from dcuscope.pipeline.config import load_config
 from dcuscope.pipeline.run import Runner
 from dcuscope.probes.ship.relayexport import RelayExporter
 from dcuscope.probes.ship.simnode import header_for, synth_events
-from dcuscope.probes.ship.wire import encode_batch
+from dcuscope.protocol.wire import encode_batch
 from dcuscope.relay import heap
 from dcuscope.relay.api.ui import Ticker
 from dcuscope.relay.live.mirror import Mirrors

@@ -1,7 +1,7 @@
 """The figures of one stream count, from its run's trace, with 95 % intervals.
 
 The first ``warmup`` seconds of frames are left out (model load, the first batches, caches).
-Intervals come from :mod:`dcuscope.probes.trace.bootstrap`, as compare's do: the frames of a run are
+Intervals come from :mod:`dcuscope.model.bootstrap`, as compare's do: the frames of a run are
 resampled in blocks of consecutive frames, so that their correlation is kept.
 
 - Frames/s per stream: for each stream, 1 / the mean gap between the origins of its frames that
@@ -12,7 +12,7 @@ resampled in blocks of consecutive frames, so that their correlation is kept.
 - End to end: the frame delay (origin to sink) of complete frames: mean (the paper's A = S/n),
   p50, p95, p99, each with its interval.
 - Each stage's mean delay, service and wait (delay = service + wait), and utilization (busy
-  fraction of the run); the limiting stage (:func:`dcuscope.probes.trace.delays.bottleneck`).
+  fraction of the run); the limiting stage (:func:`dcuscope.model.delays.bottleneck`).
 - Frames dropped after the warm-up, by reason, and frames lost before the mux (not those still
   queued when the run was ended: the search ends it, not the pipeline).
 """
@@ -24,13 +24,13 @@ from dataclasses import asdict, dataclass, field
 
 import numpy as np
 
-from dcuscope.probes.trace.bootstrap import block_length, interval, resample
-from dcuscope.probes.trace.compare import E2E, time_series
-from dcuscope.probes.trace.delays import delay_stats, frame_delays
-from dcuscope.probes.trace.events import FACT, ORIGIN
-from dcuscope.probes.trace.facts import Accounting
-from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.model.bootstrap import block_length, interval, resample
+from dcuscope.model.compare import E2E, time_series
+from dcuscope.model.delays import delay_stats, frame_delays
+from dcuscope.model.facts import Accounting
+from dcuscope.model.frametable import frame_table
 from dcuscope.probes.trace.tracefile import Trace
+from dcuscope.protocol.events import FACT, ORIGIN
 
 QUANTILES = (50, 95, 99)
 FIGURES = ("mean",) + tuple(f"p{q}" for q in QUANTILES)

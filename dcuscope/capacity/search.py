@@ -26,8 +26,8 @@ from dcuscope.capacity.plan import check_replicable, source_rate
 from dcuscope.capacity.verdict import FAILS, HOLDS, Slo, check_fps, check_slo, outcome
 from dcuscope.core.errors import UsageError
 from dcuscope.pipeline.config import PipelineConfig
-from dcuscope.probes.trace.events import ORIGIN
 from dcuscope.probes.trace.tracefile import read_trace
+from dcuscope.protocol.events import ORIGIN
 
 START_ALLOWANCE_S = 90.0
 """Time a count may take beyond its --duration (start-up, model load) before it is killed."""

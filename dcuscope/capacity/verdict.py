@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from dcuscope.capacity.measure import CountFigures, Estimate, stage_estimate
 from dcuscope.core.errors import UsageError
 from dcuscope.gate import metric_parts
-from dcuscope.probes.trace.compare import E2E
+from dcuscope.model.compare import E2E
 
 FIGURES = ("mean", "p50", "p90", "p95", "p99")
 HOLDS, FAILS, UNDECIDED = "holds", "fails", "undecided"

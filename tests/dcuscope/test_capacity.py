@@ -17,8 +17,8 @@ from dcuscope.capacity.verdict import FAILS, HOLDS, UNDECIDED, _outcome, answer,
 from dcuscope.cli import main
 from dcuscope.core.errors import UsageError
 from dcuscope.pipeline.config import load_config
-from dcuscope.probes.trace.events import FACT
 from dcuscope.probes.trace.tracefile import Trace
+from dcuscope.protocol.events import FACT
 from tests.conftest import REPO, VTEST
 from tests.probes.synth import pipeline_run
 

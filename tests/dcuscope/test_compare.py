@@ -23,7 +23,7 @@ pytestmark = pytest.mark.alone
 
 FRAMES = 200
 """Per run, at 60 frames/s: p90 keeps 20 frames beyond it, twice the MIN_TAIL a verdict needs
-(probes/trace/compare.py), so every figure the tests judge gets a verdict, not 'too few frames'."""
+(dcuscope/model/compare.py), so every figure the tests judge gets a verdict, not 'too few frames'."""
 CONFIG = """\
 node: DCU-1
 launch: videotestsrc is-live=true pattern=ball ! video/x-raw,width=320,height=240,framerate=60/1 !
@@ -190,9 +190,9 @@ def test_different_pipelines_are_compared_only_on_the_stages_both_have(traces):
 
 def test_more_cameras_through_the_same_stages_compare_end_to_end():
     # The paper's tables of 1, 2 and 3 streams: src2, a source's stamp only NEW has, is no other pipeline.
-    from dcuscope.probes.trace.compare import Input, compare
-    from dcuscope.probes.trace.delays import frame_delays
-    from dcuscope.probes.trace.frametable import frame_table
+    from dcuscope.model.compare import Input, compare
+    from dcuscope.model.delays import frame_delays
+    from dcuscope.model.frametable import frame_table
     from tests.probes.synth import pipeline_run
 
     inputs = []

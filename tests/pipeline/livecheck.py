@@ -12,10 +12,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dcuscope.probes.trace.delays import chains
-from dcuscope.probes.trace.events import DROP, ORIGIN
-from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.model.delays import chains
+from dcuscope.model.frametable import frame_table
 from dcuscope.probes.trace.tracefile import read_trace
+from dcuscope.protocol.events import DROP, ORIGIN
 from tests.conftest import REPO, cli_env
 
 

@@ -15,8 +15,8 @@ import pytest
 
 from dcuscope.core.errors import ConfigError
 from dcuscope.pipeline.config import load_config
-from dcuscope.probes.trace.events import ENTER, EXIT, ORIGIN
 from dcuscope.probes.trace.tracefile import read_trace
+from dcuscope.protocol.events import ENTER, EXIT, ORIGIN
 from tests.conftest import REPO, run_cli
 from tests.pipeline.clips import decode_video
 from tests.relay.helpers import RelayProcess, get_json, wait_for

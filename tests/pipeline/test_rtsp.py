@@ -10,10 +10,10 @@ import time
 
 import numpy as np
 
-from dcuscope.probes.trace.delays import chains
-from dcuscope.probes.trace.events import ORIGIN
-from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.model.delays import chains
+from dcuscope.model.frametable import frame_table
 from dcuscope.probes.trace.tracefile import TraceError, read_trace
+from dcuscope.protocol.events import ORIGIN
 from tests.conftest import BIKES, VTEST, cli_env, run_cli
 from tests.pipeline.clips import MJPEG_MULTIPART, write_clip
 from tests.pipeline.livecheck import check_every_frame_accounted, run_timed

@@ -17,8 +17,8 @@ import pytest
 
 from dcuscope.plugins.loading import same_sys_path
 from dcuscope.probes.capture.native import build
-from dcuscope.probes.trace.events import ENTER, EXIT
 from dcuscope.probes.trace.tracefile import read_trace
+from dcuscope.protocol.events import ENTER, EXIT
 from tests.conftest import REPO
 from tests.probes.capture.test_gsttracer import frames_of, loader_env, stage_points
 

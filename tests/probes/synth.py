@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from dcuscope.probes.trace.events import CAPTURE, DROP, ENTER, EVENT_DTYPE, EXIT, FACT, FACT_NOMINAL_MHZ, FACT_THREAD, ORIGIN, READY, TraceHeader
+from dcuscope.protocol.events import CAPTURE, DROP, ENTER, EVENT_DTYPE, EXIT, FACT, FACT_NOMINAL_MHZ, FACT_THREAD, ORIGIN, READY, TraceHeader
 
 STAGES = ("mux", "infer", "tiler", "convert", "osd")
 T0 = 1_700_000_000_000_000_000  # a realistic CLOCK_REALTIME value, ns

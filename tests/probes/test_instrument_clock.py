@@ -9,7 +9,7 @@ import numpy as np
 
 from dcuscope.core.clocks import CLOCKS, PretendClock
 from dcuscope.probes.instrument import _Shifted
-from dcuscope.probes.trace.events import CAPTURE, ORIGIN
+from dcuscope.protocol.events import CAPTURE, ORIGIN
 from tests.probes.synth import T0, _events
 
 

@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import aiohttp
 
 from dcuscope.probes.ship.simnode import header_for, synth_events
-from dcuscope.probes.ship.wire import HEADER, MAX_MESSAGE_BYTES, PROTOCOL_VERSION, encode_batch
+from dcuscope.protocol.wire import HEADER, MAX_MESSAGE_BYTES, PROTOCOL_VERSION, encode_batch
 
 EVENTS = synth_events(20, 2, 25.0, 1_700_000_000_000_000_000)[:16]
 V = PROTOCOL_VERSION

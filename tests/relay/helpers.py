@@ -26,7 +26,7 @@ import numpy as np
 
 from dcuscope.probes.ship.relaylink import Link
 from dcuscope.probes.ship.simnode import header_for
-from dcuscope.probes.trace.events import TraceHeader
+from dcuscope.protocol.events import TraceHeader
 from dcuscope.relay.store.runs import list_sessions, load_runs
 
 ROOT = Path(__file__).resolve().parents[2]

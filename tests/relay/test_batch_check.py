@@ -8,10 +8,10 @@ import re
 import numpy as np
 import pytest
 
-from dcuscope.probes.ship.errors import ProtocolError
 from dcuscope.probes.ship.simnode import header_for, synth_events
-from dcuscope.probes.ship.wire import FRAME_LIMIT, SOURCE_LIMIT, check_events, decode_batch, encode_batch
-from dcuscope.probes.trace.events import EVENT_DTYPE, READY
+from dcuscope.protocol.errors import ProtocolError
+from dcuscope.protocol.events import EVENT_DTYPE, READY
+from dcuscope.protocol.wire import FRAME_LIMIT, SOURCE_LIMIT, check_events, decode_batch, encode_batch
 from dcuscope.relay.ingest.endpoint import _check_compiled
 from dcuscope.relay.live import cmerge
 from dcuscope.relay.live.run import LiveRun

@@ -14,8 +14,8 @@ import uuid
 import numpy as np
 
 from dcuscope.probes.ship.simnode import synth_events
-from dcuscope.probes.ship.wire import encode_batch
-from dcuscope.probes.trace.events import ORIGIN
+from dcuscope.protocol.events import ORIGIN
+from dcuscope.protocol.wire import encode_batch
 from dcuscope.relay.store.base import SCHEMA_VERSION
 from dcuscope.relay.store.runs import frame_starts, load_runs
 from tests.relay.helpers import HandNode, RelayProcess, get_json

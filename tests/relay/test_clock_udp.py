@@ -17,13 +17,12 @@ import uuid
 
 import pytest
 
+from dcuscope.core.clocks import CLOCKS, PretendClock
+from dcuscope.probes.clocks.udpclock import BURST, UdpClock, clock_difference_ns
 from dcuscope.probes.ship.relayexport import RelayExporter
 from dcuscope.probes.ship.simnode import header_for, synth_events
-from dcuscope.probes.trace.events import ORIGIN
-from dcuscope.core.clocks import CLOCKS, PretendClock
-from dcuscope.probes.clocks.udpclock import (BURST, DATAGRAM_BYTES, VERSION, Tagger, UdpClock, clock_difference_ns,
-                                             decode_answer, enable_rx_timestamps, encode_request, new_secret,
-                                             parse_offer, recv_stamped)
+from dcuscope.protocol.clockdatagram import DATAGRAM_BYTES, VERSION, Tagger, decode_answer, enable_rx_timestamps, encode_request, new_secret, parse_offer, recv_stamped
+from dcuscope.protocol.events import ORIGIN
 from dcuscope.relay.clock.correction import ClockSample, ntp_sample
 from dcuscope.relay.clock.udp import ClockUdp, NonceWindow
 from dcuscope.relay.guard.limits import Limits

@@ -199,7 +199,7 @@ def test_a_relay_killed_mid_compaction_loses_nothing_and_stores_nothing_twice(st
     for run, events in written.items():
         assert np.array_equal(load_runs(store, run, corrected=False)[0].events, events)
     # Each frame in the rollups once, whatever was killed when.
-    from dcuscope.probes.trace.delays import node_stats
+    from dcuscope.model.delays import node_stats
     from dcuscope.relay.store.history import summary
 
     complete = sum(node_stats(header_for("a", 2), events)["frames"]["complete"] for events in written.values())
@@ -208,7 +208,7 @@ def test_a_relay_killed_mid_compaction_loses_nothing_and_stores_nothing_twice(st
 
 @pytest.mark.long
 def test_a_relay_compacts_as_it_goes_the_stored_stats_are_the_nodes_and_its_history_answers(tmp_path):
-    from dcuscope.probes.trace.delays import node_stats
+    from dcuscope.model.delays import node_stats
     from tests.relay.helpers import assert_stats_equal, load_node, sort_events
 
     db = tmp_path / "r.db"

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from dcuscope.probes.trace.delays import node_stats
+from dcuscope.model.delays import node_stats
 from tests.relay.fuzzer import Case, fuzz, fuzz_ui
 from tests.relay.helpers import RelayProcess, assert_stats_equal, finish_node, get_json, load_node, start_node
 

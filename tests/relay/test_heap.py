@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from dcuscope.probes.ship.simnode import synth_events
-from dcuscope.probes.ship.wire import encode_batch
+from dcuscope.protocol.wire import encode_batch
 from dcuscope.relay import heap
 from dcuscope.relay.server import start_relay
 from tests.relay.helpers import HandNode

@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 
 from dcuscope.core.pycompat import ASYNC_TIMEOUTS, timeout
-from dcuscope.probes.trace.delays import node_stats
+from dcuscope.model.delays import node_stats
 from tests.relay.helpers import (RelayProcess, assert_stats_equal, finish_node, get_json, load_node, read_http_answer,
                                  start_node, wait_for)
 

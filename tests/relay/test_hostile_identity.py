@@ -10,9 +10,9 @@ import uuid
 
 import pytest
 
+from dcuscope.model.delays import node_stats
 from dcuscope.probes.ship.simnode import synth_events
-from dcuscope.probes.ship.wire import encode_batch
-from dcuscope.probes.trace.delays import node_stats
+from dcuscope.protocol.wire import encode_batch
 from dcuscope.relay.store.runs import list_sessions, load_runs
 from tests.relay.helpers import (HandNode, RelayProcess, assert_stats_equal, finish_node, get_json, load_node,
                                  sort_events, start_node, wait_for)

@@ -16,9 +16,9 @@ import uuid
 
 import numpy as np
 
-from dcuscope.probes.ship.wire import SOURCE_LIMIT, encode_batch
-from dcuscope.probes.trace.delays import node_stats
-from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, TraceHeader
+from dcuscope.model.delays import node_stats
+from dcuscope.protocol.events import ENTER, EVENT_DTYPE, TraceHeader
+from dcuscope.protocol.wire import SOURCE_LIMIT, encode_batch
 from tests.relay.helpers import (HandNode, RelayProcess, assert_stats_equal, finish_node, get_json, load_node,
                                  start_node, wait_for)
 

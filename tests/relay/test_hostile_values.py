@@ -17,9 +17,9 @@ import uuid
 import numpy as np
 import pytest
 
+from dcuscope.model.delays import node_stats
 from dcuscope.probes.ship.simnode import synth_events
-from dcuscope.probes.ship.wire import HEADER_SIZE, MAX_BATCH_EVENTS, encode_batch
-from dcuscope.probes.trace.delays import node_stats
+from dcuscope.protocol.wire import HEADER_SIZE, MAX_BATCH_EVENTS, encode_batch
 from tests.relay.helpers import (ROOT, HandNode, RelayProcess, assert_stats_equal, env, finish_node, get_json,
                                  http_status, load_node, start_node, wait_for)
 

@@ -1,4 +1,4 @@
-"""The live engine against probes.trace.delays.node_stats over the same events, fed batch by batch."""
+"""The live engine against model.delays.node_stats over the same events, fed batch by batch."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ import time
 import numpy as np
 import pytest
 
+from dcuscope.model.delays import frame_delays, node_stats
+from dcuscope.model.frametable import frame_table
 from dcuscope.probes.ship.simnode import header_for, synth_events
-from dcuscope.probes.ship.wire import SOURCE_LIMIT
-from dcuscope.probes.trace.delays import frame_delays, node_stats
-from dcuscope.probes.trace.events import DROP, ENTER, EVENT_DTYPE, EXIT, FACT, FACT_LOST_UPSTREAM, LATE, TraceHeader
-from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.protocol.events import DROP, ENTER, EVENT_DTYPE, EXIT, FACT, FACT_LOST_UPSTREAM, LATE, TraceHeader
+from dcuscope.protocol.wire import SOURCE_LIMIT
 from dcuscope.relay.live.run import LiveConfig, LiveRun
 from tests.probes.synth import pipeline_run
 from tests.relay.helpers import assert_stats_equal

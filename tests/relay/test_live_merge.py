@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from dcuscope.core import cbuild
+from dcuscope.model.delays import node_stats
 from dcuscope.probes.ship.simnode import header_for, synth_events
-from dcuscope.probes.trace.delays import node_stats
-from dcuscope.probes.trace.events import ENTER, EXIT
 from dcuscope.probes.trace.tracefile import read_trace
+from dcuscope.protocol.events import ENTER, EXIT
 from dcuscope.relay.live import cmerge
 from dcuscope.relay.live.run import PUSHED_FRAMES, LiveConfig, LiveRun
 from tests.conftest import cli_env

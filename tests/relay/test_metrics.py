@@ -1,6 +1,6 @@
 """``GET /metrics``: a real relay on 127.0.0.1 fed by nodes over its ingest WebSocket, scraped and
 parsed with prometheus_client's own parser; every figure is checked against the delay model over
-the same events (probes.trace.delays) or against ``/api/stats`` taken at the same moment."""
+the same events (model.delays) or against ``/api/stats`` taken at the same moment."""
 
 from __future__ import annotations
 
@@ -17,11 +17,11 @@ from prometheus_client.core import GaugeMetricFamily
 from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from prometheus_client.parser import text_string_to_metric_families
 
+from dcuscope.model.delays import frame_delays, series
+from dcuscope.model.frametable import frame_table
 from dcuscope.probes.ship.simnode import header_for, synth_events
-from dcuscope.probes.ship.wire import PTP_STATES, encode_batch
-from dcuscope.probes.trace.delays import frame_delays, series
-from dcuscope.probes.trace.events import DROP, DROP_REASONS, ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
-from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.protocol.events import DROP, DROP_REASONS, ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
+from dcuscope.protocol.wire import PTP_STATES, encode_batch
 from dcuscope.relay.export.framemetrics import MAX_GAPS, NS_PER_S, gap_stages
 from dcuscope.relay.export.metrics import BUCKETS_S
 from dcuscope.relay.guard.limits import Limits

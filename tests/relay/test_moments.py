@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from dcuscope.core.clocks import PretendClock
+from dcuscope.model.delays import frame_delays
+from dcuscope.model.frametable import frame_table
 from dcuscope.probes.instrument import _Shifted
-from dcuscope.probes.trace.delays import frame_delays
-from dcuscope.probes.trace.events import CAPTURE, ENTER, EXIT, ORIGIN, TraceHeader
-from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.protocol.events import CAPTURE, ENTER, EXIT, ORIGIN, TraceHeader
 from dcuscope.relay.api.moments import MATCH_TOLERANCE_NS, MomentsError, Side, compare, match, pairs_of
 from dcuscope.relay.clock.correction import Correction, Segment
 from tests.probes.synth import T0, _events

@@ -16,8 +16,8 @@ import urllib.request
 
 import pytest
 
-from dcuscope.probes.trace.delays import chains
-from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.model.delays import chains
+from dcuscope.model.frametable import frame_table
 from dcuscope.probes.trace.tracefile import read_trace
 from tests.conftest import VTEST, cli_env
 from tests.ports import free_port

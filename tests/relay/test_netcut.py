@@ -7,7 +7,7 @@ import time
 import numpy as np
 import pytest
 
-from dcuscope.probes.trace.delays import node_stats
+from dcuscope.model.delays import node_stats
 from dcuscope.relay.store.runs import load_runs
 from tests.relay.helpers import (RelayProcess, assert_stats_equal, finish_node, get_json, load_node, sort_events,
                                  start_node, wait_for)
@@ -28,7 +28,7 @@ def test_cut_network_loses_nothing(tmp_path, mode, seconds):
         proxy.restore()
         counters = finish_node(node, 90)
         assert counters["lost"] == 0 and counters["acked"] == counters["events"]
-        # refuse: the node saw its connection reset; black hole: the relay was silent (probes.ship.wire.SILENCE_S).
+        # refuse: the node saw its connection reset; black hole: the relay was silent (protocol.wire.SILENCE_S).
         # Either way it reconnected and resumed.
         assert counters["connects"] >= 2
         header, events = load_node(tmp_path / "n.npz")

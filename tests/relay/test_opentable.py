@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from dcuscope.probes.trace.events import FRAME_CELLS
-from dcuscope.probes.trace.frametable import MISSING
+from dcuscope.model.frametable import MISSING
+from dcuscope.protocol.events import FRAME_CELLS
 from dcuscope.relay.live.opentable import OpenTable
 
 

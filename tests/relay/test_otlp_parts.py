@@ -11,15 +11,15 @@ from collections import Counter
 import numpy as np
 import pytest
 
+from dcuscope.model.delays import frame_delays, series
+from dcuscope.model.frametable import frame_table
 from dcuscope.probes.ship.simnode import STAGES, header_for, synth_events
-from dcuscope.probes.trace.delays import frame_delays, series
-from dcuscope.probes.trace.frametable import frame_table
-from dcuscope.relay.live.framelimits import FrameLimits
 from dcuscope.relay.export.otlp import MAX_BUSY, OtlpExporter
 from dcuscope.relay.export.otlpconfig import OtlpConfig
 from dcuscope.relay.export.otlpqueue import FrameQueue, OtlpCounters
 from dcuscope.relay.export.otlpsample import Sampler
 from dcuscope.relay.export.otlpspans import node_resource, spans_of, trace_id
+from dcuscope.relay.live.framelimits import FrameLimits
 from dcuscope.relay.live.run import LiveRun
 from dcuscope.relay.live.seqset import SeqSet
 from dcuscope.relay.live.state import RelayState, RunState

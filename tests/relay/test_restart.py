@@ -7,8 +7,8 @@ import time
 
 import numpy as np
 
+from dcuscope.model.delays import node_stats
 from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
-from dcuscope.probes.trace.delays import node_stats
 from dcuscope.relay.store.runs import load_runs
 from tests.ports import free_port
 from tests.relay.helpers import (RelayProcess, assert_stats_equal, finish_node, get_json, load_node, sort_events,

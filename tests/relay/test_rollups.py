@@ -15,14 +15,14 @@ import time
 import numpy as np
 import pytest
 
+from dcuscope.model.delays import frame_delays, node_stats, series
+from dcuscope.model.frametable import frame_table
 from dcuscope.probes.ship.simnode import header_for, synth_events
-from dcuscope.probes.trace.delays import frame_delays, node_stats, series
-from dcuscope.probes.trace.frametable import frame_table
 from dcuscope.relay.rollup.compute import HOUR_NS, MINUTE_NS
-from dcuscope.relay.store.history import history, summary
 from dcuscope.relay.rollup.sketch import ALPHA, Sketch, SketchError
 from dcuscope.relay.store.compaction import compact
 from dcuscope.relay.store.engines import open_database
+from dcuscope.relay.store.history import history, summary
 from dcuscope.relay.store.writer import Storage
 from tests.conftest import run_cli
 from tests.relay.helpers import RelayProcess, finish_node, get_json, start_node, wait_for

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from dcuscope.model.delays import node_stats, summarize
 from dcuscope.probes.ship.simnode import header_for, synth_events
-from dcuscope.probes.trace.delays import node_stats, summarize
 from dcuscope.relay.live.run import LiveConfig, LiveRun
 from dcuscope.relay.live.values import RELATIVE_ERROR, RunValues
 from tests.relay.helpers import assert_stats_equal

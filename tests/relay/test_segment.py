@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from dcuscope.probes.ship.simnode import synth_events
-from dcuscope.probes.trace.events import EVENT_DTYPE
+from dcuscope.protocol.events import EVENT_DTYPE
 from dcuscope.relay.store.segment import HEAD, SegmentError, decode, encode, split_batches
 
 T0 = 1_700_000_000_000_000_000

@@ -16,7 +16,7 @@ import pytest
 
 from dcuscope.probes.ship.errors import ExportError
 from dcuscope.probes.ship.simnode import synth_events
-from dcuscope.probes.ship.wire import INGEST_PATH, encode_batch
+from dcuscope.protocol.wire import INGEST_PATH, encode_batch
 from dcuscope.relay.commands import add_relay_parser
 from dcuscope.relay.guard.limits import Limits
 from dcuscope.relay.server import start_relay

@@ -23,8 +23,8 @@ import pytest
 from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
 from dcuscope.probes.ship.simnode import synth_events
 from dcuscope.probes.ship.spool import Spool
-from dcuscope.probes.ship.wire import decode_batch
 from dcuscope.probes.trace.tracefile import read_trace
+from dcuscope.protocol.wire import decode_batch
 from dcuscope.relay.store.runs import list_sessions, load_runs
 from tests.conftest import run_cli
 from tests.ports import free_port

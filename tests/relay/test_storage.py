@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from dcuscope.probes.ship.simnode import header_for, synth_events
-from dcuscope.probes.ship.wire import encode_batch
+from dcuscope.protocol.wire import encode_batch
 from dcuscope.relay.errors import RelayError
 from dcuscope.relay.store import sqlite as db
 from dcuscope.relay.store.runs import load_runs, load_session

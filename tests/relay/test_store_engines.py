@@ -15,8 +15,8 @@ import psycopg
 import pytest
 
 from dcuscope.probes.ship.simnode import header_for, synth_events
-from dcuscope.probes.ship.wire import encode_batch
-from dcuscope.probes.trace.events import CAPTURE, ORIGIN
+from dcuscope.protocol.events import CAPTURE, ORIGIN
+from dcuscope.protocol.wire import encode_batch
 from dcuscope.relay.clock.correction import Segment
 from dcuscope.relay.errors import RelayError
 from dcuscope.relay.store.base import BatchRow, NotOwner

@@ -8,7 +8,7 @@ import time
 import uuid
 
 from dcuscope.probes.ship.simnode import header_for, synth_events
-from dcuscope.probes.ship.wire import encode_batch
+from dcuscope.protocol.wire import encode_batch
 from dcuscope.relay.store.base import BatchRow
 from dcuscope.relay.store.writer import Storage
 

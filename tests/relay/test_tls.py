@@ -16,11 +16,11 @@ import urllib.request
 import aiohttp
 import pytest
 
+from dcuscope.model.delays import node_stats
 from dcuscope.probes.ship.errors import ExportError
 from dcuscope.probes.ship.nodetls import RelayTls
 from dcuscope.probes.ship.relaylink import Link
-from dcuscope.probes.ship.wire import MAX_MESSAGE_BYTES
-from dcuscope.probes.trace.delays import node_stats
+from dcuscope.protocol.wire import MAX_MESSAGE_BYTES
 from tests.relay.helpers import (HandNode, RelayProcess, assert_stats_equal, finish_node, get_json, load_node,
                                  read_http_answer, start_node, wait_for)
 from tests.tlscerts import TestCA, served_serial

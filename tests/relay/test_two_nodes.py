@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from dcuscope.probes.trace.delays import node_stats
+from dcuscope.model.delays import node_stats
 from dcuscope.relay.store.runs import load_runs, load_session
 from tests.relay.helpers import (RelayProcess, assert_stats_equal, finish_node, get_json, http_status, load_node,
                                  sort_events, start_node, wait_for)

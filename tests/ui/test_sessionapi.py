@@ -8,10 +8,10 @@ import time
 import numpy as np
 import pytest
 
+from dcuscope.model.delays import chains, node_stats
+from dcuscope.model.frametable import frame_table
 from dcuscope.probes.ship import simnode
-from dcuscope.probes.trace.delays import chains, node_stats
-from dcuscope.probes.trace.events import TraceHeader
-from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.protocol.events import TraceHeader
 from tests.relay.helpers import get_json, http_status, wait_for
 from tests.ui.helpers import RelayThread, sim_nodes
 

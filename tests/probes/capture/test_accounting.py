@@ -11,12 +11,12 @@ import sys
 import pytest
 
 from dcuscope.core.gst import Gst
+from dcuscope.model.delays import node_stats
+from dcuscope.model.frametable import MISSING, frame_table
 from dcuscope.probes.capture.sourcewatch import SourceWatch
 from dcuscope.probes.capture.tracer import attach
-from dcuscope.probes.trace.delays import node_stats
-from dcuscope.probes.trace.events import DROP, LATE
-from dcuscope.probes.trace.frametable import MISSING, frame_table
 from dcuscope.probes.trace.tracefile import read_trace
+from dcuscope.protocol.events import DROP, LATE
 from tests.conftest import REPO, VTEST, cli_env
 from tests.pipeline.lossylink import SERVER
 

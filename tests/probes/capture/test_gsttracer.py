@@ -16,11 +16,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from dcuscope.model.delays import frame_delays
+from dcuscope.model.frametable import frame_table
 from dcuscope.probes.capture.native import build
-from dcuscope.probes.trace.delays import frame_delays
-from dcuscope.probes.trace.events import ENTER, EXIT, ORIGIN
-from dcuscope.probes.trace.frametable import frame_table
 from dcuscope.probes.trace.tracefile import read_trace
+from dcuscope.protocol.events import ENTER, EXIT, ORIGIN
 from tests.conftest import REPO, run_cli
 
 APP_SOURCE = Path(__file__).parent / "data" / "probed_app.c"

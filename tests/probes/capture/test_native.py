@@ -11,7 +11,7 @@ from dcuscope.core.gst import Gst
 from dcuscope.plugins.frames import FrameId, write_frames
 from dcuscope.probes.capture import native
 from dcuscope.probes.capture.ring import PythonRing
-from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT
+from dcuscope.protocol.events import ENTER, EVENT_DTYPE, EXIT
 
 REALTIME = 0
 

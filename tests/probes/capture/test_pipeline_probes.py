@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dcuscope.probes.trace.delays import chains
-from dcuscope.probes.trace.events import ENTER, EXIT, ORIGIN
-from dcuscope.probes.trace.frametable import MISSING, frame_table
+from dcuscope.model.delays import chains
+from dcuscope.model.frametable import MISSING, frame_table
 from dcuscope.probes.trace.tracefile import read_trace
+from dcuscope.protocol.events import ENTER, EXIT, ORIGIN
 from tests.conftest import REPO, run_cli
 
 MODEL = REPO / "assets" / "models" / "ssdlite_mobilenetv2_person.onnx"

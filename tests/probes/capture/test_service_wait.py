@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dcuscope.probes.trace.delays import SATURATED, frame_delays, node_stats
-from dcuscope.probes.trace.frametable import MISSING, frame_table
+from dcuscope.model.delays import SATURATED, frame_delays, node_stats
+from dcuscope.model.frametable import MISSING, frame_table
 from dcuscope.probes.trace.tracefile import Trace, read_trace
 from tests.conftest import BIKES, VTEST, run_cli
 

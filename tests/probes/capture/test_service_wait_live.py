@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import pytest
 
-from dcuscope.probes.trace.delays import SATURATED
+from dcuscope.model.delays import SATURATED
 from tests.probes.capture.test_service_wait import probed_run, stats
 
 pytestmark = pytest.mark.slow

@@ -14,7 +14,7 @@ from dcuscope.probes.capture import native, tracer as tracer_mod
 from dcuscope.probes.capture.ring import PythonRing
 from dcuscope.probes.capture.shipper import Shipper
 from dcuscope.probes.capture.tracer import attach
-from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT, FACT, FACT_THREAD, ORIGIN, READY, TraceHeader
+from dcuscope.protocol.events import ENTER, EVENT_DTYPE, EXIT, FACT, FACT_THREAD, ORIGIN, READY, TraceHeader
 from tests.probes.capture import sleeper
 
 BACKENDS = ["native", "python"]

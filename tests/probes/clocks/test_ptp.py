@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from dcuscope.probes.clocks.ptp import PTP_LOCK_NS, PtpWatch, parse_pmc, parse_time_status, ptp_trusted, ptp_uncertainty_ns, read_ptp_state
+from dcuscope.probes.clocks.ptp import PtpWatch, parse_pmc, parse_time_status, read_ptp_state
+from dcuscope.protocol.ptptrust import PTP_LOCK_NS, ptp_trusted, ptp_uncertainty_ns
 from dcuscope.probes.clocks.sysclock import (STA_UNSYNC, KernelClock, Proc, Witnesses, parse_chrony_tracking, phc2sys_source, ptp4l_setup,
                              read_adjtimex, system_clock)
 

@@ -9,7 +9,8 @@ import time
 
 import pytest
 
-from dcuscope.probes.clocks.ptp import ptp_trusted, read_ptp_state
+from dcuscope.probes.clocks.ptp import read_ptp_state
+from dcuscope.protocol.ptptrust import ptp_trusted
 from tests.ptpnet import CONFIGS, PtpNet, require_linuxptp
 
 

@@ -24,10 +24,11 @@ import pytest
 from aiohttp import WSCloseCode, WSMsgType, web
 
 from dcuscope.core.clocks import PretendClock
-from dcuscope.probes.ship import envelope, failover
+from dcuscope.probes.ship import failover
 from dcuscope.probes.ship.errors import ExportError
 from dcuscope.probes.ship.relayexport import RelayExporter
 from dcuscope.probes.ship.simnode import feed, header_for, synth_events
+from dcuscope.protocol import envelope
 from dcuscope.relay.server import start_relay
 from dcuscope.relay.store.runs import load_runs
 from tests.conftest import run_cli

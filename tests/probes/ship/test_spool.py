@@ -14,7 +14,7 @@ from dcuscope.probes.ship.outbox import Outbox
 from dcuscope.probes.ship.simnode import header_for, synth_events
 from dcuscope.probes.ship.spool import Spool
 from dcuscope.probes.ship.spoolfile import SpoolError, scan
-from dcuscope.probes.ship.wire import decode_batch
+from dcuscope.protocol.wire import decode_batch
 
 T0 = 1_700_000_000_000_000_000
 

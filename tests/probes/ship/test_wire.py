@@ -9,10 +9,10 @@ import zlib
 import numpy as np
 import pytest
 
-from dcuscope.probes.ship.errors import LimitExceeded, ProtocolError
-from dcuscope.probes.trace.events import (DROP, DROP_REASONS, EVENT_DTYPE, FACT, FACT_KINDS, POINT_NAMES, READY, STOPPED,
+from dcuscope.protocol.errors import LimitExceeded, ProtocolError
+from dcuscope.protocol.events import (DROP, DROP_REASONS, EVENT_DTYPE, FACT, FACT_KINDS, POINT_NAMES, READY, STOPPED,
                            codes_valid)
-from dcuscope.probes.ship.wire import (HEADER, HEADER_SIZE, MAX_BATCH_EVENTS, decode_batch, decode_clock, decode_end,
+from dcuscope.protocol.wire import (HEADER, HEADER_SIZE, MAX_BATCH_EVENTS, decode_batch, decode_clock, decode_end,
                             decode_hello, decode_payload, encode_batch, sanitize_ptp)
 from dcuscope.probes.ship.simnode import header_for, synth_events
 

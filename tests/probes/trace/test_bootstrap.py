@@ -1,4 +1,4 @@
-"""The intervals of ``dcuscope compare`` and ``dcuscope capacity`` (probes.trace.bootstrap): their coverage
+"""The intervals of ``dcuscope compare`` and ``dcuscope capacity`` (model.bootstrap): their coverage
 on synthetic runs whose autocorrelation and true values are known, against the plain bootstrap's."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from dcuscope.probes.trace.bootstrap import FIGURES, block_length, change, holm, interval, names, resample
+from dcuscope.model.bootstrap import FIGURES, block_length, change, holm, interval, names, resample
 
 PHI = 0.7
 """Each frame keeps 70 % of the previous one's excess delay: the correlation of a queue."""

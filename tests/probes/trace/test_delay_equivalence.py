@@ -25,11 +25,11 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
+from dcuscope.model.delays import frame_delays, node_stats
+from dcuscope.model.frametable import frame_events, frame_table
 from dcuscope.probes.ship.relayexport import RelayExporter
-from dcuscope.probes.trace.delays import frame_delays, node_stats
-from dcuscope.probes.trace.events import FACT
-from dcuscope.probes.trace.frametable import frame_events, frame_table
 from dcuscope.probes.trace.tracefile import write_trace
+from dcuscope.protocol.events import FACT
 from dcuscope.relay.live.run import LiveRun
 from tests.probes.synth import run_commands, troubled_run
 from tests.relay.helpers import RelayProcess, get_json, wait_for

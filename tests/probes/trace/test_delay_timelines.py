@@ -1,11 +1,11 @@
-"""Utilization over time and fill levels (probes.trace.delays) of a run whose every interval is known."""
+"""Utilization over time and fill levels (model.delays) of a run whose every interval is known."""
 
 import numpy as np
 import pytest
 
-from dcuscope.probes.trace.delays import busy_timeline, fill_levels, frame_delays, series
-from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, READY, TraceHeader
-from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.model.delays import busy_timeline, fill_levels, frame_delays, series
+from dcuscope.model.frametable import frame_table
+from dcuscope.protocol.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, READY, TraceHeader
 
 T0 = 1_700_000_000_000_000_000
 MS = 1_000_000

@@ -12,11 +12,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dcuscope.probes.trace.delays import delay_summary, frame_delays, series
-from dcuscope.probes.trace.events import CAPTURE, ENTER, EXIT, ORIGIN, READY
+from dcuscope.model.delays import delay_summary, frame_delays, series
+from dcuscope.model.frametable import frame_table
 from dcuscope.probes.trace.export import CSV_COLUMNS, assign_lanes, perfetto_document, write_csv
-from dcuscope.probes.trace.frametable import frame_table
 from dcuscope.probes.trace.tracefile import read_trace, write_trace
+from dcuscope.protocol.events import CAPTURE, ENTER, EXIT, ORIGIN, READY
 from dcuscope.relay.clock.correction import Correction, Segment
 from tests.conftest import run_cli
 from tests.probes.synth import run_commands as _cli

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from dcuscope.probes.trace.delays import frame_delays
-from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
-from dcuscope.probes.trace.frametable import frame_table
+from dcuscope.model.delays import frame_delays
+from dcuscope.model.frametable import frame_table
+from dcuscope.protocol.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
 
 MS = 1_000_000
 

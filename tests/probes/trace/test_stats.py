@@ -9,12 +9,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from dcuscope.probes.trace.delays import bottleneck, frame_delays, node_stats, series, summarize
-from dcuscope.probes.trace.errors import TraceError
-from dcuscope.probes.trace.events import ENTER, EVENT_DTYPE, EXIT, FACT
-from dcuscope.probes.trace.frametable import MISSING, frame_table
+from dcuscope.model.delays import bottleneck, frame_delays, node_stats, series, summarize
+from dcuscope.model.frametable import MISSING, frame_table
 from dcuscope.probes.trace.stats import stats_document
 from dcuscope.probes.trace.tracefile import read_trace, write_trace
+from dcuscope.protocol.errors import ProtocolError
+from dcuscope.protocol.events import ENTER, EVENT_DTYPE, EXIT, FACT
 from tests.probes.synth import run_commands as _cli
 from tests.probes.synth import STAGES, pipeline_run
 
@@ -191,11 +191,11 @@ def test_no_events_give_empty_statistics():
     assert json.loads(json.dumps(st, allow_nan=False)) == st
 
 
-def test_out_of_range_stage_raises_trace_error():
+def test_out_of_range_stage_raises_a_protocol_error():
     header, events, _ = pipeline_run(1)
     bad = np.zeros(1, EVENT_DTYPE)
     bad["stage"] = len(header.stages)
-    with pytest.raises(TraceError, match="out of range"):
+    with pytest.raises(ProtocolError, match="out of range"):
         node_stats(header, np.concatenate([events, bad]))
 
 

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from dcuscope.probes.trace.errors import TraceError
-from dcuscope.probes.trace.events import EVENT_DTYPE, TraceHeader
 from dcuscope.probes.trace.tracefile import TraceFileWriter, read_trace, write_trace
+from dcuscope.protocol.events import EVENT_DTYPE, TraceHeader
 from tests.probes.synth import pipeline_run
 
 

@@ -1,0 +1,153 @@
+/* The live engine's merge (relay.live.run.LiveRun): a batch of events into a run's open frames, in one
+ * pass. Events are EVENT_DTYPE records as the wire carries them (24 bytes: ts i64, frame i64, source
+ * i32, stage i16, point i8, code i8). Open rows are found through an open-addressing hash of
+ * key = source << 44 | frame (relay.live.opentable.OpenTable keeps it). A cell keeps the earliest time
+ * of its (stage, point), the group cell the last ready event's code, as model.frametable's
+ * frame_table does offline; relay.live.run.LiveRun's numpy merge does the same where this library
+ * could not be built, and tests/relay/test_live_merge.py holds the two to one another.
+ *
+ * No GStreamer and no Python: a relay-only host compiles it with any C compiler. */
+#include <stdint.h>
+#include <string.h>
+
+#define MERGE_ABI 3
+#define MISSING (-1)
+#define CELLS 6
+#define EXIT 2
+#define READY 3
+#define GROUP 5
+#define FRAME_POINTS 5
+#define KEY_SHIFT 44
+
+#pragma pack(push, 1)
+typedef struct { int64_t ts, frame; int32_t source; int16_t stage; int8_t point, code; } event_t;
+#pragma pack(pop)
+
+int dcu_merge_abi(void) { return MERGE_ABI; }
+
+int dcu_merge_event_size(void) { return (int)sizeof(event_t); }
+
+/* The first of n events a pipeline cannot produce, or -1: protocol.wire.check_events in one pass
+ * (the relay checks every batch it receives with this where it loads; numpy says what is wrong).
+ * codes: [256 points][256 codes as bytes], whether a point allows a code (no point out of range does). */
+int64_t dcu_check(const event_t *ev, int64_t n, int32_t n_stages, const uint8_t *codes,
+                  int64_t source_limit, int64_t frame_limit) {
+    for (int64_t i = 0; i < n; i++) {
+        const event_t *e = &ev[i];
+        if (!codes[(uint8_t)e->point * 256 + (uint8_t)e->code] || e->stage < 0 || e->stage >= n_stages
+            || e->source < 0 || e->source >= source_limit || e->frame < 0 || e->frame >= frame_limit || e->ts <= 0)
+            return i;
+    }
+    return -1;
+}
+
+/* The first of n source ids (int32, stride bytes apart: a field of a batch's records) that is not
+ * among the n_src ids of src_ids (sorted), or -1: relay.live.run.LiveRun's check, at every batch,
+ * that its sources are known. A run of equal ids is looked up once. */
+int64_t dcu_unknown_source(const char *sources, int64_t n, int64_t stride, const int64_t *src_ids, int64_t n_src) {
+    int64_t known = -1;
+    for (int64_t i = 0; i < n; i++) {
+        int64_t s = *(const int32_t *)(sources + i * stride);
+        if (known >= 0 && s == known) continue;
+        int64_t lo = 0, hi = n_src;
+        while (lo < hi) {
+            int64_t mid = lo + (hi - lo) / 2;
+            if (src_ids[mid] < s) lo = mid + 1; else hi = mid;
+        }
+        if (lo == n_src || src_ids[lo] != s) return i;
+        known = s;
+    }
+    return -1;
+}
+
+static inline uint64_t mix(uint64_t k) {
+    k ^= k >> 33;
+    k *= 0xff51afd7ed558ccdULL;
+    k ^= k >> 33;
+    return k;
+}
+
+/* Fill the hash (slots = mask + 1, a power of two; key -1 marks a free slot) with the n open keys. */
+void dcu_merge_rehash(const int64_t *okey, int64_t n, int64_t *hkey, int64_t *hrow, int64_t mask) {
+    memset(hkey, 0xff, (size_t)(mask + 1) * sizeof(int64_t));
+    for (int64_t r = 0; r < n; r++) {
+        uint64_t h = mix((uint64_t)okey[r]) & (uint64_t)mask;
+        while (hkey[h] != -1) h = (h + 1) & (uint64_t)mask;
+        hkey[h] = okey[r];
+        hrow[h] = r;
+    }
+}
+
+/* Each of n keys' row (rows_out) and whether it is open (found_out: 1 or 0; the row is meaningless at 0). */
+void dcu_merge_locate(const int64_t *keys, int64_t n, const int64_t *hkey, const int64_t *hrow, int64_t mask,
+                      int64_t *rows_out, uint8_t *found_out) {
+    for (int64_t i = 0; i < n; i++) {
+        uint64_t h = mix((uint64_t)keys[i]) & (uint64_t)mask;
+        while (hkey[h] != -1 && hkey[h] != keys[i]) h = (h + 1) & (uint64_t)mask;
+        found_out[i] = hkey[h] == keys[i];
+        rows_out[i] = found_out[i] ? hrow[h] : 0;
+    }
+}
+
+/* Merge events [io[3], n) into the rows open (rows of rows_cap allocated). Frame events only: drops and
+ * facts (point >= FRAME_POINTS) are skipped. An event of a frame not open whose source's watermark
+ * (src_ids sorted, watermark beside) is at or above it is late: counted, not merged. Every frame
+ * event, late or not, raises newest and marks its stage's exit point.
+ *
+ * Returns the rows open after. It stops early when a frame must open and there is no row for it
+ * (rows_cap), or the hash would pass half full: io[3] < n then says where to go on from once the
+ * caller made room (what came before is merged and counted).
+ * io: [late, newest, placed, start] in and out (placed: frame events merged into a row). */
+int64_t dcu_merge(const event_t *ev, int64_t n, int32_t n_stages,
+                  int64_t *hkey, int64_t *hrow, int64_t mask,
+                  int64_t *okey, int64_t *cells, int64_t *last, uint8_t *shown, int64_t *end,
+                  int64_t rows, int64_t rows_cap,
+                  const int64_t *src_ids, const int64_t *watermark, int64_t n_src,
+                  uint8_t *has_exit, int64_t *io) {
+    int64_t late = io[0], newest = io[1], placed = io[2];
+    const int64_t row_cells = (int64_t)n_stages * CELLS;
+    int64_t i = io[3];
+    for (; i < n; i++) {
+        const event_t *e = &ev[i];
+        if (e->point < 0 || e->point >= FRAME_POINTS) continue;
+        if (e->ts > newest) newest = e->ts;
+        if (e->point == EXIT) has_exit[e->stage] = 1;
+        int64_t key = ((int64_t)e->source << KEY_SHIFT) | e->frame;
+        uint64_t h = mix((uint64_t)key) & (uint64_t)mask;
+        while (hkey[h] != -1 && hkey[h] != key) h = (h + 1) & (uint64_t)mask;
+        int64_t row;
+        if (hkey[h] == key) {
+            row = hrow[h];
+        } else {
+            int64_t lo = 0, hi = n_src;
+            while (lo < hi) {
+                int64_t mid = lo + (hi - lo) / 2;
+                if (src_ids[mid] < e->source) lo = mid + 1; else hi = mid;
+            }
+            if (lo < n_src && src_ids[lo] == e->source && e->frame <= watermark[lo]) {
+                late++;
+                continue;
+            }
+            if (rows >= rows_cap || 2 * (rows + 1) > mask + 1) break;
+            row = rows++;
+            okey[row] = key;
+            last[row] = 0;
+            shown[row] = 0;
+            end[row] = 0;
+            int64_t *c = cells + row * row_cells;
+            for (int64_t k = 0; k < row_cells; k++) c[k] = MISSING;
+            hkey[h] = key;
+            hrow[h] = row;
+        }
+        int64_t *c = cells + (row * n_stages + e->stage) * CELLS;
+        if (c[e->point] == MISSING || e->ts < c[e->point]) c[e->point] = e->ts;
+        if (e->point == READY) c[GROUP] = e->code;
+        if (e->ts > last[row]) last[row] = e->ts;
+        placed++;
+    }
+    io[0] = late;
+    io[1] = newest;
+    io[2] = placed;
+    io[3] = i;
+    return rows;
+}
