@@ -67,11 +67,11 @@ fi
 "$VENV/bin/python" -m dcuscope.probes.capture.native build >/dev/null || say "warning: native probes not built; Python probes will be used (slower)"
 "$VENV/bin/python" -m dcuscope.relay.live.cmerge build >/dev/null || say "warning: the relay's compiled merge not built; relays will merge with numpy (slower)"
 
-if [ -f ui/package-lock.json ]; then
-  ui_hash=$(sha256sum ui/package-lock.json | cut -c1-16)
-  if [ ! -f "$STAMPS/ui-$ui_hash" ] || [ ! -d ui/static/vendor ]; then
+if [ -f dcuscope/ui/package-lock.json ]; then
+  ui_hash=$(sha256sum dcuscope/ui/package-lock.json | cut -c1-16)
+  if [ ! -f "$STAMPS/ui-$ui_hash" ] || [ ! -d dcuscope/ui/static/vendor ]; then
     say "installing the UI's pinned front-end packages (npm ci)"
-    npm ci --prefix ui --silent --no-audit --no-fund
+    npm ci --prefix dcuscope/ui --silent --no-audit --no-fund
     "$VENV/bin/python" -m dcuscope.ui.vendor
     rm -f "$STAMPS"/ui-*
     touch "$STAMPS/ui-$ui_hash"

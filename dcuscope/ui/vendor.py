@@ -1,6 +1,6 @@
 """Copy the page's front-end packages from ``ui/node_modules`` into ``ui/static/vendor/``.
 
-    npm ci --prefix ui                      # installs the versions pinned in ui/package-lock.json
+    npm ci --prefix dcuscope/ui             # installs the versions pinned in ui/package-lock.json
     python -m dcuscope.ui.vendor                     # copies what the page loads (add --npm to run npm ci first)
 
 The page works without them (it then polls the HTTP API instead of using Socket.IO), so a
@@ -39,7 +39,7 @@ def copy_vendor(node_modules: Path = UI / "node_modules", target: Path = VENDOR)
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m dcuscope.ui.vendor", description=__doc__.splitlines()[0])
-    parser.add_argument("--npm", action="store_true", help="run `npm ci --prefix ui` first")
+    parser.add_argument("--npm", action="store_true", help="run `npm ci --prefix dcuscope/ui` first")
     args = parser.parse_args(argv)
     if args.npm:
         subprocess.run(["npm", "ci", "--prefix", str(UI), "--no-audit", "--no-fund"], check=True)
