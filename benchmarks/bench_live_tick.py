@@ -23,7 +23,7 @@ from pathlib import Path
 RATE = 4300.0
 SOURCES = 2
 BATCH = 180
-"""Events a batch (a paced DCU's adaptive batches at the relay, BENCHMARKS.md)."""
+"""Events a batch (a paced DCU's adaptive batches at the relay, docs/benchmarks-log.md, issue 31)."""
 T0 = 1_700_000_000_000_000_000
 
 

@@ -9,7 +9,7 @@ every acknowledgement, and falls silent with its connection left open: the node 
 then restarts as a new run under the same node name; the relay refuses the new run while the old
 one holds the name (``--limit silent_s``, shortened here so that a restart takes a second, not
 eight), then hands the name over and closes the silent connection, and the old run's live state
-leaves memory. This is the case of tests/relay/test_hostile_identity.py, at a realistic batch size
+leaves memory. This is the case of tests/relay/guard/test_hostile_identity.py, at a realistic batch size
 and many times over.
 
 After each restart's run is stored and merged, and the node was silent for ``silent_s``, the

@@ -18,7 +18,16 @@ from dcuscope.model.compare import KINDS, find_row
 
 _BOUND = re.compile(r"^\s*(?P<metric>[^<>=\s]+)\s*(?P<op>>=|<=|>|<)\s*(?P<value>[+-]?(\d+(\.\d*)?|\.\d+))\s*"
                     r"(?P<unit>%|ms|us|µs|s)\s*$")
-_TO_MS = {"ms": 1.0, "us": 1e-3, "µs": 1e-3, "s": 1e3}
+TO_MS = {"ms": 1.0, "us": 1e-3, "µs": 1e-3, "s": 1e3}
+
+
+def split_bound(text: str, relative: bool = True) -> re.Match | None:
+    """The parts of ``METRIC OP VALUE UNIT`` (``--fail-if`` here, ``--slo`` of capacity), or None:
+    ``relative`` allows a signed VALUE and the unit %, a change against a base."""
+    m = _BOUND.match(text)
+    if m is None or not relative and (m["value"][0] in "+-" or m["unit"] == "%"):
+        return None
+    return m
 
 
 @dataclass(frozen=True)
@@ -35,7 +44,7 @@ class Bound:
 
 def parse_bound(text: str) -> Bound:
     """A ``--fail-if`` bound, or a DcuscopeError that shows the form."""
-    m = _BOUND.match(text)
+    m = split_bound(text)
     if not m:
         raise DcuscopeError(f"--fail-if {text!r}: expected STAGE[.KIND].FIGURE OP VALUE, e.g. \"infer.p99 > +5%\" or "
                             "\"e2e.p50 > +2ms\" (OP: > >= < <=; VALUE in %, ms, us or s)")
@@ -44,7 +53,7 @@ def parse_bound(text: str) -> Bound:
         raise DcuscopeError(f"--fail-if {text!r}: the figure must be one of {', '.join(FIGURES)} after a stage name "
                             "(or e2e), e.g. infer.p99")
     percent = m["unit"] == "%"
-    value = float(m["value"]) * (1.0 if percent else _TO_MS[m["unit"]])
+    value = float(m["value"]) * (1.0 if percent else TO_MS[m["unit"]])
     return Bound(text=text.strip(), stage=stage, kind=kind, figure=figure, op=m["op"], value=value, percent=percent)
 
 

@@ -40,8 +40,8 @@ LAYERS = {
     "dcuscope": {"core", "protocol", "model", "plugins", "pipeline", "probes", "relay", "ui"},
 }
 SUBPACKAGES = tuple(sorted(set(LAYERS) - {"dcuscope"}))
-COMPOSITION = {"capacity"}
-"""The composition root's own subpackages: ``dcuscope.capacity`` is of the layer ``dcuscope``."""
+COMPOSITION = {"capacity", "commands"}
+"""The composition root's own subpackages (the commands, capacity): of the layer ``dcuscope``."""
 DESIGN_FOLDERS = ("core", "plugins", "pipeline", "probes", "relay", "ui")
 """The design's top-level folders: in the repository, links to their packages in ``dcuscope/``."""
 
@@ -158,8 +158,8 @@ def test_modules_form_a_dag():
             visit(name)
 
 
-RELAY_LAYERS = ["errors", "urls", "heap", "guard", "clock", "rollup", "store", "live", "ingest", "export", "api", "server", "workers",
-                "commands", "__main__"]
+RELAY_LAYERS = ["errors", "urls", "heap", "guard", "clock", "rollup", "store", "live", "ingest", "export", "api", "config",
+                "server", "workers", "commands", "__main__"]
 """The relay's own parts, bottom-up: each imports only those before it.
 
     urls      the servers' URLs as messages show them (passwords redacted)
@@ -168,10 +168,12 @@ RELAY_LAYERS = ["errors", "urls", "heap", "guard", "clock", "rollup", "store", "
     clock     NTP samples, the offset/drift model, corrections, the UDP exchange
     rollup    per minute and hour, mergeable sketches of each stage's delays, from events
     store     one interface, one module per engine (SQLite, PostgreSQL), stored-run loading
-    live      what the relay holds of each run in memory: frames, statistics, sequence sets
     ingest    the nodes' WebSocket, run ownership among relays
     export    Prometheus /metrics and OTLP
+    live      what the relay holds of each run in memory: frames, statistics, sequence sets, and
+              when it pairs them (the pairing cadence)
     api       the HTTP API, the browsers' Socket.IO namespace, the fleet view and the Redis fan-out
+    config    the relay's settings, one typed object built from the command line
 """
 
 

@@ -32,6 +32,7 @@ from dcuscope.probes.ship.simnode import header_for, synth_events
 from dcuscope.protocol.wire import encode_batch
 from dcuscope.relay import heap
 from dcuscope.relay.api.ui import Ticker
+from dcuscope.relay.config import RelayConfig
 from dcuscope.relay.live.mirror import Mirrors
 from dcuscope.relay.server import start_relay
 from tests.pipeline.test_run import LIVE_BALL
@@ -80,7 +81,7 @@ def test_the_relay_ticks_pushes_and_mirrors_from_its_first_moment(tmp_path, youn
     the statistics; its pusher pushes the first new frames at once; a mirror of a stored run is
     read at its first use."""
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db", clock_port=0)
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db", clock_port=0))
         relay._task.cancel()  # this test ticks by hand, with a ticker that never ticked
         ticker = Ticker(relay.state, relay.ui, relay.fleet, relay.ticker.interest)
         url = f"http://127.0.0.1:{relay.port}"
@@ -103,7 +104,7 @@ def test_the_relay_ticks_pushes_and_mirrors_from_its_first_moment(tmp_path, youn
                 assert "DCU-Y" in relay.fleet.views, "the first tick did not list the fleet"
                 assert await spin_until(lambda: got["stats"]), "the first tick sent no statistics"
 
-                pusher = asyncio.ensure_future(ticker._push_loop())
+                pusher = asyncio.ensure_future(ticker.pairing.run(ticker.push_frames))
                 # Not node.batch: its acknowledgement waits for the store's commit, which waits on a timer.
                 await node.link.send_batch(encode_batch(run, 1, synth_events(40, 1, 25.0, T0, first_frame=40), compress=True))
                 pushed = await spin_until(lambda: got["frames"])

@@ -13,19 +13,15 @@ tell, and the answer says so rather than guess. A count passes when every bound 
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 
 from dcuscope.capacity.measure import CountFigures, Estimate, stage_estimate
 from dcuscope.core.errors import UsageError
-from dcuscope.gate import metric_parts
+from dcuscope.gate import TO_MS, metric_parts, split_bound
 from dcuscope.model.compare import E2E
 
 FIGURES = ("mean", "p50", "p90", "p95", "p99")
 HOLDS, FAILS, UNDECIDED = "holds", "fails", "undecided"
-_BOUND = re.compile(r"^\s*(?P<metric>[^<>=\s]+)\s*(?P<op>>=|<=|>|<)\s*(?P<value>\d+(\.\d*)?|\.\d+)\s*"
-                    r"(?P<unit>ms|us|µs|s)\s*$")
-_TO_MS = {"ms": 1.0, "us": 1e-3, "µs": 1e-3, "s": 1e3}
 _SYMBOL = {"<=": "≤", ">=": "≥", "<": "<", ">": ">"}
 
 
@@ -45,7 +41,7 @@ class Slo:
 
 def parse_slo(text: str) -> Slo:
     """A ``--slo`` bound, or a UsageError that shows the form."""
-    m = _BOUND.match(text)
+    m = split_bound(text, relative=False)
     if not m:
         raise UsageError(f"--slo {text!r}: expected STAGE[.KIND].FIGURE OP VALUE, e.g. \"e2e.p99 <= 200ms\" or "
                          "\"infer.mean <= 60ms\" (OP: <= < >= >; VALUE in ms, us or s)")
@@ -56,7 +52,7 @@ def parse_slo(text: str) -> Slo:
     if stage == E2E and kind != "delay":
         raise UsageError(f"--slo {text!r}: e2e has a delay only (no service or wait)")
     return Slo(text=text.strip(), stage=stage, kind=kind, figure=figure, op=m["op"],
-               value_ms=float(m["value"]) * _TO_MS[m["unit"]])
+               value_ms=float(m["value"]) * TO_MS[m["unit"]])
 
 
 @dataclass

@@ -1,4 +1,6 @@
-"""Exceptions of the pipeline package: each names the file, key or element at fault."""
+"""The errors every package builds on: :class:`DcuscopeError`, the base of every error a user can
+cause, and those of configurations, command lines and pipelines. Each names the file, key,
+option or element at fault."""
 
 
 class DcuscopeError(Exception):

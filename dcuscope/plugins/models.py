@@ -79,7 +79,7 @@ def open_session(path: str | Path, providers: Sequence[str], threads: int = 0,
     ``spin_wait``: ONNX Runtime's worker threads spin after each run by default. Between two
     batches of a pipeline that time is the other stages' (decoders, tiler, convert): with a
     batch every 20 ms of other work, spinning took 1.3-1.8x the CPU, and the 4-camera
-    pipeline ran slower with it (BENCHMARKS.md, benchmarks/bench_infer_cpu.py).
+    pipeline ran slower with it (BENCHMARKS.md, "Inference on the CPU"; benchmarks/bench_infer_cpu.py).
     """
     path = Path(path)
     if not path.is_file():

@@ -4,27 +4,17 @@ from __future__ import annotations
 
 import argparse
 import logging
-import os
 import sys
 
 from dcuscope.core.ports import check_port_free
-from dcuscope.protocol.credentials import TOKEN_ENV
+from dcuscope.protocol.credentials import TOKEN_ENV, add_token_argument
 from dcuscope.relay.clock.correction import CLOCK_MODES
-from dcuscope.relay.errors import RelayError
-from dcuscope.relay.export.otlpconfig import DEFAULT_EVERY, DEFAULT_QUEUE, DEFAULT_TIMEOUT_S, OtlpConfig, otlp_config
-from dcuscope.relay.guard.auth import load_tokens
-from dcuscope.relay.guard.limits import Limits, limits_help
-from dcuscope.relay.guard.proxy import TrustedProxies
-from dcuscope.relay.live.framelimits import FrameLimits
+from dcuscope.relay.config import RelayConfig
+from dcuscope.relay.export.otlpconfig import DEFAULT_EVERY, DEFAULT_QUEUE, DEFAULT_TIMEOUT_S
+from dcuscope.relay.guard.limits import limits_help
 from dcuscope.relay.store.base import STORE_TIMEOUT_S
 from dcuscope.relay.store.compaction import COMPACT_AFTER_S
-from dcuscope.relay.store.engines import is_url
-from dcuscope.relay.store.retention import parse_retention
 from dcuscope.relay.workers import run_workers
-
-MAX_COMPACT_AFTER_S = 7 * 86_400.0
-MIN_STORE_TIMEOUT_S, MAX_STORE_TIMEOUT_S = 0.5, 600.0
-
 
 def add_relay_parser(subparsers) -> argparse.ArgumentParser:
     """Add the ``relay`` subcommand; its ``func`` default runs it (returns the exit status)."""
@@ -71,8 +61,7 @@ def add_relay_arguments(p: argparse.ArgumentParser) -> None:
                    help="move batches stored this long into compact segments (about 3.5 bytes an event instead of "
                         f"24-32; read as before by every reader), in a process of its own beside the relay (default {COMPACT_AFTER_S:g}; "
                         "0: never, e.g. when `dcuscope db compact` runs elsewhere)")
-    p.add_argument("--token", default=os.environ.get(TOKEN_ENV),
-                   help=f"the admin's secret: it may do everything (read the page, the API and /metrics, and stream "
+    add_token_argument(p, f"the admin's secret: it may do everything (read the page, the API and /metrics, and stream "
                         f"as any node). Once --token or --viewer-tokens is given, nothing but the page's shell "
                         f"answers without a credential (default ${TOKEN_ENV})")
     p.add_argument("--viewer-tokens", metavar="FILE",
@@ -154,77 +143,11 @@ def run_relay(args: argparse.Namespace) -> int:
     from dcuscope.relay.server import serve  # aiohttp and socketio load only for this command
 
     logging.basicConfig(level=args.log_level, format="%(asctime)s %(name)s %(levelname)s %(message)s")
-    if not 0 <= args.port <= 65535:
-        raise RelayError(f"--port must be 0..65535, not {args.port}")
-    if args.clock_port is not None and not 0 <= args.clock_port <= 65535:
-        raise RelayError(f"--clock-port must be 0..65535, not {args.clock_port}")
-    try:
-        limits = Limits().with_values(args.limit)
-    except ValueError as exc:
-        raise RelayError(f"--limit: {exc}") from None
-    try:
-        trusted = TrustedProxies.parse(args.trusted_proxy)
-    except ValueError as exc:
-        raise RelayError(f"--trusted-proxy: {exc}") from None
-    node_tokens = load_tokens(args.node_tokens, "--node-tokens") if args.node_tokens else None
-    viewer_tokens = load_tokens(args.viewer_tokens, "--viewer-tokens") if args.viewer_tokens else None
-    frame_limits = FrameLimits.parse(args.frame_limit)
-    otlp = _otlp(args, frame_limits)
-    options = {}
-    if args.redis is not None:
-        from dcuscope.relay.api.fanout import check_url
-
-        options["redis"] = check_url(args.redis, args.redis_ca)
-    elif args.redis_ca is not None:
-        raise RelayError("--redis-ca needs --redis rediss://...")
-    if args.name is not None:
-        if not 0 < len(args.name) <= 100 or not args.name.isprintable():
-            raise RelayError("--name takes 1 to 100 printable characters")
-        options["name"] = args.name
-    if args.push_hz is not None:
-        if not 0.5 <= args.push_hz <= 240:
-            raise RelayError(f"--push-hz must be 0.5..240, not {args.push_hz:g}")
-        options["push_hz"] = args.push_hz
-    retention = parse_retention(args.retain) if args.retain is not None else None
-    if args.tls_cert or args.tls_key or args.tls_client_ca:
-        if not (args.tls_cert and args.tls_key):
-            raise RelayError("--tls-cert and --tls-key go together (--tls-client-ca needs both)")
-        from dcuscope.relay.guard.tls import ServerTls
-
-        options["tls"] = ServerTls(args.tls_cert, args.tls_key, args.tls_client_ca)
-    if not 0 <= args.compact_after <= MAX_COMPACT_AFTER_S:
-        raise RelayError(f"--compact-after takes 0 (never) to {MAX_COMPACT_AFTER_S:g} seconds, not {args.compact_after:g}")
-    options["compact_after_s"] = args.compact_after
-    if not MIN_STORE_TIMEOUT_S <= args.store_timeout <= MAX_STORE_TIMEOUT_S:
-        raise RelayError(f"--store-timeout takes {MIN_STORE_TIMEOUT_S:g} to {MAX_STORE_TIMEOUT_S:g} seconds, "
-                         f"not {args.store_timeout:g}")
-    options["store_timeout_s"] = args.store_timeout
-    if args.workers != 1:
-        if not 2 <= args.workers <= 64:
-            raise RelayError(f"--workers must be 1..64, not {args.workers}")
-        if not is_url(args.db):
-            raise RelayError("--workers N runs N relays on one store: that takes a shared one, --db postgresql://...")
-        if args.port == 0:
-            raise RelayError("--workers N shares one port among the workers: give it, --port P")
-        check_port_free(args.host, args.port)
-        return run_workers(sys.argv[1:], args.workers, args.port if args.clock_port is None else args.clock_port)
-    if not args.reuse_port:
-        check_port_free(args.host, args.port)
-    serve(args.host, args.port, args.db, args.token, args.clock, limits=limits, node_tokens=node_tokens,
-          viewer_tokens=viewer_tokens, allow_hosts=args.allow_host, clock_port=args.clock_port,
-          frame_limits=frame_limits, otlp=otlp, trusted_proxies=trusted, reuse_port=args.reuse_port, retention=retention, **options)
+    config = RelayConfig.from_args(args)
+    if config.workers != 1:
+        check_port_free(config.host, config.port)
+        return run_workers(sys.argv[1:], config.workers, config.udp_port)
+    if not config.reuse_port:
+        check_port_free(config.host, config.port)
+    serve(config)
     return 0
-
-
-def _otlp(args: argparse.Namespace, frame_limits: FrameLimits) -> OtlpConfig | None:
-    options = {"--otlp-every": args.otlp_every, "--otlp-queue": args.otlp_queue, "--otlp-timeout": args.otlp_timeout,
-               "--otlp-ca": args.otlp_ca}
-    if args.otlp is None:
-        given = [name for name, value in options.items() if value is not None]
-        if given:
-            raise RelayError(f"{given[0]} needs --otlp URL")
-        return None
-    has_limit = frame_limits.default_ns is not None or bool(frame_limits.per_node_ns)
-    return otlp_config(args.otlp, DEFAULT_EVERY if args.otlp_every is None else args.otlp_every,
-                       DEFAULT_QUEUE if args.otlp_queue is None else args.otlp_queue,
-                       DEFAULT_TIMEOUT_S if args.otlp_timeout is None else args.otlp_timeout, has_limit, args.otlp_ca)

@@ -1,8 +1,8 @@
 """The relay process: aiohttp app with the nodes' ingest WebSocket (``/ingest``), the browsers'
 Socket.IO server (``/ui``), the HTTP API and storage.
 
-``serve(host, port, db, token, clock)`` runs it until SIGINT/SIGTERM; ``start_relay`` starts it
-on a running loop (tests, benchmarks). The page of ``ui/static/`` is served at ``/``, the
+``serve(config)`` runs it until SIGINT/SIGTERM; ``start_relay(config)`` starts it on a running loop
+(tests, benchmarks): the settings are one :class:`~dcuscope.relay.config.RelayConfig`. The page of ``ui/static/`` is served at ``/``, the
 Prometheus metrics at ``/metrics`` (:mod:`dcuscope.relay.export.metrics`). Beside it,
 the UDP clock exchange (:mod:`dcuscope.relay.clock.udp`) listens on ``clock_port``: by default the HTTP
 port's number, 0 turns it off.
@@ -17,7 +17,6 @@ import signal
 import socket
 import sys
 from collections import Counter
-from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -34,30 +33,22 @@ from dcuscope.relay.api.interest import Interest
 from dcuscope.relay.api.routes import add_routes
 from dcuscope.relay.api.sessions import add_session_routes
 from dcuscope.relay.api.sio import SIO_PATH, create_sio, sio_errors
-from dcuscope.relay.api.ui import DEFAULT_PUSH_HZ, Ticker, UiNamespace
-from dcuscope.relay.clock.correction import CLOCK_MODES
+from dcuscope.relay.api.ui import Ticker, UiNamespace
 from dcuscope.relay.clock.udp import ClockUdp
+from dcuscope.relay.config import RelayConfig
 from dcuscope.relay.errors import RelayError
 from dcuscope.relay.export.metrics import RelayCollector, add_metrics_route
 from dcuscope.relay.export.otlp import OtlpExporter
-from dcuscope.relay.export.otlpconfig import OtlpConfig
 from dcuscope.relay.guard import badrequests, lograte, redact
 from dcuscope.relay.guard.connections import ConnGuard, GuardedSite, fit_descriptors
 from dcuscope.relay.guard.hostcheck import HostCheck
-from dcuscope.relay.guard.limits import Limits
 from dcuscope.relay.guard.policy import Action, Policy, declare
-from dcuscope.relay.guard.proxy import TrustedProxies
 from dcuscope.relay.guard.signin import add_signin_routes, from_address
-from dcuscope.relay.guard.tls import ServerTls
 from dcuscope.relay.heap import Reclaimer
 from dcuscope.relay.ingest.endpoint import SYNCS_KEPT, Ingest
-from dcuscope.relay.live.framelimits import FrameLimits
-from dcuscope.relay.live.run import LiveConfig
 from dcuscope.relay.live.state import RelayState
-from dcuscope.relay.store.base import STORE_TIMEOUT_S
-from dcuscope.relay.store.compaction import COMPACT_AFTER_S
 from dcuscope.relay.store.compactor import Compactor
-from dcuscope.relay.store.retention import Retention, retain
+from dcuscope.relay.store.retention import retain
 from dcuscope.relay.store.writer import Storage
 
 UI_DIR = Path(__file__).resolve().parents[1] / "ui" / "static"
@@ -149,34 +140,26 @@ class Relay:
             self.stop_said = await asyncio.to_thread(self.compactor.roll_up)
 
 
-def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *, limits: Limits = Limits(),
-               live: LiveConfig = LiveConfig(), push_hz: float = DEFAULT_PUSH_HZ,
-               node_tokens: dict[str, str] | None = None, viewer_tokens: dict[str, str] | None = None, allow_hosts: Iterable[str] = (),
-               frame_limits: FrameLimits = FrameLimits(), otlp: OtlpConfig | None = None,
-               trusted_proxies: TrustedProxies = TrustedProxies(), redis: str | None = None,
-               name: str | None = None, compact_after_s: float = COMPACT_AFTER_S,
-               tls: ServerTls | None = None, store_timeout_s: float = STORE_TIMEOUT_S) -> tuple[web.Application, Relay]:
-    """The relay's app; who may do what is :mod:`dcuscope.relay.guard.policy`'s (``token``: the admin's, ``viewer_tokens``
-    and ``node_tokens``: NAME -> token); while anyone may read, requests must name an IP, localhost or one of ``allow_hosts``
-    (:mod:`dcuscope.relay.guard.hostcheck`). ``otlp``: export sampled frames as traces (:mod:`dcuscope.relay.export.otlp`; its
-    thread starts with :func:`start_relay`). ``trusted_proxies``: peers whose connections start with a PROXY
-    header naming the client (:mod:`dcuscope.relay.guard.proxy`). ``redis``: the URL of the Redis that carries every
-    relay's pushes to every relay's browsers (:mod:`dcuscope.relay.api.fanout`). ``name``: how pages and other relays
-    name this one (default: HOST:PORT once listening). ``compact_after_s``: batches stored that long are
-    compacted (:mod:`dcuscope.relay.store.compaction`; 0: never). ``tls``: the port speaks HTTPS only
-    (:mod:`dcuscope.relay.guard.tls`; with its client CA, ``/ingest`` takes only nodes with a certificate it signed).
-    ``store_timeout_s``: a PostgreSQL store's writes not answered within it are cancelled and sent again
-    (:mod:`dcuscope.relay.store.writer`)."""
-    if clock not in CLOCK_MODES:
-        raise RelayError(f"--clock must be one of {', '.join(CLOCK_MODES)}, not {clock!r}")
+def create_app(config: RelayConfig) -> tuple[web.Application, Relay]:
+    """The relay's app, as ``config`` says (:class:`~dcuscope.relay.config.RelayConfig`). Who may do what is
+    :mod:`dcuscope.relay.guard.policy`'s; while anyone may read, requests must name an IP, localhost or one of
+    ``allow_hosts`` (:mod:`dcuscope.relay.guard.hostcheck`). ``otlp`` exports sampled frames as traces
+    (:mod:`dcuscope.relay.export.otlp`; its thread starts with :func:`start_relay`); ``trusted_proxies``: peers
+    whose connections start with a PROXY header naming the client (:mod:`dcuscope.relay.guard.proxy`); ``redis``
+    carries every relay's pushes to every relay's browsers (:mod:`dcuscope.relay.api.fanout`); batches stored
+    ``compact_after_s`` are compacted (:mod:`dcuscope.relay.store.compaction`; 0: never); ``tls``: the port speaks
+    HTTPS only (:mod:`dcuscope.relay.guard.tls`; with its client CA, ``/ingest`` takes only nodes with a
+    certificate it signed); a PostgreSQL store's writes not answered within ``store_timeout_s`` are
+    cancelled and sent again (:mod:`dcuscope.relay.store.writer`)."""
+    c = config
     refused: Counter = Counter()
-    policy = Policy(token, viewer_tokens, node_tokens, refused, certified=tls is not None and tls.verifies_clients)  # a token given twice: before anything starts
-    limits = fit_descriptors(limits)
+    policy = Policy(c.credentials, refused, certified=c.tls is not None and c.tls.verifies_clients)  # a token given twice: before anything starts
+    limits = fit_descriptors(c.limits)
     # The name other relays sharing the store see (/api/health's store.relays).
-    storage = Storage(db, name=f"{socket.gethostname()} pid {os.getpid()}", timeout_s=store_timeout_s)
-    state = RelayState(storage, clock, live, limits, frame_limits)
-    state.relay_name = name or ""
-    manager, fanout = create_manager(redis)
+    storage = Storage(c.db, name=f"{socket.gethostname()} pid {os.getpid()}", timeout_s=c.store_timeout_s)
+    state = RelayState(storage, c.clock, c.live, limits, c.frame_limits)
+    state.relay_name = c.name or ""
+    manager, fanout = create_manager(c.redis)
     sio = create_sio(manager)
     ingest = Ingest(state, limits)
     storage.on_owners_lost = lambda: _background(ingest.let_go())
@@ -184,21 +167,21 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
     fleet = Fleet(state)
     ui = UiNamespace(state, fleet, policy)
     sio.register_namespace(ui)
-    guard = ConnGuard(limits, refused, trusted_proxies, tls)
+    guard = ConnGuard(limits, refused, c.trusted_proxies, c.tls)
     # The guard's first: a request refused further in still counts as one the connection sent.
     middlewares = [guard.middleware]
     if policy.reads_open:
         # Nodes' own tokens (node_tokens) guard /ingest, not the API or the page.
-        middlewares.append(HostCheck(allow_hosts, refused, INGEST_PATH if node_tokens else None).middleware)
+        middlewares.append(HostCheck(c.allow_hosts, refused, INGEST_PATH if c.credentials.nodes else None).middleware)
     app = web.Application(client_max_size=MAX_MESSAGE_BYTES, middlewares=[*middlewares, policy.middleware, sio_errors])
     declare(app, Action.INGEST, app.router.add_get(INGEST_PATH, ingest.handle))
     sio.attach(app)
     declare(app, Action.SOCKET, *(r for r in app.router.resources() if r.canonical.startswith(SIO_PATH.rstrip("/"))))
-    interest = Interest(ui.wishes, redis, fanout, me=f"{socket.gethostname()} pid {os.getpid()} {id(state):x}")
-    ticker = Ticker(state, ui, fleet, interest, push_hz)
+    interest = Interest(ui.wishes, c.redis, fanout, me=f"{socket.gethostname()} pid {os.getpid()} {id(state):x}")
+    ticker = Ticker(state, ui, fleet, interest, c.push_hz)
     reclaimer = Reclaimer(lambda: state.released)
-    exporter = OtlpExporter(otlp, state) if otlp is not None else None
-    compactor = Compactor(db, compact_after_s, storage.name, storage.owner) if compact_after_s > 0 else None
+    exporter = OtlpExporter(c.otlp, state) if c.otlp is not None else None
+    compactor = Compactor(c.db, c.compact_after_s, storage.name, storage.owner) if c.compact_after_s > 0 else None
 
     def refusals() -> dict[str, int]:
         refused["hello_timeout"] = ingest.hello_timeouts
@@ -210,8 +193,8 @@ def create_app(db: str | Path, token: str | None = None, clock: str = "auto", *,
                 "clock_udp": dict(udp.counts, port=udp.port, keys=udp.keys) if udp is not None else None,
                 "refused": refusals(),
                 "connections": {"tcp": guard.open, "ingest": ingest.connected},
-                "proxy": {"trusted": trusted_proxies.as_list(), "proxied": guard.proxied,
-                          "proxied_open": guard.proxied_open} if trusted_proxies else None,
+                "proxy": {"trusted": c.trusted_proxies.as_list(), "proxied": guard.proxied,
+                          "proxied_open": guard.proxied_open} if c.trusted_proxies else None,
                 "relay": state.relay_name, "fanout": fanout.view(), "mirrored_runs": len(fleet.mirrors or ()),
                 "pushes": ticker.pushes, "commits": storage.commits, "batches": storage.batches_written,
                 "limits": limits.as_dict(), "released_runs": state.released, "memory": state.memory_view(),
@@ -263,19 +246,18 @@ def _add_ui(app: web.Application, policy: Policy) -> None:
         declare(app, Action.PUBLIC, app.router.add_static("/", UI_DIR, follow_symlinks=False))
 
 
-async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db",
-                      token: str | None = None, clock: str = "auto", clock_port: int | None = None,
-                      reuse_port: bool = False, retention: Retention | None = None, **options) -> Relay:
-    """Start a relay on the running loop; ``port=0`` picks a free port (see ``Relay.port``).
-    ``clock_port``: UDP port of the clock exchange (None: the HTTP port's number; 0: none).
-    ``reuse_port``: share the port with the host's other relay processes (``--workers``).
-    ``retention``: delete sessions and rollups older than it says (:mod:`dcuscope.relay.store.retention`; None: keep all)."""
-    app, relay = create_app(db, token, clock, **options)
+async def start_relay(config: RelayConfig) -> Relay:
+    """Start a relay on the running loop, as ``config`` says; ``port=0`` picks a free port (see ``Relay.port``).
+    ``clock_port``: UDP port of the clock exchange (None: the HTTP port's number; 0: none); ``reuse_port``: share
+    the port with the host's other relay processes (``--workers``); ``retention``: delete sessions and rollups
+    older than it says (:mod:`dcuscope.relay.store.retention`; None: keep all)."""
+    host, port = config.host, config.port
+    app, relay = create_app(config)
     relay.storage.start(asyncio.get_running_loop())
     runner = web.AppRunner(app, access_log=None, handle_signals=False,
                            keepalive_timeout=relay.guard.limits.keepalive_s, shutdown_timeout=STOP_REQUESTS_S)
     await runner.setup()
-    site = GuardedSite(runner, host, port, relay.guard, reuse_port=reuse_port)
+    site = GuardedSite(runner, host, port, relay.guard, reuse_port=config.reuse_port)
     try:
         await site.start()
     except OSError as exc:
@@ -285,9 +267,9 @@ async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path 
     relay.runner = runner
     relay.port = site.port
     if not relay.state.relay_name:  # workers sharing a port: told apart by their process
-        relay.state.relay_name = f"{socket.gethostname()}:{relay.port}" + (f"#{os.getpid()}" if reuse_port else "")
+        relay.state.relay_name = f"{socket.gethostname()}:{relay.port}" + (f"#{os.getpid()}" if config.reuse_port else "")
     try:
-        _start_clock_udp(relay, host, clock_port)
+        _start_clock_udp(relay, host, config.clock_port)
     except RelayError:
         await runner.cleanup()
         relay.storage.stop()
@@ -299,8 +281,8 @@ async def start_relay(host: str = "127.0.0.1", port: int = 3000, db: str | Path 
         relay.sio.manager.initialize()
     relay._task = asyncio.create_task(relay.ticker.run())
     relay._reclaim = asyncio.create_task(relay.reclaimer.run())
-    if retention is not None:
-        relay._retention = asyncio.create_task(retain(relay.storage, retention))
+    if config.retention is not None:
+        relay._retention = asyncio.create_task(retain(relay.storage, config.retention))
     if relay.otlp is not None:
         relay.otlp.start()
     if relay.compactor is not None:
@@ -326,21 +308,18 @@ def _start_clock_udp(relay: Relay, host: str, clock_port: int | None) -> None:
     relay.ingest.clock_udp = udp
 
 
-def serve(host: str = "127.0.0.1", port: int = 3000, db: str | Path = "dcuscope.db", token: str | None = None,
-          clock: str = "auto", limits: Limits = Limits(), **options) -> None:
-    """Run the relay until SIGINT or SIGTERM; ``options`` as :func:`start_relay`'s."""
-    if host not in LOOPBACK and token is None and not options.get("node_tokens") and not options.get("viewer_tokens"):
-        log.warning("relay listens on %s without --token: anyone who can reach it may feed or read it", host)
+def serve(config: RelayConfig) -> None:
+    """Run the relay until SIGINT or SIGTERM, as ``config`` says."""
+    if config.host not in LOOPBACK and not config.credentials.any:
+        log.warning("relay listens on %s without --token: anyone who can reach it may feed or read it", config.host)
     badrequests.install()
-    rate = lograte.install(limits.log_repeats_per_min)
-    redact.install([token or "", *(options.get("node_tokens") or {}).values(),
-                    *(options.get("viewer_tokens") or {}).values()])
-    asyncio.run(_serve(host, port, db, token, clock, rate, limits=limits, **options))
+    rate = lograte.install(config.limits.log_repeats_per_min)
+    redact.install(config.credentials.secrets())
+    asyncio.run(_serve(config, rate))
 
 
-async def _serve(host: str, port: int, db: str | Path, token: str | None, clock: str, rate: lograte.RateFilter,
-                 **options) -> None:
-    relay = await start_relay(host, port, db, token, clock, **options)
+async def _serve(config: RelayConfig, rate: lograte.RateFilter) -> None:
+    relay = await start_relay(config)
     flusher = asyncio.create_task(_flush_log(rate))
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
@@ -352,7 +331,7 @@ async def _serve(host: str, port: int, db: str | Path, token: str | None, clock:
         stop.set()
     udp = f"UDP clock exchange on port {relay.clock_port}" if relay.clock_port else "no UDP clock exchange"
     scheme = "https" if relay.guard.tls is not None else "http"
-    print(f"dcuscope relay: listening on {scheme}://{host}:{relay.port} (db {relay.storage.location}, clock {clock}; "
+    print(f"dcuscope relay: listening on {scheme}://{config.host}:{relay.port} (db {relay.storage.location}, clock {config.clock}; "
           f"{udp})", flush=True)
     try:
         await stop.wait()

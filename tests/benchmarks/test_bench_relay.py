@@ -47,7 +47,7 @@ def test_quick_mode_prints_both_phases_per_store_relay_count_and_settings_and_ev
     """Every (store, relays, settings) combination gets its line; SQLite with two relays is refused, with its
     reason, and is the only n/a combination; two relays on PostgreSQL store every event, and the one /ui
     client watched gets the frames of both relays' nodes (through their Redis). (One combination run:
-    BENCHMARKS.md has the benchmark's full runs, side by side.)"""
+    docs/benchmarks-log.md has the benchmark's full runs, side by side.)"""
     done = run_benchmark("bench_relay.py", "--quick", "--store", "sqlite", "postgresql", "--relays", "2",
                          "--settings", "adaptive", timeout=300)
     assert_ran(done)

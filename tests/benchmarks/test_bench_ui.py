@@ -43,7 +43,7 @@ def test_without_a_measured_period_the_rates_are_n_a_with_the_reason():
 
 
 def test_follow_cpu_prints_the_modes_side_by_side():
-    """--follow-cpu's table (its run takes a minute: measured by hand, BENCHMARKS.md)."""
+    """--follow-cpu's table (its run takes a minute: measured by hand, docs/benchmarks-log.md, "Web UI under load")."""
     state = {"seconds": 20.0, "draws_per_s": 60.0, "chromium_cores": 0.49, "renderer_cores": 0.38, "gpu_cores": 0.09}
     lines = follow_table({"every frame": state, "capped": dict(state, draws_per_s=30.0, chromium_cores=0.33)})
     assert lines[0].split() == ["every", "frame", "capped"]

@@ -96,7 +96,7 @@ def test_a_run_whose_relay_stored_nothing_says_so_and_exits_non_zero(tmp_path):
 # --- every option a node command's messages name is one that command takes -----------------------
 
 OPTION = re.compile(r"(?<![\w-])--[a-z][a-z0-9]*(?:-[a-z0-9]+)*")
-NODE_COMMANDS = {"run": "dcuscope.runcommand", "trace": "dcuscope.traceapp", "ship": "dcuscope.shipcommand",
+NODE_COMMANDS = {"run": "dcuscope.commands.runpipeline", "trace": "dcuscope.commands.trace", "ship": "dcuscope.commands.ship",
                  "simnode": "dcuscope.probes.ship.simnode"}
 """Each command that ships probe events, and the module it runs: what it imports can print."""
 OTHER_PROGRAMS = {
@@ -125,8 +125,8 @@ def _reachable(entry: str) -> set:
     while todo:
         module = todo.pop()
         path = _module_file(module)
-        other_command = path is not None and path.parent == REPO / "dcuscope" and module != entry \
-            and path.name != "__init__.py"
+        other_command = path is not None and path.parent in (REPO / "dcuscope", REPO / "dcuscope" / "commands") \
+            and module != entry and path.name not in ("__init__.py", "options.py")
         if path is None or path in seen or module.startswith("dcuscope.relay") or other_command:
             continue
         seen.add(path)
@@ -175,7 +175,7 @@ def test_every_option_a_node_commands_messages_name_is_one_it_takes():
     (200_000, 1_500_000, "estimate: +0.200 ms subtracted ± 1.500 ms"),
 ])
 def test_a_stored_runs_clock_line_gives_the_offset_and_its_bound_in_one_unit(correction_ns, uncertainty_ns, says):
-    from dcuscope.tracecommands import _clock_lines
+    from dcuscope.commands.stats import _clock_lines
 
     entry = {"applied": "estimate", "correction_ns": correction_ns, "uncertainty_ns": uncertainty_ns}
     assert _clock_lines({"clock": entry}) == [f"  clock          {says}"]

@@ -16,7 +16,7 @@ import sys
 
 import pytest
 
-from dcuscope.compareformat import ms_digits
+from dcuscope.commands.compareformat import ms_digits
 from tests.conftest import REPO, cli_env, run_cli
 
 pytestmark = pytest.mark.alone

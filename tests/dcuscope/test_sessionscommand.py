@@ -1,5 +1,5 @@
 """``dcuscope sessions`` and ``dcuscope runs`` over a real store of each engine, written as a relay
-writes it (tests/relay/test_store_engines.py's way): ids, names, times, frames, states, and one name
+writes it (tests/relay/store/test_store_engines.py's way): ids, names, times, frames, states, and one name
 per stored run in ``runs``, ``stats --session``, ``compare``'s label and the page's session API."""
 
 from __future__ import annotations
@@ -12,14 +12,14 @@ import uuid
 import pytest
 
 from dcuscope.cli import main
+from dcuscope.commands.sessions import listing
 from dcuscope.probes.ship.simnode import header_for, synth_events
 from dcuscope.relay.api.sessions import load_session_nodes
 from dcuscope.relay.store.base import BatchRow
 from dcuscope.relay.store.engines import open_database
 from dcuscope.relay.store.runs import run_label
-from dcuscope.sessionscommand import listing
 from tests.probes.synth import run_commands
-from tests.relay.test_store_engines import payload, store  # noqa: F401  (the engines' fixture)
+from tests.relay.store.test_store_engines import payload, store  # noqa: F401  (the engines' fixture)
 
 T0 = 1_700_000_000_000_000_000
 

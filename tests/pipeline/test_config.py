@@ -8,14 +8,15 @@ from pathlib import Path
 
 import pytest
 
+from dcuscope.cli import build_parser
+from dcuscope.commands.configs import configs_command
+from dcuscope.commands.runpipeline import apply_overrides
 from dcuscope.core.errors import ConfigError, UsageError
 from dcuscope.core.gst import Gst
-from dcuscope.cli import build_parser
-from dcuscope.runcommand import apply_overrides
 from dcuscope.pipeline.build import build_pipeline
 from dcuscope.pipeline.config import load_config
 from dcuscope.pipeline.launch import build_launch
-from dcuscope.shipped import CONFIGS, configs_command, resolve, summary
+from dcuscope.shipped import CONFIGS, resolve, summary
 from tests.conftest import VTEST, run_cli
 
 GOOD = f"""\

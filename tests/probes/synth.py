@@ -160,7 +160,8 @@ def run_commands(*argv: str) -> tuple[int, str, str]:
     import contextlib
     import io
 
-    from dcuscope.tracecommands import add_export_parser, add_stats_parser
+    from dcuscope.commands.export import add_export_parser
+    from dcuscope.commands.stats import add_stats_parser
 
     parser = argparse.ArgumentParser(prog="dcuscope")
     sub = parser.add_subparsers()

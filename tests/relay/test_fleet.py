@@ -1,7 +1,7 @@
 """Relays sharing one PostgreSQL store: failover without loss, one owner per run, one session.
 Real relays, real PostgreSQL (tests/pgserver.py), real nodes (``dcuscope run`` pipelines and
 simulated nodes). A PostgreSQL restart: tests/relay/test_relay_faults.py; the store's own failover
-(a standby promoted, a standby gone): tests/relay/test_store_failover.py."""
+(a standby promoted, a standby gone): tests/relay/store/test_store_failover.py."""
 
 from __future__ import annotations
 

@@ -14,6 +14,7 @@ import pytest
 from dcuscope.probes.ship.simnode import synth_events
 from dcuscope.protocol.wire import encode_batch
 from dcuscope.relay import heap
+from dcuscope.relay.config import RelayConfig
 from dcuscope.relay.server import start_relay
 from tests.relay.helpers import HandNode
 
@@ -70,7 +71,7 @@ def test_a_released_run_leaves_memory_at_once_without_a_garbage_collection(tmp_p
     goes then, not at the next full garbage collection (the exporters' callback closed a cycle
     through the run: relay.live.state.RelayState.release breaks it)."""
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db", clock_port=0)
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db", clock_port=0))
         url = f"http://127.0.0.1:{relay.port}"
         first, second = uuid.uuid4().hex, uuid.uuid4().hex
         nodes = []

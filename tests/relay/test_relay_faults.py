@@ -8,7 +8,7 @@ restarted, Redis frozen. Cuts are iptables DROP rules inside network namespaces 
 
 Each test ends with every run complete: stored == sent as sorted arrays (nothing lost, nothing
 stored twice), its end stored, one session. The time from the fault until every node is stored
-again on another relay is printed (``-s``; the goal is at most 10 s: BENCHMARKS.md, issue 32).
+again on another relay is printed (``-s``; the goal is at most 10 s: BENCHMARKS.md, "Failover"; docs/benchmarks-log.md, issue 32).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from tests.pgserver import PostgresServer
 from tests.relay.helpers import (RelayProcess, finish_node, get_json, kill_all, load_node, start_node,
                                  stored_equals_sent, wait_for)
 from tests.relay.nsnet import Namespace, netns_permitted
-from tests.relay.test_fanout import Browser
+from tests.relay.api.test_fanout import Browser
 
 pytestmark = pytest.mark.long
 RECOVERY_S = 45

@@ -18,6 +18,7 @@ from dcuscope.probes.ship.errors import ExportError
 from dcuscope.probes.ship.simnode import synth_events
 from dcuscope.protocol.wire import INGEST_PATH, encode_batch
 from dcuscope.relay.commands import add_relay_parser
+from dcuscope.relay.config import RelayConfig
 from dcuscope.relay.guard.limits import Limits
 from dcuscope.relay.server import start_relay
 from tests.conftest import wait_until_mapped
@@ -28,7 +29,7 @@ T0 = 1_700_000_000_000_000_000
 
 def test_rate_bound_closes_only_the_offender(tmp_path):
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db", limits=Limits(messages_per_s=20, message_burst=40))
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db", limits=Limits(messages_per_s=20, message_burst=40)))
         url = f"http://127.0.0.1:{relay.port}"
         try:
             run_b = uuid.uuid4().hex
@@ -51,7 +52,7 @@ def test_rate_bound_closes_only_the_offender(tmp_path):
 
 def test_a_reconnecting_run_takes_over_its_old_connection(tmp_path):
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db"))
         url = f"http://127.0.0.1:{relay.port}"
         run = uuid.uuid4().hex
         try:
@@ -74,7 +75,7 @@ def test_a_reconnecting_run_takes_over_its_old_connection(tmp_path):
 
 def test_connections_beyond_the_cap_are_refused_before_the_upgrade(tmp_path):
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db", limits=Limits(connections=1))
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db", limits=Limits(connections=1)))
         url = f"http://127.0.0.1:{relay.port}"
         try:
             first = await HandNode.open(url, "A", uuid.uuid4().hex)
@@ -98,7 +99,7 @@ def test_a_batch_resent_after_a_storage_failure_counts_once(tmp_path):
     """Events used to reach the live state before storage: a batch storage refused, sent again,
     counted twice."""
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db"))
         run = uuid.uuid4().hex
         events = synth_events(10, 1, 25.0, T0)
         try:
@@ -119,7 +120,7 @@ def test_a_batch_resent_after_a_storage_failure_counts_once(tmp_path):
 
 def test_page_and_unknown_routes(tmp_path):
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db"))
         try:
             async with aiohttp.ClientSession() as s:
                 async with s.get(f"http://127.0.0.1:{relay.port}/") as r:
@@ -156,7 +157,7 @@ def test_cli_wiring_and_port_in_use(tmp_path):
 
 def test_a_nodes_newest_run_is_its_current_one(tmp_path):
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db"))
         url = f"http://127.0.0.1:{relay.port}"
         first, second = uuid.uuid4().hex, uuid.uuid4().hex
         events = synth_events(10, 1, 25.0, T0)

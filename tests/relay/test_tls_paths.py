@@ -18,7 +18,7 @@ from tests.pgserver import PASSWORD, PostgresServer
 from tests.redisserver import RedisServer
 from tests.relay.otlpreceiver import OtlpReceiver
 from tests.relay.helpers import RelayProcess, finish_node, get_json, load_node, start_node, stored_equals_sent, wait_for
-from tests.relay.test_fanout import Browser
+from tests.relay.api.test_fanout import Browser
 from tests.tlscerts import TestCA
 
 SECRETS = (PASSWORD, "s3cret")

@@ -18,6 +18,8 @@ import urllib.request
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from dcuscope.relay.config import RelayConfig
+from dcuscope.relay.guard.auth import Credentials
 from dcuscope.relay.guard.limits import Limits
 from dcuscope.relay.server import start_relay
 from tests.relay.helpers import get_json, wait_for
@@ -43,10 +45,13 @@ class RelayThread:
     """The relay (HTTP API, /ui, /ingest, the page) on a background event loop; ``url`` once up.
 
     ``port=0`` picks a free port; a relay started again on the port of a stopped one (and its
-    database) is that relay restarted. ``options`` go to ``start_relay`` (e.g. ``limits``)."""
+    database) is that relay restarted. ``token``, ``viewer_tokens`` and ``node_tokens`` are its
+    credentials; the other ``options`` are fields of its ``RelayConfig`` (e.g. ``limits``)."""
 
-    def __init__(self, db: Path, token: str | None = None, push_hz: float = 10.0, port: int = 0, **options) -> None:
-        self._db, self._token, self._push_hz, self._options = db, token, push_hz, options
+    def __init__(self, db: Path, token: str | None = None, push_hz: float = 10.0, port: int = 0,
+                 viewer_tokens: dict | None = None, node_tokens: dict | None = None, **options) -> None:
+        self._db, self._push_hz, self._options = db, push_hz, options
+        self._credentials = Credentials(token, viewer_tokens or {}, node_tokens or {})
         self._ready = threading.Event()
         self._error: BaseException | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -65,8 +70,8 @@ class RelayThread:
     async def _serve(self) -> None:
         try:
             # The relay as `dcuscope relay` starts it: its guarded site included.
-            relay = await start_relay("127.0.0.1", self.port, self._db, self._token, push_hz=self._push_hz,
-                                      **self._options)
+            relay = await start_relay(RelayConfig(self._db, port=self.port, credentials=self._credentials,
+                                                  push_hz=self._push_hz, **self._options))
             self.port = relay.port
             self.relay = relay
             self._loop, self._stop = asyncio.get_running_loop(), asyncio.Event()

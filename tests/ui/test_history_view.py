@@ -16,13 +16,13 @@ import pytest
 
 from dcuscope.probes.ship.simnode import synth_events
 from dcuscope.relay.rollup.compute import HOUR_NS, MINUTE_NS
-from dcuscope.relay.store.history import summary
 from dcuscope.relay.store.compaction import compact
 from dcuscope.relay.store.compactor import TEST_LIVE_WAIT_ENV, rollups_within_s
 from dcuscope.relay.store.engines import open_database
+from dcuscope.relay.store.history import summary
 from tests.conftest import run_cli
 from tests.relay.helpers import RelayProcess, get_json, start_node, wait_for
-from tests.relay.test_compaction import write_run
+from tests.relay.store.test_compaction import write_run
 from tests.ui.helpers import RelayThread
 
 NODE = "DCU-7"

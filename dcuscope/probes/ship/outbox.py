@@ -57,7 +57,7 @@ DEFAULT_MIN_FLUSH_S = 0.04
 """Adaptive batching: the shortest time between two cuts that an idle link triggers. A relay's
 work per batch (decode, commit, acknowledgement, a pairing merge) is most of its cost at a DCU's
 pace: 40 ms instead of 10 holds a paced DCU to 25 batches a second, which took the relay's CPU
-per event from 19.7 to 13.4 µs (8 DCUs, BENCHMARKS.md, issue 31) for about 20 ms more lag."""
+per event from 19.7 to 13.4 µs (8 DCUs, docs/benchmarks-log.md, issue 31) for about 20 ms more lag."""
 DEFAULT_MAX_BUFFER_EVENTS = 2_000_000
 """About 46 MiB, 7.7 minutes of a paper-sized DCU (4,300 events/s)."""
 DEFAULT_WINDOW = 64

@@ -37,6 +37,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import time
+from functools import partial
 
 import socketio
 from socketio.exceptions import ConnectionRefusedError as Refused
@@ -47,19 +48,12 @@ from dcuscope.relay.api.fleet import Fleet
 from dcuscope.relay.api.interest import ALL, MAX_FRAMES, Interest, Wish
 from dcuscope.relay.guard.policy import Action, Policy, Refusal
 from dcuscope.relay.live import framepack
-from dcuscope.relay.live.run import maintain_all
+from dcuscope.relay.live.pairing import DEFAULT_PUSH_HZ, Pairing
 from dcuscope.relay.live.state import RelayState
 
 NAMESPACE = "/ui"
 OVERVIEW = "overview"
 EVERY = "every-dcu"
-DEFAULT_PUSH_HZ = 30.0
-PUSH_SHARE = 0.5
-"""The most of the relay's CPU the pushes take (pairing what browsers show, packing, sending)."""
-PUSH_BACKOFF_S = 1.0
-"""The longest a push waits for the share above."""
-IDLE_PERIOD_S = 0.5
-"""How often runs nobody shows are paired (their frames shown, settled ones finalised)."""
 HOUSEKEEPING_S = 0.1
 DEFAULT_MAX_FRAMES = 25
 MAX_SUBSCRIBED = 1024
@@ -163,17 +157,14 @@ class UiNamespace(socketio.AsyncNamespace):
 
 
 class Ticker:
-    """The relay's heartbeat: pairs every run, pushes what browsers show as soon as it is new, and
-    refreshes the fleet's rows once a second."""
+    """The relay's heartbeat: pushes what browsers show as soon as it is paired (when, its
+    :class:`dcuscope.relay.live.pairing.Pairing` says), and refreshes the fleet's rows once a second."""
 
     def __init__(self, state: RelayState, ui: UiNamespace, fleet: Fleet, interest: Interest,
                  push_hz: float = DEFAULT_PUSH_HZ) -> None:
         self.state, self.ui, self.fleet, self.interest = state, ui, fleet, interest
-        self.period = 1.0 / push_hz
+        self.pairing = Pairing(state, push_hz)
         self.pushes = 0
-        self._wake = asyncio.Event()
-        state.on_events = self._wake.set
-        self._paired_at = NEVER
         self._fleet_at = NEVER
         self._listed: set[str] = set()
         self._stats_at = NEVER
@@ -182,28 +173,7 @@ class Ticker:
         self._stats_versions: dict[str, int | None] = {}
 
     async def run(self) -> None:
-        await asyncio.gather(self._push_loop(), self._housekeeping_loop(), self.interest.run())
-
-    async def _push_loop(self) -> None:
-        last, spent = NEVER, 0.0
-        while True:
-            await self._wake.wait()
-            # At most push_hz pushes a second, and the pushes at most PUSH_SHARE of the relay's CPU:
-            # after a push that took d of CPU, the next starts d / PUSH_SHARE after its start at the
-            # earliest (at most PUSH_BACKOFF_S). What came meanwhile goes in the next one, so a busy
-            # relay pairs and pushes in larger steps (each costs about the same whatever it holds)
-            # instead of falling behind. CPU, not wall time: a slow browser or a starved thread is
-            # no reason to push less.
-            wait = last + max(self.period, min(spent / PUSH_SHARE, PUSH_BACKOFF_S)) - time.monotonic()
-            if wait > 0:
-                await asyncio.sleep(wait)
-            self._wake.clear()
-            last, cpu = time.monotonic(), time.thread_time()
-            try:
-                await self.push_frames()
-            except Exception:  # noqa: BLE001 - the heartbeat must survive a bad push
-                log.exception("relay push failed")
-            spent = time.thread_time() - cpu
+        await asyncio.gather(self.pairing.run(self.push_frames), self._housekeeping_loop(), self.interest.run())
 
     async def _housekeeping_loop(self) -> None:
         while True:
@@ -215,21 +185,13 @@ class Ticker:
             await asyncio.sleep(max(0.0, HOUSEKEEPING_S - (time.monotonic() - started)))
 
     async def push_frames(self) -> None:
-        """Push the new frames of every run some browser shows."""
-        if not self.state.storage.leases_fresh():
-            return  # this relay was silent (frozen) longer than its leases: runs it may have lost are not pushed
-        fresh, self.state.fresh = self.state.fresh, set()
+        """Push the new frames of every run some browser shows (a round of :meth:`Pairing.run`)."""
         wanted = self.interest.wanted()
+        shown = self.pairing.take(partial(self.interest.limit, wanted))
         if not wanted:
             return
         everyone: dict[int, dict[str, dict]] = {m: {} for m in wanted.get(ALL, ())}
         t_ns = time.time_ns()
-        shown = []
-        for run in fresh:
-            rs = self.state.runs.get(run)
-            if rs is not None and self.state.nodes.get(rs.node) == run and (limit := self.interest.limit(wanted, rs.node)):
-                shown.append((rs, limit))
-        maintain_all(rs.live for rs, _ in shown)  # one pass of the delay model per graph, not per DCU
         for rs, limit in shown:
             if rs.live.visible <= rs.pushed:
                 continue
@@ -248,29 +210,16 @@ class Ticker:
 
     async def housekeeping(self) -> None:
         if not self.state.storage.leases_fresh():
-            return  # as in push_frames: nothing is pushed until the leases are renewed
+            return  # this relay was silent (frozen) longer than its leases: runs it may have lost are not pushed
         now = time.monotonic()
         wanted = self.interest.wanted()
-        if now - self._paired_at >= IDLE_PERIOD_S:  # what browsers show the pusher pairs as it comes
-            self._paired_at = now
-            self._pair(wanted)
+        self.pairing.idle(partial(self.interest.limit, wanted))  # what browsers show the pusher pairs as it comes
         if now - self._fleet_at >= FLEET_PERIOD_S:
             self._fleet_at = now
             self.state.release_ended()  # before the rows are built: a run that left is in none
             await self._push_fleet(wanted)
         if wanted:
             await self._push_stats(wanted)
-
-    def _pair(self, wanted: dict[str, set[int]]) -> None:
-        """Pair every run; a run some browser shows with frames not pushed yet goes to the pusher."""
-        maintain_all(rs.live for rs in self.state.runs.values())
-        for rs in self.state.runs.values():
-            if rs.live.visible > rs.pushed:
-                if wanted and self.interest.limit(wanted, rs.node):
-                    self.state.fresh.add(rs.run)
-                    self._wake.set()
-                else:
-                    rs.pushed = rs.live.visible
 
     async def _push_fleet(self, wanted: dict[str, set[int]]) -> None:
         rows = await self.fleet.refresh()

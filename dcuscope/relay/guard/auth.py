@@ -1,10 +1,13 @@
-"""Token files of the relay: ``--node-tokens`` and ``--viewer-tokens`` (``NAME TOKEN`` per line).
+"""The relay's credentials (:class:`Credentials`) and its token files: ``--node-tokens`` and
+``--viewer-tokens`` (``NAME TOKEN`` per line).
 
 What each credential may do is :mod:`dcuscope.relay.guard.policy`'s to say.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from dcuscope.relay.errors import RelayError
@@ -33,3 +36,29 @@ def load_tokens(path: str | Path, option: str = "--node-tokens") -> dict[str, st
     if not tokens:
         raise RelayError(f"{option} {path}: no 'NAME TOKEN' line")
     return tokens
+
+
+@dataclass(frozen=True)
+class Credentials:
+    """The relay's credentials, whole: the admin's token (``--token``), the viewers' and the nodes'
+    (``--viewer-tokens``, ``--node-tokens``: NAME -> token). What each may do is
+    :class:`~dcuscope.relay.guard.policy.Policy`'s."""
+
+    admin: str | None = None
+    viewers: Mapping[str, str] = field(default_factory=dict)
+    nodes: Mapping[str, str] = field(default_factory=dict)
+
+    @classmethod
+    def from_files(cls, admin: str | None, viewers: str | Path | None, nodes: str | Path | None) -> Credentials:
+        """The admin's token and the token files as the options name them."""
+        return cls(admin, load_tokens(viewers, "--viewer-tokens") if viewers else {},
+                   load_tokens(nodes, "--node-tokens") if nodes else {})
+
+    @property
+    def any(self) -> bool:
+        """Whether any credential is asked for (else the relay is open to whoever reaches it)."""
+        return self.admin is not None or bool(self.viewers) or bool(self.nodes)
+
+    def secrets(self) -> list[str]:
+        """Every token, for the log's redaction."""
+        return [*([self.admin] if self.admin is not None else []), *self.viewers.values(), *self.nodes.values()]

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from aiohttp import web
 
 from dcuscope.relay.errors import RelayError, http_error
+from dcuscope.relay.guard.auth import Credentials
 
 COOKIE = "dcuscope_session"
 COOKIE_LIFETIME_S = 12 * 3600
@@ -132,20 +133,19 @@ def certificate_of(request: web.BaseRequest) -> Principal | None:
 class Policy:
     """The credentials a relay takes and what each may do; counts refusals in ``refused``."""
 
-    def __init__(self, token: str | None = None, viewer_tokens: Mapping[str, str] | None = None,
-                 node_tokens: Mapping[str, str] | None = None, refused: Counter | None = None,
+    def __init__(self, credentials: Credentials = Credentials(), refused: Counter | None = None,
                  certified: bool = False) -> None:
         self._by_token: list[tuple[bytes, Principal]] = []
         self._keys: dict[tuple[Role, str], bytes] = {}
-        if token is not None:
-            self._add(token, Principal(Role.ADMIN, ADMIN_NAME))
-        for name, secret in (viewer_tokens or {}).items():
+        if credentials.admin is not None:
+            self._add(credentials.admin, Principal(Role.ADMIN, ADMIN_NAME))
+        for name, secret in credentials.viewers.items():
             self._add(secret, Principal(Role.VIEWER, name))
-        for name, secret in (node_tokens or {}).items():
+        for name, secret in credentials.nodes.items():
             self._add(secret, Principal(Role.NODE, name))
-        self.reads_open = token is None and not viewer_tokens
+        self.reads_open = credentials.admin is None and not credentials.viewers
         """Anyone may read (the loopback demo; :mod:`dcuscope.relay.guard.hostcheck` guards it then)."""
-        self.ingest_open = self.reads_open and not node_tokens
+        self.ingest_open = self.reads_open and not credentials.nodes
         self.refused = refused if refused is not None else Counter()
         self.certified = certified
         """Nodes must present a client certificate the relay's ``--tls-client-ca`` signed, whose name

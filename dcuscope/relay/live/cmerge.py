@@ -2,10 +2,10 @@
 
 ``relay.live.run.LiveRun`` merges each batch of events into its open frames in one compiled pass
 when this library loads, and with numpy otherwise; both leave a run exactly alike
-(tests/relay/test_live_merge.py). The library is ``_build/libdcuscope_merge.so`` beside this file:
+(tests/relay/live/test_live_merge.py). The library is ``_build/libdcuscope_merge.so`` beside this file:
 compiled on demand in a checkout (git-ignored), by the package's build when installed (which writes
 ``_build/BUILD-STATE``: ``built``, or why not). Where it cannot be had the relay says why once in its
-log and merges with numpy, which costs ~0.5 µs more per event (BENCHMARKS.md, issue 50).
+log and merges with numpy, which costs ~0.5 µs more per event (docs/benchmarks-log.md, issue 50, first step).
 
     python -m dcuscope.relay.live.cmerge build     # compile (again), print the path
     python -m dcuscope.relay.live.cmerge check     # load it, or say why it cannot be loaded

@@ -243,12 +243,13 @@ class RelayState:
             displaced = None
             issued = None
             if rs is not None:
-                if rs.node != hello.header.node or rs.header.stages != hello.header.stages:
-                    raise ProtocolError(f"run {hello.run} belongs to node {rs.node!r} with other stages")
-                if not db.secret_matches(rs.secret_hash, hello.secret):
-                    self.refused["resume_secret"] += 1
-                    raise ProtocolError(f"run {hello.run} exists: resuming it takes the secret issued at its "
-                                        "first hello")
+                try:
+                    db.check_resume(hello.run, rs.node, rs.header.stages, rs.secret_hash, hello.header.node,
+                                    hello.header.stages, hello.secret)
+                except RelayError as exc:
+                    if isinstance(exc, db.ResumeRefused):
+                        self.refused["resume_secret"] += 1
+                    raise ProtocolError(str(exc)) from None
             else:
                 holder = self.node_run(hello.header.node)
                 if (holder is not None and self._holds_name(holder) and not hello.spooled

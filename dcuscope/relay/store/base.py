@@ -513,10 +513,11 @@ def secret_hash(secret: str) -> str:
     return hashlib.sha256(secret.encode()).hexdigest()
 
 
-def check_resume(run: str, stored_node: str, stored_header: str, stored_secret: str | None, node: str,
-                 header: dict, secret: str | None) -> None:
-    """Whether a hello may resume stored run ``run`` (see :meth:`Database.register_run`)."""
-    if stored_node != node or json.loads(stored_header).get("stages") != header.get("stages"):
+def check_resume(run: str, stored_node: str, stored_stages, stored_secret: str | None, node: str, stages,
+                 secret: str | None) -> None:
+    """Whether a hello may resume run ``run``, stored or held live (see :meth:`Database.register_run`):
+    the same node and stages, and the secret issued at its first hello (else :class:`ResumeRefused`)."""
+    if stored_node != node or list(stored_stages or ()) != list(stages or ()):
         raise RelayError(f"run {run} belongs to node {stored_node!r} with other stages")
     if not secret_matches(stored_secret, secret):
         raise ResumeRefused(f"run {run} exists: resuming it takes the secret issued at its first hello")

@@ -178,7 +178,7 @@ GENERIC_PLANS = "force_generic_plan"
 """A relay's writer plans a prepared statement once per session. Left to choose, PostgreSQL plans
 :data:`PUT_BATCHES` again at every execution (with its arrays' lengths known each custom plan looks
 cheaper than the generic one), and that planning costs the server ~0.3 ms a round, as much as
-the rows (BENCHMARKS.md, issue 50, third step). The writer's statements all find rows by key; the
+the rows (docs/benchmarks-log.md, issue 50, third step). The writer's statements all find rows by key; the
 relay's readers (stored sessions, history) open connections of their own, planned as PostgreSQL chooses."""
 TCP_USER_TIMEOUT_MS = 3000
 """A relay's connection whose sent data goes unacknowledged this long is dead (a network cut)."""
@@ -406,10 +406,10 @@ class PostgresDatabase(Database):
             row = cur.fetchone()
             if row is not None and secret is None and pending is not None and row[4] == secret_hash(pending):
                 # This process registered the run; the node never heard so.
-                check_resume(run, row[1], row[2], row[4], node, header, pending)
+                check_resume(run, row[1], json.loads(row[2]).get("stages"), row[4], node, header.get("stages"), pending)
                 return int(row[0]), int(row[3]), pending
             if row is not None:
-                check_resume(run, row[1], row[2], row[4], node, header, secret)
+                check_resume(run, row[1], json.loads(row[2]).get("stages"), row[4], node, header.get("stages"), secret)
                 cur.execute("UPDATE runs SET last_seen_ns = %s WHERE id = %s", (now, run))
                 return int(row[0]), int(row[3]), None
             cur.execute("SELECT pg_advisory_xact_lock(%s, %s)", SESSION_LOCK)

@@ -194,7 +194,7 @@ class SqliteDatabase(Database):
         row = conn.execute("SELECT session, node, header, first_seen_ns, secret FROM runs WHERE id = ?",
                            (run,)).fetchone()
         if row is not None:
-            check_resume(run, row[1], row[2], row[4], node, header, secret)
+            check_resume(run, row[1], json.loads(row[2]).get("stages"), row[4], node, header.get("stages"), secret)
             try:
                 conn.execute("UPDATE runs SET last_seen_ns = ? WHERE id = ?", (now, run))
             except sqlite3.OperationalError:  # a full disk: the node may still resume its run

@@ -29,6 +29,7 @@ from dcuscope.probes.ship.errors import ExportError
 from dcuscope.probes.ship.relayexport import RelayExporter
 from dcuscope.probes.ship.simnode import feed, header_for, synth_events
 from dcuscope.protocol import envelope
+from dcuscope.relay.config import RelayConfig
 from dcuscope.relay.server import start_relay
 from dcuscope.relay.store.runs import load_runs
 from tests.conftest import run_cli
@@ -140,7 +141,7 @@ def test_a_relay_that_says_another_holds_the_run_is_asked_again_then_the_next(tm
     async def scenario():
         later = LaterRelay(how)
         url_later = await later.start()
-        relay = await start_relay(port=free_port(), db=tmp_path / "r.db")
+        relay = await start_relay(RelayConfig(port=free_port(), db=tmp_path / "r.db"))
         url = f"http://127.0.0.1:{relay.port}"
         exporter = RelayExporter(f"{url_later},{url}", "DCU-1", close_timeout_s=5.0)
         try:
@@ -166,7 +167,7 @@ def test_a_relay_that_refuses_the_node_for_now_is_asked_again_not_left(tmp_path)
     """Another live run holds the node's name at relay A: the node asks A again after the backoff,
     as with one relay (the second relay, down, is never tried), and gets in once that run ended."""
     async def scenario():
-        relay = await start_relay(port=free_port(), db=tmp_path / "r.db")
+        relay = await start_relay(RelayConfig(port=free_port(), db=tmp_path / "r.db"))
         url = f"http://127.0.0.1:{relay.port}"
         holder = RelayExporter(url, "DCU-1", close_timeout_s=5.0)
         second = RelayExporter(f"{url},http://127.0.0.1:{free_port()}", "DCU-1", close_timeout_s=5.0,

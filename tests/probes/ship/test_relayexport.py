@@ -22,6 +22,7 @@ from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
 from dcuscope.probes.ship.errors import ExportError
 from dcuscope.probes.ship.relayexport import RelayExporter
 from dcuscope.probes.ship.simnode import header_for, synth_events
+from dcuscope.relay.config import RelayConfig
 from dcuscope.relay.server import start_relay
 from tests.ports import free_port
 from tests.relay.helpers import RelayProcess, wait_for
@@ -113,7 +114,7 @@ def test_batches_evicted_before_the_relay_came_leave_no_gap_in_its_seqs(tmp_path
             exporter.write(events[i:i + 200])
             await until(lambda: exporter.outbox.pending_n == 0, what="a batch cut")  # else write would shed
         assert exporter.lost == exporter.outbox.evicted == 4_000
-        relay = await start_relay(port=port, db=tmp_path / "r.db")
+        relay = await start_relay(RelayConfig(port=port, db=tmp_path / "r.db"))
         try:
             await until(lambda: exporter.counters()["acked"] + exporter.lost == len(events), what="acknowledgements")
             rs = relay.state.runs[exporter.run_id]
@@ -130,7 +131,7 @@ def test_batches_evicted_in_flight_count_delivered_if_the_relay_stored_them_else
     """An evicted batch in flight used to count lost even when the relay had stored it (its
     acknowledgement lost with the connection): the relay then held more than the node said."""
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db"))
         proxy = CutProxy(relay.port)
         exporter = RelayExporter(proxy.url, "A", max_buffer_events=2_000, batch_events=200, backoff_s=(0.05, 0.2),
                                  close_timeout_s=8.0)
@@ -183,7 +184,7 @@ def test_batches_evicted_in_flight_count_delivered_if_the_relay_stored_them_else
 def test_a_batch_the_relay_could_not_store_is_sent_again(tmp_path):
     """An ``ok: false`` acknowledgement used to leave its batch in flight until a 30 s timeout."""
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db"))
         exporter = RelayExporter(f"http://127.0.0.1:{relay.port}", "A", close_timeout_s=8.0)
         try:
             exporter.start(header_for("A", 2))
@@ -208,7 +209,7 @@ def test_a_node_holds_its_batches_while_the_relays_storage_fails(tmp_path):
     disk): now every batch waits out a hold that grows with each failed round, so each is refused
     at most once per round: 2 + log2(T / 0.1 s) rounds in T seconds, not T / 0.1 s."""
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db"))
         exporter = RelayExporter(f"http://127.0.0.1:{relay.port}", "A", batch_events=100, close_timeout_s=20.0,
                                  backoff_s=(0.1, 5.0))
         try:
@@ -276,7 +277,7 @@ def test_close_keeps_trying_for_its_timeout_and_says_what_it_waits_for(tmp_path,
         closing = asyncio.create_task(asyncio.to_thread(exporter.close, 0))
         await asyncio.sleep(6.0)  # longer than CLOSE_SAY_S: it said what it waits for at least once
         assert not closing.done()
-        relay = await start_relay(port=port, db=tmp_path / "r.db")
+        relay = await start_relay(RelayConfig(port=port, db=tmp_path / "r.db"))
         try:
             await closing
             rs = relay.state.runs[exporter.run_id]

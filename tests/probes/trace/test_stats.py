@@ -259,7 +259,7 @@ def test_stats_cli_table_has_one_aligned_block_per_node(two_traces):
 
 
 def test_stats_says_the_busiest_stage_once_and_a_file_read_faster_than_real_time_is_not_held_to_its_rate():
-    from dcuscope.tracecommands import format_stats
+    from dcuscope.commands.stats import format_stats
 
     header, events, _ = pipeline_run(8, n_sources=1, jitter_ns=3_000_000, seed=0)
     st = node_stats(header, events)

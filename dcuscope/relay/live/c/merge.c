@@ -4,7 +4,7 @@
  * key = source << 44 | frame (relay.live.opentable.OpenTable keeps it). A cell keeps the earliest time
  * of its (stage, point), the group cell the last ready event's code, as model.frametable's
  * frame_table does offline; relay.live.run.LiveRun's numpy merge does the same where this library
- * could not be built, and tests/relay/test_live_merge.py holds the two to one another.
+ * could not be built, and tests/relay/live/test_live_merge.py holds the two to one another.
  *
  * No GStreamer and no Python: a relay-only host compiles it with any C compiler. */
 #include <stdint.h>

@@ -1,35 +1,23 @@
-"""The ``dcuscope stats`` and ``dcuscope export`` subcommands over trace files or a relay's database.
-
-``dcuscope/cli.py`` wires them in::
-
-    add_stats_parser(subparsers); add_export_parser(subparsers)
-    args = parser.parse_args(); sys.exit(args.func(args))
+"""``dcuscope stats``: per-stage and per-frame delay statistics of trace files or a stored session,
+or of one DCU over days from the store's rollups (``--node``).
 
 Over a stored session each node's statistics carry the ``clock`` entry of :mod:`dcuscope.relay.clock.entry`
-(the correction its timestamps were moved by, at its last event, and its bound), and exports carry
-it per node and per frame (:mod:`dcuscope.probes.trace.export`); trace files hold the node's own clock, uncorrected.
-
-Each ``func`` returns the exit code: 0, or 2 after one ``dcuscope: error: ...`` line on stderr
-for a bad input (missing file, not a trace, no such database or session, unwritable output).
+(the correction its timestamps were moved by, at its last event, and its bound); trace files hold
+the node's own clock, uncorrected. Returns the exit status: 0, or 2 after one ``dcuscope: error: ...``
+line on stderr for a bad input (missing file, not a trace, no such database or session).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
-import os
-import sys
 import time
-from contextlib import contextmanager
-from dataclasses import replace
 from pathlib import Path
 
+from dcuscope.commands.traceinputs import add_input_arguments, clocks, open_output, read_inputs, user_errors
 from dcuscope.core.errors import DcuscopeError
-from dcuscope.probes.trace.export import BUCKET_NS, perfetto_document, write_csv
 from dcuscope.probes.trace.stats import stats_document
-from dcuscope.probes.trace.tracefile import Trace, read_trace
-from dcuscope.relay.clock.correction import Correction
+from dcuscope.probes.trace.tracefile import Trace
 from dcuscope.relay.clock.entry import clock_entry
 
 STAT_COLUMNS = ("count", "mean_ms", "p50_ms", "p95_ms", "p99_ms", "max_ms")
@@ -45,8 +33,7 @@ def add_stats_parser(subparsers) -> argparse.ArgumentParser:
                     "stage of a saturated streaming thread) and why; per source, frames delivered vs "
                     "the nominal rate, lost upstream and dropped by reason.",
     )
-    p.add_argument("traces", nargs="*", metavar="TRACE", help="trace file(s) written by `dcuscope run`")
-    _add_db_arguments(p)
+    add_input_arguments(p)
     p.add_argument("--node", metavar="NAME",
                    help="with --db: one DCU over days or months, from the store's rollups (per minute and hour, "
                         "written as the relay compacts): counts, means, min, max, drops exact, percentiles within "
@@ -57,42 +44,16 @@ def add_stats_parser(subparsers) -> argparse.ArgumentParser:
     return p
 
 
-def add_export_parser(subparsers) -> argparse.ArgumentParser:
-    p = subparsers.add_parser(
-        "export", help="convert trace files to Perfetto/Chrome trace JSON or CSV",
-        description="perfetto: Chrome Trace Event JSON for ui.perfetto.dev or chrome://tracing "
-                    "(a process per node, a track per stage and source, a slice per frame split "
-                    "into its wait and service, flows following each frame, counters of each "
-                    "stage's utilization and of the frames inside it; µs since the earliest "
-                    "event). csv: one row per frame per stage.",
-    )
-    p.add_argument("traces", nargs="*", metavar="TRACE", help="trace file(s) written by `dcuscope run`")
-    _add_db_arguments(p)
-    p.add_argument("--format", choices=("perfetto", "csv"), default="perfetto", help="output format (default perfetto)")
-    p.add_argument("-o", "--output", required=True, metavar="OUT", help="output file, - for stdout")
-    p.add_argument("--bucket-ms", type=float, default=BUCKET_NS / 1e6, metavar="MS",
-                   help=f"perfetto: width of the utilization counters' buckets (default {BUCKET_NS / 1e6:g})")
-    p.set_defaults(func=run_export)
-    return p
-
-
-def _add_db_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--db", metavar="PATH|URL", help="a relay's store instead of trace files: its SQLite file, or its "
-                                                   "PostgreSQL database (postgresql://USER@HOST/DB)")
-    p.add_argument("--session", metavar="ID", help="with --db: the stored session's number, or a run's id (its first 6+ "
-                                                   "digits): dcuscope sessions --db DB and dcuscope runs --db DB list them")
-
-
 def run_stats(args: argparse.Namespace) -> int:
     if args.node is not None or args.since is not None:
         return _rollup_stats(args)
-    with _user_errors() as failed:
-        traces = _inputs(args, "stats")
+    with user_errors() as failed:
+        traces = read_inputs(args, "stats")
         doc = stats_document(traces)
-        for st, trace, clock in zip(doc["nodes"].values(), traces, _clocks(traces)):
+        for st, trace, clock in zip(doc["nodes"].values(), traces, clocks(traces)):
             if clock is not None:
                 st["clock"] = clock_entry(trace.correction, trace.last_ns)
-        with _open_output("-") as out:
+        with open_output("-") as out:
             if args.json:
                 out.write(json.dumps(doc, indent=2) + "\n")
             else:
@@ -101,12 +62,12 @@ def run_stats(args: argparse.Namespace) -> int:
 
 
 def _rollup_stats(args: argparse.Namespace) -> int:
-    with _user_errors() as failed:
+    with user_errors() as failed:
         if args.db is None or args.node is None or args.traces or args.session is not None:
             raise DcuscopeError("stats: --node and --since read a store's rollups: give --db PATH|URL --node NAME "
                                 "[--since DURATION], without TRACE files or --session")
-        from dcuscope.relay.store.history import parse_duration_ns, summary
         from dcuscope.relay.store.engines import is_url
+        from dcuscope.relay.store.history import parse_duration_ns, summary
 
         if not is_url(args.db) and not Path(args.db).is_file():
             raise DcuscopeError(f"stats: {args.db}: no such database")
@@ -116,7 +77,7 @@ def _rollup_stats(args: argparse.Namespace) -> int:
         doc["elapsed_s"] = round(time.monotonic() - started, 3)
         if not doc["rows"] and not doc["raw"]["events"]:
             raise DcuscopeError(_nothing_stored(args))
-        with _open_output("-") as out:
+        with open_output("-") as out:
             out.write(json.dumps(doc, indent=2) + "\n" if args.json else format_rollups(doc))
     return 2 if failed else 0
 
@@ -165,94 +126,6 @@ def format_rollups(doc: dict) -> str:
     if doc["raw"]["said"]:  # batches not compacted yet: counted from them, or said to be left out
         lines.append(f"  raw: {doc['raw']['said']}")
     return "\n".join(lines) + "\n"
-
-
-def run_export(args: argparse.Namespace) -> int:
-    with _user_errors() as failed:
-        bucket_ns = _bucket_ns(args.bucket_ms)
-        traces = _inputs(args, "export")
-        nodes, clocks = [(t.header, t.events) for t in traces], _clocks(traces)
-        with _open_output(args.output) as out:
-            if args.format == "csv":
-                write_csv(out, nodes, clocks)
-            else:
-                json.dump(perfetto_document(nodes, bucket_ns, clocks), out, separators=(",", ":"), ensure_ascii=False)
-                out.write("\n")
-    return 2 if failed else 0
-
-
-def _bucket_ns(ms: float) -> int:
-    """--bucket-ms in whole ns; a bad value is the user's error."""
-    ns = ms * 1e6
-    if not math.isfinite(ns) or round(ns) < 1:
-        raise DcuscopeError(f"export: --bucket-ms must be a positive number of milliseconds, got {ms:g}")
-    return round(ns)
-
-
-def _inputs(args: argparse.Namespace, command: str) -> list:
-    """Per node an object with header, events, dropped: trace files, or a stored session's runs."""
-    if args.db is None and args.session is None:
-        if not args.traces:
-            raise DcuscopeError(f"{command}: give at least one TRACE file (or --db PATH --session ID)")
-        return [read_trace(path) for path in args.traces]
-    if args.traces or args.db is None or args.session is None:
-        raise DcuscopeError(f"{command}: give either TRACE files, or --db PATH with --session ID")
-    from dcuscope.relay.store.engines import is_url
-    from dcuscope.relay.store.runs import load_runs  # the relay's modules load only for this input
-
-    if not is_url(args.db) and not Path(args.db).is_file():
-        raise DcuscopeError(f"{command}: {args.db}: no such database")
-
-    return _named(args.db, load_runs(args.db, args.session))
-
-
-def _named(db: str, runs: list) -> list:
-    """Stored runs under the names the page and ``dcuscope runs`` give them
-    (:func:`dcuscope.relay.store.runs.run_name`: ``vm · run fca2e7ed`` where the session holds two runs of vm),
-    a run asked for by its id included."""
-    from dcuscope.relay.store.runs import run_name, session_nodes
-
-    nodes = {s: session_nodes(db, s) for s in {r.session for r in runs}}
-    for r in runs:
-        r.header = replace(r.header, node=run_name(r.header.node, r.run, nodes[r.session].count(r.header.node) > 1))
-    return runs
-
-
-def _clocks(traces: list) -> list[Correction | None]:
-    """Per node the correction its timestamps were moved by, looked up by the moved times (the
-    exporters see those): a stored run's; None for a trace file."""
-    return [None if isinstance(t, Trace) else t.correction.on_relay_clock() for t in traces]
-
-
-@contextmanager
-def _user_errors():
-    """Turn a DcuscopeError into one stderr line; the yielded list is non-empty after one."""
-    failed: list[str] = []
-    try:
-        yield failed
-    except DcuscopeError as exc:
-        failed.append(str(exc))
-        print(f"dcuscope: error: {exc}", file=sys.stderr)
-
-
-@contextmanager
-def _open_output(path: str):
-    """The file at ``path``, or stdout for ``-``, where a reader that goes away ends the output quietly."""
-    if path == "-":
-        try:
-            yield sys.stdout
-            sys.stdout.flush()
-        except BrokenPipeError:
-            # The reader stopped early (`-o - | head`): it has what it wanted. What is left goes
-            # nowhere, as does the flush at exit, which would otherwise fail on the closed pipe too.
-            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-        return
-    try:
-        out = open(path, "w", encoding="utf-8", newline="")
-    except OSError as exc:
-        raise DcuscopeError(f"{path}: cannot write output: {exc.strerror or exc}") from exc
-    with out:
-        yield out
 
 
 def _origin(trace, db: str | None) -> str:

@@ -22,8 +22,10 @@ from dcuscope.model.frametable import frame_table
 from dcuscope.probes.ship.simnode import header_for, synth_events
 from dcuscope.protocol.events import DROP, DROP_REASONS, ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
 from dcuscope.protocol.wire import PTP_STATES, encode_batch
+from dcuscope.relay.config import RelayConfig
 from dcuscope.relay.export.framemetrics import MAX_GAPS, NS_PER_S, gap_stages
 from dcuscope.relay.export.metrics import BUCKETS_S
+from dcuscope.relay.guard.auth import Credentials
 from dcuscope.relay.guard.limits import Limits
 from dcuscope.relay.live.run import LiveConfig
 from dcuscope.relay.server import start_relay
@@ -127,7 +129,7 @@ def test_histograms_gauges_and_counters_equal_the_delay_model_and_api_stats(tmp_
         # A window longer than the run: the scrape's and /api/stats' windows, taken a moment apart, hold
         # the same frames (a window ends at the present, and a loaded machine may let the run's first
         # frames age out of a 10 s one between the two).
-        relay = await start_relay(port=0, db=tmp_path / "r.db", live=LiveConfig(settle_s=0.0, window_s=600.0))
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db", live=LiveConfig(settle_s=0.0, window_s=600.0)))
         url = f"http://127.0.0.1:{relay.port}"
         run = uuid.uuid4().hex
         try:
@@ -189,7 +191,7 @@ def test_histograms_gauges_and_counters_equal_the_delay_model_and_api_stats(tmp_
 
 def test_the_policy_guards_metrics_as_it_guards_the_api(tmp_path):
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db", token=TOKEN)
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db", credentials=Credentials(TOKEN)))
         url = f"http://127.0.0.1:{relay.port}"
         try:
             async with aiohttp.ClientSession() as http:
@@ -223,7 +225,7 @@ def test_a_nodes_new_run_starts_its_series_afresh(tmp_path):
     second_values = series(frame_delays(frame_table(header, second)))
 
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db", live=LiveConfig(settle_s=0.0))
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db", live=LiveConfig(settle_s=0.0)))
         url = f"http://127.0.0.1:{relay.port}"
         runs = uuid.uuid4().hex, uuid.uuid4().hex
         try:
@@ -256,8 +258,8 @@ def test_only_the_nodes_the_relay_holds_have_series(tmp_path):
     events = synth_events(30, 1, 25.0, T0)
 
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db", limits=Limits(runs_held=2),
-                                  live=LiveConfig(settle_s=0.0))
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db", limits=Limits(runs_held=2),
+                                  live=LiveConfig(settle_s=0.0)))
         url = f"http://127.0.0.1:{relay.port}"
         try:
             for name in ("A", "B", "C"):
@@ -299,8 +301,8 @@ def test_on_a_shared_store_a_relay_shows_only_the_runs_it_holds(tmp_path, pg_url
     assert n_first == 40 and n_all == 80
 
     async def scenario():
-        a = await start_relay(port=0, db=pg_url, live=LiveConfig(settle_s=0.0))
-        b = await start_relay(port=0, db=pg_url, live=LiveConfig(settle_s=0.0))
+        a = await start_relay(RelayConfig(port=0, db=pg_url, live=LiveConfig(settle_s=0.0)))
+        b = await start_relay(RelayConfig(port=0, db=pg_url, live=LiveConfig(settle_s=0.0)))
         url_a, url_b = (f"http://127.0.0.1:{r.port}" for r in (a, b))
         run = uuid.uuid4().hex
         try:
@@ -387,7 +389,7 @@ def test_a_hostile_node_cannot_push_its_series_beyond_the_stated_bound(tmp_path)
     assert len(values.gaps) > 3 * MAX_GAPS  # the cap is what bounds them
 
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db", live=LiveConfig(settle_s=0.0))
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db", live=LiveConfig(settle_s=0.0)))
         url = f"http://127.0.0.1:{relay.port}"
         run = uuid.uuid4().hex
         try:
@@ -419,7 +421,7 @@ def test_ingest_lag_is_the_relays_now_less_the_nodes_newest_event(tmp_path):
     newest = int(events["ts"].max())
 
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db")
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db"))
         url = f"http://127.0.0.1:{relay.port}"
         run = uuid.uuid4().hex
         try:

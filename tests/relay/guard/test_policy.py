@@ -11,6 +11,8 @@ import pytest
 import socketio
 
 from dcuscope.relay.api.ui import UiNamespace
+from dcuscope.relay.config import RelayConfig
+from dcuscope.relay.guard.auth import Credentials
 from dcuscope.relay.guard.policy import COOKIE, COOKIE_LIFETIME_S, Action, Policy, Principal, Role, actions, certificate_principal
 from dcuscope.relay.server import start_relay
 
@@ -38,8 +40,8 @@ def _status_kind(status: int) -> int | str:
 
 
 async def _walk(tmp_path, caplog) -> tuple[dict, dict, dict, list[str], dict]:
-    relay = await start_relay(port=0, db=tmp_path / "r.db", token=ADMIN, viewer_tokens={"ann": VIEWER},
-                              node_tokens={"DCU-1": NODE}, clock_port=0)
+    relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db", credentials=Credentials(ADMIN, {"ann": VIEWER}, {"DCU-1": NODE}),
+                              clock_port=0))
     url = f"http://127.0.0.1:{relay.port}"
     app = relay.runner.app
     declared = actions(app)
@@ -115,8 +117,8 @@ def test_the_page_signs_in_with_a_cookie_and_never_keeps_a_token_in_its_address(
     caplog.set_level(logging.DEBUG)
 
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db", token=ADMIN, viewer_tokens={"ann": VIEWER},
-                                  node_tokens={"DCU-1": NODE}, clock_port=0)
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db", credentials=Credentials(ADMIN, {"ann": VIEWER}, {"DCU-1": NODE}),
+                                  clock_port=0))
         url = f"http://127.0.0.1:{relay.port}"
         out = {}
         try:
@@ -170,21 +172,21 @@ def test_the_page_signs_in_with_a_cookie_and_never_keeps_a_token_in_its_address(
 
 
 def test_session_cookies_are_signed_by_the_credential_and_expire():
-    one = Policy(ADMIN, {"ann": VIEWER}, {"DCU-1": NODE})
+    one = Policy(Credentials(ADMIN, {"ann": VIEWER}, {"DCU-1": NODE}))
     cookie = one.cookie_for(Principal(Role.VIEWER, "ann"), now=1000.0)
     assert VIEWER not in cookie
     assert one.by_cookie(cookie, now=1000.0 + COOKIE_LIFETIME_S - 1) == Principal(Role.VIEWER, "ann")
     assert one.by_cookie(cookie, now=1000.0 + COOKIE_LIFETIME_S + 1) is None  # expired
     # Another relay with the same token files takes it; one whose viewer has another token does not.
-    assert Policy(None, {"ann": VIEWER}).by_cookie(cookie, now=1000.0) == Principal(Role.VIEWER, "ann")
-    assert Policy(None, {"ann": VIEWER + "x"}).by_cookie(cookie, now=1000.0) is None
+    assert Policy(Credentials(None, {"ann": VIEWER})).by_cookie(cookie, now=1000.0) == Principal(Role.VIEWER, "ann")
+    assert Policy(Credentials(None, {"ann": VIEWER + "x"})).by_cookie(cookie, now=1000.0) is None
     body, mac = cookie.split(".")
     forged = one.cookie_for(Principal(Role.ADMIN, "admin"), now=1000.0).split(".")[0] + "." + mac
     assert one.by_cookie(forged, now=1000.0) is None
     for junk in ("", ".", "a.b.c", "%%%.%%%", body + ".", 42):
         assert one.by_cookie(junk, now=1000.0) is None
     with pytest.raises(Exception, match="another credential has too"):
-        Policy(ADMIN, {"ann": ADMIN})
+        Policy(Credentials(ADMIN, {"ann": ADMIN}))
 
 
 def test_a_client_certificate_names_a_node():
@@ -198,25 +200,25 @@ def test_a_client_certificate_names_a_node():
     assert certificate_principal(with_san).node == "dcu-7.plant.example"
     assert certificate_principal({}) is None and certificate_principal(None) is None
     assert certificate_principal({"subject": ((("organizationName", "x"),),)}) is None
-    policy = Policy(ADMIN)
+    policy = Policy(Credentials(ADMIN))
     assert policy.decide(certificate_principal(cert), True, Action.INGEST) == Principal(Role.NODE, "DCU-7")
     assert policy.decide(certificate_principal(cert), True, Action.READ).status == 403
 
 
 def test_an_open_relay_lets_anyone_read_but_a_node_credential_still_may_not():
-    nodes_only = Policy(None, None, {"DCU-1": NODE})
+    nodes_only = Policy(Credentials(nodes={"DCU-1": NODE}))
     assert nodes_only.reads_open and not nodes_only.ingest_open
     assert nodes_only.decide(None, False, Action.READ).role is Role.VIEWER
     assert nodes_only.decide(None, False, Action.INGEST).status == 401
     assert nodes_only.decide(nodes_only.by_token(NODE), True, Action.READ).status == 403
-    viewers_only = Policy(None, {"ann": VIEWER})
+    viewers_only = Policy(Credentials(viewers={"ann": VIEWER}))
     assert not viewers_only.ingest_open and viewers_only.decide(None, False, Action.INGEST).status == 401
     demo = Policy()
     assert demo.decide(None, False, Action.READ).name == "" and demo.decide(None, True, Action.INGEST).name == ""
 
 
 def test_a_relay_that_certifies_nodes_takes_the_certificates_name_and_no_token_against_it():
-    policy = Policy(ADMIN, {"ann": VIEWER}, {"DCU-1": NODE}, certified=True)
+    policy = Policy(Credentials(ADMIN, {"ann": VIEWER}, {"DCU-1": NODE}), certified=True)
     cert = Principal(Role.NODE, "DCU-7")
     assert policy._certified(None, policy.by_token(ADMIN), True).count == "certificate_missing"
     assert policy._certified(cert, None, False) == cert  # the certificate alone is the credential

@@ -29,7 +29,7 @@ from tests.conftest import cli_env
 from tests.relay.helpers import RelayProcess, get_json, kill_all, wait_for
 from tests.relay.promserver import JOB, PromServer, wait_scrape
 
-CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "prometheus"
+CONFIGS = Path(__file__).resolve().parents[3] / "configs" / "prometheus"
 TOKEN = "prom-test-token"
 LIMIT_MS = {"DCU-1": 5000, "DCU-2": 10}
 """Each node's frames take at least its work's sleep: DCU-1's (15 ms) would be over DCU-2's limit and

@@ -6,17 +6,16 @@ lossless, acknowledged, resumable protocol and clock exchange as ``dcuscope run 
 from __future__ import annotations
 
 import argparse
-import os
 import signal
 import threading
 from pathlib import Path
 
+from dcuscope.commands.options import add_relay_arguments
 from dcuscope.core import signals
 from dcuscope.core.errors import DcuscopeError
 from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
-from dcuscope.probes.ship.nodetls import add_tls_arguments, tls_from_args
-from dcuscope.probes.ship.spoolargs import add_spool_arguments, spool_from_args
-from dcuscope.protocol.credentials import TOKEN_ENV
+from dcuscope.probes.ship.nodetls import tls_from_args
+from dcuscope.probes.ship.spoolargs import spool_from_args
 
 
 def add_ship_parser(sub) -> None:
@@ -36,22 +35,15 @@ def add_ship_parser(sub) -> None:
                f"were stored, {UNACKNOWLEDGED_STATUS} when some stay in the spool. `dcuscope spool` lists them.",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("trace", type=Path, nargs="?", metavar="TRACE", help="the trace file being written")
-    p.add_argument("--relay", metavar="URL[,URL...]",
-                   help="the relay, http://HOST:PORT; or several, comma-separated, tried in turn")
     p.add_argument("--drain", action="store_true",
                    help="instead of a TRACE: send the runs kept in the spool, then exit (see below)")
-    p.add_argument("--token", default=os.environ.get(TOKEN_ENV),
-                   help=f"the relay's node token, if it asks for one (default ${TOKEN_ENV})")
-    add_tls_arguments(p)
-    add_spool_arguments(p)
+    add_relay_arguments(p, "the relay, http://HOST:PORT; or several, comma-separated, tried in turn",
+                        after="once TRACE ended", keeps="TRACE still holds it")
     p.add_argument("--node", help="the node's name on the relay (default: the trace's)")
     p.add_argument("--settle", type=float, default=1.0, metavar="S",
                    help="seconds the trace's stages must stay the same before connecting (default 1)")
     p.add_argument("--wait", type=float, default=60.0, metavar="S",
                    help="give up when TRACE names no stage after S seconds (default 60)")
-    p.add_argument("--close-timeout", type=float, default=60.0, metavar="S",
-                   help="once TRACE ended, keep trying every --relay for up to S seconds until all that was sent "
-                        "is acknowledged (default 60); what is still unacknowledged then is reported lost")
     p.set_defaults(func=_ship, holds_signals=True)
 
 

@@ -86,7 +86,7 @@ def add_compare_parser(sub) -> None:
 
 
 def run_compare(args: argparse.Namespace) -> int:
-    from dcuscope.compareformat import format_markdown, format_table
+    from dcuscope.commands.compareformat import format_markdown, format_table
     from dcuscope.gate import check, parse_bound
     from dcuscope.model.compare import compare
 

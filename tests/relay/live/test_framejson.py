@@ -11,7 +11,7 @@ from dcuscope.relay.live import framepack
 from dcuscope.relay.live.framejson import frame_dicts
 from dcuscope.relay.live.run import LiveRun
 from tests.probes.synth import T0
-from tests.relay.test_moments import node_run
+from tests.relay.api.test_moments import node_run
 
 PERIOD = 100_000_000
 

@@ -30,18 +30,16 @@ import threading
 from pathlib import Path
 from typing import TYPE_CHECKING, NamedTuple
 
+from dcuscope.commands.options import add_relay_arguments
 from dcuscope.core.errors import DcuscopeError
 from dcuscope.core.pycompat import NEW_PROCESS_GROUP
 from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
-from dcuscope.probes.ship.nodetls import add_tls_arguments, tls_from_args
-from dcuscope.probes.ship.spoolargs import add_spool_arguments, spool_from_args
-from dcuscope.protocol.credentials import TOKEN_ENV
+from dcuscope.probes.ship.nodetls import tls_from_args
+from dcuscope.probes.ship.spoolargs import spool_from_args
 
 if TYPE_CHECKING:
     from dcuscope.probes.ship.tailship import TailShipper
 
-EXPORTER_CLOSE_S = 60.0
-"""``--close-timeout``'s default: protocol.events.EXPORTER_CLOSE_S (not imported: numpy slows the start)."""
 
 EPILOG = """\
 examples:
@@ -81,16 +79,8 @@ def add_trace_parser(sub) -> None:
               "                      [--quiet] -- CMD [ARGS...]")
     p.add_argument("--node", metavar="NAME", help="the node's name in the trace and on the relay (default: the host name)")
     p.add_argument("-o", "--output", type=Path, metavar="TRACE", help="the trace file (default NODE.trace.jsonl)")
-    p.add_argument("--relay", metavar="URL[,URL...]", help="ship the trace live to this relay (several, comma-separated: "
-                                                          "the next when one cannot be reached)")
-    p.add_argument("--token", metavar="TOKEN", default=os.environ.get(TOKEN_ENV),
-                   help=f"the relay's node token, if it asks for one (default ${TOKEN_ENV})")
-    add_tls_arguments(p)
-    add_spool_arguments(p)
-    p.add_argument("--close-timeout", type=_positive_float, default=EXPORTER_CLOSE_S, metavar="S",
-                   help="once CMD ended, keep trying every --relay for up to S seconds until all that was sent is "
-                        "acknowledged (default %(default)g); what is still unacknowledged then is reported lost "
-                        "(TRACE still holds it)")
+    add_relay_arguments(p, "ship the trace live to this relay (several, comma-separated: the next when one cannot be "
+                           "reached)", after="once CMD ended", keeps="TRACE still holds it")
     p.add_argument("--quiet", "-q", action="store_true", help="no summary when CMD ends (the trace is still written)")
     p.add_argument("command", nargs=argparse.REMAINDER, metavar="CMD", help="the program and its arguments, after --")
     p.set_defaults(func=run_trace)
@@ -257,9 +247,9 @@ def _start_shipper(args: argparse.Namespace, trace: Path, stop: threading.Event)
 
 def _summary(trace: Path | None, named: Path, program: str) -> None:
     """The stats of ``trace`` (this run's), or why there is none (``named``: where it was to go)."""
+    from dcuscope.commands.stats import format_stats
     from dcuscope.probes.trace.stats import stats_document
     from dcuscope.probes.trace.tracefile import read_trace
-    from dcuscope.tracecommands import format_stats
 
     if trace is None:
         earlier = f"; {named}, an earlier run's, is kept as it was" if named.exists() else ""
@@ -274,9 +264,3 @@ def _summary(trace: Path | None, named: Path, program: str) -> None:
         return
     print(f"\ndcuscope: {program} traced\n{text}", file=sys.stderr, end="")
 
-
-def _positive_float(text: str) -> float:
-    value = float(text)
-    if value <= 0:
-        raise argparse.ArgumentTypeError("must be positive")
-    return value

@@ -9,8 +9,8 @@ import pytest
 import socketio
 
 from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
-from dcuscope.relay.api.ui import DEFAULT_PUSH_HZ
 from dcuscope.relay.live.framepack import unpack_push
+from dcuscope.relay.live.pairing import DEFAULT_PUSH_HZ
 from tests.conftest import run_cli
 from tests.relay.helpers import (RelayProcess, finish_node, get_json, http_status, load_node, start_node)
 
@@ -46,7 +46,7 @@ def test_token_refusals(tmp_path):
         good = start_node(relay.url, "DCU-1", tmp_path / "good.npz", frames=20, fps=50, token=TOKEN)
         assert finish_node(good, 30)["acked"] > 0
 
-        # HTTP: the header (or the page's cookie, tests/relay/test_policy.py); a token in the address is none.
+        # HTTP: the header (or the page's cookie, tests/relay/guard/test_policy.py); a token in the address is none.
         assert http_status(f"{relay.url}/api/nodes") == 401
         assert http_status(f"{relay.url}/api/stats?node=DCU-1", {"Authorization": "Bearer wrong"}) == 401
         assert http_status(f"{relay.url}/api/nodes", {"Authorization": f"Bearer {TOKEN}"}) == 200

@@ -26,8 +26,8 @@ from dcuscope.relay.store.history import history, summary
 from dcuscope.relay.store.writer import Storage
 from tests.conftest import run_cli
 from tests.relay.helpers import RelayProcess, finish_node, get_json, start_node, wait_for
-from tests.relay.test_compaction import table_rows, write_run
-from tests.relay.test_store_engines import store  # noqa: F401 - the engines' fixture
+from tests.relay.store.test_compaction import table_rows, write_run
+from tests.relay.store.test_store_engines import store  # noqa: F401 - the engines' fixture
 
 QS = (0.0, 0.01, 0.25, 0.5, 0.9, 0.99, 0.999, 1.0)
 

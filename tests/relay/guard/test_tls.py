@@ -118,7 +118,7 @@ def test_a_node_streams_over_tls_and_each_refusal_has_its_reason(relay, pki, tmp
     assert held["refused"]["peer_cap"] >= 2 * PER_PEER, held["refused"]
     reply = asyncio.run(oversize(relay.url, node_tls(pki, "dcu3").context()))
     assert health(relay, pki)["rejected"] >= 1
-    # Over TLS the hello reply carries the UDP clock exchange's secret (tests/relay/test_clock_udp.py: none over ws).
+    # Over TLS the hello reply carries the UDP clock exchange's secret (tests/relay/clock/test_clock_udp.py: none over ws).
     assert len(bytes.fromhex(reply["clock_secret"])) == 32, reply
 
     async def refusals() -> dict[str, str]:

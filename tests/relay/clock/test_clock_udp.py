@@ -25,6 +25,7 @@ from dcuscope.protocol.clockdatagram import DATAGRAM_BYTES, VERSION, Tagger, dec
 from dcuscope.protocol.events import ORIGIN
 from dcuscope.relay.clock.correction import ClockSample, ntp_sample
 from dcuscope.relay.clock.udp import ClockUdp, NonceWindow
+from dcuscope.relay.config import RelayConfig
 from dcuscope.relay.guard.limits import Limits
 from dcuscope.relay.server import start_relay
 from tests.relay.helpers import (ROOT, HandNode, RelayProcess, env, finish_node, get_json, start_node, wait_for)
@@ -220,7 +221,7 @@ def test_a_clock_port_the_relay_cannot_have_is_a_one_line_error(tmp_path):
 def test_a_node_whose_udp_goes_unanswered_falls_back_to_the_websocket(tmp_path, caplog):
     """The relay offers UDP, but its datagrams vanish (a firewall): a silent socket holds the port."""
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db", clock="estimate")
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db", clock="estimate"))
         port = relay.clock_port
         relay.ingest.clock_udp.stop()  # the offer stays, the answers stop
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as silent:
@@ -250,7 +251,7 @@ def test_kernel_receive_times_are_moved_to_the_probes_clock(tmp_path, clock):
     clock_id = CLOCKS[clock]
 
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db", clock="estimate")
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db", clock="estimate"))
         node = await HandNode.open(f"http://127.0.0.1:{relay.port}", "A", uuid.uuid4().hex)
         port, key, _ = parse_offer(node.reply)
         udp = await UdpClock.open("127.0.0.1", port, key, PretendClock(clock_id=clock_id))
@@ -383,7 +384,7 @@ def test_only_a_private_connection_gets_a_clock_secret_and_its_node_refuses_move
     node refuses them, counts them, says so once naming the relay, and its estimate holds the truth
     over the WebSocket. A plaintext connection gets no secret."""
     async def scenario():
-        relay = await start_relay(port=0, db=tmp_path / "r.db", clock="estimate")
+        relay = await start_relay(RelayConfig(port=0, db=tmp_path / "r.db", clock="estimate"))
         url = f"http://127.0.0.1:{relay.port}"
         exporter = None
         try:

@@ -11,8 +11,8 @@ from dcuscope.core.console import Console
 from dcuscope.core.errors import UsageError
 from dcuscope.core.ports import check_port_free
 from dcuscope.pipeline.build import build_pipeline
-from dcuscope.pipeline.launch import build_launch
 from dcuscope.pipeline.config import PipelineConfig, SinkConfig, load_config
+from dcuscope.pipeline.launch import build_launch
 from dcuscope.pipeline.outputs import check_frames_folder, check_video_file
 from dcuscope.pipeline.run import Runner
 from dcuscope.pipeline.stalls import describe

@@ -20,7 +20,7 @@ from dcuscope.relay.store.engines import open_database
 from dcuscope.relay.store.runs import list_sessions, load_runs
 from tests.conftest import run_cli
 from tests.relay.helpers import RelayProcess, finish_node, get_json, http_status, start_node, wait_for
-from tests.relay.test_store_engines import T0, execute, payload, store  # noqa: F401 - store: the engines' fixture
+from tests.relay.store.test_store_engines import T0, execute, payload, store  # noqa: F401 - store: the engines' fixture
 
 BATCH = 200
 

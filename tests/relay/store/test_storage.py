@@ -1,6 +1,6 @@
 """What only the SQLite engine does: its file (WAL, errors naming it), databases of older relays migrated in place.
 
-The behaviour both engines share is tested against each in tests/relay/test_store_engines.py."""
+The behaviour both engines share is tested against each in tests/relay/store/test_store_engines.py."""
 
 from __future__ import annotations
 

@@ -22,7 +22,7 @@ from tests.relay.helpers import RelayProcess, kill_all, start_node, wait_for
 from tests.relay.netcut import CutProxy
 from tests.relay.promserver import JOB, PromServer
 
-CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "prometheus"
+CONFIGS = Path(__file__).resolve().parents[3] / "configs" / "prometheus"
 STATE = {"dcuscope_node_connected", "dcuscope_node_ended", "dcuscope_node_last_seen_timestamp_seconds",
          "dcuscope_node_info"}
 """The only series a relay shows of a run it keeps but no longer holds (relay/export/nodemetrics.py)."""

@@ -16,7 +16,7 @@ import yaml
 from tests.relay.promserver import require_tool
 from tests.tlscerts import TestCA
 
-CONFIGS = Path(__file__).resolve().parents[2] / "configs" / "prometheus"
+CONFIGS = Path(__file__).resolve().parents[3] / "configs" / "prometheus"
 RULES, UNIT_TEST, CONFIG = "dcuscope-rules.yml", "dcuscope-rules.test.yml", "prometheus.yml"
 SHIPPED_TOKEN_FILE = "/etc/prometheus/dcuscope-relay.token"
 
