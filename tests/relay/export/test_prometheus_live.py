@@ -139,6 +139,9 @@ def run(tmp_path_factory):
         watch(relay, prom, nodes, seen)
         for name, proc in nodes.items():
             assert proc.wait(60) == 0, (tmp / f"{name}.log").read_text()[-3000:]
+        logs = {name: (tmp / f"{name}.log").read_text()[-1500:] for name in nodes}
+        assert {n["node"] for n in get_json(f"{relay.url}/api/nodes", TOKEN)} == set(nodes), \
+            f"both nodes' runs are not on the relay: {logs}"  # a node that never reached it exits 0 (its spool keeps all)
         wait_for(lambda: all(n["ended"] for n in get_json(f"{relay.url}/api/nodes", TOKEN)), 20, 0.2, "runs ended")
         # The runs' last frames are finalised at their end (a batch may still land after it): the
         # histograms then hold every frame /api/stats counts.
