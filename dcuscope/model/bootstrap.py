@@ -16,7 +16,7 @@ replicates are stretched about their mean by :func:`stretch`, the factor that un
 series' autocovariances (those of the series for the mean, of ``x <= the percentile`` for a
 percentile: its influence, less correlated in a tail than the series). And the spread is itself an
 estimate from n / b blocks, lowest when the mean is furthest off: intervals are widened by
-Student's t with a degree of freedom a block (:func:`widening`). ``tests/probes/trace/test_bootstrap.py``
+Student's t with a degree of freedom a block (:func:`widening`). ``tests/model/test_bootstrap.py``
 checks the coverage on AR(1) series of known correlation, Gaussian and log-normal, where a plain
 bootstrap misses; ``benchmarks/bench_coverage.py`` tabulates it against the uncorrected method.
 

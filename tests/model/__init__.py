@@ -1,0 +1,1 @@
+"""Tests of dcuscope.model: the delay model."""

@@ -1,0 +1,1 @@
+"""Tests of dcuscope.protocol: what nodes and relays speak."""
