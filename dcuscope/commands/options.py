@@ -8,13 +8,12 @@ import argparse
 
 from dcuscope.probes.ship.nodetls import add_tls_arguments
 from dcuscope.probes.ship.spoolargs import add_spool_arguments
-from dcuscope.protocol.credentials import TOKEN_ENV, add_token_argument
+from dcuscope.protocol.credentials import NODE_TOKEN_HELP, add_token_argument
 
 CLOSE_TIMEOUT_S = 60.0
 """``--close-timeout``'s default: protocol.events.EXPORTER_CLOSE_S (not imported here: numpy slows the start)."""
 MAX_DRIFT_PPM = 1000.0
 """Beyond any quartz (tens of ppm): a larger --clock-drift-ppm is a typo."""
-NODE_TOKEN_HELP = f"the relay's node token, if it asks for one (default ${TOKEN_ENV}, which keeps it out of process listings)"
 
 
 def positive_int(text: str) -> int:

@@ -28,7 +28,7 @@ from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS
 from dcuscope.probes.ship.nodetls import add_tls_arguments, tls_from_args
 from dcuscope.probes.ship.relayexport import RelayExporter
 from dcuscope.probes.ship.spoolargs import add_spool_arguments, spool_from_args
-from dcuscope.protocol.credentials import add_token_argument
+from dcuscope.protocol.credentials import NODE_TOKEN_HELP, add_token_argument
 from dcuscope.protocol.events import ENTER, EVENT_DTYPE, EXIT, ORIGIN, TraceHeader
 
 STAGES = ("mux", "infer", "tiler", "convert", "osd")
@@ -113,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
                "stdout counts them), 2 bad arguments.")
     p.add_argument("--relay", required=True)
     p.add_argument("--node", required=True)
-    add_token_argument(p, "the relay's node token, if it asks for one (default $DCUSCOPE_TOKEN)")
+    add_token_argument(p, NODE_TOKEN_HELP)
     add_tls_arguments(p)
     p.add_argument("--sources", type=int, default=2)
     p.add_argument("--fps", type=float, default=25.0, help="frames per second per source")
