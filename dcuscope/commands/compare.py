@@ -135,15 +135,41 @@ def _load_inputs(args: argparse.Namespace) -> list:
 
     out: list[Input] = []
     for text in args.inputs:
-        header, events, label, origin, _ = _pick_node(text, _read(text, args.db), args.node)
+        header, events, label, origin, run = _pick_node(text, _read(text, args.db), args.node)
         fd = frame_delays(frame_table(header, events))
         if not fd.chains.complete.any():
             raise DcuscopeError(f"compare: {text}: no complete frame of node {header.node} (did the run carry frames "
                                 "through every stage?)")
-        out.append(Input(label=label, origin=origin, node=header.node, fd=fd, kinds=header.kinds))
+        journeys = _journeys(args.db, run) if run else {}
+        out.append(Input(label=label, origin=origin, node=header.node, fd=fd, kinds=header.kinds, journeys=journeys))
     for i, label in zip(out, distinct_labels([i.label for i in out])):
         i.label = label
     return out
+
+
+def _journeys(db: str, run: str) -> dict:
+    """The rows across nodes of a stored run (:attr:`dcuscope.model.compare.Input.journeys`): its session's
+    runs joined on the relay's clock."""
+    import numpy as np
+
+    from dcuscope.model.journeys import join
+    from dcuscope.model.names import unique_names
+    from dcuscope.relay.store.runs import load_runs
+
+    session = load_runs(db, run, corrected=False)[0].session
+    runs = load_runs(db, session)
+    names = unique_names(r.header.node for r in runs)
+    me = names[[r.run for r in runs].index(run)]
+    joined = join(runs, names)
+    rows = {}
+    for name, hop in joined.hops.items():
+        if me in (hop.sender, hop.receiver):
+            order = np.argsort(hop.sent_ns, kind="stable")
+            rows[name] = np.asarray(hop.delays_ns, np.float64)[order] / 1e6
+    for j in joined.journeys:
+        if j.nodes[-1] == me:
+            rows.setdefault("journey " + " → ".join(j.nodes), []).append(j.total_ns / 1e6)
+    return {name: np.asarray(v, np.float64) for name, v in rows.items()}
 
 
 def _read(text: str, db: str | None) -> list[tuple]:

@@ -56,7 +56,8 @@ def add_run_parser(sub) -> None:
                                 "(sharing one database): the node moves to the next when its relay cannot be reached",
                         after="at the end of the run", keeps="a --trace file still holds it")
     probes.add_argument("--clock-offset-ms", type=float, default=0.0, metavar="MS",
-                        help="TESTING AID: shift this node's clock by MS milliseconds, to check clock alignment (default 0)")
+                        help="TESTING AID: shift this node's clock by MS milliseconds, to check clock alignment (default 0); "
+                             "a launch: pipeline shifts what it sends the relay, its trace file keeps the true clock")
     probes.add_argument("--clock-drift-ppm", type=drift_ppm, default=0.0, metavar="PPM",
                         help="TESTING AID: make this node's clock run PPM parts per million fast (negative: slow) "
                              "from the start of the run, on top of --clock-offset-ms, for its events and its clock "

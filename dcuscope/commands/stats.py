@@ -153,7 +153,32 @@ def format_stats(doc: dict, origins: list[str] | None = None) -> str:
         lines.append(f"  dropped events {st['dropped']}")
         lines += _clock_lines(st)
         lines.append("")
+    if "journeys" in doc:
+        lines += journey_lines(doc["journeys"]) + [""]
     return "\n".join(lines)
+
+
+def journey_lines(j: dict) -> list[str]:
+    """The hops between nodes and the frames' journeys across them (:mod:`dcuscope.model.journeys`)."""
+    lines = ["journeys across nodes (frames that went from one pipeline to another)"]
+    rows = [("hop " + k, v) for k, v in j["hops"].items()]
+    for path, v in j["paths"].items():
+        rows.append((f"journey {path}", v))
+        rows += [(f"  {'in ' if name in j['hops'] else 'on '}{name}", part) for name, part in v["parts"].items()]
+    width = max(len(name) for name, _ in rows)
+    lines.append("  " + " " * width + "".join(f"{c:>10}" for c in STAT_COLUMNS))
+    for name, v in rows:
+        lines.append(f"  {name:<{width}}" + f"{v['count']:>10}" + "".join(f"{_num(v[c]):>10}" for c in STAT_COLUMNS[1:]))
+    lines.append("  (a journey: from the frame's first origin, or its capture time, to its end on the last node)")
+    for name, hop in j["hops"].items():
+        error = ("clocks not aligned (trace files: compare only nodes that share a clock, one machine or PTP)"
+                 if hop["clock_error_ms"] is None else f"clock error ± {hop['clock_error_ms']:.3f} ms (both nodes' bounds)")
+        lines.append(f"  hop {name}: {hop['lost']} lost on the way; {error}")
+    for counts, meaning in ((j["untraced"], "arrived from no traced sender"),
+                            (j["ambiguous"], "could be two sent frames: left unjoined")):
+        for node, n in counts.items():
+            lines.append(f"  {node}: {n} {'frame' if n == 1 else 'frames'} {meaning}")
+    return lines
 
 
 def _delay_table(st: dict) -> list[str]:

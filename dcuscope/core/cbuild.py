@@ -17,7 +17,7 @@ import subprocess
 import tempfile
 from pathlib import Path
 
-MODULES = ("frames", "ring", "graph", "deepstream", "writer", "tracer", "padprobe", "plugin")
+MODULES = ("frames", "ring", "graph", "links", "deepstream", "writer", "tracer", "padprobe", "plugin")
 """The C modules, bottom-up: each calls only those before it, through their headers
 (docs/development.md, "Layout"; ``tests/test_layers.py`` checks it)."""
 LIBRARY_NAME = "libgstdcuscope.so"

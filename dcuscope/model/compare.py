@@ -70,6 +70,10 @@ class Input:
     fd: FrameDelays
     kinds: dict[str, str] = field(default_factory=dict)
     """Stage -> its element's factory (TraceHeader.kinds): which stages are sources' stamps."""
+    journeys: dict[str, np.ndarray] = field(default_factory=dict)
+    """Rows across nodes (:mod:`dcuscope.model.journeys`), name -> ms in time order: the hops the
+    node's frames took in or out (``net DCU-1 → DCU-2``) and the journeys ending on it
+    (``journey DCU-1 → DCU-2``); compared as delays, after the stages."""
 
 
 def distinct_labels(labels: list[str]) -> list[str]:
@@ -108,7 +112,7 @@ def compare(inputs: list[Input], resamples: int = RESAMPLES, seed: int = 0, nois
     if len(inputs) < 2:
         raise ValueError("compare needs at least two inputs")
     rng = np.random.default_rng(seed)
-    series = [time_series(i.fd) for i in inputs]
+    series = [{**time_series(i.fd), **{(name, "delay"): v for name, v in i.journeys.items()}} for i in inputs]
     keys = _row_keys(inputs, series)
     apart = [_apart(inputs[0], i) for i in inputs]
     total, done = sum(k in s for k in keys for s in series), 0
@@ -136,7 +140,7 @@ def compare(inputs: list[Input], resamples: int = RESAMPLES, seed: int = 0, nois
         "inputs": [{"label": i.label, "origin": i.origin, "node": i.node, "stages": list(i.fd.table.stages),
                     "apart": a, "frames": int(i.fd.chains.complete.sum()),
                     "incomplete": int((~i.fd.chains.complete).sum())} for i, a in zip(inputs, apart)],
-        "stages": list(dict.fromkeys(stage for stage, _ in keys)),
+        "stages": list(dict.fromkeys(stage for stage, _ in keys if not any(stage in i.journeys for i in inputs))),
         "rows": rows,
         "verdicts": [None] + [_input_verdict(rows, k) for k in range(1, len(inputs))],
     }
@@ -146,7 +150,7 @@ def _row_keys(inputs: list[Input], series: list[dict]) -> list[tuple[str, str]]:
     """Rows in BASE's stage order, then stages only later inputs have; end to end last."""
     stages = list(dict.fromkeys(st for i in inputs for st in i.fd.table.stages))
     keys = [(st, kind) for st in stages for kind in KINDS if any((st, kind) in s for s in series)]
-    return keys + [(E2E, "delay")]
+    return keys + [(name, "delay") for name in dict.fromkeys(n for i in inputs for n in i.journeys)] + [(E2E, "delay")]
 
 
 def _apart(base: Input, other: Input) -> list[str]:

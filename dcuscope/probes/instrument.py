@@ -8,8 +8,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
-import numpy as np
-
 from dcuscope.core.clocks import CLOCKS, PretendClock
 from dcuscope.core.errors import UsageError
 from dcuscope.pipeline.build import BuiltPipeline
@@ -25,35 +23,11 @@ from dcuscope.probes.ship.errors import ExportError
 from dcuscope.probes.ship.nodetls import RelayTls
 from dcuscope.probes.ship.relayexport import RelayExporter
 from dcuscope.probes.ship.relaylink import check_token
+from dcuscope.probes.ship.shifted import Shifted
 from dcuscope.probes.ship.tailship import TailShipper
 from dcuscope.probes.trace.errors import TraceError
 from dcuscope.probes.trace.tracefile import TraceFileWriter
-from dcuscope.protocol.events import CAPTURE, EXPORTER_CLOSE_S, Exporter, TraceHeader
-
-
-class _Shifted:
-    """Exporter wrapper that moves every timestamp the node's clock took through ``pretend``: the
-    --clock-offset-ms and --clock-drift-ppm testing aids, so that a node can pretend its clock is
-    off (and runs fast or slow) and the relay must notice; the relay exporter's clock exchanges
-    read the same pretend clock. Capture times are left as they are: they are the camera's clock
-    (an RTSP sender's reports), which a node whose own clock is off still receives unchanged, and
-    which two DCUs of one camera must share for their frames to be matched (relay.api.moments)."""
-
-    def __init__(self, inner: Exporter, pretend: PretendClock):
-        self.inner, self.pretend = inner, pretend
-
-    def start(self, header: TraceHeader) -> None:
-        header.started_ns = self.pretend.of(header.started_ns)
-        self.inner.start(header)
-
-    def write(self, events: np.ndarray) -> None:
-        shifted = events.copy()
-        own = shifted["point"] != CAPTURE
-        shifted["ts"][own] = self.pretend.shift(events["ts"][own])
-        self.inner.write(shifted)
-
-    def close(self, dropped: int) -> None:
-        self.inner.close(dropped)
+from dcuscope.protocol.events import EXPORTER_CLOSE_S, Exporter
 
 
 @dataclass
@@ -122,13 +96,14 @@ class LaunchProbes:
 
 
 def _start_tracer(config: PipelineConfig, relay: str | None, token: str | None, progress: TextIO | None,
-                  close_timeout_s: float, tls: RelayTls | None, spool=None) -> LaunchProbes:
+                  close_timeout_s: float, tls: RelayTls | None, spool=None,
+                  pretend: PretendClock | None = None) -> LaunchProbes:
     trace = config.probes.trace or default_trace_path(config.node)
     probes = LaunchProbes(ProcessTracer(config.node, trace, config.probes.clock), Path(trace), progress, close_timeout_s)
     if relay is not None:
         probes.shipper = TailShipper(Path(trace), relay, token, config.node,
                                      say=lambda line: progress.write(line + "\n") if progress else None,
-                                     close_timeout_s=close_timeout_s, tls=tls, spool=spool)
+                                     close_timeout_s=close_timeout_s, tls=tls, spool=spool, pretend=pretend)
         # No stop event: it ends with the trace's end line, which stop() has the tracer write.
         probes.thread = threading.Thread(target=probes.shipper.run, args=(threading.Event(), 1.0, 1e9),
                                          name="dcuscope-tailship", daemon=True)
@@ -145,10 +120,13 @@ def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None
     A ``launch:`` pipeline is traced by the dcuscope GStreamer tracer (:class:`LaunchProbes`)."""
     if relay is not None:
         check_token(relay, token, tls=tls)  # a wrong token ends the run before it starts, not after
+    pretend = PretendClock(int(clock_offset_ns), float(clock_drift_ppm), CLOCKS[config.probes.clock])
     if config.launch is not None:
-        if clock_offset_ns or clock_drift_ppm:
-            raise UsageError("--clock-offset-ms and --clock-drift-ppm are not for launch: pipelines")
-        return _start_tracer(config, relay, token, progress, close_timeout_s, tls, spool)
+        if pretend.shifts and relay is None:
+            raise UsageError("--clock-offset-ms and --clock-drift-ppm: a launch: pipeline's trace file holds its own "
+                             "clock; the pretence is for what it sends a relay (give --relay)")
+        return _start_tracer(config, relay, token, progress, close_timeout_s, tls, spool,
+                             pretend if pretend.shifts else None)
     sources = {s.index: s.config.description for s in built.sources}
     tracer = attach(built.pipeline, config.node, clock=config.probes.clock, sources=sources,
                     trigger=config.probes.trigger)
@@ -161,14 +139,13 @@ def start_probes(built: BuiltPipeline, config: PipelineConfig, relay: str | None
     exporters: list[Exporter] = []
     if trace is not None:
         exporters.append(TraceFileWriter(trace))
-    pretend = PretendClock(int(clock_offset_ns), float(clock_drift_ppm), CLOCKS[config.probes.clock])
     relay_exporter = None
     if relay is not None:
         relay_exporter = RelayExporter(relay, config.node, token=token, clock=config.probes.clock, pretend=pretend,
                                        ptp_socket=ptp_socket, close_timeout_s=close_timeout_s, tls=tls, spool=spool)
         exporters.append(relay_exporter)
     if pretend.shifts:
-        exporters = [_Shifted(e, pretend) for e in exporters]
+        exporters = [Shifted(e, pretend) for e in exporters]
     watch = SourceWatch(tracer, built.pipeline).start()
     shipper = Shipper(tracer, exporters, before_ship=watch.poll).start()
     return RunProbes(tracer, shipper, trace, progress, relay_exporter, watch)

@@ -5,7 +5,7 @@ The node name and the stage names travel once, in the :class:`TraceHeader`; even
 stage by its index in ``header.stages``. Events move in numpy structured arrays of
 :data:`EVENT_DTYPE`, never as per-event Python objects.
 
-Points (format 2; format 1 had only the first three):
+Points (format 3; format 1 had only the first three, format 2 no ``link`` and ``key``):
 
 - ``origin``: the frame got its identity (a ``framestamp``'s src pad);
 - ``enter`` / ``exit``: the frame entered a stage (sink pad) / left it (src pad);
@@ -19,7 +19,14 @@ Points (format 2; format 1 had only the first three):
   reports), at the origin stage: a point before ``origin``;
 - ``drop``: the frame was dropped at ``stage``, ``code`` = reason (:data:`DROP_REASONS`);
 - ``fact``: not a frame but a value: ``code`` = kind (:data:`FACT_KINDS`), ``frame`` = value,
-  ``source`` = the source it is about (0 for a stage fact), ``stage`` = the stage.
+  ``source`` = the source it is about (0 for a stage fact), ``stage`` = the stage;
+- ``link``: the frame left this pipeline for another or came from one, at ``stage`` (``code`` =
+  :data:`LINK_KINDS`): sent (the push into the sink that sends it returned: its first RTP packet
+  or its shared-memory buffer went) or arrived (its first packet reached the pipeline's source
+  element; a shmsrc's buffer was made);
+- ``key``: right after each ``link``, the same ``ts``, ``source``, ``stage`` and ``code``, with
+  ``frame`` = the link key both ends compute (a 44-bit hash of the RTP packets' SSRC and
+  timestamp, or of the shared buffer's bytes): :mod:`dcuscope.model.journeys` joins them.
 
 The first :data:`FRAME_POINTS` points are per-frame timestamps, paired into the frame table.
 """
@@ -31,12 +38,12 @@ from typing import Protocol
 
 import numpy as np
 
-FORMAT_VERSION = 2
-READABLE_FORMATS = (1, 2)
-"""Trace formats this dcuscope reads: 1 (origin, enter, exit only) and 2."""
+FORMAT_VERSION = 3
+READABLE_FORMATS = (1, 2, 3)
+"""Trace formats this dcuscope reads: 1 (origin, enter, exit only), 2 and 3 (links)."""
 
-ORIGIN, ENTER, EXIT, READY, CAPTURE, DROP, FACT = range(7)
-POINT_NAMES = ("origin", "enter", "exit", "ready", "capture", "drop", "fact")
+ORIGIN, ENTER, EXIT, READY, CAPTURE, DROP, FACT, LINK, KEY = range(9)
+POINT_NAMES = ("origin", "enter", "exit", "ready", "capture", "drop", "fact", "link", "key")
 FRAME_POINTS = 5
 """Points 0..4 (origin, enter, exit, ready, capture) are timestamps of one frame at one stage."""
 GROUP = 5
@@ -60,13 +67,20 @@ streaming thread that pushes a stage's output (a stage fact, sent when it change
 frames a source lost before its origin (RTP sequence gaps), cumulative; ``decoder_dropped``,
 frames its decoder dropped, cumulative."""
 
+RTP_OUT, RTP_IN, SHM_OUT, SHM_IN = 1, 2, 3, 4
+LINK_KINDS = {RTP_OUT: "rtp sent", RTP_IN: "rtp arrived", SHM_OUT: "shm sent", SHM_IN: "shm arrived"}
+"""``code`` of a ``link`` (and its ``key``) event -> which way the frame crossed, over what."""
+LINK_TRANSPORT = {RTP_OUT: "net", RTP_IN: "net", SHM_OUT: "shm", SHM_IN: "shm"}
+SENT_KINDS, ARRIVED_KINDS = (RTP_OUT, SHM_OUT), (RTP_IN, SHM_IN)
+
+
 def _code_table() -> np.ndarray:
     """``[point, code as a byte]``: whether that point allows that code (a point out of range: none)."""
     table = np.zeros((256, 256), bool)
-    table[:FACT + 1, 0] = True
+    table[:KEY + 1, 0] = True
     table[READY, :] = True
     table[READY, 0] = False
-    for point, allowed in ((DROP, DROP_REASONS), (FACT, FACT_KINDS)):
+    for point, allowed in ((DROP, DROP_REASONS), (FACT, FACT_KINDS), (LINK, LINK_KINDS), (KEY, LINK_KINDS)):
         table[point, 0] = False
         table[point, np.array(list(allowed), np.int8).view(np.uint8)] = True
     return table

@@ -29,6 +29,7 @@ from dcuscope.relay.api.compare import add_compare_routes
 from dcuscope.relay.api.fanout import FanoutHealth, FleetManager, create_manager
 from dcuscope.relay.api.fleet import Fleet
 from dcuscope.relay.api.history import add_history_routes
+from dcuscope.relay.api.journeys import add_journey_routes
 from dcuscope.relay.api.interest import Interest
 from dcuscope.relay.api.routes import add_routes
 from dcuscope.relay.api.sessions import add_session_routes
@@ -204,6 +205,7 @@ def create_app(config: RelayConfig) -> tuple[web.Application, Relay]:
     add_routes(app, state, fleet, ui, counters)
     add_compare_routes(app, add_session_routes(app, state))
     add_history_routes(app, state)
+    add_journey_routes(app, state)
     metrics = RelayCollector(state, ingest, guard, refusals)
     add_metrics_route(app, metrics)
     add_signin_routes(app, policy)

@@ -8,7 +8,7 @@ import time
 import numpy as np
 
 from dcuscope.core.clocks import CLOCKS, PretendClock
-from dcuscope.probes.instrument import _Shifted
+from dcuscope.probes.ship.shifted import Shifted
 from dcuscope.protocol.events import CAPTURE, ORIGIN
 from tests.probes.synth import T0, _events
 
@@ -30,7 +30,7 @@ def test_events_move_by_the_offset_plus_the_drift_since_the_start():
     ts = np.array([T0, T0 + 10**9, T0 + 60 * 10**9])
     src = np.zeros(3, np.int32)
     events = np.concatenate([_events(ts, src, np.arange(3), 0, ORIGIN), _events(ts, src, np.arange(3), 0, CAPTURE)])
-    _Shifted(inner, pretend).write(events)
+    Shifted(inner, pretend).write(events)
     got = inner.events
     # 50 ppm: 50 us after one second, 3 ms after a minute.
     assert (got["ts"][got["point"] == ORIGIN] - ts).tolist() == [37_000_000, 37_050_000, 40_000_000]

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from dcuscope.protocol.errors import LimitExceeded, ProtocolError
-from dcuscope.protocol.events import (DROP, DROP_REASONS, EVENT_DTYPE, FACT, FACT_KINDS, POINT_NAMES, READY, STOPPED,
-                           codes_valid)
+from dcuscope.protocol.events import (DROP, DROP_REASONS, EVENT_DTYPE, FACT, FACT_KINDS, KEY, LINK, LINK_KINDS, POINT_NAMES,
+                           READY, STOPPED, codes_valid)
 from dcuscope.protocol.wire import (HEADER, HEADER_SIZE, MAX_BATCH_EVENTS, decode_batch, decode_clock, decode_end,
                             decode_hello, decode_payload, encode_batch, sanitize_ptp)
 from dcuscope.probes.ship.simnode import header_for, synth_events
@@ -93,13 +93,15 @@ def test_every_drop_reason_passes_the_wire_and_no_other():
 
 def test_every_point_and_code_is_judged_as_the_event_model_says():
     """Every (point, code) of the wire's bytes, looked up in one table: a ready event's code is its
-    group (any but 0), a drop's a reason, a fact's a kind; every other point carries 0. A code read
-    wider than a byte (a trace file's column) is judged by its value, never wrapped into range."""
+    group (any but 0), a drop's a reason, a fact's a kind, a link's and its key's which way it
+    crossed; every other point carries 0. A code read wider than a byte (a trace file's column) is
+    judged by its value, never wrapped into range."""
     point = np.repeat(np.arange(-128, 128), 256).astype(np.int8)
     code = np.tile(np.arange(-128, 128), 256).astype(np.int8)
     p, c = point.astype(int), code.astype(int)
     allowed = np.where(p == READY, c != 0, np.where(p == DROP, np.isin(c, list(DROP_REASONS)),
-                                                     np.where(p == FACT, np.isin(c, list(FACT_KINDS)), c == 0)))
+                       np.where(p == FACT, np.isin(c, list(FACT_KINDS)),
+                                np.where((p == LINK) | (p == KEY), np.isin(c, list(LINK_KINDS)), c == 0))))
     in_range = (p >= 0) & (p < len(POINT_NAMES))
     assert np.array_equal(codes_valid(point, code)[in_range], allowed[in_range])
     assert not codes_valid(point, code)[~in_range].any()

@@ -19,10 +19,12 @@ from typing import Callable
 
 import numpy as np
 
+from dcuscope.core.clocks import PretendClock
 from dcuscope.probes.ship.delivery import UNACKNOWLEDGED_STATUS, Delivery
 from dcuscope.probes.ship.errors import ExportError
 from dcuscope.probes.ship.nodetls import RelayTls
 from dcuscope.probes.ship.relayexport import RelayExporter
+from dcuscope.probes.ship.shifted import Shifted
 from dcuscope.probes.trace.follow import TraceFollower
 from dcuscope.protocol.events import EVENT_DTYPE, EXPORTER_CLOSE_S, TraceHeader
 
@@ -36,8 +38,10 @@ def _stderr(line: str) -> None:
 class TailShipper:
     def __init__(self, trace: Path, relay: str, token: str | None = None, node: str | None = None,
                  say: Callable[[str], None] = _stderr, close_timeout_s: float = EXPORTER_CLOSE_S,
-                 tls: RelayTls | None = None, spool=None) -> None:
-        self.tls, self.spool = tls, spool
+                 tls: RelayTls | None = None, spool=None, pretend: PretendClock | None = None) -> None:
+        """``pretend``: the --clock-offset-ms testing aid (:mod:`dcuscope.probes.ship.shifted`), for
+        the trace's clock."""
+        self.tls, self.spool, self.pretend = tls, spool, pretend
         self.follower = TraceFollower(trace)
         self.close_timeout_s = close_timeout_s
         self.relay, self.token, self.node, self.say = relay, token, node, say
@@ -108,15 +112,18 @@ class TailShipper:
 
     def _connect(self, header: TraceHeader) -> None:
         self.exporter = RelayExporter(self.relay, self._name(header), token=self.token, clock=header.clock,
-                                      close_timeout_s=self.close_timeout_s, tls=self.tls, spool=self.spool)
-        self.exporter.start(header)
+                                      close_timeout_s=self.close_timeout_s, tls=self.tls, spool=self.spool,
+                                      pretend=self.pretend)
+        self._out = Shifted(self.exporter, self.pretend) if self.pretend is not None and self.pretend.shifts \
+            else self.exporter
+        self._out.start(header)
         self.runs += 1
 
     def _write(self, events: list[np.ndarray] | np.ndarray) -> None:
         if isinstance(events, list):
             events = np.concatenate(events) if events else np.empty(0, EVENT_DTYPE)
         if len(events):
-            self.exporter.write(events)
+            self._out.write(events)
             self.sent += len(events)
 
     def _close(self, dropped: int) -> None:

@@ -35,13 +35,15 @@ nothing subtracted) ``clock_ns`` is 0 and the bound is unknown: empty, and absen
 from __future__ import annotations
 
 import csv
+from dataclasses import dataclass
 from typing import IO, Iterable, Iterator, Protocol, Sequence
 
 import numpy as np
 
 from dcuscope.model.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays, busy_timeline, fill_levels, frame_delays
 from dcuscope.model.frametable import MISSING, frame_table
-from dcuscope.probes.trace.stats import unique_name
+from dcuscope.model.journeys import Joined, join
+from dcuscope.model.names import unique_name
 from dcuscope.protocol.events import TraceHeader
 
 FLOW_CATEGORY = "frame"
@@ -91,13 +93,17 @@ def perfetto_document(nodes: Iterable[NodeEvents], bucket_ns: int = BUCKET_NS,
     names: dict[str, int] = {}
     metadata: dict[str, dict] = {}
     flow_ids = iter(range(1, 1 << 62))
+    slices: list[dict] = []
     for pid, ((header, events), clock) in enumerate(zip(nodes, clocks), start=1):
         name = unique_name(header.node, names)
         names[name] = pid
+        slices.append({})
         trace_events += node_trace_events(header, events, pid=pid, name=name, t0_ns=t0, flow_ids=flow_ids,
-                                          bucket_ns=bucket_ns, clock=clock)
+                                          bucket_ns=bucket_ns, clock=clock, frame_slices=slices[-1])
         if clock is not None:
             metadata[name] = clock_metadata(clock, int(events["ts"].max()) if len(events) else 0)
+    joined = join([_Node(h, ev, c) for (h, ev), c in zip(nodes, clocks)], list(names))
+    trace_events += hop_trace_events(joined, slices, pid=len(nodes) + 1, t0_ns=t0, flow_ids=flow_ids)
     return {
         "traceEvents": trace_events,
         "displayTimeUnit": "ms",
@@ -109,9 +115,12 @@ def perfetto_document(nodes: Iterable[NodeEvents], bucket_ns: int = BUCKET_NS,
 def node_trace_events(
     header: TraceHeader, events: np.ndarray, *, pid: int, t0_ns: int, name: str | None = None,
     flow_ids: Iterator[int] | None = None, bucket_ns: int = BUCKET_NS, clock: ClockCorrection | None = None,
+    frame_slices: dict | None = None,
 ) -> list[dict]:
     """Trace events of one node as process ``pid``; flow ids come from ``flow_ids``;
-    utilization counters per ``bucket_ns``; ``clock``: the correction its timestamps were moved by."""
+    utilization counters per ``bucket_ns``; ``clock``: the correction its timestamps were moved by;
+    ``frame_slices``: filled with each frame's slices, (source, frame) -> [(tid, start µs, dur µs)]
+    in stage order (where its journey goes on, the flow to the next node starts at its last)."""
     flow_ids = flow_ids if flow_ids is not None else iter(range(1, 1 << 62))
     fd = frame_delays(frame_table(header, events))
     tracks = _Tracks(pid, [
@@ -133,7 +142,62 @@ def node_trace_events(
     for chain in chains:
         if len(chain) >= 2:
             out += _flow(pid, next(flow_ids), chain)
+    if frame_slices is not None:
+        for r, chain in enumerate(chains):
+            if chain:
+                frame_slices[(int(fd.table.source[r]), int(fd.table.frame[r]))] = chain
     return tracks.events + out
+
+
+@dataclass
+class _Node:
+    header: TraceHeader
+    events: np.ndarray
+    correction: ClockCorrection | None
+
+
+def hop_trace_events(joined: Joined, slices: list[dict], *, pid: int, t0_ns: int,
+                     flow_ids: Iterator[int]) -> list[dict]:
+    """The hops between nodes (:mod:`dcuscope.model.journeys`) as process ``pid`` "hops", a track per
+    hop, a slice per frame from its sending to its arrival (a hop a hair below zero, one machine's
+    shared memory: an instant), and a flow per frame across the processes: from its last slice on
+    the sender through the hop to its first slice on the receiver."""
+    if not joined.crossed:
+        return []
+    tracks = _Tracks(pid, [_meta("process_name", pid, 0, name="hops between nodes"),
+                           _meta("process_sort_index", pid, 0, sort_index=pid)])
+    tids = {name: tracks.add(name) for name in joined.hops}
+    out = []
+    for c in joined.crossed:
+        start = float(_us(c.sent_ns - t0_ns))
+        ns = c.arrived_ns - c.sent_ns
+        args = {"hop_ms": ns / NS_PER_MS, "from_frame": c.sender[2], "to_frame": c.receiver[2]}
+        if c.error_ns is not None:
+            args["clock_error_ms"] = c.error_ns / NS_PER_MS
+        dur = float(_us(max(ns, 0)))
+        out.append({"ph": "X", "name": f"frame {c.sender[2]} → {c.receiver[2]}", "cat": "hop", "pid": pid,
+                    "tid": tids[c.hop], "ts": start, "dur": dur, "args": args})
+        sent = slices[c.sender[0]].get(c.sender[1:])
+        got = slices[c.receiver[0]].get(c.receiver[1:])
+        chain = [(c.sender[0] + 1, *sent[-1])] if sent else []
+        chain.append((pid, tids[c.hop], start, dur))
+        chain += [(c.receiver[0] + 1, *got[0])] if got else []
+        if len(chain) >= 2:
+            out += _cross_flow(next(flow_ids), chain)
+    return tracks.events + out
+
+
+def _cross_flow(flow_id: int, chain: list[tuple]) -> list[dict]:
+    """s / t / f events of one frame across processes, each at the middle of its slice."""
+    phases = ["s"] + ["t"] * (len(chain) - 2) + ["f"]
+    out = []
+    for ph, (pid, tid, start, dur) in zip(phases, chain):
+        ev = {"ph": ph, "name": "journey", "cat": FLOW_CATEGORY, "id": flow_id, "pid": pid, "tid": tid,
+              "ts": round(start + dur / 2, 3)}
+        if ph == "f":
+            ev["bp"] = "e"
+        out.append(ev)
+    return out
 
 
 class _Tracks:

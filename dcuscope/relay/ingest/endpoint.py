@@ -514,6 +514,7 @@ class Ingest:
         rs.seqs.add(batch.seq)
         if new:
             rs.live.add(batch.events, admitted=True)  # its sources were, as it arrived
+            self.state.journeys.add(rs.run, batch.events)
             self.state.note_events(rs)
             self.events_in += len(batch.events)
             self.batches_in += 1

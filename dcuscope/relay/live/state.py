@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 
 from dcuscope.core.clocks import NEVER
 from dcuscope.model.delays import FrameDelays, Series
+from dcuscope.model.journeys import Joined
 from dcuscope.protocol.errors import ProtocolError
 from dcuscope.protocol.events import TraceHeader
 from dcuscope.protocol.wire import Hello
@@ -23,6 +24,7 @@ from dcuscope.relay.clock.model import ClockEstimator, segment_fault
 from dcuscope.relay.errors import RelayError
 from dcuscope.relay.guard.limits import MIB, Limits
 from dcuscope.relay.live.framelimits import FrameLimits
+from dcuscope.relay.live.journeys import LiveJourneys, parts_of
 from dcuscope.relay.live.run import LiveConfig, LiveRun
 from dcuscope.relay.live.runview import RunView, columns_block, frames_block, window_end_ns
 from dcuscope.relay.live.seqset import SeqSet
@@ -207,6 +209,8 @@ class RelayState:
         """Runs given events since the UI's pusher last looked (:meth:`note_events`)."""
         self.on_events: Callable[[], None] | None = None
         """Called when a run is given events (the pusher's wake-up)."""
+        self.journeys = LiveJourneys()
+        """The runs' crossings, joined across them when asked (:meth:`joined`)."""
         self._attach_lock = asyncio.Lock()
 
     def note_events(self, rs: RunState) -> None:
@@ -341,6 +345,7 @@ class RelayState:
         # that would keep the run's arrays (up to run_mb) until a full garbage collection, one per
         # restart of a node piling up meanwhile. Without it the run's memory goes as it leaves.
         rs.live.on_finalise = None
+        self.journeys.forget(run)
         self.released += 1
         if self.nodes.get(rs.node) == run:
             del self.nodes[rs.node]
@@ -379,6 +384,8 @@ class RelayState:
             # The relay restarted while this run went on: rebuild its live state from storage,
             # in slices, so that only the frames of one slice are ever open at once.
             events = await self.storage.call(run_events, hello.run)
+            self.journeys.forget(hello.run)
+            self.journeys.add(hello.run, events)
             for i in range(0, len(events), RELOAD_SLICE):
                 live.add(events[i:i + RELOAD_SLICE])
                 live.maintain()
@@ -488,6 +495,12 @@ class RelayState:
 
     def nodes_view(self) -> list[dict]:
         return [self.node_view(self.runs[run]) for _, run in sorted(self.nodes.items())]
+
+    def joined(self, fresh: bool = False) -> Joined:
+        """Frames that went from one held run's pipeline to another's, joined on the relay's clock
+        (:mod:`dcuscope.relay.live.journeys`)."""
+        held = [rs for rs in self.runs.values() if self.holds(rs)]
+        return self.journeys.joined(parts_of(held, self.correction, self.live_config.recent_frames), fresh)
 
     def stats(self, rs: RunState, fresh: bool = True) -> dict:
         """node_stats of the run (bottleneck included) + the rolling ``window`` + the ``clock`` entry

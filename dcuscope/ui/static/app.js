@@ -10,6 +10,7 @@ import { Api, LiveFeed, listSessions, loadSession, SESSION_CAPACITY } from "./fe
 import { CompareView } from "./compareview.js";
 import { FrameView } from "./frameview.js";
 import { HistoryView } from "./historyview.js";
+import { JourneyView } from "./journeyview.js";
 import { MomentView } from "./momentview.js";
 import { Fleet, OPEN_ALL, openedOf, OverviewTable, parseOpen, withOpen } from "./overview.js";
 import { installGrip } from "./overviewsize.js";
@@ -106,6 +107,7 @@ const stageView = new StageView($("#stage-canvas"), model);
 const frameView = new FrameView($("#frame-panels"), model);
 const historyView = new HistoryView($("#history-view"), api, colours);
 const compareView = new CompareView($("#compare-view"), api);
+const journeyView = new JourneyView($("#journeys-view"), api);
 const momentView = new MomentView($("#moments-view"), api, {
   opened: () => [...live.nodes.keys()].filter(isOpen).sort(),
   fleet: () => fleet.names(),
@@ -601,9 +603,11 @@ function setTab(tab) {
   $("#stage-view").hidden = tab !== "stage";
   $("#frame-view").hidden = tab !== "frame";
   $("#moments-view").hidden = tab !== "moments";
+  $("#journeys-view").hidden = tab !== "journeys";
   $("#history-view").hidden = tab !== "history";
   $("#compare-view").hidden = tab !== "compare";
   momentView.show(tab === "moments");
+  journeyView.show(tab === "journeys");
   historyView.show(tab === "history");
   compareView.show(tab === "compare");
   mouse = null;
@@ -813,7 +817,8 @@ window.dcuscope = {
       paused: !view.follow, tab: view.tab, window: [view.end - view.width, view.end], limit: view.limit,
       clock: view.raw ? "raw" : "corrected",
       transport: feed.transport, stores, colours: Object.fromEntries(colours.entries()),
-      stage: stageView.last, frame: frameView.last, moments: momentView.last, perf: perf.summary(),
+      stage: stageView.last, frame: frameView.last, moments: momentView.last, journeys: journeyView.last,
+      perf: perf.summary(),
       tooltip: tip.hidden ? null : tip.textContent,
       stats: Object.fromEntries(current.stats), nodes: [...current.nodes.values()],
       overview: { ...overviewTable.last, count: $("#overview-count").textContent, filter: overviewTable.filter },

@@ -16,7 +16,7 @@ from dcuscope.model.delays import delay_summary, frame_delays, series
 from dcuscope.model.frametable import frame_table
 from dcuscope.probes.trace.export import CSV_COLUMNS, assign_lanes, perfetto_document, write_csv
 from dcuscope.probes.trace.tracefile import read_trace, write_trace
-from dcuscope.protocol.events import CAPTURE, ENTER, EXIT, ORIGIN, READY
+from dcuscope.protocol.events import CAPTURE, ENTER, EXIT, FORMAT_VERSION, ORIGIN, READY
 from dcuscope.relay.clock.correction import Correction, Segment
 from tests.conftest import run_cli
 from tests.probes.synth import run_commands as _cli
@@ -332,7 +332,7 @@ def real_trace(tmp_path_factory):
                    cwd=where)
     assert done.returncode == 0, done.stderr
     trace = read_trace(where / "t.jsonl")
-    assert trace.header.format == 2 and trace.complete
+    assert trace.header.format == FORMAT_VERSION and trace.complete
     return trace
 
 

@@ -105,7 +105,7 @@ HEADER_LINE = json.dumps({"dcuscope_trace": 1, "header": TraceHeader("n", "realt
     (b"node,source,frame\n1,2,3\n", "not a dcuscope trace"),
     (b"\x7fELF\x02\x01\x01\x00\xff\xfe\x00\x00garbage\n", "not a dcuscope trace"),
     (b'{"traceEvents": []}\n', "not a dcuscope trace"),
-    (b'{"dcuscope_trace": 3, "header": {}}\n', "version 3 is not supported"),
+    (b'{"dcuscope_trace": 4, "header": {}}\n', "version 4 is not supported"),
     (b'{"dcuscope_trace": 1, "header": {"node": "n"}}\n', ":1: malformed trace header"),
     ((HEADER_LINE + '\n{"events": [[1, 0, 0, 0, 0]]}\n{"events": [[1, 0\n'
       '{"end": {"events": 1, "dropped": 0}}\n').encode(), ":3: not valid JSON"),

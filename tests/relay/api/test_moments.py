@@ -10,7 +10,7 @@ import pytest
 from dcuscope.core.clocks import PretendClock
 from dcuscope.model.delays import frame_delays
 from dcuscope.model.frametable import frame_table
-from dcuscope.probes.instrument import _Shifted
+from dcuscope.probes.ship.shifted import Shifted
 from dcuscope.protocol.events import CAPTURE, ENTER, EXIT, ORIGIN, TraceHeader
 from dcuscope.relay.api.moments import MATCH_TOLERANCE_NS, MomentsError, Side, compare, match, pairs_of
 from dcuscope.relay.clock.correction import Correction, Segment
@@ -142,7 +142,7 @@ class _Keep:
 
 def test_the_clock_offset_aid_shifts_the_nodes_timestamps_but_not_the_cameras_capture_times():
     inner = _Keep()
-    shifted = _Shifted(inner, PretendClock(37_000_000))
+    shifted = Shifted(inner, PretendClock(37_000_000))
     src = np.zeros(2, np.int32)
     events = np.concatenate([_events(np.array([T0, T0 + 1]), src, np.arange(2), 0, CAPTURE),
                              _events(np.array([T0 + 5, T0 + 6]), src, np.arange(2), 0, ORIGIN)])

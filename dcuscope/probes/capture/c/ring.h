@@ -14,7 +14,7 @@
 #define MAX_STAGES 256
 
 /* Points and fact kinds: dcuscope/protocol/events.py. */
-enum { P_ORIGIN = 0, P_ENTER = 1, P_EXIT = 2, P_READY = 3, P_CAPTURE = 4, P_DROP = 5, P_FACT = 6 };
+enum { P_ORIGIN = 0, P_ENTER = 1, P_EXIT = 2, P_READY = 3, P_CAPTURE = 4, P_DROP = 5, P_FACT = 6, P_LINK = 7, P_KEY = 8 };
 enum { FACT_THREAD = 1 };
 
 typedef struct {

@@ -28,12 +28,19 @@
  * covers the output's start (that pad's last frame starting at or before it). An element that
  * takes identified frames in and pushes only buffers without identity (not an aggregator) makes
  * lineage unknowable: it is named in the trace header (lineage_unknown), never guessed.
+ *
+ * Across pipelines (links.h): a frame a sink sends to another pipeline (RTP packets: udpsink; a
+ * shmsink's buffer) gets a link event when the push into the sink returns, and a frame that came
+ * from one (the first frame of its RTP packets a depayloader makes, or a decoder after it; a
+ * shmsrc's buffer) one when its first packet left the pipeline's source element (udpsrc), each
+ * with its key: model/journeys.py joins the two ends.
  */
 
 #include "tracer.h"
 
 #include "deepstream.h"
 #include "graph.h"
+#include "links.h"
 #include "writer.h"
 
 #include <stdio.h>
@@ -71,7 +78,27 @@ typedef struct {
   _Atomic int64_t next_frame;
   DcuAggHistory *history; /* sink pads of an aggregator */
   _Atomic int active;     /* in-process tracepoints: 0 once detached (freed with the pad) */
+  int link_out;           /* sink pads of a sink: -1 undecided, 0 none, else the LINK_*_OUT it sends */
+  int rtp_source;         /* src pads: -1 undecided, 1 a source element pushing RTP packets (udpsrc) */
+  int64_t last_key;       /* the key of the last RTP packet it sent or pushed */
+  DcuPackets *packets;    /* sink pads taking RTP packets in (a depayloader's) */
+  int rtp_in;             /* -1 undecided, 0 no, 1 packets kept */
 } DcuPadInfo;
+
+#define MAX_LINKED 16
+
+/* A frame handed to a link-out sink (udpsink, shmsink) on this thread: recorded when the push into
+ * it returns (the packet or the buffer is sent then), by the push-post hook on the same thread. */
+typedef struct {
+  GstPad *pad; /* the sink pad it entered; NULL: none pending */
+  DcuRing *ring;
+  clockid_t clock;
+  int stage, kind, n;
+  int64_t key;
+  int64_t source[MAX_LINKED], frame[MAX_LINKED];
+} PendingLink;
+
+static _Thread_local PendingLink pending_link;
 
 typedef struct {
   GstTracer parent;
@@ -86,6 +113,7 @@ typedef struct {
   gboolean deepstream;  /* read frames from DeepStream's NvDsBatchMeta (deepstream=1; untested) */
   gboolean pre_hooks;  /* its push/chain-pre hooks are registered */
   gboolean chain_hooks; /* GStreamer has pad-chain hooks (1.22 and later): see enter_peer */
+  DcuArrivals *arrivals; /* RTP frames' first packets from source elements: links in (kept while pads may use it) */
 } GstDcuscopeTracer;
 
 typedef struct {
@@ -146,6 +174,10 @@ static void pad_info_free(gpointer data) {
     g_mutex_clear(&info->history->lock);
     g_free(info->history);
   }
+  if (info->packets) {
+    g_mutex_clear(&info->packets->lock);
+    g_free(info->packets);
+  }
   g_free(info);
 }
 
@@ -153,6 +185,8 @@ static DcuPadInfo *make_pad_info(GstDcuscopeTracer *self, GstPad *pad) {
   DcuPadInfo *info = g_new0(DcuPadInfo, 1);
   info->stamps = -1;
   info->source = -1;
+  info->link_out = info->rtp_source = info->rtp_in = -1;
+  info->last_key = -1;
   GstObject *parent = GST_OBJECT_PARENT(pad);
   if (!parent || !GST_IS_ELEMENT(parent) || GST_IS_BIN(parent)) return info; /* ghost or proxy pad */
   DcuStage *st = stage_of(self, GST_ELEMENT(parent));
@@ -287,11 +321,12 @@ static void add_frames_meta(GstBuffer *buf, GstStructure *s, int64_t ts) {
 
 /* Give buf the identity of the next frame of the pad's source; FALSE when buf is shared (its
  * metadata cannot be written). */
-static gboolean stamp(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t ts) {
+static gboolean stamp(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t ts,
+                      int64_t *frame) {
   if (!gst_buffer_is_writable(buf) || source_of(self, info, pad) < 0) return FALSE;
-  int64_t frame = atomic_fetch_add_explicit(&info->next_frame, 1, memory_order_relaxed);
+  *frame = atomic_fetch_add_explicit(&info->next_frame, 1, memory_order_relaxed);
   int64_t source = info->source;
-  add_frames_meta(buf, dcu_frames_new(1, &source, &frame, &ts), ts);
+  add_frames_meta(buf, dcu_frames_new(1, &source, frame, &ts), ts);
   return TRUE;
 }
 
@@ -363,6 +398,134 @@ static gboolean aggregate_lineage(GstElement *element, GstPad *src, GstBuffer *b
   return total > 0;
 }
 
+/* --- links between pipelines (links.h) ------------------------------------------------------ */
+
+static const char *factory_name(GstElement *element) {
+  GstElementFactory *factory = element ? gst_element_get_factory(element) : NULL;
+  return factory ? GST_OBJECT_NAME(factory) : "";
+}
+
+static gboolean pad_caps_named(GstPad *pad, const char *name) {
+  GstCaps *caps = gst_pad_get_current_caps(pad);
+  gboolean named = caps_named(caps, name, TRUE);
+  if (caps) gst_caps_unref(caps);
+  return named;
+}
+
+/* What a sink's sink pad sends on to another pipeline: RTP packets (udpsink and its kind, any
+ * sink taking application/x-rtp) or shared memory (shmsink); 0 for any other pad. */
+static int decide_link_out(GstPad *pad) {
+  GstElement *element = GST_ELEMENT(GST_OBJECT_PARENT(pad));
+  if (element->numsrcpads > 0) return 0;
+  if (pad_caps_named(pad, "application/x-rtp")) return LINK_RTP_OUT;
+  return strcmp(factory_name(element), "shmsink") == 0 ? LINK_SHM_OUT : 0;
+}
+
+/* An identified buffer entered a sink pad: if it sends the buffer's frames to another pipeline,
+ * remember them (a new RTP frame: its first packet) until the push into it returns. */
+static void link_out_enter(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, GstBuffer *buf,
+                           const GstStructure *s) {
+  if (G_LIKELY(info->link_out == 0)) return;
+  if (info->link_out < 0) info->link_out = decide_link_out(pad);
+  if (info->link_out == 0) return;
+  int64_t key = info->link_out == LINK_RTP_OUT ? dcu_rtp_key(buf) : dcu_bytes_key(buf);
+  if (key < 0 || (info->link_out == LINK_RTP_OUT && key == info->last_key)) return;
+  info->last_key = key;
+  PendingLink *p = &pending_link;
+  p->pad = pad;
+  p->ring = self->ring;
+  p->clock = self->clock;
+  p->stage = info->stage->index;
+  p->kind = info->link_out;
+  p->key = key;
+  p->n = (int)MIN(dcu_frames_count(s), MAX_LINKED);
+  for (int i = 0; i < p->n; i++) dcu_frames_get(s, (guint)i, &p->source[i], &p->frame[i]);
+}
+
+/* A push returned: if it was the one into the link-out sink this thread last entered, its frames
+ * are sent now. */
+static void link_out_sent(GstPad *pad) {
+  PendingLink *p = &pending_link;
+  if (G_LIKELY(p->pad == NULL) || GST_PAD_PEER(pad) != p->pad) return;
+  int64_t ts = dcu_clock_ns(p->clock);
+  for (int i = 0; i < p->n; i++) dcu_link_record(p->ring, p->stage, p->kind, ts, p->key, p->source[i], p->frame[i]);
+  p->pad = NULL;
+}
+
+/* A source element's src pad pushing RTP packets (udpsrc): note when each frame's first packet came. */
+static void rtp_arrival(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t ts) {
+  if (info->rtp_source < 0) info->rtp_source = info->stage->source_element && pad_caps_named(pad, "application/x-rtp");
+  if (info->rtp_source != 1) return;
+  int64_t key = dcu_rtp_key(buf);
+  if (key < 0 || key == info->last_key) return;
+  info->last_key = key;
+  dcu_arrivals_note(self->arrivals, key, ts);
+}
+
+/* A buffer without identity entered a sink pad: a depayloader's (RTP in, video out) keeps its packets. */
+static void rtp_packet_in(DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t ts) {
+  if (G_LIKELY(info->rtp_in == 0)) return;
+  if (info->rtp_in < 0) {
+    GstElement *element = GST_ELEMENT(GST_OBJECT_PARENT(pad));
+    info->rtp_in = element->numsrcpads > 0 && pad_caps_named(pad, "application/x-rtp");
+    if (info->rtp_in) {
+      DcuPackets *packets = g_new0(DcuPackets, 1);
+      g_mutex_init(&packets->lock);
+      g_atomic_pointer_set(&info->packets, packets);
+    }
+  }
+  if (info->rtp_in) dcu_packets_note(info->packets, buf, ts);
+}
+
+/* Where the frame element gives an identity to came from: walking up from element through elements
+ * of one sink pad (a decoder, a capsfilter; at most 8), the first that took RTP packets in (a
+ * depayloader: the key and first-packet time of the packets of the frame's PTS) or a shmsrc (the
+ * key of buf's bytes, which elements between it and element left as they were: a capsfilter's).
+ * The kind of link, or 0 when the frame came from neither. */
+static int upstream_link(GstDcuscopeTracer *self, GstElement *element, GstBuffer *buf, int64_t *key, int64_t *first) {
+  int kind = 0;
+  gst_object_ref(element);
+  for (int hops = 0; hops < 8 && element && kind == 0; hops++) {
+    if (element->numsinkpads == 0) {
+      if (strcmp(factory_name(element), "shmsrc") == 0 && (*key = dcu_bytes_key(buf)) >= 0) kind = LINK_SHM_IN;
+      break;
+    }
+    GstElement *up = NULL;
+    GST_OBJECT_LOCK(element);
+    for (GList *l = element->sinkpads; l && kind == 0; l = l->next) {
+      DcuPadInfo *in = g_object_get_qdata(G_OBJECT(l->data), self->pad_quark);
+      DcuPackets *packets = in ? g_atomic_pointer_get(&in->packets) : NULL;
+      if (packets && dcu_packets_find(packets, GST_BUFFER_PTS(buf), key, first)) kind = LINK_RTP_IN;
+    }
+    GstPad *sink = element->numsinkpads == 1 ? gst_object_ref(GST_PAD(element->sinkpads->data)) : NULL;
+    GST_OBJECT_UNLOCK(element);
+    if (sink && kind == 0) {
+      GstPad *peer = gst_pad_get_peer(sink);
+      if (peer) {
+        up = gst_pad_get_parent_element(peer);
+        gst_object_unref(peer);
+      }
+    }
+    if (sink) gst_object_unref(sink);
+    gst_object_unref(element);
+    element = up;
+  }
+  if (element) gst_object_unref(element);
+  return kind;
+}
+
+/* A frame got its identity on pad: if it came from another pipeline, record where it entered this
+ * one (RTP: when its first packet reached the pipeline's source element; shm: now). */
+static void link_in(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t ts,
+                    int64_t frame) {
+  int64_t key = -1, first = ts;
+  int kind = upstream_link(self, GST_ELEMENT(GST_OBJECT_PARENT(pad)), buf, &key, &first);
+  if (kind == 0) return;
+  int64_t arrived = first;
+  if (kind == LINK_RTP_IN && dcu_arrivals_find(self->arrivals, key, &arrived) && arrived > first) arrived = first;
+  dcu_link_record(self->ring, info->stage->index, kind, kind == LINK_RTP_IN ? arrived : ts, key, info->source, frame);
+}
+
 /* --- hooks ---------------------------------------------------------------------------------- */
 
 /* DeepStream (deepstream=1): a batch that carries NvDsBatchMeta and not our meta. Frames start
@@ -412,6 +575,7 @@ static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int
     return;
   }
   if (self->deepstream && deepstream_exit(info, st, buf, ts)) return;
+  if (G_UNLIKELY(info->rtp_source != 0)) rtp_arrival(self, info, pad, buf, ts);
   if (st->aggregator && atomic_load_explicit(&st->entered, memory_order_relaxed)) {
     GstObject *parent = GST_OBJECT_PARENT(pad);
     if (parent && aggregate_lineage(GST_ELEMENT(parent), pad, buf, self->pad_quark, ts)) {
@@ -421,8 +585,10 @@ static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int
   }
   if (info->stamps < 0) info->stamps = self->deepstream ? 0 : decide_stamps(pad, st);
   if (info->stamps == 1) {
-    if (stamp(self, info, pad, buf, ts)) {
+    int64_t frame;
+    if (stamp(self, info, pad, buf, ts, &frame)) {
       dcu_record_buffer(&info->origin, buf, ts);
+      link_in(self, info, pad, buf, ts, frame);
       return;
     }
     atomic_fetch_add_explicit(&st->shared, 1, memory_order_relaxed);
@@ -455,6 +621,9 @@ static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, in
       g_atomic_pointer_set(&info->history, h); /* only this pad's streaming thread writes it */
     }
     if (info->history) remember_input(info, pad, buf, s);
+    link_out_enter(self, info, pad, buf, s);
+  } else {
+    rtp_packet_in(info, pad, buf, ts);
   }
   dcu_record_frames(&info->probe, s, buf, ts);
   if (ds) gst_structure_free(ds);
@@ -572,6 +741,7 @@ static void on_message(GObject *obj, GstClockTime t, GstElement *element, GstMes
 static void on_push_post(GObject *obj, GstClockTime t, GstPad *pad, GstFlowReturn res) {
   (void)obj; (void)t; (void)res;
   dcu_note_push_returned(pad);
+  link_out_sent(pad);
 }
 
 /* --- parameters and life -------------------------------------------------------------------- */
@@ -709,6 +879,8 @@ static void gst_dcuscope_tracer_init(GstDcuscopeTracer *self) {
   self->stage_quark = g_quark_from_static_string("dcuscope-tracer-stage");
   self->graph.stage_quark = self->stage_quark;
   self->graph.edges = g_malloc0(MAX_STAGES * MAX_STAGES);
+  self->arrivals = g_new0(DcuArrivals, 1);
+  g_mutex_init(&self->arrivals->lock);
   static gsize registered = 0;
   if (g_once_init_enter(&registered)) {
     atexit(at_exit);

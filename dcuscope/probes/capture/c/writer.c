@@ -1,4 +1,4 @@
-/* The tracer's own thread: drains the ring into a trace file of format 2 (probes/trace/tracefile.py),
+/* The tracer's own thread: drains the ring into a trace file of format 3 (probes/trace/tracefile.py),
  * without Python, so that any process can be traced.
  *
  * Stages are numbered in the file as they first carry frames, in graph order among those found
@@ -110,7 +110,7 @@ static void place(DcuWriter *w, const guint8 *wanted, int n, const guint8 *edges
 /* The header line (graph lock held). */
 static GString *header_json(DcuWriter *w, const guint8 *edges) {
   DcuGraph *g = w->graph;
-  GString *h = g_string_new("{\"dcuscope_trace\":2,\"header\":{\"node\":");
+  GString *h = g_string_new("{\"dcuscope_trace\":3,\"header\":{\"node\":");
   json_string(h, w->node);
   g_string_append(h, ",\"clock\":");
   json_string(h, w->clock);
@@ -128,7 +128,7 @@ static GString *header_json(DcuWriter *w, const guint8 *edges) {
   char *version = gst_version_string();
   json_string(h, version);
   g_free(version);
-  g_string_append(h, ",\"probes\":\"tracer\"},\"format\":2,\"kinds\":{");
+  g_string_append(h, ",\"probes\":\"tracer\"},\"format\":3,\"kinds\":{");
   for (int i = 0; i < w->n_out; i++) {
     DcuStage *st = g->stages[w->internal_of[i]];
     if (i) g_string_append_c(h, ',');
