@@ -49,6 +49,15 @@ def sink_for_output(path: Path, current: SinkConfig) -> SinkConfig:
     return SinkConfig(kind="file", path=target, sync=current.sync, bitrate=current.bitrate)
 
 
+def check_socket_path(path: Path) -> str | None:
+    """Why a shm sink cannot make its socket at ``path``, or None."""
+    if not path.parent.is_dir():
+        return f"no folder {path.parent} for the socket"
+    if path.exists():
+        return "exists already (another shmsink's socket? remove it, or give another path)"
+    return None
+
+
 def check_sink(config: PipelineConfig, output: Path | None) -> None:
     """Before anything runs: each sink can write where it is told to (``output``: as given on the
     command line, else the YAML's ``path``) and serve where it is told to. UsageError or
@@ -63,7 +72,8 @@ def check_sink(config: PipelineConfig, output: Path | None) -> None:
                 raise config.document.error(where + ("port",), str(exc)) from exc
         if sink.path is None:
             continue
-        problem = check_video_file(sink.path) if sink.kind == "file" else check_frames_folder(sink.path)
+        problem = (check_video_file(sink.path) if sink.kind == "file" else check_socket_path(sink.path)
+                   if sink.kind == "shm" else check_frames_folder(sink.path))
         if problem is None:
             continue
         if output is not None:

@@ -61,7 +61,11 @@ from dcuscope.pipeline.yamlsource import Document, KeyPath, load_document
 
 STAGE_SHORTHANDS = ("mux", "infer", "tiler", "convert", "osd", "queue")
 """Stage kinds written as ``- KIND: {properties}``; anything else is ``- factory: NAME``."""
-SINK_TYPES = ("fake", "file", "frames", "rtsp")
+SINK_TYPES = ("fake", "file", "frames", "rtsp", "rtp", "shm")
+RTP_ENCODINGS = ("H264", "H265", "JPEG")
+"""What an ``rtp:`` source can receive (its depayloader: rtph264depay, rtph265depay, rtpjpegdepay)."""
+SHM_FORMAT = "I420"
+"""The pixel format a ``shm`` sink writes and a ``shm:`` source reads unless told (``format:``)."""
 DEFAULT_RTSP_PORT = 8554
 DEFAULT_RTSP_MOUNT = "/dcuscope"
 CLOCK_NAMES = ("realtime", "tai", "monotonic")
@@ -72,9 +76,11 @@ REMOTE_SCHEMES = ("rtsp://", "rtsps://", "http://", "https://", "udp://", "rtmp:
 @dataclass(frozen=True)
 class SourceConfig:
     kind: str
-    """``uri``, ``camera`` or ``test``."""
+    """``uri``, ``camera``, ``test``, ``rtp`` (RTP from another pipeline) or ``shm`` (shared memory
+    from another pipeline: docs/journeys.md)."""
     location: str
-    """A URI (local files as absolute ``file://``), a device path, or a test pattern name."""
+    """A URI (local files as absolute ``file://``), a device path, a test pattern name, the UDP port
+    RTP arrives on, or the shared memory's socket path."""
     loop: bool = False
     """Files only: seek back to the start at the end, forever."""
     rate: Fraction | None = None
@@ -88,12 +94,17 @@ class SourceConfig:
     stall_timeout: float = DEFAULT_STALL_TIMEOUT_S
     """Live sources: seconds without a frame (while the others go on) before a stall is reported; 0: never."""
     latency_ms: int | None = None
-    """RTSP sources: rtspsrc's jitter-buffer latency; None keeps rtspsrc's default (2000 ms)."""
+    """RTSP and RTP sources: the jitter buffer's latency; None keeps rtspsrc's default (2000 ms),
+    rtpjitterbuffer's (200 ms)."""
+    encoding: str = "H264"
+    """RTP sources: what the packets carry (:data:`RTP_ENCODINGS`)."""
+    format: str = SHM_FORMAT
+    """Shared-memory sources: the frames' pixel format (the sender's caps)."""
 
     @property
     def is_live(self) -> bool:
         """Frames come in real time whether or not the pipeline is ready: cameras, streams, live tests."""
-        return self.kind == "camera" or self.live or self.location.startswith(REMOTE_SCHEMES)
+        return self.kind in ("camera", "rtp", "shm") or self.live or self.location.startswith(REMOTE_SCHEMES)
 
     @property
     def description(self) -> str:
@@ -127,7 +138,7 @@ class SinkConfig:
     host: str = "127.0.0.1"
     port: int = DEFAULT_RTSP_PORT
     mount: str = DEFAULT_RTSP_MOUNT
-    """``rtsp``: served at rtsp://HOST:PORT/MOUNT."""
+    """``rtsp``: served at rtsp://HOST:PORT/MOUNT; ``rtp``: H.264 over RTP sent to HOST:PORT (UDP)."""
 
     @property
     def url(self) -> str:
@@ -289,25 +300,48 @@ class _Parser:
 
     # -- sections ------------------------------------------------------------------------
     def source(self, value: Any, path: KeyPath) -> SourceConfig:
-        entry = self.mapping(value, path, {"uri", "camera", "test", "loop", "rate", "width", "height", "live",
-                                                 "stall-timeout", "latency"})
-        kinds = [k for k in ("uri", "camera", "test") if k in entry]
+        entry = self.mapping(value, path, {"uri", "camera", "test", "rtp", "shm", "loop", "rate", "width", "height",
+                                           "live", "stall-timeout", "latency", "encoding", "format"})
+        kinds = [k for k in ("uri", "camera", "test", "rtp", "shm") if k in entry]
         if len(kinds) != 1:
-            raise self.doc.error(path, "a source needs exactly one of uri:, camera:, test:")
+            raise self.doc.error(path, "a source needs exactly one of uri:, camera:, test:, rtp:, shm:")
         kind = kinds[0]
-        location = self.text(entry[kind], path + (kind,))
+        if kind == "rtp":
+            port = self.positive_int(entry[kind], path + (kind,))
+            if port > 65535:
+                raise self.doc.error(path + (kind,), f"expected the UDP port RTP arrives on, 1..65535, got {port}")
+            location = str(port)
+        else:
+            location = self.text(entry[kind], path + (kind,))
+        fields: dict[str, Any] = {}
+        if "encoding" in entry:
+            if kind != "rtp":
+                raise self.doc.error(path + ("encoding",), "only rtp: sources take encoding:")
+            fields["encoding"] = self.text(entry["encoding"], path + ("encoding",)).upper()
+            if fields["encoding"] not in RTP_ENCODINGS:
+                raise self.doc.error(path + ("encoding",), f"expected one of: {', '.join(RTP_ENCODINGS)}")
+        if "format" in entry:
+            if kind != "shm":
+                raise self.doc.error(path + ("format",), "only shm: sources take format:")
+            fields["format"] = self.text(entry["format"], path + ("format",))
+        if kind == "shm":
+            missing = [k for k in ("width", "height", "rate") if k not in entry]
+            if missing:
+                raise self.doc.error(path, f"a shm: source needs the sender's {', '.join(missing)} (shared memory "
+                                           "carries bytes, not caps)")
+            socket = Path(location).expanduser()
+            location = str(socket if socket.is_absolute() else self.base / socket)
         if kind == "uri":
             location = self.uri(location, path + (kind,))
         elif kind == "camera" and not Path(location).exists():
             raise self.doc.error(path + (kind,), f"camera device not found: {location}")
-        fields: dict[str, Any] = {}
         if "loop" in entry:
             fields["loop"] = self.boolean(entry["loop"], path + ("loop",))
             if fields["loop"] and not location.startswith("file://"):
                 raise self.doc.error(path + ("loop",), "only files can loop")
         if "live" in entry:
             fields["live"] = self.boolean(entry["live"], path + ("live",))
-            if kind == "camera" or (kind == "uri" and not location.startswith("file://")):
+            if kind in ("camera", "rtp", "shm") or (kind == "uri" and not location.startswith("file://")):
                 raise self.doc.error(path + ("live",), "only files and test sources take live: (cameras and streams are live)")
         if "rate" in entry:
             fields["rate"] = self.rate(entry["rate"], path + ("rate",))
@@ -317,8 +351,8 @@ class _Parser:
         if "stall-timeout" in entry:
             fields["stall_timeout"] = self.seconds(entry["stall-timeout"], path + ("stall-timeout",))
         if "latency" in entry:
-            if not location.startswith(("rtsp://", "rtsps://")):
-                raise self.doc.error(path + ("latency",), "only rtsp:// sources take latency:")
+            if kind != "rtp" and not location.startswith(("rtsp://", "rtsps://")):
+                raise self.doc.error(path + ("latency",), "only rtsp:// and rtp: sources take latency:")
             fields["latency_ms"] = self.non_negative_int(entry["latency"], path + ("latency",))
         return SourceConfig(kind=kind, location=location, **fields)
 
@@ -380,14 +414,18 @@ class _Parser:
             if name is not None:
                 raise self.doc.error(path + ("name",), "the one sink: is the stage 'sink'; names are for sinks: entries")
             fields["name"] = self.text(entry["name"], path + ("name",))
-        if kind in ("file", "frames"):
+        if kind in ("file", "frames", "shm"):
             if "path" not in entry:
-                raise self.doc.error(path, f"sink type {kind} needs a path:")
+                raise self.doc.error(path, f"sink type {kind} needs a path:" + (" (the socket shmsrc connects to)"
+                                                                               if kind == "shm" else ""))
             target = Path(self.text(entry["path"], path + ("path",))).expanduser()
             fields["path"] = target if target.is_absolute() else Path.cwd() / target
         for key in ("host", "port", "mount"):
-            if key in entry and kind != "rtsp":
-                raise self.doc.error(path + (key,), f"only rtsp sinks take {key}:")
+            if key in entry and kind not in ("rtsp", "rtp") or key == "mount" and key in entry and kind == "rtp":
+                raise self.doc.error(path + (key,), f"only {'rtsp' if key == 'mount' else 'rtsp and rtp'} sinks take "
+                                                    f"{key}:")
+        if kind == "rtp" and "port" not in entry:
+            raise self.doc.error(path, "sink type rtp needs the port: it sends to (and host:, default 127.0.0.1)")
         if "host" in entry:
             fields["host"] = self.text(entry["host"], path + ("host",))
         if "port" in entry:

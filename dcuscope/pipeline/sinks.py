@@ -5,7 +5,14 @@ for the one ``sink:`` of a config, else as ``sinks:`` names it.
 - ``file``: H.264 in the container the file's name says (``videoconvert ! x264enc ! h264parse
   ! mp4mux|matroskamux|avimux ! filesink``), finalised when the run ends with EOS;
 - ``frames``: numbered PNG images in a folder (``frame_00000.png`` ...);
-- ``rtsp``: served live as H.264 over RTSP (:mod:`dcuscope.pipeline.rtspout`).
+- ``rtsp``: served live as H.264 over RTSP (:mod:`dcuscope.pipeline.rtspout`);
+- ``rtp``: H.264 over RTP to ``host:port`` (``videoconvert ! x264enc ! rtph264pay ! udpsink``), for
+  another pipeline's ``rtp:`` source;
+- ``shm``: raw I420 frames into shared memory (``shmsink``) at ``path``, for another pipeline's
+  ``shm:`` source on this machine (which must give the same width, height and rate).
+
+Where the frames go to another pipeline, the dcuscope tracer (--probes) records each one it sends,
+so that the relay follows it there (docs/journeys.md).
 
 Several sinks hang off a ``tee`` (named ``tee``), each behind a queue of its own (``NAME_queue``,
 leaky: an output more than 30 frames behind drops the oldest there instead of holding the
@@ -18,9 +25,13 @@ from dataclasses import dataclass
 
 from dcuscope.core.errors import PipelineError
 from dcuscope.core.gst import Gst
-from dcuscope.pipeline.config import SinkConfig
+from dcuscope.pipeline.config import SHM_FORMAT, SinkConfig
 from dcuscope.pipeline.outputs import CONTAINERS, FRAME_PATTERN
 from dcuscope.pipeline.rtspout import RtspOut, rtsp_chain
+
+
+SHM_BYTES = 64 << 20
+"""A shm sink's shared memory: a few 4K frames, or dozens of 1080p (shmsink's default)."""
 
 
 @dataclass
@@ -95,6 +106,22 @@ def build_sink(config: SinkConfig, servers: list[RtspOut] | None = None) -> Gst.
         chain, server = rtsp_chain(config, _make)
         if servers is not None:
             servers.append(server)
+    elif config.kind == "rtp":
+        chain = [
+            _make("videoconvert", "encconvert"),
+            _make("capsfilter", "enccaps", caps=Gst.Caps.from_string("video/x-raw,format=I420")),
+            _make("x264enc", "encoder", bitrate=config.bitrate, speed_preset="ultrafast", tune="zerolatency",
+                  key_int_max=30),
+            _make("rtph264pay", "pay", config_interval=-1),
+            _make("udpsink", "render", host=config.host, port=config.port, sync=config.sync, async_=False),
+        ]
+    elif config.kind == "shm":
+        chain = [
+            _make("videoconvert", "shmconvert"),
+            _make("capsfilter", "shmcaps", caps=Gst.Caps.from_string(f"video/x-raw,format={SHM_FORMAT}")),
+            _make("shmsink", "render", socket_path=str(config.path), wait_for_connection=False, sync=config.sync,
+                  async_=False, shm_size=SHM_BYTES),
+        ]
     else:  # the config parser only lets known kinds through
         raise PipelineError(f"unknown sink type {config.kind}")
     sink = Gst.Bin.new(config.name)

@@ -1,8 +1,14 @@
-"""Source bins: a file, stream, camera or test pattern -> RGB frames stamped with their identity.
+"""Source bins: a file, stream, camera, test pattern or another pipeline -> RGB frames stamped with
+their identity.
 
     uridecodebin | v4l2src ! decodebin | videotestsrc
+      | udpsrc ! rtpjitterbuffer ! rtpH264depay ! decodebin      (rtp: another pipeline's RTP)
+      | shmsrc ! capsfilter(the sender's format, size, rate)    (shm: another pipeline's frames)
         ! videoconvert ! videoscale ! [videorate] ! capsfilter(RGB[, size][, rate])
         ! [clocksync: a live file, paced like a camera] ! framestamp
+
+Frames from another pipeline are new frames here; the dcuscope tracer (--probes) records where
+each came from, so that the relay joins it to the frame the other pipeline sent (docs/journeys.md).
 
 A looping file seeks back to its start at EOS; the EOS and the flush stay inside the bin and
 the bin's output running time goes on (pad offset), so the mux never sees the loop. Its
@@ -18,6 +24,13 @@ from typing import Callable
 from dcuscope.core.errors import PipelineError
 from dcuscope.core.gst import GLib, Gst
 from dcuscope.pipeline.config import SourceConfig
+
+
+RTP_CAPS = {
+    "H264": "application/x-rtp,media=video,encoding-name=H264,clock-rate=90000",
+    "H265": "application/x-rtp,media=video,encoding-name=H265,clock-rate=90000",
+    "JPEG": "application/x-rtp,media=video,encoding-name=JPEG,clock-rate=90000",
+}
 
 
 class SourceBin(Gst.Bin):
@@ -36,7 +49,7 @@ class SourceBin(Gst.Bin):
         if config.width and config.height:
             caps += f",width={config.width},height={config.height}"
         chain = [convert, scale]
-        if config.rate is not None:
+        if config.rate is not None and config.kind != "shm":  # shm: the rate the sender's caps say
             chain.append(_make("videorate", f"rate{index}"))
             caps += f",framerate={config.rate.numerator}/{config.rate.denominator}"
         capsfilter = _make("capsfilter", f"caps{index}")
@@ -58,11 +71,22 @@ class SourceBin(Gst.Bin):
         self.add(self.origin)
         if config.kind == "uri":
             self.origin.connect("pad-added", self._on_pad_added)
-        elif config.kind == "camera":
+        elif config.kind in ("camera", "rtp"):
+            before = [self.origin] + (self._rtp_receiver() if config.kind == "rtp" else [])
             decode = _make("decodebin", f"decode{index}")
-            self.add(decode)
-            self.origin.link(decode)
+            for element in before[1:] + [decode]:
+                self.add(element)
+            for a, b in zip(before, before[1:] + [decode]):
+                a.link(b)
             decode.connect("pad-added", self._on_pad_added)
+        elif config.kind == "shm":
+            caps = _make("capsfilter", f"shmcaps{index}")
+            caps.set_property("caps", Gst.Caps.from_string(
+                f"video/x-raw,format={config.format},width={config.width},height={config.height},"
+                f"framerate={config.rate.numerator}/{config.rate.denominator}"))
+            self.add(caps)
+            self.origin.link(caps)
+            caps.link(convert)
         else:
             self.origin.link(convert)
 
@@ -82,11 +106,29 @@ class SourceBin(Gst.Bin):
         elif cfg.kind == "camera":
             element = _make("v4l2src", f"camera{self.index}")
             element.set_property("device", cfg.location)
+        elif cfg.kind == "rtp":
+            element = _make("udpsrc", f"rtp{self.index}")
+            element.set_property("port", int(cfg.location))
+            element.set_property("caps", Gst.Caps.from_string(RTP_CAPS[cfg.encoding]))
+        elif cfg.kind == "shm":
+            element = _make("shmsrc", f"shm{self.index}")
+            element.set_property("socket-path", cfg.location)
+            element.set_property("is-live", True)
+            # Timestamped as they come: the tracer finds each frame's bytes again by its PTS.
+            element.set_property("do-timestamp", True)
         else:
             element = _make("videotestsrc", f"pattern{self.index}")
             Gst.util_set_object_arg(element, "pattern", cfg.location)
             element.set_property("is-live", cfg.live)
         return element
+
+    def _rtp_receiver(self) -> list[Gst.Element]:
+        """Jitter buffer and depayloader of an rtp: source, in order."""
+        jitter = _make("rtpjitterbuffer", f"jitter{self.index}")
+        if self.config.latency_ms is not None:
+            jitter.set_property("latency", self.config.latency_ms)
+        depay = _make(f"rtp{self.config.encoding.lower()}depay", f"depay{self.index}")
+        return [jitter, depay]
 
     def _on_source_setup(self, _decodebin, source: Gst.Element) -> None:
         if self.config.latency_ms is not None and source.find_property("latency") is not None:

@@ -89,7 +89,7 @@ BAD = [
     ("live stream", "sources:\n  - uri: rtsp://127.0.0.1:1/x\n    live: true\nstages: [{queue: {}}]\n",
      ":3: sources[0].live: only files and test sources take live: (cameras and streams are live)"),
     ("latency on a file", f"sources:\n  - uri: {VTEST}\n    latency: 100\nstages: [{{queue: {{}}}}]\n",
-     ":3: sources[0].latency: only rtsp:// sources take latency:"),
+     ":3: sources[0].latency: only rtsp:// and rtp: sources take latency:"),
     ("negative latency", "sources:\n  - uri: rtsp://127.0.0.1:1/x\n    latency: -1\nstages: [{queue: {}}]\n",
      ":3: sources[0].latency: expected an integer >= 0, got a number (-1)"),
     ("bad stall timeout", "sources:\n  - test: ball\n    stall-timeout: soon\nstages: [{queue: {}}]\n",

@@ -139,7 +139,7 @@ def test_a_launch_config_with_a_compositor_is_traced_like_any_app(tmp_path):
     ("sinks:\n  - {type: rtsp, port: 9000}\n  - {type: rtsp, port: 9000}\n", "sinks[1].mount", "is served twice"),
     ("sinks:\n  - {type: rtsp, port: 70000}\n", "sinks[0].port", "1..65535"),
     ("sinks:\n  - {type: rtsp, mount: out}\n", "sinks[0].mount", "such as /out"),
-    ("sinks:\n  - {type: file, port: 9000, path: x.mp4}\n", "sinks[0].port", "only rtsp sinks take port:"),
+    ("sinks:\n  - {type: file, port: 9000, path: x.mp4}\n", "sinks[0].port", "only rtsp and rtp sinks take port:"),
     ("sink: {type: fake, name: x}\n", "sink.name", "names are for sinks: entries"),
 ])
 def test_bad_sinks_are_one_line_naming_the_key(tmp_path, body, where, says):

@@ -1,6 +1,6 @@
-"""The page's Journeys tab: the shipped two-DCU configs (journey-dcu1 sends RTP to journey-dcu2), both
-real ``dcuscope run --probes --relay`` processes; each frame's bar spans both DCUs on the relay's clock,
-its hop hatched between them, as ``/api/journeys`` gives it."""
+"""The page's Journeys tab and the Stage view's hop row: the shipped two-DCU configs (journey-dcu1 sends
+RTP to journey-dcu2), both real ``dcuscope run --probes --relay`` processes; each frame's bar spans both
+DCUs on the relay's clock, its hop hatched between them, as ``/api/journeys`` gives it."""
 
 from __future__ import annotations
 
@@ -60,3 +60,20 @@ def test_each_frames_bar_spans_both_dcus_with_its_hop_between(page):
     assert page.locator("#journeys-legend").text_content() == "on DCU-1on DCU-2a hop between two DCUs"
     SHOTS.mkdir(parents=True, exist_ok=True)
     screenshot_with_address(page, SHOTS / "journeys.png")
+
+
+def test_the_stage_view_has_a_row_of_hops_after_the_dcus(page):
+    relay, page = page
+    page.click('.tab[data-tab="stage"]')
+    hops = "⇄ hops"
+
+    def drawn():
+        d = page.evaluate("window.dcuscope.debug()")["stage"]
+        return d if d["bars"].get(hops, {}).get("net DCU-1 → DCU-2", 0) > 0 else None
+
+    d = wait_for(drawn, 60, 0.5, "hop bars in the Stage view")
+    rows = [r for r in d["rows"] if r["source"] is None]
+    assert [r["node"] for r in rows][-1] == hops and rows[-1]["lanes"] == ["net DCU-1 → DCU-2"]
+    assert {r["node"] for r in rows} >= {"DCU-1", "DCU-2"}
+    SHOTS.mkdir(parents=True, exist_ok=True)
+    screenshot_with_address(page, SHOTS / "stage-hops.png")

@@ -26,7 +26,7 @@ from dcuscope.core.errors import PipelineError
 from dcuscope.core.gst import Gst
 from dcuscope.probes.capture.native import DEFAULT_TRIGGER, BuildError, NativeRing, load, unavailable_reason
 from dcuscope.probes.capture.ring import DEFAULT_CAPACITY, PythonRing, RingStats
-from dcuscope.protocol.events import ENTER, EXIT, ORIGIN, TraceHeader
+from dcuscope.protocol.events import ENTER, EXIT, LINK, ORIGIN, TraceHeader
 
 BACKENDS = ("auto", "native", "python")
 FRAMESTAMP = "framestamp"
@@ -178,7 +178,28 @@ def attach(pipeline: Gst.Pipeline, node: str, clock: str = "realtime", capacity:
         tracer.watch(element, index)  # first, so that no pad slips in between (add() dedupes)
         for pad in element.pads:
             tracer.add(pad, index, ENTER if pad.get_direction() == Gst.PadDirection.SINK else EXIT)
+    if tracer.backend == "native" and tracer.trigger == "hooks":
+        _watch_links(tracer, pipeline, {host: index for index, host in enumerate(hosts) if index < len(stamps)})
     return tracer
+
+
+LINK_SINKS = ("udpsink", "multiudpsink", "shmsink")
+LINK_SOURCES = ("udpsrc", "shmsrc")
+
+
+def _watch_links(tracer: Tracer, pipeline: Gst.Pipeline, sources: dict[Gst.Element, int]) -> None:
+    """Watches (no tracepoint: what crosses to or from another pipeline, docs/journeys.md) on the
+    sink pad of every RTP or shared-memory sink, the src pad of every udpsrc and shmsrc, and the
+    sink pad of every RTP depayloader, each for the stage it belongs to (a source's: its stamp's).
+    The hooks alone fire them (not pad probes, not Python probes)."""
+    for element in pipeline.iterate_recurse():
+        factory = element.get_factory()
+        name = factory.get_name() if factory is not None else ""
+        pad = (element.get_static_pad("sink") if name in LINK_SINKS or (name.startswith("rtp") and name.endswith("depay"))
+               else element.get_static_pad("src") if name in LINK_SOURCES else None)
+        stage = sources.get(_top_level(element, pipeline), tracer.stage_of(element))
+        if pad is not None and stage is not None:
+            tracer.add(pad, stage, LINK)
 
 
 def _children(bin_: Gst.Bin) -> list[Gst.Element]:

@@ -1,7 +1,8 @@
 """``GET /api/journeys``: frames that went from one held run's pipeline to another's (RTP, shared
 memory), joined on the relay's clock (:mod:`dcuscope.relay.live.journeys`): the hops' and the paths'
-statistics as ``dcuscope stats`` gives them for a stored session, and the newest ``limit``
-journeys, each part placed on the relay's clock (what the page's Journeys tab draws)."""
+statistics as ``dcuscope stats`` gives them for a stored session, the newest ``limit`` journeys,
+each part placed on the relay's clock (what the page's Journeys tab draws), and with ``hops=N``
+the newest N frames that crossed a hop, by arrival (the Stage view's hop row)."""
 
 from __future__ import annotations
 
@@ -14,11 +15,16 @@ from dcuscope.relay.live.state import RelayState
 
 DEFAULT_LIMIT = 30
 MAX_LIMIT = 1000
+MAX_CROSSED = 5000
 
 
-def journeys_view(joined: Joined, limit: int) -> dict:
+def journeys_view(joined: Joined, limit: int, crossed: int = 0) -> dict:
     doc = journeys_document(joined)
     doc["frames"] = [frame_view(j, joined) for j in joined.journeys[-limit:]]
+    if crossed:
+        newest = sorted(joined.crossed, key=lambda c: c.arrived_ns)[-crossed:]
+        doc["crossed"] = [{"n": c.arrived_ns, "hop": c.hop, "sent_ns": c.sent_ns, "arrived_ns": c.arrived_ns,
+                           "clock_error_ns": c.error_ns} for c in newest]
     return doc
 
 
@@ -41,6 +47,7 @@ def frame_view(journey: Journey, joined: Joined) -> dict:
 def add_journey_routes(app: web.Application, state: RelayState) -> None:
     async def journeys(request: web.Request) -> web.Response:
         limit = int_arg(request, "limit", DEFAULT_LIMIT, 1, MAX_LIMIT)
-        return web.json_response(journeys_view(state.joined(), limit))
+        crossed = int_arg(request, "hops", 0, 0, MAX_CROSSED)
+        return web.json_response(journeys_view(state.joined(), limit, crossed))
 
     add_read(app, "/api/journeys", journeys)

@@ -10,7 +10,7 @@ import { Api, LiveFeed, listSessions, loadSession, SESSION_CAPACITY } from "./fe
 import { CompareView } from "./compareview.js";
 import { FrameView } from "./frameview.js";
 import { HistoryView } from "./historyview.js";
-import { JourneyView } from "./journeyview.js";
+import { HOPS_ROW, JourneyView } from "./journeyview.js";
 import { MomentView } from "./momentview.js";
 import { Fleet, OPEN_ALL, openedOf, OverviewTable, parseOpen, withOpen } from "./overview.js";
 import { installGrip } from "./overviewsize.js";
@@ -103,7 +103,12 @@ const model = {
   raw: () => view.raw,
   empty: () => emptyText(),
 };
-const stageView = new StageView($("#stage-canvas"), model);
+// The Stage view also draws the hops between DCUs (live data): a row of its own after the DCUs.
+const stageView = new StageView($("#stage-canvas"), {
+  ...model,
+  stores: () => (current === live && journeyView.hops.size ? [...current.sorted(), journeyView.hops] : current.sorted()),
+  expanded: (node) => node !== HOPS_ROW && model.expanded(node),
+});
 const frameView = new FrameView($("#frame-panels"), model);
 const historyView = new HistoryView($("#history-view"), api, colours);
 const compareView = new CompareView($("#compare-view"), api);
@@ -312,6 +317,7 @@ async function refreshSessions() {
 async function openSession(id) {
   const ds = new Dataset("session", id);
   current = ds;
+  journeyView.follow(false);
   view.follow = false;
   view.dirty = view.panelsDirty = true;
   updatePauseButton();
@@ -368,6 +374,7 @@ function chooseData(value) {
   hideTooltip();
   if (value === "live") {
     current = live;
+    journeyView.follow(true);
     view.follow = true;
     view.width = DEFAULT_WIDTH_MS;
     view.dirty = view.panelsDirty = true;
@@ -839,6 +846,7 @@ syncOpened();
 requestAnimationFrame(frame);
 if (await signedIn()) {
   feed.start();
+  journeyView.follow(current === live);
   refreshSessions();
   setInterval(refreshSessions, 10000);
 }

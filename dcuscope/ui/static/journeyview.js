@@ -1,12 +1,18 @@
 // Journeys view: frames that went from one DCU's pipeline to another's (RTP, shared memory),
-// followed across them on the relay's clock (GET /api/journeys). Per hop a line: its delays,
-// the frames it lost, its clock error. Below, one bar per journey, oldest at the top, from the
-// frame's first origin to its end on the last DCU: a segment per DCU in that DCU's colour and a
-// hatched segment per hop between them, with the hop's clock error bar at its end.
+// followed across them on the relay's clock (GET /api/journeys, polled while live data shows).
+// Per hop a line: its delays, the frames it lost, its clock error. Below, one bar per journey,
+// oldest at the top, from the frame's first origin to its end on the last DCU: a segment per DCU
+// in that DCU's colour and a hatched segment per hop between them, with the hop's clock error bar
+// at its end. The same journeys feed `hops`, a row of the Stage view: a lane per hop, a bar per
+// frame from its sending to its arrival.
 
 import { PALETTE } from "./colours.js";
 import { esc } from "./panels.js";
+import { NodeStore } from "./store.js";
 import { formatDelay } from "./timefmt.js";
+
+export const HOPS_ROW = "⇄ hops";
+const HOP_FRAMES = 2000;
 
 const POLL_MS = 1000;
 const JOURNEYS = 40;
@@ -21,17 +27,21 @@ const HOP_COLOUR = "#455a64";
 export class JourneyView {
   constructor(section, api) {
     this.api = api;
-    this.hops = section.querySelector("#journeys-hops");
+    this.hopList = section.querySelector("#journeys-hops");
     this.svg = section.querySelector("#journeys-chart");
     this.note = section.querySelector("#journeys-note");
     this.legend = section.querySelector("#journeys-legend");
     this.timer = null;
+    this.shown = false;
     this.colours = new Map(); // DCU -> its colour, in order of appearance
     this.data = null;
+    this.error = null;
     this.last = { journeys: 0, hops: 0, message: "" };
+    this.hops = new NodeStore(HOPS_ROW, [], HOP_FRAMES); // the Stage view's row
   }
 
-  show(on) {
+  /** Poll the relay while live data shows (`on`), for this tab and the Stage view's hop row. */
+  follow(on) {
     clearInterval(this.timer);
     this.timer = null;
     if (!on) return;
@@ -39,14 +49,21 @@ export class JourneyView {
     this.timer = setInterval(() => this.poll(), POLL_MS);
   }
 
+  show(on) {
+    this.shown = on;
+    if (on) this.draw(this.error);
+  }
+
   async poll() {
     try {
-      this.data = await this.api.get(`/api/journeys?limit=${JOURNEYS}`);
-      this.draw(null);
+      this.data = await this.api.get(`/api/journeys?limit=${JOURNEYS}&hops=${HOP_FRAMES}`);
+      this.error = null;
+      this.hops.ingest(hopBlock(this.data));
     } catch (err) {
       this.data = null;
-      this.draw(err.message);
+      this.error = err.message;
     }
+    if (this.shown) this.draw(this.error);
   }
 
   colourOf(node) {
@@ -62,7 +79,7 @@ export class JourneyView {
       "trace both ends (an RTP sender and its receiver, a shmsink and its shmsrc) with the dcuscope tracer.");
     this.note.textContent = message;
     this.note.classList.toggle("field-msg", !!error);
-    this.hops.innerHTML = hops.map(([name, h]) => `<li><b>${esc(name)}</b>: p50 ${formatDelay(h.p50_ms)}, ` +
+    this.hopList.innerHTML = hops.map(([name, h]) => `<li><b>${esc(name)}</b>: p50 ${formatDelay(h.p50_ms)}, ` +
       `p95 ${formatDelay(h.p95_ms)}, ${h.count} frames, ${h.lost} lost · clock error ` +
       `${h.clock_error_ms === null ? "unknown (no estimate yet)" : "± " + formatDelay(h.clock_error_ms)}</li>`).join("") +
       Object.entries(d?.paths ?? {}).map(([path, p]) => `<li>journey <b>${esc(path)}</b>: p50 ` +
@@ -122,4 +139,22 @@ export class JourneyView {
       }
     });
   }
+}
+
+/**
+ * The Stage view's hop row as a block for NodeStore.ingest: a lane per hop, and per frame that
+ * crossed (GET /api/journeys's `crossed`, relay clock, ns) a bar from its sending to its arrival.
+ */
+export function hopBlock(data) {
+  const stages = Object.keys(data.hops ?? {});
+  const frames = (data.crossed ?? []).map((c) => {
+    const s = stages.indexOf(c.hop);
+    const enter = stages.map((_, i) => (i === s ? c.sent_ns : null));
+    const exit = stages.map((_, i) => (i === s ? c.arrived_ns : null));
+    const ms = (c.arrived_ns - c.sent_ns) / 1e6;
+    return { n: c.n, source: 0, frame: c.n, origin: c.sent_ns, end: c.arrived_ns, enter, exit, delay_ms: ms,
+      stage_delay_ms: stages.map((_, i) => (i === s ? ms : NaN)), clock_ns: 0,
+      clock_uncertainty_ns: c.clock_error_ns };
+  });
+  return { run: `hops:${stages.join(",")}`, stages, has_exit: stages.map(() => true), clock: "estimate", frames };
 }

@@ -45,16 +45,14 @@ int64_t dcu_bytes_key(GstBuffer *buf) {
   return to_key(h ^ tail);
 }
 
-void dcu_packets_note(DcuPackets *p, GstBuffer *buf, int64_t ts) {
-  int64_t key = dcu_rtp_key(buf);
-  if (key < 0) return;
+void dcu_packets_note(DcuPackets *p, GstClockTime pts, int64_t key, int64_t ts) {
   g_mutex_lock(&p->lock);
   if (p->written == 0 || key != p->key_now) {
     p->key_now = key;
     p->first_now = ts;
   }
   guint slot = p->written++ % PACKET_HISTORY;
-  p->entries[slot].pts = GST_BUFFER_PTS(buf);
+  p->entries[slot].pts = pts;
   p->entries[slot].key = key;
   p->entries[slot].first = p->first_now;
   g_mutex_unlock(&p->lock);

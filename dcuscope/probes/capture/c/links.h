@@ -18,7 +18,8 @@ enum { LINK_RTP_OUT = 1, LINK_RTP_IN = 2, LINK_SHM_OUT = 3, LINK_SHM_IN = 4 };
 #define PACKET_HISTORY 64
 #define ARRIVALS 4096
 
-/* The packets one pad took in most recently (a depayloader's sink pad). */
+/* The buffers one pad passed most recently, by PTS: the packets a depayloader's sink pad took in,
+ * or the buffers a shmsrc pushed (their bytes' keys). */
 typedef struct {
   GMutex lock;
   guint written;
@@ -38,7 +39,8 @@ int64_t dcu_rtp_key(GstBuffer *buf);
 /* The key of buf's bytes, or -1 when they cannot be read. */
 int64_t dcu_bytes_key(GstBuffer *buf);
 
-void dcu_packets_note(DcuPackets *p, GstBuffer *buf, int64_t ts);
+/* A buffer of key and pts passed at ts (first: when the first of a run of one key did). */
+void dcu_packets_note(DcuPackets *p, GstClockTime pts, int64_t key, int64_t ts);
 /* The key and first-packet time of the packets whose PTS is pts; FALSE if none is remembered. */
 gboolean dcu_packets_find(DcuPackets *p, GstClockTime pts, int64_t *key, int64_t *first);
 

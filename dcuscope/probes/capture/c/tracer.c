@@ -79,13 +79,14 @@ typedef struct {
   DcuAggHistory *history; /* sink pads of an aggregator */
   _Atomic int active;     /* in-process tracepoints: 0 once detached (freed with the pad) */
   int link_out;           /* sink pads of a sink: -1 undecided, 0 none, else the LINK_*_OUT it sends */
-  int rtp_source;         /* src pads: -1 undecided, 1 a source element pushing RTP packets (udpsrc) */
+  int source_out;         /* src pads of source elements: -1 undecided, 0 none, SOURCE_RTP (udpsrc), SOURCE_SHM */
   int64_t last_key;       /* the key of the last RTP packet it sent or pushed */
-  DcuPackets *packets;    /* sink pads taking RTP packets in (a depayloader's) */
+  DcuPackets *packets;    /* sink pads taking RTP packets in (a depayloader's); a shmsrc's src pad */
   int rtp_in;             /* -1 undecided, 0 no, 1 packets kept */
 } DcuPadInfo;
 
 #define MAX_LINKED 16
+enum { SOURCE_RTP = 1, SOURCE_SHM = 2 };
 
 /* A frame handed to a link-out sink (udpsink, shmsink) on this thread: recorded when the push into
  * it returns (the packet or the buffer is sent then), by the push-post hook on the same thread. */
@@ -185,7 +186,7 @@ static DcuPadInfo *make_pad_info(GstDcuscopeTracer *self, GstPad *pad) {
   DcuPadInfo *info = g_new0(DcuPadInfo, 1);
   info->stamps = -1;
   info->source = -1;
-  info->link_out = info->rtp_source = info->rtp_in = -1;
+  info->link_out = info->source_out = info->rtp_in = -1;
   info->last_key = -1;
   GstObject *parent = GST_OBJECT_PARENT(pad);
   if (!parent || !GST_IS_ELEMENT(parent) || GST_IS_BIN(parent)) return info; /* ghost or proxy pad */
@@ -423,8 +424,7 @@ static int decide_link_out(GstPad *pad) {
 
 /* An identified buffer entered a sink pad: if it sends the buffer's frames to another pipeline,
  * remember them (a new RTP frame: its first packet) until the push into it returns. */
-static void link_out_enter(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, GstBuffer *buf,
-                           const GstStructure *s) {
+static void link_out_enter(DcuPadInfo *info, GstPad *pad, GstBuffer *buf, const GstStructure *s) {
   if (G_LIKELY(info->link_out == 0)) return;
   if (info->link_out < 0) info->link_out = decide_link_out(pad);
   if (info->link_out == 0) return;
@@ -433,9 +433,9 @@ static void link_out_enter(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pa
   info->last_key = key;
   PendingLink *p = &pending_link;
   p->pad = pad;
-  p->ring = self->ring;
-  p->clock = self->clock;
-  p->stage = info->stage->index;
+  p->ring = info->probe.ring;
+  p->clock = info->probe.clock;
+  p->stage = info->probe.stage;
   p->kind = info->link_out;
   p->key = key;
   p->n = (int)MIN(dcu_frames_count(s), MAX_LINKED);
@@ -452,10 +452,29 @@ static void link_out_sent(GstPad *pad) {
   p->pad = NULL;
 }
 
-/* A source element's src pad pushing RTP packets (udpsrc): note when each frame's first packet came. */
-static void rtp_arrival(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t ts) {
-  if (info->rtp_source < 0) info->rtp_source = info->stage->source_element && pad_caps_named(pad, "application/x-rtp");
-  if (info->rtp_source != 1) return;
+static DcuPackets *packets_new(void) {
+  DcuPackets *packets = g_new0(DcuPackets, 1);
+  g_mutex_init(&packets->lock);
+  return packets;
+}
+
+/* A source element's src pad pushed a buffer without identity: where it pushes RTP packets
+ * (udpsrc), note when each frame's first packet came; where it is a shmsrc, the key of each
+ * buffer's bytes by PTS (converters after it change the bytes, not the PTS). */
+static void source_out(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t ts) {
+  if (info->source_out < 0) {
+    GstElement *element = GST_ELEMENT(GST_OBJECT_PARENT(pad));
+    info->source_out = element->numsinkpads > 0 ? 0
+                       : pad_caps_named(pad, "application/x-rtp") ? SOURCE_RTP
+                       : strcmp(factory_name(element), "shmsrc") == 0 ? SOURCE_SHM : 0;
+    if (info->source_out == SOURCE_SHM) g_atomic_pointer_set(&info->packets, packets_new());
+  }
+  if (info->source_out == SOURCE_SHM) {
+    int64_t key = GST_CLOCK_TIME_IS_VALID(GST_BUFFER_PTS(buf)) ? dcu_bytes_key(buf) : -1;
+    if (key >= 0) dcu_packets_note(info->packets, GST_BUFFER_PTS(buf), key, ts);
+    return;
+  }
+  if (info->source_out != SOURCE_RTP) return;
   int64_t key = dcu_rtp_key(buf);
   if (key < 0 || key == info->last_key) return;
   info->last_key = key;
@@ -468,45 +487,54 @@ static void rtp_packet_in(DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t
   if (info->rtp_in < 0) {
     GstElement *element = GST_ELEMENT(GST_OBJECT_PARENT(pad));
     info->rtp_in = element->numsrcpads > 0 && pad_caps_named(pad, "application/x-rtp");
-    if (info->rtp_in) {
-      DcuPackets *packets = g_new0(DcuPackets, 1);
-      g_mutex_init(&packets->lock);
-      g_atomic_pointer_set(&info->packets, packets);
-    }
+    if (info->rtp_in) g_atomic_pointer_set(&info->packets, packets_new());
   }
-  if (info->rtp_in) dcu_packets_note(info->packets, buf, ts);
+  int64_t key = info->rtp_in ? dcu_rtp_key(buf) : -1;
+  if (key >= 0) dcu_packets_note(info->packets, GST_BUFFER_PTS(buf), key, ts);
+}
+
+/* The key and time of the buffer of PTS pts that one of element's pads (its sink pads, or, a
+ * source element, its src pads) passed, as remembered there; FALSE if none is. */
+static gboolean passed_here(GstDcuscopeTracer *self, GstElement *element, GstClockTime pts, int64_t *key,
+                            int64_t *first) {
+  gboolean found = FALSE;
+  GST_OBJECT_LOCK(element);
+  for (GList *l = element->numsinkpads ? element->sinkpads : element->srcpads; l && !found; l = l->next) {
+    DcuPadInfo *in = g_object_get_qdata(G_OBJECT(l->data), self->pad_quark);
+    DcuPackets *packets = in ? g_atomic_pointer_get(&in->packets) : NULL;
+    found = packets && dcu_packets_find(packets, pts, key, first);
+  }
+  GST_OBJECT_UNLOCK(element);
+  return found;
 }
 
 /* Where the frame element gives an identity to came from: walking up from element through elements
- * of one sink pad (a decoder, a capsfilter; at most 8), the first that took RTP packets in (a
- * depayloader: the key and first-packet time of the packets of the frame's PTS) or a shmsrc (the
- * key of buf's bytes, which elements between it and element left as they were: a capsfilter's).
+ * of one sink pad (a decoder, a converter, a bin such as decodebin; at most 12), the first that
+ * remembers the buffer of the frame's PTS: a depayloader's RTP packets (their key, when the first
+ * came), a shmsrc's buffer (the key of its bytes). A shmsrc that remembers none (no PTS) gives the
+ * key of buf's bytes, which elements between it and element left as they were (a capsfilter).
  * The kind of link, or 0 when the frame came from neither. */
 static int upstream_link(GstDcuscopeTracer *self, GstElement *element, GstBuffer *buf, int64_t *key, int64_t *first) {
   int kind = 0;
   gst_object_ref(element);
-  for (int hops = 0; hops < 8 && element && kind == 0; hops++) {
-    if (element->numsinkpads == 0) {
-      if (strcmp(factory_name(element), "shmsrc") == 0 && (*key = dcu_bytes_key(buf)) >= 0) kind = LINK_SHM_IN;
-      break;
-    }
+  for (int hops = 0; hops < 12 && element && kind == 0; hops++) {
+    gboolean source = element->numsinkpads == 0;
+    gboolean shm = source && strcmp(factory_name(element), "shmsrc") == 0;
+    if (passed_here(self, element, GST_BUFFER_PTS(buf), key, first)) kind = shm ? LINK_SHM_IN : LINK_RTP_IN;
+    else if (shm && (*key = dcu_bytes_key(buf)) >= 0) kind = LINK_SHM_IN;
+    if (source || kind) break;
     GstElement *up = NULL;
     GST_OBJECT_LOCK(element);
-    for (GList *l = element->sinkpads; l && kind == 0; l = l->next) {
-      DcuPadInfo *in = g_object_get_qdata(G_OBJECT(l->data), self->pad_quark);
-      DcuPackets *packets = in ? g_atomic_pointer_get(&in->packets) : NULL;
-      if (packets && dcu_packets_find(packets, GST_BUFFER_PTS(buf), key, first)) kind = LINK_RTP_IN;
-    }
     GstPad *sink = element->numsinkpads == 1 ? gst_object_ref(GST_PAD(element->sinkpads->data)) : NULL;
     GST_OBJECT_UNLOCK(element);
-    if (sink && kind == 0) {
+    if (sink) {
       GstPad *peer = gst_pad_get_peer(sink);
       if (peer) {
         up = gst_pad_get_parent_element(peer);
         gst_object_unref(peer);
       }
+      gst_object_unref(sink);
     }
-    if (sink) gst_object_unref(sink);
     gst_object_unref(element);
     element = up;
   }
@@ -514,16 +542,27 @@ static int upstream_link(GstDcuscopeTracer *self, GstElement *element, GstBuffer
   return kind;
 }
 
-/* A frame got its identity on pad: if it came from another pipeline, record where it entered this
- * one (RTP: when its first packet reached the pipeline's source element; shm: now). */
-static void link_in(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t ts,
-                    int64_t frame) {
+/* Frame (source, frame) got its identity on pad: if it came from another pipeline, record where
+ * it entered this one (RTP: when its first packet left the pipeline's source element, else
+ * entered its depayloader; shm: when shmsrc pushed it, else now) at stage, into ring. */
+static void link_in(GstDcuscopeTracer *self, DcuRing *ring, int stage, GstPad *pad, GstBuffer *buf, int64_t ts,
+                    int64_t source, int64_t frame) {
   int64_t key = -1, first = ts;
   int kind = upstream_link(self, GST_ELEMENT(GST_OBJECT_PARENT(pad)), buf, &key, &first);
   if (kind == 0) return;
   int64_t arrived = first;
   if (kind == LINK_RTP_IN && dcu_arrivals_find(self->arrivals, key, &arrived) && arrived > first) arrived = first;
-  dcu_link_record(self->ring, info->stage->index, kind, kind == LINK_RTP_IN ? arrived : ts, key, info->source, frame);
+  dcu_link_record(ring, stage, kind, arrived, key, source, frame);
+}
+
+/* An origin tracepoint placed in process (a framestamp's src pad) recorded buf: its frames may
+ * have come from another pipeline. */
+static void origin_link_in(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t ts) {
+  const GstStructure *s = dcu_frames_structure(buf);
+  if (!s || dcu_frames_count(s) != 1) return;
+  int64_t source, frame;
+  dcu_frames_get(s, 0, &source, &frame);
+  link_in(self, info->probe.ring, info->probe.stage, pad, buf, ts, source, frame);
 }
 
 /* --- hooks ---------------------------------------------------------------------------------- */
@@ -564,7 +603,12 @@ static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int
   if (!info) return;
   int64_t ts = now_for(info, when);
   if (self->in_process) {
+    if (info->probe.point == P_LINK) {  /* a watch: a source element's pad (udpsrc, shmsrc) */
+      if (!dcu_frames_structure(buf)) source_out(self, info, pad, buf, ts);
+      return;
+    }
     dcu_record_buffer(&info->probe, buf, ts);
+    if (info->probe.point == P_ORIGIN) origin_link_in(self, info, pad, buf, ts);
     return;
   }
   DcuStage *st = info->stage;
@@ -575,7 +619,7 @@ static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int
     return;
   }
   if (self->deepstream && deepstream_exit(info, st, buf, ts)) return;
-  if (G_UNLIKELY(info->rtp_source != 0)) rtp_arrival(self, info, pad, buf, ts);
+  if (G_UNLIKELY(info->source_out != 0)) source_out(self, info, pad, buf, ts);
   if (st->aggregator && atomic_load_explicit(&st->entered, memory_order_relaxed)) {
     GstObject *parent = GST_OBJECT_PARENT(pad);
     if (parent && aggregate_lineage(GST_ELEMENT(parent), pad, buf, self->pad_quark, ts)) {
@@ -588,7 +632,7 @@ static void frame_exit(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, int
     int64_t frame;
     if (stamp(self, info, pad, buf, ts, &frame)) {
       dcu_record_buffer(&info->origin, buf, ts);
-      link_in(self, info, pad, buf, ts, frame);
+      link_in(self, self->ring, st->index, pad, buf, ts, info->source, frame);
       return;
     }
     atomic_fetch_add_explicit(&st->shared, 1, memory_order_relaxed);
@@ -606,6 +650,12 @@ static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, in
   if (!info) return;
   int64_t ts = now_for(info, when);
   if (self->in_process) {
+    if (info->probe.point == P_LINK) {  /* a watch: a link-out sink's pad, or a depayloader's */
+      const GstStructure *s = dcu_frames_structure(buf);
+      if (s) link_out_enter(info, pad, buf, s);
+      else rtp_packet_in(info, pad, buf, ts);
+      return;
+    }
     dcu_record_buffer(&info->probe, buf, ts);
     return;
   }
@@ -621,7 +671,7 @@ static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, in
       g_atomic_pointer_set(&info->history, h); /* only this pad's streaming thread writes it */
     }
     if (info->history) remember_input(info, pad, buf, s);
-    link_out_enter(self, info, pad, buf, s);
+    link_out_enter(info, pad, buf, s);
   } else {
     rtp_packet_in(info, pad, buf, ts);
   }
@@ -934,13 +984,18 @@ void dcu_in_process_tracer(gboolean pre) {
   g_mutex_unlock(&in_process_lock);
 }
 
-/* A tracepoint on pad fired by the tracer's hooks (instead of a pad probe); the same records. */
+/* A tracepoint on pad fired by the tracer's hooks (instead of a pad probe); the same records. Point
+ * P_LINK places a watch instead: on a link-out sink's sink pad, a depayloader's sink pad or a
+ * source element's src pad, what links.h needs (an origin's frames then find where they came from). */
 gulong dcu_hook_attach(DcuRing *ring, GstPad *pad, int stage, int point, int clock_id) {
   if (!ring || !GST_IS_PAD(pad)) return 0;
   dcu_in_process_tracer(TRUE);
   DcuPadInfo *info = g_new0(DcuPadInfo, 1);
   info->stamps = 0;
   info->source = -1;
+  /* A watch (point P_LINK) records no tracepoint: it notes what crosses to or from another pipeline. */
+  info->link_out = info->source_out = info->rtp_in = point == P_LINK ? -1 : 0;
+  info->last_key = -1;
   dcu_probe_setup(&info->probe, ring, pad, stage, point, (clockid_t)clock_id);
   atomic_store(&info->active, 1);
   /* Replacing an earlier one frees it: only while no buffer flows (attach before PLAYING). */
