@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import os
 import random
-import signal
 import subprocess
 from pathlib import Path
 
-from tests.ptpnet import netns_permitted
+from tests.ptpnet import end_processes, netns_permitted, pair_namespaces
 
 __all__ = ["LinkedNet", "netns_permitted", "SENDER_ADDR", "RECEIVER_ADDR"]
 
@@ -34,14 +33,7 @@ class LinkedNet:
 
     def __enter__(self) -> LinkedNet:
         try:
-            for ns in (self.sender, self.receiver):
-                _ip("netns", "add", ns)
-                _ip("-n", ns, "link", "set", "lo", "up")
-            a, b = f"{self.tag}s", f"{self.tag}r"
-            _ip("link", "add", a, "netns", self.sender, "type", "veth", "peer", "name", b, "netns", self.receiver)
-            for ns, dev, addr in ((self.sender, a, SENDER_ADDR), (self.receiver, b, RECEIVER_ADDR)):
-                _ip("-n", ns, "addr", "add", f"{addr}/24", "dev", dev)
-                _ip("-n", ns, "link", "set", dev, "up")
+            pair_namespaces((self.sender, f"{self.tag}s", SENDER_ADDR), (self.receiver, f"{self.tag}r", RECEIVER_ADDR))
         except BaseException:
             self.close()
             raise
@@ -66,13 +58,6 @@ class LinkedNet:
         return path.read_text(errors="replace")[-3000:] if path.exists() else ""
 
     def close(self) -> None:
-        for proc in reversed(self._procs):
-            if proc.poll() is None:
-                try:
-                    os.killpg(proc.pid, signal.SIGTERM)
-                    proc.wait(10)
-                except (ProcessLookupError, subprocess.TimeoutExpired):
-                    os.killpg(proc.pid, signal.SIGKILL)
-                    proc.wait(5)
+        end_processes(self._procs)
         for ns in (self.sender, self.receiver):
             _ip("netns", "del", ns, check=False)

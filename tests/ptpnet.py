@@ -58,6 +58,32 @@ def netns_permitted() -> str | None:
     return None
 
 
+def pair_namespaces(a: tuple[str, str, str], b: tuple[str, str, str]) -> None:
+    """Two new network namespaces joined by a veth pair: each (namespace, its end, its /24 address),
+    their loopbacks up."""
+    (a_ns, a_if, _), (b_ns, b_if, _) = a, b
+    _ip("netns", "add", a_ns)
+    _ip("netns", "add", b_ns)
+    _ip("link", "add", a_if, "netns", a_ns, "type", "veth", "peer", "name", b_if, "netns", b_ns)
+    for ns, dev, addr in (a, b):
+        _ip("-n", ns, "addr", "add", f"{addr}/24", "dev", dev)
+        _ip("-n", ns, "link", "set", dev, "up")
+        _ip("-n", ns, "link", "set", "lo", "up")
+
+
+def end_processes(procs: list[subprocess.Popen]) -> None:
+    """End each process still running (each a session leader: its group goes too), newest first:
+    SIGTERM, then SIGKILL after 10 s."""
+    for proc in reversed(procs):
+        if proc.poll() is None:
+            try:
+                os.killpg(proc.pid, signal.SIGTERM)
+                proc.wait(10)
+            except (ProcessLookupError, subprocess.TimeoutExpired):
+                os.killpg(proc.pid, signal.SIGKILL)
+                proc.wait(5)
+
+
 def require_linuxptp() -> None:
     """Skip where namespaces are not permitted; fail (not skip) where linuxptp is missing, which
     the setup installs."""
@@ -111,14 +137,7 @@ class PtpNet:
         self.close()
 
     def _make_links(self) -> None:
-        _ip("netns", "add", self.gm_ns)
-        _ip("netns", "add", self.client_ns)
-        a, b = self._veth
-        _ip("link", "add", a, "netns", self.gm_ns, "type", "veth", "peer", "name", b, "netns", self.client_ns)
-        for ns, dev, addr in ((self.gm_ns, a, GM_ADDR), (self.client_ns, b, CLIENT_ADDR)):
-            _ip("-n", ns, "addr", "add", f"{addr}/24", "dev", dev)
-            _ip("-n", ns, "link", "set", dev, "up")
-            _ip("-n", ns, "link", "set", "lo", "up")
+        pair_namespaces((self.gm_ns, self._veth[0], GM_ADDR), (self.client_ns, self._veth[1], CLIENT_ADDR))
         if self.host_link:
             self._make_host_link()
 
@@ -186,14 +205,7 @@ class PtpNet:
         return time.monotonic()
 
     def close(self) -> None:
-        for proc in reversed(self._procs):
-            if proc.poll() is None:
-                try:
-                    os.killpg(proc.pid, signal.SIGTERM)
-                    proc.wait(10)
-                except (ProcessLookupError, subprocess.TimeoutExpired):
-                    os.killpg(proc.pid, signal.SIGKILL)
-                    proc.wait(5)
+        end_processes(self._procs)
         for ns in (self.gm_ns, self.client_ns):
             _ip("netns", "del", ns, check=False)  # takes its ends of the veth pairs, and so the pairs
         _ip("link", "del", self._host_veth[0], check=False)

@@ -73,6 +73,16 @@ class RtspOut:
             self._source_id = 0
 
 
+def h264_encoder(make, bitrate: int) -> list:
+    """videoconvert ! I420 ! x264enc for live output (ultrafast, zero latency, a keyframe every 30
+    frames): what the file, rtsp and rtp sinks encode with. ``make(factory, name, **props)``."""
+    return [
+        make("videoconvert", "encconvert"),
+        make("capsfilter", "enccaps", caps=Gst.Caps.from_string("video/x-raw,format=I420")),
+        make("x264enc", "encoder", bitrate=bitrate, speed_preset="ultrafast", tune="zerolatency", key_int_max=30),
+    ]
+
+
 def rtsp_chain(config: SinkConfig, make) -> tuple[list[Gst.Element], RtspOut]:
     """The elements of an ``rtsp`` sink bin (``make(factory, name, **props)``) and its server."""
     out = RtspOut(config)
@@ -80,10 +90,7 @@ def rtsp_chain(config: SinkConfig, make) -> tuple[list[Gst.Element], RtspOut]:
                    emit_signals=True)
     appsink.connect("new-sample", out.on_sample)
     chain = [
-        make("videoconvert", "encconvert"),
-        make("capsfilter", "enccaps", caps=Gst.Caps.from_string("video/x-raw,format=I420")),
-        make("x264enc", "encoder", bitrate=config.bitrate, speed_preset="ultrafast", tune="zerolatency",
-             key_int_max=30),
+        *h264_encoder(make, config.bitrate),
         make("h264parse", "parse", config_interval=-1),
         make("capsfilter", "aucaps", caps=Gst.Caps.from_string("video/x-h264,stream-format=byte-stream,alignment=au")),
         appsink,

@@ -27,7 +27,7 @@ from dcuscope.core.errors import PipelineError
 from dcuscope.core.gst import Gst
 from dcuscope.pipeline.config import SHM_FORMAT, SinkConfig
 from dcuscope.pipeline.outputs import CONTAINERS, FRAME_PATTERN
-from dcuscope.pipeline.rtspout import RtspOut, rtsp_chain
+from dcuscope.pipeline.rtspout import RtspOut, h264_encoder, rtsp_chain
 
 
 SHM_BYTES = 64 << 20
@@ -86,10 +86,7 @@ def build_sink(config: SinkConfig, servers: list[RtspOut] | None = None) -> Gst.
         if muxer is None:
             raise PipelineError(f"{config.path}: unknown video container (expected one of {', '.join(CONTAINERS)})")
         chain = [
-            _make("videoconvert", "encconvert"),
-            _make("capsfilter", "enccaps", caps=Gst.Caps.from_string("video/x-raw,format=I420")),
-            _make("x264enc", "encoder", bitrate=config.bitrate, speed_preset="ultrafast", tune="zerolatency",
-                  key_int_max=30),
+            *h264_encoder(_make, config.bitrate),
             _make("h264parse", "parse"),
             _make(muxer, "container"),
             _make("filesink", "render", location=str(config.path), sync=config.sync, async_=False),
@@ -108,10 +105,7 @@ def build_sink(config: SinkConfig, servers: list[RtspOut] | None = None) -> Gst.
             servers.append(server)
     elif config.kind == "rtp":
         chain = [
-            _make("videoconvert", "encconvert"),
-            _make("capsfilter", "enccaps", caps=Gst.Caps.from_string("video/x-raw,format=I420")),
-            _make("x264enc", "encoder", bitrate=config.bitrate, speed_preset="ultrafast", tune="zerolatency",
-                  key_int_max=30),
+            *h264_encoder(_make, config.bitrate),
             _make("rtph264pay", "pay", config_interval=-1),
             _make("udpsink", "render", host=config.host, port=config.port, sync=config.sync, async_=False),
         ]

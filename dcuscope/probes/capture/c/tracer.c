@@ -115,6 +115,8 @@ typedef struct {
   gboolean pre_hooks;  /* its push/chain-pre hooks are registered */
   gboolean chain_hooks; /* GStreamer has pad-chain hooks (1.22 and later): see enter_peer */
   DcuArrivals *arrivals; /* RTP frames' first packets from source elements: links in (kept while pads may use it) */
+  _Atomic int link_ends; /* a pad took RTP packets in or a source element pushed RTP or shm: frames may have
+                            come from another pipeline (until then, origins look for none) */
 } GstDcuscopeTracer;
 
 typedef struct {
@@ -468,6 +470,7 @@ static void source_out(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, G
                        : pad_caps_named(pad, "application/x-rtp") ? SOURCE_RTP
                        : strcmp(factory_name(element), "shmsrc") == 0 ? SOURCE_SHM : 0;
     if (info->source_out == SOURCE_SHM) g_atomic_pointer_set(&info->packets, packets_new());
+    if (info->source_out) atomic_store(&self->link_ends, 1);
   }
   if (info->source_out == SOURCE_SHM) {
     int64_t key = GST_CLOCK_TIME_IS_VALID(GST_BUFFER_PTS(buf)) ? dcu_bytes_key(buf) : -1;
@@ -482,12 +485,15 @@ static void source_out(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, G
 }
 
 /* A buffer without identity entered a sink pad: a depayloader's (RTP in, video out) keeps its packets. */
-static void rtp_packet_in(DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t ts) {
+static void rtp_packet_in(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t ts) {
   if (G_LIKELY(info->rtp_in == 0)) return;
   if (info->rtp_in < 0) {
     GstElement *element = GST_ELEMENT(GST_OBJECT_PARENT(pad));
     info->rtp_in = element->numsrcpads > 0 && pad_caps_named(pad, "application/x-rtp");
-    if (info->rtp_in) g_atomic_pointer_set(&info->packets, packets_new());
+    if (info->rtp_in) {
+      g_atomic_pointer_set(&info->packets, packets_new());
+      atomic_store(&self->link_ends, 1);
+    }
   }
   int64_t key = info->rtp_in ? dcu_rtp_key(buf) : -1;
   if (key >= 0) dcu_packets_note(info->packets, GST_BUFFER_PTS(buf), key, ts);
@@ -547,6 +553,7 @@ static int upstream_link(GstDcuscopeTracer *self, GstElement *element, GstBuffer
  * entered its depayloader; shm: when shmsrc pushed it, else now) at stage, into ring. */
 static void link_in(GstDcuscopeTracer *self, DcuRing *ring, int stage, GstPad *pad, GstBuffer *buf, int64_t ts,
                     int64_t source, int64_t frame) {
+  if (G_LIKELY(!atomic_load_explicit(&self->link_ends, memory_order_relaxed))) return;
   int64_t key = -1, first = ts;
   int kind = upstream_link(self, GST_ELEMENT(GST_OBJECT_PARENT(pad)), buf, &key, &first);
   if (kind == 0) return;
@@ -558,6 +565,7 @@ static void link_in(GstDcuscopeTracer *self, DcuRing *ring, int stage, GstPad *p
 /* An origin tracepoint placed in process (a framestamp's src pad) recorded buf: its frames may
  * have come from another pipeline. */
 static void origin_link_in(GstDcuscopeTracer *self, DcuPadInfo *info, GstPad *pad, GstBuffer *buf, int64_t ts) {
+  if (G_LIKELY(!atomic_load_explicit(&self->link_ends, memory_order_relaxed))) return;
   const GstStructure *s = dcu_frames_structure(buf);
   if (!s || dcu_frames_count(s) != 1) return;
   int64_t source, frame;
@@ -653,7 +661,7 @@ static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, in
     if (info->probe.point == P_LINK) {  /* a watch: a link-out sink's pad, or a depayloader's */
       const GstStructure *s = dcu_frames_structure(buf);
       if (s) link_out_enter(info, pad, buf, s);
-      else rtp_packet_in(info, pad, buf, ts);
+      else rtp_packet_in(self, info, pad, buf, ts);
       return;
     }
     dcu_record_buffer(&info->probe, buf, ts);
@@ -673,7 +681,7 @@ static void frame_enter(GstDcuscopeTracer *self, GstPad *pad, GstBuffer *buf, in
     if (info->history) remember_input(info, pad, buf, s);
     link_out_enter(info, pad, buf, s);
   } else {
-    rtp_packet_in(info, pad, buf, ts);
+    rtp_packet_in(self, info, pad, buf, ts);
   }
   dcu_record_frames(&info->probe, s, buf, ts);
   if (ds) gst_structure_free(ds);
