@@ -70,6 +70,10 @@ class Hop:
     delays_ns: list[int] = field(default_factory=list)
     sent_ns: list[int] = field(default_factory=list)
     """When each of those frames was sent (the sender's clock, as corrected)."""
+    arrived_ns: list[int] = field(default_factory=list)
+    """When each arrived (the receiver's clock, as corrected)."""
+    lost_ns: list[int] = field(default_factory=list)
+    """When each frame lost on the hop was sent."""
     lost: int = 0
     clock_error_ns: int | None = None
     """The two nodes' correction bounds added up (the largest over the hop's frames); None for
@@ -178,9 +182,10 @@ def join(traces: list, names: list[str] | None = None, window_ns: int = JOIN_WIN
     return join_sides(sides_of(traces, names), window_ns)
 
 
-def join_sides(sides: list[Side], window_ns: int = JOIN_WINDOW_NS) -> Joined:
+def join_sides(sides: list[Side], window_ns: int = JOIN_WINDOW_NS, newest: int | None = None) -> Joined:
     """Each arriving frame joined to the one sent frame of its key within ``window_ns``; hops,
-    losses and the journeys of the frames that end a chain."""
+    losses and the journeys of the frames that end a chain (``newest``: of that many of the
+    frames that arrived last, at most: a journey is walked frame by frame)."""
     names, cross = [side.name for side in sides], [side.crossings for side in sides]
     sent: dict[int, list[tuple[int, int, int, int, int, int]]] = defaultdict(list)
     for i, c in enumerate(cross):
@@ -211,6 +216,7 @@ def join_sides(sides: list[Side], window_ns: int = JOIN_WINDOW_NS) -> Joined:
             hop = hops.setdefault(name, Hop(name, names[i], names[r], transport))
             hop.delays_ns.append(ts - t_out)
             hop.sent_ns.append(t_out)
+            hop.arrived_ns.append(ts)
             bounds = (sides[i].bound(t_out), sides[r].bound(ts))
             error = None if None in bounds else bounds[0] + bounds[1]
             if error is not None:
@@ -222,18 +228,23 @@ def join_sides(sides: list[Side], window_ns: int = JOIN_WINDOW_NS) -> Joined:
         c = cross[i]
         mine = np.unique(c["ts"][(c["stage"] == stage) & np.isin(c["kind"], SENT_KINDS)])
         inside = mine[(mine >= min(times)) & (mine <= max(times))]
-        hops[hop_name(transport, names[i], names[r])].lost += int(len(inside)) - len(times)
-    return Joined(hops, _journeys(sides, came_from), dict(untraced), dict(ambiguous), crossed)
+        hop = hops[hop_name(transport, names[i], names[r])]
+        hop.lost_ns += [t for t in inside.tolist() if t not in times]
+        hop.lost = len(hop.lost_ns)
+    return Joined(hops, _journeys(sides, came_from, newest), dict(untraced), dict(ambiguous), crossed)
 
 
-def _journeys(sides: list[Side], came_from: dict) -> list[Journey]:
+def _journeys(sides: list[Side], came_from: dict, newest: int | None = None) -> list[Journey]:
     involved = {k[0] for k in came_from} | {s[0] for v in came_from.values() for s in v}
     spans = [side.spans() if i in involved else None for i, side in enumerate(sides)]
     names = [side.name for side in sides]
     sent_on = {(i, s, f) for i, side in enumerate(sides)
                for s, f in side.crossings[np.isin(side.crossings["kind"], SENT_KINDS)][["source", "frame"]].tolist()}
     out = []
-    for end in came_from:
+    ends = list(came_from)
+    if newest is not None:  # the frames that arrived last (each came_from entry: (..., t_in, ...))
+        ends = sorted(ends, key=lambda k: came_from[k][0][4])[-newest:]
+    for end in ends:
         if end in sent_on:
             continue  # not the end of its chain: the frame it became has the journey
         journey = _walk(end, came_from, spans, names)

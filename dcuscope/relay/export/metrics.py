@@ -40,8 +40,9 @@ from prometheus_client.exposition import CONTENT_TYPE_LATEST
 from prometheus_client.utils import floatToGoString
 from prometheus_client.registry import Collector
 
-from dcuscope.relay.export.exposition import BulkHistogram, exposition
+from dcuscope.relay.export.exposition import exposition
 from dcuscope.relay.export.framemetrics import FrameMetrics
+from dcuscope.relay.export.hopmetrics import HopMetrics
 from dcuscope.relay.export.nodemetrics import NodeMetrics
 from dcuscope.relay.guard.connections import ConnGuard
 from dcuscope.relay.guard.policy import add_read
@@ -60,6 +61,8 @@ class RelayCollector(Collector):
                  refusals: Callable[[], dict[str, int]] = dict) -> None:
         self.state, self.ingest, self.guard, self.refusals = state, ingest, guard, refusals
         self.frames = FrameMetrics(state, BUCKETS_S)
+        self.hops = HopMetrics(np.array([round(b * 1e9) for b in BUCKETS_S], np.int64),
+                               [floatToGoString(b) for b in BUCKETS_S] + ["+Inf"])
         state.observers.append(self.frames.observe)
         self.nodes = NodeMetrics(state)
         self.extra: list[Callable[[], Iterable[Metric]]] = []
@@ -79,34 +82,9 @@ class RelayCollector(Collector):
             yield from more()
 
     def _journey_families(self) -> Iterator[Metric]:
-        """Frames that went from one DCU's pipeline to another's (``/api/journeys``): per hop its delays
-        and the frames it lost; per path of DCUs the journeys' end-to-end delays."""
-        joined = self.state.joined()
-        if not joined.hops:
-            return
-        le = [floatToGoString(b) for b in BUCKETS_S] + ["+Inf"]
-        bounds = np.array([round(b * 1e9) for b in BUCKETS_S], np.float64)  # whole ns, the values' unit
-        hop = BulkHistogram("dcuscope_hop_delay_seconds", "A frame's hop from one DCU's pipeline to another's: "
-                            "from the push that sent it returning to its first packet (buffer) arriving, on the "
-                            "relay's clock", ["from", "to", "transport"], le)
-        lost = CounterMetricFamily("dcuscope_hop_lost_frames", "Frames sent between two the receiver got that it "
-                                   "never got", labels=["from", "to", "transport"])
-        error = GaugeMetricFamily("dcuscope_hop_clock_error_seconds", "The two DCUs' clock bounds added: a hop's "
-                                  "delay is true within it", labels=["from", "to", "transport"])
-        for h in joined.hops.values():
-            labels = [h.sender, h.receiver, h.transport]
-            hop.add_series(labels, _cumulative(np.asarray(h.delays_ns, np.float64), bounds), sum(h.delays_ns) / 1e9)
-            lost.add_metric(labels, h.lost)
-            if h.clock_error_ns is not None:
-                error.add_metric(labels, h.clock_error_ns / 1e9)
-        journey = BulkHistogram("dcuscope_journey_delay_seconds", "A frame's journey across DCUs: from its first "
-                                "origin to its end on the last DCU, on the relay's clock", ["path"], le)
-        by_path: dict[str, list[int]] = {}
-        for j in joined.journeys:
-            by_path.setdefault(" → ".join(j.nodes), []).append(j.total_ns)
-        for path, totals in by_path.items():
-            journey.add_series([path], _cumulative(np.asarray(totals, np.float64), bounds), sum(totals) / 1e9)
-        yield from (hop, lost, error, journey)
+        """Frames that went from one DCU's pipeline to another's (:mod:`dcuscope.relay.export.hopmetrics`)."""
+        self.hops.update(self.state.joined())
+        yield from self.hops.families()
 
     def _relay_families(self) -> Iterator[Metric]:
         state, ingest = self.state, self.ingest
@@ -160,11 +138,6 @@ class RelayCollector(Collector):
     def exposition(self) -> bytes:
         """The text format of every family now (what ``generate_latest(self.registry)`` writes, faster)."""
         return exposition(self.collect())
-
-
-def _cumulative(values_ns: np.ndarray, bounds_ns: np.ndarray) -> np.ndarray:
-    """Cumulative counts of ``values_ns`` at or below each bound, then all of them (+Inf)."""
-    return np.append(np.searchsorted(np.sort(values_ns), bounds_ns, side="right"), len(values_ns))
 
 
 def add_metrics_route(app: web.Application, collector: RelayCollector) -> None:

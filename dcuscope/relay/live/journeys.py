@@ -2,11 +2,12 @@
 
 Each run's crossings (its ``link``/``key`` event pairs) are kept as its batches arrive, on the
 node's clock; a batch that ends between a ``link`` and its ``key`` hands the ``link`` to the next.
-Joining happens when asked (``/api/journeys``, ``/metrics``, the page's Journeys tab), at most
-every :data:`MAX_AGE_S`: each run's crossings moved by its correction then, its frames' spans taken
-from its recent complete frames (:meth:`dcuscope.relay.live.run.LiveRun.recent`), its bound the
-correction's. A journey whose frames left the runs' recent frames is not shown; its hop still
-counts.
+Joining happens when asked (``/api/journeys``, ``/metrics``, the page's Journeys tab and Stage view),
+at most every :data:`MAX_AGE_S`, over each run's last minute of crossings (:data:`LIVE_SPAN_NS`):
+each run's crossings moved by its correction then, its frames' spans taken from its recent
+complete frames (:meth:`dcuscope.relay.live.run.LiveRun.recent`), its bound the correction's. A
+journey whose frames left the runs' recent frames is not shown; its hop still counts. The live
+figures are the last minute's; a stored session's (``dcuscope stats --db``) are the whole run's.
 """
 
 from __future__ import annotations
@@ -25,6 +26,12 @@ from dcuscope.relay.clock.correction import Correction
 
 KEEP_CROSSINGS = 20_000
 """Crossings kept per run (the newest): about 13 minutes of a 25 frames/s stream that crosses."""
+LIVE_SPAN_NS = 60 * 10**9
+"""The live join looks at each run's crossings of its last minute (node time): a join's cost is
+Python per frame (~16 µs an arrived frame, 20 ms a 25 frames/s link)."""
+NEWEST_JOURNEYS = 1000
+"""Journeys walked per join: of the frames that arrived last (the page shows tens, /metrics counts
+those that ended since its last scrape)."""
 MAX_AGE_S = 0.5
 UNKNOWN_BOUND = ("none", "ignored", "raw")
 """Corrections whose bound is unknown (no estimate yet): a hop's clock error is then unknown too."""
@@ -92,9 +99,15 @@ class LiveJourneys:
             return self._joined[1]
         runs = [run for run in self.runs if run in parts]
         names = unique_names(parts[run].node for run in runs)
-        joined = join_sides([_side(name, self._runs[run].all(), parts[run]) for name, run in zip(names, runs)])
+        joined = join_sides([_side(name, _recent(self._runs[run].all()), parts[run]) for name, run in zip(names, runs)],
+                            newest=NEWEST_JOURNEYS)
         self._joined = (now, joined)
         return joined
+
+
+def _recent(found: np.ndarray) -> np.ndarray:
+    """The crossings of the run's last LIVE_SPAN_NS."""
+    return found[found["ts"] >= found["ts"].max() - LIVE_SPAN_NS] if len(found) else found
 
 
 def _side(name: str, found: np.ndarray, part: RunPart) -> Side:
