@@ -90,18 +90,18 @@ def session(tmp_path_factory):
             for i, loss in enumerate((0.0, LOSS)):
                 net.spawn(net.receiver, [sys.executable, "-m", "tests.delayline", "--listen",
                                          f"{RECEIVER_ADDR}:{LINE_PORT + i}", "--to", f"127.0.0.1:{PORT + i}",
-                                         "--delay-ms", f"{DELAY_MS:g}", "--loss", str(loss), "--seconds", "8",
+                                         "--delay-ms", f"{DELAY_MS:g}", "--loss", str(loss), "--seconds", "9",
                                          "--log", str(tmp / f"line{i}.jsonl")], f"line{i}", env=cli_env())
             run = [sys.executable, "-m", "dcuscope.cli", "run"]
             receivers = [
                 net.spawn(net.receiver, [*run, str(launch_config(tmp, node, line.format(port=PORT + i))), "--probes",
-                                         "--relay", relay.url, "--clock-offset-ms", f"{OFFSET_MS:g}", "--duration", "9",
+                                         "--relay", relay.url, "--clock-offset-ms", f"{OFFSET_MS:g}", "--duration", "7.5",
                                          "-q"], node, env=cli_env())
                 for i, (node, line) in enumerate((("DCU-2", H264_IN), ("DCU-4", JPEG_IN)))]
-            time.sleep(2.5)  # the receivers and the lines listen before the first packet
+            time.sleep(2.0)  # the receivers and the lines listen before the first packet
             senders = [
                 net.spawn(net.sender, [*run, str(launch_config(tmp, node, source(w, h) + line.format(
-                    host=RECEIVER_ADDR, port=LINE_PORT + i))), "--probes", "--relay", relay.url, "--duration", "4",
+                    host=RECEIVER_ADDR, port=LINE_PORT + i))), "--probes", "--relay", relay.url, "--duration", "3.5",
                                        "-q"], node, env=cli_env())
                 for i, (node, line, w, h) in enumerate((("DCU-1", H264, 160, 120), ("DCU-3", JPEG, 64, 48)))]
             for proc, node in zip(senders + receivers, ("DCU-1", "DCU-3", "DCU-2", "DCU-4")):
