@@ -7,6 +7,7 @@ Exit status: 0 (every bound passed), 1 (a bound failed), 2 (bad input), each wit
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import sys
 from pathlib import Path
@@ -152,15 +153,11 @@ def _journeys(db: str, run: str) -> dict:
     runs joined on the relay's clock."""
     import numpy as np
 
-    from dcuscope.model.journeys import join
-    from dcuscope.model.names import unique_names
-    from dcuscope.relay.store.runs import load_runs
+    from dcuscope.relay.store.runs import find_runs
 
-    session = load_runs(db, run, corrected=False)[0].session
-    runs = load_runs(db, session)
-    names = unique_names(r.header.node for r in runs)
-    me = names[[r.run for r in runs].index(run)]
-    joined = join(runs, names)
+    (_, session), = find_runs(db, run)
+    runs, names, joined = _joined_session(db, session)
+    me = names[runs.index(run)]
     rows = {}
     for name, hop in joined.hops.items():
         if me in (hop.sender, hop.receiver):
@@ -170,6 +167,18 @@ def _journeys(db: str, run: str) -> dict:
         if j.nodes[-1] == me:
             rows.setdefault("journey " + " → ".join(j.nodes), []).append(j.total_ns / 1e6)
     return {name: np.asarray(v, np.float64) for name, v in rows.items()}
+
+
+@functools.lru_cache(maxsize=4)
+def _joined_session(db: str, session: int) -> tuple[list[str], list[str], object]:
+    """A stored session's run ids, their names and its join, once per session however many inputs name it."""
+    from dcuscope.model.journeys import join
+    from dcuscope.model.names import unique_names
+    from dcuscope.relay.store.runs import load_runs
+
+    runs = load_runs(db, session)
+    names = unique_names(r.header.node for r in runs)
+    return [r.run for r in runs], names, join(runs, names)
 
 
 def _read(text: str, db: str | None) -> list[tuple]:

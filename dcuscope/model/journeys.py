@@ -74,10 +74,14 @@ class Hop:
     """When each arrived (the receiver's clock, as corrected)."""
     lost_ns: list[int] = field(default_factory=list)
     """When each frame lost on the hop was sent."""
-    lost: int = 0
     clock_error_ns: int | None = None
     """The two nodes' correction bounds added up (the largest over the hop's frames); None for
     trace files, whose clocks nothing aligned."""
+
+    @property
+    def lost(self) -> int:
+        """Frames sent between the first and the last the receiver got, that it never got."""
+        return len(self.lost_ns)
 
 
 @dataclass
@@ -230,7 +234,6 @@ def join_sides(sides: list[Side], window_ns: int = JOIN_WINDOW_NS, newest: int |
         inside = mine[(mine >= min(times)) & (mine <= max(times))]
         hop = hops[hop_name(transport, names[i], names[r])]
         hop.lost_ns += [t for t in inside.tolist() if t not in times]
-        hop.lost = len(hop.lost_ns)
     return Joined(hops, _journeys(sides, came_from, newest), dict(untraced), dict(ambiguous), crossed)
 
 

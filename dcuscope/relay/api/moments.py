@@ -21,7 +21,7 @@ import numpy as np
 
 from dcuscope.model.delays import FrameDelays
 from dcuscope.model.frametable import MISSING
-from dcuscope.relay.clock.correction import Correction
+from dcuscope.relay.clock.correction import UNKNOWN_BOUND, Correction
 from dcuscope.relay.errors import RelayError
 
 MATCH_TOLERANCE_NS = 1_000_000
@@ -34,8 +34,6 @@ DEFAULT_LIMIT = 200
 MAX_LIMIT = 2000
 RTSP_SCHEMES = ("rtsp://", "rtsps://", "rtspt://", "rtspu://")
 """Sources whose frames carry a capture time (rtspsrc's ``add-reference-timestamp-meta``, pipeline.sources)."""
-UNKNOWN_BOUND = ("none", "ignored", "raw")
-"""Corrections whose bound is unknown (no estimate yet): a difference cannot be judged against it."""
 
 
 class MomentsError(RelayError):

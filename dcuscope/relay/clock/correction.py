@@ -24,6 +24,9 @@ from dcuscope.model.frametable import MISSING
 from dcuscope.protocol.ptptrust import ptp_trusted, ptp_uncertainty_ns
 
 CLOCK_MODES = ("ptp", "estimate", "auto")
+UNKNOWN_BOUND = ("none", "ignored", "raw")
+"""Corrections whose bound is unknown (no estimate yet): what is compared across nodes cannot be
+judged against it."""
 MAX_CORRECTION_NS = 10**17
 """The largest correction ever applied (~3 years), whatever ``--limit clock_offset_s`` says: a
 timestamp of this era (~1.7e18 ns) moved by it stays far inside int64, so no arithmetic on

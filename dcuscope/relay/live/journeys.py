@@ -22,7 +22,7 @@ from dcuscope.model.frametable import MISSING
 from dcuscope.model.journeys import CROSSING_DTYPE, Joined, Side, Spans, crossings, join_sides
 from dcuscope.model.names import unique_names
 from dcuscope.protocol.events import LINK
-from dcuscope.relay.clock.correction import Correction
+from dcuscope.relay.clock.correction import UNKNOWN_BOUND, Correction
 
 KEEP_CROSSINGS = 20_000
 """Crossings kept per run (the newest): about 13 minutes of a 25 frames/s stream that crosses."""
@@ -33,8 +33,6 @@ NEWEST_JOURNEYS = 1000
 """Journeys walked per join: of the frames that arrived last (the page shows tens, /metrics counts
 those that ended since its last scrape)."""
 MAX_AGE_S = 0.5
-UNKNOWN_BOUND = ("none", "ignored", "raw")
-"""Corrections whose bound is unknown (no estimate yet): a hop's clock error is then unknown too."""
 
 
 @dataclass
@@ -114,9 +112,13 @@ def _side(name: str, found: np.ndarray, part: RunPart) -> Side:
     correction = part.correction
     moved = found.copy()
     moved["ts"] = correction.correct(found["ts"], found["ts"])
-    known = correction.applied not in UNKNOWN_BOUND
-    return Side(name, moved, lambda: recent_spans(part.recent(), correction),
-                (lambda ts: int(correction.on_relay_clock().at(ts)[1])) if known else (lambda ts: None))
+    known = correction.applied not in UNKNOWN_BOUND  # else a hop's clock error is unknown too
+    on_relay = correction.on_relay_clock() if known else None  # the crossings' times are the relay's now
+
+    def bound(ts: int) -> int | None:
+        return int(on_relay.at(ts)[1]) if on_relay is not None else None
+
+    return Side(name, moved, lambda: recent_spans(part.recent(), correction), bound)
 
 
 def recent_spans(fd, correction: Correction) -> Spans:

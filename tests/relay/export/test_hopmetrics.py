@@ -18,7 +18,7 @@ BOUNDS = np.array([5 * MS, 20 * MS, 50 * MS], np.int64)
 def joined(arrived_ms: list[int], delay_ms: int, lost_ms: list[int], ends_ms: list[int]) -> Joined:
     hop = Hop("net A → B", "A", "B", "net", delays_ns=[delay_ms * MS] * len(arrived_ms),
               sent_ns=[(t - delay_ms) * MS for t in arrived_ms], arrived_ns=[t * MS for t in arrived_ms],
-              lost_ns=[t * MS for t in lost_ms], lost=len(lost_ms), clock_error_ns=80_000)
+              lost_ns=[t * MS for t in lost_ms], clock_error_ns=80_000)
     journeys = [Journey(start_ns=(t - 30) * MS, end_ns=t * MS, parts=[("A", 30 * MS)], nodes=["A", "B"]) for t in ends_ms]
     return Joined({hop.name: hop}, journeys, {}, {})
 
