@@ -61,7 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     held: list[tuple[int, int, bytes, dict]] = []
     order = 0
     end = time.monotonic() + args.seconds
-    with open(args.log, "w") as log:
+    with open(args.log, "w", buffering=1) as log:  # line by line: a test may end it while it runs
         print("listening", flush=True)
         while time.monotonic() < end or held:
             wait = 0.05 if not held else max(0.0, (held[0][0] - time.clock_gettime_ns(time.CLOCK_REALTIME)) / 1e9)

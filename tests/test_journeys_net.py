@@ -90,7 +90,7 @@ def session(tmp_path_factory):
             for i, loss in enumerate((0.0, LOSS)):
                 net.spawn(net.receiver, [sys.executable, "-m", "tests.delayline", "--listen",
                                          f"{RECEIVER_ADDR}:{LINE_PORT + i}", "--to", f"127.0.0.1:{PORT + i}",
-                                         "--delay-ms", f"{DELAY_MS:g}", "--loss", str(loss), "--seconds", "9",
+                                         "--delay-ms", f"{DELAY_MS:g}", "--loss", str(loss), "--seconds", "8",
                                          "--log", str(tmp / f"line{i}.jsonl")], f"line{i}", env=cli_env())
             run = [sys.executable, "-m", "dcuscope.cli", "run"]
             receivers = [
