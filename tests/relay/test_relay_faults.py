@@ -60,7 +60,11 @@ def stored_again(relay: RelayProcess, nodes: set[str], since: float, what: str) 
             first.setdefault(node, held[node])
         return all(n in ended or (n in held and held[n] > first[n]) for n in nodes)
 
-    wait_for(check, RECOVERY_S, 0.1, what=f"every node stored again on the other relay after {what}")
+    try:
+        wait_for(check, RECOVERY_S, 0.1, what=f"every node stored again on the other relay after {what}")
+    except AssertionError as exc:
+        raise AssertionError(f"{exc}; the relay lists {own_runs(relay)}; its log ends "
+                             f"{relay.log.read_text()[-2000:] if relay.log else ''}") from None
     took = time.monotonic() - since
     print(f"\n{what}: every node stored again on the other relay {took:.1f} s after the fault")
     return took
@@ -190,6 +194,32 @@ def test_nodes_cut_off_from_their_relay_move_to_the_other_though_it_still_reache
             a.stop()
             b.stop()
     assert "Traceback" not in a.log.read_text()
+    complete(pg_url, tmp_path, counters)
+
+
+def test_a_node_in_bulk_cut_off_from_its_relay_leaves_it_though_its_socket_holds_its_sends(tmp_path, pg_url, netns):
+    """A node not paced (a DCU catching up: megabytes queued) when its path to relay A is cut: TCP
+    keeps the unacknowledged bytes, the kernel's buffer and the WebSocket's fill, and the node's
+    send waits on them. It still hears A's silence and moves to B within seconds; waiting for the
+    send, it stayed on A for TCP's own timeout, many minutes (a CI run saw it on a loaded machine).
+    Everything was stored before the cut: on B the node only resends and ends at once, before B
+    wrote a row of it, and B lists the run ended as its own, not A's stale row of it."""
+    with Namespace() as ns:
+        a = RelayProcess(pg_url, log=tmp_path / "a.log", args=["--name", "relay-a", "--host", ns.host_addr])
+        b = RelayProcess(pg_url, log=tmp_path / "b.log", args=["--name", "relay-b", "--host", ns.host_addr])
+        bulk = None
+        try:
+            bulk = start_node(f"{a.url},{b.url}", "DCU-B", tmp_path / "DCU-B.npz", frames=5000, sources=8,
+                              prefix=ns.prefix)  # 480,000 events written at once, about 11 MB
+            wait_for(lambda: holds(a).get("DCU-B", 0) > 0, 30, 0.02, what="the node on relay A")
+            ns.drop(a.port)
+            stored_again(b, {"DCU-B"}, time.monotonic(), "a bulk node's path to its relay cut")
+            counters = {"DCU-B": finish_node(bulk, 90)}
+        finally:
+            kill_all([bulk] if bulk else [])
+            a.stop()
+            b.stop()
+    assert counters["DCU-B"]["connects"] >= 2 and counters["DCU-B"]["sent"] > counters["DCU-B"]["events"]
     complete(pg_url, tmp_path, counters)
 
 

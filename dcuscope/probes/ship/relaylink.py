@@ -177,11 +177,19 @@ class Link:
         await asyncio.shield(self._reader)
 
     async def close(self) -> None:
+        """Close the WebSocket, its handshake given ``2 * CLOSE_TIMEOUT_S`` at most. A connection that
+        cannot take even the close frame (a cut path: TCP holds what was sent, the socket's buffers are
+        full) is aborted, or its socket and buffers would stay until TCP's own timeout, many minutes."""
         self._reader.cancel()
+        # aiohttp lets go of the connection as the close fails: its transport is taken first
+        connection = self.ws._response.connection
+        transport = connection.transport if connection is not None else None
         try:
-            await self.ws.close()
-        except (aiohttp.ClientError, OSError, asyncio.TimeoutError):  # a half-open connection
-            pass
+            async with deadline(2 * CLOSE_TIMEOUT_S):
+                await self.ws.close()
+        except (aiohttp.ClientError, OSError, *ASYNC_TIMEOUTS):  # a half-open connection
+            if transport is not None:
+                transport.abort()
 
     async def _read(self) -> None:
         try:

@@ -4,7 +4,9 @@ Batches go in order, at most the outbox's window in flight, none while the relay
 them (its storage fails). A relay that, while the node waits for it (batches in flight, or a
 request's reply), says nothing for ``HEARTBEAT_S`` is pinged; one that says nothing for
 ``SILENCE_S``, not even the pong, is left: it froze, or the network between is cut (a frozen
-relay keeps its connections open, so only silence shows it).
+relay keeps its connections open, so only silence shows it). A send the socket holds back (a cut
+path fills the kernel's buffer, and the WebSocket's after it) is watched for that silence too:
+it would wait for TCP's own timeout, many minutes, otherwise.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ async def send(link: Link, box: Outbox, progress: asyncio.Event) -> None:
             item = box.take()
             if item is None:
                 continue
-            await link.send_batch(item[0])
+            await send_watched(link, box, item[0])
             box.sent += item[1]
         progress.clear()
         if not await wait_event(progress, SILENCE_CHECK_S):
@@ -45,6 +47,17 @@ async def send(link: Link, box: Outbox, progress: asyncio.Event) -> None:
             oldest = min(box.inflight.values(), default=time.monotonic())
             if time.monotonic() - oldest > ACK_TIMEOUT_S:
                 raise ExportError(f"no acknowledgement for {ACK_TIMEOUT_S:.0f} s") from None
+
+
+async def send_watched(link: Link, box: Outbox, data: bytes) -> None:
+    """Send one batch; raise if the relay goes silent while the socket holds the send back."""
+    sending = asyncio.ensure_future(link.send_batch(data))
+    try:
+        while not (await asyncio.wait({sending}, timeout=SILENCE_CHECK_S))[0]:
+            check_silence(link, box)
+    finally:
+        sending.cancel()
+    sending.result()
 
 
 def expecting(link: Link, box: Outbox) -> float | None:

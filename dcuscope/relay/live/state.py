@@ -221,9 +221,11 @@ class RelayState:
 
     def holds(self, rs: RunState) -> bool:
         """Whether this relay holds ``rs``: on a shared store, while its node is connected here (a
-        detached run kept to be shown may be taken by another relay at any time); alone on its
-        store, every run it keeps."""
-        return not self.storage.shared or rs.sid is not None
+        detached run kept to be shown may be taken by another relay at any time) and once its node
+        said its end here (nobody takes it then: it is listed here until released, ``Limits.ended_keep_s``,
+        though it ended before this relay wrote its row, where another relay's row of it goes stale);
+        alone on its store, every run it keeps."""
+        return not self.storage.shared or rs.sid is not None or rs.ended
 
     def live_session(self) -> int | None:
         for rs in self.runs.values():
