@@ -23,4 +23,4 @@ bench: setup
 	$(PY) benchmarks/bench_probes.py
 
 clean:
-	rm -rf .venv dcuscope/probes/capture/_build dcuscope/relay/live/_build dcuscope/ui/node_modules dcuscope/ui/static/vendor .pytest_cache build dist
+	rm -rf .venv dcuscope/probes/capture/_build dcuscope/model/_build dcuscope/ui/node_modules dcuscope/ui/static/vendor .pytest_cache build dist

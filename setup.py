@@ -53,9 +53,9 @@ def _cbuild():
 
 
 class BuildWithNative(build_py):
-    """build_py, then the native library beside the package's copy of probes/capture and the relay's
-    compiled merge beside relay/live (not for an editable install: a checkout compiles them on demand,
-    ``python -m dcuscope.probes.capture.native build``, ``python -m dcuscope.relay.live.cmerge build``)."""
+    """build_py, then the native library beside the package's copy of probes/capture and the compiled
+    core beside model (not for an editable install: a checkout compiles them on demand,
+    ``python -m dcuscope.probes.capture.native build``, ``python -m dcuscope.model.compiled build``)."""
 
     def run(self):
         super().run()
@@ -68,12 +68,12 @@ class BuildWithNative(build_py):
         if reason:
             print(f"dcuscope: native probes not built ({reason}): Python probes will be used and there is no "
                   f"GStreamer tracer; install {cbuild.PACKAGES} (Debian/Ubuntu) and reinstall", file=sys.stderr)
-        folder = Path(self.build_lib) / "dcuscope" / "relay" / "live" / "_build"
+        folder = Path(self.build_lib) / "dcuscope" / "model" / "_build"
         folder.mkdir(parents=True, exist_ok=True)
-        reason = cbuild.build_for_install(ROOT / "dcuscope" / "relay" / "live" / "c", folder, cbuild.MERGE)
+        reason = cbuild.build_for_install(ROOT / "dcuscope" / "model" / "c", folder, cbuild.CORE)
         if reason:
-            print(f"dcuscope: the relay's compiled merge not built ({reason}): relays will merge with numpy; "
-                  f"install gcc and reinstall", file=sys.stderr)
+            print(f"dcuscope: the compiled core not built ({reason}): relays and offline tools will run its numpy "
+                  f"reference; install gcc and reinstall", file=sys.stderr)
         if not (ROOT / "dcuscope" / "ui" / "static" / "vendor").is_dir():
             print("dcuscope: ui/static/vendor is missing (make setup, or python -m dcuscope.ui.vendor --npm): "
                   "the page will poll the HTTP API instead of Socket.IO", file=sys.stderr)

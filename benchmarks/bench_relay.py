@@ -55,7 +55,8 @@ relay's own, in its CPU); that of all node processes (``nodes_cpu_pct``), and ``
 lag is its own). Prints one JSON
 line per combination and settings, then a table of them side by side; a figure a run could not
 produce is ``"n/a (reason)"`` in the JSON, ``n/a [k]`` with its reason below in the table
-(benchmarks/figures.py).
+(benchmarks/figures.py). Last, the compiled floor (benchmarks/floor.py): what decoding and pairing
+alone cost per event, beside the relay's figures.
 
     PYTHONPATH=. .venv/bin/python benchmarks/bench_relay.py [--store sqlite postgresql] [--relays 1 2]
         [--nodes 2 8 32] [--settings today adaptive] [--events 2000000] [--batch-events 8192]
@@ -94,6 +95,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script: make the project importable
     sys.path.insert(0, str(ROOT))
 
+from benchmarks import floor  # noqa: E402
 from benchmarks.figures import NA, CannotRun, Notes, dumps, last_line, one_line, percentile, ratio, run  # noqa: E402
 from benchmarks.stores import ONE_RELAY, SQLITE_SETTINGS, STORES, PostgresStore  # noqa: E402
 from dcuscope.relay.live.framepack import MISSING, columns_of  # noqa: E402
@@ -762,6 +764,8 @@ def main(argv: list[str] | None = None) -> int:
         finally:
             rig.close()
     print("\n".join(tls_table(lines) if args.tls else table(lines, args.rate)), flush=True)
+    if not args.tls:  # beside the relay's figures: what the compiled core alone costs of them
+        print(floor.describe(floor.compiled_floor()), flush=True)
     return 0
 
 

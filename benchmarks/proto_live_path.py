@@ -8,7 +8,7 @@ batches of ~176 events, pushes at 30 ticks a second for a page showing every DCU
   judged (``maintain_all``) and its newly shown frames' columns corrected for the push
   (``framepack.corrected``).
 - ``compiled merge``: the same with each batch merged by one compiled pass over its records
-  (``relay/live/c/merge.c``: an open-addressing hash of the frame keys), as relays do since.
+  (``model/c/merge.c``: an open-addressing hash of the frame keys), as relays do since.
   Judging, showing, finalising and pushing stay the delay model's numpy.
 - ``node pairs`` (and ``node pairs, compiled``, the node merging with the compiled pass): each node
   runs the live engine on its own events and ships its newly shown frames' columns
@@ -45,7 +45,7 @@ from dcuscope.probes.ship.simnode import EVENTS_PER_FRAME, header_for, synth_eve
 from dcuscope.protocol.wire import decode_batch, encode_batch  # noqa: E402
 from dcuscope.relay.clock.correction import Correction, Segment  # noqa: E402
 from dcuscope.relay.live import framepack  # noqa: E402
-from dcuscope.relay.live import cmerge  # noqa: E402
+from dcuscope.model import compiled as cmerge  # noqa: E402
 from dcuscope.relay.live.run import PUSHED_FRAMES, Grow, LiveRun, maintain_all  # noqa: E402
 
 RATE = 4300.0

@@ -65,7 +65,7 @@ if [ ! -f "$STAMPS/pip-$deps_hash" ]; then
 fi
 
 "$VENV/bin/python" -m dcuscope.probes.capture.native build >/dev/null || say "warning: native probes not built; Python probes will be used (slower)"
-"$VENV/bin/python" -m dcuscope.relay.live.cmerge build >/dev/null || say "warning: the relay's compiled merge not built; relays will merge with numpy (slower)"
+"$VENV/bin/python" -m dcuscope.model.compiled build >/dev/null || say "warning: the compiled core not built; relays and offline tools will run its numpy reference (slower)"
 
 if [ -f dcuscope/ui/package-lock.json ]; then
   ui_hash=$(sha256sum dcuscope/ui/package-lock.json | cut -c1-16)

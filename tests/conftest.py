@@ -95,6 +95,14 @@ def run_cli(*args: str, cwd: Path | None = None, timeout: float = 240,
 
 
 @pytest.fixture(scope="session")
+def real_traces(tmp_path_factory) -> dict:
+    """Two real traces (tests/realtraces.py), made once per worker."""
+    from tests import realtraces
+
+    return realtraces.make(tmp_path_factory.mktemp("traces"), cli_env())
+
+
+@pytest.fixture(scope="session")
 def gst_registered():
     from dcuscope import plugins
 

@@ -1,9 +1,10 @@
 """Compile the probes' native library (``probes/capture/c``) with the system's compiler and GStreamer,
-and the relay's compiled merge (``relay/live/c``, :data:`MERGE`), which needs a C compiler only.
+and the compiled core of the delay model and the relay's live path (``model/c``, :data:`CORE`), which
+needs a C compiler only.
 
 Standard library only: ``setup.py`` loads this file by its path while a wheel is built (nothing of
 dcuscope nor numpy is importable then), and :mod:`dcuscope.probes.capture.native` and
-:mod:`dcuscope.relay.live.cmerge` call it in a checkout. Where the build puts a library it also
+:mod:`dcuscope.model.compiled` call it in a checkout. Where the build puts a library it also
 writes :data:`STATE`: one line, ``built`` or why not; an installed dcuscope reads it instead of
 compiling (site-packages is not ours to write).
 """
@@ -35,8 +36,9 @@ class Library:
 
 
 PROBES = Library(MODULES, LIBRARY_NAME, gstreamer=True)
-MERGE = Library(("merge",), "libdcuscope_merge.so", gstreamer=False)
-"""The relay's live merge (relay/live/c): no GStreamer, so a relay-only host builds it too."""
+CORE = Library(("batch", "merge", "judge"), "libdcuscope_core.so", gstreamer=False)
+"""The compiled core (model/c): batches decoded and checked, paired into frames, judged by the delay
+model. No GStreamer, so a relay-only host builds it too."""
 
 
 class CBuildError(Exception):
@@ -117,8 +119,8 @@ def ensure(c_dir: Path, library: Path, which: Library = PROBES, force: bool = Fa
 
 def build_for_install(c_dir: Path, folder: Path, which: Library = PROBES) -> str | None:
     """Compile into ``folder`` as a package build does: writes :data:`STATE`; returns why it
-    built nothing (the package then uses Python probes and has no tracer, or the relay merges in
-    numpy), or None."""
+    built nothing (the package then uses Python probes and has no tracer, or the relay and the
+    offline tools run the numpy reference of the core), or None."""
     (folder / which.name).unlink(missing_ok=True)  # an earlier build's, in a build folder used again
     try:
         compile_library(c_dir, folder / which.name, which)

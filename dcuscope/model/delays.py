@@ -45,6 +45,7 @@ from typing import Callable, Iterable
 
 import numpy as np
 
+from dcuscope.model import compiled as compiled_core
 from dcuscope.model.facts import Accounting
 from dcuscope.model.frametable import MISSING, FrameTable, frame_table
 from dcuscope.protocol.events import TraceHeader
@@ -166,8 +167,18 @@ class FrameDelays:
         return len(self.table)
 
 
-def frame_delays(table: FrameTable, has_exit: np.ndarray | None = None) -> FrameDelays:
-    """The chains, per-stage columns and end-to-end delays of every frame of ``table``."""
+def frame_delays(table: FrameTable, has_exit: np.ndarray | None = None, *, compiled: bool = True) -> FrameDelays:
+    """The chains, per-stage columns and end-to-end delays of every frame of ``table``: in one
+    compiled pass (:mod:`dcuscope.model.compiled`) where the library loads and ``compiled``, else
+    with numpy (the reference: :func:`frame_delays_numpy`). The two give equal figures."""
+    core = compiled_core.load() if compiled else None
+    if core is None or len(table) == 0 or table.enter.shape[1] == 0:
+        return frame_delays_numpy(table, has_exit)
+    return _frame_delays_compiled(core, table, has_exit)
+
+
+def frame_delays_numpy(table: FrameTable, has_exit: np.ndarray | None = None) -> FrameDelays:
+    """:func:`frame_delays` with numpy, a column at a time (the reference of the compiled pass)."""
     ch = chains(table, has_exit)
     n = len(table)
     both = (table.exit != MISSING) & (table.enter != MISSING)
@@ -183,6 +194,29 @@ def frame_delays(table: FrameTable, has_exit: np.ndarray | None = None) -> Frame
     wait = np.where(timed, (start - table.enter).astype(np.float64), np.nan)
     return FrameDelays(table=table, chains=ch, delay=end_to_end, glass=glass,
                        per_stage={"delay": delay, "gap": gap, "service": service, "wait": wait})
+
+
+def _frame_delays_compiled(core: compiled_core.CompiledCore, table: FrameTable, has_exit: np.ndarray | None) -> FrameDelays:
+    n, s = table.enter.shape
+    if has_exit is None:
+        has_exit = (table.exit != MISSING).any(axis=0)
+    has_exit = np.ascontiguousarray(has_exit, bool)
+    ins = [np.ascontiguousarray(a, np.int64) for a in (table.origin, table.origin_stage, table.capture, table.enter,
+                                                         table.exit, table.ready)]
+    # Links the graph cannot have are left out, as chains() leaves them; a graph of none of them
+    # stays a graph (one pair the pass skips), as it does there.
+    valid = [(a, b) for a, b in table.links if 0 <= a < s and 0 <= b < s and a != b]
+    links = np.array(valid or [(-1, -1)], np.int32) if table.links else np.zeros((0, 2), np.int32)
+    t_out, prev, end = np.empty((n, s), np.int64), np.empty((n, s), np.int64), np.empty(n, np.int64)
+    passed, complete = np.empty((n, s), bool), np.empty(n, bool)
+    per_stage = {k: np.empty((n, s)) for k in STAGE_COLUMNS}
+    delay, glass, scratch = np.empty(n), np.empty(n), np.empty(2 * s, np.uint8)
+    at = [a.ctypes.data for a in (*ins, has_exit, links)]
+    outs = [a.ctypes.data for a in (t_out, prev, end, passed, complete, *(per_stage[k] for k in STAGE_COLUMNS), delay,
+                                    glass, scratch)]
+    core.judge(compiled_core.Judge(n, s, *at[:8], len(links), *outs))
+    ch = Chains(t_in=table.enter, t_out=t_out, passed=passed, prev=prev, complete=complete, end=end, has_exit=has_exit)
+    return FrameDelays(table=table, chains=ch, delay=delay, glass=glass, per_stage=per_stage)
 
 
 @dataclass

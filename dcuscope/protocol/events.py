@@ -88,7 +88,7 @@ def _code_table() -> np.ndarray:
 
 CODE_TABLE = _code_table()
 """``[point, code as a byte]`` (256 x 256 bools): whether that point allows that code (the relay's
-compiled batch check reads it, :mod:`dcuscope.relay.live.cmerge`)."""
+compiled batch check reads it, :mod:`dcuscope.model.compiled`)."""
 
 
 def codes_valid(point: np.ndarray, code: np.ndarray) -> np.ndarray:

@@ -86,6 +86,9 @@ def test_quick_mode_prints_both_phases_per_store_relay_count_and_settings_and_ev
     refused_cells = re.findall(r"n/a \[(\d+)\]", refused_row)
     assert len(refused_cells) == 8 and len(set(refused_cells)) == 1, refused_row
     assert f"n/a [{refused_cells[0]}]: SQLite is one relay per file" in done.stdout.splitlines()
+    floor = re.search(r"^compiled floor .*merge ([\d.]+) µs/event; the delay model's judgement ([\d.]+) µs/frame$",
+                      done.stdout, re.M)
+    assert floor and 0 < float(floor[1]) < lag["relay_cpu_us_per_event"] and float(floor[2]) > 0, done.stdout[-500:]
 
 
 def test_bench_ui_starts_the_relay_of_this_benchmark_which_takes_32_nodes_and_the_browser():

@@ -92,8 +92,8 @@ def test_the_wheel_holds_one_package_with_its_native_sources_models_and_configs(
     tops = {n.split("/")[0] for n in names if not n.split("/")[0].endswith(".dist-info")}
     assert tops == {"dcuscope"}, tops
     assert wheel.name.endswith("-py3-none-linux_x86_64.whl")  # a shared library inside: one per platform
-    for part in ("probes/capture/c/tracer.c", "probes/capture/_build/libgstdcuscope.so", "relay/live/c/merge.c",
-                 "relay/live/_build/libdcuscope_merge.so",
+    for part in ("probes/capture/c/tracer.c", "probes/capture/_build/libgstdcuscope.so", "model/c/merge.c", "model/c/judge.c", "model/c/core.h",
+                 "model/_build/libdcuscope_core.so",
                  "assets/models/centernet_mobilenetv3_coco80.onnx", "assets/models/README.md",
                  "assets/models/ssdlite_mobilenetv2_person.onnx", "configs/vtest.yaml", "ui/static/index.html",
                  "ui/static/vendor/socket.io.min.js", "plugins/loader/python/dcuscope_infer.py"):
@@ -122,7 +122,7 @@ def test_without_extras_a_dcu_traces_and_ships_and_run_names_the_extra(installed
     found = dcuscope(installed, "plugin-path")
     assert found.returncode == 0, found.stderr
     assert Path(found.stdout.strip()).is_relative_to(venv) and (Path(found.stdout.strip()) / "libgstdcuscope.so").is_file()
-    merge = subprocess.run([str(venv / "bin" / "python"), "-m", "dcuscope.relay.live.cmerge", "check"], cwd=outside, env=env,
+    merge = subprocess.run([str(venv / "bin" / "python"), "-m", "dcuscope.model.compiled", "check"], cwd=outside, env=env,
                            capture_output=True, text=True, timeout=60)
     assert merge.returncode == 0 and Path(merge.stdout.split(": ", 1)[1].strip()).is_relative_to(venv), merge
 
@@ -241,7 +241,7 @@ def test_without_gstreamer_headers_the_install_says_so_and_the_tool_says_what_to
     (wheel,) = tmp_path.glob("dcuscope-*.whl")
     names = zipfile.ZipFile(wheel).namelist()
     assert "dcuscope/probes/capture/_build/libgstdcuscope.so" not in names
-    assert "dcuscope/relay/live/_build/libdcuscope_merge.so" in names  # the relay's merge needs no GStreamer
+    assert "dcuscope/model/_build/libdcuscope_core.so" in names  # the compiled core needs no GStreamer
     state = zipfile.ZipFile(wheel).read("dcuscope/probes/capture/_build/BUILD-STATE").decode()
     assert state.startswith("GStreamer development files not found")
 

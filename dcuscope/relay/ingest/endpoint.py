@@ -55,15 +55,16 @@ from aiohttp import WSCloseCode, WSMsgType, web
 from dcuscope.core.pycompat import ASYNC_TIMEOUTS
 from dcuscope.protocol import envelope
 from dcuscope.protocol.errors import LimitExceeded, ProtocolError
-from dcuscope.protocol.wire import (MAX_MESSAGE_BYTES, RELAY_HEARTBEAT_S, Batch, check_events, decode_batch, decode_clock,
-                                      decode_end, decode_hello, declared_bytes)
+from dcuscope.protocol.events import EVENT_DTYPE
+from dcuscope.protocol.wire import (HEADER_SIZE, MAX_MESSAGE_BYTES, RELAY_HEARTBEAT_S, Batch, check_events, decode_batch,
+                                      decode_clock, decode_end, decode_hello, declared_bytes)
 from dcuscope.protocol.clockdatagram import new_secret
+from dcuscope.model import compiled as compiled_core
 from dcuscope.relay.clock.correction import ClockSample, ntp_sample, sample_fault
 from dcuscope.relay.clock.udp import ClockUdp
 from dcuscope.relay.errors import RelayError
 from dcuscope.relay.guard.limits import ByteBucket, Limits, TokenBucket
 from dcuscope.relay.guard.policy import PRINCIPAL
-from dcuscope.relay.live import cmerge
 from dcuscope.relay.live.state import OWNED_RETRY_MS, RelayState, RunState, TryLater
 from dcuscope.relay.store.base import BatchRow, NotOwner, StoreUnavailable
 
@@ -126,9 +127,9 @@ class Ingest:
         """Events and batches stored and fed to the live state (``/metrics``)."""
         self.clock_udp: ClockUdp | None = None
         """The UDP clock exchange, once the server listens for it (None: not offered)."""
-        compiled = cmerge.load()
-        self._check = check_events if compiled is None else partial(_check_compiled, compiled)
-        """What validates a batch's events: in one compiled pass where the live engine's library loads."""
+        compiled = compiled_core.load()
+        self._decode = decode_batch if compiled is None else partial(_decode_compiled, compiled)
+        """What reads and checks a batch: in one compiled pass where the compiled core loads."""
         self._acks: list[tuple[_Conn, str]] = []
         """Acknowledgements of the rounds settled since the last were sent."""
         self.private_channel: Callable[[web.BaseRequest], bool] = _over_tls
@@ -451,7 +452,7 @@ class Ingest:
         if len(conn.storing) >= MAX_STORING:
             raise ProtocolError(f"more than {MAX_STORING} batches unacknowledged")
         rs = self.state.runs[conn.run]
-        batch = decode_batch(data, len(rs.header.stages), check=self._check)
+        batch = self._decode(data, len(rs.header.stages))
         if batch.run != rs.run:
             raise ProtocolError("batch of another run on this connection")
         named = rs.live.admit_sources(batch.events["source"], self._limits.sources)
@@ -544,9 +545,25 @@ def _report_failure(task: asyncio.Task) -> None:
         log.error("ingest: acknowledging batches failed", exc_info=task.exception())
 
 
-def _check_compiled(compiled: cmerge.CompiledMerge, events: np.ndarray, n_stages: int) -> None:
+def _decode_compiled(core: compiled_core.CompiledCore, data: object, n_stages: int) -> Batch:
+    """:func:`decode_batch` with the header read and the events checked in one compiled pass;
+    :func:`decode_batch` says what is wrong with a batch this refuses."""
+    if isinstance(data, (bytearray, memoryview)):
+        data = bytes(data)
+    if isinstance(data, bytes):
+        code, seq, _ = core.decode_header(data, n_stages)
+        if code == compiled_core.BATCH_OK:
+            payload = data[HEADER_SIZE:]
+            return Batch(data[8:24].hex(), seq, np.frombuffer(payload, EVENT_DTYPE), payload, False)
+        if code == compiled_core.BATCH_INFLATE:
+            return decode_batch(data, n_stages, check=partial(_check_compiled, core))
+    decode_batch(data, n_stages)  # raises, saying why
+    raise ProtocolError("batch refused")  # were the two to disagree
+
+
+def _check_compiled(core: compiled_core.CompiledCore, events: np.ndarray, n_stages: int) -> None:
     """:func:`check_events` in one compiled pass; numpy's says what is wrong with a batch it refuses."""
-    if compiled.first_invalid(events, n_stages) >= 0:
+    if core.first_invalid(events, n_stages) >= 0:
         check_events(events, n_stages)
         raise ProtocolError("an event is invalid")  # were the two to disagree
 

@@ -5,7 +5,7 @@ table was copied whole and sorted again on every batch that opened one; here ope
 (amortised, as :class:`dcuscope.relay.live.run.Grow`) and only :meth:`OpenTable.keep`
 (finalisation and eviction, a few times a second) moves rows.
 
-The index is a hash of the keys that the compiled merge (:mod:`dcuscope.relay.live.cmerge`) reads and
+The index is a hash of the keys that the compiled merge (:mod:`dcuscope.model.compiled`) reads and
 fills as it opens frames (:meth:`OpenTable.merge`); without that library, a sorted array of the keys,
 sorted again when frames open.
 
@@ -18,7 +18,7 @@ import numpy as np
 
 from dcuscope.model.frametable import MISSING
 from dcuscope.protocol.events import EVENT_DTYPE, FRAME_CELLS
-from dcuscope.relay.live.cmerge import CompiledMerge
+from dcuscope.model.compiled import CompiledCore
 
 MIN_ROWS = 64
 MIN_SLOTS = 256
@@ -29,7 +29,7 @@ class OpenTable:
     """Open frames of one run: per row its key (``source << KEY_SHIFT | frame``), cells (the earliest
     timestamp of each (stage, point)), newest event time, whether it was shown, and where its chain ended."""
 
-    def __init__(self, stages: int, compiled: CompiledMerge | None = None) -> None:
+    def __init__(self, stages: int, compiled: CompiledCore | None = None) -> None:
         self._s = stages
         self.n = 0
         self._c = compiled

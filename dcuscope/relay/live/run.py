@@ -45,7 +45,8 @@ from dcuscope.model.delays import (NS_PER_MS, STAGE_COLUMNS, FrameDelays, FrameV
 from dcuscope.model.facts import Accounting
 from dcuscope.model.frametable import MISSING, FrameTable, frame_events, frame_table_from_cells
 from dcuscope.protocol.events import EXIT, FRAME_CELLS, GROUP, READY, TraceHeader
-from dcuscope.relay.live import cmerge, framepack
+from dcuscope.model import compiled as compiled_core
+from dcuscope.relay.live import framepack
 from dcuscope.relay.live.opentable import OpenTable
 from dcuscope.relay.live.sourcewindow import SourceWindow
 from dcuscope.relay.live.values import RELATIVE_ERROR, OriginSpans, RunValues
@@ -206,14 +207,14 @@ class LiveRun:
 
     def __init__(self, header: TraceHeader, config: LiveConfig = LiveConfig(), budget: int | None = None, *,
                  compiled: bool = True) -> None:
-        """``compiled``: merge batches with the compiled pass where it loads (:mod:`dcuscope.relay.live.cmerge`);
-        False merges with numpy (the two leave a run alike)."""
+        """``compiled``: merge batches and judge frames with the compiled core where it loads
+        (:mod:`dcuscope.model.compiled`); False does both with numpy (the two leave a run alike)."""
         self.header = header
         self.stages = list(header.stages)
         self.config = config
         s = len(self.stages)
         self._s = s
-        self._compiled = cmerge.load() if compiled else None
+        self._compiled = compiled_core.load() if compiled else None
         self._open = OpenTable(s, self._compiled)
         self._has_exit = np.zeros(s, bool)
         self._judged_exits: np.ndarray | None = None
@@ -598,7 +599,7 @@ class LiveRun:
 
     def _delays(self, frames: _Frames) -> FrameDelays:
         """The delay model's figures of ``frames``, judged by the exit points of the whole run."""
-        return frame_delays(self._table(frames), self._has_exit)
+        return frame_delays(self._table(frames), self._has_exit, compiled=self._compiled is not None)
 
     def _finalise(self, frames: _Frames) -> None:
         fd = self._delays(frames)

@@ -1,4 +1,4 @@
-"""The relay's compiled batch check refuses exactly the events numpy's ``check_events`` refuses, and
+"""The relay's compiled batch decoding and check refuse exactly the events numpy's ``check_events`` refuses, and
 the relay says what is wrong with numpy's words."""
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ import pytest
 from dcuscope.probes.ship.simnode import header_for, synth_events
 from dcuscope.protocol.errors import ProtocolError
 from dcuscope.protocol.events import EVENT_DTYPE, READY
-from dcuscope.protocol.wire import FRAME_LIMIT, SOURCE_LIMIT, check_events, decode_batch, encode_batch
-from dcuscope.relay.ingest.endpoint import _check_compiled
-from dcuscope.relay.live import cmerge
+from dcuscope.protocol.wire import FRAME_LIMIT, HEADER, SOURCE_LIMIT, check_events, decode_batch, encode_batch
+from dcuscope.relay.ingest.endpoint import _check_compiled, _decode_compiled
+from dcuscope.model import compiled as cmerge
 from dcuscope.relay.live.run import LiveRun
 
 T0 = 1_700_000_000_000_000_000
@@ -21,7 +21,7 @@ STAGES = 3
 
 
 @pytest.fixture(scope="module")
-def compiled() -> cmerge.CompiledMerge:
+def compiled() -> cmerge.CompiledCore:
     merge = cmerge.load()
     assert merge is not None, cmerge.unavailable_reason()
     return merge
@@ -121,3 +121,38 @@ def test_a_live_run_notes_a_new_source_among_known_ones(compiled):
         before = len(run._src_ids)
         assert run.admit_sources(batch["source"], 8) == before + 1
     assert run._src_ids.tolist() == [0, 1, 5, 7] and run._watermark.tolist() == [-1] * 4
+
+
+def _outcome(decode, data) -> tuple:
+    try:
+        b = decode(data, STAGES)
+    except ProtocolError as exc:
+        return ("refused", str(exc))
+    return (b.run, b.seq, b.events.tobytes(), b.payload, b.compressed)
+
+
+def _batches() -> list[bytes]:
+    """Sound batches, compressed or not, and each way a header or payload can be wrong."""
+    events = synth_events(30, 2, 30.0, T0, seed=6)
+    events = events[events["stage"] < STAGES].copy()
+    plain, packed = encode_batch("cd" * 16, 7, events), encode_batch("cd" * 16, 8, events, compress=True)
+    head = list(HEADER.unpack_from(plain))
+
+    def with_header(**fields) -> bytes:
+        names = ("magic", "version", "flags", "reserved", "run", "seq", "count", "length")
+        values = dict(zip(names, head), **fields)
+        return HEADER.pack(*(values[n] for n in names)) + plain[HEADER.size:]
+
+    bad_event = events.copy()
+    bad_event["point"][5] = 9
+    return [plain, packed, plain[:39], b"", plain[:-1], plain + b"x", with_header(magic=b"DCUX"), with_header(version=2),
+            with_header(flags=2), with_header(reserved=1), with_header(count=0), with_header(count=70000),
+            with_header(count=len(events) + 1), with_header(seq=1 << 63), with_header(length=5),
+            encode_batch("cd" * 16, 9, bad_event), encode_batch("cd" * 16, 9, bad_event, compress=True),
+            packed[:-3], bytearray(plain), memoryview(plain), "text"]
+
+
+def test_the_compiled_decoding_takes_and_refuses_exactly_what_numpys_does_in_its_words(compiled):
+    for data in _batches():
+        assert _outcome(lambda d, n: _decode_compiled(compiled, d, n), data) == _outcome(decode_batch, data), data[:48]
+    assert _outcome(lambda d, n: _decode_compiled(compiled, d, n), _batches()[0])[0] == "cd" * 16

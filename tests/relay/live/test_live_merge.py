@@ -1,10 +1,11 @@
-"""The live engine's compiled merge (relay/live/c/merge.c) against its numpy merge and against the
+"""The live engine's compiled merge (model/c/merge.c) against its numpy merge and against the
 offline delay model, on real traces and on synthetic runs that take every path of the merge."""
 
 from __future__ import annotations
 
 import ctypes
 import logging
+import shutil
 import subprocess
 import sys
 
@@ -12,49 +13,16 @@ import numpy as np
 import pytest
 
 from dcuscope.core import cbuild
+from dcuscope.model import compiled as cmerge
 from dcuscope.model.delays import node_stats
 from dcuscope.probes.ship.simnode import header_for, synth_events
-from dcuscope.probes.trace.tracefile import read_trace
 from dcuscope.protocol.events import ENTER, EXIT
-from dcuscope.relay.live import cmerge
 from dcuscope.relay.live.run import PUSHED_FRAMES, LiveConfig, LiveRun
 from tests.conftest import cli_env
 from tests.probes.synth import pipeline_run
 from tests.relay.helpers import assert_stats_equal
 
 T0 = 1_700_000_000_000_000_000
-TWO_CAMERAS = """node: CAM-2
-sources:
-  - {test: ball, width: 160, height: 120, rate: 30}
-  - {test: smpte, width: 160, height: 120, rate: 30}
-stages:
-  - mux: {batch-size: 2, width: 160, height: 120}
-  - tiler: {rows: 1, columns: 2, width: 320, height: 120}
-  - convert: {}
-"""
-
-
-@pytest.fixture(scope="module")
-def real_traces(tmp_path_factory):
-    """Two real traces: an unchanged gst-launch app through a tee (GStreamer's tracer, its graph), and a
-    dcuscope pipeline whose mux batches two live-rate cameras (service and wait times, groups)."""
-    tmp = tmp_path_factory.mktemp("traces")
-    (tmp / "two.yaml").write_text(TWO_CAMERAS)
-    commands = {
-        "tee": ["trace", "--node", "CAM-1", "-o", "tee.jsonl", "--", "gst-launch-1.0", "-q", "videotestsrc", "num-buffers=150",
-                "!", "video/x-raw,width=160,height=120", "!", "tee", "name=t", "!", "queue", "!", "videoconvert", "!",
-                "fakesink", "t.", "!", "queue", "!", "fakesink"],
-        "two": ["run", "two.yaml", "--probes", "--trace", "two.jsonl", "-n", "120", "-q"],
-    }
-    traces = {}
-    for name, args in commands.items():
-        done = subprocess.run([sys.executable, "-m", "dcuscope.cli", *args], cwd=tmp, env=cli_env(),
-                              capture_output=True, text=True, timeout=120)
-        assert done.returncode == 0, done.stderr[-3000:]
-        traces[name] = read_trace(tmp / f"{name}.jsonl")
-    return traces
-
-
 def both(header, config: LiveConfig = LiveConfig()) -> tuple[LiveRun, LiveRun]:
     compiled = LiveRun(header, config)
     assert compiled._open.compiled, cmerge.unavailable_reason()
@@ -133,8 +101,9 @@ def test_without_a_compiler_the_relay_says_why_once_and_merges_with_numpy(tmp_pa
     with caplog.at_level(logging.WARNING, logger=cmerge.__name__):
         assert cmerge.load() is None and cmerge.load() is None
     reason = cmerge.unavailable_reason()
-    assert reason.startswith("compiling libdcuscope_merge.so failed")
-    assert [r.getMessage() for r in caplog.records] == [f"live merge: numpy (the compiled merge is unavailable: {reason})"]
+    assert reason.startswith("compiling libdcuscope_core.so failed")
+    assert [r.getMessage() for r in caplog.records] == [f"compiled core unavailable ({reason}): batches are decoded, paired and "
+                                                       f"judged with numpy, ~1 µs more per event"]
     header = header_for("n", 2)
     run = LiveRun(header)
     assert not run._open.compiled
@@ -146,24 +115,24 @@ def test_without_a_compiler_the_relay_says_why_once_and_merges_with_numpy(tmp_pa
 
 
 def test_the_build_and_check_commands():
-    for command, says in (("build", cmerge.LIBRARY.name), ("check", "compiled merge loaded")):
-        done = subprocess.run([sys.executable, "-m", "dcuscope.relay.live.cmerge", command], env=cli_env(),
+    for command, says in (("build", cmerge.LIBRARY.name), ("check", "compiled core loaded")):
+        done = subprocess.run([sys.executable, "-m", "dcuscope.model.compiled", command], env=cli_env(),
                               capture_output=True, text=True, timeout=60)
         assert done.returncode == 0 and says in done.stdout, done.stderr
-    done = subprocess.run([sys.executable, "-m", "dcuscope.relay.live.cmerge"], env=cli_env(), capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-m", "dcuscope.model.compiled"], env=cli_env(), capture_output=True, text=True)
     assert done.returncode == 2 and "usage" in done.stderr
 
 
 def test_a_merge_keeping_a_cells_latest_time_is_caught(tmp_path, monkeypatch):
     """The comparison above can fail: a compiled merge that keeps each cell's latest time, not its
     earliest, shows other frames than numpy's on the same real batches."""
-    (tmp_path / "c").mkdir()
+    shutil.copytree(cmerge.C_DIR, tmp_path / "c")
     source = (cmerge.C_DIR / "merge.c").read_text()
     wrong = source.replace("e->ts < c[e->point]", "e->ts > c[e->point]")
     assert wrong != source
     (tmp_path / "c" / "merge.c").write_text(wrong)
-    library = cbuild.compile_library(tmp_path / "c", tmp_path / "wrong.so", cbuild.MERGE)
-    monkeypatch.setattr(cmerge, "_loaded", cmerge.CompiledMerge(ctypes.CDLL(str(library))))
+    library = cbuild.compile_library(tmp_path / "c", tmp_path / "wrong.so", cbuild.CORE)
+    monkeypatch.setattr(cmerge, "_loaded", cmerge.CompiledCore(ctypes.CDLL(str(library))))
     header, events, _ = pipeline_run(200, 2, seed=8)
     events = events[np.argsort(events["ts"], kind="stable")]
     again = events[events["point"] == EXIT][::5].copy()

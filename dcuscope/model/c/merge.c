@@ -1,45 +1,14 @@
-/* The live engine's merge (relay.live.run.LiveRun): a batch of events into a run's open frames, in one
- * pass. Events are EVENT_DTYPE records as the wire carries them (24 bytes: ts i64, frame i64, source
- * i32, stage i16, point i8, code i8). Open rows are found through an open-addressing hash of
+/* The live engine's merge (relay.live.run.LiveRun): a batch of checked events (batch.c) into a run's
+ * open frames, in one pass. Events are EVENT_DTYPE records as the wire carries them (24 bytes: ts i64,
+ * frame i64, source i32, stage i16, point i8, code i8). Open rows are found through an open-addressing hash of
  * key = source << 44 | frame (relay.live.opentable.OpenTable keeps it). A cell keeps the earliest time
  * of its (stage, point), the group cell the last ready event's code, as model.frametable's
  * frame_table does offline; relay.live.run.LiveRun's numpy merge does the same where this library
  * could not be built, and tests/relay/live/test_live_merge.py holds the two to one another.
- *
- * No GStreamer and no Python: a relay-only host compiles it with any C compiler. */
-#include <stdint.h>
+ */
 #include <string.h>
 
-#define MERGE_ABI 3
-#define MISSING (-1)
-#define CELLS 6
-#define EXIT 2
-#define READY 3
-#define GROUP 5
-#define FRAME_POINTS 5
-#define KEY_SHIFT 44
-
-#pragma pack(push, 1)
-typedef struct { int64_t ts, frame; int32_t source; int16_t stage; int8_t point, code; } event_t;
-#pragma pack(pop)
-
-int dcu_merge_abi(void) { return MERGE_ABI; }
-
-int dcu_merge_event_size(void) { return (int)sizeof(event_t); }
-
-/* The first of n events a pipeline cannot produce, or -1: protocol.wire.check_events in one pass
- * (the relay checks every batch it receives with this where it loads; numpy says what is wrong).
- * codes: [256 points][256 codes as bytes], whether a point allows a code (no point out of range does). */
-int64_t dcu_check(const event_t *ev, int64_t n, int32_t n_stages, const uint8_t *codes,
-                  int64_t source_limit, int64_t frame_limit) {
-    for (int64_t i = 0; i < n; i++) {
-        const event_t *e = &ev[i];
-        if (!codes[(uint8_t)e->point * 256 + (uint8_t)e->code] || e->stage < 0 || e->stage >= n_stages
-            || e->source < 0 || e->source >= source_limit || e->frame < 0 || e->frame >= frame_limit || e->ts <= 0)
-            return i;
-    }
-    return -1;
-}
+#include "core.h"
 
 /* The first of n source ids (int32, stride bytes apart: a field of a batch's records) that is not
  * among the n_src ids of src_ids (sorted), or -1: relay.live.run.LiveRun's check, at every batch,
@@ -47,7 +16,9 @@ int64_t dcu_check(const event_t *ev, int64_t n, int32_t n_stages, const uint8_t 
 int64_t dcu_unknown_source(const char *sources, int64_t n, int64_t stride, const int64_t *src_ids, int64_t n_src) {
     int64_t known = -1;
     for (int64_t i = 0; i < n; i++) {
-        int64_t s = *(const int32_t *)(sources + i * stride);
+        int32_t s32;
+        memcpy(&s32, sources + i * stride, sizeof s32); /* a field of packed records: maybe unaligned */
+        int64_t s = s32;
         if (known >= 0 && s == known) continue;
         int64_t lo = 0, hi = n_src;
         while (lo < hi) {

@@ -1,0 +1,175 @@
+"""The compiled core: build and load ``c/`` (batch.c, merge.c, judge.c; a C compiler is all it needs).
+
+What the relay's live path does per event, in one C library with a narrow interface: a wire batch
+decoded and checked (:meth:`CompiledCore.decode`), its events paired into a run's open frames
+(:meth:`CompiledCore.merge`, for :class:`dcuscope.relay.live.opentable.OpenTable`), and frames judged by
+the delay model (:meth:`CompiledCore.judge`, for :func:`dcuscope.model.delays.frame_delays`, which the
+offline tools and the relay both call: one delay model). The numpy code beside each stays the
+reference, and what runs where this library cannot be had; tests hold the two to one another on real
+traces (tests/model/test_compiled_judge.py, tests/relay/live/test_live_merge.py,
+tests/relay/ingest/test_batch_check.py), and tests/model/fuzz feeds it hostile input under
+AddressSanitizer and UndefinedBehaviorSanitizer.
+
+The library is ``_build/libdcuscope_core.so`` beside this file: compiled on demand in a checkout
+(git-ignored), by the package's build when installed (which writes ``_build/BUILD-STATE``: ``built``, or
+why not). Where it cannot be had, whatever loads it says why once in its log (the relay's) and numpy
+does the work, ~1 µs more per event at the relay (docs/benchmarks-log.md, issue 66).
+
+    python -m dcuscope.model.compiled build     # compile (again), print the path
+    python -m dcuscope.model.compiled check     # load it, or say why it cannot be loaded
+"""
+
+from __future__ import annotations
+
+import ctypes
+import logging
+import sys
+import threading
+from pathlib import Path
+
+import numpy as np
+
+from dcuscope.core import cbuild
+from dcuscope.core.errors import DcuscopeError
+from dcuscope.protocol.events import CODE_TABLE, EVENT_DTYPE
+from dcuscope.protocol.wire import FRAME_LIMIT, MAX_BATCH_EVENTS, SOURCE_LIMIT
+
+HERE = Path(__file__).resolve().parent
+C_DIR = HERE / "c"
+BUILD_DIR = HERE / "_build"
+LIBRARY = BUILD_DIR / cbuild.CORE.name
+ABI = 4
+BATCH_OK, BATCH_INFLATE = 0, 1
+""":meth:`CompiledCore.decode_header`'s answers besides a fault (negative): the events are checked, or
+the payload is compressed (inflate it, then :meth:`CompiledCore.first_invalid`)."""
+
+log = logging.getLogger(__name__)
+_lock = threading.Lock()
+_loaded: CompiledCore | None = None
+_reason: str | None = None
+
+
+class BuildError(DcuscopeError):
+    """The core library could not be compiled; the message says why."""
+
+
+class Judge(ctypes.Structure):
+    """``judge_t`` of ``c/core.h``: where :meth:`CompiledCore.judge` reads a table and writes its figures."""
+
+    _fields_ = [("n", ctypes.c_int64), ("s", ctypes.c_int32),
+                *((name, ctypes.c_void_p) for name in ("origin", "origin_stage", "capture", "enter", "exit", "ready",
+                                                        "has_exit", "links")),
+                ("n_links", ctypes.c_int32),
+                *((name, ctypes.c_void_p) for name in ("t_out", "prev", "end", "passed", "complete", "delay", "gap",
+                                                        "service", "wait", "frame", "glass", "scratch"))]
+
+
+class CompiledCore:
+    """The library's functions, bound (see ``c/core.h`` for what each does)."""
+
+    def __init__(self, dll: ctypes.CDLL) -> None:
+        p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32
+        dll.dcu_core_abi.restype = ctypes.c_int
+        dll.dcu_event_size.restype = ctypes.c_int
+        if dll.dcu_core_abi() != ABI or dll.dcu_event_size() != EVENT_DTYPE.itemsize:
+            raise BuildError(f"{LIBRARY.name} is of another version (ABI {dll.dcu_core_abi()}, this dcuscope needs {ABI})")
+        dll.dcu_merge_rehash.restype = None
+        dll.dcu_merge_rehash.argtypes = [p, i64, p, p, i64]
+        dll.dcu_merge_locate.restype = None
+        dll.dcu_merge_locate.argtypes = [p, i64, p, p, i64, p, p]
+        dll.dcu_merge.restype = i64
+        dll.dcu_merge.argtypes = [p, i64, i32, p, p, i64, p, p, p, p, p, i64, i64, p, p, i64, p, p]
+        dll.dcu_check.restype = i64
+        dll.dcu_check.argtypes = [p, i64, i32, p, i64, i64]
+        dll.dcu_unknown_source.restype = i64
+        dll.dcu_unknown_source.argtypes = [p, i64, i64, p, i64]
+        dll.dcu_decode_batch.restype = ctypes.c_int
+        dll.dcu_decode_batch.argtypes = [ctypes.c_char_p, i64, i32, i64, p, i64, i64, p]
+        dll.dcu_judge.restype = ctypes.c_int
+        dll.dcu_judge.argtypes = [ctypes.POINTER(Judge)]
+        self.rehash = dll.dcu_merge_rehash
+        self.locate = dll.dcu_merge_locate
+        self.merge = dll.dcu_merge
+        self._check = dll.dcu_check
+        self._unknown = dll.dcu_unknown_source
+        self._decode = dll.dcu_decode_batch
+        self._judge = dll.dcu_judge
+        self._codes = np.ascontiguousarray(CODE_TABLE, np.uint8)
+        self._codes_at = self._codes.ctypes.data
+        self._head = np.zeros(4, np.int64)
+
+    def first_invalid(self, events: np.ndarray, n_stages: int) -> int:
+        """The index of the first event of ``events`` (EVENT_DTYPE, contiguous) that
+        :func:`dcuscope.protocol.wire.check_events` refuses, or -1."""
+        return self._check(events.ctypes.data, len(events), n_stages, self._codes_at, SOURCE_LIMIT, FRAME_LIMIT)
+
+    def first_unknown(self, sources: np.ndarray, ids: np.ndarray) -> int:
+        """The index of the first of ``sources`` (int32, one dimension, any stride: e.g. a batch's
+        ``events["source"]``) not among ``ids`` (int64, sorted, contiguous), or -1."""
+        return self._unknown(sources.ctypes.data, len(sources), sources.strides[0], ids.ctypes.data, len(ids))
+
+    def decode_header(self, data: bytes, n_stages: int, max_events: int = MAX_BATCH_EVENTS) -> tuple[int, int, int]:
+        """``data`` (a wire batch, bytes) read and, uncompressed, its events checked, in one pass:
+        (:data:`BATCH_OK`, :data:`BATCH_INFLATE` or a fault, below 0; its sequence number; its event count)."""
+        code = self._decode(data, len(data), n_stages, max_events, self._codes_at, SOURCE_LIMIT, FRAME_LIMIT,
+                            self._head.ctypes.data)
+        return code, int(self._head[0]), int(self._head[1])
+
+    def judge(self, j: Judge) -> int:
+        """``dcu_judge``: the figures of ``j``'s frames written where it says; returns how many are complete."""
+        return self._judge(ctypes.byref(j))
+
+
+def build(force: bool = False) -> Path:
+    """Compile the library unless an up-to-date one is there; returns its path. Installed, only
+    says whether the install built it."""
+    try:
+        return cbuild.ensure(C_DIR, LIBRARY, cbuild.CORE, force)
+    except cbuild.NotBuilt as exc:
+        raise BuildError(f"dcuscope was installed without its compiled core ({exc.state}); install gcc and "
+                         f"reinstall") from exc
+    except cbuild.CBuildError as exc:
+        raise BuildError(str(exc)) from exc
+
+
+def load() -> CompiledCore | None:
+    """The compiled core (built first where needed), or None; the reason is logged once and kept
+    (:func:`unavailable_reason`)."""
+    global _loaded, _reason
+    with _lock:
+        if _loaded is None and _reason is None:
+            try:
+                _loaded = CompiledCore(ctypes.CDLL(str(build())))
+            except (BuildError, OSError) as exc:
+                _reason = str(exc).splitlines()[0]
+                log.warning("compiled core unavailable (%s): batches are decoded, paired and judged with numpy, "
+                            "~1 µs more per event", _reason)
+        return _loaded
+
+
+def unavailable_reason() -> str | None:
+    """Why :func:`load` gave None (None when it loaded, or was not tried)."""
+    return _reason
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = sys.argv[1:] if argv is None else argv
+    if args == ["build"]:
+        try:
+            print(build(force=True))
+        except BuildError as exc:
+            print(f"dcuscope: compiled core not built ({exc}); numpy will do its work", file=sys.stderr)
+            return 1
+        return 0
+    if args == ["check"]:
+        if load() is None:
+            print(f"compiled core unavailable: {unavailable_reason()}", file=sys.stderr)
+            return 1
+        print(f"compiled core loaded: {LIBRARY}")
+        return 0
+    print("usage: python -m dcuscope.model.compiled build|check", file=sys.stderr)
+    return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())
