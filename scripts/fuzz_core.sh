@@ -24,11 +24,11 @@ flags=(-g -O1 -std=gnu11 -fsanitize=address,undefined -fno-sanitize-recover=all 
 sources=(tests/model/fuzz/fuzz_core.c "$core"/*.c)
 clang=$(command -v clang || command -v clang-14 || true)
 if [ -z "${FUZZ_DRIVER:-}" ] && [ -n "$clang" ] && "$clang" -fsanitize=fuzzer -x c - -o /dev/null <<<'int LLVMFuzzerTestOneInput(const char *d, long n) { return 0; }' 2>/dev/null; then
-    "$clang" "${flags[@]}" -DLIBFUZZER -fsanitize=fuzzer -o "$out/fuzz_core" "${sources[@]}"
+    "$clang" "${flags[@]}" -DLIBFUZZER -fsanitize=fuzzer -o "$out/fuzz_core" "${sources[@]}" -lm
     echo "fuzz_core: libFuzzer ($clang), $seconds s, corpus $seeds" >&2
     "$out/fuzz_core" -max_total_time="$seconds" -print_final_stats=1 "$seeds"
 else
-    "${CC:-gcc}" "${flags[@]}" -o "$out/fuzz_core" "${sources[@]}"
+    "${CC:-gcc}" "${flags[@]}" -o "$out/fuzz_core" "${sources[@]}" -lm
     echo "fuzz_core: gcc with its own driver, $seconds s, seeds $seeds" >&2
     "$out/fuzz_core" "$seconds" "$seeds"/*
 fi

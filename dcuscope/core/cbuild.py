@@ -36,7 +36,7 @@ class Library:
 
 
 PROBES = Library(MODULES, LIBRARY_NAME, gstreamer=True)
-CORE = Library(("batch", "merge", "judge"), "libdcuscope_core.so", gstreamer=False)
+CORE = Library(("batch", "merge", "judge", "push"), "libdcuscope_core.so", gstreamer=False)
 """The compiled core (model/c): batches decoded and checked, paired into frames, judged by the delay
 model. No GStreamer, so a relay-only host builds it too."""
 
@@ -81,7 +81,7 @@ def compile_library(c_dir: Path, library: Path, which: Library = PROBES) -> Path
     fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=library.parent)
     os.close(fd)
     cmd = [_compiler(), "-O2", "-std=gnu11", "-Wall", "-Werror=implicit-function-declaration", "-shared", "-fPIC",
-           "-o", tmp, *map(str, sources(c_dir, which)), *(_gst_flags() if which.gstreamer else [])]
+           "-o", tmp, *map(str, sources(c_dir, which)), *(_gst_flags() if which.gstreamer else []), "-lm"]
     try:
         res = subprocess.run(cmd, capture_output=True, text=True)
     except OSError as exc:

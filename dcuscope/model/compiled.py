@@ -1,10 +1,12 @@
 """The compiled core: build and load ``c/`` (batch.c, merge.c, judge.c; a C compiler is all it needs).
 
 What the relay's live path does per event, in one C library with a narrow interface: a wire batch
-decoded and checked (:meth:`CompiledCore.decode`), its events paired into a run's open frames
-(:meth:`CompiledCore.merge`, for :class:`dcuscope.relay.live.opentable.OpenTable`), and frames judged by
+decoded and checked (:meth:`CompiledCore.decode_header`), its events paired into a run's open frames
+(:attr:`CompiledCore.merge`, for :class:`dcuscope.relay.live.opentable.OpenTable`), frames judged by
 the delay model (:meth:`CompiledCore.judge`, for :func:`dcuscope.model.delays.frame_delays`, which the
-offline tools and the relay both call: one delay model). The numpy code beside each stays the
+offline tools and the relay both call: one delay model; :attr:`CompiledCore.judge_rows`, a run's open
+frames judged at a push tick with the columns it pushes of them), and those columns moved to the
+relay's clock for a push (:attr:`CompiledCore.push_columns`). The numpy code beside each stays the
 reference, and what runs where this library cannot be had; tests hold the two to one another on real
 traces (tests/model/test_compiled_judge.py, tests/relay/live/test_live_merge.py,
 tests/relay/ingest/test_batch_check.py), and tests/model/fuzz feeds it hostile input under
@@ -38,7 +40,7 @@ HERE = Path(__file__).resolve().parent
 C_DIR = HERE / "c"
 BUILD_DIR = HERE / "_build"
 LIBRARY = BUILD_DIR / cbuild.CORE.name
-ABI = 4
+ABI = 5
 BATCH_OK, BATCH_INFLATE = 0, 1
 """:meth:`CompiledCore.decode_header`'s answers besides a fault (negative): the events are checked, or
 the payload is compressed (inflate it, then :meth:`CompiledCore.first_invalid`)."""
@@ -87,6 +89,12 @@ class CompiledCore:
         dll.dcu_decode_batch.argtypes = [ctypes.c_char_p, i64, i32, i64, p, i64, i64, p]
         dll.dcu_judge.restype = ctypes.c_int
         dll.dcu_judge.argtypes = [ctypes.POINTER(Judge)]
+        dll.dcu_judge_rows.restype = i64
+        dll.dcu_judge_rows.argtypes = [p, p, p, i64, i32, p, p, i32, p, p, p, p, p]
+        dll.dcu_origins.restype = i64
+        dll.dcu_origins.argtypes = [p, i64, i64, p, p, p, p, p, i64, p]
+        dll.dcu_push_columns.restype = None
+        dll.dcu_push_columns.argtypes = [p, p, i64, i32, p, p, p, p, p, p, i64, i64, p, p]
         self.rehash = dll.dcu_merge_rehash
         self.locate = dll.dcu_merge_locate
         self.merge = dll.dcu_merge
@@ -94,6 +102,12 @@ class CompiledCore:
         self._unknown = dll.dcu_unknown_source
         self._decode = dll.dcu_decode_batch
         self._judge = dll.dcu_judge
+        self.judge_rows = dll.dcu_judge_rows
+        """``dcu_judge_rows`` (c/judge.c): a run's open rows judged, with the columns a push carries of them."""
+        self.origins = dll.dcu_origins
+        """``dcu_origins`` (c/merge.c): a batch's origins counted per source and time bin (:class:`OriginCounter`)."""
+        self.push_columns = dll.dcu_push_columns
+        """``dcu_push_columns`` (c/push.c): those columns moved to the relay's clock, field after field."""
         self._codes = np.ascontiguousarray(CODE_TABLE, np.uint8)
         self._codes_at = self._codes.ctypes.data
         self._head = np.zeros(4, np.int64)
@@ -118,6 +132,37 @@ class CompiledCore:
     def judge(self, j: Judge) -> int:
         """``dcu_judge``: the figures of ``j``'s frames written where it says; returns how many are complete."""
         return self._judge(ctypes.byref(j))
+
+
+class OriginCounter:
+    """A run's batches' origins counted per (source, time bin) in one compiled pass, into buffers kept
+    from batch to batch (their addresses taken once per size)."""
+
+    def __init__(self, core: CompiledCore, bin_ns: int) -> None:
+        self._core, self._bin_ns, self._room = core, bin_ns, 0
+
+    def count(self, events: np.ndarray) -> tuple[list[list[int]], int]:
+        """Of ``events`` (EVENT_DTYPE, contiguous, checked): ([sources, bins, counts], each a list of the
+        distinct (source, bin) pairs in the order they first come), and the greatest point of the batch."""
+        n = len(events)
+        if n > self._room:
+            self._room = 1 << max(8, (n - 1).bit_length())
+            self._out, self._top = np.empty((3, self._room), np.int64), np.zeros(1, np.int64)
+            self._hkey, self._hrow = np.empty(2 * self._room, np.int64), np.empty(2 * self._room, np.int64)
+            self._at = (*(row.ctypes.data for row in self._out), self._hkey.ctypes.data, self._hrow.ctypes.data,
+                        2 * self._room - 1, self._top.ctypes.data)
+        m = self._core.origins(events.ctypes.data, n, self._bin_ns, *self._at)
+        return self._out[:, :m].tolist(), int(self._top[0])
+
+
+def links_of(links: list, stages: int) -> np.ndarray:
+    """A trace header's links as the compiled judge takes them, (n, 2) int32: those the graph cannot have
+    left out, as :func:`dcuscope.model.delays.chains` leaves them; a graph of none of them stays a graph
+    (one pair the judge skips), as it does there; no links, one chain (none)."""
+    if not links:
+        return np.zeros((0, 2), np.int32)
+    valid = [(a, b) for a, b in links if 0 <= a < stages and 0 <= b < stages and a != b]
+    return np.array(valid or [(-1, -1)], np.int32)
 
 
 def build(force: bool = False) -> Path:

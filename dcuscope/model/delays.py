@@ -203,10 +203,7 @@ def _frame_delays_compiled(core: compiled_core.CompiledCore, table: FrameTable, 
     has_exit = np.ascontiguousarray(has_exit, bool)
     ins = [np.ascontiguousarray(a, np.int64) for a in (table.origin, table.origin_stage, table.capture, table.enter,
                                                          table.exit, table.ready)]
-    # Links the graph cannot have are left out, as chains() leaves them; a graph of none of them
-    # stays a graph (one pair the pass skips), as it does there.
-    valid = [(a, b) for a, b in table.links if 0 <= a < s and 0 <= b < s and a != b]
-    links = np.array(valid or [(-1, -1)], np.int32) if table.links else np.zeros((0, 2), np.int32)
+    links = compiled_core.links_of(table.links, s)
     t_out, prev, end = np.empty((n, s), np.int64), np.empty((n, s), np.int64), np.empty(n, np.int64)
     passed, complete = np.empty((n, s), bool), np.empty(n, bool)
     per_stage = {k: np.empty((n, s)) for k in STAGE_COLUMNS}

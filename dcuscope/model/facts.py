@@ -29,19 +29,20 @@ class Accounting:
         self._thread: dict[int, tuple[int, int]] = {}  # stage -> (ts, thread)
         self._source_facts: dict[tuple[int, int], tuple[int, int]] = {}  # (source, kind) -> (ts, value)
 
-    def add(self, events: np.ndarray) -> None:
+    def add(self, events: np.ndarray, origins: tuple[list[list[int]], int] | None = None) -> None:
+        """Count a batch; ``origins``: its origins counted per source already, with its greatest point
+        (:meth:`dcuscope.model.compiled.OriginCounter.count`)."""
         point = events["point"]
-        origin = events["source"][point == ORIGIN]
-        if len(origin) and 0 <= origin.min() and origin.max() < SMALL_IDS:  # a camera index: counted without a sort
-            counts = np.bincount(origin)
-            ids = np.flatnonzero(counts)
-            counts = counts[ids]
+        if origins is not None:
+            (sources, _, counts), top = origins
+            for sid, n in zip(sources, counts):
+                self.delivered[sid] = self.delivered.get(sid, 0) + n
+            if top < DROP:
+                return
         else:
-            ids, counts = np.unique(origin, return_counts=True)
-        for sid, n in zip(ids.tolist(), counts.tolist()):
-            self.delivered[sid] = self.delivered.get(sid, 0) + n
-        if len(point) == 0 or point.max() < DROP:  # frame timestamps only, as nearly every batch
-            return
+            self._count_origins(events["source"][point == ORIGIN])
+            if len(point) == 0 or point.max() < DROP:  # frame timestamps only, as nearly every batch
+                return
         for e in events[point == DROP].tolist():
             reasons = self.dropped.setdefault(int(e[2]), {})
             reason = DROP_REASONS.get(int(e[5]), "unknown")
@@ -52,6 +53,16 @@ class Accounting:
                     self._thread[stage] = (ts, value)
             elif ts >= self._source_facts.get((source, kind), (-1, 0))[0]:
                 self._source_facts[(source, kind)] = (ts, value)
+
+    def _count_origins(self, origin: np.ndarray) -> None:
+        if len(origin) and 0 <= origin.min() and origin.max() < SMALL_IDS:  # a camera index: counted without a sort
+            counts = np.bincount(origin)
+            ids = np.flatnonzero(counts)
+            counts = counts[ids]
+        else:
+            ids, counts = np.unique(origin, return_counts=True)
+        for sid, n in zip(ids.tolist(), counts.tolist()):
+            self.delivered[sid] = self.delivered.get(sid, 0) + n
 
     def threads(self) -> dict[str, int]:
         """Stage name -> the streaming thread that last pushed its output."""

@@ -1,7 +1,8 @@
 /* dcuscope's compiled core: what the relay's live path does per event, in C (dcuscope.model.compiled
  * loads it). Three modules, bottom-up:
  *   batch.c  a wire batch decoded and its events checked (protocol.wire's decode_batch, check_events);
- *   merge.c  events paired into the open frames of a run (relay.live.run.LiveRun's merge);
+ *   merge.c  events paired into the open frames of a run (relay.live.run.LiveRun's merge), and their
+ *            origins counted per source and time bin (the run's accounting and window);
  *   judge.c  the delay model of a set of frames (model.delays' chains and frame_delays).
  * Python keeps numpy versions of all three as the reference (tests hold them to one another).
  * No GStreamer and no Python: any C compiler builds it. Every entry point takes its sizes and never
@@ -11,7 +12,7 @@
 
 #include <stdint.h>
 
-#define CORE_ABI 4
+#define CORE_ABI 5
 #define MISSING (-1)
 #define CELLS 6
 #define ORIGIN 0
@@ -26,6 +27,13 @@
 #pragma pack(push, 1)
 typedef struct { int64_t ts, frame; int32_t source; int16_t stage; int8_t point, code; } event_t;
 #pragma pack(pop)
+
+static inline uint64_t mix(uint64_t k) {
+    k ^= k >> 33;
+    k *= 0xff51afd7ed558ccdULL;
+    k ^= k >> 33;
+    return k;
+}
 
 /* batch.c */
 int dcu_core_abi(void);
@@ -44,6 +52,8 @@ int64_t dcu_merge(const event_t *ev, int64_t n, int32_t n_stages, int64_t *hkey,
                   int64_t *okey, int64_t *cells, int64_t *last, uint8_t *shown, int64_t *end, int64_t rows,
                   int64_t rows_cap, const int64_t *src_ids, const int64_t *watermark, int64_t n_src,
                   uint8_t *has_exit, int64_t *io);
+int64_t dcu_origins(const event_t *ev, int64_t n, int64_t bin_ns, int64_t *source, int64_t *bin, int64_t *count,
+                    int64_t *hkey, int64_t *hrow, int64_t mask, int64_t *top);
 
 /* judge.c */
 typedef struct {
@@ -63,5 +73,15 @@ typedef struct {
 } judge_t;
 
 int dcu_judge(judge_t *j);
+int64_t dcu_judge_rows(const int64_t *cells, const int64_t *keys, const int64_t *rows, int64_t k, int32_t s,
+                       const uint8_t *has_exit, const int32_t *links, int32_t n_links, uint8_t *complete, int64_t *end,
+                       int64_t *ints, double *floats, int64_t *work);
+
+/* push.c: the pushed columns (relay.live.framepack) */
+#define INT_ROWS(s) (9 + 2 * (int64_t)(s))
+#define FLOAT_ROWS(s) (2 + 4 * (int64_t)(s))
+void dcu_push_columns(const int64_t *ints, const double *floats, int64_t k, int32_t s, const int64_t *from,
+                      const int64_t *ref, const int64_t *offset, const double *drift, const int64_t *unc,
+                      const double *growth, int64_t n_seg, int64_t base_unc, int64_t *ints_out, double *floats_out);
 
 #endif

@@ -107,3 +107,61 @@ int dcu_judge(judge_t *j) {
     }
     return complete_n;
 }
+
+/* Rows of a run's open table (cells: row x s x CELLS, keys: source << KEY_SHIFT | frame) judged, each as
+ * a FrameTable row of frame_table_from_cells: complete, end, and the columns the relay pushes
+ * (relay.live.framepack.node_columns: ints of INT_ROWS(s) x k, floats of FLOAT_ROWS(s) x k, a column a
+ * frame, the cursor row 0). work: 10 * s + 8 int64 of room. Returns how many are complete. */
+int64_t dcu_judge_rows(const int64_t *cells, const int64_t *keys, const int64_t *rows, int64_t k, int32_t s,
+                       const uint8_t *has_exit, const int32_t *links, int32_t n_links, uint8_t *complete, int64_t *end,
+                       int64_t *ints, double *floats, int64_t *work) {
+    int64_t *in = work, *ex = work + s, *rd = work + 2 * s, *out = work + 3 * s, *prev = work + 4 * s;
+    double *fig = (double *)(work + 5 * s); /* delay, gap, service, wait: s each (8 bytes, as int64) */
+    uint8_t *bytes = (uint8_t *)(work + 9 * s); /* passed, then the judge's scratch: 3 * s bytes */
+    int64_t origin, ostage, capture, e;
+    uint8_t c;
+    double frame, glass;
+    judge_t j = {.n = 1, .s = s, .origin = &origin, .origin_stage = &ostage, .capture = &capture, .enter = in,
+                 .exit = ex, .ready = rd, .has_exit = has_exit, .links = links, .n_links = n_links, .t_out = out,
+                 .prev = prev, .end = &e, .passed = bytes, .complete = &c, .delay = fig, .gap = fig + s,
+                 .service = fig + 2 * s, .wait = fig + 3 * s, .frame = &frame, .glass = &glass, .scratch = bytes + s};
+    int64_t n_complete = 0;
+    for (int64_t i = 0; i < k; i++) {
+        const int64_t *cell = cells + rows[i] * s * CELLS;
+        ostage = -1;
+        origin = capture = MISSING;
+        for (int32_t t = 0; t < s; t++, cell += CELLS) {
+            if (ostage < 0 && cell[ORIGIN] != MISSING) {
+                ostage = t;
+                origin = cell[ORIGIN];
+                capture = cell[CAPTURE];
+            }
+            in[t] = cell[ENTER];
+            ex[t] = cell[EXIT];
+            rd[t] = cell[READY];
+        }
+        n_complete += dcu_judge(&j);
+        complete[i] = c;
+        end[i] = e;
+        const int64_t key = keys[rows[i]];
+        int64_t *col = ints + i;
+        col[0] = 0;
+        col[1 * k] = key >> KEY_SHIFT;
+        col[2 * k] = key & ((1LL << KEY_SHIFT) - 1);
+        col[3 * k] = origin;
+        col[4 * k] = e;
+        col[5 * k] = c;
+        for (int32_t t = 0; t < s; t++) {
+            col[(6 + t) * k] = in[t];
+            col[(6 + s + t) * k] = ex[t];
+        }
+        col[(6 + 2 * s) * k] = capture;
+        col[(7 + 2 * s) * k] = 0;
+        col[(8 + 2 * s) * k] = 0;
+        double *f = floats + i;
+        f[0] = frame;
+        f[k] = glass;
+        for (int32_t q = 0; q < 4 * s; q++) f[(2 + q) * k] = fig[q];
+    }
+    return n_complete;
+}

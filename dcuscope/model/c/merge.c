@@ -31,12 +31,6 @@ int64_t dcu_unknown_source(const char *sources, int64_t n, int64_t stride, const
     return -1;
 }
 
-static inline uint64_t mix(uint64_t k) {
-    k ^= k >> 33;
-    k *= 0xff51afd7ed558ccdULL;
-    k ^= k >> 33;
-    return k;
-}
 
 /* Fill the hash (slots = mask + 1, a power of two; key -1 marks a free slot) with the n open keys. */
 void dcu_merge_rehash(const int64_t *okey, int64_t n, int64_t *hkey, int64_t *hrow, int64_t mask) {
@@ -121,4 +115,33 @@ int64_t dcu_merge(const event_t *ev, int64_t n, int32_t n_stages,
     io[2] = placed;
     io[3] = i;
     return rows;
+}
+
+/* The origins of n checked events counted per (source, bin = ts / bin_ns), for the run's accounting and its
+ * window (model.facts.Accounting, relay.live.sourcewindow.SourceWindow): m distinct pairs written, in the
+ * order they first come, into source, bin and count (room for n each); returns m. *top: the greatest point
+ * of the batch (the rare drops and facts are left to numpy). hkey: a hash of mask + 1 >= 2n slots. */
+int64_t dcu_origins(const event_t *ev, int64_t n, int64_t bin_ns, int64_t *source, int64_t *bin, int64_t *count,
+                    int64_t *hkey, int64_t *hrow, int64_t mask, int64_t *top) {
+    int64_t m = 0, hi = -128;
+    memset(hkey, 0xff, (size_t)(mask + 1) * sizeof(int64_t));
+    for (int64_t i = 0; i < n; i++) {
+        const event_t *e = &ev[i];
+        if (e->point > hi) hi = e->point;
+        if (e->point != ORIGIN) continue;
+        int64_t b = e->ts / bin_ns, key = ((int64_t)e->source << 40) | (b & ((1LL << 40) - 1));
+        uint64_t h = mix((uint64_t)key) & (uint64_t)mask;
+        while (hkey[h] != -1 && hkey[h] != key) h = (h + 1) & (uint64_t)mask;
+        if (hkey[h] == key) {
+            count[hrow[h]]++;
+            continue;
+        }
+        hkey[h] = key;
+        hrow[h] = m;
+        source[m] = e->source;
+        bin[m] = b;
+        count[m++] = 1;
+    }
+    *top = hi;
+    return m;
 }

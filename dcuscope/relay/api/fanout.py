@@ -20,6 +20,13 @@ manager encodes it for Redis first, then decodes it again for them), and one who
 listener (PUBLISH's answer) is not even encoded for Redis for ``DEAF_S``: a relay whose DCUs no other
 relay's page shows publishes nothing of its pushes.
 
+**Forwarded as bytes.** An emit to a room is encoded once, as the Socket.IO packet its browsers get
+(its text part and its binary attachments, the pushed columns), and that packet goes on the room's
+channel as it is (:func:`forward_message`): a relay that receives it hands the same bytes to its own
+browsers in that room, with no JSON, base64 or Socket.IO encoding per push and no work per frame
+(python-socketio's own manager would publish JSON with base64 attachments, decode it on every relay
+and encode it again there). What python-socketio itself says on ``CHANNEL`` stays its JSON.
+
 Redis is not needed for anything but those pushes. While it is down or restarting:
 
 - ingest and storage go on untouched (they never touch Redis);
@@ -44,13 +51,15 @@ that fails the check is a Redis that cannot be reached: one line in the log, ``f
 from __future__ import annotations
 
 import asyncio
-import base64
+import json
 import logging
+import struct
 import time
 from urllib.parse import urlencode, urlsplit, urlunsplit
 
 import socketio
-from socketio.packet import Packet
+from engineio import packet as eio_packet
+from socketio import packet as sio_packet
 from socketio.redis_manager import parse_redis_sentinel_url
 
 from dcuscope.core.clocks import NEVER
@@ -66,6 +75,11 @@ RETRY_S = 1.0
 TIMEOUT_S = 1.0
 """Connecting to Redis and publishing give up after this long (a Redis that stopped answering)."""
 QUIET = ("Cannot publish to redis", "Cannot receive from redis")
+FORWARD = b"\x00dcuscope-forward-1\n"
+"""How a forwarded packet's message starts (after its sender's id): a JSON text never does."""
+TEXT, BINARY = b"T", b"B"
+PART = struct.Struct("<cI")
+"""Each part of a forwarded packet: its kind (TEXT or BINARY) and its length, then its bytes."""
 DEAF_S = 0.25
 """A room channel no relay listened to is not published to for this long (a relay whose page just
 joined that room misses at most this much, which the page fills from GET /api/frames)."""
@@ -165,13 +179,14 @@ class FleetManager(socketio.AsyncRedisManager):
         """Room channels no other relay listened to at the last publish -> until when they are skipped."""
 
     async def _publish(self, data):
+        """What python-socketio's manager says to the other relays (its JSON), on ``CHANNEL``."""
+        return await self._send(self.channel, (self.host_id + self.json.dumps(data)).encode())
+
+    async def _send(self, channel: str, message: bytes):
         if not self.health.ok:
             return None  # the subscriber finds Redis back; until then other relays catch up from the store
-        channel = self.channel
-        if data.get("method") == "emit" and isinstance(data.get("room"), str) and not data.get("callback"):
-            channel = ROOM_CHANNEL + data["room"]
         try:
-            got = await asyncio.wait_for(self.redis.publish(channel, self.host_id + self.json.dumps(data)), TIMEOUT_S)
+            got = await asyncio.wait_for(self.redis.publish(channel, message), TIMEOUT_S)
             if channel != self.channel:
                 if got:
                     self._deaf.pop(channel, None)
@@ -190,18 +205,27 @@ class FleetManager(socketio.AsyncRedisManager):
             return await super().emit(event, data, namespace=namespace, room=room, skip_sid=skip_sid,
                                       callback=callback, **kwargs)
         namespace = namespace or "/"
-        await socketio.AsyncManager.emit(self, event, data, namespace, room=room, skip_sid=skip_sid)
-        if self._deaf.get(ROOM_CHANNEL + room, NEVER) > time.monotonic():
-            return None  # no other relay listened a moment ago: not encoded, not sent
-        payload = list(data) if isinstance(data, tuple) else [data]
-        binary = self.server.packet_class.data_is_binary(payload)
-        if binary:  # as python-socketio's pub/sub manager carries attachments
-            payload, attachments = Packet.deconstruct_binary(payload)
-            payload = [payload, *[base64.b64encode(a).decode() for a in attachments]]
-        await self._publish({"method": "emit", "event": event, "data": payload, "binary": binary,
-                             "namespace": namespace, "room": room, "skip_sid": skip_sid, "callback": None,
-                             "host_id": self.host_id})
+        args = list(data) if isinstance(data, tuple) else [] if data is None else [data]  # as python-socketio's emit
+        parts = self.server.packet_class(sio_packet.EVENT, namespace=namespace, data=[event, *args]).encode()
+        parts = parts if isinstance(parts, list) else [parts]
+        await self._deliver(parts, namespace, room, skip_sid)
+        channel = ROOM_CHANNEL + room
+        if self._deaf.get(channel, NEVER) > time.monotonic():
+            return None  # no other relay listened a moment ago: not sent
+        await self._send(channel, self.host_id.encode() + forward_message(namespace, room, skip_sid, parts))
         return None
+
+    async def _deliver(self, parts: list, namespace: str, room: str, skip_sid) -> None:
+        """A Socket.IO packet, encoded (``parts``), to this relay's browsers in ``room``: what python-socketio's
+        emit does once it encoded a packet."""
+        if namespace not in self.rooms:
+            return
+        skip = skip_sid if isinstance(skip_sid, list) else [skip_sid]
+        packets = [eio_packet.Packet(eio_packet.MESSAGE, p) for p in parts]
+        tasks = [asyncio.create_task(self.server._send_eio_packet(eio_sid, p))
+                 for sid, eio_sid in self.get_participants(namespace, room) if sid not in skip for p in packets]
+        if tasks:
+            await asyncio.wait(tasks)
 
     # --- the room channels this relay listens to ---------------------------------------------------
 
@@ -267,9 +291,16 @@ class FleetManager(socketio.AsyncRedisManager):
                     or not (channel == base or channel.startswith(rooms))):
                 continue
             sender, body = data[:len(me)], data[len(me):]
-            if sender != me:  # this relay delivered its own to its browsers already
-                self.health.received += 1
-                yield body
+            if sender == me:  # this relay delivered its own to its browsers already
+                continue
+            self.health.received += 1
+            if not body.startswith(FORWARD):
+                yield body  # python-socketio's own
+                continue
+            try:
+                await self._deliver(*read_forward(body))
+            except ValueError as exc:  # not what a relay sends: said, and dropped
+                log.warning("redis: a forwarded packet dropped: %s", exc)
 
     async def close(self) -> None:
         """Stop the subscriber and close the connections (the relay stops)."""
@@ -288,6 +319,47 @@ class FleetManager(socketio.AsyncRedisManager):
                     pass
         self.pubsub = self.redis = None
         self.connected = False
+
+
+def forward_message(namespace: str, room: str, skip_sid, parts: list) -> bytes:
+    """A Socket.IO packet, as ``encode()`` gave it (a text part, then binary attachments), for the room's
+    channel: :data:`FORWARD`, a JSON line (namespace, room, skip_sid), then each part."""
+    head = json.dumps({"namespace": namespace, "room": room, "skip_sid": skip_sid}).encode()
+    out = [FORWARD, head, b"\n"]
+    for part in parts:
+        raw = part.encode() if isinstance(part, str) else bytes(part)
+        out += [PART.pack(TEXT if isinstance(part, str) else BINARY, len(raw)), raw]
+    return b"".join(out)
+
+
+def read_forward(message: bytes) -> tuple[list, str, str, object]:
+    """(parts, namespace, room, skip_sid) of a :func:`forward_message`; ValueError saying why it is not one."""
+    if not message.startswith(FORWARD):
+        raise ValueError("not a forwarded packet")
+    at = message.find(b"\n", len(FORWARD))
+    if at < 0:
+        raise ValueError("no header line")
+    try:
+        head = json.loads(message[len(FORWARD):at])
+        namespace, room, skip_sid = head["namespace"], head["room"], head["skip_sid"]
+    except (ValueError, TypeError, KeyError) as exc:
+        raise ValueError(f"bad header: {exc}") from None
+    if not isinstance(namespace, str) or not isinstance(room, str):
+        raise ValueError("bad header: namespace and room must be strings")
+    parts, at = [], at + 1
+    while at < len(message):
+        if at + PART.size > len(message):
+            raise ValueError("a part's header cut short")
+        kind, size = PART.unpack_from(message, at)
+        at += PART.size
+        if kind not in (TEXT, BINARY) or at + size > len(message):
+            raise ValueError("a part of an unknown kind or cut short")
+        raw = message[at:at + size]
+        parts.append(raw.decode() if kind == TEXT else raw)
+        at += size
+    if not parts or not isinstance(parts[0], str):
+        raise ValueError("no text part first")
+    return parts, namespace, room, skip_sid
 
 
 def create_manager(url: str | None) -> tuple[socketio.AsyncManager | None, FanoutHealth]:

@@ -158,6 +158,12 @@ class Correction:
                 "unc": np.array([s.uncertainty_ns for s in seg], np.int64),
                 "growth": np.array([s.growth_ppb for s in seg], np.float64)}
 
+    @cached_property
+    def segment_addresses(self) -> tuple[int, ...]:
+        """Where the segments' fields lie as arrays (``from``, ``ref``, ``offset``, ``drift``, ``unc``,
+        ``growth``; drift and growth float64, the others int64), as the compiled push reads them (taken once)."""
+        return tuple(self._table[name].ctypes.data for name in ("from", "ref", "offset", "drift", "unc", "growth"))
+
     def _index(self, ts: np.ndarray) -> np.ndarray:
         return np.maximum(np.searchsorted(self._table["from"], ts, side="right") - 1, 0)
 

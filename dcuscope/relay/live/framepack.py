@@ -22,6 +22,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from dcuscope.model import compiled as compiled_core
 from dcuscope.model.delays import NS_PER_MS, STAGE_COLUMNS, FrameDelays
 from dcuscope.model.frametable import MISSING
 from dcuscope.relay.clock.correction import Correction
@@ -57,9 +58,26 @@ def node_columns(n: np.ndarray, fd: FrameDelays) -> tuple[np.ndarray, np.ndarray
     return ints, floats
 
 
-def corrected(ints: np.ndarray, floats: np.ndarray, corr: Correction, stages: int) -> tuple[np.ndarray, np.ndarray]:
+def corrected(ints: np.ndarray, floats: np.ndarray, corr: Correction, stages: int, *,
+              compiled: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Columns of :func:`node_columns` with every node time moved by ``corr`` at the frame's origin,
-    and the floats in ms (new arrays)."""
+    and the floats in ms (new arrays, field-major): in one compiled pass where the compiled core loads
+    and the columns are kept a frame a row (the live engine's, :meth:`LiveRun.recent_columns`), else
+    with numpy (:func:`corrected_numpy`, the reference)."""
+    core = compiled_core.load() if compiled else None
+    if core is None or not (ints.flags.f_contiguous and floats.flags.f_contiguous) or ints.dtype != np.int64 \
+            or floats.dtype != np.float64:
+        return corrected_numpy(ints, floats, corr, stages)
+    k = ints.shape[1]
+    out_ints, out_floats = np.empty(ints.shape, np.int64), np.empty(floats.shape)
+    at = corr.segment_addresses if corr.segments else (None,) * 6
+    core.push_columns(ints.ctypes.data, floats.ctypes.data, k, stages, *at, len(corr.segments), corr.base_uncertainty_ns,
+                      out_ints.ctypes.data, out_floats.ctypes.data)
+    return out_ints, out_floats
+
+
+def corrected_numpy(ints: np.ndarray, floats: np.ndarray, corr: Correction, stages: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`corrected` with numpy, a field at a time."""
     rows = _rows(INT_FIELDS, stages)
     times, keep = _times(stages)
     origin, end = ints[rows["origin"]][0], ints[rows["end"]][0]

@@ -45,6 +45,8 @@ class OpenTable:
         self._io = np.zeros(4, np.int64)
         self._at: tuple[int, ...] | None = None
         """:meth:`_addresses` (None: taken again at the next merge)."""
+        self._judge_room = 0
+        """Frames :meth:`judge`'s buffers hold (grown as needed)."""
 
     @property
     def compiled(self) -> bool:
@@ -178,6 +180,25 @@ class OpenTable:
                 return int(io[0]), int(io[1]), int(io[2])
             # Out of rows or hash slots at event io[3], the frames before it merged: room, then on from there.
             self._room(max(self.n, MIN_ROWS))
+
+    def judge(self, rows: np.ndarray, has_exit: np.ndarray, links: np.ndarray) -> tuple[np.ndarray, ...]:
+        """The open ``rows`` judged by the compiled delay model (``has_exit``: bool per stage, the run's;
+        ``links``: :func:`dcuscope.model.compiled.links_of`): (complete, end, ints, floats), the last two
+        the columns a push carries of them (:func:`dcuscope.relay.live.framepack.node_columns`, the cursor
+        row 0). Views of buffers this table keeps: valid until the next call."""
+        k, s = len(rows), self._s
+        ir, fr = 9 + 2 * s, 2 + 4 * s
+        if k > self._judge_room:
+            self._judge_room = room = max(64, 2 * k)
+            self._j = {"rows": np.empty(room, np.int64), "complete": np.empty(room, bool), "end": np.empty(room, np.int64),
+                       "ints": np.empty(ir * room, np.int64), "floats": np.empty(fr * room), "work": np.empty(10 * s + 8, np.int64)}
+            self._j_at = {name: a.ctypes.data for name, a in self._j.items()}
+        j, at = self._j, self._j_at
+        j["rows"][:k] = rows
+        _, _, key, cells, *_ = self._addresses()
+        self._c.judge_rows(cells, key, at["rows"], k, s, has_exit.ctypes.data, links.ctypes.data, len(links), at["complete"],
+                           at["end"], at["ints"], at["floats"], at["work"])
+        return j["complete"][:k], j["end"][:k], j["ints"][:ir * k].reshape(ir, k), j["floats"][:fr * k].reshape(fr, k)
 
     def _room(self, k: int) -> None:
         """Rows (and, compiled, hash slots) for ``k`` more frames."""

@@ -48,7 +48,7 @@ from dcuscope.protocol.events import EXIT, FRAME_CELLS, GROUP, READY, TraceHeade
 from dcuscope.model import compiled as compiled_core
 from dcuscope.relay.live import framepack
 from dcuscope.relay.live.opentable import OpenTable
-from dcuscope.relay.live.sourcewindow import SourceWindow
+from dcuscope.relay.live.sourcewindow import BIN_NS, SourceWindow
 from dcuscope.relay.live.values import RELATIVE_ERROR, OriginSpans, RunValues
 
 NEVER = np.iinfo(np.int64).max
@@ -155,13 +155,12 @@ class _Frames:
 @dataclass
 class _Tick:
     """One run's maintenance between merging and showing: its open frames and those judged now,
-    with what judging them gave (:func:`_judge_together`)."""
+    with what judging them gave (:meth:`LiveRun._judge_rows`, or with numpy :func:`_judge_together`)."""
 
     run: LiveRun
     open_: _Frames
     rows: np.ndarray
     """The open rows judged now."""
-    judged: _Frames
     complete: np.ndarray | None = None
     end: np.ndarray | None = None
     ints: np.ndarray | None = None
@@ -176,7 +175,11 @@ def maintain_all(runs: Iterable[LiveRun]) -> None:
     ticks = [tick for run in runs if (tick := run._start_tick()) is not None]
     groups: dict[tuple, list[_Tick]] = {}
     for tick in ticks:
-        if len(tick.rows):
+        if not len(tick.rows):
+            continue
+        if tick.run._compiled is not None:  # one compiled pass a run: nothing to gain from judging runs together
+            tick.run._judge_rows(tick)
+        else:
             groups.setdefault(tick.run._judge_key(), []).append(tick)
     for group in groups.values():
         _judge_together(group)
@@ -187,11 +190,11 @@ def maintain_all(runs: Iterable[LiveRun]) -> None:
 def _judge_together(ticks: list[_Tick]) -> None:
     """Judge the frames of ``ticks`` (runs of one :meth:`LiveRun._judge_key`) in one pass: which are
     complete, where their chains end, and their pushed columns."""
+    judged = [_Frames(t.open_.source[t.rows], t.open_.frame[t.rows], t.open_.cells[t.rows]) for t in ticks]
     if len(ticks) == 1:
-        frames = ticks[0].judged
+        frames = judged[0]
     else:
-        frames = _Frames(np.concatenate([t.judged.source for t in ticks]), np.concatenate([t.judged.frame for t in ticks]),
-                         np.concatenate([t.judged.cells for t in ticks]))
+        frames = _Frames(*(np.concatenate([getattr(f, k) for f in judged]) for k in ("source", "frame", "cells")))
     fd = ticks[0].run._delays(frames)
     ints, floats = framepack.node_columns(np.zeros(len(fd), np.int64), fd)
     at = 0
@@ -216,6 +219,10 @@ class LiveRun:
         self._s = s
         self._compiled = compiled_core.load() if compiled else None
         self._open = OpenTable(s, self._compiled)
+        self._links: np.ndarray | None = None
+        """The header's links as the compiled judge takes them (made at the first tick)."""
+        self._origins_counter = None if self._compiled is None else compiled_core.OriginCounter(self._compiled, BIN_NS)
+        """Counts each merged batch's origins per source and window bin, for the accounting and the window."""
         self._has_exit = np.zeros(s, bool)
         self._judged_exits: np.ndarray | None = None
         """``_has_exit`` when the shown frames were judged: should it change, they are judged again."""
@@ -376,8 +383,11 @@ class LiveRun:
             self._merge(np.concatenate(take) if len(take) > 1 else take[0])
 
     def _merge(self, events: np.ndarray) -> None:
-        self.accounting.add(events)
-        self._source_window.add(events)
+        origins = None
+        if self._origins_counter is not None:
+            origins = self._origins_counter.count(np.ascontiguousarray(events))
+        self.accounting.add(events, origins)
+        self._source_window.add(events, origins)
         if self._open.compiled and self._open.n + len(events) <= self._open_cap:
             self._merge_compiled(events)
             return
@@ -512,7 +522,10 @@ class LiveRun:
         if tick is None:
             return 0
         if len(tick.rows):
-            _judge_together([tick])
+            if self._compiled is not None:
+                self._judge_rows(tick)
+            else:
+                _judge_together([tick])
         return self._end_tick(tick)
 
     def _start_tick(self) -> _Tick | None:
@@ -531,7 +544,13 @@ class LiveRun:
             rows = np.arange(t.n)
         else:
             rows = np.flatnonzero(~t.shown)
-        return _Tick(self, open_, rows, _Frames(open_.source[rows], open_.frame[rows], open_.cells[rows]))
+        return _Tick(self, open_, rows)
+
+    def _judge_rows(self, tick: _Tick) -> None:
+        """:func:`_judge_together` of one run's tick in one compiled pass over its open table's rows."""
+        if self._links is None:
+            self._links = compiled_core.links_of(self.header.links, self._s)
+        tick.complete, tick.end, tick.ints, tick.floats = self._open.judge(tick.rows, self._has_exit, self._links)
 
     def _judge_key(self) -> tuple:
         """Runs with the same key are judged by the delay model alike (their frames may be judged together)."""

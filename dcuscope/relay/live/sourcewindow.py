@@ -40,12 +40,23 @@ class SourceWindow:
         (its base), then those within."""
         self._newest = 0
 
-    def add(self, events: np.ndarray) -> None:
-        """Note a batch of a run's events (every point; only origins, drops and counter facts count)."""
+    def add(self, events: np.ndarray, origins: tuple[list[list[int]], int] | None = None) -> None:
+        """Note a batch of a run's events (every point; only origins, drops and counter facts count);
+        ``origins``: its origins counted per source and bin of ``BIN_NS`` already, with its greatest point
+        (:meth:`dcuscope.model.compiled.OriginCounter.count`)."""
         if not len(events):
             return
         point, ts = events["point"], events["ts"]
         self._newest = max(self._newest, int(ts.max()))
+        if origins is not None:
+            (sources, bins, counts), top = origins
+            for source, b, n in zip(sources, bins, counts):
+                per = self._bins.setdefault(b, {})
+                per[source] = per.get(source, 0) + n
+            if top >= DROP:
+                self._add_drops_and_facts(events, point)
+            self._trim()
+            return
         origin = point == ORIGIN
         if origin.any():
             bins, sources = ts[origin] // BIN_NS, events["source"][origin]
@@ -62,17 +73,21 @@ class SourceWindow:
                     per = self._bins.setdefault(b, {})
                     per[source] = per.get(source, 0) + n
         if point.max() >= DROP:  # rare: most batches hold frame timestamps only
-            for t, source, reason in events[point == DROP][["ts", "source", "code"]].tolist():
-                self._drops.append((t, source, DROP_REASONS.get(reason, "unknown")))
-            for t, value, source, kind in events[point == FACT][["ts", "frame", "source", "code"]].tolist():
-                if kind in _COUNTED_FACTS:
-                    self._facts.setdefault((source, kind), deque()).append((t, value))
+            self._add_drops_and_facts(events, point)
         self._trim()
+
+    def _add_drops_and_facts(self, events: np.ndarray, point: np.ndarray) -> None:
+        for t, source, reason in events[point == DROP][["ts", "source", "code"]].tolist():
+            self._drops.append((t, source, DROP_REASONS.get(reason, "unknown")))
+        for t, value, source, kind in events[point == FACT][["ts", "frame", "source", "code"]].tolist():
+            if kind in _COUNTED_FACTS:
+                self._facts.setdefault((source, kind), deque()).append((t, value))
 
     def _trim(self) -> None:
         reach = self._newest - self._keep_ns
-        for b in [b for b in self._bins if (b + 1) * BIN_NS <= reach]:
-            del self._bins[b]
+        if self._bins and min(self._bins) + 1 <= reach // BIN_NS:  # a bin left the reach (not at every batch)
+            for b in [b for b in self._bins if (b + 1) * BIN_NS <= reach]:
+                del self._bins[b]
         while self._drops and self._drops[0][0] < reach:
             self._drops.popleft()
         for history in self._facts.values():

@@ -1,7 +1,8 @@
 /* Fuzz harness of the compiled core (dcuscope/model/c): one input is a stage count, a link graph and
  * a wire batch, taken the way the relay takes it: decoded and checked (batch.c); if sound, its events
  * merged into a small open table that grows as the relay's does (merge.c), its keys located, its
- * sources looked up; then the open frames judged by the delay model (judge.c). Built with
+ * sources looked up; then the open frames judged by the delay model (judge.c), as a table and as a push
+ * tick judges them, and their pushed columns moved to the relay's clock (push.c). Built with
  * AddressSanitizer and UndefinedBehaviorSanitizer, any read or write outside an array, or any
  * undefined behaviour, aborts with a report.
  *
@@ -20,7 +21,7 @@
 #define FRAME_LIMIT (1LL << 44)
 
 static uint8_t codes[256 * 256];
-long long reached_merge, reached_judge;
+long long reached_merge, reached_judge, reached_push;
 
 static void *grow(void *p, size_t bytes) {
     void *q = realloc(p, bytes);
@@ -95,6 +96,37 @@ static void judge_open(const table_t *t, int s, const int32_t *links, int n_link
     for (size_t i = 0; i < sizeof all / sizeof *all; i++) free(all[i]);
 }
 
+/* The open rows judged as a push tick judges them (every other row), and their columns moved by a clock
+ * correction whose segments the input's own bytes make: the arrays exactly as large as the calls need. */
+static void judge_and_push(const table_t *t, int s, const int32_t *links, int n_links, const uint8_t *has_exit,
+                           const uint8_t *bytes, int64_t len) {
+    int64_t k = (t->rows + 1) / 2, ir = INT_ROWS(s), fr = FLOAT_ROWS(s);
+    int64_t *rows = malloc(k * 8 + 8), *end = malloc(k * 8 + 8), *work = malloc((10 * s + 8) * 8);
+    int64_t *ints = malloc(ir * k * 8 + 8), *ints_fm = malloc(ir * k * 8 + 8), *ints_out = malloc(ir * k * 8 + 8);
+    double *floats = malloc(fr * k * 8 + 8), *floats_fm = malloc(fr * k * 8 + 8), *floats_out = malloc(fr * k * 8 + 8);
+    uint8_t *complete = malloc(k + 1);
+    for (int64_t i = 0; i < k; i++) rows[i] = 2 * i;
+    int64_t c = dcu_judge_rows(t->cells, t->key, rows, k, s, has_exit, links, n_links, complete, end, ints, floats, work);
+    if (c < 0 || c > k) abort();
+    for (int64_t i = 0; i < k; i++) { /* field-major to frame-major, as the engine keeps them */
+        for (int64_t r = 0; r < ir; r++) ints_fm[i * ir + r] = ints[r * k + i];
+        for (int64_t r = 0; r < fr; r++) floats_fm[i * fr + r] = floats[r * k + i];
+    }
+    int64_t n_seg = len % 4, from[4], ref[4], offset[4], unc[4];
+    double drift[4], growth[4];
+    for (int64_t g = 0; g < n_seg; g++) {
+        int64_t v = 0;
+        memcpy(&v, bytes + (g * 8) % (len > 8 ? len - 8 : 1), len >= 8 ? 8 : 0);
+        from[g] = g == 0 ? v : from[g - 1] + (v & 0xffffffff);
+        ref[g] = v ^ 0x5555, offset[g] = v >> 3, unc[g] = v & 0xffff;
+        drift[g] = (double)(v % 200000), growth[g] = (double)(v & 1023);
+    }
+    dcu_push_columns(ints_fm, floats_fm, k, s, from, ref, offset, drift, unc, growth, n_seg, len, ints_out, floats_out);
+    reached_push++;
+    void *all[] = {rows, end, work, ints, ints_fm, ints_out, floats, floats_fm, floats_out, complete};
+    for (size_t i = 0; i < sizeof all / sizeof *all; i++) free(all[i]);
+}
+
 int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size) {
     if (!codes[0])
         for (int p = 0; p <= 8; p++) memset(codes + p * 256, 1, 256);
@@ -142,6 +174,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size) {
     for (int64_t i = 0; i < n; i++)
         if (found[i] && (rows[i] < 0 || rows[i] >= t.rows || t.key[rows[i]] != keys[i])) abort();
     judge_open(&t, s, links, n_links, has_exit);
+    judge_and_push(&t, s, links, n_links, has_exit, batch, len);
 
     void *all[] = {ev, ids, mark, keys, rows, found, t.hkey, t.hrow, t.key, t.cells, t.last, t.end, t.shown};
     for (size_t i = 0; i < sizeof all / sizeof *all; i++) free(all[i]);
@@ -254,7 +287,8 @@ int main(int argc, char **argv) {
     free(seeds);
     free(sizes);
     free(buf);
-    printf("fuzz_core: %lld inputs, %lld merged, %lld judged, no finding\n", runs, reached_merge, reached_judge);
+    printf("fuzz_core: %lld inputs, %lld merged, %lld judged, %lld pushed, no finding\n", runs, reached_merge,
+           reached_judge, reached_push);
     fflush(stdout);
     return 0;
 }

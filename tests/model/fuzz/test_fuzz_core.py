@@ -35,8 +35,8 @@ def seed_dir(tmp_path_factory, real_traces):
 def test_real_and_hostile_batches_find_nothing_in_the_sanitized_core(seed_dir):
     done = fuzz(seed_dir, SECONDS)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-6000:]
-    runs, merged, judged = (int(w) for w in done.stdout.split()[1:6:2])
-    assert "no finding" in done.stdout and runs > 10_000 and merged > 1_000 and judged == merged, done.stdout
+    runs, merged, judged, pushed = (int(w) for w in done.stdout.split()[1:8:2])
+    assert "no finding" in done.stdout and runs > 10_000 and merged > 1_000 and judged == pushed == merged, done.stdout
 
 
 def test_a_planted_overflow_is_found(seed_dir, tmp_path):

@@ -247,3 +247,19 @@ def test_a_redis_master_replaced_by_its_replica_is_followed_through_sentinel(tmp
             node.kill()
         a.stop()
         b.stop()
+
+
+def test_a_forwarded_packet_carries_its_parts_as_they_are_and_a_broken_one_is_refused():
+    """What relays forward to one another's browsers: the Socket.IO packet's text and binary parts, byte for
+    byte, after a header naming the room; anything cut short or of an unknown kind is refused, saying why."""
+    from dcuscope.relay.api.fanout import FORWARD, forward_message, read_forward
+
+    parts = ['451-["frames",{"nodes":{"DCU-1":{"packed":{"ints":{"_placeholder":true,"num":0}}}}}]', b"\x00\x01" * 500, b""]
+    message = forward_message("/", "dcu:25:DCU-1", ["sid-1"], parts)
+    assert read_forward(message) == (parts, "/", "dcu:25:DCU-1", ["sid-1"])
+    for broken, why in ((message[:-1001], "cut short"), (message[:30], "no header line"), (b"{}", "not a forwarded"),
+                        (message.replace(b'"room"', b'"rome"'), "bad header"),
+                        (message[:message.index(b"\n", len(FORWARD)) + 1], "no text part"),
+                        (message.replace(b"\nT", b"\nX", 1), "unknown kind")):
+        with pytest.raises(ValueError, match=why):
+            read_forward(broken)

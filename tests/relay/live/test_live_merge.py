@@ -16,7 +16,7 @@ from dcuscope.core import cbuild
 from dcuscope.model import compiled as cmerge
 from dcuscope.model.delays import node_stats
 from dcuscope.probes.ship.simnode import header_for, synth_events
-from dcuscope.protocol.events import ENTER, EXIT
+from dcuscope.protocol.events import DROP, ENTER, EXIT, FACT, FACT_LOST_UPSTREAM
 from dcuscope.relay.live.run import PUSHED_FRAMES, LiveConfig, LiveRun
 from tests.conftest import cli_env
 from tests.probes.synth import pipeline_run
@@ -80,6 +80,8 @@ def test_drops_duplicates_disorder_and_late_events_leave_both_merges_alike():
     feed_alike(runs, [*batches, batches[0], batches[1]])  # the first batches again, late
     assert runs[0].late > 0 and runs[0].finalised > 0
     assert runs[0].run_stats() == runs[1].run_stats()
+    window = [run.window_stats(runs[0].newest) for run in runs]  # its sources counted per bin, compiled and not
+    assert window[0] == window[1]
 
 
 def test_a_table_at_its_cap_evicts_as_numpy_does_through_the_hash():
@@ -91,6 +93,27 @@ def test_a_table_at_its_cap_evicts_as_numpy_does_through_the_hash():
     feed_alike(runs, chunks(events, 61))
     assert runs[0].evicted > 0 and runs[0].finalised > 0, (runs[0].evicted, runs[0].finalised)
     assert runs[0].run_stats(0) == runs[1].run_stats(0)
+
+
+def test_origins_drops_and_counted_facts_fill_both_windows_alike():
+    """The compiled count of a batch's origins per source and bin, and numpy's, give the window and the
+    run the same sources table, drops and facts included."""
+    header = header_for("n", 2)
+    events = synth_events(300, 2, 30.0, T0, seed=6)
+    extra = np.zeros(40, events.dtype)
+    extra["ts"] = np.linspace(events["ts"][0], events["ts"][-1], 40).astype(np.int64)
+    extra["source"] = np.arange(40) % 2
+    extra["point"] = np.where(np.arange(40) % 3 == 0, FACT, DROP)
+    extra["code"] = np.where(extra["point"] == FACT, FACT_LOST_UPSTREAM, 3)
+    extra["frame"] = np.where(extra["point"] == FACT, np.arange(40) * 2, 0)
+    mixed = np.concatenate([events, extra])
+    runs = both(header)
+    feed_alike(runs, chunks(mixed[np.argsort(mixed["ts"], kind="stable")], 90))
+    assert runs[0].run_stats() == runs[1].run_stats()
+    window = [run.window_stats(runs[0].newest) for run in runs]
+    assert window[0] == window[1]
+    sources = window[0]["sources"]
+    assert all(s["dropped"].get("queue full") and s["lost_upstream"] > 0 and s["delivered"] > 0 for s in sources.values())
 
 
 def test_without_a_compiler_the_relay_says_why_once_and_merges_with_numpy(tmp_path, monkeypatch, caplog):
