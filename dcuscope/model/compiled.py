@@ -19,12 +19,14 @@ does the work, ~1 µs more per event at the relay (docs/benchmarks-log.md, issue
 
     python -m dcuscope.model.compiled build     # compile (again), print the path
     python -m dcuscope.model.compiled check     # load it, or say why it cannot be loaded
+    DCUSCOPE_COMPILED=0 dcuscope relay ...      # the numpy reference instead, as without a compiler
 """
 
 from __future__ import annotations
 
 import ctypes
 import logging
+import os
 import sys
 import threading
 from pathlib import Path
@@ -44,6 +46,9 @@ ABI = 5
 BATCH_OK, BATCH_INFLATE = 0, 1
 """:meth:`CompiledCore.decode_header`'s answers besides a fault (negative): the events are checked, or
 the payload is compressed (inflate it, then :meth:`CompiledCore.first_invalid`)."""
+
+SWITCH = "DCUSCOPE_COMPILED"
+"""``DCUSCOPE_COMPILED=0`` in a process's environment: it runs the numpy reference, as without a compiler."""
 
 log = logging.getLogger(__name__)
 _lock = threading.Lock()
@@ -111,6 +116,7 @@ class CompiledCore:
         self._codes = np.ascontiguousarray(CODE_TABLE, np.uint8)
         self._codes_at = self._codes.ctypes.data
         self._head = np.zeros(4, np.int64)
+        self._head_at = self._head.ctypes.data
 
     def first_invalid(self, events: np.ndarray, n_stages: int) -> int:
         """The index of the first event of ``events`` (EVENT_DTYPE, contiguous) that
@@ -126,7 +132,7 @@ class CompiledCore:
         """``data`` (a wire batch, bytes) read and, uncompressed, its events checked, in one pass:
         (:data:`BATCH_OK`, :data:`BATCH_INFLATE` or a fault, below 0; its sequence number; its event count)."""
         code = self._decode(data, len(data), n_stages, max_events, self._codes_at, SOURCE_LIMIT, FRAME_LIMIT,
-                            self._head.ctypes.data)
+                            self._head_at)
         return code, int(self._head[0]), int(self._head[1])
 
     def judge(self, j: Judge) -> int:
@@ -184,6 +190,8 @@ def load() -> CompiledCore | None:
     with _lock:
         if _loaded is None and _reason is None:
             try:
+                if os.environ.get(SWITCH) == "0":
+                    raise BuildError(f"switched off ({SWITCH}=0)")
                 _loaded = CompiledCore(ctypes.CDLL(str(build())))
             except (BuildError, OSError) as exc:
                 _reason = str(exc).splitlines()[0]

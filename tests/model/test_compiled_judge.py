@@ -5,17 +5,14 @@ tables that take every path (holes anywhere, graphs with invalid links, no origi
 
 from __future__ import annotations
 
-import ctypes
-import shutil
-
 import numpy as np
 import pytest
 
-from dcuscope.core import cbuild
 from dcuscope.model import compiled
 from dcuscope.model.delays import STAGE_COLUMNS, frame_delays, frame_delays_numpy
 from dcuscope.model.frametable import MISSING, FrameTable, frame_table, frame_table_from_cells
 from dcuscope.protocol.events import FRAME_CELLS
+from tests.model.planted import planted_core
 
 
 @pytest.fixture(scope="module")
@@ -88,13 +85,8 @@ def test_without_the_library_and_when_asked_numpy_judges(monkeypatch, real_trace
 
 def test_a_judge_that_misreads_the_last_stage_is_caught(core, real_traces, tmp_path, monkeypatch):
     """The comparison above can fail: a judge that asks the last stage for an exit it need not have."""
-    shutil.copytree(compiled.C_DIR, tmp_path / "c")
-    source = (compiled.C_DIR / "judge.c").read_text()
-    wrong = source.replace("(k < s - 1 || j->has_exit[k])", "(k < s || j->has_exit[k])")
-    assert wrong != source
-    (tmp_path / "c" / "judge.c").write_text(wrong)
-    library = cbuild.compile_library(tmp_path / "c", tmp_path / "wrong.so", cbuild.CORE)
-    monkeypatch.setattr(compiled, "_loaded", compiled.CompiledCore(ctypes.CDLL(str(library))))
+    wrong = planted_core(tmp_path, "judge.c", "(k < s - 1 || j->has_exit[k])", "(k < s || j->has_exit[k])")
+    monkeypatch.setattr(compiled, "_loaded", wrong)
     trace = real_traces["two"]
     table = frame_table(trace.header, trace.events)
     with pytest.raises(AssertionError):

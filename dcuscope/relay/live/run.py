@@ -158,7 +158,6 @@ class _Tick:
     with what judging them gave (:meth:`LiveRun._judge_rows`, or with numpy :func:`_judge_together`)."""
 
     run: LiveRun
-    open_: _Frames
     rows: np.ndarray
     """The open rows judged now."""
     complete: np.ndarray | None = None
@@ -166,6 +165,14 @@ class _Tick:
     ints: np.ndarray | None = None
     """Their :func:`dcuscope.relay.live.framepack.node_columns` (cursors not set)."""
     floats: np.ndarray | None = None
+    _open: _Frames | None = None
+
+    @property
+    def open_(self) -> _Frames:
+        """The run's open frames (made when first asked: a compiled tick that finalises nothing never does)."""
+        if self._open is None:
+            self._open = self.run._open_frames()
+        return self._open
 
 
 def maintain_all(runs: Iterable[LiveRun]) -> None:
@@ -538,13 +545,12 @@ class LiveRun:
         if not self._dirty or t.n == 0:
             return None
         self._dirty = False
-        open_ = self._open_frames()
         if self._judged_exits is None or not np.array_equal(self._judged_exits, self._has_exit):
             self._judged_exits = self._has_exit.copy()
             rows = np.arange(t.n)
         else:
             rows = np.flatnonzero(~t.shown)
-        return _Tick(self, open_, rows)
+        return _Tick(self, rows)
 
     def _judge_rows(self, tick: _Tick) -> None:
         """:func:`_judge_together` of one run's tick in one compiled pass over its open table's rows."""
@@ -557,7 +563,7 @@ class LiveRun:
         return tuple(self.stages), tuple(tuple(link) for link in self.header.links), self._has_exit.tobytes()
 
     def _end_tick(self, tick: _Tick) -> int:
-        t, open_, rows = self._open, tick.open_, tick.rows
+        t, rows = self._open, tick.rows
         new = tick.complete & ~t.shown[rows] if len(rows) else np.zeros(0, bool)
         shown = rows[new]  # the frames shown now are among those judged now, in row order
         k = len(shown)
@@ -566,12 +572,12 @@ class LiveRun:
             t.end[shown] = tick.end[new]
             r = self._recent
             n = np.arange(self.visible + 1, self.visible + k + 1)
-            r["n"].extend(n)
-            r["source"].extend(open_.source[shown])
-            r["frame"].extend(open_.frame[shown])
-            r["cells"].extend(open_.cells[shown])
-            ints = tick.ints[:, new]
+            ints = tick.ints[:, new]  # rows 1 and 2: source and frame
             ints[0] = n
+            r["n"].extend(n)
+            r["source"].extend(ints[1])
+            r["frame"].extend(ints[2])
+            r["cells"].extend(t.cells[shown])
             self._pushed["ints"].extend(ints.T)
             self._pushed["floats"].extend(tick.floats[:, new].T)
             self.visible += k
@@ -589,6 +595,7 @@ class LiveRun:
         if excess > 0:
             candidates = np.flatnonzero(~done & ~stale)
             stale[candidates[np.argsort(t.last[candidates], kind="stable")[:excess]]] = True
+        open_ = tick.open_
         if done.any():
             self._finalise(_Frames(open_.source[done], open_.frame[done], open_.cells[done]))
         if stale.any():

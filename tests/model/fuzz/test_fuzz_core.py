@@ -4,15 +4,14 @@ with its own driver), no finding; and a planted overflow is found, so the run ca
 
 from __future__ import annotations
 
-import shutil
 import subprocess
 import sys
 
 import pytest
 
-from dcuscope.model import compiled
 from tests.conftest import REPO, cli_env
 from tests.model.fuzz import seeds
+from tests.model.planted import planted_sources
 
 SECONDS = 6
 
@@ -41,10 +40,5 @@ def test_real_and_hostile_batches_find_nothing_in_the_sanitized_core(seed_dir):
 
 def test_a_planted_overflow_is_found(seed_dir, tmp_path):
     """A merge that opens frames past the rows it was given writes out of its arrays: caught at once."""
-    shutil.copytree(compiled.C_DIR, tmp_path / "c")
-    source = (tmp_path / "c" / "merge.c").read_text()
-    wrong = source.replace("if (rows >= rows_cap || ", "if (")
-    assert wrong != source
-    (tmp_path / "c" / "merge.c").write_text(wrong)
-    done = fuzz(seed_dir, 2, tmp_path / "c")
+    done = fuzz(seed_dir, 2, planted_sources(tmp_path, "merge.c", "if (rows >= rows_cap || ", "if ("))
     assert done.returncode != 0 and "ERROR: AddressSanitizer: heap-buffer-overflow" in done.stderr, done.stderr[-3000:]

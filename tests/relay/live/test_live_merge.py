@@ -3,22 +3,20 @@ offline delay model, on real traces and on synthetic runs that take every path o
 
 from __future__ import annotations
 
-import ctypes
 import logging
-import shutil
 import subprocess
 import sys
 
 import numpy as np
 import pytest
 
-from dcuscope.core import cbuild
 from dcuscope.model import compiled as cmerge
 from dcuscope.model.delays import node_stats
 from dcuscope.probes.ship.simnode import header_for, synth_events
 from dcuscope.protocol.events import DROP, ENTER, EXIT, FACT, FACT_LOST_UPSTREAM
 from dcuscope.relay.live.run import PUSHED_FRAMES, LiveConfig, LiveRun
 from tests.conftest import cli_env
+from tests.model.planted import planted_core
 from tests.probes.synth import pipeline_run
 from tests.relay.helpers import assert_stats_equal
 
@@ -149,13 +147,7 @@ def test_the_build_and_check_commands():
 def test_a_merge_keeping_a_cells_latest_time_is_caught(tmp_path, monkeypatch):
     """The comparison above can fail: a compiled merge that keeps each cell's latest time, not its
     earliest, shows other frames than numpy's on the same real batches."""
-    shutil.copytree(cmerge.C_DIR, tmp_path / "c")
-    source = (cmerge.C_DIR / "merge.c").read_text()
-    wrong = source.replace("e->ts < c[e->point]", "e->ts > c[e->point]")
-    assert wrong != source
-    (tmp_path / "c" / "merge.c").write_text(wrong)
-    library = cbuild.compile_library(tmp_path / "c", tmp_path / "wrong.so", cbuild.CORE)
-    monkeypatch.setattr(cmerge, "_loaded", cmerge.CompiledCore(ctypes.CDLL(str(library))))
+    monkeypatch.setattr(cmerge, "_loaded", planted_core(tmp_path, "merge.c", "e->ts < c[e->point]", "e->ts > c[e->point]"))
     header, events, _ = pipeline_run(200, 2, seed=8)
     events = events[np.argsort(events["ts"], kind="stable")]
     again = events[events["point"] == EXIT][::5].copy()
