@@ -5,7 +5,7 @@ from Python once per batch as the relay calls it); and, apart, the delay model's
 ``bench_relay.py`` prints it beside the relay's figure: the relay's µs per event less this is what
 Python, the sockets, the store and the pushes cost.
 
-    PYTHONPATH=. .venv/bin/python benchmarks/floor.py
+    .venv/bin/python benchmarks/floor.py [--quick]
 """
 
 from __future__ import annotations
@@ -69,4 +69,11 @@ def describe(floor: dict | None) -> str:
 
 
 if __name__ == "__main__":
-    print(describe(compiled_floor()))
+    import argparse
+
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="a smoke test: 600 frames, not 6,000")
+    args = p.parse_args()
+    floor = compiled_floor(600 if args.quick else 6000)
+    print(describe(floor))
+    sys.exit(0 if floor is not None else 2)

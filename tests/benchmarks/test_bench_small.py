@@ -1,5 +1,5 @@
 """The --quick runs of the benchmarks that take seconds: bench_live_memory.py, bench_stats.py,
-bench_pipeline.py, bench_probes.py, bench_coverage.py and bench_spool.py; and their tables fed figures a run could
+bench_pipeline.py, bench_probes.py, bench_coverage.py, bench_spool.py and floor.py; and their tables fed figures a run could
 not produce."""
 
 from __future__ import annotations
@@ -159,3 +159,10 @@ def test_spool_quick_mode_measures_every_mode_side_by_side_and_drains():
     assert figures["on_vs_off"] == figures["cpu_us_per_event"]["on"] / figures["cpu_us_per_event"]["off"]
     assert 24 <= figures["bytes_per_event"] < 25 and figures["drain_events_per_s"] > 0
     assert "  spool                     µs/event   vs off" in done.stdout.splitlines()
+
+
+def test_floor_quick_mode_prints_the_compiled_cores_cost_per_event_and_per_frame():
+    done = run_benchmark("floor.py", "--quick")
+    assert_ran(done)
+    m = re.search(r"merge ([\d.]+) µs/event; the delay model's judgement ([\d.]+) µs/frame", done.stdout)
+    assert m and 0 < float(m[1]) < 50 and 0 < float(m[2]) < 50, done.stdout
