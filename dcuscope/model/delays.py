@@ -1,4 +1,5 @@
-"""The delay model: from a frame table to every delay figure dcuscope reports (vectorised numpy).
+"""The delay model: from a frame table to every delay figure dcuscope reports (vectorised numpy, and
+per frame in the compiled core where it loads: :func:`frame_delays`).
 
 ``dcuscope stats``, both exports, the relay's live engine, its stored-session API and
 ``/api/stats`` all derive their figures here, so that they agree exactly. Definitions

@@ -1,4 +1,5 @@
-"""Live per-run delay engine: pairs a node's events by frame as batches arrive (numpy per batch).
+"""Live per-run delay engine: pairs a node's events by frame as batches arrive (in the compiled core,
+:mod:`dcuscope.model.compiled`, where it loads; numpy, the reference, otherwise).
 
 Every figure comes from the delay model, :mod:`dcuscope.model.delays` (``frame_delays``, ``series``,
 ``delay_summary``), so that the relay's statistics over a run equal ``node_stats`` over the
