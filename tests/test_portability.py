@@ -46,14 +46,14 @@ def elf_machine(library: Path) -> int:
 
 def test_the_native_library_cross_compiles_for_aarch64(tmp_path, monkeypatch):
     """The tracer and tracepoints built for aarch64 against arm64's GStreamer (libgstreamer1.0-dev:arm64,
-    multiarch), and the relay's merge: both ELF files for AArch64, the tracer linking GStreamer."""
+    multiarch), and the compiled core: both ELF files for AArch64, the tracer linking GStreamer."""
     assert shutil.which(CROSS_CC), f"{CROSS_CC} is missing (make setup installs gcc-aarch64-linux-gnu)"
     assert Path(ARM64_PKG_CONFIG, "gstreamer-1.0.pc").is_file(), "libgstreamer1.0-dev:arm64 is missing (make setup)"
     monkeypatch.setenv("CC", CROSS_CC)
     monkeypatch.setenv("PKG_CONFIG_LIBDIR", f"{ARM64_PKG_CONFIG}:/usr/share/pkgconfig")
     probes = cbuild.compile_library(REPO / "probes" / "capture" / "c", tmp_path / cbuild.LIBRARY_NAME)
-    merge = cbuild.compile_library(REPO / "relay" / "live" / "c", tmp_path / cbuild.MERGE.name, cbuild.MERGE)
-    assert elf_machine(probes) == elf_machine(merge) == EM_AARCH64
+    core = cbuild.compile_library(REPO / "dcuscope" / "model" / "c", tmp_path / cbuild.CORE.name, cbuild.CORE)
+    assert elf_machine(probes) == elf_machine(core) == EM_AARCH64
     needed = subprocess.run(["aarch64-linux-gnu-readelf", "-d", str(probes)], capture_output=True, text=True).stdout
     assert "libgstreamer-1.0.so.0" in needed, needed
 

@@ -5,6 +5,7 @@ sender with both sinks, a receiver of each), and their traces joined by ``dcusco
 from __future__ import annotations
 
 import json
+import signal
 import socket
 import subprocess
 import sys
@@ -42,15 +43,21 @@ def run(tmp, name: str, text: str, seconds: float) -> subprocess.Popen:
 def journeys(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("ends")
     port = free_udp_port()
+    # Each end outlives what it feeds: the sender runs until the shm viewer is done, the RTP receiver
+    # until the sender is, each then stopped by Ctrl-C as a user stops it. On a loaded machine the
+    # viewer may start late, and a sender gone before it took its frames closes its socket.
     receiver = run(tmp, "DCU-2", f"node: DCU-2\nsources:\n  - {{rtp: {port}, latency: 100}}\n{STAGES}sink: {{type: fake}}\n",
-                   9)
+                   90)
     time.sleep(1.0)
     sender = run(tmp, "DCU-1", "node: DCU-1\nsources:\n  - {test: ball, live: true, width: 320, height: 240, rate: 25}\n"
-                 f"{STAGES}sinks:\n  - {{type: rtp, port: {port}}}\n  - {{type: shm, path: frames.sock}}\n", 6)
+                 f"{STAGES}sinks:\n  - {{type: rtp, port: {port}}}\n  - {{type: shm, path: frames.sock}}\n", 90)
     time.sleep(1.5)  # the socket is there
     viewer = run(tmp, "DCU-3", "node: DCU-3\nsources:\n  - {shm: frames.sock, width: 320, height: 240, rate: 25}\n"
                  f"{STAGES}sink: {{type: fake}}\n", 3)
-    for proc, name in ((sender, "DCU-1"), (receiver, "DCU-2"), (viewer, "DCU-3")):
+    for proc, name, after_s in ((viewer, "DCU-3", None), (sender, "DCU-1", 0.0), (receiver, "DCU-2", 1.0)):
+        if after_s is not None:
+            time.sleep(after_s)  # the receiver: the sender's last packets are in
+            proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=90)
         assert proc.returncode == 0, (name, err)
     result = run_cli("stats", *(tmp / f"DCU-{i}.jsonl" for i in (1, 2, 3)), "--json", cwd=tmp)
