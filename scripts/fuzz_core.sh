@@ -6,7 +6,7 @@
 # With clang and its libFuzzer (Debian: apt install clang libclang-rt-dev), coverage-guided libFuzzer
 # runs the harness (tests/model/fuzz/fuzz_core.c) and keeps what it finds new in SEEDS; without, or with
 # FUZZ_DRIVER=1, gcc builds the harness with its own driver (random mutations of the seeds), as the test
-# suite does for 6 s (tests/model/fuzz/test_fuzz_core.py). A finding aborts with the sanitizer's report
+# suite does for 4 s (tests/model/fuzz/test_fuzz_core.py). A finding aborts with the sanitizer's report
 # and a non-zero status. CORE_DIR: the C sources to fuzz (default dcuscope/model/c).
 set -euo pipefail
 cd "$(dirname "$0")/.."

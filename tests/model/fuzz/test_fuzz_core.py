@@ -1,4 +1,4 @@
-"""The compiled core under AddressSanitizer and UndefinedBehaviorSanitizer: real batches and 6 s of
+"""The compiled core under AddressSanitizer and UndefinedBehaviorSanitizer: real batches and 4 s of
 hostile ones through decoding, merging and judging (scripts/fuzz_core.sh, gcc's build of the harness
 with its own driver), no finding; and a planted overflow is found, so the run can fail."""
 
@@ -13,7 +13,7 @@ from tests.conftest import REPO, cli_env
 from tests.model.fuzz import seeds
 from tests.model.planted import planted_sources
 
-SECONDS = 6
+SECONDS = 4
 
 
 def fuzz(seed_dir, seconds: float, core=None) -> subprocess.CompletedProcess:
