@@ -18,6 +18,7 @@ import numpy as np
 
 from dcuscope.model.frametable import MISSING
 from dcuscope.protocol.events import EVENT_DTYPE, FRAME_CELLS
+from dcuscope.relay.live import framepack
 from dcuscope.model.compiled import CompiledCore
 
 MIN_ROWS = 64
@@ -187,7 +188,7 @@ class OpenTable:
         the columns a push carries of them (:func:`dcuscope.relay.live.framepack.node_columns`, the cursor
         row 0). Views of buffers this table keeps: valid until the next call."""
         k, s = len(rows), self._s
-        ir, fr = 9 + 2 * s, 2 + 4 * s
+        ir, fr = framepack.int_rows(s), framepack.float_rows(s)
         if k > self._judge_room:
             self._judge_room = room = max(64, 2 * k)
             self._j = {"rows": np.empty(room, np.int64), "complete": np.empty(room, bool), "end": np.empty(room, np.int64),

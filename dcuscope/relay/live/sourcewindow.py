@@ -48,31 +48,11 @@ class SourceWindow:
             return
         point, ts = events["point"], events["ts"]
         self._newest = max(self._newest, int(ts.max()))
-        if origins is not None:
-            (sources, bins, counts), top = origins
-            for source, b, n in zip(sources, bins, counts):
-                per = self._bins.setdefault(b, {})
-                per[source] = per.get(source, 0) + n
-            if top >= DROP:
-                self._add_drops_and_facts(events, point)
-            self._trim()
-            return
-        origin = point == ORIGIN
-        if origin.any():
-            bins, sources = ts[origin] // BIN_NS, events["source"][origin]
-            for source in np.unique(sources).tolist():  # a batch holds a few sources
-                mine = bins[sources == source]
-                first = int(mine.min())
-                if int(mine.max()) - first < SPAN_BINS:  # a batch spans a few bins: counted without a sort
-                    counts = np.bincount(mine - first)
-                    keys = np.flatnonzero(counts)
-                    keys, counts = keys + first, counts[keys]
-                else:  # times far apart (a node's clock stepped, or a hostile one): never an array that wide
-                    keys, counts = np.unique(mine, return_counts=True)
-                for b, n in zip(keys.tolist(), counts.tolist()):
-                    per = self._bins.setdefault(b, {})
-                    per[source] = per.get(source, 0) + n
-        if point.max() >= DROP:  # rare: most batches hold frame timestamps only
+        (sources, bins, counts), top = origins if origins is not None else _origins(events, point)
+        for source, b, n in zip(sources, bins, counts):
+            per = self._bins.setdefault(b, {})
+            per[source] = per.get(source, 0) + n
+        if top >= DROP:  # rare: most batches hold frame timestamps only
             self._add_drops_and_facts(events, point)
         self._trim()
 
@@ -124,3 +104,25 @@ class SourceWindow:
             return 0
         before = [v for t, v in history if t < cutoff_ns]
         return max(0, history[-1][1] - (before[-1] if before else 0))
+
+
+def _origins(events: np.ndarray, point: np.ndarray) -> tuple[list[list[int]], int]:
+    """What :meth:`dcuscope.model.compiled.OriginCounter.count` gives, with numpy: ([sources, bins, counts]
+    of the batch's origins per source and bin of ``BIN_NS``), and its greatest point."""
+    origin = point == ORIGIN
+    out: list[list[int]] = [[], [], []]
+    if origin.any():
+        bins, sources = events["ts"][origin] // BIN_NS, events["source"][origin]
+        for source in np.unique(sources).tolist():  # a batch holds a few sources
+            mine = bins[sources == source]
+            first = int(mine.min())
+            if int(mine.max()) - first < SPAN_BINS:  # a batch spans a few bins: counted without a sort
+                counts = np.bincount(mine - first)
+                keys = np.flatnonzero(counts)
+                keys, counts = keys + first, counts[keys]
+            else:  # times far apart (a node's clock stepped, or a hostile one): never an array that wide
+                keys, counts = np.unique(mine, return_counts=True)
+            out[0] += [source] * len(keys)
+            out[1] += keys.tolist()
+            out[2] += counts.tolist()
+    return out, int(point.max())
