@@ -83,7 +83,7 @@ def measure(runs: int, seconds: float, hz: float) -> dict:
     for name in ("window_stats", "run_stats"):
         took = []
         for run in live:
-            for _ in range(3):
+            for _ in range(10):
                 began = time.process_time()
                 getattr(run, name)()
                 took.append(time.process_time() - began)

@@ -36,9 +36,9 @@ class Library:
 
 
 PROBES = Library(MODULES, LIBRARY_NAME, gstreamer=True)
-CORE = Library(("batch", "merge", "judge", "push"), "libdcuscope_core.so", gstreamer=False)
+CORE = Library(("batch", "merge", "judge", "push", "stats"), "libdcuscope_core.so", gstreamer=False)
 """The compiled core (model/c): batches decoded and checked, paired into frames, judged by the delay
-model. No GStreamer, so a relay-only host builds it too."""
+model, their series summarized. No GStreamer, so a relay-only host builds it too."""
 
 
 class CBuildError(Exception):
@@ -80,8 +80,10 @@ def compile_library(c_dir: Path, library: Path, which: Library = PROBES) -> Path
     # half-written library (nor GStreamer's plugin scanner, which looks at every *.so there).
     fd, tmp = tempfile.mkstemp(suffix=".tmp", dir=library.parent)
     os.close(fd)
-    cmd = [_compiler(), "-O2", "-std=gnu11", "-Wall", "-Werror=implicit-function-declaration", "-shared", "-fPIC",
-           "-o", tmp, *map(str, sources(c_dir, which)), *(_gst_flags() if which.gstreamer else []), "-lm"]
+    # -ffp-contract=off: no multiply-add fused where the source has two roundings (aarch64 has the
+    # instruction): the compiled core's figures stay numpy's to the last bit there too.
+    cmd = [_compiler(), "-O2", "-std=gnu11", "-ffp-contract=off", "-Wall", "-Werror=implicit-function-declaration",
+           "-shared", "-fPIC", "-o", tmp, *map(str, sources(c_dir, which)), *(_gst_flags() if which.gstreamer else []), "-lm"]
     try:
         res = subprocess.run(cmd, capture_output=True, text=True)
     except OSError as exc:

@@ -1,16 +1,20 @@
-"""The compiled core: build and load ``c/`` (batch.c, merge.c, judge.c; a C compiler is all it needs).
+"""The compiled core: build and load ``c/`` (batch.c, merge.c, judge.c, push.c, stats.c; a C compiler is
+all it needs).
 
 What the relay's live path does per event, in one C library with a narrow interface: a wire batch
 decoded and checked (:meth:`CompiledCore.decode_header`), its events paired into a run's open frames
 (:attr:`CompiledCore.merge`, for :class:`dcuscope.relay.live.opentable.OpenTable`), frames judged by
 the delay model (:meth:`CompiledCore.judge`, for :func:`dcuscope.model.delays.frame_delays`, which the
 offline tools and the relay both call: one delay model; :attr:`CompiledCore.judge_rows`, a run's open
-frames judged at a push tick with the columns it pushes of them), and those columns moved to the
-relay's clock for a push (:attr:`CompiledCore.push_columns`). The numpy code beside each stays the
+frames judged at a push tick with the columns it pushes of them), those columns moved to the relay's
+clock for a push (:attr:`CompiledCore.push_columns`), and delay series summarized: count, mean and
+percentiles (:meth:`CompiledCore.summarize` for :func:`dcuscope.model.delays.summaries`, which every
+statistic goes through; :meth:`CompiledCore.summarize_held` for the relay's whole-run series,
+:meth:`dcuscope.relay.live.values.RunValues.summaries`). The numpy code beside each stays the
 reference, and what runs where this library cannot be had; tests hold the two to one another on real
-traces (tests/model/test_compiled_judge.py, tests/relay/live/test_live_merge.py,
-tests/relay/ingest/test_batch_check.py), and tests/model/fuzz feeds it hostile input under
-AddressSanitizer and UndefinedBehaviorSanitizer.
+traces (tests/model/test_compiled_judge.py, tests/model/test_compiled_stats.py,
+tests/relay/live/test_live_merge.py, tests/relay/ingest/test_batch_check.py), and tests/model/fuzz
+feeds it hostile input under AddressSanitizer and UndefinedBehaviorSanitizer.
 
 The library is ``_build/libdcuscope_core.so`` beside this file: compiled on demand in a checkout
 (git-ignored), by the package's build when installed (which writes ``_build/BUILD-STATE``: ``built``, or
@@ -42,7 +46,9 @@ HERE = Path(__file__).resolve().parent
 C_DIR = HERE / "c"
 BUILD_DIR = HERE / "_build"
 LIBRARY = BUILD_DIR / cbuild.CORE.name
-ABI = 5
+ABI = 6
+SUMMARY = 6
+"""Figures of a summarized series: count, mean, p50, p95, p99, max (c/stats.c)."""
 BATCH_OK, BATCH_INFLATE = 0, 1
 """:meth:`CompiledCore.decode_header`'s answers besides a fault (negative): the events are checked, or
 the payload is compressed (inflate it, then :meth:`CompiledCore.first_invalid`)."""
@@ -100,6 +106,10 @@ class CompiledCore:
         dll.dcu_origins.argtypes = [p, i64, i64, p, p, p, p, p, i64, p]
         dll.dcu_push_columns.restype = None
         dll.dcu_push_columns.argtypes = [p, p, i64, i32, p, p, p, p, p, p, i64, i64, p, p]
+        dll.dcu_summarize.restype = None
+        dll.dcu_summarize.argtypes = [p, p, i64, p]
+        dll.dcu_summarize_held.restype = None
+        dll.dcu_summarize_held.argtypes = [p, p, p, p, p, p, i64, p, p]
         self.rehash = dll.dcu_merge_rehash
         self.locate = dll.dcu_merge_locate
         self.merge = dll.dcu_merge
@@ -113,6 +123,8 @@ class CompiledCore:
         """``dcu_origins`` (c/merge.c): a batch's origins counted per source and time bin (:class:`OriginCounter`)."""
         self.push_columns = dll.dcu_push_columns
         """``dcu_push_columns`` (c/push.c): those columns moved to the relay's clock, field after field."""
+        self._summarize = dll.dcu_summarize
+        self._summarize_held = dll.dcu_summarize_held
         self._codes = np.ascontiguousarray(CODE_TABLE, np.uint8)
         self._codes_at = self._codes.ctypes.data
         self._head = np.zeros(4, np.int64)
@@ -134,6 +146,31 @@ class CompiledCore:
         code = self._decode(data, len(data), n_stages, max_events, self._codes_at, SOURCE_LIMIT, FRAME_LIMIT,
                             self._head_at)
         return code, int(self._head[0]), int(self._head[1])
+
+    def summarize(self, values: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+        """``dcu_summarize``: series ``values[offsets[i]:offsets[i + 1]]`` (float64, contiguous, reordered
+        in place; offsets int64) summarized, a row of :data:`SUMMARY` figures each (NaN: none)."""
+        out = np.empty((len(offsets) - 1, SUMMARY))
+        self._summarize(values.ctypes.data, offsets.ctypes.data, len(offsets) - 1, out.ctypes.data)
+        return out
+
+    def summarize_held(self, held: list[np.ndarray], n_sorted: list[int], n_held: list[int], held_ns: list[float],
+                       extra: list[np.ndarray]) -> np.ndarray:
+        """``dcu_summarize_held``: whole-run series, each ``held[i][:n_held[i]]`` (float64, contiguous;
+        ascending up to ``n_sorted[i]``, the rest sorted in, in place; their whole ns summed ``held_ns[i]``)
+        with ``extra[i]``, summarized as :meth:`summarize` summarizes their union, a row each."""
+        k = len(held)
+        at = np.array([h.ctypes.data for h in held], np.uint64)
+        sorted_, n = np.array(n_sorted, np.int64), np.array(n_held, np.int64)
+        offsets = np.zeros(k + 1, np.int64)
+        np.cumsum([len(e) for e in extra], out=offsets[1:])
+        values = np.concatenate(extra) if k else np.zeros(0)  # a copy: the core sorts it
+        scratch = np.empty(max(1, int((n - sorted_).max(initial=0))))
+        out = np.empty((k, SUMMARY))
+        self._summarize_held(at.ctypes.data, sorted_.ctypes.data, n.ctypes.data,
+                             np.array(held_ns, np.float64).ctypes.data, values.ctypes.data, offsets.ctypes.data, k,
+                             scratch.ctypes.data, out.ctypes.data)
+        return out
 
     def judge(self, j: Judge) -> int:
         """``dcu_judge``: the figures of ``j``'s frames written where it says; returns how many are complete."""

@@ -42,7 +42,7 @@ CSV, the per-frame JSON and the summaries list it from there.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -398,11 +398,37 @@ def summarize(values_ms: np.ndarray | Iterable[float]) -> dict:
     The mean is that of the values in whole nanoseconds (what timestamps hold), summed exactly
     (float64 adds integers exactly up to 2**53 ns, 104 days in all): so it does not depend on
     the order the values came in, and the relay, which adds finalised and open frames, gets
-    the figures of a trace file to the last bit. Sorting would cost 3x the rest.
+    the figures of a trace file to the last bit. Sorting would cost 3x the rest. Computed by the
+    compiled core where it loads (:func:`summaries`), else by :func:`summarize_numpy`, its reference.
     """
+    return summaries([values_ms])[0]
+
+
+def summaries(series: Sequence[np.ndarray | Iterable[float]]) -> list[dict]:
+    """:func:`summarize` of each of ``series``: in one call of the compiled core where it loads (numpy's
+    cost is its calls', ~60 µs a series, and the relay's statistics of a DCU are a few dozen series)."""
+    arrays = [np.asarray(v, dtype=np.float64).ravel() for v in series]
+    core = compiled_core.load()
+    if core is None:
+        return [summarize_numpy(a) for a in arrays]
+    offsets = np.zeros(len(arrays) + 1, np.int64)
+    np.cumsum([len(a) for a in arrays], out=offsets[1:])
+    values = np.concatenate(arrays) if arrays else np.zeros(0)  # a copy: the core reorders it
+    return [summary_of(*row) for row in core.summarize(values, offsets).tolist()]
+
+
+def summary_of(count: float, mean: float, p50: float, p95: float, p99: float, top: float) -> dict:
+    """:func:`summarize`'s dict of its figures (a row of the compiled core's)."""
+    if not count:
+        return {"count": 0, "mean_ms": None, "p50_ms": None, "p95_ms": None, "p99_ms": None, "max_ms": None}
+    return {"count": int(count), "mean_ms": mean, "p50_ms": p50, "p95_ms": p95, "p99_ms": p99, "max_ms": top}
+
+
+def summarize_numpy(values_ms: np.ndarray | Iterable[float]) -> dict:
+    """:func:`summarize` with numpy (the reference of the compiled core's, c/stats.c)."""
     values = np.asarray(values_ms, dtype=np.float64).ravel()
     if values.size == 0:
-        return {"count": 0, "mean_ms": None, "p50_ms": None, "p95_ms": None, "p99_ms": None, "max_ms": None}
+        return summary_of(0, 0, 0, 0, 0, 0)
     if np.isnan(values).any():
         p50, p95, p99 = np.percentile(values, PERCENTILES, method="linear")  # NaN, as numpy says
     else:  # numpy's figures from one partition at the six ranks they read (np.percentile does more around it)
@@ -411,10 +437,8 @@ def summarize(values_ms: np.ndarray | Iterable[float]) -> dict:
         part = np.partition(values, np.unique(np.concatenate([ranks, np.minimum(ranks + 1, n - 1)])))
         p50, p95, p99 = linear_percentiles(n, lambda at: part[at])
     total_ns = float(np.rint(values * NS_PER_MS).sum())
-    return {
-        "count": int(values.size), "mean_ms": total_ns / values.size / NS_PER_MS,
-        "p50_ms": float(p50), "p95_ms": float(p95), "p99_ms": float(p99), "max_ms": float(values.max()),
-    }
+    return summary_of(values.size, total_ns / values.size / NS_PER_MS, float(p50), float(p95), float(p99),
+                    float(values.max()))
 
 
 def linear_percentiles(n: int, at: Callable[[np.ndarray], np.ndarray]) -> list[float]:
@@ -430,33 +454,39 @@ def linear_percentiles(n: int, at: Callable[[np.ndarray], np.ndarray]) -> list[f
     return np.where(gamma >= 0.5, b - diff * (1 - gamma), a + diff * gamma).tolist()
 
 
-Summarizer = Callable[[str, str, np.ndarray], dict]
-"""(kind "stages" | "gaps" | "frame" | "service" | "wait" | "glass", name, values in ms) -> the
-``summarize`` dict of them; the relay's live engine passes one that adds the values of frames
+Summarizer = Callable[[list[tuple[str, str, np.ndarray]]], list[dict]]
+"""[(kind "stages" | "gaps" | "frame" | "service" | "wait" | "glass", name, values in ms), ...] -> the
+``summarize`` dict of each; the relay's live engine passes one that adds the values of frames
 already finalised."""
 
 
-def _plain(kind: str, name: str, values_ms: np.ndarray) -> dict:
-    return summarize(values_ms)
+def _plain(series: list[tuple[str, str, np.ndarray]]) -> list[dict]:
+    return summaries([values_ms for _, _, values_ms in series])
 
 
 def delay_summary(s: Series, summarize_ms: Summarizer = _plain) -> dict:
     """``{"stages", "gaps", "frame", "glass", "bottleneck"}``: a ``summarize`` dict per series;
     each stage's with its ``share`` of the mean frame delay, its ``service`` and ``wait``
     summaries, ``utilization`` (busy fraction of the span, None without service times) and
-    ``occupancy`` (mean frames inside it: its delays summed over the span)."""
-    frame = summarize_ms("frame", "frame", s.frame / NS_PER_MS)
-    stages = {}
+    ``occupancy`` (mean frames inside it: its delays summed over the span). Every series is
+    summarized in one call of ``summarize_ms``."""
+    none = np.zeros(0)
+    asked = [("frame", "frame", s.frame), ("glass", "glass", s.glass)]
     for name, values in s.stages.items():
-        st = summarize_ms("stages", name, values / NS_PER_MS)
+        asked += [("stages", name, values), ("service", name, s.service.get(name, none)),
+                  ("wait", name, s.wait.get(name, none))]
+    asked += [("gaps", name, values) for name, values in s.gaps.items()]
+    figures = iter(summarize_ms([(kind, name, values / NS_PER_MS) for kind, name, values in asked]))
+    frame, glass = next(figures), next(figures)
+    stages = {}
+    for name in s.stages:
+        st = next(figures)
         st["share"] = share(st, frame)
-        st["service"] = summarize_ms("service", name, s.service.get(name, np.zeros(0)) / NS_PER_MS)
-        st["wait"] = summarize_ms("wait", name, s.wait.get(name, np.zeros(0)) / NS_PER_MS)
+        st["service"], st["wait"] = next(figures), next(figures)
         st["utilization"] = s.busy[name] / s.span_ns if name in s.busy and s.span_ns > 0 else None
         st["occupancy"] = st["count"] * st["mean_ms"] * NS_PER_MS / s.span_ns if st["count"] and s.span_ns > 0 else None
         stages[name] = st
-    gaps = {name: summarize_ms("gaps", name, values / NS_PER_MS) for name, values in s.gaps.items()}
-    glass = summarize_ms("glass", "glass", s.glass / NS_PER_MS)
+    gaps = {name: next(figures) for name in s.gaps}
     return {"stages": stages, "gaps": gaps, "frame": frame, "glass": glass,
             "bottleneck": bottleneck(stages, s.threads)}
 

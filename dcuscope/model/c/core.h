@@ -3,8 +3,10 @@
  *   batch.c  a wire batch decoded and its events checked (protocol.wire's decode_batch, check_events);
  *   merge.c  events paired into the open frames of a run (relay.live.run.LiveRun's merge), and their
  *            origins counted per source and time bin (the run's accounting and window);
- *   judge.c  the delay model of a set of frames (model.delays' chains and frame_delays).
- * Python keeps numpy versions of all three as the reference (tests hold them to one another).
+ *   judge.c  the delay model of a set of frames (model.delays' chains and frame_delays);
+ *   push.c   the columns a push carries, moved to the relay's clock (relay.live.framepack);
+ *   stats.c  the summaries of delay series (model.delays.summarize: count, mean, percentiles, max).
+ * Python keeps numpy versions of all as the reference (tests hold them to one another).
  * No GStreamer and no Python: any C compiler builds it. Every entry point takes its sizes and never
  * reads or writes outside the arrays they describe, whatever the input (tests/model/fuzz). */
 #ifndef DCU_CORE_H
@@ -12,7 +14,7 @@
 
 #include <stdint.h>
 
-#define CORE_ABI 5
+#define CORE_ABI 6
 #define MISSING (-1)
 #define CELLS 6
 #define ORIGIN 0
@@ -83,5 +85,12 @@ int64_t dcu_judge_rows(const int64_t *cells, const int64_t *keys, const int64_t 
 void dcu_push_columns(const int64_t *ints, const double *floats, int64_t k, int32_t s, const int64_t *from,
                       const int64_t *ref, const int64_t *offset, const double *drift, const int64_t *unc,
                       const double *growth, int64_t n_seg, int64_t base_unc, int64_t *ints_out, double *floats_out);
+
+/* stats.c: the summaries of delay series (model.delays.summarize) */
+#define SUMMARY 6              /* count, mean, p50, p95, p99, max */
+#define SUMMARY_PERCENTILES 3
+void dcu_summarize(double *values, const int64_t *offsets, int64_t k, double *out);
+void dcu_summarize_held(double *const *held, const int64_t *n_sorted, const int64_t *n_held, const double *held_ns,
+                        double *extra, const int64_t *eoff, int64_t k, double *scratch, double *out);
 
 #endif

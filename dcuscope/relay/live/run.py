@@ -716,13 +716,16 @@ class LiveRun:
             "percentile_error": 0.0 if all(v.exact for v in self._all_series()) else RELATIVE_ERROR,
         }
 
-    def _session_summary(self, kind: str, name: str, values_ms: np.ndarray) -> dict:
-        """``summarize`` of the finalised values of a series and ``values_ms`` (open frames)."""
+    def _session_summary(self, series: list[tuple[str, str, np.ndarray]]) -> list[dict]:
+        """``summarize`` of the finalised values of each series and its ``values_ms`` (open frames)."""
+        return RunValues.summaries([(self._held(kind, name), values_ms) for kind, name, values_ms in series])
+
+    def _held(self, kind: str, name: str) -> RunValues:
         if kind == "frame":
-            return self._frame_values.summary(values_ms)
+            return self._frame_values
         if kind == "glass":
-            return self._glass_values.summary(values_ms)
-        return self._series(kind, name).summary(values_ms)
+            return self._glass_values
+        return self._series(kind, name)
 
     def window_stats(self, end_ns: int | None = None) -> dict:
         """The same statistics over frames whose chain ended in the ``window_s`` before ``end_ns``

@@ -2,13 +2,16 @@
  * a wire batch, taken the way the relay takes it: decoded and checked (batch.c); if sound, its events
  * merged into a small open table that grows as the relay's does (merge.c), its keys located, its
  * sources looked up; then the open frames judged by the delay model (judge.c), as a table and as a push
- * tick judges them, and their pushed columns moved to the relay's clock (push.c). Built with
+ * tick judges them, and their pushed columns moved to the relay's clock (push.c); the delays judged, and
+ * the batch's own bytes taken as values (NaN, infinities, anything), summarized as series and as
+ * whole-run series with open frames' values (stats.c). Built with
  * AddressSanitizer and UndefinedBehaviorSanitizer, any read or write outside an array, or any
  * undefined behaviour, aborts with a report.
  *
  * libFuzzer's entry point, LLVMFuzzerTestOneInput; without clang's -fsanitize=fuzzer, main() below
  * drives it: random mutations of the seed inputs (files in a folder) for a bounded time.
  *   input: byte 0 stages (1 + b % 12) | byte 1 links (b % 8 pairs, 0: one chain) | 2 bytes per link | batch */
+#include <math.h>
 #include <stddef.h>
 #include <stdio.h>
 #include <stdlib.h>
@@ -21,7 +24,7 @@
 #define FRAME_LIMIT (1LL << 44)
 
 static uint8_t codes[256 * 256];
-long long reached_merge, reached_judge, reached_push;
+long long reached_merge, reached_judge, reached_push, reached_stats;
 
 static void *grow(void *p, size_t bytes) {
     void *q = realloc(p, bytes);
@@ -53,6 +56,33 @@ static void room(table_t *t, int s) {
     t->hrow = grow(t->hrow, slots * 8);
     t->mask = slots - 1;
     dcu_merge_rehash(t->key, t->rows, t->hkey, t->hrow, t->mask);
+}
+
+/* values[0:n] summarized as k series (exact-size copies: the core reorders them), then as two whole-run
+ * series: the first half held (its first quarter sorted, the rest new) and the second half their open
+ * frames' values. */
+static void summarize_values(const double *values, int64_t n, int64_t k) {
+    double *v = malloc(n * 8 + 8), *out = malloc((k > 2 ? k : 2) * SUMMARY * 8);  /* k series, then 2 */
+    int64_t *off = malloc((k + 1) * 8);
+    memcpy(v, values, n * 8);
+    for (int64_t i = 0; i <= k; i++) off[i] = i * n / k;
+    dcu_summarize(v, off, k, out);
+    int64_t na = n / 2, sorted = na / 4;
+    memcpy(v, values, n * 8);
+    for (int64_t i = 1; i < sorted; i++) /* an insertion sort of the held part (no NaN there: kept apart) */
+        for (int64_t j = i; j > 0 && !(v[j - 1] <= v[j]); j--) {
+            double t = isnan(v[j]) ? 0 : v[j];
+            v[j] = isnan(v[j - 1]) ? 0 : v[j - 1];
+            v[j - 1] = t;
+        }
+    double *held[2] = {v, v + na}, held_ns[2] = {0, 0}, *scratch = malloc(n * 8 + 8);
+    int64_t n_sorted[2] = {sorted, 0}, n_held[2] = {na, 0}, eoff[3] = {0, n - na, n - na};
+    double *extra = malloc((n - na) * 8 + 8);
+    memcpy(extra, values + na, (n - na) * 8);
+    dcu_summarize_held(held, n_sorted, n_held, held_ns, extra, eoff, 2, scratch, out);
+    reached_stats++;
+    void *all[] = {v, out, off, scratch, extra};
+    for (size_t i = 0; i < sizeof all / sizeof *all; i++) free(all[i]);
 }
 
 static void judge_open(const table_t *t, int s, const int32_t *links, int n_links, const uint8_t *has_exit) {
@@ -91,6 +121,8 @@ static void judge_open(const table_t *t, int s, const int32_t *links, int n_link
     int complete = dcu_judge(&j);
     if (complete < 0 || complete > n) abort();
     reached_judge++;
+    summarize_values(j.delay, n * s, s);
+    summarize_values(j.frame, n, 1);
     void *all[] = {origin, ostage, capture, enter, exit_, ready, j.t_out, j.prev, j.end, j.passed, j.complete,
                    j.delay, j.gap, j.service, j.wait, j.frame, j.glass, j.scratch};
     for (size_t i = 0; i < sizeof all / sizeof *all; i++) free(all[i]);
@@ -141,6 +173,12 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size) {
     const uint8_t *batch = data + 2 + 2 * n_links;
     int64_t len = (int64_t)(size - 2 - 2 * n_links), head[4];
     int code = dcu_decode_batch(batch, len, s, MAX_EVENTS, codes, SOURCE_LIMIT, FRAME_LIMIT, head);
+    if (len >= 8) { /* the bytes as values: whatever a hostile node could make its delays */
+        double *values = malloc(len);
+        memcpy(values, batch, len / 8 * 8);
+        summarize_values(values, len / 8, 1 + data[1] % 5);
+        free(values);
+    }
     if (code != 0) return 0;
     int64_t n = head[1];
     event_t *ev = malloc(n * sizeof(event_t));
@@ -287,8 +325,8 @@ int main(int argc, char **argv) {
     free(seeds);
     free(sizes);
     free(buf);
-    printf("fuzz_core: %lld inputs, %lld merged, %lld judged, %lld pushed, no finding\n", runs, reached_merge,
-           reached_judge, reached_push);
+    printf("fuzz_core: %lld inputs, %lld merged, %lld judged, %lld pushed, %lld summarized, no finding\n", runs,
+           reached_merge, reached_judge, reached_push, reached_stats);
     fflush(stdout);
     return 0;
 }

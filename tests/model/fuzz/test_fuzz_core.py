@@ -1,5 +1,5 @@
 """The compiled core under AddressSanitizer and UndefinedBehaviorSanitizer: real batches and 4 s of
-hostile ones through decoding, merging and judging (scripts/fuzz_core.sh, gcc's build of the harness
+hostile ones through decoding, merging, judging and summarizing (scripts/fuzz_core.sh, gcc's build of the harness
 with its own driver), no finding; and a planted overflow is found, so the run can fail."""
 
 from __future__ import annotations
@@ -34,8 +34,9 @@ def seed_dir(tmp_path_factory, real_traces):
 def test_real_and_hostile_batches_find_nothing_in_the_sanitized_core(seed_dir):
     done = fuzz(seed_dir, SECONDS)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-6000:]
-    runs, merged, judged, pushed = (int(w) for w in done.stdout.split()[1:8:2])
+    runs, merged, judged, pushed, summarized = (int(w) for w in done.stdout.split()[1:10:2])
     assert "no finding" in done.stdout and runs > 10_000 and merged > 1_000 and judged == pushed == merged, done.stdout
+    assert summarized > 2 * judged, done.stdout  # the delays and frame delays of each judged table, and raw bytes
 
 
 def test_a_planted_overflow_is_found(seed_dir, tmp_path):
