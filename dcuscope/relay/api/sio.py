@@ -28,8 +28,10 @@ class JsonPacket(sio_packet.Packet):
     frames of a push, :mod:`dcuscope.relay.live.framepack`).
 
     The stock packet walks every list and dict of an outgoing message looking for bytes to send as
-    attachments; through the lists of a big message (statistics, a fleet's rows) that walk costs
-    more than making it. Here only objects are walked, and the lists at the top.
+    attachments, and copies each while it takes them out; through the lists of a big message
+    (statistics, a fleet's rows, a push's field layouts) that walk costs more than making it: 3/4
+    of a frames push's encoding (~700 calls for 8 DCUs). Here only objects are walked, and the
+    lists at the top, to find them and to take them out.
     """
 
     @classmethod
@@ -40,11 +42,35 @@ class JsonPacket(sio_packet.Packet):
             return any(_has_bytes(item) for item in data)
         return _has_bytes(data)
 
+    @classmethod
+    def deconstruct_binary(cls, data):
+        attachments: list = []
+        if isinstance(data, list):
+            return [_take_bytes(item, attachments) for item in data], attachments
+        return _take_bytes(data, attachments), attachments
+
 
 def _has_bytes(data) -> bool:
     if isinstance(data, (bytes, bytearray)):
         return True
     return isinstance(data, dict) and any(_has_bytes(value) for value in data.values())
+
+
+def _take_bytes(data, attachments: list):
+    """``data`` with the bytes among the values of its objects appended to ``attachments`` and replaced
+    by Socket.IO's placeholders; an object without any is itself, not a copy. One pass."""
+    if isinstance(data, (bytes, bytearray)):
+        attachments.append(data)
+        return {"_placeholder": True, "num": len(attachments) - 1}
+    if not isinstance(data, dict):
+        return data
+    out = None
+    for key, value in data.items():
+        if isinstance(value, (bytes, bytearray, dict)) and (taken := _take_bytes(value, attachments)) is not value:
+            if out is None:
+                out = dict(data)
+            out[key] = taken
+    return data if out is None else out
 
 
 class OneLine(logging.Filter):
