@@ -1,5 +1,5 @@
 """The delay model: from a frame table to every delay figure dcuscope reports (vectorised numpy, and
-per frame in the compiled core where it loads: :func:`frame_delays`).
+in the compiled core where it loads: :func:`frame_delays` per frame, :func:`summaries` per series).
 
 ``dcuscope stats``, both exports, the relay's live engine, its stored-session API and
 ``/api/stats`` all derive their figures here, so that they agree exactly. Definitions
@@ -34,7 +34,8 @@ turned into zero or partial delays. Loops run over stages and sources, never ove
 Three steps, each one function: :func:`frame_delays` (per frame: its chain, its per-stage
 columns, its end-to-end delay), :func:`series` (the values the statistics take, of complete
 frames: :func:`frame_values` picks them per frame, :func:`series_of` gathers them per stage) and
-:func:`delay_summary` (count, mean, percentiles, share, bottleneck). A new
+:func:`delay_summary` (count, mean, percentiles, share, bottleneck: every series summarized in one
+call of :func:`summaries`). A new
 per-stage figure is one more entry of ``FrameDelays.per_stage`` (:data:`STAGE_COLUMNS`): the
 CSV, the per-frame JSON and the summaries list it from there.
 """
