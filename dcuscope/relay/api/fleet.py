@@ -34,6 +34,10 @@ from dcuscope.relay.live.state import RelayState, RunState
 STALE_S = 3.0
 RELAY_SILENT = "relay silent"
 ROW_TTL_S = 300.0
+ROW_WINDOW_AGE_S = 1.0
+"""The rows are rebuilt once a second, and a window's statistics up to a second old serve them: for a
+DCU a page shows, the ones its statistics push made (at most every 0.5 s, WINDOW_MAX_AGE_S), not a
+second computation of the same window (~1.5 ms a DCU, 0.3 µs per paced event)."""
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +97,7 @@ class Fleet:
             if rs is None or not state.holds(rs):
                 continue
             view = views[node] = self.local_view(rs)
-            window = state.window(rs, fresh=False)
+            window = state.window(rs, fresh=False, max_age_s=ROW_WINDOW_AGE_S)
             drops = self._drops.setdefault(run, CountHistory()).recent(view["drops"], now)
             incomplete = self._incomplete.setdefault(run, CountHistory()).recent(view["frames"]["evicted"], now)
             whole = rs.whole.get(rs.live, rs.dropped, False, len(state.runs)) if rs.ended else None

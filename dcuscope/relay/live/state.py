@@ -101,8 +101,11 @@ class WindowStats:
         return (self.stats is not None and self.events == live.events
                 and not self.stats["frames"]["complete"] and not self.stats["frames"]["incomplete"])
 
-    def get(self, live: LiveRun, correction: Correction, fresh: bool, runs: int = 1) -> dict:
-        """``runs``: how many runs' windows are kept up to date this way (their share is split)."""
+    def get(self, live: LiveRun, correction: Correction, fresh: bool, runs: int = 1,
+            max_age_s: float = WINDOW_MAX_AGE_S) -> dict:
+        """``runs``: how many runs' windows are kept up to date this way (their share is split);
+        ``max_age_s``: how old the statistics held may be for this caller (the fleet's rows, rebuilt
+        once a second, take one up to a second old: the one a page's statistics push made)."""
         now = time.monotonic()
         if self.settled(live):
             return self.stats
@@ -111,7 +114,7 @@ class WindowStats:
         # (whatever the last one cost), so a silent run reads 0 within window_s on a busy relay too.
         emptied = self.events == live.events and end - int(live.config.window_s * 1e9) > live.newest
         if (fresh or emptied or self.stats is None
-                or now - self.at >= max(WINDOW_MAX_AGE_S, self.cost * runs / WINDOW_SHARE)):
+                or now - self.at >= max(max_age_s, self.cost * runs / WINDOW_SHARE)):
             self.stats, self.events = live.window_stats(end), live.events
             self.at, self.cost = now, time.monotonic() - now
         return self.stats
@@ -517,9 +520,9 @@ class RelayState:
         return dict(rs.whole.get(rs.live, rs.dropped, fresh, len(self.runs)), window=self.window(rs, fresh), node=rs.node,
                     run=rs.run, session=rs.session, lost=rs.lost, clock=clock_entry(self.correction(rs), time.time_ns()))
 
-    def window(self, rs: RunState, fresh: bool = True) -> dict:
+    def window(self, rs: RunState, fresh: bool = True, max_age_s: float = WINDOW_MAX_AGE_S) -> dict:
         """The run's rolling-window statistics, as :class:`WindowStats` allows unless ``fresh``."""
-        return rs.window.get(rs.live, self.correction(rs), fresh, len(self.runs))
+        return rs.window.get(rs.live, self.correction(rs), fresh, len(self.runs), max_age_s)
 
     def view(self, rs: RunState) -> RunView:
         """What the HTTP API and the pushes read of ``rs`` (:mod:`dcuscope.relay.live.runview`)."""

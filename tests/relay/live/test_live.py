@@ -366,6 +366,26 @@ def test_a_silent_runs_window_empties_however_long_its_last_one_took():
     assert window.settled(run) and window.get(run, NO_CORRECTION, fresh=True) is empty
 
 
+def test_a_window_up_to_a_second_old_serves_the_fleets_rows_and_a_push_gets_a_new_one():
+    """The statistics push asks for a window at most 0.5 s old, the fleet's rows (rebuilt once a second)
+    for one at most a second old: made 0.7 s ago, with new events since, the rows take it as it is and
+    the push gets a new one, which the rows then share."""
+    from dcuscope.relay.clock.correction import NO_CORRECTION
+    from dcuscope.relay.live.state import WindowStats
+
+    run = LiveRun(header_for("n", 1))
+    events = synth_events(200, 1, 1000.0, T0, seed=4)
+    run.add(events[:100])
+    window = WindowStats()
+    first = window.get(run, NO_CORRECTION, fresh=False)
+    run.add(events[100:])
+    window.at, window.cost = time.monotonic() - 0.7, 0.0
+    assert window.get(run, NO_CORRECTION, fresh=False, max_age_s=1.0) is first
+    pushed = window.get(run, NO_CORRECTION, fresh=False)
+    assert pushed is not first and pushed["frames"]["complete"] > first["frames"]["complete"]
+    assert window.get(run, NO_CORRECTION, fresh=False, max_age_s=1.0) is pushed
+
+
 def test_runs_maintained_together_show_and_state_exactly_what_each_alone_does():
     """The pusher judges the frames of every run of one graph in one pass (maintain_all): runs of
     the same graph, and one of another, fed alike batch by batch, show the same frames with the same
