@@ -15,11 +15,12 @@ both phases one after the other:
    relays it receives every relay's frames, through their Redis); lag = arrival of a ``frames``
    push - the timestamp of the frame's last event (its sink enter), ``nodes_seen``: the nodes
    whose frames came. The window opens once every node is listed by a relay with an event, or after
-   120 s; ``not_streaming`` names those that were not (and stderr says so). The node stamps an event when it happens, so the lag includes the node's
-   batching and the relay's push rate (the settings); ``push_transit`` is the part from the
-   relay sending a push to the client handling it. The client shows every DCU (a page with all
-   of them opened), or with ``--watch N`` DCU-1..DCU-N only (a page with N opened from the fleet
-   overview: the relays then build and push those only); ``watched`` says which.
+   120 s; ``not_streaming`` names those that were not (and stderr says so). The node stamps an event
+   when it happens, so the lag includes the node's batching and the relay's push rate (the
+   settings); ``push_transit`` is the part from the relay sending a push to the client handling it.
+   The client shows every DCU (a page with all of them opened), or with ``--watch N`` DCU-1..DCU-N
+   only (a page with N opened from the fleet overview: the relays then build and push those only);
+   ``watched`` says which.
 
 Settings (``--settings``), each combination run once with each, on adjacent rows of the table:
 ``today``, the settings before adaptive batching (nodes with ``--fixed-flush``: a batch every

@@ -77,39 +77,36 @@ class Judge(ctypes.Structure):
                                                         "service", "wait", "frame", "glass", "scratch"))]
 
 
+def _signatures() -> dict[str, tuple]:
+    """Each function of ``c/core.h`` the loader binds: (its result type, its argument types)."""
+    p, i64, i32, c_int = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32, ctypes.c_int
+    return {
+        "dcu_merge_rehash": (None, [p, i64, p, p, i64]),
+        "dcu_merge_locate": (None, [p, i64, p, p, i64, p, p]),
+        "dcu_merge": (i64, [p, i64, i32, p, p, i64, p, p, p, p, p, i64, i64, p, p, i64, p, p]),
+        "dcu_check": (i64, [p, i64, i32, p, i64, i64]),
+        "dcu_unknown_source": (i64, [p, i64, i64, p, i64]),
+        "dcu_decode_batch": (c_int, [ctypes.c_char_p, i64, i32, i64, p, i64, i64, p]),
+        "dcu_judge": (c_int, [ctypes.POINTER(Judge)]),
+        "dcu_judge_rows": (i64, [p, p, p, i64, i32, p, p, i32, p, p, p, p, p]),
+        "dcu_origins": (i64, [p, i64, i64, p, p, p, p, p, i64, p]),
+        "dcu_push_columns": (None, [p, p, i64, i32, p, p, p, p, p, p, i64, i64, p, p]),
+        "dcu_summarize": (None, [p, p, i64, p]),
+        "dcu_summarize_held": (None, [p, p, p, p, p, p, i64, p, p]),
+    }
+
+
 class CompiledCore:
     """The library's functions, bound (see ``c/core.h`` for what each does)."""
 
     def __init__(self, dll: ctypes.CDLL) -> None:
-        p, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int32
         dll.dcu_core_abi.restype = ctypes.c_int
         dll.dcu_event_size.restype = ctypes.c_int
         if dll.dcu_core_abi() != ABI or dll.dcu_event_size() != EVENT_DTYPE.itemsize:
             raise BuildError(f"{LIBRARY.name} is of another version (ABI {dll.dcu_core_abi()}, this dcuscope needs {ABI})")
-        dll.dcu_merge_rehash.restype = None
-        dll.dcu_merge_rehash.argtypes = [p, i64, p, p, i64]
-        dll.dcu_merge_locate.restype = None
-        dll.dcu_merge_locate.argtypes = [p, i64, p, p, i64, p, p]
-        dll.dcu_merge.restype = i64
-        dll.dcu_merge.argtypes = [p, i64, i32, p, p, i64, p, p, p, p, p, i64, i64, p, p, i64, p, p]
-        dll.dcu_check.restype = i64
-        dll.dcu_check.argtypes = [p, i64, i32, p, i64, i64]
-        dll.dcu_unknown_source.restype = i64
-        dll.dcu_unknown_source.argtypes = [p, i64, i64, p, i64]
-        dll.dcu_decode_batch.restype = ctypes.c_int
-        dll.dcu_decode_batch.argtypes = [ctypes.c_char_p, i64, i32, i64, p, i64, i64, p]
-        dll.dcu_judge.restype = ctypes.c_int
-        dll.dcu_judge.argtypes = [ctypes.POINTER(Judge)]
-        dll.dcu_judge_rows.restype = i64
-        dll.dcu_judge_rows.argtypes = [p, p, p, i64, i32, p, p, i32, p, p, p, p, p]
-        dll.dcu_origins.restype = i64
-        dll.dcu_origins.argtypes = [p, i64, i64, p, p, p, p, p, i64, p]
-        dll.dcu_push_columns.restype = None
-        dll.dcu_push_columns.argtypes = [p, p, i64, i32, p, p, p, p, p, p, i64, i64, p, p]
-        dll.dcu_summarize.restype = None
-        dll.dcu_summarize.argtypes = [p, p, i64, p]
-        dll.dcu_summarize_held.restype = None
-        dll.dcu_summarize_held.argtypes = [p, p, p, p, p, p, i64, p, p]
+        for name, (restype, argtypes) in _signatures().items():
+            fn = getattr(dll, name)
+            fn.restype, fn.argtypes = restype, argtypes
         self.rehash = dll.dcu_merge_rehash
         self.locate = dll.dcu_merge_locate
         self.merge = dll.dcu_merge
