@@ -7,7 +7,8 @@ decoded and checked (:meth:`CompiledCore.decode_header`), its events paired into
 the delay model (:meth:`CompiledCore.judge`, for :func:`dcuscope.model.delays.frame_delays`, which the
 offline tools and the relay both call: one delay model; :attr:`CompiledCore.judge_rows`, a run's open
 frames judged at a push tick with the columns it pushes of them), those columns moved to the relay's
-clock for a push (:attr:`CompiledCore.push_columns`), and delay series summarized: count, mean and
+clock for a push (:attr:`CompiledCore.push_columns`), and delay series gathered from frames' figures
+(:meth:`CompiledCore.series`, for :func:`dcuscope.model.delays.series_of`) and summarized: count, mean and
 percentiles (:meth:`CompiledCore.summarize` for :func:`dcuscope.model.delays.summaries`, which every
 statistic goes through; :meth:`CompiledCore.summarize_held` for the relay's whole-run series,
 :meth:`dcuscope.relay.live.values.RunValues.summaries`). The numpy code beside each stays the
@@ -46,9 +47,13 @@ HERE = Path(__file__).resolve().parent
 C_DIR = HERE / "c"
 BUILD_DIR = HERE / "_build"
 LIBRARY = BUILD_DIR / cbuild.CORE.name
-ABI = 6
+ABI = 7
 SUMMARY = 6
 """Figures of a summarized series: count, mean, p50, p95, p99, max (c/stats.c)."""
+SERIES_KINDS = ("glass", "stages", "service", "wait", "gaps")
+"""What a series :meth:`CompiledCore.series` gathers is, by the kind number of its row (c/core.h)."""
+WORK_KEPT = 4 << 20
+"""Bytes of work arrays a thread keeps between calls of the core at most (:meth:`CompiledCore._room`)."""
 BATCH_OK, BATCH_INFLATE = 0, 1
 """:meth:`CompiledCore.decode_header`'s answers besides a fault (negative): the events are checked, or
 the payload is compressed (inflate it, then :meth:`CompiledCore.first_invalid`)."""
@@ -93,6 +98,7 @@ def _signatures() -> dict[str, tuple]:
         "dcu_push_columns": (None, [p, p, i64, i32, p, p, p, p, p, p, i64, i64, p, p]),
         "dcu_summarize": (None, [p, p, i64, p]),
         "dcu_summarize_held": (None, [p, p, p, p, p, p, i64, p, p]),
+        "dcu_series": (i64, [i64, i32, p, p, p, p, p, p, p, p, p, p, p, p, p]),
     }
 
 
@@ -122,6 +128,8 @@ class CompiledCore:
         """``dcu_push_columns`` (c/push.c): those columns moved to the relay's clock, field after field."""
         self._summarize = dll.dcu_summarize
         self._summarize_held = dll.dcu_summarize_held
+        self._series = dll.dcu_series
+        self._work = threading.local()
         self._codes = np.ascontiguousarray(CODE_TABLE, np.uint8)
         self._codes_at = self._codes.ctypes.data
         self._head = np.zeros(4, np.int64)
@@ -168,6 +176,41 @@ class CompiledCore:
                              np.array(held_ns, np.float64).ctypes.data, values.ctypes.data, offsets.ctypes.data, k,
                              scratch.ctypes.data, out.ctypes.data)
         return out
+
+    def series(self, per_stage: list[np.ndarray], glass: np.ndarray, prev: np.ndarray, first: np.ndarray,
+               has_exit: np.ndarray) -> tuple[list[tuple[str, int, int, np.ndarray]], np.ndarray]:
+        """``dcu_series``: the delay series of frames' values (``per_stage``: the four (n, s) columns of
+        :data:`dcuscope.model.delays.STAGE_COLUMNS`; ``glass``, ``prev``, ``first`` as
+        :class:`~dcuscope.model.delays.FrameValues` holds them): (kind (:data:`SERIES_KINDS`), a, b, values)
+        of each series in order, and each stage's busy time (NaN without service times)."""
+        n, s = prev.shape
+        cols = [np.ascontiguousarray(c, np.float64) for c in per_stage]
+        glass = np.ascontiguousarray(glass, np.float64)
+        prev, first = np.ascontiguousarray(prev, np.int64), np.ascontiguousarray(first, np.uint8)
+        has_exit = np.ascontiguousarray(has_exit, np.uint8)
+        out, scratch = self._room("out", n * (4 * s + 1), np.float64), self._room("scratch", max(1, n), np.float64)
+        rows, pairs = np.empty((1 + 3 * s + s * s, 4), np.int64), np.empty(max(1, s * s), np.int64)
+        busy = np.empty(s)
+        k = self._series(n, s, *(c.ctypes.data for c in cols), glass.ctypes.data, prev.ctypes.data, first.ctypes.data,
+                         has_exit.ctypes.data, out.ctypes.data, rows.ctypes.data, busy.ctypes.data, pairs.ctypes.data,
+                         scratch.ctypes.data)
+        made, at = [], 0
+        for kind, a, b, count in rows[:k].tolist():
+            made.append((SERIES_KINDS[kind], a, b, out[at:at + count].copy()))  # arrays of their own, as numpy's
+            at += count
+        return made, busy
+
+    def _room(self, name: str, size: int, dtype) -> np.ndarray:
+        """A work array of this thread's, at least ``size`` long, kept from call to call up to
+        :data:`WORK_KEPT` bytes: one of a fresh ~300 kB a call (a rolling window's series) made the
+        allocator hand its pages back and fault them in again, which cost more than numpy's calls."""
+        kept = getattr(self._work, name, None)
+        if kept is not None and len(kept) >= size:
+            return kept
+        made = np.empty(size, dtype)
+        if made.nbytes <= WORK_KEPT:
+            setattr(self._work, name, made)
+        return made
 
     def judge(self, j: Judge) -> int:
         """``dcu_judge``: the figures of ``j``'s frames written where it says; returns how many are complete."""

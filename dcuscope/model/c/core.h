@@ -5,7 +5,8 @@
  *            origins counted per source and time bin (the run's accounting and window);
  *   judge.c  the delay model of a set of frames (model.delays' chains and frame_delays);
  *   push.c   the columns a push carries, moved to the relay's clock (relay.live.framepack);
- *   stats.c  the summaries of delay series (model.delays.summarize: count, mean, percentiles, max).
+ *   stats.c  delay series gathered from frames' values (model.delays.series_of) and summarized
+ *            (model.delays.summarize: count, mean, percentiles, max).
  * Python keeps numpy versions of all as the reference (tests hold them to one another).
  * No GStreamer and no Python: any C compiler builds it. Every entry point takes its sizes and never
  * reads or writes outside the arrays they describe, whatever the input (tests/model/fuzz). */
@@ -14,7 +15,7 @@
 
 #include <stdint.h>
 
-#define CORE_ABI 6
+#define CORE_ABI 7
 #define MISSING (-1)
 #define CELLS 6
 #define ORIGIN 0
@@ -86,11 +87,16 @@ void dcu_push_columns(const int64_t *ints, const double *floats, int64_t k, int3
                       const int64_t *ref, const int64_t *offset, const double *drift, const int64_t *unc,
                       const double *growth, int64_t n_seg, int64_t base_unc, int64_t *ints_out, double *floats_out);
 
-/* stats.c: the summaries of delay series (model.delays.summarize) */
+/* stats.c: delay series gathered (model.delays.series_of) and summarized (model.delays.summarize) */
 #define SUMMARY 6              /* count, mean, p50, p95, p99, max */
 #define SUMMARY_PERCENTILES 3
 void dcu_summarize(double *values, const int64_t *offsets, int64_t k, double *out);
 void dcu_summarize_held(double *const *held, const int64_t *n_sorted, const int64_t *n_held, const double *held_ns,
                         double *extra, const int64_t *eoff, int64_t k, double *scratch, double *out);
+enum { SERIES_GLASS, SERIES_STAGE, SERIES_SERVICE, SERIES_WAIT, SERIES_GAP };  /* a gathered series' kind */
+int64_t dcu_series(int64_t n, int32_t s, const double *delay, const double *gap, const double *service,
+                   const double *wait, const double *glass, const int64_t *prev, const uint8_t *first,
+                   const uint8_t *has_exit, double *out, int64_t *rows, double *busy, int64_t *pairs,
+                   double *scratch);
 
 #endif

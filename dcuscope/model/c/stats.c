@@ -1,5 +1,6 @@
-/* The summaries of delay series (model.delays.summarize): count, mean, the percentiles and the maximum of
- * each, as numpy computes them, to the last bit. The statistics the relay pushes every second for every
+/* Delay series: gathered from frames' values (model.delays.series_of), and summarized
+ * (model.delays.summarize): count, mean, the percentiles and the maximum of each, as numpy computes
+ * them, to the last bit. The statistics the relay pushes every second for every
  * DCU shown are a few dozen series each (stages, gaps, their service and wait, frame, glass): numpy's
  * cost there is its calls', ~60 µs a series, where selecting a few ranks of a few hundred values takes
  * a few µs. Many series in one call, their values one after another. */
@@ -14,29 +15,35 @@ static const double PERCENTILES[SUMMARY_PERCENTILES] = {50, 95, 99};
 
 static inline double whole_ns(double ms) { return rint(ms * NS_PER_MS); }
 
-/* The sum of whole_ns(a[i]) as numpy's float64 sum adds (pairwise: blocks of up to 128 values over 8
+static inline double as_is(double x) { return x; }
+
+/* The sum of F(a[i]) as numpy's float64 sum adds (pairwise: blocks of up to 128 values over 8
  * accumulators, halves above), so that it is numpy's to the bit when it is not exact too (a sum past
- * 2^53 ns, 104 days) and the order of the adds matters. */
-static double pairwise_ns(const double *a, int64_t n) {
-    if (n < 8) {
-        double res = -0.0;
-        for (int64_t i = 0; i < n; i++) res += whole_ns(a[i]);
-        return res;
+ * 2^53 ns, 104 days) and the order of the adds matters. pairwise_ns sums whole ns of values in ms,
+ * pairwise_plain the values as they are. */
+#define PAIRWISE(NAME, F)                                                                    \
+    static double NAME(const double *a, int64_t n) {                                          \
+        if (n < 8) {                                                                          \
+            double res = -0.0;                                                                \
+            for (int64_t i = 0; i < n; i++) res += F(a[i]);                                   \
+            return res;                                                                       \
+        }                                                                                     \
+        if (n <= 128) {                                                                       \
+            double r[8];                                                                      \
+            for (int j = 0; j < 8; j++) r[j] = F(a[j]);                                       \
+            int64_t i = 8;                                                                    \
+            for (; i < n - (n % 8); i += 8)                                                   \
+                for (int j = 0; j < 8; j++) r[j] += F(a[i + j]);                              \
+            double res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));  \
+            for (; i < n; i++) res += F(a[i]);                                                \
+            return res;                                                                       \
+        }                                                                                     \
+        int64_t half = n / 2;                                                                 \
+        half -= half % 8;                                                                     \
+        return NAME(a, half) + NAME(a + half, n - half);                                      \
     }
-    if (n <= 128) {
-        double r[8];
-        for (int j = 0; j < 8; j++) r[j] = whole_ns(a[j]);
-        int64_t i = 8;
-        for (; i < n - (n % 8); i += 8)
-            for (int j = 0; j < 8; j++) r[j] += whole_ns(a[i + j]);
-        double res = ((r[0] + r[1]) + (r[2] + r[3])) + ((r[4] + r[5]) + (r[6] + r[7]));
-        for (; i < n; i++) res += whole_ns(a[i]);
-        return res;
-    }
-    int64_t half = n / 2;
-    half -= half % 8;
-    return pairwise_ns(a, half) + pairwise_ns(a + half, n - half);
-}
+PAIRWISE(pairwise_ns, whole_ns)
+PAIRWISE(pairwise_plain, as_is)
 
 /* numpy's np.rint(a * 1e6).sum(): its reduction starts from the identity. */
 static inline double sum_ns(const double *a, int64_t n) { return 0.0 + pairwise_ns(a, n); }
@@ -257,4 +264,71 @@ void dcu_summarize_held(double *const *held, const int64_t *n_sorted, const int6
         const double top_a = na ? a[na - 1] : -INFINITY, top_b = nb ? b[nb - 1] : -INFINITY;
         o[SUMMARY - 1] = top_a > top_b ? top_a : top_b;
     }
+}
+
+/* The series of n frames' values (model.delays.series_of), gathered one after another into out (room for
+ * n * (4 s + 1) values) in the order series_of makes them: the glass-to-glass delays that are not NaN;
+ * then for each stage b with an exit (has_exit[b]): its delays that are not NaN, and where it has
+ * service times, those and the wait times of the same frames; then the gaps, stage b after stage b,
+ * each split by the previous stage a the frame passed (a ascending). Every series keeps the frames' row
+ * order. A row of rows (room for 1 + 3 s + s * s) says what each series is: (kind, a, b, count), its
+ * values following the last's. busy[b]: the service times of the frames first in their output buffer
+ * at b summed as numpy sums them (NaN without service times). delay, gap, service and wait are (n, s),
+ * row-major; prev (n, s); first (n, s) 0 or 1; pairs (s * s) and scratch (n) are work space. A gap whose
+ * previous stage is out of range (never, from the judge) is counted nowhere. Returns the rows made. */
+int64_t dcu_series(int64_t n, int32_t s, const double *delay, const double *gap, const double *service,
+                   const double *wait, const double *glass, const int64_t *prev, const uint8_t *first,
+                   const uint8_t *has_exit, double *out, int64_t *rows, double *busy, int64_t *pairs,
+                   double *scratch) {
+    int64_t at = 0, k = 0;
+#define ROW(KIND, A, B, COUNT) \
+    do { rows[4 * k] = (KIND); rows[4 * k + 1] = (A); rows[4 * k + 2] = (B); rows[4 * k + 3] = (COUNT); k++; } while (0)
+    int64_t start = at;
+    for (int64_t i = 0; i < n; i++)
+        if (!isnan(glass[i])) out[at++] = glass[i];
+    ROW(SERIES_GLASS, -1, -1, at - start);
+    for (int32_t b = 0; b < s; b++) {
+        busy[b] = NAN;
+        if (!has_exit[b]) continue;
+        start = at;
+        for (int64_t i = 0; i < n; i++)
+            if (!isnan(delay[i * s + b])) out[at++] = delay[i * s + b];
+        ROW(SERIES_STAGE, b, b, at - start);
+        int64_t timed = 0, firsts = 0;
+        for (int64_t i = 0; i < n; i++) {
+            const double v = service[i * s + b];
+            if (isnan(v)) continue;
+            out[at + timed++] = v;
+            if (first[i * s + b]) scratch[firsts++] = v;
+        }
+        if (!timed) continue;
+        ROW(SERIES_SERVICE, b, b, timed);
+        at += timed;
+        for (int64_t i = 0; i < n; i++)
+            if (!isnan(service[i * s + b])) out[at++] = wait[i * s + b];
+        ROW(SERIES_WAIT, b, b, timed);
+        busy[b] = 0.0 + pairwise_plain(scratch, firsts);
+    }
+    /* The gaps: counted per (a, b), their places given in series_of's order, then written in row order. */
+    for (int64_t p = 0; p < (int64_t)s * s; p++) pairs[p] = 0;
+    for (int64_t i = 0; i < n; i++)
+        for (int32_t b = 0; b < s; b++) {
+            const int64_t a = prev[i * s + b];
+            if (!isnan(gap[i * s + b]) && 0 <= a && a < s) pairs[a * s + b]++;
+        }
+    for (int32_t b = 0; b < s; b++)
+        for (int32_t a = 0; a < s; a++) {
+            const int64_t count = pairs[(int64_t)a * s + b];
+            if (!count) continue;
+            ROW(SERIES_GAP, a, b, count);
+            pairs[(int64_t)a * s + b] = at;
+            at += count;
+        }
+    for (int64_t i = 0; i < n; i++)
+        for (int32_t b = 0; b < s; b++) {
+            const int64_t a = prev[i * s + b];
+            if (!isnan(gap[i * s + b]) && 0 <= a && a < s) out[pairs[a * s + b]++] = gap[i * s + b];
+        }
+#undef ROW
+    return k;
 }

@@ -2,9 +2,10 @@
  * a wire batch, taken the way the relay takes it: decoded and checked (batch.c); if sound, its events
  * merged into a small open table that grows as the relay's does (merge.c), its keys located, its
  * sources looked up; then the open frames judged by the delay model (judge.c), as a table and as a push
- * tick judges them, and their pushed columns moved to the relay's clock (push.c); the delays judged, and
- * the batch's own bytes taken as values (NaN, infinities, anything), summarized as series and as
- * whole-run series with open frames' values (stats.c). Built with
+ * tick judges them, and their pushed columns moved to the relay's clock (push.c); the judged frames'
+ * delay series gathered and summarized, the delays judged, and the batch's own bytes taken as values
+ * (NaN, infinities, anything), summarized as series and as whole-run series with open frames' values
+ * (stats.c). Built with
  * AddressSanitizer and UndefinedBehaviorSanitizer, any read or write outside an array, or any
  * undefined behaviour, aborts with a report.
  *
@@ -24,7 +25,7 @@
 #define FRAME_LIMIT (1LL << 44)
 
 static uint8_t codes[256 * 256];
-long long reached_merge, reached_judge, reached_push, reached_stats;
+long long reached_merge, reached_judge, reached_push, reached_stats, reached_series;
 
 static void *grow(void *p, size_t bytes) {
     void *q = realloc(p, bytes);
@@ -85,6 +86,27 @@ static void summarize_values(const double *values, int64_t n, int64_t k) {
     for (size_t i = 0; i < sizeof all / sizeof *all; i++) free(all[i]);
 }
 
+/* The delay series of the n frames j judged gathered (first: their ready cells), then summarized; the
+ * arrays exactly as large as dcu_series says it needs. */
+static void gather_series(const judge_t *j, const int64_t *ready) {
+    const int64_t n = j->n, s = j->s;
+    double *out = malloc(n * (4 * s + 1) * 8 + 8), *busy = malloc(s * 8), *scratch = malloc(n * 8 + 8);
+    int64_t *rows = malloc((1 + 3 * s + s * s) * 4 * 8), *pairs = malloc(s * s * 8), *off = malloc((2 + 3 * s + s * s) * 8);
+    uint8_t *first = malloc(n * s + 1);
+    for (int64_t i = 0; i < n * s; i++) first[i] = ready[i] != MISSING;
+    int64_t k = dcu_series(n, (int32_t)s, j->delay, j->gap, j->service, j->wait, j->glass, j->prev, first, j->has_exit,
+                           out, rows, busy, pairs, scratch);
+    if (k < 1 || k > 1 + 3 * s + s * s) abort();
+    off[0] = 0;
+    for (int64_t i = 0; i < k; i++) off[i + 1] = off[i] + rows[4 * i + 3];
+    if (off[k] > n * (4 * s + 1)) abort();
+    double *summary = malloc(k * SUMMARY * 8);
+    dcu_summarize(out, off, k, summary);
+    reached_series++;
+    void *all[] = {out, busy, scratch, rows, pairs, off, first, summary};
+    for (size_t i = 0; i < sizeof all / sizeof *all; i++) free(all[i]);
+}
+
 static void judge_open(const table_t *t, int s, const int32_t *links, int n_links, const uint8_t *has_exit) {
     int64_t n = t->rows;
     int64_t *origin = malloc(n * 8 + 8), *ostage = malloc(n * 8 + 8), *capture = malloc(n * 8 + 8);
@@ -121,6 +143,7 @@ static void judge_open(const table_t *t, int s, const int32_t *links, int n_link
     int complete = dcu_judge(&j);
     if (complete < 0 || complete > n) abort();
     reached_judge++;
+    gather_series(&j, ready);
     summarize_values(j.delay, n * s, s);
     summarize_values(j.frame, n, 1);
     void *all[] = {origin, ostage, capture, enter, exit_, ready, j.t_out, j.prev, j.end, j.passed, j.complete,
@@ -325,8 +348,8 @@ int main(int argc, char **argv) {
     free(seeds);
     free(sizes);
     free(buf);
-    printf("fuzz_core: %lld inputs, %lld merged, %lld judged, %lld pushed, %lld summarized, no finding\n", runs,
-           reached_merge, reached_judge, reached_push, reached_stats);
+    printf("fuzz_core: %lld inputs, %lld merged, %lld judged, %lld pushed, %lld summarized, %lld gathered, no finding\n",
+           runs, reached_merge, reached_judge, reached_push, reached_stats, reached_series);
     fflush(stdout);
     return 0;
 }

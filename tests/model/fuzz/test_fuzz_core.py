@@ -34,9 +34,10 @@ def seed_dir(tmp_path_factory, real_traces):
 def test_real_and_hostile_batches_find_nothing_in_the_sanitized_core(seed_dir):
     done = fuzz(seed_dir, SECONDS)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-6000:]
-    runs, merged, judged, pushed, summarized = (int(w) for w in done.stdout.split()[1:10:2])
+    runs, merged, judged, pushed, summarized, gathered = (int(w) for w in done.stdout.split()[1:12:2])
     assert "no finding" in done.stdout and runs > 10_000 and merged > 1_000 and judged == pushed == merged, done.stdout
     assert summarized > 2 * judged, done.stdout  # the delays and frame delays of each judged table, and raw bytes
+    assert gathered == judged, done.stdout  # each judged table's series
 
 
 def test_a_planted_overflow_is_found(seed_dir, tmp_path):
