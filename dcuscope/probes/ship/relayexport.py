@@ -58,6 +58,9 @@ END_TIMEOUT_S = 2.0
 """Of ``close_timeout_s``, kept to say ``end``."""
 TEARDOWN_S = 1.5
 """Of ``close_timeout_s``, kept to close the WebSocket and end the thread."""
+CUT_WAIT_S = 60.0
+"""The longest ``close`` waits for what was written to be cut into batches (spooled, or counted lost at
+the bounds) before ``close_timeout_s`` starts: local work, encoding and the spool's disk, not the relay's."""
 
 log = logging.getLogger(__name__)
 
@@ -158,11 +161,19 @@ class RelayExporter:
             self._loop.call_soon_threadsafe(self._wake.set)
 
     def close(self, dropped: int, progress: Callable[[int, int], None] | None = None) -> None:
-        """Send what is buffered, tell the relay the run ended; all within ``close_timeout_s``.
+        """Cut what is buffered into batches (local work, at most CUT_WAIT_S), then send them and tell the
+        relay the run ended, within ``close_timeout_s``.
         ``progress`` (a drain): first wait while the relay keeps acknowledging, ``close_timeout_s``
         at most without an acknowledgement, calling ``progress(stored, events)`` every CLOSE_SAY_S."""
         if self._thread is None or self._loop is None:
             return
+        # Everything written is cut first, whatever the close timeout: a loop still busy spooling when
+        # close came (a loaded machine, a slow disk) would otherwise leave the last writes neither
+        # spooled nor counted lost.
+        try:
+            asyncio.run_coroutine_threadsafe(self._cut_pending(), self._loop).result(CUT_WAIT_S)
+        except Exception as exc:  # noqa: BLE001 - closing must not raise into the pipeline's teardown
+            log.warning("relay exporter %s: close: cutting the last batches: %s", self.node, exc or type(exc).__name__)
         if progress is not None:
             asyncio.run_coroutine_threadsafe(self._until_stalled(progress), self._loop).result()
         deadline = time.monotonic() + self.close_timeout_s
@@ -178,6 +189,10 @@ class RelayExporter:
                 end = self._end
                 spool.set_end({**end, "lost": max(0, end["lost"] - int(spool.meta.get("lost", 0)))})
             self.spool_gone = spool.close(self._end_heard)
+
+    async def _cut_pending(self) -> None:
+        if self.outbox.cut():
+            self._progress.set()
 
     async def _until_stalled(self, progress: Callable[[int, int], None]) -> None:
         box = self.outbox
@@ -297,8 +312,7 @@ class RelayExporter:
         """Wait for the acknowledgements, trying every relay, until ``deadline`` leaves time to say
         ``end``; then say it (to whichever relay answers)."""
         box = self.outbox
-        if box.cut():
-            self._progress.set()
+        await self._cut_pending()  # anything written after close() cut
         if not self._resumed:
             self._ended_ns, self._dropped = time.time_ns(), dropped
         # What close() keeps to say end and tear down: at most half its time, so that a short

@@ -291,3 +291,23 @@ def test_close_keeps_trying_for_its_timeout_and_says_what_it_waits_for(tmp_path,
     assert c["acked"] == len(events) and c["lost"] == 0, c
     said = [r.getMessage() for r in caplog.records if "closing: waiting for" in r.getMessage()]
     assert said and f"{len(events)} events to be acknowledged" in said[0] and "--close-timeout" in said[0], said
+
+
+def test_a_close_shorter_than_the_last_cut_still_spools_or_counts_every_event(tmp_path):
+    """No relay, a 1 MiB spool, 2.9 MB written at once and closed with 50 ms to spare: cutting and spooling
+    the last writes takes the exporter's loop longer than that. Every event is still either kept in the
+    spool or counted lost (the close timeout is the relay's, not the disk's), and the node says so."""
+    from dcuscope.probes.ship.spool import Spool
+
+    exporter = RelayExporter(f"http://127.0.0.1:{free_port()}", "N", close_timeout_s=0.05,
+                             spool=Spool(tmp_path / "spool", 1 << 20))
+    exporter.start(header_for("N", 4, T0))
+    events = synth_events(2500, 4, 30.0, T0)
+    exporter.write(events)
+    exporter.close(0)
+    delivery, spool = exporter.delivery(), Spool(tmp_path / "spool", 1 << 20)
+    kept = sum(r.events for r in spool.runs())
+    assert exporter.lost > 0 and delivery.spooled == kept
+    assert kept + exporter.lost == len(events) == delivery.events, (kept, exporter.lost, len(events))
+    assert delivery.unacknowledged == exporter.lost
+    assert f"{exporter.lost} not acknowledged" in delivery.line()
