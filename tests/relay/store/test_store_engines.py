@@ -354,7 +354,9 @@ def test_a_transaction_postgresql_rolls_back_as_a_deadlock_is_tried_again(pg_url
             other.execute("UPDATE runs SET events = events + 10 WHERE id = %s", (b,))
             other.commit()
             done.result(timeout=30)
-        assert len(tries) == 2 and database.conflicts == 1
+        # Rolled back, then committed on a later try: on a loaded machine its second try has once met the
+        # other in a second deadlock (3 tries, CI), which it also survived.
+        assert len(tries) >= 2 and database.conflicts == len(tries) - 1, (tries, database.conflicts)
         events = dict(other.execute("SELECT id, events FROM runs WHERE id IN (%s, %s)", (a, b)).fetchall())
         assert events == {a: 11, b: 11}
     finally:
